@@ -1,0 +1,177 @@
+"""Deterministic liver phantoms: an implicit liver, its portal and hepatic trees, labels.
+
+A phantom is fully determined by its index (0, 1, 2, …): the index seeds every random
+choice, so the same index gives the same bytes on every machine with the same numpy.
+Shape recipe (mm, +x patient-left, +y anterior, +z superior):
+- a large right lobe and a thin, tapering left lobe joined by a smooth union (the dome is
+  the top of that union);
+- a sloping inferior (visceral) cut plane, higher anteriorly, whose crease with the dome
+  makes the left and right inferior ridges;
+- a flattened posterior face (bare area), a hilum notch carved into the visceral surface,
+  an umbilical notch at the inferior border where the falciform ligament ends;
+- low-frequency bumps so that no two phantoms are alike.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import trimesh
+from skimage.measure import marching_cubes
+
+from . import sdf
+from .model import REGION_NAMES, PreopModel
+from .vessels import grow_hepatic_tree, grow_portal_tree, tube_surface
+
+
+@dataclass(frozen=True)
+class LiverShape:
+    """Parameters of the implicit liver (mm)."""
+
+    right_centre: tuple
+    right_radii: tuple
+    left_centre: tuple
+    left_radii: tuple
+    left_tilt_deg: float  # left lobe tips down toward its lateral end
+    lobe_blend: float
+    inferior_point: tuple  # a point on the visceral cut plane
+    inferior_normal: tuple  # outward normal of the visceral plane (points inferior-anterior)
+    posterior_y: float
+    hilum_centre: tuple
+    hilum_radius: float
+    falciform_x: float
+    bumps: tuple  # (amplitude, wavevector (3,), phase) triples
+
+    def inferior_plane(self, p):
+        return sdf.halfspace(p, np.array(self.inferior_point), np.array(self.inferior_normal))
+
+    def lobes(self, p):
+        c = np.cos(np.radians(self.left_tilt_deg))
+        s = np.sin(np.radians(self.left_tilt_deg))
+        rot = np.array([[c, 0, -s], [0, 1, 0], [s, 0, c]])
+        right = sdf.ellipsoid(p, np.array(self.right_centre), np.array(self.right_radii))
+        left = sdf.ellipsoid(p, np.array(self.left_centre), np.array(self.left_radii), rot)
+        d = sdf.smooth_union(right, left, self.lobe_blend)
+        for amp, kvec, phase in self.bumps:
+            d = d + amp * np.sin(np.asarray(p, float) @ np.array(kvec) + phase)
+        return d
+
+    def __call__(self, p):
+        """Signed distance-like value (...,) mm, negative inside the liver."""
+        p = np.asarray(p, float)
+        d = sdf.smooth_intersection(self.lobes(p), self.inferior_plane(p), 3.0)
+        d = sdf.smooth_intersection(d, self.posterior_y - p[..., 1], 12.0)
+        d = sdf.smooth_subtraction(d, sdf.sphere(p, np.array(self.hilum_centre), self.hilum_radius), 6.0)
+        notch = self.umbilical_notch_centre()
+        d = sdf.smooth_subtraction(d, sdf.sphere(p, notch, 7.0), 3.0)
+        return d
+
+    def umbilical_notch_centre(self) -> np.ndarray:
+        """Where the falciform line meets the inferior border, found along the plane."""
+        x = self.falciform_x
+        ys = np.linspace(-80, 120, 801)
+        n = np.array(self.inferior_normal) / np.linalg.norm(self.inferior_normal)
+        p0 = np.array(self.inferior_point)
+        # points of the visceral plane at x = falciform_x; keep the most anterior one inside the lobes
+        zs = p0[2] - (n[0] * (x - p0[0]) + n[1] * (ys - p0[1])) / n[2]
+        pts = np.column_stack([np.full_like(ys, x), ys, zs])
+        inside = self.lobes(pts) < 0
+        return pts[np.flatnonzero(inside)[-1]] if inside.any() else pts[len(ys) // 2]
+
+
+def liver_shape(index: int) -> LiverShape:
+    """The implicit liver of phantom ``index``; index 0 is the default phantom."""
+    rng = np.random.default_rng(20200 + index)
+    j = lambda scale, n=3: rng.uniform(-scale, scale, n)  # noqa: E731
+    rr = np.array([70.0, 76.0, 68.0]) * (1 + j(0.08))
+    rc = np.array([-42.0, 0.0, 0.0]) + j(5.0)
+    lr = np.array([74.0, 44.0, 17.0]) * (1 + j(0.10))
+    lc = np.array([46.0, 16.0, 24.0]) + j(6.0)
+    slope = 0.38 + rng.uniform(-0.06, 0.06)
+    normal = np.array([rng.uniform(-0.05, 0.05), slope, -1.0])
+    inf_pt = np.array([0.0, 0.0, -30.0 + rng.uniform(-4, 4)])
+    hilum_y = -8.0 + rng.uniform(-4, 4)
+    hilum_x = -8.0 + rng.uniform(-5, 5)
+    n = normal / np.linalg.norm(normal)
+    hz = inf_pt[2] - (n[0] * hilum_x + n[1] * (hilum_y - inf_pt[1])) / n[2]
+    bumps = tuple(
+        (float(rng.uniform(1.5, 3.0)), tuple(rng.normal(size=3) * 2 * np.pi / 110.0), float(rng.uniform(0, 2 * np.pi)))
+        for _ in range(3)
+    )
+    return LiverShape(
+        right_centre=tuple(rc), right_radii=tuple(rr), left_centre=tuple(lc), left_radii=tuple(lr),
+        left_tilt_deg=float(12 + rng.uniform(-4, 4)), lobe_blend=18.0,
+        inferior_point=tuple(inf_pt), inferior_normal=tuple(normal),
+        posterior_y=float(-52.0 + rng.uniform(-4, 4)),
+        hilum_centre=(hilum_x, hilum_y, float(hz)), hilum_radius=float(16 + rng.uniform(-2, 2)),
+        falciform_x=float(8.0 + rng.uniform(-5, 5)), bumps=bumps,
+    )
+
+
+def polygonise(fn, lo, hi, spacing: float) -> trimesh.Trimesh:
+    """Marching-cubes surface of {fn < 0} in the box [lo, hi] (mm), outward normals."""
+    lo = np.asarray(lo, float) - 2 * spacing
+    hi = np.asarray(hi, float) + 2 * spacing
+    axes = [np.arange(a, b + spacing, spacing) for a, b in zip(lo, hi)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    values = fn(grid.reshape(-1, 3)).reshape(grid.shape[:3])
+    values[[0, -1], :, :] = values[:, [0, -1], :] = values[:, :, [0, -1]] = 1.0
+    verts, faces, _, _ = marching_cubes(values, 0.0, spacing=(spacing,) * 3)
+    mesh = trimesh.Trimesh(verts + lo, faces[:, ::-1], process=True)
+    mesh.fix_normals()
+    return mesh
+
+
+def smooth_surface(mesh: trimesh.Trimesh, iterations: int = 10) -> trimesh.Trimesh:
+    """Taubin smoothing (volume-preserving) to take the staircase out of marching cubes."""
+    out = mesh.copy()
+    trimesh.smoothing.filter_taubin(out, lamb=0.5, nu=-0.53, iterations=iterations)
+    return out
+
+
+def label_regions(shape: LiverShape, mesh: trimesh.Trimesh) -> np.ndarray:
+    """Per-vertex region codes (V,) into REGION_NAMES.
+
+    - ridges: within 7 mm of the crease between the lobes' surface and the visceral
+      plane, on the anterior half (y above the hilum), split left/right at the falciform x;
+    - falciform: a 10 mm wide band at the falciform x on the anterior/superior surface;
+    - anterior: outward normal facing anterior (n_y > 0.1) and not inferior (n_z > -0.55),
+      i.e. what a laparoscope and a stylus reach;
+    - posterior: everything else (posterior face, visceral surface, bare area).
+    """
+    v = mesh.vertices
+    n = mesh.vertex_normals
+    codes = np.full(len(v), REGION_NAMES.index("posterior"))
+    anterior = (n[:, 1] > 0.1) & (n[:, 2] > -0.55)
+    codes[anterior] = REGION_NAMES.index("anterior")
+    falc = (np.abs(v[:, 0] - shape.falciform_x) < 5.0) & (n[:, 1] + n[:, 2] > 0.3) & (v[:, 1] > -10)
+    codes[falc] = REGION_NAMES.index("falciform")
+    crease = (np.abs(shape.lobes(v)) < 7.0) & (np.abs(shape.inferior_plane(v)) < 7.0)
+    ridge = crease & (v[:, 1] > shape.hilum_centre[1] + 5)
+    left = v[:, 0] > shape.falciform_x
+    codes[ridge & left] = REGION_NAMES.index("ridge_left")
+    codes[ridge & ~left] = REGION_NAMES.index("ridge_right")
+    return codes
+
+
+def make_phantom(index: int = 0, surface_spacing: float = 2.0, vessel_spacing: float = 1.0) -> PreopModel:
+    """Build phantom ``index``: liver surface, PV/HV surfaces and centerlines, labels."""
+    if index < 0:
+        raise ValueError("phantom index must be >= 0")
+    shape = liver_shape(index)
+    lo, hi = np.array([-130.0, -75.0, -80.0]), np.array([130.0, 90.0, 80.0])
+    liver = smooth_surface(polygonise(shape, lo, hi, surface_spacing))
+    # keep the largest piece: bumps must never leave a detached island
+    parts = liver.split(only_watertight=True)
+    if len(parts) > 1:
+        liver = max(parts, key=lambda m: m.volume)
+    rng = np.random.default_rng(30300 + index)
+    portal_cl = grow_portal_tree(shape, rng)
+    hepatic_cl = grow_hepatic_tree(shape, rng)
+    portal = tube_surface(portal_cl, vessel_spacing)
+    hepatic = tube_surface(hepatic_cl, vessel_spacing)
+    return PreopModel(
+        liver=liver, portal=portal, hepatic=hepatic,
+        portal_centerline=portal_cl, hepatic_centerline=hepatic_cl,
+        regions=label_regions(shape, liver), name=f"phantom{index}",
+        meta={"phantom": index},
+    )
