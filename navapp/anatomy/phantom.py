@@ -82,13 +82,13 @@ def liver_shape(index: int) -> LiverShape:
     """The implicit liver of phantom ``index``; index 0 is the default phantom."""
     rng = np.random.default_rng(20200 + index)
     j = lambda scale, n=3: rng.uniform(-scale, scale, n)  # noqa: E731
-    rr = np.array([70.0, 76.0, 68.0]) * (1 + j(0.08))
-    rc = np.array([-42.0, 0.0, 0.0]) + j(5.0)
-    lr = np.array([74.0, 44.0, 17.0]) * (1 + j(0.10))
-    lc = np.array([46.0, 16.0, 24.0]) + j(6.0)
+    rr = np.array([66.0, 84.0, 75.0]) * (1 + j(0.08))
+    rc = np.array([-39.0, 0.0, 0.0]) + j(5.0)
+    lr = np.array([69.0, 48.0, 19.0]) * (1 + j(0.10))
+    lc = np.array([43.0, 18.0, 26.0]) + j(6.0)
     slope = 0.38 + rng.uniform(-0.06, 0.06)
     normal = np.array([rng.uniform(-0.05, 0.05), slope, -1.0])
-    inf_pt = np.array([0.0, 0.0, -30.0 + rng.uniform(-4, 4)])
+    inf_pt = np.array([0.0, 0.0, -33.0 + rng.uniform(-4, 4)])
     hilum_y = -8.0 + rng.uniform(-4, 4)
     hilum_x = -8.0 + rng.uniform(-5, 5)
     n = normal / np.linalg.norm(normal)
@@ -101,7 +101,7 @@ def liver_shape(index: int) -> LiverShape:
         right_centre=tuple(rc), right_radii=tuple(rr), left_centre=tuple(lc), left_radii=tuple(lr),
         left_tilt_deg=float(12 + rng.uniform(-4, 4)), lobe_blend=18.0,
         inferior_point=tuple(inf_pt), inferior_normal=tuple(normal),
-        posterior_y=float(-52.0 + rng.uniform(-4, 4)),
+        posterior_y=float(-57.0 + rng.uniform(-4, 4)),
         hilum_centre=(hilum_x, hilum_y, float(hz)), hilum_radius=float(16 + rng.uniform(-2, 2)),
         falciform_x=float(8.0 + rng.uniform(-5, 5)), bumps=bumps,
     )
@@ -158,7 +158,7 @@ def make_phantom(index: int = 0, surface_spacing: float = 2.0, vessel_spacing: f
     if index < 0:
         raise ValueError("phantom index must be >= 0")
     shape = liver_shape(index)
-    lo, hi = np.array([-130.0, -75.0, -80.0]), np.array([130.0, 90.0, 80.0])
+    lo, hi = np.array([-125.0, -80.0, -90.0]), np.array([125.0, 100.0, 90.0])
     liver = smooth_surface(polygonise(shape, lo, hi, surface_spacing))
     # keep the largest piece: bumps must never leave a detached island
     parts = liver.split(only_watertight=True)
@@ -169,6 +169,9 @@ def make_phantom(index: int = 0, surface_spacing: float = 2.0, vessel_spacing: f
     hepatic_cl = grow_hepatic_tree(shape, rng)
     portal = tube_surface(portal_cl, vessel_spacing)
     hepatic = tube_surface(hepatic_cl, vessel_spacing)
+    # PLY stores float32: snap now so that writing and reading a case folder is exact
+    for mesh in (liver, portal, hepatic):
+        mesh.vertices = mesh.vertices.astype(np.float32).astype(float)
     return PreopModel(
         liver=liver, portal=portal, hepatic=hepatic,
         portal_centerline=portal_cl, hepatic_centerline=hepatic_cl,

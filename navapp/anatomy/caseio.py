@@ -1,0 +1,258 @@
+"""Read and write case folders (DESIGN.md §3). Units mm.
+
+Every problem with the input raises ``InputError`` naming the file and the problem in one
+line; nothing malformed is loaded silently.
+"""
+
+import io
+import math
+import tomllib
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import tomli_w
+import trimesh
+
+from ..errors import InputError
+from ..geometry.triangles import self_intersecting_faces
+from .model import REGION_NAMES, VESSELS, Centerline, PreopModel, polyline_tangents
+
+FEATURES = (
+    "anterior", "posterior", "falciform", "ridge_left", "ridge_right",
+    "portal_contour", "hepatic_contour", "portal_centerline", "hepatic_centerline", "fiducials",
+)
+"""Intraoperative feature names, i.e. the allowed ``intraop/<feature>.csv`` stems."""
+
+LIVER_SIZE_MM = (40.0, 400.0)  # plausible range of a liver's largest extent, for the units check
+
+
+@dataclass
+class Case:
+    """One registration problem: the preoperative model, intraoperative point clouds
+    (feature → (N, 3) mm, tracker space) and optional truth (T, 6): x0,y0,z0,x1,y1,z1."""
+
+    preop: PreopModel
+    intraop: dict = field(default_factory=dict)
+    targets: np.ndarray | None = None
+    settings: dict = field(default_factory=dict)
+
+    @property
+    def name(self) -> str:
+        return self.settings.get("name", self.preop.name)
+
+
+# ---------------------------------------------------------------- CSV
+
+def read_csv(path: Path, columns: tuple[str, ...], dtype=float) -> np.ndarray:
+    """Read a numeric CSV with exactly ``columns`` (an optional header naming them).
+
+    Returns (N, len(columns)). Raises InputError for an empty file, a wrong number of
+    columns, a header that names other columns, non-numeric cells, NaN or infinity.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise InputError(f"cannot read ({exc.strerror})", path) from None
+    lines = [ln for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+    if not lines:
+        raise InputError("file is empty", path)
+    first = [c.strip().lower() for c in lines[0].split(",")]
+    if not _is_number(first[0]):
+        if tuple(first) != tuple(columns):
+            raise InputError(f"header is {','.join(first)!r}, expected {','.join(columns)!r}", path)
+        lines = lines[1:]
+        if not lines:
+            raise InputError("file has a header but no rows", path)
+    n = len(columns)
+    rows = []
+    for lineno, ln in enumerate(lines, start=1):
+        cells = [c.strip() for c in ln.split(",")]
+        if len(cells) != n:
+            raise InputError(f"row {lineno} has {len(cells)} columns, expected {n} ({','.join(columns)})", path)
+        try:
+            vals = [float(c) for c in cells]
+        except ValueError:
+            raise InputError(f"row {lineno} is not numeric: {ln.strip()!r}", path) from None
+        if not all(math.isfinite(x) for x in vals):
+            raise InputError(f"row {lineno} has a NaN or infinite value", path)
+        rows.append(vals)
+    out = np.array(rows, float)
+    if dtype is not float:
+        if not np.all(out[:, -1] == np.round(out[:, -1])):
+            raise InputError(f"column {columns[-1]!r} must hold whole numbers", path)
+        return out
+    return out
+
+
+def _is_number(s: str) -> bool:
+    try:
+        float(s)
+        return True
+    except ValueError:
+        return False
+
+
+def write_csv(path: Path, data: np.ndarray, columns: tuple[str, ...], integer_last=False):
+    """Write with a header; floats with repr precision so that a read gives the same bits."""
+    buf = io.StringIO()
+    buf.write(",".join(columns) + "\n")
+    for row in np.asarray(data):
+        cells = [repr(float(x)) for x in row]
+        if integer_last:
+            cells[-1] = str(int(row[-1]))
+        buf.write(",".join(cells) + "\n")
+    Path(path).write_text(buf.getvalue())
+
+
+# ---------------------------------------------------------------- meshes
+
+def read_surface(path: Path, closed: bool) -> trimesh.Trimesh:
+    """Read a PLY triangle surface; ``closed`` demands watertight, non-self-intersecting."""
+    path = Path(path)
+    try:
+        mesh = trimesh.load(path, file_type="ply", process=False, force="mesh")
+    except Exception as exc:  # trimesh raises many types for a bad file
+        raise InputError(f"not a readable PLY triangle mesh ({exc})", path) from None
+    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
+        raise InputError("holds no triangles", path)
+    if not np.all(np.isfinite(mesh.vertices)):
+        raise InputError("has NaN or infinite vertex coordinates", path)
+    if closed:
+        check = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)
+        if not check.is_watertight:
+            raise InputError("surface is not watertight (it has holes or non-manifold edges)", path)
+        if not check.is_winding_consistent:
+            raise InputError("surface has inconsistent triangle winding", path)
+        bad = self_intersecting_faces(check.vertices, check.faces)
+        if len(bad):
+            raise InputError(f"surface is self-intersecting ({len(bad)} triangles cross another)", path)
+    return mesh
+
+
+def _check_units(mesh: trimesh.Trimesh, path: Path):
+    size = float(mesh.extents.max())
+    lo, hi = LIVER_SIZE_MM
+    if size < lo:
+        hint = " (metres? case folders are in mm)" if size < 1.0 else ""
+        raise InputError(f"largest extent is {size:.3g}, too small for a liver in mm{hint}", path)
+    if size > hi:
+        raise InputError(f"largest extent is {size:.3g}, too large for a liver in mm (micrometres?)", path)
+
+
+# ---------------------------------------------------------------- case folders
+
+def read_case(folder) -> Case:
+    """Read a case folder. Missing optional files are simply absent from the result."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError("no such case folder", folder)
+    settings = {}
+    toml = folder / "case.toml"
+    if toml.exists():
+        try:
+            settings = tomllib.loads(toml.read_text())
+        except tomllib.TOMLDecodeError as exc:
+            raise InputError(f"invalid TOML ({exc})", toml) from None
+        units = settings.get("units", "mm")
+        if units != "mm":
+            raise InputError(f"units = {units!r}; case folders are in millimetres (units = \"mm\")", toml)
+    pre = folder / "preop"
+    liver_path = pre / "liver.ply"
+    if not liver_path.exists():
+        raise InputError("missing: every case needs preop/liver.ply", liver_path)
+    liver = read_surface(liver_path, closed=True)
+    _check_units(liver, liver_path)
+    model = PreopModel(liver=liver, name=settings.get("name", folder.name))
+    for v in VESSELS:
+        p = pre / f"{v}.ply"
+        if p.exists():
+            setattr(model, v, read_surface(p, closed=False))
+        p = pre / f"{v}_centerline.csv"
+        if p.exists():
+            data = read_csv(p, ("x", "y", "z", "branch"), dtype=int)
+            cl = Centerline(points=data[:, :3], branch=data[:, 3].astype(int))
+            counts = np.unique(cl.branch, return_counts=True)[1]
+            if (counts < 2).any():
+                raise InputError("a branch has a single point: no tangent is defined", p)
+            if (np.linalg.norm(polyline_tangents(cl.points, cl.branch), axis=1) == 0).any():
+                raise InputError("consecutive duplicate points: no tangent is defined", p)
+            setattr(model, f"{v}_centerline", cl)
+    rp = pre / "regions.csv"
+    if rp.exists():
+        model.regions = read_regions(rp, len(liver.vertices))
+    intraop = {}
+    idir = folder / "intraop"
+    if idir.is_dir():
+        for p in sorted(idir.iterdir()):
+            if p.suffix != ".csv":
+                continue
+            if p.stem not in FEATURES:
+                warnings.warn(f"{p}: unknown feature {p.stem!r} ignored (known: {', '.join(FEATURES)})", stacklevel=2)
+                continue
+            intraop[p.stem] = read_csv(p, ("x", "y", "z"))
+    targets = None
+    tp = folder / "truth" / "targets.csv"
+    if tp.exists():
+        targets = read_csv(tp, ("x0", "y0", "z0", "x1", "y1", "z1"))
+    return Case(preop=model, intraop=intraop, targets=targets, settings=settings)
+
+
+def read_regions(path: Path, n_vertices: int) -> np.ndarray:
+    """One label per liver.ply vertex (optional header ``label``) → (V,) codes."""
+    lines = [ln.strip() for ln in Path(path).read_text().splitlines() if ln.strip()]
+    if lines and lines[0].lower() == "label":
+        lines = lines[1:]
+    if not lines:
+        raise InputError("file is empty", path)
+    if len(lines) != n_vertices:
+        raise InputError(f"has {len(lines)} labels but liver.ply has {n_vertices} vertices", path)
+    lookup = {n: i for i, n in enumerate(REGION_NAMES)}
+    unknown = sorted({ln for ln in lines if ln not in lookup})
+    if unknown:
+        raise InputError(f"unknown label(s) {', '.join(map(repr, unknown[:5]))}; known: {', '.join(REGION_NAMES)}", path)
+    return np.array([lookup[ln] for ln in lines], int)
+
+
+def write_preop(model: PreopModel, folder):
+    """Write the ``preop/`` part of a case folder (and a minimal case.toml if absent)."""
+    folder = Path(folder)
+    pre = folder / "preop"
+    pre.mkdir(parents=True, exist_ok=True)
+    model.liver.export(pre / "liver.ply", encoding="binary")
+    for v in VESSELS:
+        mesh = model.vessel(v)
+        if mesh is not None:
+            mesh.export(pre / f"{v}.ply", encoding="binary")
+        cl = model.centerline(v)
+        if cl is not None:
+            write_csv(pre / f"{v}_centerline.csv", np.column_stack([cl.points, cl.branch]), ("x", "y", "z", "branch"), True)
+    if model.regions is not None:
+        (pre / "regions.csv").write_text("label\n" + "\n".join(REGION_NAMES[c] for c in model.regions) + "\n")
+    if not (folder / "case.toml").exists():
+        write_settings(folder, {"name": model.name, "units": "mm"})
+
+
+def write_settings(folder, settings: dict):
+    Path(folder, "case.toml").write_text(tomli_w.dumps(settings))
+
+
+def write_case(case: Case, folder):
+    """Write a whole case folder: case.toml, preop/, intraop/, truth/."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    settings = {"name": case.name, "units": "mm", **{k: v for k, v in case.settings.items() if k not in ("name", "units")}}
+    write_settings(folder, settings)
+    write_preop(case.preop, folder)
+    if case.intraop:
+        idir = folder / "intraop"
+        idir.mkdir(exist_ok=True)
+        for name, pts in case.intraop.items():
+            if name not in FEATURES:
+                raise InputError(f"unknown feature {name!r}")
+            write_csv(idir / f"{name}.csv", pts, ("x", "y", "z"))
+    if case.targets is not None:
+        (folder / "truth").mkdir(exist_ok=True)
+        write_csv(folder / "truth" / "targets.csv", case.targets, ("x0", "y0", "z0", "x1", "y1", "z1"))

@@ -1,0 +1,201 @@
+"""The LIBR deformation basis: Saint-Venant-relaxed control-point modes (paper §II-C,
+eq. 3–5; DESIGN.md §1).
+
+Given a tet mesh, this computes
+- ``control`` (k,): control-point nodes; ``tiles`` (S,): tile of each surface node;
+- ``Ju`` (3M × 3k): relaxed displacement modes, mm per unit mode weight α;
+- ``energy`` (3k × 3k): J_σᵀ J_ε in Pa, so that the mean nodal strain-energy density is
+  f_E = αᵀ energy α / (2M)  (eq. 13).
+The 6M × 3k matrices J_ε and J_σ are never stored: only their product is used.
+
+Choices where the paper is open (each tested in tests/test_basis.py):
+1. Point-load modes: u = ``perturbation`` (5 mm) e_d at control point c, u = 0 at the
+   other k−1 control points, every other node free (one factorisation, 3k solves).
+2. Relaxation of mode (c, d): the nodes of c's tile and all interior nodes are free; the
+   surface nodes outside the tile are held at the mode's own displacement (the far field
+   is kept); the reaction force r that held c in the point-load mode is applied instead
+   as a load spread over the tile in proportion to lumped nodal area (its resultant is
+   exactly r). Solved exactly: one sparse factorisation per tile, shared by its 3 modes.
+   With all of the load put back on c the relaxed mode equals the point-load mode — a
+   consistency check the tests use.
+3. Nodal strain and stress are volume-weighted averages of the (constant) element values.
+"""
+
+import time
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from .. import cache, progress
+from ..anatomy.meshing import TetMesh
+from .controlpoints import geodesic_tiles, nodal_areas, place_control_points
+from .fem import Material, nodal_strain_operator, stiffness
+from .sparse import Factorisation, backend
+
+BASIS_VERSION = "basis-1"  # bump when the computation changes: it is part of the cache key
+
+
+@dataclass(frozen=True)
+class BasisSettings:
+    k: int = 45
+    perturbation: float = 5.0  # mm imposed at the active control point
+    seed: int = 0  # k-means seed
+    relax: bool = True  # False: keep the raw point-load modes (for comparison studies)
+
+
+@dataclass
+class Basis:
+    nodes: np.ndarray  # (M, 3) mm
+    tets: np.ndarray  # (E, 4)
+    surface_faces: np.ndarray  # (F, 3) outward boundary triangles
+    control: np.ndarray  # (k,) node indices
+    surface: np.ndarray  # (S,) surface node indices
+    tiles: np.ndarray  # (S,) tile id of each surface node
+    Ju: np.ndarray  # (3M, 3k) mm per unit α
+    energy: np.ndarray  # (3k, 3k) Pa, J_σᵀ J_ε
+    settings: BasisSettings = field(default_factory=BasisSettings)
+    material: Material = field(default_factory=Material)
+    timings: dict = field(default_factory=dict)
+
+    @property
+    def k(self) -> int:
+        return len(self.control)
+
+    @property
+    def M(self) -> int:
+        return len(self.nodes)
+
+    def modes_at_nodes(self, idx) -> np.ndarray:
+        """Rows of J_u for nodes ``idx``: (len(idx), 3, 3k)."""
+        return self.Ju.reshape(self.M, 3, -1)[idx]
+
+    def modes_at(self, B: sp.spmatrix) -> np.ndarray:
+        """Modes carried to points by an interpolation matrix B (P × M): (P, 3, 3k)."""
+        n = self.Ju.shape[1]
+        return np.asarray(B @ self.Ju.reshape(self.M, 3 * n)).reshape(-1, 3, n)
+
+    def strain_energy_density(self, alpha) -> float:
+        """f_E (Pa) for mode weights α (3k,), eq. 13."""
+        return float(alpha @ self.energy @ alpha) / (2 * self.M)
+
+
+def _dofs(nodes_idx):
+    return (3 * np.asarray(nodes_idx)[:, None] + np.arange(3)).ravel()
+
+
+def point_load_modes(K, control, perturbation):
+    """Point-load modes U (3M × 3k) and the reactions R (3k × 3k) at the control DOFs.
+
+    Column 3c+d has u = perturbation·e_d at control c, 0 at the other control points.
+    """
+    n = K.shape[0]
+    cd = _dofs(control)
+    free = np.setdiff1d(np.arange(n), cd)
+    U = np.zeros((n, len(cd)))
+    U[cd, np.arange(len(cd))] = perturbation
+    with Factorisation(K[free][:, free]) as F:
+        U[free] = F.solve(-(K[free][:, cd] @ U[cd]))
+    R = K[cd] @ U
+    return U, R
+
+
+def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None):
+    """Saint-Venant relaxation of every point-load mode (choice 2 of the module doc).
+
+    K (3M × 3M); U (3M × 3k) point-load modes; R (3k × 3k) their control reactions;
+    surface (S,), tiles (S,), areas (S,) lumped nodal areas. Returns relaxed modes (3M × 3k).
+    ``on_tile(i)`` is called after each tile (progress).
+    """
+    n = K.shape[0]
+    K = K.tocsr()
+    out = U.copy()
+    is_surface_dof = np.zeros(n, bool)
+    is_surface_dof[_dofs(surface)] = True
+    for c in range(len(control)):
+        tile_nodes = surface[tiles == c]
+        w = areas[tiles == c] / areas[tiles == c].sum()
+        held = is_surface_dof.copy()
+        held[_dofs(tile_nodes)] = False
+        free = np.flatnonzero(~held)
+        hold = np.flatnonzero(held)
+        cols = 3 * c + np.arange(3)
+        r = R[3 * c:3 * c + 3][:, cols]  # (3 force axes, 3 modes)
+        load = np.zeros((n, 3))
+        for a in range(3):
+            load[3 * tile_nodes + a] = np.outer(w, r[a])
+        rhs = load[free] - K[free][:, hold] @ U[hold][:, cols]
+        with Factorisation(K[free][:, free]) as F:
+            out[np.ix_(free, cols)] = F.solve(rhs)
+        if on_tile:
+            on_tile(c)
+    return out
+
+
+def energy_matrix(nodes, tets, Ju, material, chunk=30):
+    """J_σᵀ J_ε (3k × 3k, Pa) without storing the 6M × 3k factors: processed in column
+    chunks of the strain, the stress of a chunk never outlives it."""
+    G = nodal_strain_operator(nodes, tets)
+    D = material.voigt_matrix()
+    M, n = len(nodes), Ju.shape[1]
+    eps = (G @ Ju).reshape(M, 6, n)
+    sig = np.einsum("ij,mjq->miq", D, eps).reshape(M * 6, n)
+    out = eps.reshape(M * 6, n).T @ sig
+    return 0.5 * (out + out.T)
+
+
+def compute_basis(mesh: TetMesh, settings: BasisSettings = BasisSettings(), material: Material = Material(),
+                  label="basis") -> Basis:
+    """Assemble, place control points, solve point-load modes, relax them, and form the
+    strain-energy matrix. Progress is shown per stage; seconds per stage in ``timings``."""
+    timings = {}
+    t = time.perf_counter()
+    faces = mesh.boundary_faces()
+    surface = np.unique(faces)
+    with progress.stage(f"{label}: assemble"):
+        K = stiffness(mesh.nodes, mesh.tets, material)
+    timings["assemble"] = time.perf_counter() - t
+    t = time.perf_counter()
+    control = place_control_points(mesh.nodes, surface, settings.k, settings.seed)
+    tiles = geodesic_tiles(mesh.nodes, faces, surface, control)
+    areas = nodal_areas(mesh.nodes, faces, surface)
+    timings["control_points"] = time.perf_counter() - t
+    t = time.perf_counter()
+    with progress.stage(f"{label}: point-load modes (factorise + {3 * settings.k} solves, {backend()})"):
+        U, R = point_load_modes(K, control, settings.perturbation)
+    timings["modes"] = time.perf_counter() - t
+    t = time.perf_counter()
+    if settings.relax:
+        with progress.bar(settings.k, f"{label}: relax tiles", "tile") as pb:
+            Ju = relax_modes(K, U, R, control, surface, tiles, areas, on_tile=lambda c: pb.update(1))
+    else:
+        Ju = U
+    timings["relax"] = time.perf_counter() - t
+    t = time.perf_counter()
+    energy = energy_matrix(mesh.nodes, mesh.tets, Ju, material)
+    timings["energy"] = time.perf_counter() - t
+    return Basis(nodes=mesh.nodes, tets=mesh.tets, surface_faces=faces, control=control, surface=surface,
+                 tiles=tiles, Ju=Ju, energy=energy, settings=settings, material=material, timings=timings)
+
+
+def basis_key(mesh: TetMesh, settings: BasisSettings, material: Material) -> str:
+    return cache.content_key(BASIS_VERSION, mesh.nodes, mesh.tets, asdict(settings), asdict(material))
+
+
+def load_or_compute_basis(mesh: TetMesh, settings: BasisSettings = BasisSettings(), material: Material = Material(),
+                          cache_root=None, label="basis") -> tuple[Basis, bool]:
+    """The basis from the cache if a valid entry exists, else computed and cached.
+    Returns (basis, loaded_from_cache)."""
+    root = cache.cache_dir() if cache_root is None else cache_root
+    path = root / f"{basis_key(mesh, settings, material)}.npz"
+    t = time.perf_counter()
+    hit = cache.load(path)
+    if hit is not None:
+        b = Basis(nodes=hit["nodes"], tets=hit["tets"], surface_faces=hit["surface_faces"], control=hit["control"],
+                  surface=hit["surface"], tiles=hit["tiles"], Ju=hit["Ju"], energy=hit["energy"],
+                  settings=settings, material=material, timings={"load": time.perf_counter() - t})
+        return b, True
+    b = compute_basis(mesh, settings, material, label)
+    cache.save(path, {name: getattr(b, name) for name in
+                      ("nodes", "tets", "surface_faces", "control", "surface", "tiles", "Ju", "energy")})
+    return b, False

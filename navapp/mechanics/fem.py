@@ -1,0 +1,104 @@
+"""Linear-elastic finite elements on linear tetrahedra (paper eq. 1–2).
+
+Units: node coordinates mm, displacements mm, Young's modulus E in Pa. Strains are then
+dimensionless, stresses Pa, and K carries Pa·mm (= mN/mm); only ratios of K enter the
+displacement-driven solves, so the mm/Pa mix is harmless there.
+DOF order is node-major: DOF 3*i + d is node i, axis d (scikit-fem's interleaving).
+Voigt order: xx, yy, zz, yz, xz, xy with engineering shear strains (γ = 2ε), so that
+σ·ε (Voigt dot product) is the strain-energy density times two.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+
+E_LIVER = 2100e3  # Pa, the paper's Young modulus (2100 kPa)
+NU_LIVER = 0.45
+
+
+@dataclass(frozen=True)
+class Material:
+    E: float = E_LIVER  # Pa
+    nu: float = NU_LIVER
+
+    def lame(self):
+        lam = self.E * self.nu / ((1 + self.nu) * (1 - 2 * self.nu))
+        mu = self.E / (2 * (1 + self.nu))
+        return lam, mu
+
+    def voigt_matrix(self) -> np.ndarray:
+        """6×6 isotropic elasticity matrix D (Pa) mapping engineering strain to stress."""
+        lam, mu = self.lame()
+        D = np.zeros((6, 6))
+        D[:3, :3] = lam
+        D[np.arange(3), np.arange(3)] += 2 * mu
+        D[np.arange(3, 6), np.arange(3, 6)] = mu
+        return D
+
+
+def stiffness(nodes: np.ndarray, tets: np.ndarray, material: Material = Material()) -> sp.csr_matrix:
+    """Global stiffness K (3M × 3M, CSR) assembled by scikit-fem, P1 with one quadrature
+    point (exact for P1)."""
+    from skfem import Basis, ElementTetP1, ElementVector, MeshTet, asm
+    from skfem.models.elasticity import linear_elasticity
+
+    mesh = MeshTet(np.ascontiguousarray(nodes.T, float), np.ascontiguousarray(tets.T))
+    basis = Basis(mesh, ElementVector(ElementTetP1()), intorder=1)
+    return asm(linear_elasticity(*material.lame()), basis).tocsr()
+
+
+def shape_gradients(nodes, tets):
+    """Gradients of the four P1 shape functions per tet, (E, 4, 3) in 1/mm, and volumes (E,)."""
+    p = nodes[tets]  # (E, 4, 3)
+    J = (p[:, 1:] - p[:, :1]).transpose(0, 2, 1)  # columns: edges from vertex 0
+    Jinv = np.linalg.inv(J)  # rows: gradients of barycentric coords 1..3
+    g = np.empty((len(tets), 4, 3))
+    g[:, 1:] = Jinv
+    g[:, 0] = -Jinv.sum(1)
+    return g, np.abs(np.linalg.det(J)) / 6.0
+
+
+def element_strain_operator(nodes, tets) -> sp.csr_matrix:
+    """B (6E × 3M): engineering Voigt strain of each element from nodal displacements."""
+    g, _ = shape_gradients(nodes, tets)
+    E = len(tets)
+    rows, cols, vals = [], [], []
+    # (component, derivative axis, displacement axis) triples of the Voigt strain
+    terms = [(0, 0, 0), (1, 1, 1), (2, 2, 2), (3, 2, 1), (3, 1, 2), (4, 2, 0), (4, 0, 2), (5, 1, 0), (5, 0, 1)]
+    for comp, dax, uax in terms:
+        for a in range(4):
+            rows.append(6 * np.arange(E) + comp)
+            cols.append(3 * tets[:, a] + uax)
+            vals.append(g[:, a, dax])
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                         shape=(6 * E, 3 * len(nodes)))
+
+
+def nodal_average_operator(nodes, tets) -> sp.csr_matrix:
+    """A (6M × 6E): volume-weighted average of element values at each node (Voigt-blocked).
+
+    This is the recovery used for nodal strain and stress: P1 strain is constant in each
+    element, and a node takes the mean over the elements around it, weighted by volume.
+    """
+    _, vol = shape_gradients(nodes, tets)
+    M, E = len(nodes), len(tets)
+    W = sp.csr_matrix((np.repeat(vol, 4), (tets.ravel(), np.repeat(np.arange(E), 4))), shape=(M, E))
+    W = sp.diags(1.0 / np.asarray(W.sum(1)).ravel()) @ W
+    return sp.kron(W, sp.identity(6), format="csr")
+
+
+def nodal_strain_operator(nodes, tets) -> sp.csr_matrix:
+    """G (6M × 3M): nodal engineering strain (Voigt, dimensionless) from displacements (mm)."""
+    return (nodal_average_operator(nodes, tets) @ element_strain_operator(nodes, tets)).tocsr()
+
+
+def nodal_stress(strain: np.ndarray, material: Material = Material()) -> np.ndarray:
+    """Stress (Pa) from engineering Voigt strain; ``strain`` shape (M, 6) or (M, 6, n)."""
+    D = material.voigt_matrix()
+    return np.einsum("ij,mj...->mi...", D, strain)
+
+
+def strain_energy(K: sp.spmatrix, u: np.ndarray) -> float:
+    """Total FE strain energy ½ uᵀKu (Pa·mm³ = 1e-9 J) of displacement u (3M,) mm."""
+    return 0.5 * float(u @ (K @ u))
