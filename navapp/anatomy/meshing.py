@@ -175,3 +175,26 @@ def mesh_liver(surface: trimesh.Trimesh, edge: float = 4.0) -> tuple[TetMesh, di
     report["edge_mm"] = edge
     report["seconds"] = round(time.perf_counter() - t0, 3)
     return mesh, report
+
+
+MESHER_VERSION = "gmsh-delaunay-netgen-1"
+
+
+def cached_tetmesh(surface: trimesh.Trimesh, edge: float = 4.0, cache_root=None) -> tuple[TetMesh, dict]:
+    """``mesh_liver`` through the content-addressed cache (key: surface, edge, mesher)."""
+    from .. import cache, progress
+
+    root = cache.cache_dir() if cache_root is None else cache_root
+    key = cache.content_key(MESHER_VERSION, np.asarray(surface.vertices, float), np.asarray(surface.faces), float(edge))
+    path = root / f"mesh-{key}.npz"
+    hit = cache.load(path)
+    if hit is not None:
+        mesh = TetMesh(hit["nodes"], hit["tets"])
+        report = quality_report(mesh)
+        report.update(edge_mm=edge, seconds=0.0, cached=True)
+        return mesh, report
+    with progress.stage(f"meshing at {edge:g} mm (Gmsh)"):
+        mesh, report = mesh_liver(surface, edge)
+    report["cached"] = False
+    cache.save(path, {"nodes": mesh.nodes, "tets": mesh.tets})
+    return mesh, report

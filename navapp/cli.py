@@ -1,0 +1,126 @@
+"""The ``navapp`` command line. Every user-facing problem ends as one line on stderr
+(``navapp: error: …``) and exit status 2, never a traceback."""
+
+import argparse
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+from . import __version__, progress
+from .errors import NavappError
+
+
+def _positive(kind):
+    def parse(s):
+        try:
+            v = kind(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"not a number: {s!r}") from None
+        if v <= 0:
+            raise argparse.ArgumentTypeError(f"must be positive: {s!r}")
+        return v
+    return parse
+
+
+def cmd_phantom(args):
+    from .anatomy.caseio import write_preop
+    from .anatomy.phantom import make_phantom
+
+    with progress.stage(f"building phantom {args.liver}"):
+        model = make_phantom(args.liver)
+    write_preop(model, args.out)
+    liver = model.liver
+    summary = {
+        "phantom": args.liver, "out": str(args.out),
+        "liver_vertices": len(liver.vertices), "liver_faces": len(liver.faces),
+        "extent_mm": [round(float(x), 1) for x in liver.extents], "volume_ml": round(float(liver.volume) / 1000, 1),
+        "portal_branches": int(model.portal_centerline.branch.max() + 1),
+        "hepatic_branches": int(model.hepatic_centerline.branch.max() + 1),
+    }
+    print(json.dumps(summary))
+
+
+def cmd_mesh(args):
+    from .anatomy.caseio import read_case
+    from .anatomy.meshing import cached_tetmesh
+
+    case = read_case(args.case)
+    _, report = cached_tetmesh(case.preop.liver, args.edge)
+    print(json.dumps({k: (round(v, 3) if isinstance(v, float) else v) for k, v in report.items()}))
+
+
+def cmd_precompute(args):
+    from .anatomy.caseio import read_case
+    from .anatomy.meshing import cached_tetmesh
+    from .mechanics.basis import BasisSettings, load_or_compute_basis
+    from .mechanics.sparse import backend
+
+    t0 = time.perf_counter()
+    case = read_case(args.case)
+    mesh, report = cached_tetmesh(case.preop.liver, args.edge)
+    basis, cached = load_or_compute_basis(mesh, BasisSettings(k=args.k))
+    seconds = {"mesh": report["seconds"], **{k: round(v, 3) for k, v in basis.timings.items()}}
+    out = {
+        "nodes": basis.M, "surface_nodes": len(basis.surface), "k": basis.k, "edge_mm": args.edge,
+        "from_cache": cached, "solver": backend(), "seconds": seconds,
+        "total_seconds": round(time.perf_counter() - t0, 3),
+        "peak_memory_mb": round(_peak_rss_mb(), 1),
+    }
+    print(json.dumps(out))
+
+
+def _peak_rss_mb():
+    import resource
+
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def build_parser():
+    p = argparse.ArgumentParser(prog="navapp", description="Liver deformation correction (LIBR) from sparse data.")
+    p.add_argument("--version", action="version", version=f"navapp {__version__}")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    s = sub.add_parser("phantom", help="write the preop/ part of a case folder for a built-in liver phantom")
+    s.add_argument("--liver", type=int, default=0, help="phantom index (0, 1, 2, …; default 0)")
+    s.add_argument("--out", type=Path, required=True, help="case folder to write")
+    s.set_defaults(func=cmd_phantom)
+
+    s = sub.add_parser("mesh", help="tetrahedralise a case's liver and print mesh statistics as JSON")
+    s.add_argument("case", type=Path, help="case folder")
+    s.add_argument("--edge", type=_positive(float), default=4.0, help="target element size in mm (default 4)")
+    s.set_defaults(func=cmd_mesh)
+
+    s = sub.add_parser("precompute", help="mesh a case and compute (or load) its deformation basis")
+    s.add_argument("case", type=Path, help="case folder")
+    s.add_argument("--edge", type=_positive(float), default=4.0, help="target element size in mm (default 4)")
+    s.add_argument("--k", type=_positive(int), default=45, help="number of control points (default 45)")
+    s.set_defaults(func=cmd_precompute)
+
+    return p
+
+
+def main(argv=None):
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    progress.QUIET = args.quiet
+    with warnings.catch_warnings():
+        warnings.simplefilter("default")
+        warnings.showwarning = lambda msg, *a, **k: print(f"navapp: warning: {msg}", file=sys.stderr)
+        try:
+            return args.func(args) or 0
+        except NavappError as exc:
+            print(f"navapp: error: {exc}", file=sys.stderr)
+            return 2
+        except KeyboardInterrupt:
+            print("navapp: interrupted", file=sys.stderr)
+            return 130
+        except MemoryError:
+            print("navapp: error: out of memory (try a coarser --edge or smaller --k)", file=sys.stderr)
+            return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

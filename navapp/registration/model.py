@@ -1,0 +1,127 @@
+"""The model side of registration: which deformable geometry each data feature slides on.
+
+Every model feature is a set of points carried by the tet mesh (``B`` maps nodal values
+to them, so they deform as B·(x0 + J_u α)) plus its cells: triangles for sliding surfaces,
+segments for centerlines, none for fiducials.
+
+Data feature → model feature (a choice where the paper is open): anterior and posterior
+points slide on the whole liver surface; falciform and ridge points only on their own
+labelled region (salient features); iUS contours on the PV/HV surfaces; centerline points
+on the centerline polylines; fiducials on their preoperative counterparts, row by row.
+"""
+
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.spatial import cKDTree
+
+from ..anatomy.model import REGION_NAMES, PreopModel
+from ..errors import InputError
+from ..geometry.closest import incidence
+from ..mechanics.basis import Basis
+from ..mechanics.interpolation import interpolation_matrix
+
+WEIGHTS_SI = {  # m⁻² (paper §II-D); the strain-energy weight is in Pa⁻²
+    "anterior": 1.0, "posterior": 1.0, "falciform": 0.3, "ridge_left": 0.3, "ridge_right": 0.3,
+    "portal_contour": 1.0, "hepatic_contour": 1.0, "portal_centerline": 1.0, "hepatic_centerline": 1.0,
+    "fiducials": 1.0,
+}
+W_ENERGY_SI = 1e-8
+
+DATA_TO_MODEL = {
+    "anterior": "liver", "posterior": "liver", "falciform": "falciform", "ridge_left": "ridge_left",
+    "ridge_right": "ridge_right", "portal_contour": "portal", "hepatic_contour": "hepatic",
+    "portal_centerline": "portal_centerline", "hepatic_centerline": "hepatic_centerline", "fiducials": "fiducials",
+}
+
+
+@dataclass
+class ModelFeature:
+    kind: str  # "surface" | "centerline" | "fiducial"
+    B: sp.csr_matrix  # (V, M): nodal values → this feature's points
+    cells: np.ndarray | None  # (F, 3) triangles, (S, 2) segments, or None
+    table: np.ndarray | None  # vertex → incident cells (see geometry.closest.incidence)
+    rest: np.ndarray  # (V, 3) undeformed points, mm
+
+
+@dataclass
+class RegistrationModel:
+    basis: Basis
+    features: dict  # model feature name → ModelFeature
+    centroid: np.ndarray  # x̄0 (3,), centroid of the mesh nodes
+
+    def feature_for(self, data_name: str) -> ModelFeature:
+        return self.features[DATA_TO_MODEL[data_name]]
+
+
+def _feature(kind, B, cells, nodes):
+    B = sp.csr_matrix(B)
+    rest = np.asarray(B @ nodes)
+    table = None if cells is None else incidence(B.shape[0], cells)
+    return ModelFeature(kind, B, cells, table, rest)
+
+
+def build_model(basis: Basis, preop: PreopModel, fiducials: np.ndarray | None = None) -> RegistrationModel:
+    """Carry the preoperative geometry onto the basis' mesh."""
+    nodes, M = basis.nodes, basis.M
+    feats = {}
+    # liver surface = the tet mesh boundary (so it deforms exactly with the FE nodes)
+    surf = basis.surface
+    local = np.full(M, -1)
+    local[surf] = np.arange(len(surf))
+    sel = sp.csr_matrix((np.ones(len(surf)), (np.arange(len(surf)), surf)), shape=(len(surf), M))
+    faces = local[basis.surface_faces]
+    feats["liver"] = _feature("surface", sel, faces, nodes)
+    if preop.regions is not None:
+        _, near = cKDTree(preop.liver.vertices).query(nodes[surf])
+        labels = preop.regions[near]
+        for name in ("falciform", "ridge_left", "ridge_right"):
+            code = REGION_NAMES.index(name)
+            keep = (labels[faces] == code).sum(1) >= 2
+            if keep.any():
+                feats[name] = _feature("surface", sel, faces[keep], nodes)
+    for v in ("portal", "hepatic"):
+        mesh = preop.vessel(v)
+        if mesh is not None:
+            feats[v] = _feature("surface", interpolation_matrix(nodes, basis.tets, mesh.vertices), np.asarray(mesh.faces), nodes)
+        cl = preop.centerline(v)
+        if cl is not None:
+            feats[f"{v}_centerline"] = _feature("centerline", interpolation_matrix(nodes, basis.tets, cl.points),
+                                                cl.segments(), nodes)
+    if fiducials is not None:
+        feats["fiducials"] = _feature("fiducial", interpolation_matrix(nodes, basis.tets, fiducials), None, nodes)
+    return RegistrationModel(basis=basis, features=feats, centroid=nodes.mean(0))
+
+
+def usable_data(model: RegistrationModel, data: dict) -> dict:
+    """The data features the model can match, as float64 arrays; warns about the rest and
+    raises for non-finite input (before any solving)."""
+    out = {}
+    for name, pts in data.items():
+        pts = np.asarray(pts, dtype=float)
+        if pts.size == 0:
+            continue
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise InputError(f"feature {name!r}: expected (N, 3) points, got shape {pts.shape}")
+        if not np.isfinite(pts).all():
+            raise InputError(f"feature {name!r}: NaN or infinite coordinates")
+        target = DATA_TO_MODEL.get(name)
+        if target is None:
+            raise InputError(f"unknown feature {name!r}")
+        if target not in model.features:
+            if target in ("falciform", "ridge_left", "ridge_right") and "liver" in model.features:
+                warnings.warn(f"no '{target}' region in the model (regions.csv missing?): "
+                              f"{name} points slide on the whole liver surface", stacklevel=2)
+                model.features[target] = model.features["liver"]
+            elif name == "fiducials":
+                raise InputError("intraoperative fiducials need preop/fiducials.csv (their preoperative positions)")
+            else:
+                warnings.warn(f"feature {name!r} ignored: the case has no preoperative {target}", stacklevel=2)
+                continue
+        if name == "fiducials" and len(pts) != model.features["fiducials"].B.shape[0]:
+            raise InputError(f"{len(pts)} intraoperative fiducials but "
+                             f"{model.features['fiducials'].B.shape[0]} preoperative ones")
+        out[name] = pts
+    return out

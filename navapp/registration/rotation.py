@@ -1,0 +1,53 @@
+"""R(θ) = R_x(θx) R_y(θy) R_z(θz) (paper eq. 9; this order everywhere) and its derivatives."""
+
+import numpy as np
+
+
+def _rx(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1, 0, 0], [0, c, -s], [0, s, c]])
+
+
+def _ry(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])
+
+
+def _rz(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+
+
+def _drx(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[0, 0, 0], [0, -s, -c], [0, c, -s]])
+
+
+def _dry(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[-s, 0, c], [0, 0, 0], [-c, 0, -s]])
+
+
+def _drz(a):
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[-s, -c, 0], [c, -s, 0], [0, 0, 0]])
+
+
+def rotation(theta) -> np.ndarray:
+    tx, ty, tz = theta
+    return _rx(tx) @ _ry(ty) @ _rz(tz)
+
+
+def rotation_derivatives(theta) -> np.ndarray:
+    """(3, 3, 3): ∂R/∂θ_j for j = x, y, z."""
+    tx, ty, tz = theta
+    Rx, Ry, Rz = _rx(tx), _ry(ty), _rz(tz)
+    return np.stack([_drx(tx) @ Ry @ Rz, Rx @ _dry(ty) @ Rz, Rx @ Ry @ _drz(tz)])
+
+
+def angles_from_matrix(R) -> np.ndarray:
+    """θ with rotation(θ) == R (for |θy| < π/2)."""
+    ty = np.arcsin(np.clip(R[0, 2], -1, 1))
+    tx = np.arctan2(-R[1, 2], R[2, 2])
+    tz = np.arctan2(-R[0, 1], R[0, 0])
+    return np.array([tx, ty, tz])
