@@ -77,6 +77,20 @@ def _peak_rss_mb():
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
+def cmd_demo(args):
+    from .anatomy.caseio import write_case
+    from .simulation.demo import demo_case
+
+    with progress.stage("building the demo case (phantom, ground-truth deformation, data)"):
+        case = demo_case()
+    write_case(case, args.out)
+    print(f"navapp: demo case written to {args.out}; registering it", file=sys.stderr)
+    from .registration.cli import cmd_register
+
+    ns = argparse.Namespace(case=args.out, out=None, k=45, edge=4.0, no_deform=False, max_iterations=100, json=True)
+    return cmd_register(ns)
+
+
 def build_parser():
     p = argparse.ArgumentParser(prog="navapp", description="Liver deformation correction (LIBR) from sparse data.")
     p.add_argument("--version", action="version", version=f"navapp {__version__}")
@@ -98,6 +112,13 @@ def build_parser():
     s.add_argument("--edge", type=_positive(float), default=4.0, help="target element size in mm (default 4)")
     s.add_argument("--k", type=_positive(int), default=45, help="number of control points (default 45)")
     s.set_defaults(func=cmd_precompute)
+
+    from .registration.cli import add_register_parser
+    add_register_parser(sub)
+
+    s = sub.add_parser("demo", help="build the demo case (phantom 0, simulated deformation and data) and register it")
+    s.add_argument("--out", type=Path, default=Path("navapp-demo"), help="case folder to write (default ./navapp-demo)")
+    s.set_defaults(func=cmd_demo)
 
     return p
 

@@ -180,6 +180,9 @@ def read_case(folder) -> Case:
             if (np.linalg.norm(polyline_tangents(cl.points, cl.branch), axis=1) == 0).any():
                 raise InputError("consecutive duplicate points: no tangent is defined", p)
             setattr(model, f"{v}_centerline", cl)
+    fp = pre / "fiducials.csv"
+    if fp.exists():
+        model.fiducials = read_csv(fp, ("x", "y", "z"))
     rp = pre / "regions.csv"
     if rp.exists():
         model.regions = read_regions(rp, len(liver.vertices))
@@ -229,6 +232,8 @@ def write_preop(model: PreopModel, folder):
         cl = model.centerline(v)
         if cl is not None:
             write_csv(pre / f"{v}_centerline.csv", np.column_stack([cl.points, cl.branch]), ("x", "y", "z", "branch"), True)
+    if model.fiducials is not None:
+        write_csv(pre / "fiducials.csv", model.fiducials, ("x", "y", "z"))
     if model.regions is not None:
         (pre / "regions.csv").write_text("label\n" + "\n".join(REGION_NAMES[c] for c in model.regions) + "\n")
     if not (folder / "case.toml").exists():

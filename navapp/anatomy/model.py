@@ -65,6 +65,7 @@ class PreopModel:
     portal_centerline: Centerline | None = None
     hepatic_centerline: Centerline | None = None
     regions: np.ndarray | None = None  # (V,) int codes into REGION_NAMES
+    fiducials: np.ndarray | None = None  # (P, 3) mm, row i ↔ row i of intraop/fiducials.csv
     name: str = "liver"
     meta: dict = field(default_factory=dict)
 

@@ -82,7 +82,7 @@ def liver_shape(index: int) -> LiverShape:
     """The implicit liver of phantom ``index``; index 0 is the default phantom."""
     rng = np.random.default_rng(20200 + index)
     j = lambda scale, n=3: rng.uniform(-scale, scale, n)  # noqa: E731
-    rr = np.array([66.0, 84.0, 75.0]) * (1 + j(0.08))
+    rr = np.array([63.0, 84.0, 75.0]) * (1 + j(0.08))
     rc = np.array([-39.0, 0.0, 0.0]) + j(5.0)
     lr = np.array([69.0, 48.0, 19.0]) * (1 + j(0.10))
     lc = np.array([43.0, 18.0, 26.0]) + j(6.0)
@@ -131,8 +131,9 @@ def smooth_surface(mesh: trimesh.Trimesh, iterations: int = 10) -> trimesh.Trime
 def label_regions(shape: LiverShape, mesh: trimesh.Trimesh) -> np.ndarray:
     """Per-vertex region codes (V,) into REGION_NAMES.
 
-    - ridges: within 7 mm of the crease between the lobes' surface and the visceral
-      plane, on the anterior half (y above the hilum), split left/right at the falciform x;
+    - ridges: the inferior border, where the anterior face turns into the visceral face
+      (normals tilted 12–53° below horizontal, or within 7 mm of the crease with the
+      visceral plane), anterior of the hilum, split left/right at the falciform x;
     - falciform: a 10 mm wide band at the falciform x on the anterior/superior surface;
     - anterior: outward normal facing anterior (n_y > 0.1) and not inferior (n_z > -0.55),
       i.e. what a laparoscope and a stylus reach;
@@ -145,8 +146,11 @@ def label_regions(shape: LiverShape, mesh: trimesh.Trimesh) -> np.ndarray:
     codes[anterior] = REGION_NAMES.index("anterior")
     falc = (np.abs(v[:, 0] - shape.falciform_x) < 5.0) & (n[:, 1] + n[:, 2] > 0.3) & (v[:, 1] > -10)
     codes[falc] = REGION_NAMES.index("falciform")
+    # the inferior border: where the anterior face turns into the visceral face (the crease
+    # with the visceral plane on the right lobe, the rounded rim of the thin left lobe)
+    turning = (n[:, 1] > 0.15) & (n[:, 2] < -0.2) & (n[:, 2] > -0.8)
     crease = (np.abs(shape.lobes(v)) < 7.0) & (np.abs(shape.inferior_plane(v)) < 7.0)
-    ridge = crease & (v[:, 1] > shape.hilum_centre[1] + 5)
+    ridge = (turning | crease) & (v[:, 1] > shape.hilum_centre[1] + 5)
     left = v[:, 0] > shape.falciform_x
     codes[ridge & left] = REGION_NAMES.index("ridge_left")
     codes[ridge & ~left] = REGION_NAMES.index("ridge_right")

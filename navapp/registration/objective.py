@@ -39,6 +39,7 @@ class Evaluation:
     J: np.ndarray | None  # (N + 1, 3k + 6), or None when not asked for
     features: dict  # name → {"n", "rms_mm", "mean_abs_mm", "max_abs_mm", "omega"}
     timings: dict
+    correspondence: dict  # name → (S, direction): reuse with ``frozen=`` to hold them fixed
 
 
 def split(beta, n):
@@ -56,6 +57,16 @@ def _correspond(kind, feat, X, Y):
         a, b, c = X[tri[:, 0]], X[tri[:, 1]], X[tri[:, 2]]
         nrm = np.cross(b - a, c - a)
         nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+        # The normal at the closest point: where that point lies inside a triangle it is the
+        # face normal; where it lies on an edge or vertex (common for data off a convex
+        # patch) the face normal is ill-defined and the gradient of the distance field,
+        # p/|p|, is the normal of the surface's offset there. Using p/|p| (oriented like
+        # the face) covers both, and makes f the true point–surface distance.
+        p = Y - S @ X
+        d = np.linalg.norm(p, axis=1)
+        off = d > 1e-9
+        sign = np.where(np.einsum("ij,ij->i", p, nrm) < 0, -1.0, 1.0)
+        nrm[off] = sign[off, None] * p[off] / d[off, None]
         return S, nrm
     if kind == "centerline":
         seg, t, _ = closest_on_polyline(Y, X, feat.cells, feat.table)
@@ -85,7 +96,14 @@ def residuals(kind, p, direction):
     return f, q
 
 
-def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: Weights, jacobian=True) -> Evaluation:
+def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: Weights, jacobian=True,
+             frozen: dict | None = None) -> Evaluation:
+    """Ω(β) with residuals, per-feature statistics and (optionally) the Jacobian J = ∂f/∂β.
+
+    Correspondences S_i and their normals/tangents are recomputed at β unless ``frozen``
+    (a previous evaluation's ``correspondence``) is given: then they are held fixed,
+    which makes Ω a smooth function of β within an LM iteration.
+    """
     basis = model.basis
     n = basis.Ju.shape[1]
     alpha, tau, theta = split(beta, n)
@@ -96,13 +114,14 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     dR = rotation_derivatives(theta) if jacobian else None
     Ju3 = basis.Ju.reshape(basis.M, 3 * n)
     tim = {"deform": time.perf_counter() - t0, "closest": 0.0, "jacobian": 0.0}
-    fs, ws, Js, stats = [], [], [], {}
+    fs, ws, Js, stats, corr = [], [], [], {}, {}
     for name, Y in data.items():
         feat = model.feature_for(name)
         t0 = time.perf_counter()
         local = feat.rest + feat.B @ u - c  # x0 − x̄0 + J_u α at the feature's points
         X = local @ R.T + tau + c
-        S, direction = _correspond(feat.kind, feat, X, Y)
+        S, direction = frozen[name] if frozen is not None else _correspond(feat.kind, feat, X, Y)
+        corr[name] = (S, direction)
         tim["closest"] += time.perf_counter() - t0
         t0 = time.perf_counter()
         p = Y - S @ X
@@ -136,4 +155,4 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     w = np.concatenate(ws)
     stats["strain_energy"] = {"f_E_pa": fE, "omega": float(weights.energy * fE ** 2)}
     return Evaluation(omega=float(w @ (f * f)), f=f, w=w, J=np.vstack(Js) if jacobian else None,
-                      features=stats, timings=tim)
+                      features=stats, timings=tim, correspondence=corr)

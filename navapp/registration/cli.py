@@ -1,0 +1,67 @@
+"""``navapp register CASE``: the headless registration command."""
+
+import json
+import sys
+import time
+from pathlib import Path
+
+from .. import progress
+
+
+def add_register_parser(sub):
+    from ..cli import _positive
+
+    s = sub.add_parser("register", help="register a case folder (rigid ICP + LIBR) and write the results")
+    s.add_argument("case", type=Path, help="case folder (DESIGN.md §3)")
+    s.add_argument("--out", type=Path, help="output folder (default CASE/registration)")
+    s.add_argument("--k", type=_positive(int), default=45, help="control points (default 45)")
+    s.add_argument("--edge", type=_positive(float), default=4.0, help="tet element size, mm (default 4)")
+    s.add_argument("--no-deform", action="store_true", help="rigid registration only")
+    s.add_argument("--max-iterations", type=_positive(int), default=100, help="LM iteration cap (default 100)")
+    s.add_argument("--json", action="store_true", help="print a one-line JSON summary on stdout")
+    s.set_defaults(func=cmd_register)
+
+
+def cmd_register(args):
+    from ..anatomy.caseio import read_case
+    from ..errors import InputError
+    from .libr import LMOptions
+    from .pipeline import prepare, register, write_outputs
+
+    t0 = time.perf_counter()
+    case = read_case(args.case)
+    if not case.intraop:
+        raise InputError("no intraoperative data (intraop/*.csv): nothing to register to", args.case)
+    model, sec = prepare(case, args.edge, args.k)
+    bar = progress.bar(args.max_iterations, "LIBR", "iter")
+
+    def on_iteration(p):
+        bar.update(1)
+        bar.set_postfix_str(f"Ω={p.omega:.3e}")
+
+    reg = register(model, case.intraop, deform=not args.no_deform,
+                   options=LMOptions(max_iterations=args.max_iterations), callback=on_iteration)
+    bar.close()
+    sec.update(reg.seconds)
+    summary = {"case": case.name, "nodes": model.basis.M, "k": model.basis.k,
+               "features": {n: len(p) for n, p in reg.data_model_frame.items()},
+               "rigid": {"iterations": reg.rigid.iterations, "rms_mm": reg.rigid.rms_mm}}
+    if reg.libr is not None:
+        r = reg.libr
+        summary.update(iterations=r.iterations, stop_reason=r.stop_reason, omega=r.omega,
+                       residuals=r.features, iteration_seconds={k: round(v, 4) for k, v in r.timings.items()})
+    sec["total"] = time.perf_counter() - t0
+    summary["seconds"] = {k: round(v, 4) for k, v in sec.items()}
+    out = args.out or Path(args.case) / "registration"
+    summary = write_outputs(case, reg, out, summary)
+    if args.json:
+        brief = {k: summary[k] for k in ("case", "iterations", "stop_reason", "omega") if k in summary}
+        for key in ("tre_rigid", "tre_deformable"):
+            if key in summary:
+                brief[key] = round(summary[key]["mean_mm"], 3)
+        brief["seconds"] = summary["seconds"]
+        brief["out"] = str(out)
+        print(json.dumps(brief))
+    else:
+        print(f"registered {case.name}: results in {out}", file=sys.stderr)
+        print(json.dumps(summary, indent=2))

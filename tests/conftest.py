@@ -1,0 +1,46 @@
+"""Shared fixtures: small meshes so that the suite stays fast on a 2-core machine."""
+
+import numpy as np
+import pytest
+
+from navapp import progress
+
+progress.QUIET = True
+
+
+@pytest.fixture(scope="session")
+def phantoms():
+    from navapp.anatomy.phantom import make_phantom
+
+    return [make_phantom(i) for i in range(3)]
+
+
+@pytest.fixture(scope="session")
+def cache_root(tmp_path_factory):
+    return tmp_path_factory.mktemp("cache")
+
+
+@pytest.fixture(scope="session")
+def coarse_mesh(phantoms, cache_root):
+    """Phantom 0 meshed at 12 mm (≈1k nodes)."""
+    from navapp.anatomy.meshing import cached_tetmesh
+
+    mesh, _ = cached_tetmesh(phantoms[0].liver, 12.0, cache_root)
+    return mesh
+
+
+@pytest.fixture(scope="session")
+def small_basis(coarse_mesh, cache_root):
+    from navapp.mechanics.basis import BasisSettings, load_or_compute_basis
+
+    basis, _ = load_or_compute_basis(coarse_mesh, BasisSettings(k=12), cache_root=cache_root)
+    return basis
+
+
+@pytest.fixture(scope="session")
+def small_model(small_basis, phantoms):
+    from navapp.registration.model import build_model
+
+    rng = np.random.default_rng(5)
+    fid = small_basis.nodes[rng.choice(small_basis.M, 6, replace=False)]
+    return build_model(small_basis, phantoms[0], fiducials=fid)
