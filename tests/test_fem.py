@@ -1,0 +1,84 @@
+"""FE checks against exact solutions: P1 reproduces linear fields exactly."""
+
+import numpy as np
+import pytest
+from skfem import MeshTet
+
+from navapp.mechanics.fem import Material, nodal_strain_operator, nodal_stress, stiffness, strain_energy
+from navapp.mechanics.sparse import Factorisation
+
+
+@pytest.fixture(scope="module")
+def box():
+    m = MeshTet.init_tensor(np.linspace(0, 40, 6), np.linspace(0, 10, 4), np.linspace(0, 10, 4))
+    return m.p.T.copy(), m.t.T.copy()
+
+
+def _solve_dirichlet(K, fixed_dofs, values):
+    n = K.shape[0]
+    free = np.setdiff1d(np.arange(n), fixed_dofs)
+    u = np.zeros(n)
+    u[fixed_dofs] = values
+    with Factorisation(K[free][:, free]) as F:
+        u[free] = F.solve(-(K[free][:, fixed_dofs] @ values))
+    return u
+
+
+def test_patch_test_linear_field_is_exact(box):
+    nodes, tets = box
+    K = stiffness(nodes, tets)
+    A = np.array([[0.01, 0.002, -0.003], [0.004, -0.005, 0.001], [0.0, 0.003, 0.008]])
+    exact = nodes @ A.T
+    bnd = np.flatnonzero((np.isclose(nodes, nodes.min(0)) | np.isclose(nodes, nodes.max(0))).any(1))
+    dofs = (3 * bnd[:, None] + np.arange(3)).ravel()
+    u = _solve_dirichlet(K, dofs, exact[bnd].ravel())
+    assert np.allclose(u.reshape(-1, 3), exact, atol=1e-10)
+    eps = (nodal_strain_operator(nodes, tets) @ u).reshape(-1, 6)
+    E = 0.5 * (A + A.T)
+    voigt = np.array([E[0, 0], E[1, 1], E[2, 2], 2 * E[1, 2], 2 * E[0, 2], 2 * E[0, 1]])
+    assert np.allclose(eps, voigt, atol=1e-12)
+
+
+def test_bar_in_uniaxial_tension(box):
+    """Ends pulled apart with lateral contraction free: u_x = εx, u_y = −νε y, u_z = −νε z,
+    stress σ_xx = Eε and all other components zero."""
+    nodes, tets = box
+    mat = Material(E=5000.0, nu=0.3)
+    K = stiffness(nodes, tets, mat)
+    eps = 0.01
+    L = nodes[:, 0].max()
+    left = np.flatnonzero(nodes[:, 0] == 0)
+    right = np.flatnonzero(np.isclose(nodes[:, 0], L))
+    origin = np.flatnonzero((nodes == 0).all(1))
+    fixed = [3 * left, 3 * right, 3 * origin + 1, 3 * origin + 2]
+    # stop rigid rotations: a node on the y axis at x = 0 has no z motion, one on z has no y
+    ynode = np.flatnonzero((nodes[:, 0] == 0) & (nodes[:, 2] == 0) & (nodes[:, 1] > 0))[:1]
+    fixed.append(3 * ynode + 2)
+    dofs = np.concatenate(fixed)
+    vals = np.zeros(len(dofs))
+    vals[len(left):len(left) + len(right)] = eps * L
+    u = _solve_dirichlet(K, dofs, vals).reshape(-1, 3)
+    assert np.allclose(u[:, 0], eps * nodes[:, 0], atol=1e-9)
+    assert np.allclose(u[:, 1], -mat.nu * eps * nodes[:, 1], atol=1e-9)
+    assert np.allclose(u[:, 2], -mat.nu * eps * nodes[:, 2], atol=1e-9)
+    sig = nodal_stress((nodal_strain_operator(nodes, tets) @ u.ravel()).reshape(-1, 6), mat)
+    assert np.allclose(sig[:, 0], mat.E * eps, rtol=1e-8)
+    assert np.allclose(sig[:, 1:], 0, atol=1e-6 * mat.E * eps)
+
+
+def test_rigid_motions_have_no_strain_or_energy(box):
+    nodes, tets = box
+    K = stiffness(nodes, tets)
+    G = nodal_strain_operator(nodes, tets)
+    W = np.array([[0, -1, 2], [1, 0, -3], [-2, 3, 0]]) * 1e-3  # infinitesimal rotation
+    for u in (np.tile([1.0, -2.0, 0.5], len(nodes)), (nodes @ W.T).ravel()):
+        assert np.abs(G @ u).max() < 1e-14
+        assert abs(strain_energy(K, u)) < 1e-9 * np.abs(K).max()
+
+
+def test_energy_proportional_to_E(box):
+    nodes, tets = box
+    u = np.random.default_rng(0).normal(size=3 * len(nodes))
+    e1 = strain_energy(stiffness(nodes, tets, Material(E=1000.0)), u)
+    e2 = strain_energy(stiffness(nodes, tets, Material(E=3000.0)), u)
+    assert np.isclose(e2, 3 * e1, rtol=1e-12)
