@@ -20,6 +20,7 @@ Choices where the paper is open:
 
 import threading
 import time
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -59,18 +60,23 @@ class LibrResult:
     omega: float
     iterations: int
     stop_reason: str
-    history: list  # Ω after every accepted step, starting with Ω(β0)
+    history: list  # Ω after every accepted step (correspondences recomputed), from Ω(β0)
+    steps: list  # per accepted step: (Ω before, Ω after with that iteration's correspondences)
     features: dict
     seconds: float
     timings: dict  # seconds spent in deform / closest / jacobian / solve
 
 
 def _solve(A, g):
-    """Solve the damped normal equations; fall back to least squares when singular."""
-    try:
-        return sla.solve(A, g, assume_a="pos", check_finite=False)
-    except (sla.LinAlgError, ValueError):
-        return sla.lstsq(A, g, check_finite=False)[0]
+    """Solve the damped normal equations; minimum-norm least squares when (near) singular,
+    e.g. collinear data leave a rotation undetermined."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", sla.LinAlgWarning)
+        try:
+            return sla.solve(A, g, assume_a="pos", check_finite=False)
+        except (sla.LinAlgError, sla.LinAlgWarning, ValueError):
+            pass
+    return sla.lstsq(A, g, check_finite=False)[0]
 
 
 def register_libr(model: RegistrationModel, data: dict, beta0=None, options: LMOptions = LMOptions(),
@@ -108,8 +114,9 @@ def _register(model, data, beta0, options, callback, cancel):
     prev_omega = ev.omega
     best = (ev.omega, beta.copy(), ev.features)
     quiet = 0
+    steps = []
     if not data:
-        return LibrResult(beta, ev.omega, 0, "no_data", history, ev.features, time.perf_counter() - start, tim)
+        return LibrResult(beta, ev.omega, 0, "no_data", history, [], ev.features, time.perf_counter() - start, tim)
     lam = options.lam0
     reason = "max_iterations"
     it = 0
@@ -143,6 +150,7 @@ def _register(model, data, beta0, options, callback, cancel):
             accepted = actual > 0 and np.isfinite(held.omega)
             rho = actual / predicted if predicted > 0 else 0.0
             if accepted:
+                steps.append((ev.omega, held.omega))
                 beta = trial
                 ev = run(beta)  # new correspondences: the next iteration's starting point
                 history.append(ev.omega)
@@ -170,4 +178,4 @@ def _register(model, data, beta0, options, callback, cancel):
     if ev.omega > best[0]:  # jitter at the end: report the best state seen
         beta = best[1]
         ev = run(beta, jac=False)
-    return LibrResult(beta, ev.omega, it, reason, history, ev.features, time.perf_counter() - start, tim)
+    return LibrResult(beta, ev.omega, it, reason, history, steps, ev.features, time.perf_counter() - start, tim)
