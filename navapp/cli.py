@@ -91,6 +91,15 @@ def cmd_demo(args):
     return cmd_register(ns)
 
 
+def cmd_bench(args):
+    from .evaluation import benchmark
+
+    if args.what == "precompute":
+        benchmark.bench_precompute(args.edges, args.ks)
+    else:
+        benchmark.bench_register(args.repeats, args.planes, args.ks[0], args.edges[0])
+
+
 def build_parser():
     p = argparse.ArgumentParser(prog="navapp", description="Liver deformation correction (LIBR) from sparse data.")
     p.add_argument("--version", action="version", version=f"navapp {__version__}")
@@ -115,6 +124,14 @@ def build_parser():
 
     from .registration.cli import add_register_parser
     add_register_parser(sub)
+
+    s = sub.add_parser("bench", help="benchmarks that print timings and memory as JSON lines")
+    s.add_argument("what", choices=("precompute", "register"))
+    s.add_argument("--edges", type=_positive(float), nargs="+", default=[4.0], help="element sizes, mm")
+    s.add_argument("--ks", type=_positive(int), nargs="+", default=[45], help="numbers of control points")
+    s.add_argument("--repeats", type=_positive(int), default=5, help="register: repetitions for the median")
+    s.add_argument("--planes", type=_positive(int), default=3, help="register: iUS planes (≥ 2)")
+    s.set_defaults(func=cmd_bench)
 
     s = sub.add_parser("demo", help="build the demo case (phantom 0, simulated deformation and data) and register it")
     s.add_argument("--out", type=Path, default=Path("navapp-demo"), help="case folder to write (default ./navapp-demo)")

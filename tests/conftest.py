@@ -1,9 +1,15 @@
 """Shared fixtures: small meshes so that the suite stays fast on a 2-core machine."""
 
+import os
+import tempfile
+
 import numpy as np
 import pytest
 
-from navapp import progress
+# keep the suite's cache entries out of the user's ~/.cache/navapp
+os.environ["NAVAPP_CACHE"] = tempfile.mkdtemp(prefix="navapp-test-cache-")
+
+from navapp import progress  # noqa: E402
 
 progress.QUIET = True
 

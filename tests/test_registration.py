@@ -66,7 +66,7 @@ def test_objective_is_unit_invariant(small_model):
     om_mm = evaluate(small_model, data, beta, Weights()).omega
     b = small_model.basis
     b_m = replace(b, nodes=b.nodes * 1e-3, Ju=b.Ju * 1e-3)  # strain and stress (Pa) unchanged
-    feats = {k: replace(f, rest=f.rest * 1e-3) for k, f in small_model.features.items()}
+    feats = {k: replace(f, rest=f.rest * 1e-3, BJ=f.BJ * 1e-3) for k, f in small_model.features.items()}
     model_m = replace(small_model, basis=b_m, features=feats, centroid=small_model.centroid * 1e-3)
     beta_m = beta.copy()
     beta_m[n:n + 3] *= 1e-3

@@ -62,7 +62,7 @@ def read_csv(path: Path, columns: tuple[str, ...], dtype=float) -> np.ndarray:
     first = [c.strip().lower() for c in lines[0].split(",")]
     if not _is_number(first[0]):
         if tuple(first) != tuple(columns):
-            raise InputError(f"header is {','.join(first)!r}, expected {','.join(columns)!r}", path)
+            raise InputError(f"header is {_clip(','.join(first))!r}, expected {','.join(columns)!r}", path)
         lines = lines[1:]
         if not lines:
             raise InputError("file has a header but no rows", path)
@@ -75,7 +75,7 @@ def read_csv(path: Path, columns: tuple[str, ...], dtype=float) -> np.ndarray:
         try:
             vals = [float(c) for c in cells]
         except ValueError:
-            raise InputError(f"row {lineno} is not numeric: {ln.strip()!r}", path) from None
+            raise InputError(f"row {lineno} is not numeric: {_clip(ln.strip())!r}", path) from None
         if not all(math.isfinite(x) for x in vals):
             raise InputError(f"row {lineno} has a NaN or infinite value", path)
         rows.append(vals)
@@ -85,6 +85,10 @@ def read_csv(path: Path, columns: tuple[str, ...], dtype=float) -> np.ndarray:
             raise InputError(f"column {columns[-1]!r} must hold whole numbers", path)
         return out
     return out
+
+
+def _clip(text: str, n: int = 60) -> str:
+    return text if len(text) <= n else text[: n - 1] + "…"
 
 
 def _is_number(s: str) -> bool:

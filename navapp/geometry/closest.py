@@ -70,13 +70,14 @@ def closest_on_triangles(p, a, b, c):
     return w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c, w
 
 
-def closest_on_surface(points, vertices, faces, table, near=2):
+def closest_on_surface(points, vertices, faces, table, near=2, tree=None):
     """Closest surface points. Returns face (N,), barycentric (N, 3), closest (N, 3).
 
-    ``table`` is ``incidence(len(vertices), faces)``.
+    ``table`` is ``incidence(len(vertices), faces)``; ``tree`` an optional prebuilt
+    cKDTree of ``vertices``.
     """
     points = np.asarray(points, float)
-    _, vi = cKDTree(vertices).query(points, k=near)
+    _, vi = (tree or cKDTree(vertices)).query(points, k=near)
     cand = table[vi.reshape(len(points), -1)].reshape(len(points), -1)  # (N, near*m)
     valid = cand >= 0
     cf = np.where(valid, cand, 0)
@@ -92,10 +93,10 @@ def closest_on_surface(points, vertices, faces, table, near=2):
     return face, w[sel], q[sel]
 
 
-def closest_on_polyline(points, vertices, segments, table, near=2):
+def closest_on_polyline(points, vertices, segments, table, near=2, tree=None):
     """Closest points on polyline segments. Returns segment (N,), t (N,), closest (N, 3)."""
     points = np.asarray(points, float)
-    _, vi = cKDTree(vertices).query(points, k=near)
+    _, vi = (tree or cKDTree(vertices)).query(points, k=near)
     cand = table[vi.reshape(len(points), -1)].reshape(len(points), -1)
     valid = cand >= 0
     cs = np.where(valid, cand, 0)

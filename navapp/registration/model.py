@@ -44,6 +44,7 @@ class ModelFeature:
     cells: np.ndarray | None  # (F, 3) triangles, (S, 2) segments, or None
     table: np.ndarray | None  # vertex → incident cells (see geometry.closest.incidence)
     rest: np.ndarray  # (V, 3) undeformed points, mm
+    BJ: np.ndarray  # (V, 3, 3k): the basis carried to these points, B·J_u (mm per unit α)
 
 
 @dataclass
@@ -56,11 +57,16 @@ class RegistrationModel:
         return self.features[DATA_TO_MODEL[data_name]]
 
 
-def _feature(kind, B, cells, nodes):
+VESSEL_FACES = 8000  # vessel surfaces are decimated to this many triangles for registration
+
+
+def _feature(kind, B, cells, basis, BJ=None):
     B = sp.csr_matrix(B)
-    rest = np.asarray(B @ nodes)
+    rest = np.asarray(B @ basis.nodes)
     table = None if cells is None else incidence(B.shape[0], cells)
-    return ModelFeature(kind, B, cells, table, rest)
+    if BJ is None:
+        BJ = basis.modes_at(B)
+    return ModelFeature(kind, B, cells, table, rest, BJ)
 
 
 def build_model(basis: Basis, preop: PreopModel, fiducials: np.ndarray | None = None) -> RegistrationModel:
@@ -73,7 +79,7 @@ def build_model(basis: Basis, preop: PreopModel, fiducials: np.ndarray | None = 
     local[surf] = np.arange(len(surf))
     sel = sp.csr_matrix((np.ones(len(surf)), (np.arange(len(surf)), surf)), shape=(len(surf), M))
     faces = local[basis.surface_faces]
-    feats["liver"] = _feature("surface", sel, faces, nodes)
+    feats["liver"] = _feature("surface", sel, faces, basis)
     if preop.regions is not None:
         _, near = cKDTree(preop.liver.vertices).query(nodes[surf])
         labels = preop.regions[near]
@@ -81,17 +87,25 @@ def build_model(basis: Basis, preop: PreopModel, fiducials: np.ndarray | None = 
             code = REGION_NAMES.index(name)
             keep = (labels[faces] == code).sum(1) >= 2
             if keep.any():
-                feats[name] = _feature("surface", sel, faces[keep], nodes)
+                verts = np.unique(faces[keep])  # the region as its own compact surface patch
+                remap = np.full(len(surf), -1)
+                remap[verts] = np.arange(len(verts))
+                feats[name] = _feature("surface", sel[verts], remap[faces[keep]], basis, feats["liver"].BJ[verts])
     for v in ("portal", "hepatic"):
         mesh = preop.vessel(v)
         if mesh is not None:
-            feats[v] = _feature("surface", interpolation_matrix(nodes, basis.tets, mesh.vertices), np.asarray(mesh.faces), nodes)
+            if len(mesh.faces) > VESSEL_FACES:
+                # quadric decimation: on the phantoms it moves the surface < 0.1 mm and cuts
+                # the per-iteration closest-point cost several times
+                mesh = mesh.simplify_quadric_decimation(face_count=VESSEL_FACES)
+            feats[v] = _feature("surface", interpolation_matrix(nodes, basis.tets, mesh.vertices),
+                                np.asarray(mesh.faces), basis)
         cl = preop.centerline(v)
         if cl is not None:
             feats[f"{v}_centerline"] = _feature("centerline", interpolation_matrix(nodes, basis.tets, cl.points),
-                                                cl.segments(), nodes)
+                                                cl.segments(), basis)
     if fiducials is not None:
-        feats["fiducials"] = _feature("fiducial", interpolation_matrix(nodes, basis.tets, fiducials), None, nodes)
+        feats["fiducials"] = _feature("fiducial", interpolation_matrix(nodes, basis.tets, fiducials), None, basis)
     return RegistrationModel(basis=basis, features=feats, centroid=nodes.mean(0))
 
 

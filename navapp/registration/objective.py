@@ -13,9 +13,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.spatial import cKDTree
 
 from ..geometry.closest import closest_on_polyline, closest_on_surface
-from .model import W_ENERGY_SI, WEIGHTS_SI, RegistrationModel
+from .model import DATA_TO_MODEL, W_ENERGY_SI, WEIGHTS_SI, RegistrationModel
 from .rotation import rotation, rotation_derivatives
 
 EPS_DISTANCE = 1e-9  # mm: below this a centerline/fiducial residual has no defined direction
@@ -46,12 +47,12 @@ def split(beta, n):
     return beta[:n], beta[n:n + 3], beta[n + 3:n + 6]
 
 
-def _correspond(kind, feat, X, Y):
+def _correspond(kind, feat, X, Y, tree=None):
     """Closest points of Y on the current feature geometry X: sparse S (N × V) and the
     direction data (normals for surfaces, tangents for centerlines)."""
     N = len(Y)
     if kind == "surface":
-        face, bary, _ = closest_on_surface(Y, X, feat.cells, feat.table)
+        face, bary, _ = closest_on_surface(Y, X, feat.cells, feat.table, tree=tree)
         tri = feat.cells[face]
         S = sp.csr_matrix((bary.ravel(), (np.repeat(np.arange(N), 3), tri.ravel())), shape=(N, len(X)))
         a, b, c = X[tri[:, 0]], X[tri[:, 1]], X[tri[:, 2]]
@@ -69,7 +70,7 @@ def _correspond(kind, feat, X, Y):
         nrm[off] = sign[off, None] * p[off] / d[off, None]
         return S, nrm
     if kind == "centerline":
-        seg, t, _ = closest_on_polyline(Y, X, feat.cells, feat.table)
+        seg, t, _ = closest_on_polyline(Y, X, feat.cells, feat.table, tree=tree)
         ends = feat.cells[seg]
         S = sp.csr_matrix((np.column_stack([1 - t, t]).ravel(), (np.repeat(np.arange(N), 2), ends.ravel())),
                           shape=(N, len(X)))
@@ -108,19 +109,26 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     n = basis.Ju.shape[1]
     alpha, tau, theta = split(beta, n)
     c = model.centroid
-    t0 = time.perf_counter()
-    u = (basis.Ju @ alpha).reshape(-1, 3)
     R = rotation(theta)
     dR = rotation_derivatives(theta) if jacobian else None
-    Ju3 = basis.Ju.reshape(basis.M, 3 * n)
-    tim = {"deform": time.perf_counter() - t0, "closest": 0.0, "jacobian": 0.0}
+    tim = {"deform": 0.0, "closest": 0.0, "jacobian": 0.0}
     fs, ws, Js, stats, corr = [], [], [], {}, {}
+    geometry = {}  # model feature → (local, X, KD-tree): anterior and posterior share the liver
     for name, Y in data.items():
         feat = model.feature_for(name)
+        key = DATA_TO_MODEL[name]
+        if key not in geometry:
+            t0 = time.perf_counter()
+            local = feat.rest + (feat.BJ.reshape(-1, n) @ alpha).reshape(-1, 3) - c  # x0 − x̄0 + J_u α
+            X = local @ R.T + tau + c
+            tim["deform"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            tree = cKDTree(X) if frozen is None and feat.kind != "fiducial" else None
+            tim["closest"] += time.perf_counter() - t0
+            geometry[key] = (local, X, tree)
+        local, X, tree = geometry[key]
         t0 = time.perf_counter()
-        local = feat.rest + feat.B @ u - c  # x0 − x̄0 + J_u α at the feature's points
-        X = local @ R.T + tau + c
-        S, direction = frozen[name] if frozen is not None else _correspond(feat.kind, feat, X, Y)
+        S, direction = frozen[name] if frozen is not None else _correspond(feat.kind, feat, X, Y, tree)
         corr[name] = (S, direction)
         tim["closest"] += time.perf_counter() - t0
         t0 = time.perf_counter()
@@ -133,8 +141,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
                        "mean_abs_mm": float(np.mean(np.abs(f))), "max_abs_mm": float(np.max(np.abs(f))),
                        "omega": float(wF * f @ f)}
         if jacobian:
-            SB = S @ feat.B
-            U = np.asarray(SB @ Ju3).reshape(-1, 3, n)
+            U = np.asarray(S @ feat.BJ.reshape(len(X), 3 * n)).reshape(-1, 3, n)
             qR = q @ R  # qᵀR, (N, 3)
             Jf = np.empty((len(f), n + 6))
             Jf[:, :n] = -np.einsum("ia,iak->ik", qR, U)

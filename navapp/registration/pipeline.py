@@ -71,13 +71,18 @@ def prepare(case: Case, edge=4.0, k=45, cache_root=None):
 
 
 def register(model: RegistrationModel, data: dict, deform=True, options: LMOptions | None = None,
-             callback=None, cancel=None, beta0=None) -> Registration:
-    """Rigid initialisation then (unless ``deform`` is False) LIBR."""
+             callback=None, cancel=None, beta0=None, rigid: RigidResult | None = None) -> Registration:
+    """Rigid initialisation then (unless ``deform`` is False) LIBR.
+
+    Warm start (e.g. after adding an iUS plane): pass the previous ``rigid`` result and
+    ``beta0`` = the previous β; ICP is then skipped and LM starts from β0.
+    """
     data = usable_data(model, data)
     options = options or LMOptions()
     sec = {}
     t = time.perf_counter()
-    rigid = rigid_icp(model, data, options.weights)
+    if rigid is None:
+        rigid = rigid_icp(model, data, options.weights)
     sec["rigid"] = time.perf_counter() - t
     local = {name: rigid.inverse(p) for name, p in data.items()}
     result = None

@@ -10,6 +10,7 @@ weighted Kabsch solution. Fiducials, when present, first give a closed-form star
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .model import RegistrationModel
 from .objective import Weights, _correspond
@@ -41,7 +42,7 @@ def weighted_kabsch(P, Q, w):
 
 
 def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights(), max_iterations=100,
-              tol_mm=1e-6) -> RigidResult:
+              tol_mm=1e-4) -> RigidResult:
     """Rigid transform taking the model onto ``data`` (feature → (N, 3) mm)."""
     R, t = np.eye(3), np.zeros(3)
     if not data:
@@ -52,12 +53,13 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights()
     prev = np.inf
     rms = 0.0
     it = 0
+    trees = {name: cKDTree(model.feature_for(name).rest) for name in data if name != "fiducials"}
     for it in range(1, max_iterations + 1):
         Ps, Qs, Ws = [], [], []
         for name, Y in data.items():
             feat = model.feature_for(name)
             Ym = (Y - t) @ R  # data in the model frame
-            S, _ = _correspond(feat.kind, feat, feat.rest, Ym)
+            S, _ = _correspond(feat.kind, feat, feat.rest, Ym, trees.get(name))
             Ps.append(S @ feat.rest)
             Qs.append(Y)
             Ws.append(np.full(len(Y), weights.features[name] / len(Y)))

@@ -1,0 +1,15 @@
+"""Render the committed phantom pictures: python scripts/render_phantoms.py [OUT_DIR]."""
+
+import sys
+from pathlib import Path
+
+from navapp.anatomy.phantom import make_phantom
+from navapp.evaluation.render import phantom_figure
+
+out = Path(sys.argv[1] if len(sys.argv) > 1 else "docs/img")
+out.mkdir(parents=True, exist_ok=True)
+for i in range(3):
+    m = make_phantom(i)
+    phantom_figure(m, out / f"phantom{i}.png", title=f"phantom {i}: {m.liver.extents[0]:.0f} × "
+                   f"{m.liver.extents[1]:.0f} × {m.liver.extents[2]:.0f} mm, {m.liver.volume / 1e3:.0f} ml")
+    print(out / f"phantom{i}.png")
