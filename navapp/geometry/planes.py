@@ -1,0 +1,29 @@
+"""Exact plane–triangle-mesh sections."""
+
+import numpy as np
+
+
+def plane_section(vertices, faces, origin, normal, eps=1e-12):
+    """Segments (S, 2, 3) where the plane through ``origin`` with ``normal`` cuts the
+    triangles. Each triangle with vertices on both sides contributes one segment between
+    its two edge crossings (linear interpolation of the signed distances); triangles that
+    only touch the plane at a vertex contribute nothing.
+    """
+    v = np.asarray(vertices, float)
+    n = np.asarray(normal, float)
+    n = n / np.linalg.norm(n)
+    d = (v - origin) @ n
+    d = np.where(np.abs(d) < eps, eps, d)  # a vertex on the plane counts as just above it
+    f = np.asarray(faces)
+    s = d[f] > 0
+    cut = s.any(1) & ~s.all(1)
+    f, dd, s = f[cut], d[f[cut]], s[cut]
+    # the lone vertex (alone on its side) and the two others, per cut triangle
+    lone = np.where(s.sum(1) == 1, np.argmax(s, 1), np.argmin(s, 1))
+    i0 = f[np.arange(len(f)), lone]
+    i1 = f[np.arange(len(f)), (lone + 1) % 3]
+    i2 = f[np.arange(len(f)), (lone + 2) % 3]
+    d0, d1, d2 = d[i0], d[i1], d[i2]
+    p1 = v[i0] + (d0 / (d0 - d1))[:, None] * (v[i1] - v[i0])
+    p2 = v[i0] + (d0 / (d0 - d2))[:, None] * (v[i2] - v[i0])
+    return np.stack([p1, p2], axis=1)

@@ -1,0 +1,84 @@
+import numpy as np
+import pytest
+import trimesh
+from skimage.draw import line as sk_line
+
+from navapp.geometry.bresenham import line, polyline
+from navapp.geometry.closest import closest_on_triangles
+from navapp.geometry.triangles import segment_hits_triangle
+
+
+def test_bresenham_matches_skimage_in_every_octant():
+    rng = np.random.default_rng(0)
+    cases = [tuple(rng.integers(-40, 40, 4)) for _ in range(400)]
+    cases += [(0, 0, 0, 0), (5, 5, 5, 9), (5, 5, 9, 5), (0, 0, 7, 7), (0, 0, -7, 7), (3, 1, -2, -9)]
+    for r0, c0, r1, c1 in cases:
+        rr, cc = line(r0, c0, r1, c1)
+        sr, sc = sk_line(r0, c0, r1, c1)
+        assert np.array_equal(rr, sr) and np.array_equal(cc, sc), (r0, c0, r1, c1)
+
+
+def test_polyline_closed_has_no_repeats():
+    rr, cc = polyline([[0, 0], [0, 10], [10, 10]], closed=True)
+    px = list(zip(rr, cc))
+    assert len(px) == len(set(px)) == 30
+    assert (rr[0], cc[0]) == (0, 0)
+
+
+def test_closest_on_triangles_against_brute_force():
+    rng = np.random.default_rng(1)
+    a, b, c = (rng.normal(size=(300, 3)) for _ in range(3))
+    p = rng.normal(size=(300, 3)) * 2
+    q, w = closest_on_triangles(p, a, b, c)
+    assert np.allclose(w.sum(1), 1) and (w >= -1e-12).all()
+    # brute force over a fine barycentric grid never beats the closed form
+    g = np.array([(i, j) for i in range(41) for j in range(41 - i)]) / 40.0
+    for k in range(0, 300, 30):
+        pts = a[k] + g[:, :1] * (b[k] - a[k]) + g[:, 1:] * (c[k] - a[k])
+        assert np.linalg.norm(q[k] - p[k]) <= np.linalg.norm(pts - p[k], axis=1).min() + 1e-12
+
+
+def test_segment_triangle_hits():
+    a, b, c = np.array([[0.0, 0, 0]]), np.array([[1.0, 0, 0]]), np.array([[0.0, 1, 0]])
+    hit, t = segment_hits_triangle(np.array([[0.2, 0.2, -1.0]]), np.array([[0.2, 0.2, 1.0]]), a, b, c)
+    assert hit[0] and np.isclose(t[0], 0.5)
+    hit, _ = segment_hits_triangle(np.array([[0.8, 0.8, -1.0]]), np.array([[0.8, 0.8, 1.0]]), a, b, c)
+    assert not hit[0]
+
+
+def test_plane_section_matches_trimesh():
+    from navapp.geometry.planes import plane_section
+
+    mesh = trimesh.creation.icosphere(4, radius=30.0)
+    mesh.apply_scale([1.0, 0.7, 1.3])
+    rng = np.random.default_rng(2)
+    for _ in range(5):
+        origin, normal = rng.normal(size=3) * 8, rng.normal(size=3)
+        ours = plane_section(mesh.vertices, mesh.faces, origin, normal)
+        ref = trimesh.intersections.mesh_plane(mesh, normal, origin)
+        assert len(ours) == len(ref)
+        key = lambda s: np.sort(np.round(s.mean(1), 6), axis=0)  # noqa: E731
+        assert np.allclose(key(ours), key(ref), atol=1e-6)
+        assert np.isclose(np.linalg.norm(ours[:, 1] - ours[:, 0], axis=1).sum(),
+                          np.linalg.norm(ref[:, 1] - ref[:, 0], axis=1).sum())
+
+
+def test_probe_calibration_round_trip():
+    from navapp.simulation.probe import Probe, pixels_to_tracker, pose, ray_to_pixel, tracker_to_pixels
+
+    probe = Probe(width_px=200, height_px=300, spacing_mm=0.3)
+    T = pose([10.0, 40.0, 5.0], lateral=[1.0, 0.2, 0.0], depth=[0.1, -1.0, 0.3])
+    rng = np.random.default_rng(3)
+    cols, rows = rng.integers(0, 200, 50), rng.integers(0, 300, 50)
+    pts = pixels_to_tracker(probe, T, cols, rows)
+    c2, r2, off = tracker_to_pixels(probe, T, pts)
+    assert np.allclose(c2, cols) and np.allclose(r2, rows) and np.allclose(off, 0)
+    # neighbouring pixels are one spacing apart: the calibration carries the scaling
+    a, b = pixels_to_tracker(probe, T, [10, 11], [20, 20])
+    assert np.isclose(np.linalg.norm(a - b), 0.3)
+    # a ray through a known pixel comes back to it
+    target = pixels_to_tracker(probe, T, [42], [77])[0]
+    eye = target + np.array([0.0, 0.0, 200.0])
+    col, row = ray_to_pixel(probe, T, eye, target - eye)
+    assert np.isclose(col, 42) and np.isclose(row, 77)
+    assert ray_to_pixel(probe, T, eye, T[:3, 0]) is None  # parallel to the plane
