@@ -91,6 +91,14 @@ def cmd_demo(args):
     return cmd_register(ns)
 
 
+def cmd_simulate(args):
+    from .simulation.scene import load_scene
+    from .simulation.simulate import simulate
+
+    report = simulate(load_scene(args.scene), args.out)
+    print(json.dumps(report))
+
+
 def cmd_bench(args):
     from .evaluation import benchmark
 
@@ -124,6 +132,11 @@ def build_parser():
 
     from .registration.cli import add_register_parser
     add_register_parser(sub)
+
+    s = sub.add_parser("simulate", help="simulate a scene (assets/scenes/*.toml) into a case folder")
+    s.add_argument("scene", type=Path, help="scene TOML file")
+    s.add_argument("--out", type=Path, required=True, help="case folder to write")
+    s.set_defaults(func=cmd_simulate)
 
     s = sub.add_parser("bench", help="benchmarks that print timings and memory as JSON lines")
     s.add_argument("what", choices=("precompute", "register"))

@@ -3,11 +3,12 @@
 import numpy as np
 
 
-def plane_section(vertices, faces, origin, normal, eps=1e-12):
+def plane_section(vertices, faces, origin, normal, eps=1e-12, return_faces=False):
     """Segments (S, 2, 3) where the plane through ``origin`` with ``normal`` cuts the
     triangles. Each triangle with vertices on both sides contributes one segment between
     its two edge crossings (linear interpolation of the signed distances); triangles that
-    only touch the plane at a vertex contribute nothing.
+    only touch the plane at a vertex contribute nothing. ``return_faces`` also returns the
+    index (S,) of the triangle each segment comes from.
     """
     v = np.asarray(vertices, float)
     n = np.asarray(normal, float)
@@ -26,4 +27,5 @@ def plane_section(vertices, faces, origin, normal, eps=1e-12):
     d0, d1, d2 = d[i0], d[i1], d[i2]
     p1 = v[i0] + (d0 / (d0 - d1))[:, None] * (v[i1] - v[i0])
     p2 = v[i0] + (d0 / (d0 - d2))[:, None] * (v[i2] - v[i0])
-    return np.stack([p1, p2], axis=1)
+    seg = np.stack([p1, p2], axis=1)
+    return (seg, np.flatnonzero(cut)) if return_faces else seg

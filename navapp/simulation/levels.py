@@ -1,0 +1,55 @@
+"""The paper's data levels from a simulated case folder: S, S + chosen planes, CBCT, iCT.
+
+- "S": the stylus data (anterior, falciform, ridges);
+- "S+planes": S plus the features of the chosen iUS planes (``intraop/us/plane_XX``);
+- "CBCT": the full true anterior and posterior liver surface;
+- "iCT": CBCT plus the full true vessel surfaces and centerlines.
+Full surfaces are thinned to one point per ``spacing`` mm voxel.
+"""
+
+from pathlib import Path
+
+import numpy as np
+
+from ..anatomy.caseio import read_csv, read_surface
+from ..errors import InputError
+from .stylus import thin
+
+STYLUS = ("anterior", "falciform", "ridge_left", "ridge_right")
+
+
+def data_level(case_dir, level: str, planes=(), spacing=3.0, case=None) -> dict:
+    """Intraoperative data (feature → (N, 3) mm) of ``level`` for a simulated case."""
+    from ..anatomy.caseio import read_case
+
+    case_dir = Path(case_dir)
+    case = case or read_case(case_dir)
+    if level == "S":
+        return {k: v for k, v in case.intraop.items() if k in STYLUS}
+    if level == "S+planes":
+        out = data_level(case_dir, "S", case=case)
+        for i in planes:
+            pdir = case_dir / "intraop" / "us" / f"plane_{int(i):02d}"
+            if not pdir.is_dir():
+                raise InputError(f"no plane {i} in this case", pdir)
+            for f in sorted(pdir.glob("*.csv")):
+                pts = read_csv(f, ("x", "y", "z"))
+                out[f.stem] = np.vstack([out[f.stem], pts]) if f.stem in out else pts
+        return out
+    if level in ("CBCT", "iCT"):
+        tdir = case_dir / "truth"
+        liver = read_surface(tdir / "liver.ply", closed=False)
+        regions = case.preop.regions
+        ant = np.isin(regions, [0, 2, 3, 4])  # anterior, falciform and the ridges are all anterior
+        out = {"anterior": thin(np.asarray(liver.vertices)[ant], spacing),
+               "posterior": thin(np.asarray(liver.vertices)[~ant], spacing)}
+        if level == "iCT":
+            for v in ("portal", "hepatic"):
+                p = tdir / f"{v}.ply"
+                if p.exists():
+                    out[f"{v}_contour"] = thin(np.asarray(read_surface(p, closed=False).vertices), spacing)
+                c = tdir / f"{v}_centerline.csv"
+                if c.exists():
+                    out[f"{v}_centerline"] = read_csv(c, ("x", "y", "z", "branch"), dtype=int)[:, :3]
+        return out
+    raise InputError(f"unknown data level {level!r} (S, S+planes, CBCT, iCT)")

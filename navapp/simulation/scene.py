@@ -1,0 +1,143 @@
+"""Scenes: what to simulate, declared in TOML (``assets/scenes/*.toml``).
+
+Only what a scene declares is simulated: no iUS section or image without ``[ius]``
+planes, no nonlinear solve unless ``deformation.large = true``, no effect that is not
+listed under ``[[effects]]``. Schema errors are one line naming the key.
+
+Example::
+
+    name = "phantom0-L"
+    [anatomy]
+    phantom = 0              # or: case = "path/to/case"   (its preop/ part)
+    [deformation]
+    release = "L"            # supporting ligaments released: "L", "N" (none) or "R"
+    gravity_tilt_deg = 25.0  # gravity tilted from posterior toward the released side
+    large = false            # true: St-Venant–Kirchhoff, Newton
+    mesh_edge_mm = 3.5       # the truth's own (finer) mesh
+    [stylus]
+    coverage = 0.2           # fraction of the anterior surface the swaths cover
+    [ius]
+    planes = 16              # 8 vertical + 8 lateral; 0 for none
+    [[effects]]
+    kind = "tracking_noise"
+    sd_mm = 0.5
+"""
+
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..errors import InputError
+
+EFFECT_PARAMS = {
+    "tracking_noise": {"sd_mm": float},
+    "calibration_error": {"rotation_deg": float, "translation_mm": float},
+    "probe_compression": {"depth_mm": float, "radius_mm": float},
+    "contour_jitter": {"sd_px": float},
+    "dropout": {"fraction": float},
+}
+
+
+@dataclass(frozen=True)
+class Effect:
+    kind: str
+    params: dict
+
+
+@dataclass
+class Scene:
+    name: str
+    phantom: int | None = 0
+    case: Path | None = None
+    release: str = "N"
+    gravity_tilt_deg: float = 25.0
+    large: bool = False
+    mesh_edge_mm: float = 3.5
+    truth_E_pa: float = 5000.0
+    coverage: float = 0.2
+    planes: int = 16
+    effects: list = field(default_factory=list)
+    seed: int = 0
+    source: Path | None = None
+
+
+_SECTIONS = {
+    "anatomy": {"phantom": int, "case": str},
+    "deformation": {"release": str, "gravity_tilt_deg": float, "large": bool, "mesh_edge_mm": float,
+                    "truth_E_pa": float},
+    "stylus": {"coverage": float},
+    "ius": {"planes": int},
+}
+
+
+def _typed(value, kind, key, path):
+    if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if kind is int and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if isinstance(value, kind):
+        return value
+    raise InputError(f"{key} must be a {kind.__name__}, got {value!r}", path)
+
+
+def parse_scene(data: dict, path=None) -> Scene:
+    """Validate a scene dictionary (as loaded from TOML)."""
+    known = {"name", "seed", "effects", *_SECTIONS}
+    for key in data:
+        if key not in known:
+            raise InputError(f"unknown key {key!r} (known: {', '.join(sorted(known))})", path)
+    scene = Scene(name=_typed(data.get("name", Path(path).stem if path else "scene"), str, "name", path),
+                  seed=_typed(data.get("seed", 0), int, "seed", path), source=Path(path) if path else None)
+    for section, keys in _SECTIONS.items():
+        table = data.get(section, {})
+        if not isinstance(table, dict):
+            raise InputError(f"[{section}] must be a table", path)
+        for key, value in table.items():
+            if key not in keys:
+                raise InputError(f"unknown key {section}.{key} (known: {', '.join(keys)})", path)
+            value = _typed(value, keys[key], f"{section}.{key}", path)
+            attr = {"phantom": "phantom", "case": "case"}.get(key, key)
+            setattr(scene, attr, Path(value) if key == "case" else value)
+    if "case" in data.get("anatomy", {}):
+        scene.phantom = None
+    if scene.release not in ("L", "N", "R"):
+        raise InputError(f"deformation.release must be \"L\", \"N\" or \"R\", got {scene.release!r}", path)
+    if not 0.0 < scene.coverage <= 1.0:
+        raise InputError("stylus.coverage must be in (0, 1]", path)
+    if not 0 <= scene.planes <= 16:
+        raise InputError("ius.planes must be between 0 and 16", path)
+    if scene.mesh_edge_mm <= 0 or scene.truth_E_pa <= 0:
+        raise InputError("deformation.mesh_edge_mm and deformation.truth_E_pa must be positive", path)
+    effects = data.get("effects", [])
+    if not isinstance(effects, list):
+        raise InputError("effects must be an array of tables ([[effects]])", path)
+    for i, e in enumerate(effects):
+        kind = e.get("kind") if isinstance(e, dict) else None
+        if kind not in EFFECT_PARAMS:
+            raise InputError(f"effects[{i}].kind must be one of {', '.join(EFFECT_PARAMS)}, got {kind!r}", path)
+        params = {}
+        for key, value in e.items():
+            if key == "kind":
+                continue
+            if key not in EFFECT_PARAMS[kind]:
+                raise InputError(f"unknown key effects[{i}].{key} for {kind} (known: {', '.join(EFFECT_PARAMS[kind])})", path)
+            params[key] = _typed(value, EFFECT_PARAMS[kind][key], f"effects[{i}].{key}", path)
+        missing = set(EFFECT_PARAMS[kind]) - set(params)
+        if missing:
+            raise InputError(f"effects[{i}] ({kind}) needs {', '.join(sorted(missing))}", path)
+        scene.effects.append(Effect(kind, params))
+    return scene
+
+
+def load_scene(path) -> Scene:
+    path = Path(path)
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError("no such scene file", path) from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"invalid TOML ({exc})", path) from None
+    scene = parse_scene(data, path)
+    if scene.case is not None and not scene.case.is_absolute():
+        scene.case = (path.parent / scene.case).resolve()
+    return scene

@@ -1,0 +1,158 @@
+"""Run a scene: ground truth, stylus data, iUS planes and images, effects → a case folder.
+
+Writes, besides the standard case folder (DESIGN.md §3) whose ``intraop/`` holds the
+stylus data plus every plane's features (the "S + all planes" level):
+- ``intraop/us/planes.json``: per plane its index, orientation, true ProbeToTracker
+  pose, the probe calibration (ImageToProbe) and its feature files;
+- ``intraop/us/plane_XX/<feature>.csv`` and ``intraop/us/plane_XX.png`` (the B-mode image);
+- ``truth/liver.ply``, ``truth/portal.ply``, ``truth/hepatic.ply`` and the deformed
+  centerlines: the true intraoperative anatomy, used for the CBCT and iCT data levels;
+- ``truth/report.json``: displacement statistics, coverage, points per plane, seconds and
+  the ledger of stages and effects that ran.
+"""
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from .. import progress
+from ..anatomy.caseio import Case, read_case, write_case, write_csv
+from ..anatomy.meshing import cached_tetmesh
+from ..anatomy.model import Centerline
+from ..anatomy.phantom import make_phantom
+from ..mechanics.controlpoints import nodal_areas
+from ..mechanics.fem import Material
+from ..mechanics.interpolation import interpolation_matrix
+from . import effects as fx
+from .probe import Probe
+from .scene import Scene
+from .stylus import swath_pattern, thin
+from .truth import Loading, solve_linear, solve_svk
+from .ultrasound import acquire_plane, plane_poses
+
+REGISTRATION_EDGE_MM = 4.0
+
+
+def gravity_direction(release: str, tilt_deg: float) -> tuple:
+    """Posterior gravity tilted toward the released side (L: +x, R: −x, N: inferior)."""
+    t = np.radians(tilt_deg)
+    side = {"L": np.array([1.0, 0.0, 0.0]), "R": np.array([-1.0, 0.0, 0.0]), "N": np.array([0.0, 0.0, -1.0])}[release]
+    return tuple(np.cos(t) * np.array([0.0, -1.0, 0.0]) + np.sin(t) * side)
+
+
+def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTRATION_EDGE_MM) -> dict:
+    """Simulate ``scene`` into case folder ``out``; returns the report. Targets are the
+    nodes of the registration mesh at ``registration_edge`` mm."""
+    t0 = time.perf_counter()
+    ledger = fx.Ledger()
+    rng = np.random.default_rng(scene.seed)
+    preop = make_phantom(scene.phantom) if scene.phantom is not None else read_case(scene.case).preop
+    if preop.regions is None:
+        from ..errors import InputError
+
+        raise InputError("the scene's anatomy needs preop/regions.csv (anterior surface for the stylus and probe)")
+    truth_mesh, _ = cached_tetmesh(preop.liver, scene.mesh_edge_mm, cache_root)
+    loading = Loading(gravity_dir=gravity_direction(scene.release, scene.gravity_tilt_deg), release=scene.release)
+    material = Material(E=scene.truth_E_pa, nu=0.45)
+    with progress.stage("ground truth" + (" (St-Venant–Kirchhoff, Newton)" if scene.large else " (linear)")):
+        if scene.large:
+            ledger.mark("nonlinear_solve")
+            u = solve_svk(truth_mesh, loading, material)
+        else:
+            ledger.mark("linear_solve")
+            u = solve_linear(truth_mesh, loading, material)
+    t_truth = time.perf_counter() - t0
+
+    def moved(points):
+        return points + interpolation_matrix(truth_mesh.nodes, truth_mesh.tets, points) @ u
+
+    liver_d = trimesh.Trimesh(moved(preop.liver.vertices), preop.liver.faces, process=False)
+    portal_d = trimesh.Trimesh(moved(preop.portal.vertices), preop.portal.faces, process=False) if preop.portal is not None else None
+    hepatic_d = trimesh.Trimesh(moved(preop.hepatic.vertices), preop.hepatic.faces, process=False) if preop.hepatic is not None else None
+    eff = {e.kind: e.params for e in scene.effects}
+
+    # stylus
+    ledger.mark("stylus")
+    v = preop.liver.vertices
+    areas = nodal_areas(v, preop.liver.faces, np.arange(len(v)))
+    idx, coverage, _ = swath_pattern(v, areas, preop.region_mask("anterior") | preop.region_mask("falciform")
+                                     | preop.region_mask("ridge_left") | preop.region_mask("ridge_right"),
+                                     scene.coverage, rng)
+    intraop = {}
+    for label in ("anterior", "falciform", "ridge_left", "ridge_right"):
+        pts = thin(liver_d.vertices[idx[preop.region_mask(label)[idx]]])
+        if "tracking_noise" in eff and len(pts):
+            pts = fx.tracking_noise(pts, rng, ledger, **eff["tracking_noise"])
+        if "dropout" in eff and len(pts):
+            pts = fx.dropout(pts, rng, ledger, **eff["dropout"])
+        if len(pts):
+            intraop[label] = pts
+
+    # iUS
+    probe = Probe()
+    planes = []
+    if scene.planes:
+        poses = plane_poses(liver_d.vertices, liver_d.vertex_normals, preop.region_mask("anterior"), scene.planes, scene.seed)
+        with progress.bar(len(poses), "iUS planes", "plane") as pb:
+            for i, (orientation, T) in enumerate(poses):
+                planes.append(acquire_plane(i, orientation, T, probe, liver_d, portal_d, hepatic_d, scene.effects,
+                                            rng, ledger, want_image=True))
+                pb.update(1)
+    for pl in planes:
+        for k, pts in pl.features.items():
+            intraop[k] = np.vstack([intraop[k], pts]) if k in intraop else pts
+
+    # truth on the registration mesh's nodes
+    reg_mesh, _ = cached_tetmesh(preop.liver, registration_edge, cache_root)
+    x0 = reg_mesh.nodes
+    case = Case(preop=preop, intraop=intraop, targets=np.column_stack([x0, moved(x0)]),
+                settings={"name": scene.name, "units": "mm",
+                          "scene": str(scene.source) if scene.source else scene.name})
+    write_case(case, out)
+    _write_planes(out, planes, probe)
+    tdir = Path(out) / "truth"
+    liver_d.export(tdir / "liver.ply", encoding="binary")
+    for name, mesh in (("portal", portal_d), ("hepatic", hepatic_d)):
+        if mesh is not None:
+            mesh.export(tdir / f"{name}.ply", encoding="binary")
+        cl = preop.centerline(name)
+        if cl is not None:
+            write_csv(tdir / f"{name}_centerline.csv", np.column_stack([moved(cl.points), cl.branch]),
+                      ("x", "y", "z", "branch"), True)
+    d = np.linalg.norm(moved(x0) - x0, axis=1)
+    report = {
+        "scene": scene.name, "truth_nodes": int(len(truth_mesh.nodes)),
+        "displacement_mm": {"mean": round(float(d.mean()), 2), "max": round(float(d.max()), 2)},
+        "stylus": {"coverage_of_anterior": round(coverage, 3),
+                   "points": {k: int(len(intraop[k])) for k in ("anterior", "falciform", "ridge_left", "ridge_right") if k in intraop}},
+        "planes": [{k: int(len(p)) for k, p in pl.features.items()} for pl in planes],
+        "seconds": {"truth": round(t_truth, 2), "total": round(time.perf_counter() - t0, 2)},
+        "ran": sorted(set(ledger.ran)),
+    }
+    (tdir / "report.json").write_text(json.dumps(report, indent=1))
+    return report
+
+
+def _write_planes(out, planes, probe):
+    if not planes:
+        return
+    from skimage.io import imsave
+
+    udir = Path(out) / "intraop" / "us"
+    udir.mkdir(parents=True, exist_ok=True)
+    meta = {"image_to_probe": probe.image_to_probe().tolist(), "width_px": probe.width_px,
+            "height_px": probe.height_px, "spacing_mm": probe.spacing_mm, "planes": []}
+    for pl in planes:
+        pdir = udir / f"plane_{pl.index:02d}"
+        pdir.mkdir(exist_ok=True)
+        for k, pts in pl.features.items():
+            write_csv(pdir / f"{k}.csv", pts, ("x", "y", "z"))
+        if pl.image is not None:
+            imsave(udir / f"plane_{pl.index:02d}.png", pl.image, check_contrast=False)
+        meta["planes"].append({"index": pl.index, "orientation": pl.orientation,
+                               "probe_to_tracker": np.asarray(pl.probe_to_tracker).tolist(),
+                               "features": sorted(pl.features)})
+    (udir / "planes.json").write_text(json.dumps(meta, indent=1))

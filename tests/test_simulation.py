@@ -1,0 +1,131 @@
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from navapp.errors import InputError
+from navapp.simulation import effects as fx
+from navapp.simulation.levels import data_level
+from navapp.simulation.scene import load_scene, parse_scene
+from navapp.simulation.simulate import simulate
+
+SCENES = Path(__file__).resolve().parents[1] / "assets" / "scenes"
+
+
+def small_scene(**over):
+    data = {"name": "t", "anatomy": {"phantom": 0},
+            "deformation": {"release": "L", "mesh_edge_mm": 10.0, "truth_E_pa": 5000.0},
+            "stylus": {"coverage": 0.2}, "ius": {"planes": 0}}
+    for k, v in over.items():
+        if isinstance(v, dict):
+            data.setdefault(k, {}).update(v)
+        else:
+            data[k] = v
+    return parse_scene(data)
+
+
+def test_shipped_scenes_parse():
+    names = sorted(p.stem for p in SCENES.glob("*.toml"))
+    assert "demo" in names and len(names) == 10
+    for p in SCENES.glob("*.toml"):
+        s = load_scene(p)
+        assert s.planes == 16 and s.release in "LNR"
+
+
+@pytest.mark.parametrize("data,key", [
+    ({"colour": 1}, "colour"),
+    ({"deformation": {"release": "X"}}, "deformation.release"),
+    ({"deformation": {"large": "yes"}}, "deformation.large"),
+    ({"ius": {"planes": 17}}, "ius.planes"),
+    ({"stylus": {"coverage": 0}}, "stylus.coverage"),
+    ({"stylus": {"density": 2}}, "stylus.density"),
+    ({"effects": [{"kind": "blur"}]}, "effects[0].kind"),
+    ({"effects": [{"kind": "dropout"}]}, "fraction"),
+    ({"effects": [{"kind": "dropout", "fraction": 0.1, "seed": 3}]}, "effects[0].seed"),
+])
+def test_scene_errors_name_the_key(data, key):
+    with pytest.raises(InputError) as err:
+        parse_scene(data, "x.toml")
+    assert key in str(err.value) and "\n" not in str(err.value)
+
+
+def test_effects_each_do_what_they_say():
+    rng = np.random.default_rng(0)
+    led = fx.Ledger()
+    p = np.zeros((20000, 3))
+    assert np.isclose(fx.tracking_noise(p, rng, led, sd_mm=0.5).std(), 0.5, rtol=0.02)
+    assert abs(len(fx.dropout(p, rng, led, fraction=0.3)) / len(p) - 0.7) < 0.02
+    c, r = fx.contour_jitter(np.zeros(20000), np.zeros(20000), rng, led, sd_px=2.0)
+    assert np.isclose(np.std(c), 2.0, rtol=0.03) and np.isclose(np.std(r), 2.0, rtol=0.03)
+    T = np.eye(4)
+    M = fx.calibration_error(T, rng, led, rotation_deg=3.0, translation_mm=1.5)
+    assert np.isclose(np.degrees(np.arccos((np.trace(M[:3, :3]) - 1) / 2)), 3.0)
+    assert np.isclose(np.linalg.norm(M[:3, 3]), 1.5)
+    pts = np.array([[0.0, 0, 0], [0, 0, 10], [30, 0, 0]])
+    moved = fx.probe_compression(pts, np.zeros(3), np.array([0.0, 0, 1]), led, depth_mm=4.0, radius_mm=10.0)
+    d = np.linalg.norm(moved - pts, axis=1)
+    assert np.isclose(d[0], 4.0) and d[1] < d[0] and d[2] < 0.01
+    assert led.ran == ["tracking_noise", "dropout", "contour_jitter", "calibration_error", "probe_compression"]
+
+
+@pytest.fixture(scope="module")
+def plain_case(tmp_path_factory, cache_root):
+    out = tmp_path_factory.mktemp("sim") / "plain"
+    report = simulate(small_scene(), out, cache_root, registration_edge=12.0)
+    return out, report
+
+
+def test_undeclared_effects_never_run(plain_case):
+    _, report = plain_case
+    assert report["ran"] == ["linear_solve", "stylus"]  # no planes, no images, no noise, no Newton
+
+
+def test_stylus_points_sit_on_the_deformed_surface(plain_case):
+    out, report = plain_case
+    liver = trimesh.load(out / "truth/liver.ply")
+    pts = np.loadtxt(out / "intraop/anterior.csv", delimiter=",", skiprows=1)
+    assert np.abs(trimesh.proximity.signed_distance(liver, pts)).max() < 1e-4  # float32 PLY
+    assert 0.2 <= report["stylus"]["coverage_of_anterior"] < 0.3
+    d = report["displacement_mm"]
+    assert d["mean"] > 1.0 and d["max"] > d["mean"]
+
+
+@pytest.fixture(scope="module")
+def plane_case(tmp_path_factory, cache_root):
+    out = tmp_path_factory.mktemp("sim") / "planes"
+    scene = small_scene(ius={"planes": 4}, effects=[{"kind": "tracking_noise", "sd_mm": 0.2}])
+    return out, simulate(scene, out, cache_root, registration_edge=12.0)
+
+
+def test_planes_give_contours_on_the_deformed_vessels(plane_case):
+    out, report = plane_case
+    assert {"ius_section", "bmode_image", "tracking_noise", "linear_solve"} <= set(report["ran"])
+    assert "nonlinear_solve" not in report["ran"]
+    meta = json.loads((out / "intraop/us/planes.json").read_text())
+    assert len(meta["planes"]) == 4 and [p["orientation"] for p in meta["planes"]] == ["vertical"] * 2 + ["lateral"] * 2
+    portal = trimesh.load(out / "truth/portal.ply")
+    found = 0
+    for p in meta["planes"]:
+        f = out / "intraop/us" / f"plane_{p['index']:02d}" / "portal_contour.csv"
+        if f.exists():
+            pts = np.loadtxt(f, delimiter=",", skiprows=1)
+            # pixel rounding (0.25 mm pixels) plus 0.2 mm tracking noise
+            assert np.median(np.abs(trimesh.proximity.signed_distance(portal, pts))) < 0.5
+            found += 1
+    assert found >= 1
+    img = (out / "intraop/us/plane_00.png")
+    assert img.exists()
+
+
+def test_data_levels(plane_case):
+    out, _ = plane_case
+    s = data_level(out, "S")
+    assert set(s) <= {"anterior", "falciform", "ridge_left", "ridge_right"} and "anterior" in s
+    sp = data_level(out, "S+planes", planes=[0, 1, 2, 3])
+    assert sum(map(len, sp.values())) > sum(map(len, s.values()))
+    ct = data_level(out, "iCT")
+    assert {"anterior", "posterior", "portal_contour", "hepatic_centerline"} <= set(ct)
+    with pytest.raises(InputError):
+        data_level(out, "S+planes", planes=[9])
