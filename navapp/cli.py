@@ -78,13 +78,13 @@ def _peak_rss_mb():
 
 
 def cmd_demo(args):
-    from .anatomy.caseio import write_case
-    from .simulation.demo import demo_case
+    from .simulation.scene import demo_scene
+    from .simulation.simulate import simulate
 
-    with progress.stage("building the demo case (phantom, ground-truth deformation, data)"):
-        case = demo_case()
-    write_case(case, args.out)
-    print(f"navapp: demo case written to {args.out}; registering it", file=sys.stderr)
+    report = simulate(demo_scene(), args.out)
+    d = report["displacement_mm"]
+    print(f"navapp: demo case simulated into {args.out} (true displacement mean {d['mean']} mm, "
+          f"max {d['max']} mm); registering it", file=sys.stderr)
     from .registration.cli import cmd_register
 
     ns = argparse.Namespace(case=args.out, out=None, k=45, edge=4.0, no_deform=False, max_iterations=100, json=True)
@@ -146,7 +146,7 @@ def build_parser():
     s.add_argument("--planes", type=_positive(int), default=3, help="register: iUS planes (≥ 2)")
     s.set_defaults(func=cmd_bench)
 
-    s = sub.add_parser("demo", help="build the demo case (phantom 0, simulated deformation and data) and register it")
+    s = sub.add_parser("demo", help="simulate the built-in demo scene (phantom 0, stylus, 16 iUS planes) and register it")
     s.add_argument("--out", type=Path, default=Path("navapp-demo"), help="case folder to write (default ./navapp-demo)")
     s.set_defaults(func=cmd_demo)
 

@@ -26,6 +26,14 @@ def small_scene(**over):
     return parse_scene(data)
 
 
+def test_builtin_demo_scene_equals_the_shipped_file():
+    import tomllib
+
+    from navapp.simulation.scene import DEMO_SCENE
+
+    assert tomllib.loads((SCENES / "demo.toml").read_text()) == DEMO_SCENE
+
+
 def test_shipped_scenes_parse():
     names = sorted(p.stem for p in SCENES.glob("*.toml"))
     assert "demo" in names and len(names) == 10

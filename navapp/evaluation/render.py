@@ -76,3 +76,52 @@ def phantom_figure(model: PreopModel, path, title=None):
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
+
+
+def case_figure(case_dir, path, title=None):
+    """The simulated case like the paper's Fig. 4: the deformed liver, its vessels, the
+    stylus data, and the 16 iUS image planes as outlined rectangles with their contours."""
+    import json
+    from pathlib import Path
+
+    import trimesh
+
+    case_dir = Path(case_dir)
+    fig = plt.figure(figsize=(12, 6), dpi=110)
+    ax = fig.add_subplot(1, 1, 1, projection="3d")
+    liver = trimesh.load(case_dir / "truth/liver.ply")
+    for name, colour in (("portal", (0.85, 0.15, 0.15)), ("hepatic", (0.2, 0.35, 0.9))):
+        p = case_dir / "truth" / f"{name}.ply"
+        if p.exists():
+            add_mesh(ax, trimesh.load(p), colour, 0.5)
+    add_mesh(ax, liver, (0.8, 0.7, 0.6), 0.10)
+    for feat, colour, size in (("anterior", "k", 2), ("falciform", "y", 6), ("ridge_left", "g", 6), ("ridge_right", "c", 6)):
+        f = case_dir / "intraop" / f"{feat}.csv"
+        if f.exists():
+            pts = np.loadtxt(f, delimiter=",", skiprows=1, ndmin=2)
+            ax.scatter(*pts.T, s=size, c=colour, depthshade=False, label=f"stylus: {feat}")
+    meta_path = case_dir / "intraop/us/planes.json"
+    if meta_path.exists():
+        meta = json.loads(meta_path.read_text())
+        S = np.array(meta["image_to_probe"])
+        w, h = meta["width_px"], meta["height_px"]
+        corners = np.array([[0, 0, 0, 1], [w - 1, 0, 0, 1], [w - 1, h - 1, 0, 1], [0, h - 1, 0, 1], [0, 0, 0, 1]], float)
+        for p in meta["planes"]:
+            T = np.array(p["probe_to_tracker"])
+            c = (T @ S @ corners.T).T[:, :3]
+            ax.plot(*c.T, color="tab:purple" if p["orientation"] == "vertical" else "tab:orange", lw=0.8)
+            pdir = case_dir / "intraop/us" / f"plane_{p['index']:02d}"
+            for f in pdir.glob("*_contour.csv"):
+                pts = np.loadtxt(f, delimiter=",", skiprows=1, ndmin=2)
+                ax.scatter(*pts.T, s=1, c="r" if f.stem.startswith("portal") else "b", depthshade=False)
+            f = pdir / "posterior.csv"
+            if f.exists():
+                pts = np.loadtxt(f, delimiter=",", skiprows=1, ndmin=2)
+                ax.scatter(*pts.T, s=1, c="m", depthshade=False)
+    frame(ax, liver.vertices, elev=28, azim=65)
+    ax.legend(loc="upper left", fontsize=8)
+    ax.set_title(title or f"{case_dir.name}: deformed liver, stylus swaths, iUS planes "
+                 "(purple vertical, orange lateral) and their contours")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)

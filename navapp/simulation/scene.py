@@ -129,6 +129,21 @@ def parse_scene(data: dict, path=None) -> Scene:
     return scene
 
 
+DEMO_SCENE = {  # the built-in demo scene; assets/scenes/demo.toml says the same (a test checks)
+    "name": "demo", "seed": 1,
+    "anatomy": {"phantom": 0},
+    "deformation": {"release": "L", "gravity_tilt_deg": 25.0, "large": False, "mesh_edge_mm": 3.5,
+                    "truth_E_pa": 5000.0},
+    "stylus": {"coverage": 0.2},
+    "ius": {"planes": 16},
+    "effects": [{"kind": "tracking_noise", "sd_mm": 0.3}],
+}
+
+
+def demo_scene() -> Scene:
+    return parse_scene(DEMO_SCENE, "demo.toml")
+
+
 def load_scene(path) -> Scene:
     path = Path(path)
     try:
