@@ -41,10 +41,18 @@ def weighted_kabsch(P, Q, w):
     return R, qc - R @ pc
 
 
+ICP_POINTS = 400  # per feature: an evenly strided subset is plenty for 6 parameters
+
+
 def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights(), max_iterations=100,
               tol_mm=1e-4) -> RigidResult:
-    """Rigid transform taking the model onto ``data`` (feature → (N, 3) mm)."""
+    """Rigid transform taking the model onto ``data`` (feature → (N, 3) mm).
+
+    Each feature is thinned to at most ICP_POINTS points by an even stride (its weight
+    w_F / N_F is per point of the subset, so every feature keeps its total weight w_F).
+    """
     R, t = np.eye(3), np.zeros(3)
+    data = {k: (v[:: -(-len(v) // ICP_POINTS)] if k != "fiducials" else v) for k, v in data.items()}
     if not data:
         return RigidResult(R, t, 0, 0.0)
     if "fiducials" in data and len(data["fiducials"]) >= 3:
