@@ -34,7 +34,7 @@ from .objective import Weights, evaluate
 @dataclass
 class LMOptions:
     tol: float = 1e-12  # on |ΔΩ| (Ω dimensionless, SI), the paper's rule
-    rtol: float = 1e-3  # on |ΔΩ| / Ω: correspondence switching keeps Ω jittering above tol
+    rtol: float = 1e-2  # on |ΔΩ| / Ω: correspondence switching keeps Ω jittering above tol
     max_iterations: int = 100
     lam0: float = 1e-2
     weights: Weights = field(default_factory=Weights)
