@@ -9,6 +9,8 @@ import warnings
 from pathlib import Path
 
 from . import __version__, progress
+
+SCENE_DIR = Path(__file__).resolve().parents[1] / "assets" / "scenes"
 from .errors import NavappError
 
 
@@ -99,6 +101,29 @@ def cmd_simulate(args):
     print(json.dumps(report))
 
 
+def cmd_study(args):
+    from .evaluation.report import write_report
+    from .evaluation.table2 import run_table2
+    from .simulation.scene import load_scene
+    from .simulation.simulate import simulate
+
+    cases = list(args.cases or [])
+    if not cases:
+        scenes = sorted(SCENE_DIR.glob("phantom*-*.toml"))
+        if args.quick:
+            scenes = scenes[:1]
+        for sc in scenes:
+            folder = args.case_root / sc.stem
+            if not (folder / "truth" / "report.json").exists():
+                simulate(load_scene(sc), folder)
+            cases.append(folder)
+    t0 = time.perf_counter()
+    n = run_table2(cases, args.results, workers=args.workers, scheduler=args.scheduler, quick=args.quick)
+    md = write_report(args.results, args.report)
+    print(json.dumps({"registrations_run": n, "seconds": round(time.perf_counter() - t0, 1),
+                      "results": str(args.results), "report": str(md)}))
+
+
 def cmd_bench(args):
     from .evaluation import benchmark
 
@@ -137,6 +162,17 @@ def build_parser():
     s.add_argument("scene", type=Path, help="scene TOML file")
     s.add_argument("--out", type=Path, required=True, help="case folder to write")
     s.set_defaults(func=cmd_simulate)
+
+    s = sub.add_parser("study", help="the paper's Table II design on simulated cases (resumable)")
+    s.add_argument("what", choices=("table2",))
+    s.add_argument("--cases", type=Path, nargs="+", help="case folders (default: simulate the nine study scenes)")
+    s.add_argument("--case-root", type=Path, default=Path("study-cases"), help="where simulated cases go")
+    s.add_argument("--workers", type=_positive(int), help="local worker processes (default: all cores)")
+    s.add_argument("--scheduler", help="Dask distributed scheduler address (e.g. tcp://host:8786)")
+    s.add_argument("--quick", action="store_true", help="one case, two scenarios per plane level")
+    s.add_argument("--results", type=Path, default=Path("results/table2.csv"), help="results CSV (appended)")
+    s.add_argument("--report", type=Path, default=Path("results"), help="folder for table2.md and plots")
+    s.set_defaults(func=cmd_study)
 
     s = sub.add_parser("bench", help="benchmarks that print timings and memory as JSON lines")
     s.add_argument("what", choices=("precompute", "register"))
