@@ -107,7 +107,13 @@ def run_table2(case_dirs, results, workers=None, scheduler=None, quick=False, ch
             pb.update(len(rows))
 
         if scheduler:
-            from distributed import Client, as_completed as dask_completed
+            try:
+                from distributed import Client
+                from distributed import as_completed as dask_completed
+            except ImportError:
+                from ..errors import NavappError
+
+                raise NavappError("--scheduler needs Dask distributed: pip install -e '.[study]'") from None
 
             with Client(scheduler) as client:
                 futures = [client.submit(run_chunk, d, items, edge, k, pure=False) for d, items in todo]
