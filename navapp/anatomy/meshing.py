@@ -41,9 +41,8 @@ def boundary_faces(tets, nodes):
     faces = tets[:, local].reshape(-1, 3)
     key = np.sort(faces, axis=1)
     _, idx, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
-    f = faces[idx[counts == 1]]
-    # orientation check against the opposite vertex (tets are positively oriented)
-    return f
+    # for a positively oriented tet these local faces wind outward, so boundary faces do too
+    return faces[idx[counts == 1]]
 
 
 def dihedral_angles(nodes, tets):

@@ -46,12 +46,6 @@ def _grow(fn, p0, d, length, r0, r1, rng, curl=0.04):
     return np.array(pts), np.array(radii)
 
 
-def _best_direction(fn, p0, d, length, rng, candidates):
-    """Among candidate unit directions pick the one whose end point lies deepest inside."""
-    ends = p0 + length * np.asarray(candidates)
-    return candidates[int(np.argmin(fn(ends)))]
-
-
 def _grow_tree(fn, root, direction, lengths, radii, rng, angle=np.radians(34)):
     """Binary tree: generation g has branches of length lengths[g] and radius radii[g]."""
     points, branch, rad = [], [], []

@@ -132,15 +132,15 @@ def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None):
     return out
 
 
-def energy_matrix(nodes, tets, Ju, material, chunk=30):
-    """J_σᵀ J_ε (3k × 3k, Pa) without storing the 6M × 3k factors: processed in column
-    chunks of the strain, the stress of a chunk never outlives it."""
+def energy_matrix(nodes, tets, Ju, material):
+    """J_σᵀJ_ε (3k × 3k, Pa). The nodal strains of all modes (6M × 3k, ≈120 MB at the
+    paper's scale) exist only inside this call; stresses are formed and contracted node by
+    node through D, so neither J_ε nor J_σ outlives it."""
     G = nodal_strain_operator(nodes, tets)
     D = material.voigt_matrix()
     M, n = len(nodes), Ju.shape[1]
     eps = (G @ Ju).reshape(M, 6, n)
-    sig = np.einsum("ij,mjq->miq", D, eps).reshape(M * 6, n)
-    out = eps.reshape(M * 6, n).T @ sig
+    out = np.einsum("mip,ij,mjq->pq", eps, D, eps, optimize=True)
     return 0.5 * (out + out.T)
 
 

@@ -39,7 +39,7 @@ class LMOptions:
     lam0: float = 1e-2
     weights: Weights = field(default_factory=Weights)
     deform: bool = True  # False: only τ, θ move (a rigid fit through the same machinery)
-    recompute_in_ratio: bool = False
+    recompute_in_ratio: bool = False  # True: ρ from Ω with recomputed correspondences (for comparison)
     energy_curvature: bool = True  # add w_E f_E ∇²f_E to JᵀWJ (see module doc)
 
 

@@ -96,8 +96,7 @@ def parse_scene(data: dict, path=None) -> Scene:
             if key not in keys:
                 raise InputError(f"unknown key {section}.{key} (known: {', '.join(keys)})", path)
             value = _typed(value, keys[key], f"{section}.{key}", path)
-            attr = {"phantom": "phantom", "case": "case"}.get(key, key)
-            setattr(scene, attr, Path(value) if key == "case" else value)
+            setattr(scene, key, Path(value) if key == "case" else value)
     if "case" in data.get("anatomy", {}):
         scene.phantom = None
     if scene.release not in ("L", "N", "R"):
