@@ -119,7 +119,7 @@ def cmd_study(args):
             cases.append(folder)
     t0 = time.perf_counter()
     n = run_table2(cases, args.results, workers=args.workers, scheduler=args.scheduler, quick=args.quick)
-    md = write_report(args.results, args.report)
+    md = write_report(args.results, args.report, cases)
     print(json.dumps({"registrations_run": n, "seconds": round(time.perf_counter() - t0, 1),
                       "results": str(args.results), "report": str(md)}))
 
