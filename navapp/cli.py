@@ -110,6 +110,8 @@ def cmd_study(args):
     cases = list(args.cases or [])
     if not cases:
         scenes = sorted(SCENE_DIR.glob("phantom*-*.toml"))
+        if not scenes:
+            raise NavappError(f"no study scenes in {SCENE_DIR} (installed without the repo?): pass --cases")
         if args.quick:
             scenes = scenes[:1]
         for sc in scenes:
