@@ -1,0 +1,101 @@
+"""Registration in a worker thread, for the viewer: one run at a time, per-iteration
+updates throttled to at most ``max_rate_hz`` (latest wins, the final state always
+delivered), cancellation within one LM iteration, errors reported instead of lost.
+
+No viser here: the server wires ``on_update`` / ``on_done`` / ``on_error`` to the scene.
+"""
+
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..registration.libr import LMOptions
+from ..registration.pipeline import Registration, register
+from ..registration.rotation import rotation
+
+
+@dataclass
+class Update:
+    iteration: int
+    omega: float
+    elapsed: float  # seconds since the run started
+    liver: np.ndarray  # (V, 3) deformed liver-surface nodes (the tet boundary), tracker space, mm
+    final: bool = False
+
+
+class RegistrationWorker:
+    """Runs ``pipeline.register`` on a registration model in a background thread."""
+
+    def __init__(self, model, on_update=None, on_done=None, on_error=None, max_rate_hz=20.0):
+        self.model = model
+        self.on_update = on_update or (lambda u: None)
+        self.on_done = on_done or (lambda r: None)
+        self.on_error = on_error or (lambda e: None)
+        self.interval = 1.0 / max_rate_hz
+        self._thread = None
+        self._cancel = threading.Event()
+        self._lock = threading.Lock()
+        self.last: Registration | None = None
+
+    @property
+    def busy(self) -> bool:
+        return self._thread is not None and self._thread.is_alive()
+
+    def start(self, data: dict, deform=True, warm=False, options: LMOptions | None = None) -> bool:
+        """Start a run; returns False, starting nothing, while another run is going.
+        ``warm`` continues from the last result's rigid pose and β (e.g. after adding a plane)."""
+        with self._lock:
+            if self.busy:
+                return False
+            self._cancel.clear()
+            prev = self.last if warm else None
+            self._thread = threading.Thread(target=self._run, args=(data, deform, prev, options or LMOptions()),
+                                            daemon=True)
+            self._thread.start()
+            return True
+
+    def cancel(self):
+        """Ask the running fit to stop at its next iteration boundary."""
+        self._cancel.set()
+
+    def join(self, timeout=None):
+        if self._thread is not None:
+            self._thread.join(timeout)
+
+    def liver_positions(self, rigid, beta) -> np.ndarray:
+        """Tet-surface nodes at state β, mapped to tracker space by the rigid pose."""
+        feat = self.model.features["liver"]
+        n = len(beta) - 6
+        c = self.model.centroid
+        local = feat.rest + (feat.BJ.reshape(-1, n) @ beta[:n]).reshape(-1, 3) - c
+        return rigid.apply(local @ rotation(beta[n + 3:]).T + beta[n:n + 3] + c)
+
+    def _run(self, data, deform, prev, options):
+        t0 = time.monotonic()
+        last_sent = -np.inf
+        try:
+            rigid_run = None if prev is not None else register(self.model, data, deform=False, options=options)
+            rigid = prev.rigid if prev is not None else rigid_run.rigid
+            if not deform:
+                reg = rigid_run or register(self.model, data, deform=False, options=options, rigid=rigid)
+                final = Update(0, float("nan"), time.monotonic() - t0, rigid.apply(self.model.features["liver"].rest), True)
+            else:
+                def on_iteration(p):
+                    nonlocal last_sent
+                    now = time.monotonic()
+                    if now - last_sent >= self.interval:  # otherwise dropped: the next state supersedes it
+                        last_sent = now
+                        self.on_update(Update(p.iteration, p.omega, now - t0, self.liver_positions(rigid, p.beta)))
+
+                beta0 = prev.libr.beta if prev is not None and prev.libr is not None else None
+                reg = register(self.model, data, deform=True, options=options, callback=on_iteration,
+                               cancel=self._cancel, beta0=beta0, rigid=rigid)
+                final = Update(reg.libr.iterations, reg.libr.omega, time.monotonic() - t0,
+                               self.liver_positions(rigid, reg.libr.beta), True)
+            self.last = reg
+            self.on_update(final)
+            self.on_done(reg)
+        except Exception as exc:  # surfaced to the UI as a notification, never a dead thread
+            self.on_error(exc)

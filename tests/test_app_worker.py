@@ -1,0 +1,98 @@
+"""The viewer's registration worker, headless: streaming order and throttling,
+cancellation, refusal of concurrent runs, error surfacing, warm start."""
+
+import threading
+import time
+
+import numpy as np
+
+from navapp.app.worker import RegistrationWorker
+from navapp.registration.libr import LMOptions
+
+
+def data_for(model, rng, scale=1.0):
+    n = model.basis.Ju.shape[1]
+    alpha = rng.normal(size=n) * scale
+    feat = model.features["liver"]
+    X = feat.rest + (feat.BJ.reshape(-1, n) @ alpha).reshape(-1, 3)
+    return {"anterior": X[rng.choice(len(X), 200, replace=False)]}
+
+
+def test_streams_in_order_and_ends_with_the_final_state(small_model):
+    updates, done, errors = [], [], []
+    w = RegistrationWorker(small_model, updates.append, done.append, errors.append, max_rate_hz=1e6)
+    assert w.start(data_for(small_model, np.random.default_rng(0)))
+    w.join(60)
+    assert not errors and len(done) == 1
+    its = [u.iteration for u in updates]
+    assert its == sorted(its) and updates[-1].final and sum(u.final for u in updates) == 1
+    assert all(np.isfinite(u.liver).all() and u.liver.shape == small_model.features["liver"].rest.shape for u in updates)
+    assert np.allclose(updates[-1].liver, w.liver_positions(done[0].rigid, done[0].libr.beta))
+
+
+def test_throttle_drops_intermediate_states(small_model):
+    updates = []
+    w = RegistrationWorker(small_model, updates.append, max_rate_hz=2.0)
+    w.start(data_for(small_model, np.random.default_rng(1)), options=LMOptions(max_iterations=40, rtol=0.0, tol=0.0))
+    w.join(60)
+    elapsed = updates[-1].elapsed
+    streamed = [u for u in updates if not u.final]
+    assert len(streamed) <= 2.0 * elapsed + 1
+    assert updates[-1].final
+
+
+def test_cancel_stops_within_an_iteration(small_model):
+    first = threading.Event()
+    updates = []
+
+    def on_update(u):
+        updates.append(u)
+        first.set()
+
+    done = []
+    w = RegistrationWorker(small_model, on_update, done.append, max_rate_hz=1e6)
+    w.start(data_for(small_model, np.random.default_rng(2)), options=LMOptions(max_iterations=500, rtol=0.0, tol=0.0))
+    assert first.wait(30)
+    w.cancel()
+    w.join(30)
+    assert not w.busy and done and done[0].libr.stop_reason == "cancelled"
+    assert done[0].libr.iterations < 500
+
+
+def test_second_request_is_refused_while_running(small_model):
+    gate = threading.Event()
+    w = RegistrationWorker(small_model, on_update=lambda u: gate.wait(5), max_rate_hz=1e6)
+    data = data_for(small_model, np.random.default_rng(3))
+    assert w.start(data)
+    time.sleep(0.05)
+    assert w.busy and not w.start(data)
+    gate.set()
+    w.join(60)
+    assert w.start(data)  # free again afterwards
+    w.join(60)
+
+
+def test_errors_are_reported_and_the_worker_survives(small_model):
+    errors = []
+    w = RegistrationWorker(small_model, on_error=errors.append)
+    bad = {"anterior": np.array([[0.0, np.nan, 0.0]])}
+    assert w.start(bad)
+    w.join(30)
+    assert len(errors) == 1 and "NaN" in str(errors[0]) and not w.busy
+    done = []
+    w.on_done = done.append
+    assert w.start(data_for(small_model, np.random.default_rng(4)))
+    w.join(60)
+    assert done
+
+
+def test_warm_start_continues_from_the_last_state(small_model):
+    done = []
+    w = RegistrationWorker(small_model, on_done=done.append, max_rate_hz=1e6)
+    data = data_for(small_model, np.random.default_rng(5))
+    w.start(data)
+    w.join(60)
+    w.start(data, warm=True)
+    w.join(60)
+    assert done[1].rigid is done[0].rigid
+    assert done[1].libr.history[0] <= done[0].libr.history[0]
