@@ -96,3 +96,12 @@ def test_warm_start_continues_from_the_last_state(small_model):
     w.join(60)
     assert done[1].rigid is done[0].rigid
     assert done[1].libr.history[0] <= done[0].libr.history[0]
+
+
+def test_rigid_only_run(small_model):
+    updates, done = [], []
+    w = RegistrationWorker(small_model, updates.append, done.append)
+    w.start(data_for(small_model, np.random.default_rng(6)), deform=False)
+    w.join(30)
+    assert len(updates) == 1 and updates[0].final and done[0].libr is None
+    assert np.allclose(updates[0].liver, done[0].rigid.apply(small_model.features["liver"].rest))
