@@ -56,6 +56,7 @@ def cmd_mesh(args):
 def cmd_precompute(args):
     from .anatomy.caseio import read_case
     from .anatomy.meshing import cached_tetmesh
+    from .evaluation.benchmark import peak_memory_mb
     from .mechanics.basis import BasisSettings, load_or_compute_basis
     from .mechanics.sparse import backend
 
@@ -68,15 +69,9 @@ def cmd_precompute(args):
         "nodes": basis.M, "surface_nodes": len(basis.surface), "k": basis.k, "edge_mm": args.edge,
         "from_cache": cached, "solver": backend(), "seconds": seconds,
         "total_seconds": round(time.perf_counter() - t0, 3),
-        "peak_memory_mb": round(_peak_rss_mb(), 1),
+        "peak_memory_mb": round(peak_memory_mb(), 1),
     }
     print(json.dumps(out))
-
-
-def _peak_rss_mb():
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def cmd_demo(args):

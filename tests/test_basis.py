@@ -1,4 +1,3 @@
-import os
 from dataclasses import replace
 
 import numpy as np

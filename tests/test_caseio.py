@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from navapp.anatomy.caseio import Case, read_case, write_case, write_preop
+from navapp.anatomy.caseio import Case, read_case, write_case
 from navapp.cli import main
 from navapp.errors import InputError
 

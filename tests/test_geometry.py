@@ -1,5 +1,4 @@
 import numpy as np
-import pytest
 import trimesh
 from skimage.draw import line as sk_line
 

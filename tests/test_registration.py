@@ -1,7 +1,6 @@
 from dataclasses import replace
 
 import numpy as np
-import pytest
 
 from navapp.registration.libr import LMOptions, register_libr
 from navapp.registration.objective import Weights, evaluate
@@ -11,7 +10,6 @@ from navapp.registration.rotation import rotation, rotation_derivatives
 
 def synthetic_data(model, alpha, rng, theta=(0, 0, 0), tau=(0, 0, 0)):
     """Points on the model deformed by β = (α, τ, θ): one set per kind of feature."""
-    n = model.basis.Ju.shape[1]
     beta = np.concatenate([alpha, tau, theta])
     u = (model.basis.Ju @ alpha).reshape(-1, 3)
     R, c = rotation(np.asarray(theta, float)), model.centroid

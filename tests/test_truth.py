@@ -1,7 +1,6 @@
 """Ground-truth solvers against analytic results and each other."""
 
 import numpy as np
-import pytest
 from skfem import MeshTet
 
 from navapp.anatomy.meshing import TetMesh

@@ -13,7 +13,6 @@ import numpy as np
 
 from ..registration.libr import LMOptions
 from ..registration.pipeline import Registration, register
-from ..registration.rotation import rotation
 
 
 @dataclass
@@ -66,11 +65,7 @@ class RegistrationWorker:
 
     def liver_positions(self, rigid, beta) -> np.ndarray:
         """Tet-surface nodes at state β, mapped to tracker space by the rigid pose."""
-        feat = self.model.features["liver"]
-        n = len(beta) - 6
-        c = self.model.centroid
-        local = feat.rest + (feat.BJ.reshape(-1, n) @ beta[:n]).reshape(-1, 3) - c
-        return rigid.apply(local @ rotation(beta[n + 3:]).T + beta[n:n + 3] + c)
+        return rigid.apply(self.model.positions(self.model.features["liver"], beta)[1])
 
     def _run(self, data, deform, prev, options):
         t0 = time.monotonic()

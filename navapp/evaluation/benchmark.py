@@ -15,16 +15,15 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
 
 
-def _peak_mb():
+def peak_memory_mb() -> float:
+    """Peak resident memory of this process so far, MB (Linux ru_maxrss is in kB)."""
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
 def precompute_one(edge: float, k: int) -> dict:
     """Run in a fresh process (cold cache dir) so that peak memory is this run's alone."""
-    from .. import cache
     from ..anatomy.meshing import cached_tetmesh
     from ..anatomy.phantom import make_phantom
     from ..mechanics.basis import BasisSettings, load_or_compute_basis
@@ -39,10 +38,9 @@ def precompute_one(edge: float, k: int) -> dict:
     cached_tetmesh(liver, edge, root)
     load_or_compute_basis(mesh, BasisSettings(k=k), cache_root=root)
     reload = time.perf_counter() - t1
-    del cache
     return {"edge_mm": edge, "k": k, "nodes": basis.M, "surface_nodes": len(basis.surface),
             "seconds": {"mesh": round(rep["seconds"], 2), **{s: round(v, 2) for s, v in basis.timings.items()}},
-            "total_seconds": round(total, 2), "cache_load_seconds": round(reload, 3), "peak_memory_mb": round(_peak_mb())}
+            "total_seconds": round(total, 2), "cache_load_seconds": round(reload, 3), "peak_memory_mb": round(peak_memory_mb())}
 
 
 def bench_precompute(edges, ks):

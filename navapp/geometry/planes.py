@@ -18,7 +18,7 @@ def plane_section(vertices, faces, origin, normal, eps=1e-12, return_faces=False
     f = np.asarray(faces)
     s = d[f] > 0
     cut = s.any(1) & ~s.all(1)
-    f, dd, s = f[cut], d[f[cut]], s[cut]
+    f, s = f[cut], s[cut]
     # the lone vertex (alone on its side) and the two others, per cut triangle
     lone = np.where(s.sum(1) == 1, np.argmax(s, 1), np.argmin(s, 1))
     i0 = f[np.arange(len(f)), lone]

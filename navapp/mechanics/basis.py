@@ -94,8 +94,9 @@ def point_load_modes(K, control, perturbation):
     free = np.setdiff1d(np.arange(n), cd)
     U = np.zeros((n, len(cd)))
     U[cd, np.arange(len(cd))] = perturbation
-    with Factorisation(K[free][:, free]) as F:
-        U[free] = F.solve(-(K[free][:, cd] @ U[cd]))
+    Kf = K[free]
+    with Factorisation(Kf[:, free]) as F:
+        U[free] = F.solve(-(Kf[:, cd] @ U[cd]))
     R = K[cd] @ U
     return U, R
 
@@ -124,8 +125,9 @@ def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None):
         load = np.zeros((n, 3))
         for a in range(3):
             load[3 * tile_nodes + a] = np.outer(w, r[a])
-        rhs = load[free] - K[free][:, hold] @ U[hold][:, cols]
-        with Factorisation(K[free][:, free]) as F:
+        Kf = K[free]
+        rhs = load[free] - Kf[:, hold] @ U[hold][:, cols]
+        with Factorisation(Kf[:, free]) as F:
             out[np.ix_(free, cols)] = F.solve(rhs)
         if on_tile:
             on_tile(c)

@@ -24,6 +24,7 @@ from ..errors import InputError
 from ..geometry.closest import incidence
 from ..mechanics.basis import Basis
 from ..mechanics.interpolation import interpolation_matrix
+from .rotation import rotation
 
 WEIGHTS_SI = {  # m⁻² (paper §II-D); the strain-energy weight is in Pa⁻²
     "anterior": 1.0, "posterior": 1.0, "falciform": 0.3, "ridge_left": 0.3, "ridge_right": 0.3,
@@ -31,6 +32,8 @@ WEIGHTS_SI = {  # m⁻² (paper §II-D); the strain-energy weight is in Pa⁻²
     "fiducials": 1.0,
 }
 W_ENERGY_SI = 1e-8
+
+REGION_FEATURES = ("falciform", "ridge_left", "ridge_right")
 
 DATA_TO_MODEL = {
     "anterior": "liver", "posterior": "liver", "falciform": "falciform", "ridge_left": "ridge_left",
@@ -56,7 +59,18 @@ class RegistrationModel:
     centroid: np.ndarray  # x̄0 (3,), centroid of the mesh nodes
 
     def feature_for(self, data_name: str) -> ModelFeature:
-        return self.features[DATA_TO_MODEL[data_name]]
+        """The model feature a data feature slides on; a salient region the model has no
+        labels for falls back to the whole liver surface (``usable_data`` warns)."""
+        target = DATA_TO_MODEL[data_name]
+        if target not in self.features and target in REGION_FEATURES:
+            target = "liver"
+        return self.features[target]
+
+    def positions(self, feat: ModelFeature, beta) -> tuple[np.ndarray, np.ndarray]:
+        """Eq. 8 at a feature's points: (x0 − x̄0 + J_u α) and x(β), both (V, 3) mm."""
+        n = len(beta) - 6
+        local = feat.rest + (feat.BJ.reshape(-1, n) @ beta[:n]).reshape(-1, 3) - self.centroid
+        return local, local @ rotation(beta[n + 3:]).T + beta[n:n + 3] + self.centroid
 
 
 VESSEL_FACES = 8000  # vessel surfaces are decimated to this many triangles for registration
@@ -85,7 +99,7 @@ def build_model(basis: Basis, preop: PreopModel, fiducials: np.ndarray | None = 
     if preop.regions is not None:
         _, near = cKDTree(preop.liver.vertices).query(nodes[surf])
         labels = preop.regions[near]
-        for name in ("falciform", "ridge_left", "ridge_right"):
+        for name in REGION_FEATURES:
             code = REGION_NAMES.index(name)
             keep = (labels[faces] == code).sum(1) >= 2
             if keep.any():
@@ -127,10 +141,9 @@ def usable_data(model: RegistrationModel, data: dict) -> dict:
         if target is None:
             raise InputError(f"unknown feature {name!r}")
         if target not in model.features:
-            if target in ("falciform", "ridge_left", "ridge_right") and "liver" in model.features:
+            if target in REGION_FEATURES and "liver" in model.features:
                 warnings.warn(f"no '{target}' region in the model (regions.csv missing?): "
                               f"{name} points slide on the whole liver surface", stacklevel=2)
-                model.features[target] = model.features["liver"]
             elif name == "fiducials":
                 raise InputError("intraoperative fiducials need preop/fiducials.csv (their preoperative positions)")
             else:

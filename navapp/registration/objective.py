@@ -16,7 +16,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from ..geometry.closest import closest_on_polyline, closest_on_surface
-from .model import DATA_TO_MODEL, W_ENERGY_SI, WEIGHTS_SI, RegistrationModel
+from .model import W_ENERGY_SI, WEIGHTS_SI, RegistrationModel
 from .rotation import rotation, rotation_derivatives
 
 EPS_DISTANCE = 1e-9  # mm: below this a centerline/fiducial residual has no defined direction
@@ -108,7 +108,6 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     basis = model.basis
     n = basis.Ju.shape[1]
     alpha, tau, theta = split(beta, n)
-    c = model.centroid
     R = rotation(theta)
     dR = rotation_derivatives(theta) if jacobian else None
     tim = {"deform": 0.0, "closest": 0.0, "jacobian": 0.0}
@@ -116,11 +115,10 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     geometry = {}  # model feature → (local, X, KD-tree): anterior and posterior share the liver
     for name, Y in data.items():
         feat = model.feature_for(name)
-        key = DATA_TO_MODEL[name]
+        key = id(feat)
         if key not in geometry:
             t0 = time.perf_counter()
-            local = feat.rest + (feat.BJ.reshape(-1, n) @ alpha).reshape(-1, 3) - c  # x0 − x̄0 + J_u α
-            X = local @ R.T + tau + c
+            local, X = model.positions(feat, beta)
             tim["deform"] += time.perf_counter() - t0
             t0 = time.perf_counter()
             tree = cKDTree(X) if frozen is None and feat.kind != "fiducial" else None

@@ -21,7 +21,6 @@ import trimesh
 from .. import progress
 from ..anatomy.caseio import Case, read_case, write_case, write_csv
 from ..anatomy.meshing import cached_tetmesh
-from ..anatomy.model import Centerline
 from ..anatomy.phantom import make_phantom
 from ..mechanics.controlpoints import nodal_areas
 from ..mechanics.fem import Material

@@ -12,7 +12,7 @@ from sklearn.cluster import KMeans
 from ..geometry.bresenham import line
 from ..geometry.planes import plane_section
 from . import effects as fx
-from .probe import Probe, pixels_to_tracker, pose, tracker_to_pixels
+from .probe import pixels_to_tracker, pose, tracker_to_pixels
 
 
 @dataclass
