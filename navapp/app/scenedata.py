@@ -1,0 +1,129 @@
+"""Everything the viewer shows about a simulated scene, simulated once and cached.
+
+The simulator writes a case folder (``simulation/simulate.py``); the viewer reads it back
+into ``SceneData``: preoperative model, stylus data in sweep order, the iUS planes with
+their poses and B-mode images, and the true deformed anatomy. A scene is simulated into
+``<cache>/scenes/<key>`` where the key hashes every scene parameter, so the next start
+is instant and a changed scene is simulated afresh. No viser here.
+"""
+
+import dataclasses
+import json
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from ..anatomy.caseio import Case, read_case
+from ..cache import cache_dir, content_key
+from ..simulation.probe import Probe
+from ..simulation.scene import Scene
+from ..simulation.simulate import REGISTRATION_EDGE_MM, simulate
+from ..simulation.ultrasound import PlaneData, acquire_plane
+
+STYLUS_FEATURES = ("anterior", "falciform", "ridge_left", "ridge_right")
+SCENE_CACHE_VERSION = "1"  # bump when the simulator's output changes
+
+
+@dataclass
+class SceneData:
+    scene: Scene
+    edge: float  # registration mesh edge, mm
+    case_dir: Path
+    case: Case  # preop, all intraop data (stylus + every plane), truth targets
+    stylus: dict  # feature → (N, 3) mm, the stylus's share of case.intraop
+    stylus_path: np.ndarray  # (N, 3) all stylus points in the order the tip visits them
+    stylus_labels: np.ndarray  # (N,) the feature each point of stylus_path belongs to
+    planes: list  # [PlaneData] of the scene's plane presets
+    probe: Probe
+    truth: dict  # "liver" / "portal" / "hepatic" → deformed trimesh (tracker space)
+
+
+def scene_key(scene: Scene, edge=REGISTRATION_EDGE_MM) -> str:
+    """Hash of every scene parameter and the registration mesh size (the truth targets
+    are that mesh's nodes). A scene built on a case folder is keyed by its path."""
+    d = dataclasses.asdict(scene)
+    d.pop("source", None)
+    return content_key(SCENE_CACHE_VERSION, d, float(edge))[:16]
+
+
+def simulated_case_dir(scene: Scene, cache_root=None, edge=REGISTRATION_EDGE_MM) -> Path:
+    """Simulate ``scene`` into the cache unless already there; returns the case folder."""
+    root = Path(cache_root) if cache_root else cache_dir()
+    out = root / "scenes" / f"{scene.name}-{scene_key(scene, edge)}"
+    if (out / "truth" / "report.json").exists():
+        return out
+    tmp = out.with_name(out.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    simulate(scene, tmp, cache_root=cache_root, registration_edge=edge)
+    shutil.rmtree(out, ignore_errors=True)
+    tmp.rename(out)  # atomic: a half-written simulation is never mistaken for a finished one
+    return out
+
+
+def sweep_order(points: np.ndarray) -> np.ndarray:
+    """Order (N,) visiting the points as a stylus tip would: greedy nearest neighbour from
+    the leftmost point (the simulator stores points per feature, not in one sweep)."""
+    n = len(points)
+    if n == 0:
+        return np.zeros(0, int)
+    left = np.ones(n, bool)
+    order = [int(np.argmin(points[:, 0]))]
+    left[order[0]] = False
+    for _ in range(n - 1):
+        cand = np.flatnonzero(left)
+        j = cand[np.argmin(np.linalg.norm(points[cand] - points[order[-1]], axis=1))]
+        order.append(int(j))
+        left[j] = False
+    return np.array(order)
+
+
+def read_planes(case_dir: Path) -> tuple[list, Probe]:
+    """The plane presets written by the simulator: poses, features and images."""
+    from skimage.io import imread
+
+    udir = Path(case_dir) / "intraop" / "us"
+    meta_path = udir / "planes.json"
+    if not meta_path.exists():
+        return [], Probe()
+    meta = json.loads(meta_path.read_text())
+    probe = Probe(meta["width_px"], meta["height_px"], meta["spacing_mm"])
+    planes = []
+    from ..anatomy.caseio import read_csv
+
+    for p in meta["planes"]:
+        pdir = udir / f"plane_{p['index']:02d}"
+        feats = {f: read_csv(pdir / f"{f}.csv", ("x", "y", "z")) for f in p["features"]}
+        img_path = udir / f"plane_{p['index']:02d}.png"
+        image = imread(img_path) if img_path.exists() else None
+        planes.append(PlaneData(p["index"], p["orientation"], np.array(p["probe_to_tracker"]), feats, image))
+    return planes, probe
+
+
+def load_scene_data(scene: Scene, cache_root=None, edge=REGISTRATION_EDGE_MM) -> SceneData:
+    case_dir = simulated_case_dir(scene, cache_root, edge)
+    case = read_case(case_dir)
+    stylus = {k: case.intraop[k] for k in STYLUS_FEATURES if k in case.intraop}
+    allpts = np.vstack(list(stylus.values())) if stylus else np.zeros((0, 3))
+    labels = np.concatenate([[k] * len(v) for k, v in stylus.items()]) if stylus else np.zeros(0, str)
+    order = sweep_order(allpts)
+    planes, probe = read_planes(case_dir)
+    truth = {}
+    for name in ("liver", "portal", "hepatic"):
+        p = case_dir / "truth" / f"{name}.ply"
+        if p.exists():
+            truth[name] = trimesh.load(p, process=False)
+    return SceneData(scene, edge, case_dir, case, stylus, allpts[order], labels[order], planes, probe, truth)
+
+
+def acquire_free_plane(sd: SceneData, index: int, probe_to_tracker: np.ndarray) -> PlaneData:
+    """Simulate a plane at a pose the user chose (same anatomy and effects as the presets;
+    the random stream is seeded by scene seed and plane index, so it is reproducible)."""
+    from ..simulation.effects import Ledger
+
+    rng = np.random.default_rng([sd.scene.seed, index])
+    return acquire_plane(index, "free", np.asarray(probe_to_tracker, float), sd.probe, sd.truth["liver"],
+                         sd.truth.get("portal"), sd.truth.get("hepatic"), sd.scene.effects, rng, Ledger(),
+                         want_image=True)
