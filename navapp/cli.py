@@ -88,6 +88,15 @@ def cmd_demo(args):
     return cmd_register(ns)
 
 
+def cmd_serve(args):
+    from .simulation.scene import demo_scene, load_scene
+
+    scene = load_scene(args.scene) if args.scene else demo_scene()
+    from .app.server import serve  # viser is imported only here
+
+    serve(scene, args.host, args.port, args.session, args.edge, args.k)
+
+
 def cmd_simulate(args):
     from .simulation.scene import load_scene
     from .simulation.simulate import simulate
@@ -182,6 +191,17 @@ def build_parser():
     s = sub.add_parser("demo", help="simulate the built-in demo scene (phantom 0, stylus, 16 iUS planes) and register it")
     s.add_argument("--out", type=Path, default=Path("navapp-demo"), help="case folder to write (default ./navapp-demo)")
     s.set_defaults(func=cmd_demo)
+
+    s = sub.add_parser("serve", help="open the navigation viewer in the browser (built-in demo scene by default)")
+    s.add_argument("scene", type=Path, nargs="?", help="scene TOML file (default: the built-in demo scene)")
+    s.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
+    s.add_argument("--port", type=_positive(int), default=8080,
+                   help="port (default 8080; if busy the next free one is used and printed)")
+    s.add_argument("--session", type=Path,
+                   help="session folder (default ~/navapp-sessions/<scene>-<key>, or under $NAVAPP_SESSIONS)")
+    s.add_argument("--edge", type=_positive(float), default=4.0, help="registration mesh element size, mm")
+    s.add_argument("--k", type=_positive(int), default=45, help="number of control points")
+    s.set_defaults(func=cmd_serve)
 
     return p
 

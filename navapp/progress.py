@@ -9,11 +9,46 @@ from contextlib import contextmanager
 from tqdm import tqdm
 
 QUIET = False  # set by the CLI's --quiet and by tests
+_listeners = []  # callables (desc, fraction or None) — e.g. the viewer's status panel
+
+
+def add_listener(fn):
+    """Also report progress to ``fn(desc, fraction)``: fraction in [0, 1] for bars, None
+    when a stage starts (no measurable progress). Returns ``fn`` (for remove_listener)."""
+    _listeners.append(fn)
+    return fn
+
+
+def remove_listener(fn):
+    if fn in _listeners:
+        _listeners.remove(fn)
+
+
+def _notify(desc, fraction):
+    for fn in list(_listeners):
+        try:
+            fn(desc, fraction)
+        except Exception:  # a failing display must never stop a computation
+            pass
+
+
+class _Bar(tqdm):
+    def __init__(self, *args, **kw):
+        super().__init__(*args, **kw)
+        self.label, self.done = kw["desc"], 0  # tqdm keeps neither when disabled
+
+    def update(self, n=1):
+        out = super().update(n)
+        self.done += n
+        if _listeners and self.total:
+            _notify(self.label, min(1.0, self.done / self.total))
+        return out
 
 
 def bar(total, desc, unit="it"):
-    """A tqdm bar on stderr (hidden when QUIET)."""
-    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, disable=QUIET, leave=False,
+    """A tqdm bar on stderr (hidden when QUIET), also reported to the listeners."""
+    _notify(desc, 0.0)
+    return _Bar(total=total, desc=desc, unit=unit, file=sys.stderr, disable=QUIET, leave=False,
                 dynamic_ncols=True, mininterval=0.2)
 
 
@@ -24,6 +59,7 @@ def stage(desc):
     out = {}
     stop = threading.Event()
     t0 = time.perf_counter()
+    _notify(desc, None)
 
     def tick():
         with tqdm(desc=desc, bar_format="{desc}: {elapsed}", file=sys.stderr, disable=QUIET, leave=False) as t:

@@ -22,6 +22,9 @@ class Update:
     elapsed: float  # seconds since the run started
     liver: np.ndarray  # (V, 3) deformed liver-surface nodes (the tet boundary), tracker space, mm
     final: bool = False
+    vessels: dict | None = None  # "portal" / "hepatic" → (V, 3) deformed vessel-surface vertices, mm
+    beta: np.ndarray | None = None  # the state β (None for a rigid-only result)
+    rigid: object = None  # the rigid pose of this state (RigidResult)
 
 
 class RegistrationWorker:
@@ -67,6 +70,39 @@ class RegistrationWorker:
         """Tet-surface nodes at state β, mapped to tracker space by the rigid pose."""
         return rigid.apply(self.model.positions(self.model.features["liver"], beta)[1])
 
+    def vessel_positions(self, rigid, beta) -> dict:
+        """The registration model's vessel surfaces at state β (None: rigid only), tracker space."""
+        out = {}
+        for name in ("portal", "hepatic"):
+            f = self.model.features.get(name)
+            if f is not None:
+                out[name] = rigid.apply(f.rest if beta is None else self.model.positions(f, beta)[1])
+        return out
+
+    def _state(self, iteration, omega, t0, rigid, beta, final=False) -> Update:
+        liver = rigid.apply(self.model.features["liver"].rest) if beta is None else self.liver_positions(rigid, beta)
+        return Update(iteration, omega, time.monotonic() - t0, liver, final, self.vessel_positions(rigid, beta),
+                      None if beta is None else np.array(beta), rigid)
+
+    def submit(self, job, on_done=None) -> bool:
+        """Run ``job(cancel_event)`` (e.g. a settings sweep) in the worker thread, under the
+        same one-at-a-time rule as registrations; its return value goes to ``on_done``."""
+        with self._lock:
+            if self.busy:
+                return False
+            self._cancel.clear()
+
+            def run():
+                try:
+                    out = job(self._cancel)
+                    (on_done or (lambda r: None))(out)
+                except Exception as exc:
+                    self.on_error(exc)
+
+            self._thread = threading.Thread(target=run, daemon=True)
+            self._thread.start()
+            return True
+
     def _run(self, data, deform, prev, options):
         t0 = time.monotonic()
         last_sent = -np.inf
@@ -75,20 +111,19 @@ class RegistrationWorker:
             rigid = prev.rigid if prev is not None else rigid_run.rigid
             if not deform:
                 reg = rigid_run or register(self.model, data, deform=False, options=options, rigid=rigid)
-                final = Update(0, float("nan"), time.monotonic() - t0, rigid.apply(self.model.features["liver"].rest), True)
+                final = self._state(0, float("nan"), t0, rigid, None, True)
             else:
                 def on_iteration(p):
                     nonlocal last_sent
                     now = time.monotonic()
                     if now - last_sent >= self.interval:  # otherwise dropped: the next state supersedes it
                         last_sent = now
-                        self.on_update(Update(p.iteration, p.omega, now - t0, self.liver_positions(rigid, p.beta)))
+                        self.on_update(self._state(p.iteration, p.omega, t0, rigid, p.beta))
 
                 beta0 = prev.libr.beta if prev is not None and prev.libr is not None else None
                 reg = register(self.model, data, deform=True, options=options, callback=on_iteration,
                                cancel=self._cancel, beta0=beta0, rigid=rigid)
-                final = Update(reg.libr.iterations, reg.libr.omega, time.monotonic() - t0,
-                               self.liver_positions(rigid, reg.libr.beta), True)
+                final = self._state(reg.libr.iterations, reg.libr.omega, t0, rigid, reg.libr.beta, True)
             self.last = reg
             self.on_update(final)
             self.on_done(reg)
