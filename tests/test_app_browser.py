@@ -185,6 +185,11 @@ def test_guided_demo_in_chromium(server, tmp_path):
         # clicks landed on the pixels aimed at (within the browser's rounding and the mm → px scale)
         assert np.abs(got - np.array(targets)).max() <= 3.0, (got, targets)
 
+        # a browser reload loses nothing
+        page.reload()
+        wait_text(page, r"contours drawn: 1\.", 60)
+        wait_text(page, rf"{total} of {total} sweep points digitised", 10)
+
         n_before = len(frames)
         t_click = time.time()
         click_button(page, "Register deformably (all data)")

@@ -105,3 +105,18 @@ def test_rigid_only_run(small_model):
     w.join(30)
     assert len(updates) == 1 and updates[0].final and done[0].libr is None
     assert np.allclose(updates[0].liver, done[0].rigid.apply(small_model.features["liver"].rest))
+
+
+def test_jobs_share_the_one_at_a_time_rule_and_report_errors(small_model):
+    errors, done = [], []
+    w = RegistrationWorker(small_model, on_error=errors.append)
+    gate = threading.Event()
+    assert w.submit(lambda cancel: gate.wait(30) and "swept", done.append)
+    assert not w.start(data_for(small_model, np.random.default_rng(4)))  # refused while the job runs
+    assert not w.submit(lambda cancel: None)
+    gate.set()
+    w.join(30)
+    assert done == ["swept"] and not errors
+    assert w.submit(lambda cancel: 1 / 0)
+    w.join(30)
+    assert len(errors) == 1 and isinstance(errors[0], ZeroDivisionError) and not w.busy
