@@ -539,6 +539,9 @@ class App:
         if npts < 3:
             self.notify("Registration", "Collect data first (stylus sweep or an ultrasound plane).", error=True)
             return False
+        if self.worker.busy:  # checked before touching the running job's label and trace
+            self.notify("Registration", "A registration is already running; wait for it or cancel it.")
+            return False
         self.run_label = {"rigid": "rigid", "surface": "deformable, surface", "all": "deformable, all data",
                           "warm": "deformable, all data (warm)"}[kind]
         self.run_trace, self.streamed = [], 0
