@@ -43,29 +43,21 @@ def closest_on_triangles(p, a, b, c):
     va = d3 * d6 - d5 * d4
     vb = d5 * d2 - d1 * d6
     vc = d1 * d4 - d3 * d2
-    N = len(p)
-    w = np.zeros((N, 3))
-    done = np.zeros(N, bool)
-
-    def setw(mask, wa, wb, wc):
-        m = mask & ~done
-        w[m, 0], w[m, 1], w[m, 2] = wa[m], wb[m], wc[m]
-        done[m] = True
-
-    one, zero = np.ones(N), np.zeros(N)
     with np.errstate(divide="ignore", invalid="ignore"):
-        setw((d1 <= 0) & (d2 <= 0), one, zero, zero)
-        setw((d3 >= 0) & (d4 <= d3), zero, one, zero)
-        t = d1 / (d1 - d3)
-        setw((vc <= 0) & (d1 >= 0) & (d3 <= 0), 1 - t, t, zero)
-        setw((d6 >= 0) & (d5 <= d6), zero, zero, one)
-        t = d2 / (d2 - d6)
-        setw((vb <= 0) & (d2 >= 0) & (d6 <= 0), 1 - t, zero, t)
-        t = (d4 - d3) / ((d4 - d3) + (d5 - d6))
-        setw((va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0), zero, 1 - t, t)
+        t_ab = d1 / (d1 - d3)
+        t_ac = d2 / (d2 - d6)
+        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
         den = va + vb + vc
-        v, ww = vb / den, vc / den
-        setw(np.ones(N, bool), 1 - v - ww, v, ww)
+        v, u = vb / den, vc / den
+    # Voronoi regions in Ericson's order (the first that holds wins): vertex a, vertex b,
+    # edge ab, vertex c, edge ac, edge bc; otherwise the face interior
+    regions = [(d1 <= 0) & (d2 <= 0), (d3 >= 0) & (d4 <= d3), (vc <= 0) & (d1 >= 0) & (d3 <= 0),
+               (d6 >= 0) & (d5 <= d6), (vb <= 0) & (d2 >= 0) & (d6 <= 0),
+               (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0)]
+    w = np.empty((len(p), 3))
+    w[:, 0] = np.select(regions, [1.0, 0.0, 1 - t_ab, 0.0, 1 - t_ac, 0.0], 1 - v - u)
+    w[:, 1] = np.select(regions, [0.0, 1.0, t_ab, 0.0, 0.0, 1 - t_bc], v)
+    w[:, 2] = np.select(regions, [0.0, 0.0, 0.0, 1.0, t_ac, t_bc], u)
     w = np.nan_to_num(w, nan=1.0 / 3.0)
     return w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c, w
 

@@ -40,7 +40,12 @@ class Evaluation:
     J: np.ndarray | None  # (N + 1, 3k + 6), or None when not asked for
     features: dict  # name → {"n", "rms_mm", "mean_abs_mm", "max_abs_mm", "omega"}
     timings: dict
-    correspondence: dict  # name → (S, direction): reuse with ``frozen=`` to hold them fixed
+    correspondence: dict  # name → (S, direction[, S·B·J_u, S·x0]): reuse with ``frozen=`` to hold them fixed
+
+
+def _stats(f, wF) -> dict:
+    return {"n": int(len(f)), "rms_mm": float(np.sqrt(np.mean(f ** 2))), "mean_abs_mm": float(np.mean(np.abs(f))),
+            "max_abs_mm": float(np.max(np.abs(f))), "omega": float(wF * f @ f)}
 
 
 def split(beta, n):
@@ -116,6 +121,21 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     for name, Y in data.items():
         feat = model.feature_for(name)
         key = id(feat)
+        if frozen is not None and len(frozen[name]) == 4:
+            # held correspondences carry S·B·J_u and S·x0 from the evaluation that made them:
+            # x at the corresponded points costs N·3·3k instead of deforming the whole
+            # feature (S's rows sum to one, so S commutes with the rigid part of eq. 8)
+            t0 = time.perf_counter()
+            S, direction, U, Srest = frozen[name]
+            Xs = (Srest - model.centroid + (U.reshape(-1, n) @ alpha).reshape(-1, 3)) @ R.T + tau + model.centroid
+            tim["deform"] += time.perf_counter() - t0
+            f, _ = residuals(feat.kind, Y - Xs, direction)
+            wF = weights.features[name] * weights.unit_m ** 2 / len(Y)
+            fs.append(f)
+            ws.append(np.full(len(f), wF))
+            stats[name] = _stats(f, wF)
+            corr[name] = frozen[name]
+            continue
         if key not in geometry:
             t0 = time.perf_counter()
             local, X = model.positions(feat, beta)
@@ -135,11 +155,11 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
         wF = weights.features[name] * weights.unit_m ** 2 / len(Y)
         fs.append(f)
         ws.append(np.full(len(f), wF))
-        stats[name] = {"n": int(len(f)), "rms_mm": float(np.sqrt(np.mean(f ** 2))),
-                       "mean_abs_mm": float(np.mean(np.abs(f))), "max_abs_mm": float(np.max(np.abs(f))),
-                       "omega": float(wF * f @ f)}
+        stats[name] = _stats(f, wF)
         if jacobian:
             U = np.asarray(S @ feat.BJ.reshape(len(X), 3 * n)).reshape(-1, 3, n)
+            if frozen is None:
+                corr[name] = (S, direction, U, S @ feat.rest)
             qR = q @ R  # qᵀR, (N, 3)
             Jf = np.empty((len(f), n + 6))
             Jf[:, :n] = -np.einsum("ia,iak->ik", qR, U)

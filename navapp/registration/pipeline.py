@@ -19,7 +19,7 @@ from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from ..mechanics.interpolation import interpolation_matrix
 from .libr import LibrResult, LMOptions, register_libr
 from .model import RegistrationModel, build_model, usable_data
-from .rigid import RigidResult, rigid_icp
+from .rigid import TOL_BEFORE_LIBR, RigidResult, rigid_icp
 from .rotation import rotation
 
 
@@ -82,7 +82,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     sec = {}
     t = time.perf_counter()
     if rigid is None:
-        rigid = rigid_icp(model, data, options.weights)
+        rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4)
     sec["rigid"] = time.perf_counter() - t
     local = {name: rigid.inverse(p) for name, p in data.items()}
     result = None
