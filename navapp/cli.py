@@ -3,6 +3,7 @@
 
 import argparse
 import json
+import os
 import sys
 import time
 import warnings
@@ -11,6 +12,7 @@ from pathlib import Path
 from . import __version__, progress
 
 SCENE_DIR = Path(__file__).resolve().parents[1] / "assets" / "scenes"
+DEFAULT_TABLE2_CSV = Path("results/table2.csv")
 from .errors import NavappError
 
 
@@ -108,6 +110,29 @@ def cmd_simulate(args):
 def cmd_study(args):
     from .evaluation.report import write_report
     from .evaluation.table2 import run_table2
+
+    cases = _study_cases(args)
+    if args.what == "cost":
+        from .evaluation.cost import run_cost_study
+        from .evaluation.cost_report import write_cost_report
+
+        results = args.results if args.results != DEFAULT_TABLE2_CSV else args.report / "cost.csv"
+        t0 = time.perf_counter()
+        n = run_cost_study(cases, results, workers=args.workers or os.cpu_count() or 1, quick=args.quick)
+        md = write_cost_report(results, args.report)
+        print(json.dumps({"rows_added": n, "seconds": round(time.perf_counter() - t0, 1), "results": str(results),
+                          "report": str(md)}))
+        return
+    t0 = time.perf_counter()
+    n = run_table2(cases, args.results, workers=args.workers, scheduler=args.scheduler, quick=args.quick)
+    md = write_report(args.results, args.report, cases)
+    print(json.dumps({"registrations_run": n, "seconds": round(time.perf_counter() - t0, 1),
+                      "results": str(args.results), "report": str(md)}))
+
+
+def _study_cases(args):
+    """The case folders of a study: --cases, or the study scenes simulated into --case-root
+    (the cost study's default is two of them, phantom0-L and phantom2-R)."""
     from .simulation.scene import load_scene
     from .simulation.simulate import simulate
 
@@ -118,16 +143,14 @@ def cmd_study(args):
             raise NavappError(f"no study scenes in {SCENE_DIR} (installed without the repo?): pass --cases")
         if args.quick:
             scenes = scenes[:1]
+        elif args.what == "cost":
+            scenes = [sc for sc in scenes if sc.stem in ("phantom0-L", "phantom2-R")]
         for sc in scenes:
             folder = args.case_root / sc.stem
             if not (folder / "truth" / "report.json").exists():
                 simulate(load_scene(sc), folder)
             cases.append(folder)
-    t0 = time.perf_counter()
-    n = run_table2(cases, args.results, workers=args.workers, scheduler=args.scheduler, quick=args.quick)
-    md = write_report(args.results, args.report, cases)
-    print(json.dumps({"registrations_run": n, "seconds": round(time.perf_counter() - t0, 1),
-                      "results": str(args.results), "report": str(md)}))
+    return cases
 
 
 def cmd_bench(args):
@@ -169,14 +192,15 @@ def build_parser():
     s.add_argument("--out", type=Path, required=True, help="case folder to write")
     s.set_defaults(func=cmd_simulate)
 
-    s = sub.add_parser("study", help="the paper's Table II design on simulated cases (resumable)")
-    s.add_argument("what", choices=("table2",))
+    s = sub.add_parser("study", help="table2: the paper's Table II design; cost: accuracy against time (both resumable)")
+    s.add_argument("what", choices=("table2", "cost"))
     s.add_argument("--cases", type=Path, nargs="+", help="case folders (default: simulate the nine study scenes)")
     s.add_argument("--case-root", type=Path, default=Path("study-cases"), help="where simulated cases go")
     s.add_argument("--workers", type=_positive(int), help="local worker processes (default: all cores)")
     s.add_argument("--scheduler", help="Dask distributed scheduler address (e.g. tcp://host:8786)")
     s.add_argument("--quick", action="store_true", help="one case, two scenarios per plane level")
-    s.add_argument("--results", type=Path, default=Path("results/table2.csv"), help="results CSV (appended)")
+    s.add_argument("--results", type=Path, default=DEFAULT_TABLE2_CSV,
+                   help="results CSV, appended (default results/table2.csv; for cost: <report>/cost.csv)")
     s.add_argument("--report", type=Path, default=Path("results"), help="folder for table2.md and plots")
     s.set_defaults(func=cmd_study)
 

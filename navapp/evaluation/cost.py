@@ -64,3 +64,133 @@ def pareto_front(seconds, errors) -> np.ndarray:
         dominated = (t <= t[i]) & (e <= e[i]) & ((t < t[i]) | (e < e[i]))
         keep[i] = not dominated.any()
     return keep
+
+
+# ---------------------------------------------------------------- navapp study cost
+
+COST_COLUMNS = ("case", "sweep", "level", "method", "edge_mm", "k", "setting", "planes", "nodes",
+                "precompute_s", "register_s", "tre_mean_mm", "iterations")
+KS = (15, 30, 45, 60, 90)
+EDGES = (6.0, 4.0, 3.0)
+PLANE_COUNTS = (0, 1, 2, 4, 8, 16)
+LEVELS = {"S": (), "S+3": (0, 5, 10), "S+all": tuple(range(16))}  # data levels of the k and edge sweeps
+DEFAULT_EDGE, DEFAULT_K = 4.0, 45
+
+
+def _plan(ks, edges, edge0, k0):
+    """(sweep, edge, k) model configurations, the default (edge0, k0) first (it serves the
+    LM, planes and peer sweeps too)."""
+    out = [("default", edge0, k0)]
+    out += [("k", edge0, k) for k in ks if k != k0]
+    out += [("edge", e, k0) for e in edges if e != edge0]
+    return out
+
+
+def cost_case(case_dir, ks=KS, edges=EDGES, caps=LM_CAPS, rtols=LM_RTOLS, plane_counts=PLANE_COUNTS,
+              peers=True, done=frozenset(), edge0=DEFAULT_EDGE, k0=DEFAULT_K) -> list[dict]:
+    """All cost-study rows of one simulated case (skipping row keys in ``done``).
+
+    Precompute seconds are measured cold (mesh + basis in an empty temporary cache), once
+    per (edge, k); registration seconds are one run each, rigid ICP included."""
+    import tempfile
+    from pathlib import Path
+
+    from .. import progress
+    from ..anatomy.caseio import read_case
+    from ..registration.pipeline import prepare
+    from ..simulation.levels import data_level
+    from .peers import cpd_register, icp_register
+
+    progress.QUIET = True
+    case_dir = Path(case_dir)
+    case = read_case(case_dir)
+    x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+    levels = {name: data_level(case_dir, "S+planes", planes=pl, case=case) for name, pl in LEVELS.items()}
+    rows = []
+
+    def row(sweep, level, method, edge, k, setting, planes, nodes, pre, reg_s, tre, its):
+        r = {"case": case_dir.name, "sweep": sweep, "level": level, "method": method, "edge_mm": edge, "k": k,
+             "setting": setting, "planes": planes, "nodes": nodes, "precompute_s": round(pre, 2),
+             "register_s": round(reg_s, 4), "tre_mean_mm": round(tre, 4), "iterations": its}
+        if _row_key(r) not in done:
+            rows.append(r)
+
+    for sweep, edge, k in _plan(ks, edges, edge0, k0):
+        with tempfile.TemporaryDirectory(prefix="navapp-cost-") as tmp:
+            t = time.perf_counter()
+            model, _ = prepare(case, edge, k, cache_root=Path(tmp))
+            pre = time.perf_counter() - t
+        nodes = len(model.basis.nodes)
+        for level, data in levels.items():
+            r = run_setting(model, data, x0, x1, "default")
+            row("k" if sweep == "default" else sweep, level, "LIBR", edge, k, "default", len(LEVELS[level]), nodes,
+                pre, r.seconds, r.tre_mean_mm, r.iterations)
+            if sweep == "default":
+                row("edge", level, "LIBR", edge, k, "default", len(LEVELS[level]), nodes, pre, r.seconds,
+                    r.tre_mean_mm, r.iterations)
+        if sweep != "default":
+            continue
+        for level in ("S", "S+3"):
+            for r in lm_sweep(model, levels[level], x0, x1, caps, rtols):
+                row("lm", level, "LIBR" if r.iterations or r.label != "rigid" else "rigid ICP", edge, k, r.label,
+                    len(LEVELS[level]), nodes, pre, r.seconds, r.tre_mean_mm, r.iterations)
+        for m in plane_counts:
+            planes = tuple(np.linspace(0, 15, m).round().astype(int)) if m else ()
+            data = data_level(case_dir, "S+planes", planes=planes, case=case)
+            r = run_setting(model, data, x0, x1, "default")
+            row("planes", f"S+{m}", "LIBR", edge, k, "default", m, nodes, pre, r.seconds, r.tre_mean_mm, r.iterations)
+        if peers:
+            for level, data in levels.items():
+                for res in (icp_register(model, data, x0), cpd_register(model, data, x0)):
+                    tre = float(np.linalg.norm(res.moved - x1, axis=1).mean())
+                    row("peers", level, res.method, edge, k, "default", len(LEVELS[level]), nodes, 0.0, res.seconds,
+                        tre, 0)
+    return rows
+
+
+def _row_key(r) -> tuple:
+    return (r["case"], r["sweep"], r["level"], r["method"], float(r["edge_mm"]), int(r["k"]), r["setting"])
+
+
+def run_cost_study(case_dirs, results_csv, workers=1, quick=False, **settings) -> int:
+    """Run (or resume) the cost study over ``case_dirs``, one process per case; appends
+    rows to ``results_csv``. Returns the number of new rows. ``quick``: k ∈ {15, 45},
+    edges {6, 4}, fewer LM settings, no CPD; ``settings`` override ``cost_case``'s."""
+    import csv
+    from concurrent.futures import ProcessPoolExecutor, as_completed
+    from pathlib import Path
+
+    from .. import progress
+
+    results_csv = Path(results_csv)
+    results_csv.parent.mkdir(parents=True, exist_ok=True)
+    done = set()
+    if results_csv.exists():
+        with results_csv.open() as f:
+            done = {_row_key(r) for r in csv.DictReader(f)}
+    kw = {"done": frozenset(done)}
+    if quick:
+        kw.update(ks=(15, 45), edges=(6.0, 4.0), caps=(0, 2, 100), rtols=(1e-1,), plane_counts=(0, 2), peers=False)
+    kw.update(settings)
+    new = 0
+    write_header = not results_csv.exists()
+    with results_csv.open("a", newline="") as f, progress.bar(len(case_dirs), "cost study", "case") as pb:
+        out = csv.DictWriter(f, COST_COLUMNS)
+        if write_header:
+            out.writeheader()
+
+        def take(rows):
+            nonlocal new
+            out.writerows(rows)
+            f.flush()
+            new += len(rows)
+            pb.update(1)
+
+        if workers <= 1 or len(case_dirs) == 1:
+            for c in case_dirs:
+                take(cost_case(c, **kw))
+        else:
+            with ProcessPoolExecutor(workers) as ex:
+                for fut in as_completed([ex.submit(cost_case, c, **kw) for c in case_dirs]):
+                    take(fut.result())
+    return new
