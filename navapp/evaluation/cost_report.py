@@ -37,6 +37,7 @@ def plot_time(rows, path, level="S+3"):
     LM cap/tolerance, peers), Pareto front drawn. Right: TRE against precompute seconds
     (k and edge settings)."""
     import matplotlib
+    import matplotlib.ticker
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -60,6 +61,9 @@ def plot_time(rows, path, level="S+3"):
         a.scatter([], [], marker=m, color=c, label={"k": "k (4 mm)", "edge": "mesh edge (k 45)", "lm": "LM cap / tolerance",
                                                     "peers": "peers"}[s])
     a.set_xscale("log")
+    a.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
+    a.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    a.set_xticks([0.1, 0.2, 0.5, 1, 2, 5, 10])
     a.set_xlabel("registration seconds (mean over cases)")
     a.set_ylabel("mean TRE (mm)")
     a.set_title(f"{level}: accuracy against registration time")
