@@ -70,19 +70,23 @@ def closest_on_surface(points, vertices, faces, table, near=2, tree=None):
     """
     points = np.asarray(points, float)
     _, vi = (tree or cKDTree(vertices)).query(points, k=near)
-    cand = table[vi.reshape(len(points), -1)].reshape(len(points), -1)  # (N, near*m)
+    cand = np.sort(table[vi.reshape(len(points), -1)].reshape(len(points), -1), axis=1)  # (N, near*m)
+    # test each distinct incident face once: the padding (-1) and the faces the near
+    # vertices share are about half of the table's rows
     valid = cand >= 0
-    cf = np.where(valid, cand, 0)
-    tri = vertices[faces[cf]]  # (N, C, 3, 3)
-    P = np.repeat(points, cf.shape[1], axis=0)
-    q, w = closest_on_triangles(P, tri[..., 0, :].reshape(-1, 3), tri[..., 1, :].reshape(-1, 3), tri[..., 2, :].reshape(-1, 3))
-    d = np.linalg.norm(q - P, axis=1).reshape(cf.shape)
-    d[~valid] = np.inf
-    best = np.argmin(d, axis=1)
+    valid[:, 1:] &= cand[:, 1:] != cand[:, :-1]
+    r, c = np.nonzero(valid)
+    f = cand[r, c]
+    tri = vertices[faces[f]]  # (K, 3, 3)
+    P = points[r]
+    q, w = closest_on_triangles(P, tri[:, 0], tri[:, 1], tri[:, 2])
+    d = np.full(cand.shape, np.inf)
+    d[r, c] = np.einsum("ij,ij->i", q - P, q - P)
+    flat = np.full(cand.shape, -1)
+    flat[r, c] = np.arange(len(r))
     rows = np.arange(len(points))
-    face = cf[rows, best]
-    sel = rows * cf.shape[1] + best
-    return face, w[sel], q[sel]
+    sel = flat[rows, np.argmin(d, axis=1)]
+    return f[sel], w[sel], q[sel]
 
 
 def closest_on_polyline(points, vertices, segments, table, near=2, tree=None):

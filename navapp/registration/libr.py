@@ -34,7 +34,11 @@ from .objective import Weights, evaluate
 @dataclass
 class LMOptions:
     tol: float = 1e-12  # on |ΔΩ| (Ω dimensionless, SI), the paper's rule
-    rtol: float = 1e-2  # on |ΔΩ| / Ω: correspondence switching keeps Ω jittering above tol
+    # on |ΔΩ| / Ω, twice in a row: correspondence switching keeps Ω jittering far above tol.
+    # 0.1, not 0.01: over the nine study cases at S, S + 3 planes and S + all, the mean TRE
+    # moved by ≤ 0.013 mm (≤ 0.14 mm in any one case) while S + 3 took 0.24 s instead of
+    # 0.56 s (9 instead of 22 iterations) — see README, "What accuracy costs in time"
+    rtol: float = 1e-1
     max_iterations: int = 100
     lam0: float = 1e-2
     weights: Weights = field(default_factory=Weights)
