@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..mechanics.interpolation import interpolation_matrix
 from ..registration.libr import LMOptions
 from ..registration.pipeline import register, tre_stats
 
@@ -28,13 +29,14 @@ class CostRow:
     settings: dict
 
 
-def run_setting(model, data, x0, x1, label, options: LMOptions | None = None, deform=True, **settings) -> CostRow:
+def run_setting(model, data, x0, x1, label, options: LMOptions | None = None, deform=True, B=None,
+                **settings) -> CostRow:
     """Register ``data`` once; TRE of the registered preoperative points ``x0`` (T, 3)
-    against their true positions ``x1`` (T, 3), mm."""
+    against their true positions ``x1`` (T, 3), mm. ``B``: x0's interpolation matrix."""
     t = time.perf_counter()
     reg = register(model, data, deform=deform, options=options)
     sec = time.perf_counter() - t
-    tre = tre_stats(reg.transform(x0), x1)["mean_mm"]
+    tre = tre_stats(reg.transform(x0, B=B), x1)["mean_mm"]
     return CostRow(label, sec, tre, reg.libr.iterations if reg.libr else 0, settings)
 
 
@@ -44,11 +46,12 @@ def lm_sweep(model, data, x0, x1, caps=LM_CAPS, rtols=LM_RTOLS, cancel=None, on_
     plan = [(f"{c} it" if c else "rigid", LMOptions(max_iterations=max(c, 1)), c > 0, {"max_iterations": c})
             for c in caps]
     plan += [(f"rtol {r:g}", LMOptions(rtol=r), True, {"rtol": r}) for r in rtols]
+    B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
     rows = []
     for label, opt, deform, settings in plan:
         if cancel is not None and cancel.is_set():
             break
-        row = run_setting(model, data, x0, x1, label, opt, deform, **settings)
+        row = run_setting(model, data, x0, x1, label, opt, deform, B, **settings)
         rows.append(row)
         if on_row is not None:
             on_row(row)
@@ -121,8 +124,9 @@ def cost_case(case_dir, ks=KS, edges=EDGES, caps=LM_CAPS, rtols=LM_RTOLS, plane_
             model, _ = prepare(case, edge, k, cache_root=Path(tmp))
             pre = time.perf_counter() - t
         nodes = len(model.basis.nodes)
+        B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
         for level, data in levels.items():
-            r = run_setting(model, data, x0, x1, "default")
+            r = run_setting(model, data, x0, x1, "default", B=B)
             row("k" if sweep == "default" else sweep, level, "LIBR", edge, k, "default", len(LEVELS[level]), nodes,
                 pre, r.seconds, r.tre_mean_mm, r.iterations)
             if sweep == "default":
@@ -137,7 +141,7 @@ def cost_case(case_dir, ks=KS, edges=EDGES, caps=LM_CAPS, rtols=LM_RTOLS, plane_
         for m in plane_counts:
             planes = tuple(np.linspace(0, 15, m).round().astype(int)) if m else ()
             data = data_level(case_dir, "S+planes", planes=planes, case=case)
-            r = run_setting(model, data, x0, x1, "default")
+            r = run_setting(model, data, x0, x1, "default", B=B)
             row("planes", f"S+{m}", "LIBR", edge, k, "default", m, nodes, pre, r.seconds, r.tre_mean_mm, r.iterations)
         if peers:
             for level, data in levels.items():

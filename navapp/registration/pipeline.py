@@ -31,14 +31,16 @@ class Registration:
     data_model_frame: dict
     seconds: dict = field(default_factory=dict)
 
-    def transform(self, points, beta=None) -> np.ndarray:
-        """Preoperative points (P, 3) → registered positions in tracker space (P, 3)."""
+    def transform(self, points, beta=None, B=None) -> np.ndarray:
+        """Preoperative points (P, 3) → registered positions in tracker space (P, 3).
+        ``B``: their interpolation matrix (``interpolation_matrix``), when the caller
+        transforms the same points many times (locating them in the mesh dominates)."""
         b = self.libr.beta if (beta is None and self.libr is not None) else beta
         basis = self.model.basis
         points = np.asarray(points, float)
         if b is None:
             return self.rigid.apply(points)
-        return self.rigid.apply(deform_points(basis, self.model.centroid, b, points))
+        return self.rigid.apply(deform_points(basis, self.model.centroid, b, points, B))
 
 
 def deform_points(basis: Basis, centroid, beta, points, B=None) -> np.ndarray:
