@@ -50,3 +50,12 @@ def small_model(small_basis, phantoms):
     rng = np.random.default_rng(5)
     fid = small_basis.nodes[rng.choice(small_basis.M, 6, replace=False)]
     return build_model(small_basis, phantoms[0], fiducials=fid)
+
+
+def free_port() -> int:
+    """A TCP port nobody is listening on (for the viewer's tests)."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]

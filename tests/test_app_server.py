@@ -2,21 +2,15 @@
 scene (coarse mesh, k = 12), checking what reaches the session and the scene."""
 
 import json
-import socket
 import time
 
 import numpy as np
 import pytest
+from conftest import free_port
 
 from navapp.simulation.scene import parse_scene
 
 pytest.importorskip("viser")
-
-
-def free_port():
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @pytest.fixture(scope="module")

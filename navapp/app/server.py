@@ -41,6 +41,7 @@ FEATURE_COLOURS = {
 STYLUS_MM_PER_S = 40.0  # a steady sweep of the tip, at "1×"
 FRAME_S = 0.05
 FREE_PLANE_BASE = 100  # indices of planes placed by hand start here
+HOME_VIEW_MM = np.array([40.0, 260.0, 110.0])  # camera offset from the liver centroid: anterior, a little superior
 DRAWING_FOV_DEG = 60.0  # vertical field of view of the drawing view
 DRAWING_DISTANCE_MM = 110.0  # camera to image in the drawing view: the 80 mm-deep image fills ~half the height
 
@@ -205,7 +206,7 @@ class App:
         self.centre = preop.liver.vertices.mean(0)
         cam = self.server.initial_camera
         cam.up_direction, cam.near, cam.far = (0.0, 0.0, 1.0), 1.0, 5000.0
-        cam.look_at, cam.position = self.centre, self.centre + np.array([40.0, 260.0, 110.0])
+        cam.look_at, cam.position = self.centre, self.centre + HOME_VIEW_MM
         self.n_liver = s.add_mesh_simple("/preop/liver", preop.liver.vertices, preop.liver.faces, color=LIVER,
                                          opacity=0.35, side="double")
         self.n_vessels = []
@@ -222,7 +223,7 @@ class App:
         client.camera.up_direction = (0.0, 0.0, 1.0)
         client.camera.far = 5000.0
         client.camera.near = 1.0
-        client.camera.position = self.centre + np.array([40.0, 260.0, 110.0])
+        client.camera.position = self.centre + HOME_VIEW_MM
         client.camera.look_at = self.centre
 
     def _start_up(self):
