@@ -202,7 +202,12 @@ def test_guided_demo_in_chromium(server, tmp_path):
     assert n_updates >= 2, "no deformed vertices reached the browser"
     times = [t for t, n in updates if n]
     rate = (n_updates - 1) / max(times[-1] - times[0], 1e-9) if len(times) > 1 else float("nan")
-    run = json.loads((session / "session.json").read_text())["log"][-1]
-    print(f"\nserver streamed {run['updates_streamed']} states in {run['seconds']:.2f} s; "
+    log = json.loads((session / "session.json").read_text())["log"]
+    run = log[-1]
+    total = sum(registered_liver_updates(f) for _, f in frames if isinstance(f, bytes))
+    print("\nruns: " + "; ".join(f"{e['run']}: {e['iterations']} its, {e['updates_streamed']} states in {e['seconds']:.2f} s"
+                                 for e in log) + f"; the browser received {total} liver updates in all")
+    t_last = max(times) if times else float("nan")
+    print(f"\nclick → last liver update received by the browser {t_last - t_click:.2f} s; server streamed {run['updates_streamed']} states in {run['seconds']:.2f} s; "
           f"browser received {n_updates} liver updates at {rate:.1f}/s; click → final table row "
           f"{t_final - t_click:.2f} s; errors rigid {rigid} → surface {surface} → all data {final} mm")

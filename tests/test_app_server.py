@@ -95,3 +95,20 @@ def test_warm_rerun_sweep_and_export(app):
     out = app.session.folder / "export"
     assert (out / "registered_liver.vtk").exists() and (out / "registered_portal.ply").exists()
     assert (out / "data_anterior.csv").exists()
+
+
+def test_a_restarted_server_restores_the_session(app, cache_root):
+    from navapp.app.server import App
+
+    app.worker.join(60)
+    again = App(app.scene, port=free_port(), session_dir=app.session.folder, edge=12.0, k=12, cache_root=cache_root)
+    try:
+        t0 = time.time()
+        while again.session is None or again.sd is None or "contours drawn" not in again.plane_md.content:
+            assert time.time() - t0 < 120 and "Error" not in again.status.content, again.status.content
+            time.sleep(0.2)
+        assert again.session.to_json() == app.session.to_json()
+        assert "mean error" in again.log_md.content
+        assert set(again.planes) == set(app.planes)  # free planes re-simulated from their poses
+    finally:
+        again.server.stop()

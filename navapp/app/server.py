@@ -631,13 +631,14 @@ class App:
                         f"{e.get('error_mean_mm', float('nan')):.2f} | {e.get('error_max_mm', float('nan')):.2f} |")
         last = log[-1]
         bar = ""
-        if "error_mean_mm" in last:
+        if "error_mean_mm" in last and self.last_error is not None:  # a restored log has no coloured model yet
             bar = ("<div style='height:10px;background:linear-gradient(to right,#30123b,#4686fb,#1ae4b6,#a2fc3c,"
                    "#fabb39,#e4460a,#7a0403)'></div>"
-                   f"<small>error colour scale: 0 mm … {self.error_scale:.1f} mm</small>  \n"
-                   f"**Last: mean error {last['error_mean_mm']:.2f} mm, max {last['error_max_mm']:.2f} mm, "
-                   f"{last['seconds']:.2f} s, {last['updates_streamed']} updates streamed "
-                   f"({last['updates_streamed'] / max(last['seconds'], 1e-9):.1f}/s)**\n\n")
+                   f"<small>error colour scale: 0 mm … {self.error_scale:.1f} mm</small>  \n")
+        if "error_mean_mm" in last:
+            bar += (f"**Last: mean error {last['error_mean_mm']:.2f} mm, max {last['error_max_mm']:.2f} mm, "
+                    f"{last['seconds']:.2f} s, {last['updates_streamed']} updates streamed "
+                    f"({last['updates_streamed'] / max(last['seconds'], 1e-9):.1f}/s)**\n\n")
         self.log_md.content = bar + "\n".join(rows)
 
     # ------------------------------------------------------------------ cost panel
