@@ -142,7 +142,7 @@ class App:
             self.reg_md = g.add_markdown("")
             self.plot = g.add_uplot((np.zeros(2), np.zeros(2)),
                                     ({"label": "seconds"}, {"label": "error (mm)", "stroke": "#d33", "width": 2}),
-                                    title="Error against time", aspect=1.6)
+                                    title="Error against time", aspect=1.6, scales={"x": {"time": False}})
             self.log_md = g.add_markdown("")
         with g.add_folder("What accuracy costs", expand_by_default=False):
             g.add_markdown("Reruns the current data with the LM iteration cap and the stopping tolerance "
@@ -151,7 +151,8 @@ class App:
             self.cost_plot = g.add_uplot((np.zeros(1), np.zeros(1)),
                                          ({"label": "seconds"}, {"label": "TRE (mm)", "stroke": "#36c", "width": 0,
                                                                  "points": {"show": True, "size": 8}}),
-                                         title="TRE against registration time", aspect=1.6)
+                                         title="TRE against registration time", aspect=1.6,
+                                         scales={"x": {"time": False}})
             self.cost_md = g.add_markdown("")
         with g.add_folder("Session"):
             self.session_md = g.add_markdown("")
@@ -630,16 +631,16 @@ class App:
             rows.append(f"| {e['run']} | {e['points']} | {e['seconds']:.2f} | {e['iterations']} | "
                         f"{e.get('error_mean_mm', float('nan')):.2f} | {e.get('error_max_mm', float('nan')):.2f} |")
         last = log[-1]
-        bar = ""
-        if "error_mean_mm" in last and self.last_error is not None:  # a restored log has no coloured model yet
-            bar = ("<div style='height:10px;background:linear-gradient(to right,#30123b,#4686fb,#1ae4b6,#a2fc3c,"
-                   "#fabb39,#e4460a,#7a0403)'></div>"
-                   f"<small>error colour scale: 0 mm … {self.error_scale:.1f} mm</small>  \n")
+        head = ""
         if "error_mean_mm" in last:
-            bar += (f"**Last: mean error {last['error_mean_mm']:.2f} mm, max {last['error_max_mm']:.2f} mm, "
+            head = (f"**Last: mean error {last['error_mean_mm']:.2f} mm, max {last['error_max_mm']:.2f} mm, "
                     f"{last['seconds']:.2f} s, {last['updates_streamed']} updates streamed "
                     f"({last['updates_streamed'] / max(last['seconds'], 1e-9):.1f}/s)**\n\n")
-        self.log_md.content = bar + "\n".join(rows)
+        if "error_mean_mm" in last and self.last_error is not None:  # a restored log has no coloured model yet
+            head += ("<div style='height:10px;background:linear-gradient(to right,#30123b,#4686fb,#1ae4b6,#a2fc3c,"
+                     "#fabb39,#e4460a,#7a0403)'></div>\n\n"
+                     f"error colour scale: 0 mm … {self.error_scale:.1f} mm\n\n")
+        self.log_md.content = head + "\n".join(rows)
 
     # ------------------------------------------------------------------ cost panel
     def sweep(self):
