@@ -95,7 +95,6 @@ class App:
         self.stylus_stop = threading.Event()
         self.run_trace = []  # (seconds, error mm or Ω) of the running registration
         self.run_label = ""
-        self.before_error = None
         self.streamed = 0
         self.truth_nodes = None
         self.last_error = None
@@ -549,8 +548,6 @@ class App:
         self.run_trace, self.streamed = [], 0
         self.run_points = npts
         self.run_t0 = time.monotonic()
-        if self.truth_nodes is not None:
-            self.before_error = None
         ok = self.worker.start(data, deform=kind != "rigid", warm=kind == "warm")
         if not ok:
             self.notify("Registration", "A registration is already running; wait for it or cancel it.")
