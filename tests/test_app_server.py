@@ -104,7 +104,7 @@ def test_a_restarted_server_restores_the_session(app, cache_root):
     again = App(app.scene, port=free_port(), session_dir=app.session.folder, edge=12.0, k=12, cache_root=cache_root)
     try:
         t0 = time.time()
-        while again.session is None or again.sd is None or "contours drawn" not in again.plane_md.content:
+        while again.worker is None or "contours drawn" not in again.plane_md.content:  # start-up finished
             assert time.time() - t0 < 120 and "Error" not in again.status.content, again.status.content
             time.sleep(0.2)
         assert again.session.to_json() == app.session.to_json()
