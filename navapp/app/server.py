@@ -290,10 +290,7 @@ class App:
 
     # ------------------------------------------------------------------ data display
     def _plane_labels(self):
-        out = []
-        for i, p in sorted(self.planes.items()):
-            out.append(f"{i + 1} ({p.orientation})" if i < FREE_PLANE_BASE else f"free {i - FREE_PLANE_BASE + 1}")
-        return tuple(out) or ("—",)
+        return tuple(self._label_of(i) for i in sorted(self.planes)) or ("—",)
 
     def _plane_from_label(self, label):
         if label.startswith("free "):
