@@ -121,36 +121,31 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     for name, Y in data.items():
         feat = model.feature_for(name)
         key = id(feat)
-        if frozen is not None and len(frozen[name]) == 4:
+        if frozen is not None and len(frozen[name]) == 4 and not jacobian:
             # held correspondences carry S·B·J_u and S·x0 from the evaluation that made them:
             # x at the corresponded points costs N·3·3k instead of deforming the whole
             # feature (S's rows sum to one, so S commutes with the rigid part of eq. 8)
             t0 = time.perf_counter()
             S, direction, U, Srest = frozen[name]
-            Xs = (Srest - model.centroid + (U.reshape(-1, n) @ alpha).reshape(-1, 3)) @ R.T + tau + model.centroid
-            tim["deform"] += time.perf_counter() - t0
-            f, _ = residuals(feat.kind, Y - Xs, direction)
-            wF = weights.features[name] * weights.unit_m ** 2 / len(Y)
-            fs.append(f)
-            ws.append(np.full(len(f), wF))
-            stats[name] = _stats(f, wF)
+            p = Y - ((Srest - model.centroid + (U.reshape(-1, n) @ alpha).reshape(-1, 3)) @ R.T + tau + model.centroid)
             corr[name] = frozen[name]
-            continue
-        if key not in geometry:
-            t0 = time.perf_counter()
-            local, X = model.positions(feat, beta)
             tim["deform"] += time.perf_counter() - t0
+        else:
+            if key not in geometry:
+                t0 = time.perf_counter()
+                local, X = model.positions(feat, beta)
+                tim["deform"] += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                tree = cKDTree(X) if frozen is None and feat.kind != "fiducial" else None
+                tim["closest"] += time.perf_counter() - t0
+                geometry[key] = (local, X, tree)
+            local, X, tree = geometry[key]
             t0 = time.perf_counter()
-            tree = cKDTree(X) if frozen is None and feat.kind != "fiducial" else None
+            S, direction = frozen[name][:2] if frozen is not None else _correspond(feat.kind, feat, X, Y, tree)
+            corr[name] = (S, direction)
             tim["closest"] += time.perf_counter() - t0
-            geometry[key] = (local, X, tree)
-        local, X, tree = geometry[key]
+            p = Y - S @ X
         t0 = time.perf_counter()
-        S, direction = frozen[name] if frozen is not None else _correspond(feat.kind, feat, X, Y, tree)
-        corr[name] = (S, direction)
-        tim["closest"] += time.perf_counter() - t0
-        t0 = time.perf_counter()
-        p = Y - S @ X
         f, q = residuals(feat.kind, p, direction)
         wF = weights.features[name] * weights.unit_m ** 2 / len(Y)
         fs.append(f)
