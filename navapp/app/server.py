@@ -98,6 +98,7 @@ class App:
         self.streamed = 0
         self.truth_nodes = None
         self.last_error = None
+        self.n_reg = {}  # registered model in the scene: "liver", "portal", "hepatic", "error"
         self._build_gui()
         self._show_preop()
         threading.Thread(target=self._start_up, daemon=True).start()
@@ -346,12 +347,11 @@ class App:
             n.visible = self.cb_vessels.value
         if self.sd is not None:
             self.n_truth.visible = self.cb_truth.value
-        for name in ("/registered/liver", "/registered/error", "/registered/portal", "/registered/hepatic"):
-            node = getattr(self, "n_" + name.replace("/", "_"), None)
-            if node is not None:
-                node.visible = self.cb_registered.value and (
-                    (name != "/registered/error" or self.cb_error.value)
-                    and (name != "/registered/liver" or not (self.cb_error.value and self.last_error is not None)))
+        coloured = self.cb_error.value and "error" in self.n_reg
+        for name, node in self.n_reg.items():
+            # the error-coloured liver replaces the plain one while "Colour by error" is on
+            shown = coloured if name == "error" else (not coloured if name == "liver" else True)
+            node.visible = self.cb_registered.value and shown
 
     # ------------------------------------------------------------------ stylus
     def start_stylus(self):
@@ -556,21 +556,17 @@ class App:
     def _on_update(self, u):
         self.streamed += 1
         s = self.server.scene
-        liver = self.model.features["liver"]
-        if getattr(self, "n__registered_liver", None) is None:
-            self.n__registered_liver = s.add_mesh_simple("/registered/liver", u.liver.astype(np.float32), liver.cells,
-                                                         color=REGISTERED, opacity=0.6, side="double")
-            for name, colour in (("portal", PORTAL), ("hepatic", HEPATIC)):
-                if name in u.vessels:
-                    setattr(self, f"n__registered_{name}", s.add_mesh_simple(
-                        f"/registered/{name}", u.vessels[name].astype(np.float32), self.model.features[name].cells,
-                        color=tuple(int(c * 0.6) for c in colour)))
-        else:
-            self.n__registered_liver.vertices = u.liver.astype(np.float32)
-            for name in ("portal", "hepatic"):
-                node = getattr(self, f"n__registered_{name}", None)
-                if node is not None and name in u.vessels:
-                    node.vertices = u.vessels[name].astype(np.float32)
+        for name, pts in (("liver", u.liver), *u.vessels.items()):
+            if name in self.n_reg:
+                self.n_reg[name].vertices = pts.astype(np.float32)
+            elif name == "liver":
+                self.n_reg[name] = s.add_mesh_simple("/registered/liver", pts.astype(np.float32),
+                                                     self.model.features["liver"].cells, color=REGISTERED, opacity=0.6,
+                                                     side="double")
+            else:
+                colour = tuple(int(c * 0.6) for c in (PORTAL if name == "portal" else HEPATIC))
+                self.n_reg[name] = s.add_mesh_simple(f"/registered/{name}", pts.astype(np.float32),
+                                                     self.model.features[name].cells, color=colour)
         if self.truth_nodes is not None:
             err = np.linalg.norm(self.node_positions(u.rigid, u.beta) - self.truth_nodes, axis=1).mean()
             self.run_trace.append((u.elapsed, err))
@@ -606,7 +602,7 @@ class App:
         vmax = max(float(err.max()), 1e-6)
         mesh = trimesh.Trimesh(x[surf], self.model.features["liver"].cells, process=False)
         mesh.visual.vertex_colors = error_colours(err[surf], vmax)
-        self.n__registered_error = self.server.scene.add_mesh_trimesh("/registered/error", mesh)
+        self.n_reg["error"] = self.server.scene.add_mesh_trimesh("/registered/error", mesh)
         self.error_scale = vmax
 
     def _on_error(self, exc):
@@ -661,7 +657,9 @@ class App:
                              f"{rows[j].tre_mean_mm:.2f} | {rows[j].iterations} |")
             self.cost_md.content = "\n".join(lines)
 
-        ok = self.worker.submit(lambda cancel: lm_sweep(self.model, data, x0, self.truth_nodes, cancel=cancel, on_row=on_row),
+        B = sp.identity(len(x0), format="csr")  # the targets are the mesh nodes themselves
+        ok = self.worker.submit(lambda cancel: lm_sweep(self.model, data, x0, self.truth_nodes, cancel=cancel,
+                                                        on_row=on_row, B=B),
                                 lambda rows_: self.notify("Cost", f"{len(rows_)} settings run."))
         if not ok:
             self.notify("Cost", "A registration is running; try again when it has finished.")

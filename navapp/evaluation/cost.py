@@ -40,13 +40,14 @@ def run_setting(model, data, x0, x1, label, options: LMOptions | None = None, de
     return CostRow(label, sec, tre, reg.libr.iterations if reg.libr else 0, settings)
 
 
-def lm_sweep(model, data, x0, x1, caps=LM_CAPS, rtols=LM_RTOLS, cancel=None, on_row=None) -> list[CostRow]:
+def lm_sweep(model, data, x0, x1, caps=LM_CAPS, rtols=LM_RTOLS, cancel=None, on_row=None, B=None) -> list[CostRow]:
     """Rows for each iteration cap (at the default tolerance) and each tolerance (no cap).
-    ``cancel`` (threading.Event) stops between settings; ``on_row`` sees each row as it lands."""
+    ``cancel`` (threading.Event) stops between settings; ``on_row`` sees each row as it lands;
+    ``B``: x0's interpolation matrix, if the caller has it."""
     plan = [(f"{c} it" if c else "rigid", LMOptions(max_iterations=max(c, 1)), c > 0, {"max_iterations": c})
             for c in caps]
     plan += [(f"rtol {r:g}", LMOptions(rtol=r), True, {"rtol": r}) for r in rtols]
-    B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
+    B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0) if B is None else B
     rows = []
     for label, opt, deform, settings in plan:
         if cancel is not None and cancel.is_set():
@@ -135,7 +136,7 @@ def cost_case(case_dir, ks=KS, edges=EDGES, caps=LM_CAPS, rtols=LM_RTOLS, plane_
         if sweep != "default":
             continue
         for level in ("S", "S+3"):
-            for r in lm_sweep(model, levels[level], x0, x1, caps, rtols):
+            for r in lm_sweep(model, levels[level], x0, x1, caps, rtols, B=B):
                 row("lm", level, "LIBR" if r.iterations or r.label != "rigid" else "rigid ICP", edge, k, r.label,
                     len(LEVELS[level]), nodes, pre, r.seconds, r.tre_mean_mm, r.iterations)
         for m in plane_counts:
