@@ -4,7 +4,8 @@ State β = (α, τ, θ), length 3k + 6. A model point deforms as (eq. 8)
     x(β) = R(θ) (x0 − x̄0 + J_u α) + τ + x̄0,
 and each data point y_i gets p_i = y_i − S_i x(β), S_i its closest point on the deformed
 model feature (recomputed at every evaluation; normals and tangents held fixed within it).
-Residuals f_i are in mm internally; weights are converted so that Ω equals the paper's SI
+Residuals f_i are in mm internally (centerline and fiducial points as three component
+rows, see ``residuals``); weights are converted so that Ω equals the paper's SI
 value: w_F [m⁻²] · (unit_m)² / N_F per squared residual, and w_E [Pa⁻²] on f_E [Pa].
 """
 
@@ -19,9 +20,6 @@ from ..geometry.closest import closest_on_polyline, closest_on_surface
 from .model import W_ENERGY_SI, WEIGHTS_SI, RegistrationModel
 from .rotation import rotation, rotation_derivatives
 
-EPS_DISTANCE = 1e-9  # mm: below this a centerline/fiducial residual has no defined direction
-
-
 @dataclass
 class Weights:
     features: dict = field(default_factory=lambda: dict(WEIGHTS_SI))  # m⁻²
@@ -35,21 +33,35 @@ class Weights:
 @dataclass
 class Evaluation:
     omega: float
-    f: np.ndarray  # (N + 1,) residuals: data (mm), then f_E (Pa)
-    w: np.ndarray  # (N + 1,) weights of f² in Ω
-    J: np.ndarray | None  # (N + 1, 3k + 6), or None when not asked for
+    f: np.ndarray  # (R + 1,) residual rows (see ``residuals``): data (mm), then f_E (Pa)
+    w: np.ndarray  # (R + 1,) weights of f² in Ω
+    J: np.ndarray | None  # (R + 1, 3k + 6), or None when not asked for
     features: dict  # name → {"n", "rms_mm", "mean_abs_mm", "max_abs_mm", "omega"}
     timings: dict
     correspondence: dict  # name → (S, direction[, S·B·J_u, S·x0]): reuse with ``frozen=`` to hold them fixed
 
 
 def _stats(f, wF) -> dict:
+    """Per-feature statistics of the per-point residuals f (N,), mm."""
     return {"n": int(len(f)), "rms_mm": float(np.sqrt(np.mean(f ** 2))), "mean_abs_mm": float(np.mean(np.abs(f))),
             "max_abs_mm": float(np.max(np.abs(f))), "omega": float(wF * f @ f)}
 
 
+def _tree(X):
+    # rebuilt on the deformed points at every evaluation: the unbalanced, non-compacted
+    # tree builds in half the time and queries as fast for these near-surface queries
+    return cKDTree(X, balanced_tree=False, compact_nodes=False)
+
+
 def split(beta, n):
     return beta[:n], beta[n:n + 3], beta[n + 3:n + 6]
+
+
+def _rows_matrix(weights, columns, n_columns):
+    """Sparse S (N × n_columns) with row i = Σ_j weights[i, j] e_{columns[i, j]}, built
+    straight in CSR form (every row has the same count, so no COO sort is needed)."""
+    N, m = weights.shape
+    return sp.csr_matrix((weights.ravel(), columns.ravel(), np.arange(0, N * m + 1, m)), shape=(N, n_columns))
 
 
 def _correspond(kind, feat, X, Y, tree=None):
@@ -59,7 +71,7 @@ def _correspond(kind, feat, X, Y, tree=None):
     if kind == "surface":
         face, bary, _ = closest_on_surface(Y, X, feat.cells, feat.table, tree=tree)
         tri = feat.cells[face]
-        S = sp.csr_matrix((bary.ravel(), (np.repeat(np.arange(N), 3), tri.ravel())), shape=(N, len(X)))
+        S = _rows_matrix(bary, tri, len(X))
         a, b, c = X[tri[:, 0]], X[tri[:, 1]], X[tri[:, 2]]
         nrm = np.cross(b - a, c - a)
         nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
@@ -77,8 +89,7 @@ def _correspond(kind, feat, X, Y, tree=None):
     if kind == "centerline":
         seg, t, _ = closest_on_polyline(Y, X, feat.cells, feat.table, tree=tree)
         ends = feat.cells[seg]
-        S = sp.csr_matrix((np.column_stack([1 - t, t]).ravel(), (np.repeat(np.arange(N), 2), ends.ravel())),
-                          shape=(N, len(X)))
+        S = _rows_matrix(np.column_stack([1 - t, t]), ends, len(X))
         tan = X[ends[:, 1]] - X[ends[:, 0]]
         tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-300)
         return S, tan
@@ -87,19 +98,38 @@ def _correspond(kind, feat, X, Y, tree=None):
 
 
 def residuals(kind, p, direction):
-    """f (N,) and q = ∂f/∂p (N, 3) of Table I for sliding surface, centerline, fiducial."""
+    """Residual rows of Table I for N points with p (N, 3) mm.
+
+    Returns r (R,), q = ∂r/∂p (R, 3) and the point each row belongs to (R,). Surfaces give
+    one row per point: r = nᵀp, q = n. Centerlines and fiducials give three: the components
+    of the rejection (I − ttᵀ)p (q = the rows of I − ttᵀ), resp. of p itself (q = I).
+
+    Why three rows where Table I has one (f = ‖(I − ttᵀ)p‖, ‖p‖, q = rejection / f): Σ r² =
+    f² per point, so Ω (eq. 7) is the same, but a norm's linearisation f + qᵀΔp misses the
+    part of Δp perpendicular to q, which only ever increases f. With held tangents the
+    components are linear in p, so the Gauss–Newton model of these terms is exact; the
+    norm form made the warm-started demo reject its first three LM steps (two centerline
+    points carry the whole feature weight) and has no derivative at f = 0, where the
+    components have one.
+    """
+    N = len(p)
     if kind == "surface":
-        return np.einsum("ij,ij->i", direction, p), direction
+        return np.einsum("ij,ij->i", direction, p), direction, np.arange(N)
     if kind == "centerline":
-        along = np.einsum("ij,ij->i", p, direction)
-        rej = p - along[:, None] * direction
+        P = np.eye(3) - direction[:, :, None] * direction[:, None, :]  # (N, 3, 3), symmetric
+        r = np.einsum("iab,ib->ia", P, p)
+        q = P
     else:
-        rej = p
-    f = np.linalg.norm(rej, axis=1)
-    ok = f > EPS_DISTANCE
-    q = np.zeros_like(rej)
-    q[ok] = rej[ok] / f[ok, None]  # undefined at f = 0: that point gives no gradient this step
-    return f, q
+        r, q = p, np.broadcast_to(np.eye(3), (N, 3, 3))
+    return r.ravel(), q.reshape(3 * N, 3), np.repeat(np.arange(N), 3)
+
+
+def point_distances(r, rows, n_points):
+    """Per-point residual f (N,) from residual rows: |r| for surfaces, the norm of the
+    three components for centerlines and fiducials (Table I's f)."""
+    if len(r) == n_points:
+        return np.abs(r)
+    return np.sqrt(np.bincount(rows, r * r, minlength=n_points))
 
 
 def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: Weights, jacobian=True,
@@ -136,7 +166,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
                 local, X = model.positions(feat, beta)
                 tim["deform"] += time.perf_counter() - t0
                 t0 = time.perf_counter()
-                tree = cKDTree(X) if frozen is None and feat.kind != "fiducial" else None
+                tree = _tree(X) if frozen is None and feat.kind != "fiducial" else None
                 tim["closest"] += time.perf_counter() - t0
                 geometry[key] = (local, X, tree)
             local, X, tree = geometry[key]
@@ -146,20 +176,20 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
             tim["closest"] += time.perf_counter() - t0
             p = Y - S @ X
         t0 = time.perf_counter()
-        f, q = residuals(feat.kind, p, direction)
+        r, q, rows = residuals(feat.kind, p, direction)
         wF = weights.features[name] * weights.unit_m ** 2 / len(Y)
-        fs.append(f)
-        ws.append(np.full(len(f), wF))
-        stats[name] = _stats(f, wF)
+        fs.append(r)
+        ws.append(np.full(len(r), wF))
+        stats[name] = _stats(point_distances(r, rows, len(Y)), wF)
         if jacobian:
             U = np.asarray(S @ feat.BJ.reshape(len(X), 3 * n)).reshape(-1, 3, n)
             if frozen is None:
                 corr[name] = (S, direction, U, S @ feat.rest)
-            qR = q @ R  # qᵀR, (N, 3)
-            Jf = np.empty((len(f), n + 6))
-            Jf[:, :n] = -np.einsum("ia,iak->ik", qR, U)
+            qR = q @ R  # qᵀR, (R, 3)
+            Jf = np.empty((len(r), n + 6))
+            Jf[:, :n] = -np.einsum("ia,iak->ik", qR, U[rows] if len(r) != len(Y) else U)
             Jf[:, n:n + 3] = -q
-            xl = S @ local
+            xl = (S @ local)[rows]
             for j in range(3):
                 Jf[:, n + 3 + j] = -np.einsum("ia,ab,ib->i", q, dR[j], xl)
             Js.append(Jf)
