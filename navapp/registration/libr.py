@@ -28,7 +28,7 @@ import scipy.linalg as sla
 from threadpoolctl import threadpool_limits
 
 from .model import RegistrationModel
-from .objective import Weights, evaluate
+from .objective import Weights, add_jacobian, evaluate
 
 
 @dataclass
@@ -130,6 +130,10 @@ def _register(model, data, beta0, options, callback, cancel):
             it -= 1
             break
         t0 = time.perf_counter()
+        if ev.J is None:
+            add_jacobian(model, ev)
+            tim["jacobian"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
         J = ev.J[:, free]
         JW = J.T * ev.w
         A = JW @ J
@@ -156,7 +160,9 @@ def _register(model, data, beta0, options, callback, cancel):
             if accepted:
                 steps.append((ev.omega, held.omega))
                 beta = trial
-                ev = run(beta)  # new correspondences: the next iteration's starting point
+                # new correspondences, the next iteration's starting point; its Jacobian is
+                # added only if there is a next iteration
+                ev = run(beta, jac=False)
                 history.append(ev.omega)
                 change = prev_omega - ev.omega
                 prev_omega = ev.omega

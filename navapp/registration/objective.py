@@ -39,6 +39,8 @@ class Evaluation:
     features: dict  # name → {"n", "rms_mm", "mean_abs_mm", "max_abs_mm", "omega"}
     timings: dict
     correspondence: dict  # name → (S, direction[, S·B·J_u, S·x0]): reuse with ``frozen=`` to hold them fixed
+    beta: np.ndarray | None = None
+    terms: list | None = None  # per data feature (name, feature, S, q, rows, local): what ``add_jacobian`` needs
 
 
 def _stats(f, wF) -> dict:
@@ -51,10 +53,6 @@ def _tree(X):
     # rebuilt on the deformed points at every evaluation: the unbalanced, non-compacted
     # tree builds in half the time and queries as fast for these near-surface queries
     return cKDTree(X, balanced_tree=False, compact_nodes=False)
-
-
-def split(beta, n):
-    return beta[:n], beta[n:n + 3], beta[n + 3:n + 6]
 
 
 def _rows_matrix(weights, columns, n_columns):
@@ -138,19 +136,21 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
 
     Correspondences S_i and their normals/tangents are recomputed at β unless ``frozen``
     (a previous evaluation's ``correspondence``) is given: then they are held fixed,
-    which makes Ω a smooth function of β within an LM iteration.
+    which makes Ω a smooth function of β within an LM iteration. Without the Jacobian,
+    ``add_jacobian`` can add it later at the same correspondences (LM decides whether to
+    go on only once it knows Ω, and the Jacobian of the last state is never needed).
     """
     basis = model.basis
     n = basis.Ju.shape[1]
-    alpha, tau, theta = split(beta, n)
+    alpha, tau, theta = beta[:n], beta[n:n + 3], beta[n + 3:n + 6]
     R = rotation(theta)
-    dR = rotation_derivatives(theta) if jacobian else None
     tim = {"deform": 0.0, "closest": 0.0, "jacobian": 0.0}
-    fs, ws, Js, stats, corr = [], [], [], {}, {}
+    fs, ws, stats, corr, terms = [], [], {}, {}, []
     geometry = {}  # model feature → (local, X, KD-tree): anterior and posterior share the liver
     for name, Y in data.items():
         feat = model.feature_for(name)
         key = id(feat)
+        local = None
         if frozen is not None and len(frozen[name]) == 4 and not jacobian:
             # held correspondences carry S·B·J_u and S·x0 from the evaluation that made them:
             # x at the corresponded points costs N·3·3k instead of deforming the whole
@@ -172,7 +172,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
             local, X, tree = geometry[key]
             t0 = time.perf_counter()
             S, direction = frozen[name][:2] if frozen is not None else _correspond(feat.kind, feat, X, Y, tree)
-            corr[name] = (S, direction)
+            corr[name] = frozen[name] if frozen is not None else (S, direction)
             tim["closest"] += time.perf_counter() - t0
             p = Y - S @ X
         t0 = time.perf_counter()
@@ -181,28 +181,46 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
         fs.append(r)
         ws.append(np.full(len(r), wF))
         stats[name] = _stats(point_distances(r, rows, len(Y)), wF)
-        if jacobian:
-            U = np.asarray(S @ feat.BJ.reshape(len(X), 3 * n)).reshape(-1, 3, n)
-            if frozen is None:
-                corr[name] = (S, direction, U, S @ feat.rest)
-            qR = q @ R  # qᵀR, (R, 3)
-            Jf = np.empty((len(r), n + 6))
-            Jf[:, :n] = -np.einsum("ia,iak->ik", qR, U[rows] if len(r) != len(Y) else U)
-            Jf[:, n:n + 3] = -q
-            xl = (S @ local)[rows]
-            for j in range(3):
-                Jf[:, n + 3 + j] = -np.einsum("ia,ab,ib->i", q, dR[j], xl)
-            Js.append(Jf)
+        terms.append((name, feat, S, q, rows, local))
         tim["jacobian"] += time.perf_counter() - t0
     fE = float(alpha @ basis.energy @ alpha) / (2 * basis.M)
     fs.append(np.array([fE]))
     ws.append(np.array([weights.energy]))
-    if jacobian:
-        JE = np.zeros((1, n + 6))
-        JE[0, :n] = (basis.energy @ alpha) / basis.M
-        Js.append(JE)
     f = np.concatenate(fs)
     w = np.concatenate(ws)
     stats["strain_energy"] = {"f_E_pa": fE, "omega": float(weights.energy * fE ** 2)}
-    return Evaluation(omega=float(w @ (f * f)), f=f, w=w, J=np.vstack(Js) if jacobian else None,
-                      features=stats, timings=tim, correspondence=corr)
+    ev = Evaluation(omega=float(w @ (f * f)), f=f, w=w, J=None, features=stats, timings=tim, correspondence=corr,
+                    beta=np.array(beta, float), terms=terms)
+    return add_jacobian(model, ev) if jacobian else ev
+
+
+def add_jacobian(model: RegistrationModel, ev: Evaluation) -> Evaluation:
+    """J = ∂f/∂β (R + 1, 3k + 6) of Table I at ``ev``'s state and correspondences, stored
+    in ``ev.J``; each correspondence gains S·B·J_u and S·x0 for the held fast path."""
+    if ev.J is not None:
+        return ev
+    basis, beta = model.basis, ev.beta
+    n = basis.Ju.shape[1]
+    R = rotation(beta[n + 3:n + 6])
+    dR = rotation_derivatives(beta[n + 3:n + 6])
+    t0 = time.perf_counter()
+    Js = []
+    for name, feat, S, q, rows, local in ev.terms:
+        if local is None:  # made by the held fast path: the feature's points were never deformed
+            local = model.positions(feat, beta)[0]
+        U = np.asarray(S @ feat.BJ.reshape(len(local), 3 * n)).reshape(-1, 3, n)
+        if len(ev.correspondence[name]) == 2:
+            ev.correspondence[name] = ev.correspondence[name] + (U, S @ feat.rest)
+        qR = q @ R  # qᵀR, (R, 3)
+        Jf = np.empty((len(q), n + 6))
+        Jf[:, :n] = -np.einsum("ia,iak->ik", qR, U[rows] if len(q) != S.shape[0] else U)
+        Jf[:, n:n + 3] = -q
+        xl = (S @ local)[rows]
+        for j in range(3):
+            Jf[:, n + 3 + j] = -np.einsum("ia,ab,ib->i", q, dR[j], xl)
+        Js.append(Jf)
+    JE = np.zeros((1, n + 6))
+    JE[0, :n] = (basis.energy @ beta[:n]) / basis.M
+    ev.J = np.vstack(Js + [JE])
+    ev.timings["jacobian"] += time.perf_counter() - t0
+    return ev
