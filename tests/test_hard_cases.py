@@ -52,7 +52,8 @@ def test_duplicated_points(small_model):
 
 
 def test_point_exactly_on_centerline(small_model):
-    """f = 0 for a centerline point: its derivative is undefined and must not poison β."""
+    """f = 0 for a centerline point, where Table I's scalar derivative is undefined: the
+    component form (objective.residuals) must give a finite β and an exact fit."""
     cl = small_model.features["portal_centerline"].rest
     fid = small_model.features["fiducials"].rest
     r = check(register(small_model, {"portal_centerline": cl[:5], "fiducials": fid}, deform=True))
