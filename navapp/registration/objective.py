@@ -20,6 +20,7 @@ from ..geometry.closest import closest_on_polyline, closest_on_surface
 from .model import W_ENERGY_SI, WEIGHTS_SI, RegistrationModel
 from .rotation import rotation, rotation_derivatives
 
+
 @dataclass
 class Weights:
     features: dict = field(default_factory=lambda: dict(WEIGHTS_SI))  # m⁻²
@@ -35,7 +36,7 @@ class Evaluation:
     omega: float
     f: np.ndarray  # (R + 1,) residual rows (see ``residuals``): data (mm), then f_E (Pa)
     w: np.ndarray  # (R + 1,) weights of f² in Ω
-    J: np.ndarray | None  # (R + 1, 3k + 6), or None when not asked for
+    J: np.ndarray | None  # (R + 1, 3k + 6); None until asked for (``jacobian=True`` or ``add_jacobian``)
     features: dict  # name → {"n", "rms_mm", "mean_abs_mm", "max_abs_mm", "omega"}
     timings: dict
     correspondence: dict  # name → (S, direction[, S·B·J_u, S·x0]): reuse with ``frozen=`` to hold them fixed
