@@ -148,3 +148,49 @@ def test_held_correspondences_fast_path_equals_full_deformation(small_model):
                     frozen={k: c[:2] for k, c in ev.correspondence.items()})
     assert np.allclose(fast.f, slow.f, rtol=1e-10, atol=1e-10)
     assert np.isclose(fast.omega, slow.omega, rtol=1e-12)
+
+
+def test_component_residuals_are_table_one_distances_with_an_exact_linear_model(small_model):
+    """Centerline and fiducial terms enter LM as the components of (I − ttᵀ)p and of p.
+    Per point, their norm must be Table I's f = sqrt(pᵀp − (pᵀt)²) (resp. ‖p‖); and with
+    correspondences and rotation held, a step in α and τ must change them exactly as the
+    Jacobian predicts (the scalar norm form only matches to first order)."""
+    rng = np.random.default_rng(12)
+    n = small_model.basis.Ju.shape[1]
+    data, _ = synthetic_data(small_model, rng.normal(size=n) * 0.3, rng)
+    data = {k: data[k] + rng.normal(size=data[k].shape) for k in ("portal_centerline", "fiducials")}
+    beta = np.concatenate([rng.normal(size=n) * 0.2, [1.0, -2.0, 0.5], [0.05, -0.03, 0.04]])
+    ev = evaluate(small_model, data, beta, Weights())
+    held = {k: c[:2] for k, c in ev.correspondence.items()}
+    full = evaluate(small_model, data, beta, Weights(), jacobian=False, frozen=held)
+    x = {k: c[0] @ small_model.positions(small_model.feature_for(k), beta)[1] for k, c in held.items()}
+    p = data["portal_centerline"] - x["portal_centerline"]
+    t = held["portal_centerline"][1]
+    f_cl = np.sqrt(np.einsum("ij,ij->i", p, p) - np.einsum("ij,ij->i", p, t) ** 2)
+    f_fid = np.linalg.norm(data["fiducials"] - x["fiducials"], axis=1)
+    assert np.isclose(full.features["portal_centerline"]["rms_mm"], np.sqrt(np.mean(f_cl ** 2)), rtol=1e-12)
+    assert np.isclose(full.features["fiducials"]["max_abs_mm"], f_fid.max(), rtol=1e-12)
+    step = np.concatenate([rng.normal(size=n) * 0.5, [2.0, -1.0, 1.5], [0.0, 0.0, 0.0]])
+    moved = evaluate(small_model, data, beta + step, Weights(), jacobian=False, frozen=ev.correspondence)
+    lin = ev.f + ev.J @ step
+    assert np.allclose(moved.f[:-1], lin[:-1], rtol=0, atol=1e-9)
+
+
+def test_jacobian_added_later_equals_jacobian_at_once(small_model):
+    """LM evaluates an accepted state without its Jacobian and adds it only if it goes on;
+    that must give exactly the Jacobian and held correspondences of a direct evaluation."""
+    from navapp.registration.objective import add_jacobian
+
+    rng = np.random.default_rng(13)
+    n = small_model.basis.Ju.shape[1]
+    data, _ = synthetic_data(small_model, rng.normal(size=n) * 0.3, rng)
+    beta = np.concatenate([rng.normal(size=n) * 0.2, [1.0, -2.0, 0.5], [0.05, -0.03, 0.04]])
+    now = evaluate(small_model, data, beta, Weights())
+    later = evaluate(small_model, data, beta, Weights(), jacobian=False)
+    assert later.J is None and all(len(c) == 2 for c in later.correspondence.values())
+    add_jacobian(small_model, later)
+    assert np.array_equal(now.J, later.J) and now.omega == later.omega
+    for k, c in now.correspondence.items():
+        assert all(np.array_equal(np.asarray(a.todense() if hasattr(a, "todense") else a),
+                                  np.asarray(b.todense() if hasattr(b, "todense") else b))
+                   for a, b in zip(c, later.correspondence[k]) if a is not None)
