@@ -9,6 +9,8 @@ vertices (always the case for well-shaped meshes and queries near the surface).
 import numpy as np
 from scipy.spatial import cKDTree
 
+NEAR = 2  # nearest vertices whose incident cells are tested
+
 
 def incidence(n_vertices, cells):
     """Padded vertex → incident cell table (V, m); -1 pads."""
@@ -84,14 +86,20 @@ def closest_on_triangles(p, a, b, c):
     return w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c, w
 
 
-def closest_on_surface(points, vertices, faces, table, near=2, tree=None):
+def nearest_vertices(tree, points, near=NEAR):
+    """Indices (N, near) of the ``near`` vertices nearest each point, from a cKDTree."""
+    return tree.query(points, k=near)[1].reshape(len(points), near)
+
+
+def closest_on_surface(points, vertices, faces, table, near=NEAR, tree=None, nearest=None):
     """Closest surface points. Returns face (N,), barycentric (N, 3), closest (N, 3).
 
     ``table`` is ``incidence(len(vertices), faces)``; ``tree`` an optional prebuilt
-    cKDTree of ``vertices``.
+    cKDTree of ``vertices``, or ``nearest`` the points' nearest vertices already found
+    (``nearest_vertices``).
     """
     points = np.asarray(points, float)
-    _, vi = (tree or cKDTree(vertices)).query(points, k=near)
+    vi = nearest if nearest is not None else nearest_vertices(tree or cKDTree(vertices), points, near)
     cand = np.sort(table[vi.reshape(len(points), -1)].reshape(len(points), -1), axis=1)  # (N, near*m)
     # test each distinct incident face once: the padding (-1) and the faces the near
     # vertices share are about half of the table's rows
@@ -109,10 +117,10 @@ def closest_on_surface(points, vertices, faces, table, near=2, tree=None):
     return face, bary, np.einsum("ij,ijk->ik", bary, vertices[faces[face]])
 
 
-def closest_on_polyline(points, vertices, segments, table, near=2, tree=None):
+def closest_on_polyline(points, vertices, segments, table, near=NEAR, tree=None, nearest=None):
     """Closest points on polyline segments. Returns segment (N,), t (N,), closest (N, 3)."""
     points = np.asarray(points, float)
-    _, vi = (tree or cKDTree(vertices)).query(points, k=near)
+    vi = nearest if nearest is not None else nearest_vertices(tree or cKDTree(vertices), points, near)
     cand = table[vi.reshape(len(points), -1)].reshape(len(points), -1)
     valid = cand >= 0
     cs = np.where(valid, cand, 0)

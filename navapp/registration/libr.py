@@ -69,7 +69,9 @@ class LibrResult:
     steps: list  # per accepted step: (Ω before, Ω after with that iteration's correspondences)
     features: dict
     seconds: float
-    timings: dict  # seconds spent in deform / closest / jacobian / solve
+    # seconds in deform / kdtree (build + nearest-vertex query) / closest (exact points on
+    # the candidate cells, normals, tangents) / jacobian / solve
+    timings: dict
 
 
 def _solve(A, g):
@@ -106,7 +108,7 @@ def _register(model, data, beta0, options, callback, cancel):
     free = np.ones(n + 6, bool)
     if not options.deform:
         free[:n] = False
-    tim = {"deform": 0.0, "closest": 0.0, "jacobian": 0.0, "solve": 0.0}
+    tim = {"deform": 0.0, "kdtree": 0.0, "closest": 0.0, "jacobian": 0.0, "solve": 0.0}
 
     def run(b, jac=True, frozen=None):
         ev = evaluate(model, data, b, options.weights, jacobian=jac, frozen=frozen)

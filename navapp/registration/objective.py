@@ -16,7 +16,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from ..geometry.closest import closest_on_polyline, closest_on_surface
+from ..geometry.closest import closest_on_polyline, closest_on_surface, nearest_vertices
 from .model import W_ENERGY_SI, WEIGHTS_SI, RegistrationModel
 from .rotation import rotation, rotation_derivatives
 
@@ -63,12 +63,13 @@ def _rows_matrix(weights, columns, n_columns):
     return sp.csr_matrix((weights.ravel(), columns.ravel(), np.arange(0, N * m + 1, m)), shape=(N, n_columns))
 
 
-def _correspond(kind, feat, X, Y, tree=None):
+def _correspond(kind, feat, X, Y, tree=None, nearest=None):
     """Closest points of Y on the current feature geometry X: sparse S (N × V) and the
-    direction data (normals for surfaces, tangents for centerlines)."""
+    direction data (normals for surfaces, tangents for centerlines). ``nearest``: Y's
+    nearest vertices of X when already found."""
     N = len(Y)
     if kind == "surface":
-        face, bary, _ = closest_on_surface(Y, X, feat.cells, feat.table, tree=tree)
+        face, bary, _ = closest_on_surface(Y, X, feat.cells, feat.table, tree=tree, nearest=nearest)
         tri = feat.cells[face]
         S = _rows_matrix(bary, tri, len(X))
         a, b, c = X[tri[:, 0]], X[tri[:, 1]], X[tri[:, 2]]
@@ -86,7 +87,7 @@ def _correspond(kind, feat, X, Y, tree=None):
         nrm[off] = sign[off, None] * p[off] / d[off, None]
         return S, nrm
     if kind == "centerline":
-        seg, t, _ = closest_on_polyline(Y, X, feat.cells, feat.table, tree=tree)
+        seg, t, _ = closest_on_polyline(Y, X, feat.cells, feat.table, tree=tree, nearest=nearest)
         ends = feat.cells[seg]
         S = _rows_matrix(np.column_stack([1 - t, t]), ends, len(X))
         tan = X[ends[:, 1]] - X[ends[:, 0]]
@@ -145,7 +146,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     n = basis.Ju.shape[1]
     alpha, tau, theta = beta[:n], beta[n:n + 3], beta[n + 3:n + 6]
     R = rotation(theta)
-    tim = {"deform": 0.0, "closest": 0.0, "jacobian": 0.0}
+    tim = {"deform": 0.0, "kdtree": 0.0, "closest": 0.0, "jacobian": 0.0}
     fs, ws, stats, corr, terms = [], [], {}, {}, []
     geometry = {}  # model feature → (local, X, KD-tree): anterior and posterior share the liver
     for name, Y in data.items():
@@ -168,11 +169,14 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
                 tim["deform"] += time.perf_counter() - t0
                 t0 = time.perf_counter()
                 tree = _tree(X) if frozen is None and feat.kind != "fiducial" else None
-                tim["closest"] += time.perf_counter() - t0
+                tim["kdtree"] += time.perf_counter() - t0
                 geometry[key] = (local, X, tree)
             local, X, tree = geometry[key]
             t0 = time.perf_counter()
-            S, direction = frozen[name][:2] if frozen is not None else _correspond(feat.kind, feat, X, Y, tree)
+            nearest = nearest_vertices(tree, Y) if tree is not None else None
+            tim["kdtree"] += time.perf_counter() - t0
+            t0 = time.perf_counter()
+            S, direction = frozen[name][:2] if frozen is not None else _correspond(feat.kind, feat, X, Y, nearest=nearest)
             corr[name] = frozen[name] if frozen is not None else (S, direction)
             tim["closest"] += time.perf_counter() - t0
             p = Y - S @ X
