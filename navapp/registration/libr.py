@@ -137,7 +137,7 @@ def _register(model, data, beta0, options, callback, cancel):
             add_jacobian(model, ev)
             tim["jacobian"] += time.perf_counter() - t0
             t0 = time.perf_counter()
-        J = ev.J[:, free]
+        J = ev.J if free.all() else ev.J[:, free]
         JW = J.T * ev.w
         A = JW @ J
         g = -JW @ ev.f
