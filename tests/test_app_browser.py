@@ -53,7 +53,9 @@ def wait_text(page, pattern, timeout):
         m = re.search(pattern, body)
         if m:
             return m
-        time.sleep(0.5)
+        # not time.sleep: Playwright's sync API dispatches events (and so timestamps the
+        # websocket frames) only while it is called
+        page.wait_for_timeout(100)
     raise AssertionError(f"{pattern!r} did not appear within {timeout} s; page says:\n{page.inner_text('body')[:3000]}")
 
 
