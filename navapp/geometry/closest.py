@@ -77,15 +77,6 @@ def triangle_weights(p, tri):
     return w.T, np.where(inside, D_in, np.maximum(edge, 0.0))
 
 
-def closest_on_triangles(p, a, b, c):
-    """Closest points on triangles abc to points p, all (N, 3).
-
-    Returns closest (N, 3) and barycentric weights (N, 3) of a, b, c.
-    """
-    w, _ = triangle_weights(np.asarray(p, float), np.stack([a, b, c], axis=1))
-    return w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c, w
-
-
 def nearest_vertices(tree, points, near=NEAR):
     """Indices (N, near) of the ``near`` vertices nearest each point, from a cKDTree."""
     return tree.query(points, k=near)[1].reshape(len(points), near)
