@@ -1,0 +1,259 @@
+"""Robustness study (issue 14): how registration copes with a bad starting pose and with
+imprecise salient-feature labels.
+
+Every trial takes one simulated study case at data level S + 3 planes (a seeded random
+triple per draw), optionally corrupts the salient labels, then moves all the data by a
+rigid offset of a given angle (random axis) and translation (random direction) about the
+data centroid. The truth targets are moved by the same offset, so the TRE is measured in
+the frame the data now live in; the solver only ever sees the data.
+
+Label noise conditions:
+- ``clean``: the data as simulated;
+- ``shifted``: each salient feature (falciform, both ridges) slides as a whole 5–10 mm in a
+  random direction tangent to the true intraoperative surface, projected back onto it (a
+  surgeon who places the ridge a little off);
+- ``mislabelled``: 10 % of each salient feature's points become anterior points, and the
+  same number of anterior points nearest to that feature take its label.
+
+The true surface is used only to make the corrupted data; it never reaches the solver.
+Success: TRE ≤ 1.2 × the same method's zero-offset, clean-label TRE on the same case and
+plane triple (so label noise that hurts counts as a failure too).
+"""
+
+import csv
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .. import progress
+
+OFFSETS = ((0.0, 0.0), (5.0, 10.0), (10.0, 20.0), (15.0, 30.0), (20.0, 40.0))  # (degrees, mm)
+CONDITIONS = ("clean", "shifted", "mislabelled")
+SALIENT = ("falciform", "ridge_left", "ridge_right")
+SUCCESS_RATIO = 1.2
+COLUMNS = ("case", "method", "condition", "draw", "angle_deg", "shift_mm", "planes", "tre_mm", "tre_rigid_mm",
+           "seconds", "rigid_seconds", "iterations", "stop_reason", "starts", "flagged")
+
+
+@dataclass(frozen=True)
+class Trial:
+    """One registration of the design (everything needed to rebuild its data)."""
+    case: str
+    condition: str
+    draw: int
+    angle_deg: float
+    shift_mm: float
+
+    def key(self, method: str) -> tuple:
+        return (self.case, method, self.condition, str(self.draw), f"{self.angle_deg:g}")
+
+
+def design(case_names, draws=4, offsets=OFFSETS, conditions=CONDITIONS) -> list[Trial]:
+    return [Trial(c, cond, d, a, s) for c in case_names for cond in conditions for d in range(draws)
+            for a, s in offsets]
+
+
+def _seed(*parts) -> int:
+    """A reproducible seed from strings and numbers (Python's hash() is salted per process)."""
+    import zlib
+
+    return zlib.crc32("|".join(map(str, parts)).encode())
+
+
+def random_rotation(rng, angle_deg) -> np.ndarray:
+    """(3, 3) rotation by ``angle_deg`` about a uniformly random axis (Rodrigues)."""
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    a = np.radians(angle_deg)
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+
+
+def offset_transform(rng, angle_deg, shift_mm, pivot):
+    """x ↦ R (x − pivot) + pivot + t with |t| = shift_mm: returns a function of (N, 3) mm."""
+    R = random_rotation(rng, angle_deg)
+    d = rng.normal(size=3)
+    t = shift_mm * d / np.linalg.norm(d)
+    return lambda x: (np.asarray(x) - pivot) @ R.T + pivot + t
+
+
+def shift_labels(data: dict, surface, rng, low_mm=5.0, high_mm=10.0) -> dict:
+    """Each salient feature slid as a whole along ``surface`` (trimesh, the true surface)."""
+    import trimesh
+
+    out = dict(data)
+    for name in SALIENT:
+        if name not in data or not len(data[name]):
+            continue
+        pts = data[name]
+        _, _, tri = trimesh.proximity.closest_point(surface, pts.mean(0, keepdims=True))
+        n = surface.face_normals[tri[0]]
+        d = rng.normal(size=3)
+        d -= (d @ n) * n
+        d *= rng.uniform(low_mm, high_mm) / np.linalg.norm(d)
+        out[name], _, _ = trimesh.proximity.closest_point(surface, pts + d)
+    return out
+
+
+def mislabel(data: dict, rng, fraction=0.1) -> dict:
+    """``fraction`` of each salient feature's points swapped with the nearest anterior points."""
+    from scipy.spatial import cKDTree
+
+    out = {k: np.array(v) for k, v in data.items()}
+    ant = out.get("anterior")
+    if ant is None or not len(ant):
+        return out
+    taken = np.zeros(len(ant), bool)
+    for name in SALIENT:
+        if name not in out or not len(out[name]):
+            continue
+        pts = out[name]
+        m = max(1, int(round(fraction * len(pts))))
+        gone = rng.choice(len(pts), m, replace=False)
+        dist, _ = cKDTree(pts).query(ant)
+        dist[taken] = np.inf
+        come = np.argsort(dist)[:m]
+        taken[come] = True
+        out[name] = np.vstack([np.delete(pts, gone, axis=0), ant[come]])
+        out.setdefault("_to_anterior", []).append(pts[gone])
+    moved = out.pop("_to_anterior", [])
+    out["anterior"] = np.vstack([ant[~taken]] + moved)
+    return out
+
+
+def trial_data(case_dir, case, trial: Trial, truth_surface=None, n_planes=16):
+    """(data, offset function, planes) of a trial: S + 3 planes, label noise, then offset."""
+    from ..simulation.levels import data_level
+
+    rng = np.random.default_rng(_seed(trial.case, trial.draw, "planes"))
+    planes = tuple(sorted(int(p) for p in rng.choice(n_planes, 3, replace=False)))
+    data = data_level(case_dir, "S+planes", planes=planes, case=case)
+    noise_rng = np.random.default_rng(_seed(trial.case, trial.draw, trial.condition))
+    if trial.condition == "shifted":
+        data = shift_labels(data, truth_surface, noise_rng)
+    elif trial.condition == "mislabelled":
+        data = mislabel(data, noise_rng)
+    pivot = np.vstack(list(data.values())).mean(0)
+    off_rng = np.random.default_rng(_seed(trial.case, trial.draw, trial.angle_deg, "offset"))
+    move = offset_transform(off_rng, trial.angle_deg, trial.shift_mm, pivot)
+    return {k: move(v) for k, v in data.items()}, move, planes
+
+
+def register_with(method: str, model, data):
+    """Register ``data`` with one of the study's methods (``registration.pipeline.METHODS``);
+    "before" on a tree older than issue 14 is that tree's default path."""
+    from ..registration import pipeline
+
+    if not hasattr(pipeline, "METHODS"):
+        if method != "before":
+            raise ValueError(f"method {method!r} needs issue 14's registration code")
+        return pipeline.register(model, data)
+    return pipeline.register(model, data, init=pipeline.METHODS[method]())
+
+
+def run_case(case_dir, trials, methods, edge=4.0, k=45) -> list[dict]:
+    """Every (trial, method) of one case; returns CSV rows."""
+    from ..anatomy.caseio import read_case, read_surface
+    from ..mechanics.interpolation import interpolation_matrix
+    from ..registration.pipeline import prepare, tre_stats
+
+    progress.QUIET = True
+    case_dir = Path(case_dir)
+    case = read_case(case_dir)
+    model, _ = prepare(case, edge, k)
+    x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+    B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
+    surface = read_surface(case_dir / "truth" / "liver.ply", closed=False)
+    rows = []
+    for trial, method in ((t, m) for t in trials for m in methods):
+        data, move, planes = trial_data(case_dir, case, trial, surface)
+        t0 = time.perf_counter()
+        reg = register_with(method, model, data)
+        sec = time.perf_counter() - t0
+        truth = move(x1)
+        quality = getattr(reg, "quality", None)
+        rows.append({
+            "case": trial.case, "method": method, "condition": trial.condition, "draw": trial.draw,
+            "angle_deg": trial.angle_deg, "shift_mm": trial.shift_mm, "planes": "-".join(map(str, planes)),
+            "tre_mm": round(tre_stats(reg.transform(x0, B=B), truth)["mean_mm"], 4),
+            "tre_rigid_mm": round(tre_stats(reg.rigid.apply(x0), truth)["mean_mm"], 4),
+            "seconds": round(sec, 4), "rigid_seconds": round(reg.seconds.get("rigid", 0.0), 4),
+            "iterations": reg.libr.iterations, "stop_reason": reg.libr.stop_reason,
+            "starts": getattr(reg, "starts", None) and len(reg.starts) or 1,
+            "flagged": " ".join(quality.flagged) if quality is not None else ""})
+    return rows
+
+
+def read_rows(path) -> list[dict]:
+    path = Path(path)
+    if not path.exists():
+        return []
+    with path.open() as f:
+        return list(csv.DictReader(f))
+
+
+def run_robustness(case_dirs, results, methods=("before", "after"), draws=4, workers=1, edge=4.0, k=45,
+                   offsets=OFFSETS, conditions=CONDITIONS) -> int:
+    """Run (or resume) the design; rows are appended to ``results`` (CSV) one case at a time.
+
+    Returns the number of registrations run. One process per case: a case's basis is
+    loaded once, and two processes never compute the same cache entry.
+    """
+    results = Path(results)
+    done = {tuple(r[c] for c in ("case", "method", "condition", "draw")) + (f"{float(r['angle_deg']):g}",)
+            for r in read_rows(results)}
+    work = []
+    for d in case_dirs:
+        trials = design([Path(d).name], draws, offsets, conditions)
+        todo = [t for t in trials if any(t.key(m) not in done for m in methods)]
+        if todo:
+            work.append((str(d), todo))
+    total = sum(len(t) for _, t in work) * len(methods)
+    if not total:
+        return 0
+    new_file = not results.exists()
+    results.parent.mkdir(parents=True, exist_ok=True)
+    with results.open("a", newline="") as f, progress.bar(total, "robustness registrations", "reg") as pb:
+        w = csv.DictWriter(f, COLUMNS)
+        if new_file:
+            w.writeheader()
+        with ProcessPoolExecutor(max_workers=workers or os.cpu_count()) as pool:
+            futures = [pool.submit(run_case, d, todo, methods, edge, k) for d, todo in work]
+            for fut in as_completed(futures):
+                rows = fut.result()
+                rows = [r for r in rows if Trial(r["case"], r["condition"], r["draw"], r["angle_deg"],
+                                                 r["shift_mm"]).key(r["method"]) not in done]
+                w.writerows(rows)
+                f.flush()
+                pb.update(len(rows))
+    return total
+
+
+def study_command(cases, args) -> None:
+    """``navapp study robustness``: run (or resume) the design, then write the report.
+
+    Defaults: ``<report>/robustness.csv``, methods "before" (the path before issue 14)
+    and "after" (today's default), 4 draws, one worker (the rows carry timings);
+    ``--quick``: one draw and the 0°, 15° and 20° offsets.
+    """
+    import json
+    import sys
+
+    from .robustness_report import write_robustness_report
+
+    results = Path(args.results)
+    if results.name == "table2.csv":  # the study command's shared default belongs to Table II
+        results = Path(args.report) / "robustness.csv"
+    if (args.workers or 1) > 1:
+        print(f"navapp: {args.workers} robustness cases at once: the per-registration times compete for the cores",
+              file=sys.stderr)
+    offsets = tuple(o for o in OFFSETS if o[0] in (0.0, 15.0, 20.0)) if args.quick else OFFSETS
+    t0 = time.perf_counter()
+    n = run_robustness(cases, results, draws=1 if args.quick else 4, workers=args.workers or 1, offsets=offsets)
+    md = write_robustness_report(results, args.report)
+    print(json.dumps({"registrations_run": n, "seconds": round(time.perf_counter() - t0, 1), "results": str(results),
+                      "report": str(md)}))

@@ -1,0 +1,142 @@
+"""``results/robustness.md`` and its plot from the robustness study's CSV rows."""
+
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from .robustness import CONDITIONS, OFFSETS, SUCCESS_RATIO, read_rows
+
+
+def with_reference(rows: list[dict]) -> list[dict]:
+    """Rows with ``ratio`` = TRE / the same method's zero-offset clean TRE on the same case
+    and draw (same plane triple), and ``success`` = ratio ≤ SUCCESS_RATIO. Rows without
+    their reference are dropped."""
+    ref = {(r["case"], r["method"], r["draw"]): float(r["tre_mm"]) for r in rows
+           if r["condition"] == "clean" and float(r["angle_deg"]) == 0.0}
+    out = []
+    for r in rows:
+        key = (r["case"], r["method"], r["draw"])
+        if key in ref:
+            ratio = float(r["tre_mm"]) / ref[key]
+            out.append(dict(r, ratio=ratio, success=ratio <= SUCCESS_RATIO))
+    return out
+
+
+def _pct(x) -> str:
+    return f"{100 * np.mean(x):.1f} %" if len(x) else "–"
+
+
+def _offset_label(a, s) -> str:
+    return f"{a:g}° / {s:g} mm"
+
+
+def summary_tables(rows: list[dict], methods: list[str]) -> str:
+    """Markdown tables: success rate by offset, TRE, label-noise effect, time, warnings."""
+    rows = with_reference(rows)
+    by = defaultdict(list)
+    for r in rows:
+        by[(r["method"], r["condition"], float(r["angle_deg"]))].append(r)
+    conds = [c for c in CONDITIONS if any(r["condition"] == c for r in rows)]
+    offs = [o for o in OFFSETS if any(float(r["angle_deg"]) == o[0] for r in rows)]
+    lines = ["### Success rate (TRE ≤ 1.2 × the method's zero-offset, clean-label TRE)", "",
+             "| method | labels | " + " | ".join(_offset_label(*o) for o in offs) + " | up to 15° / 30 mm |",
+             "|---|---|" + "---|" * (len(offs) + 1)]
+    for m in methods:
+        for c in conds:
+            cells = [_pct([r["success"] for r in by[(m, c, o[0])]]) for o in offs]
+            upto = [r["success"] for o in offs if o[0] <= 15 for r in by[(m, c, o[0])]]
+            lines.append(f"| {m} | {c} | " + " | ".join(cells) + f" | **{_pct(upto)}** |")
+    lines += ["", "### TRE (mm): median [90th percentile] over cases × draws", "",
+              "| method | labels | " + " | ".join(_offset_label(*o) for o in offs) + " |",
+              "|---|---|" + "---|" * len(offs)]
+    for m in methods:
+        for c in conds:
+            cells = []
+            for o in offs:
+                t = [float(r["tre_mm"]) for r in by[(m, c, o[0])]]
+                cells.append(f"{np.median(t):.2f} [{np.percentile(t, 90):.2f}]" if t else "–")
+            lines.append(f"| {m} | {c} | " + " | ".join(cells) + " |")
+    # label noise at zero offset, paired by case and draw
+    lines += ["", "### What label noise costs at zero offset (TRE with noisy labels − clean TRE, mm)", "",
+              "| method | labels | median | 90th percentile | max |", "|---|---|---|---|---|"]
+    clean0 = {(r["case"], r["method"], r["draw"]): float(r["tre_mm"]) for r in rows
+              if r["condition"] == "clean" and float(r["angle_deg"]) == 0}
+    for m in methods:
+        for c in conds:
+            if c == "clean":
+                continue
+            d = [float(r["tre_mm"]) - clean0[(r["case"], m, r["draw"])] for r in by[(m, c, 0.0)]]
+            if d:
+                lines.append(f"| {m} | {c} | {np.median(d):+.2f} | {np.percentile(d, 90):+.2f} | {np.max(d):+.2f} |")
+    lines += ["", "### Time per registration (s; every row is S + 3 planes)", "",
+              "| method | median | 90th percentile | median rigid stage | distinct ICP poses (mean) | registrations |",
+              "|---|---|---|---|---|---|"]
+    for m in methods:
+        mr = [r for r in rows if r["method"] == m]
+        if not mr:
+            continue
+        sec = [float(r["seconds"]) for r in mr]
+        rig = [float(r["rigid_seconds"]) for r in mr]
+        basins = [float(r["starts"] or 1) for r in mr]
+        lines.append(f"| {m} | {np.median(sec):.3f} | {np.percentile(sec, 90):.3f} | {np.median(rig):.3f} | "
+                     f"{np.mean(basins):.2f} | {len(mr)} |")
+    lines += ["", "### Poor-fit warnings (share of registrations with a flagged feature)", "",
+              "| method | " + " | ".join(conds) + " |", "|---|" + "---|" * len(conds)]
+    for m in methods:
+        cells = [_pct([bool(r["flagged"]) for r in rows if r["method"] == m and r["condition"] == c]) for c in conds]
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def plot(rows: list[dict], methods: list[str], path: Path) -> Path:
+    """Success rate and TRE ratio against the offset, per method and label condition."""
+    import matplotlib
+
+    matplotlib.use("Agg")  # here, not at import: the viewer and tests may use another backend
+    import matplotlib.pyplot as plt
+
+    rows = with_reference(rows)
+    offs = [o for o in OFFSETS if any(float(r["angle_deg"]) == o[0] for r in rows)]
+    conds = [c for c in CONDITIONS if any(r["condition"] == c for r in rows)]
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
+    styles = {"clean": "-", "shifted": "--", "mislabelled": ":"}
+    x = np.arange(len(offs))
+    for i, m in enumerate(methods):
+        for c in conds:
+            y = [100 * np.mean([r["success"] for r in rows if r["method"] == m and r["condition"] == c
+                                and float(r["angle_deg"]) == o[0]] or [np.nan]) for o in offs]
+            ax1.plot(x, y, styles.get(c, "-"), color=f"C{i}", marker="o", label=f"{m}, {c}")
+        data = [[r["ratio"] for r in rows if r["method"] == m and float(r["angle_deg"]) == o[0]] for o in offs]
+        width = 0.8 / len(methods)
+        ax2.boxplot(data, positions=x + (i - (len(methods) - 1) / 2) * width, widths=width * 0.9,
+                    patch_artist=True, boxprops={"facecolor": f"C{i}", "alpha": 0.5}, showfliers=True,
+                    flierprops={"markersize": 3})
+        ax2.plot([], [], color=f"C{i}", lw=8, alpha=0.5, label=m)
+    for ax in (ax1, ax2):
+        ax.set_xticks(x, [_offset_label(*o) for o in offs])
+        ax.set_xlabel("initial offset (rotation / translation)")
+    ax1.set_ylabel("success rate (%)")
+    ax1.set_title("TRE ≤ 1.2 × zero-offset clean TRE")
+    ax1.legend(fontsize=7)
+    ax2.axhline(SUCCESS_RATIO, color="k", lw=0.8, ls="--")
+    ax2.set_ylabel("TRE / zero-offset clean TRE")
+    ax2.set_title("all label conditions")
+    ax2.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_robustness_report(results, out_dir, preamble: str = "") -> Path:
+    """``robustness.md`` (and ``robustness.png``) in ``out_dir`` from the CSV ``results``."""
+    rows = read_rows(results)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    png = plot(rows, methods, out_dir / "robustness.png")
+    md = out_dir / "robustness.md"
+    md.write_text("# Robustness to the starting pose and to imprecise labels\n\n" + preamble
+                  + summary_tables(rows, methods) + f"\n\n![robustness]({png.name})\n")
+    return md
