@@ -112,6 +112,10 @@ def cmd_study(args):
     from .evaluation.table2 import run_table2
 
     cases = _study_cases(args)
+    if args.what == "robustness":
+        from .evaluation.robustness import study_command
+
+        return study_command(cases, args)
     if args.what == "cost":
         from .evaluation.cost import run_cost_study
         from .evaluation.cost_report import write_cost_report
@@ -197,8 +201,9 @@ def build_parser():
     s.add_argument("--out", type=Path, required=True, help="case folder to write")
     s.set_defaults(func=cmd_simulate)
 
-    s = sub.add_parser("study", help="table2: the paper's Table II design; cost: accuracy against time (both resumable)")
-    s.add_argument("what", choices=("table2", "cost"))
+    s = sub.add_parser("study", help="table2: the paper's Table II design; cost: accuracy against time; "
+                                     "robustness: initial offsets × label noise (all resumable)")
+    s.add_argument("what", choices=("table2", "cost", "robustness"))
     s.add_argument("--cases", type=Path, nargs="+", help="case folders (default: simulate the nine study scenes)")
     s.add_argument("--case-root", type=Path, default=Path("study-cases"), help="where simulated cases go")
     s.add_argument("--workers", type=_positive(int), help="local worker processes (default: all cores for table2, 1 for cost, whose timings would compete)")
