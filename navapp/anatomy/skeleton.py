@@ -24,17 +24,19 @@ FIT_FROM, FIT_TO = 1.0, 2.5
 
 
 def voxelize(mesh: trimesh.Trimesh, voxel: float, pad: int = 2) -> tuple[np.ndarray, np.ndarray]:
-    """Inside test on a regular grid by ray parity along z.
+    """Inside test on a regular grid by ray parity, voted over rays along x, y and z.
 
-    Every triangle is intersected with the z-lines through the voxel centres it covers in
-    projection; a voxel centre is inside when an odd number of crossings lie below it. The
-    grid is offset by a fraction of a voxel that no mesh coordinate is likely to hit, so that
-    no line passes through an edge or vertex (where crossings would count twice).
+    Every triangle is intersected with the grid lines through the voxel centres it covers
+    in projection; a voxel centre is inside along one axis when an odd number of crossings
+    lie before it. The majority of the three axes decides, so that a small hole in the
+    surface spoils no line of voxels. The grid is offset by a fraction of a voxel that no
+    mesh coordinate is likely to hit, so that no line passes through an edge or vertex
+    (where crossings would count twice).
 
     Parameters
     ----------
     mesh : trimesh.Trimesh
-        Closed (watertight) surface, mm.
+        Closed surface, mm.
     voxel : float
         Grid spacing, mm.
     pad : int
@@ -51,8 +53,18 @@ def voxelize(mesh: trimesh.Trimesh, voxel: float, pad: int = 2) -> tuple[np.ndar
     origin = lo - pad * voxel + voxel * np.array([0.1234567, 0.2345671, 0.3456712])
     shape = np.ceil((hi - origin) / voxel).astype(int) + pad + 1
     tri = (mesh.triangles - origin) / voxel  # grid units
+    votes = np.zeros(shape, np.uint8)
+    for axis in range(3):
+        perm = [k for k in range(3) if k != axis] + [axis]
+        inside = _parity(tri[:, :, perm], shape[perm])
+        votes += np.moveaxis(inside, 2, axis)
+    return votes >= 2, origin
+
+
+def _parity(tri: np.ndarray, shape: np.ndarray) -> np.ndarray:
+    """Inside test by crossings of lines along the last axis; tri (T, 3, 3) in grid units."""
     a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
-    # columns (i, j) whose centre can fall inside each triangle's xy bounding box
+    # columns (i, j) whose centre can fall inside each triangle's bounding box in projection
     i0 = np.ceil(tri[:, :, 0].min(1)).astype(int)
     i1 = np.floor(tri[:, :, 0].max(1)).astype(int)
     j0 = np.ceil(tri[:, :, 1].min(1)).astype(int)
@@ -60,12 +72,11 @@ def voxelize(mesh: trimesh.Trimesh, voxel: float, pad: int = 2) -> tuple[np.ndar
     ni, nj = np.maximum(i1 - i0 + 1, 0), np.maximum(j1 - j0 + 1, 0)
     count = ni * nj
     t = np.repeat(np.arange(len(tri)), count)
-    # enumerate each triangle's columns: offset of every candidate within its triangle's box
     start = np.repeat(np.cumsum(count) - count, count)
     local = np.arange(count.sum()) - start
     ci = i0[t] + local // np.maximum(nj[t], 1)
     cj = j0[t] + local % np.maximum(nj[t], 1)
-    # barycentric coordinates of the column in the triangle's xy projection
+    # barycentric coordinates of the column in the triangle's projection
     ax, ay = a[t, 0], a[t, 1]
     e1x, e1y = b[t, 0] - ax, b[t, 1] - ay
     e2x, e2y = c[t, 0] - ax, c[t, 1] - ay
@@ -78,12 +89,11 @@ def voxelize(mesh: trimesh.Trimesh, voxel: float, pad: int = 2) -> tuple[np.ndar
     hit = ok & (u >= 0) & (w >= 0) & (u + w <= 1)
     z = a[t, 2] + u * (b[t, 2] - a[t, 2]) + w * (c[t, 2] - a[t, 2])
     ci, cj, z = ci[hit], cj[hit], z[hit]
-    # a crossing at height z toggles every voxel centre above it
+    # a crossing at height z toggles every voxel centre beyond it
     k = np.clip(np.ceil(z).astype(int), 0, shape[2] - 1)
-    toggles = np.zeros(shape, np.uint8)
+    toggles = np.zeros(tuple(shape), np.uint8)
     np.add.at(toggles, (ci, cj, k), 1)
-    inside = np.logical_xor.accumulate(toggles % 2 == 1, axis=2)
-    return inside, origin
+    return np.logical_xor.accumulate(toggles % 2 == 1, axis=2)
 
 
 def _skeleton_graph(skel: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
