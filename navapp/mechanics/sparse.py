@@ -22,6 +22,18 @@ def backend() -> str:
     return "pardiso"
 
 
+def _pardiso_solver():
+    """A new PyPardisoSolver for a real SPD matrix. Unless told where libmkl_rt is,
+    pypardiso looks for it by walking the whole of sys.prefix on every solver it creates
+    (about a second here, once per tile of the relaxation); after the first search the
+    library it loaded is named to it through its own environment variable."""
+    import pypardiso
+
+    s = pypardiso.PyPardisoSolver(mtype=2)  # real symmetric positive definite
+    os.environ.setdefault("PYPARDISO_MKL_RT", s.libmkl._name)
+    return s
+
+
 class Factorisation:
     """A factorised SPD matrix A; ``solve(B)`` takes (n,) or (n, r) right-hand sides."""
 
@@ -30,11 +42,9 @@ class Factorisation:
         self.n = A.shape[0]
         self.kind = backend()
         if self.kind == "pardiso":
-            import pypardiso
-
             self._A = sp.triu(A, format="csr")
             self._A.sort_indices()
-            self._s = pypardiso.PyPardisoSolver(mtype=2)  # real symmetric positive definite
+            self._s = _pardiso_solver()
             self._s.set_phase(12)
             self._s._call_pardiso(self._A, np.zeros((self.n, 1)))
             self._s.factorized_A = self._A
