@@ -130,3 +130,14 @@ def test_empty_volume_is_an_error():
     tiny = trimesh.creation.icosphere(subdivisions=1, radius=0.05)
     with pytest.raises(ValueError):
         vessel_centerline(tiny, voxel=0.5)
+
+
+def test_extracted_centerline_survives_a_case_folder(phantoms, tmp_path):
+    from navapp.anatomy.caseio import read_case, write_preop
+    from navapp.anatomy.model import PreopModel
+
+    model = phantoms[1]
+    cl = vessel_centerline(model.portal)
+    write_preop(PreopModel(liver=model.liver, portal=model.portal, portal_centerline=cl), tmp_path)
+    back = read_case(tmp_path).preop.portal_centerline
+    assert np.allclose(back.points, cl.points, atol=1e-3) and (back.branch == cl.branch).all()
