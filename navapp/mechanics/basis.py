@@ -15,9 +15,13 @@ Choices where the paper is open (each tested in tests/test_basis.py):
    surface nodes outside the tile are held at the mode's own displacement (the far field
    is kept); the reaction force r that held c in the point-load mode is applied instead
    as a load spread over the tile in proportion to lumped nodal area (its resultant is
-   exactly r). Solved exactly: one sparse factorisation per tile, shared by its 3 modes.
+   exactly r). One sparse factorisation per tile, shared by its 3 modes.
    With all of the load put back on c the relaxed mode equals the point-load mode — a
-   consistency check the tests use.
+   consistency check the tests use. Solved for the correction (relaxed − point-load),
+   whose load is self-equilibrated, on the tile plus ``relax_layers`` rings of the node
+   graph with the correction held at zero beyond (``None``: on the whole mesh, one
+   factorisation of nearly all of K per tile). The error of the local solve against the
+   exact one and its effect on TRE are measured in docs/decisions.md.
 3. Nodal strain and stress are volume-weighted averages of the (constant) element values.
 """
 
@@ -33,7 +37,7 @@ from .controlpoints import geodesic_tiles, nodal_areas, place_control_points
 from .fem import Material, nodal_strain_operator, stiffness
 from .sparse import Factorisation, backend
 
-BASIS_VERSION = "basis-1"  # bump when the computation changes: it is part of the cache key
+BASIS_VERSION = "basis-2"  # bump when the computation changes: it is part of the cache key
 
 
 @dataclass(frozen=True)
@@ -42,6 +46,9 @@ class BasisSettings:
     perturbation: float = 5.0  # mm imposed at the active control point
     seed: int = 0  # k-means seed
     relax: bool = True  # False: keep the raw point-load modes (for comparison studies)
+    # Relaxation subdomain: the tile plus this many rings of the node graph (Saint-Venant:
+    # the correction decays away from the tile); None solves on the whole mesh (exact).
+    relax_layers: int | None = 6
 
 
 @dataclass
@@ -101,34 +108,63 @@ def point_load_modes(K, control, perturbation):
     return U, R
 
 
-def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None):
+def node_adjacency(K) -> sp.csr_matrix:
+    """Node graph (M × M, boolean CSR) of the stiffness: i ~ j when they share an element."""
+    C = K.tocoo()
+    M = K.shape[0] // 3
+    A = sp.csr_matrix((np.ones(C.nnz, bool), (C.row // 3, C.col // 3)), shape=(M, M))
+    A.sum_duplicates()
+    return A
+
+
+def grow(A, mask, layers):
+    """``mask`` (M,) bool grown by ``layers`` rings of the node graph A."""
+    mask = mask.copy()
+    for _ in range(layers):
+        mask |= (A @ mask.astype(np.int8)) > 0
+    return mask
+
+
+def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None, layers=None):
     """Saint-Venant relaxation of every point-load mode (choice 2 of the module doc).
 
     K (3M × 3M); U (3M × 3k) point-load modes; R (3k × 3k) their control reactions;
     surface (S,), tiles (S,), areas (S,) lumped nodal areas. Returns relaxed modes (3M × 3k).
+
+    Solved for the correction d = relaxed − point-load, whose load (area-spread reaction
+    minus the point reaction, i.e. K U on the free DOFs) is self-equilibrated: by
+    Saint-Venant d decays away from the tile. ``layers=None`` solves on the whole mesh
+    (exact). ``layers=n`` solves only on the tile plus n rings of the node graph, with
+    d = 0 beyond them (and, as in the exact problem, on the held surface nodes).
     ``on_tile(i)`` is called after each tile (progress).
     """
     n = K.shape[0]
+    M = n // 3
     K = K.tocsr()
     out = U.copy()
-    is_surface_dof = np.zeros(n, bool)
-    is_surface_dof[_dofs(surface)] = True
+    movable = np.ones(M, bool)  # interior nodes and, per tile, the tile's own surface nodes
+    movable[surface] = False
+    A = node_adjacency(K) if layers is not None else None
     for c in range(len(control)):
-        tile_nodes = surface[tiles == c]
-        w = areas[tiles == c] / areas[tiles == c].sum()
-        held = is_surface_dof.copy()
-        held[_dofs(tile_nodes)] = False
-        free = np.flatnonzero(~held)
-        hold = np.flatnonzero(held)
+        in_tile = tiles == c
+        tile_nodes = surface[in_tile]
+        w = areas[in_tile] / areas[in_tile].sum()
+        free_nodes = movable.copy()
+        free_nodes[tile_nodes] = True
+        if layers is not None:
+            region = np.zeros(M, bool)
+            region[tile_nodes] = True
+            free_nodes &= grow(A, region, layers)
+        free = _dofs(np.flatnonzero(free_nodes))
         cols = 3 * c + np.arange(3)
         r = R[3 * c:3 * c + 3][:, cols]  # (3 force axes, 3 modes)
-        load = np.zeros((n, 3))
-        for a in range(3):
-            load[3 * tile_nodes + a] = np.outer(w, r[a])
         Kf = K[free]
-        rhs = load[free] - Kf[:, hold] @ U[hold][:, cols]
+        rhs = -(Kf @ U[:, cols])  # minus the point-load forces: the reaction at c (and solver residue)
+        pos = np.searchsorted(free, 3 * tile_nodes)  # tile nodes are free: their x DOF rows
+        for a in range(3):
+            rhs[pos + a] += np.outer(w, r[a])
         with Factorisation(Kf[:, free]) as F:
-            out[np.ix_(free, cols)] = F.solve(rhs)
+            out[np.ix_(free, cols)] += F.solve(rhs)
         if on_tile:
             on_tile(c)
     return out
@@ -169,7 +205,8 @@ def compute_basis(mesh: TetMesh, settings: BasisSettings = BasisSettings(), mate
     t = time.perf_counter()
     if settings.relax:
         with progress.bar(settings.k, f"{label}: relax tiles", "tile") as pb:
-            Ju = relax_modes(K, U, R, control, surface, tiles, areas, on_tile=lambda c: pb.update(1))
+            Ju = relax_modes(K, U, R, control, surface, tiles, areas, on_tile=lambda c: pb.update(1),
+                             layers=settings.relax_layers)
     else:
         Ju = U
     timings["relax"] = time.perf_counter() - t
