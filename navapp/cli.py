@@ -166,7 +166,7 @@ def cmd_bench(args):
     from .evaluation import benchmark
 
     if args.what == "precompute":
-        benchmark.bench_precompute(args.edges, args.ks)
+        benchmark.bench_precompute(args.edges, args.ks, args.volume_ml, args.relax)
     else:
         benchmark.bench_register(args.repeats, args.planes, args.ks[0], args.edges[0])
 
@@ -218,6 +218,9 @@ def build_parser():
     s.add_argument("what", choices=("precompute", "register"))
     s.add_argument("--edges", type=_positive(float), nargs="+", default=[4.0], help="element sizes, mm")
     s.add_argument("--ks", type=_positive(int), nargs="+", default=[45], help="numbers of control points")
+    s.add_argument("--volume-ml", type=_positive(float), help="precompute: phantom 0 scaled to this volume, ml")
+    s.add_argument("--relax", choices=("local", "exact", "both"), default="local",
+                   help="precompute: relaxation subdomain (both: exact and local, with the local one's error)")
     s.add_argument("--repeats", type=_positive(int), default=5, help="register: repetitions for the median")
     s.add_argument("--planes", type=_positive(int), default=3, help="register: iUS planes (≥ 2)")
     s.set_defaults(func=cmd_bench)
