@@ -1,13 +1,15 @@
 """Benchmarks: commands that print numbers (never timed unit tests).
 
 ``navapp bench precompute``: mesh + basis wall time, peak memory, cache-load time, over
-element sizes and k. ``navapp bench register``: registration time on the demo case
-(stylus swath + iUS planes), per-iteration cost breakdown, warm-started re-registration
-after adding a plane, and TRE.
+element sizes and k; ``--volume-ml`` scales phantom 0 (real livers of 1.2–2 l are larger
+than the phantoms), ``--relax both`` adds the exact relaxation and the local one's error.
+``navapp bench register``: registration time on the demo case (stylus swath + iUS planes),
+per-iteration cost breakdown, warm-started re-registration after adding a plane, and TRE.
 """
 
 import json
 import resource
+import shutil
 import statistics
 import subprocess
 import sys
@@ -15,6 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 
 
 def peak_memory_mb() -> float:
@@ -22,36 +25,73 @@ def peak_memory_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def precompute_one(edge: float, k: int) -> dict:
-    """Run in a fresh process (cold cache dir) so that peak memory is this run's alone."""
+def scaled_liver(liver, volume_ml: float):
+    """The surface scaled uniformly about its centroid to ``volume_ml`` (ml = 1000 mm³):
+    a real liver of 1.2–2 l meshes to 19k–27k nodes at 4 mm, the phantoms to fewer."""
+    s = (1000.0 * volume_ml / liver.volume) ** (1.0 / 3.0)
+    out = liver.copy()
+    c = liver.center_mass
+    out.vertices = c + s * (liver.vertices - c)
+    return out
+
+
+def precompute_one(edge: float, k: int, volume_ml: float | None = None, relax: str = "local") -> dict:
+    """Run in a fresh process (cold cache dir) so that peak memory is this run's alone.
+    ``relax``: "local" (the default subdomain) or "exact" (whole-mesh relaxation)."""
     from ..anatomy.meshing import cached_tetmesh
     from ..anatomy.phantom import make_phantom
-    from ..mechanics.basis import BasisSettings, load_or_compute_basis
+    from ..mechanics.basis import BasisSettings, basis_key, load_or_compute_basis
+    from ..mechanics.fem import Material
 
+    settings = BasisSettings(k=k) if relax == "local" else BasisSettings(k=k, relax_layers=None)
     root = Path(tempfile.mkdtemp(prefix="navapp-bench-"))
     t0 = time.perf_counter()
     liver = make_phantom(0).liver
+    if volume_ml:
+        liver = scaled_liver(liver, volume_ml)
     mesh, rep = cached_tetmesh(liver, edge, root)
-    basis, _ = load_or_compute_basis(mesh, BasisSettings(k=k), cache_root=root)
+    basis, _ = load_or_compute_basis(mesh, settings, cache_root=root)
     total = time.perf_counter() - t0
     t1 = time.perf_counter()
     cached_tetmesh(liver, edge, root)
-    load_or_compute_basis(mesh, BasisSettings(k=k), cache_root=root)
+    load_or_compute_basis(mesh, settings, cache_root=root)
     reload = time.perf_counter() - t1
-    return {"edge_mm": edge, "k": k, "nodes": basis.M, "surface_nodes": len(basis.surface),
+    return {"edge_mm": edge, "k": k, "volume_ml": round(liver.volume / 1000.0), "relax": relax,
+            "relax_layers": settings.relax_layers, "nodes": basis.M, "surface_nodes": len(basis.surface),
             "seconds": {"mesh": round(rep["seconds"], 2), **{s: round(v, 2) for s, v in basis.timings.items()}},
-            "total_seconds": round(total, 2), "cache_load_seconds": round(reload, 3), "peak_memory_mb": round(peak_memory_mb())}
+            "total_seconds": round(total, 2), "cache_load_seconds": round(reload, 3), "peak_memory_mb": round(peak_memory_mb()),
+            "basis_file": str(root / f"{basis_key(mesh, settings, Material())}.npz")}
 
 
-def bench_precompute(edges, ks):
+def mode_errors(fast_file, exact_file) -> dict:
+    """Per-mode relative error ‖Ju_fast − Ju_exact‖/‖Ju_exact‖ (one per column): median, max."""
+    from .. import cache
+
+    a, b = cache.load(Path(fast_file))["Ju"], cache.load(Path(exact_file))["Ju"]
+    e = np.linalg.norm(a - b, axis=0) / np.linalg.norm(b, axis=0)
+    return {"median": float(f"{np.median(e):.3g}"), "max": float(f"{e.max():.3g}")}
+
+
+def bench_precompute(edges, ks, volume_ml=None, relax="local"):
+    """One row per (edge, k, relaxation); with relax="both" the exact and the local basis
+    are computed in turn and the local row also reports its per-mode error against exact."""
     rows = []
     for edge in edges:
         for k in ks:
-            out = subprocess.run([sys.executable, "-m", "navapp.evaluation.benchmark", "precompute-one", str(edge), str(k)],
-                                 capture_output=True, text=True, check=True)
-            row = json.loads(out.stdout.strip().splitlines()[-1])
-            print(json.dumps(row), flush=True)
-            rows.append(row)
+            pair = {}
+            for how in (("exact", "local") if relax == "both" else (relax,)):
+                cmd = [sys.executable, "-m", "navapp.evaluation.benchmark", "precompute-one", str(edge), str(k), how]
+                if volume_ml:
+                    cmd.append(str(volume_ml))
+                out = subprocess.run(cmd, capture_output=True, text=True, check=True)
+                row = json.loads(out.stdout.strip().splitlines()[-1])
+                pair[how] = row
+                if how == "local" and "exact" in pair:
+                    row["mode_error_vs_exact"] = mode_errors(row["basis_file"], pair["exact"]["basis_file"])
+                print(json.dumps({n: v for n, v in row.items() if n != "basis_file"}), flush=True)
+                rows.append(row)
+            for row in pair.values():
+                shutil.rmtree(Path(row.pop("basis_file")).parent, ignore_errors=True)
     return rows
 
 
@@ -105,8 +145,9 @@ def bench_register(repeats=5, planes=3, k=45, edge=4.0):
     return out
 
 
-if __name__ == "__main__" and len(sys.argv) == 4 and sys.argv[1] == "precompute-one":
+if __name__ == "__main__" and len(sys.argv) in (5, 6) and sys.argv[1] == "precompute-one":
     from .. import progress
 
     progress.QUIET = True
-    print(json.dumps(precompute_one(float(sys.argv[2]), int(sys.argv[3]))))
+    vol = float(sys.argv[5]) if len(sys.argv) == 6 else None
+    print(json.dumps(precompute_one(float(sys.argv[2]), int(sys.argv[3]), vol, sys.argv[4])))
