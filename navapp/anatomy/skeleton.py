@@ -149,14 +149,16 @@ def _branches(A: sp.csr_matrix) -> list[list[int]]:
             if cur == start:
                 break
             order.append(cur)
-        # attach the junction voxels the chain's two ends touch
-        for pos in (0, -1):
-            js = [x for x in adj[order[pos]] if junction[x]]
-            if js:
-                if pos == 0:
-                    order.insert(0, js[0])
-                else:
-                    order.append(js[0])
+        # attach the junction voxels the chain's two ends touch; a one-voxel chain between
+        # two junctions touches both, and must not be given the same one twice
+        head = [x for x in adj[order[0]] if junction[x]]
+        tail = [x for x in adj[order[-1]] if junction[x]]
+        if len(order) == 1 and head:
+            tail = [x for x in tail if x not in head[:1] and not A[head[0], x]] or []
+        if head:
+            order.insert(0, head[0])
+        if tail:
+            order.append(tail[0])
         chains.append(order)
     return chains
 
@@ -204,6 +206,7 @@ def vessel_centerline(
     *,
     step: float = 1.5,
     min_reach: float = 1.0,
+    mask_sigma: float = 0.5,
     smooth: float = 2.0,
 ) -> Centerline:
     """Centerline of a vessel tree from its closed surface.
@@ -222,6 +225,9 @@ def vessel_centerline(
         A terminal branch whose end reaches less than this (mm) beyond the wall of the vessel
         it leaves (its length plus its tip's radius minus the radius at its junction) is a
         spur from a bump of the wall, and is removed.
+    mask_sigma : float
+        Gaussian blur (mm) of the voxelised volume before thinning, re-thresholded at one
+        half: takes voxel-scale roughness out of segmented walls (0 turns it off).
     smooth : float
         Length (mm) of the moving average that takes the voxel staircase out of the branch.
 
@@ -239,6 +245,9 @@ def vessel_centerline(
         If the surface encloses no voxel at this voxel size.
     """
     inside, origin = voxelize(vessel, voxel)
+    if mask_sigma > 0:
+        # a wall roughened by segmentation grows spurs and pits the thinning follows
+        inside = ndimage.gaussian_filter(inside.astype(np.float32), mask_sigma / voxel) > 0.5
     if not inside.any():
         raise ValueError(f"the vessel surface encloses no {voxel} mm voxel (not closed, or too thin?)")
     # voxel centres inside have distance ≥ 0.5 voxel to the wall; the surface lies on average
