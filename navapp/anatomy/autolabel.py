@@ -261,8 +261,16 @@ def auto_regions(
     crease_steep, crease_visceral : float
         The crease between the steep (anterior or lateral) face and the visceral face
         belongs to the ridges: a vertex within ``crease_steep`` mm of the visceral face and
-        ``crease_visceral`` mm of the steep face. The visceral face meets the steep one at a
-        shallow angle, so the band reaches further onto it.
+        less than ``crease_visceral`` mm beneath the tangent plane of the nearest steep-face
+        vertex. The visceral face leaves the steep one at a shallow angle, so measuring depth
+        rather than distance lets the band reach further onto it.
+    crease_search : float
+        How far (mm) to look for the steep face from a visceral vertex.
+    crease_turn_max : float
+        The crease band is added only within ``crease_steep + crease_visceral`` mm of a
+        turning vertex whose turn is abrupt: its distances to the visceral and to the steep
+        face sum to less than this (mm). A rounded border (the thin left lobe's) turns over
+        a wider band and is a ridge by its normals alone. ``inf`` adds the band everywhere.
     ridge_front : float
         Ridges only on the part of the liver anterior of this fraction of its extent along
         the anterior axis (0 = most posterior point, 1 = most anterior): keeps out the
@@ -304,8 +312,8 @@ def auto_regions(
     crease = _near(v, visceral, crease_steep) & (_height(v, n, steep, crease_search) < crease_visceral)
     if np.isfinite(crease_turn_max):
         # a rounded border turns over a wide band and is a ridge by its normals alone;
-        # only where the turn is abrupt does the band around the crease join the ridge
-        # the turn's width at a turning vertex: its distance to one face plus to the other
+        # only where the turn is abrupt does the band around the crease join the ridge.
+        # The turn's width at a turning vertex: its distance to one face plus to the other
         abrupt = turning.copy()
         if abrupt.any():
             width = np.full(abrupt.sum(), np.inf)
