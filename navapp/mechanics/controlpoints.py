@@ -11,6 +11,7 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 from sklearn.cluster import KMeans
+from threadpoolctl import threadpool_limits
 
 
 def surface_graph(nodes, faces, surface):
@@ -38,7 +39,10 @@ def place_control_points(nodes, surface, k, seed=0):
     nearest surface node; returns k distinct global node indices, (k,)."""
     if k < 1 or k > len(surface):
         raise ValueError(f"k must be between 1 and the number of surface nodes ({len(surface)})")
-    km = KMeans(n_clusters=k, n_init=4, random_state=seed).fit(nodes[surface])
+    # One thread: a few thousand 3-D points take a fraction of a second, while OpenMP
+    # threads spinning against other work on a 2-core machine took 8–10 s (measured).
+    with threadpool_limits(1):
+        km = KMeans(n_clusters=k, n_init=4, random_state=seed).fit(nodes[surface])
     tree = cKDTree(nodes[surface])
     chosen = []
     taken = set()

@@ -5,7 +5,9 @@ MKL PARDISO (via pypardiso, a pip wheel on x86_64) factorises the paper-scale li
 minutes instead of seconds at that size). ``NAVAPP_SOLVER=superlu`` forces the fallback.
 """
 
+import glob
 import os
+import sys
 
 import numpy as np
 import scipy.sparse as sp
@@ -29,6 +31,11 @@ def _pardiso_solver():
     library it loaded is named to it through its own environment variable."""
     import pypardiso
 
+    if "PYPARDISO_MKL_RT" not in os.environ:
+        # the pip wheel puts it in sys.prefix/lib: look there before pypardiso's tree walk
+        near = sorted(glob.glob(os.path.join(sys.prefix, "lib", "libmkl_rt.so*")), key=len)
+        if near:
+            os.environ["PYPARDISO_MKL_RT"] = near[0]
     s = pypardiso.PyPardisoSolver(mtype=2)  # real symmetric positive definite
     os.environ.setdefault("PYPARDISO_MKL_RT", s.libmkl._name)
     return s
