@@ -90,3 +90,11 @@ def test_mirrored_anterior_axis_swaps_front_and_back(phantoms, labelled):
     assert front.sum() > 1000
     assert (lab.codes[front] == P).mean() > 0.9
     assert (front & (lab.codes == A)).sum() < 0.02 * (lab.codes == A).sum()
+
+
+def test_inside_out_surface_gets_the_same_labels(phantoms, labelled):
+    model, lab = phantoms[0], labelled[0]
+    inverted = trimesh.Trimesh(model.liver.vertices, model.liver.faces[:, ::-1], process=False)
+    again = auto_regions(inverted, falciform=falciform_landmarks(model))
+    assert (again.codes == lab.codes).mean() > 0.999
+    assert any("inside out" in w for w in again.warnings)

@@ -289,6 +289,10 @@ def auto_regions(
     a, s, left = patient_axes(anterior, superior)
     v = np.asarray(liver.vertices, float)
     n = smoothed_normals(liver, normal_radius)
+    if liver.is_watertight and liver.volume < 0:
+        # every label hangs on the normals pointing out; an inside-out export flips them all
+        n = -n
+        warnings.append("the liver surface is inside out (negative volume): its normals were flipped")
     na, ns = n @ a, n @ s
 
     codes = np.full(len(v), POSTERIOR)
