@@ -110,8 +110,8 @@ def _register(model, data, beta0, options, callback, cancel):
         free[:n] = False
     tim = {"deform": 0.0, "kdtree": 0.0, "closest": 0.0, "jacobian": 0.0, "solve": 0.0}
 
-    def run(b, jac=True, frozen=None):
-        ev = evaluate(model, data, b, options.weights, jacobian=jac, frozen=frozen)
+    def run(b, jac=True, frozen=None, scales=None):
+        ev = evaluate(model, data, b, options.weights, jacobian=jac, frozen=frozen, scales=scales)
         for k, v in ev.timings.items():
             tim[k] += v
         return ev
@@ -154,7 +154,8 @@ def _register(model, data, beta0, options, callback, cancel):
             lam *= 10
             accepted = False
         else:
-            held = run(trial, jac=False, frozen=None if options.recompute_in_ratio else ev.correspondence)
+            held = run(trial, jac=False, frozen=None if options.recompute_in_ratio else ev.correspondence,
+                       scales=ev.scales)
             lin = ev.f + ev.J @ step
             predicted = ev.omega - float(ev.w @ (lin * lin))
             actual = ev.omega - held.omega

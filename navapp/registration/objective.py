@@ -26,9 +26,14 @@ class Weights:
     features: dict = field(default_factory=lambda: dict(WEIGHTS_SI))  # m⁻²
     energy: float = W_ENERGY_SI  # Pa⁻²
     unit_m: float = 1e-3  # metres per model length unit (mm)
+    # feature → Huber threshold δ (mm): a point whose residual f exceeds δ has its weight
+    # scaled by δ / f (iteratively reweighted least squares), so a salient feature whose
+    # labels are approximate pulls linearly rather than quadratically. Empty: plain Ω.
+    huber_mm: dict = field(default_factory=dict)
 
     def scaled(self, factor: float) -> "Weights":
-        return Weights({k: v * factor for k, v in self.features.items()}, self.energy * factor, self.unit_m)
+        return Weights({k: v * factor for k, v in self.features.items()}, self.energy * factor, self.unit_m,
+                       dict(self.huber_mm))
 
 
 @dataclass
@@ -42,6 +47,7 @@ class Evaluation:
     correspondence: dict  # name → (S, direction[, S·B·J_u, S·x0]): reuse with ``frozen=`` to hold them fixed
     beta: np.ndarray | None = None
     terms: list | None = None  # per data feature (name, feature, S, q, rows, local): what ``add_jacobian`` needs
+    scales: dict | None = None  # feature → (R,) Huber weight factors of its rows (features with a δ only)
 
 
 def _stats(f, wF) -> dict:
@@ -133,7 +139,7 @@ def point_distances(r, rows, n_points):
 
 
 def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: Weights, jacobian=True,
-             frozen: dict | None = None) -> Evaluation:
+             frozen: dict | None = None, scales: dict | None = None) -> Evaluation:
     """Ω(β) with residuals, per-feature statistics and (optionally) the Jacobian J = ∂f/∂β.
 
     Correspondences S_i and their normals/tangents are recomputed at β unless ``frozen``
@@ -141,13 +147,16 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     which makes Ω a smooth function of β within an LM iteration. Without the Jacobian,
     ``add_jacobian`` can add it later at the same correspondences (LM decides whether to
     go on only once it knows Ω, and the Jacobian of the last state is never needed).
+    ``scales``: Huber weight factors to hold (a previous evaluation's ``scales``), so that
+    with held correspondences Ω is one fixed weighted least-squares problem; otherwise
+    they are computed here from the residuals (``Weights.huber_mm``).
     """
     basis = model.basis
     n = basis.Ju.shape[1]
     alpha, tau, theta = beta[:n], beta[n:n + 3], beta[n + 3:n + 6]
     R = rotation(theta)
     tim = {"deform": 0.0, "kdtree": 0.0, "closest": 0.0, "jacobian": 0.0}
-    fs, ws, stats, corr, terms = [], [], {}, {}, []
+    fs, ws, stats, corr, terms, robust = [], [], {}, {}, [], {}
     geometry = {}  # model feature → (local, X, KD-tree): anterior and posterior share the liver
     for name, Y in data.items():
         feat = model.feature_for(name)
@@ -183,9 +192,18 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
         t0 = time.perf_counter()
         r, q, rows = residuals(feat.kind, p, direction)
         wF = weights.features[name] * weights.unit_m ** 2 / len(Y)
+        dist = point_distances(r, rows, len(Y))
         fs.append(r)
-        ws.append(np.full(len(r), wF))
-        stats[name] = _stats(point_distances(r, rows, len(Y)), wF)
+        if name in weights.huber_mm:
+            if scales is not None and name in scales:
+                robust[name] = scales[name]
+            else:
+                delta = weights.huber_mm[name]
+                robust[name] = (delta / np.maximum(dist, delta))[rows]
+            ws.append(wF * robust[name])
+        else:
+            ws.append(np.full(len(r), wF))
+        stats[name] = _stats(dist, wF)
         terms.append((name, feat, S, q, rows, local))
         tim["jacobian"] += time.perf_counter() - t0
     fE = float(alpha @ basis.energy @ alpha) / (2 * basis.M)
@@ -195,7 +213,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     w = np.concatenate(ws)
     stats["strain_energy"] = {"f_E_pa": fE, "omega": float(weights.energy * fE ** 2)}
     ev = Evaluation(omega=float(w @ (f * f)), f=f, w=w, J=None, features=stats, timings=tim, correspondence=corr,
-                    beta=np.array(beta, float), terms=terms)
+                    beta=np.array(beta, float), terms=terms, scales=robust)
     return add_jacobian(model, ev) if jacobian else ev
 
 
