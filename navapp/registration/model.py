@@ -13,7 +13,7 @@ on the centerline polylines; fiducials on their preoperative counterparts, row b
 """
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
@@ -57,6 +57,8 @@ class RegistrationModel:
     basis: Basis
     features: dict  # model feature name → ModelFeature
     centroid: np.ndarray  # x̄0 (3,), centroid of the mesh nodes
+    # derived data kept with the model (e.g. the multi-start ICP's vertex KD-trees)
+    cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def feature_for(self, data_name: str) -> ModelFeature:
         """The model feature a data feature slides on; a salient region the model has no

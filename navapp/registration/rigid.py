@@ -10,9 +10,14 @@ region, ridges to their ridges), and every point carries its feature's objective
 w_F / N_F, so a salient feature with few points still steers the fit. Without any surface
 data, every feature takes part. The update is the
 weighted Kabsch solution. Fiducials, when present, first give a closed-form start.
+
+``multi_start_icp`` (issue 14) runs ICP from several starting poses at once — the tracker
+pose, ±15° about each axis through the data centroid, and a principal-axes alignment —
+point-to-plane or point-to-point on the model's vertices, and returns the distinct poses
+it converged to; the pipeline picks among them by the LIBR objective.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -52,7 +57,7 @@ TOL_BEFORE_LIBR = 1e-2  # mm: ICP only initialises LIBR
 
 
 def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights(), max_iterations=100,
-              tol_mm=1e-4) -> RigidResult:
+              tol_mm=1e-4, start: "RigidResult | None" = None, features=SURFACE_FEATURES) -> RigidResult:
     """Rigid transform taking the model onto ``data`` (feature → (N, 3) mm).
 
     Each feature is thinned to at most ICP_POINTS points by an even stride (its weight
@@ -60,15 +65,17 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights()
     Stops when the weighted RMS changes by less than ``tol_mm``; the pipeline passes
     ``TOL_BEFORE_LIBR`` when LIBR follows (it refines the rigid pose anyway: β carries τ, θ)
     — on the three study phantoms with S + 3 planes that halved the ICP time
-    (0.13–0.20 → 0.06–0.11 s) and moved the final TRE by ≤ 0.03 mm.
+    (0.13–0.20 → 0.06–0.11 s) and moved the final TRE by ≤ 0.03 mm. ``start``: the pose
+    to begin from (default the identity, i.e. the tracker's pose); ``features``: the data
+    features that take part when present (``posterior`` can be added).
     """
-    R, t = np.eye(3), np.zeros(3)
-    surface = {k: v for k, v in data.items() if k in SURFACE_FEATURES}
+    R, t = (np.eye(3), np.zeros(3)) if start is None else (start.R, start.t)
+    surface = {k: v for k, v in data.items() if k in features}
     data = surface or data
     data = {k: (v[:: -(-len(v) // ICP_POINTS)] if k != "fiducials" else v) for k, v in data.items()}
     if not data:
         return RigidResult(R, t, 0, 0.0)
-    if "fiducials" in data and len(data["fiducials"]) >= 3:
+    if "fiducials" in data and len(data["fiducials"]) >= 3 and start is None:
         P = model.features["fiducials"].rest
         R, t = weighted_kabsch(P, data["fiducials"], np.ones(len(P)))
     prev = np.inf
@@ -91,3 +98,230 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights()
             break
         prev = rms
     return RigidResult(R, t, it, rms)
+
+
+RIGID_WITH_POSTERIOR = SURFACE_FEATURES + ("posterior",)
+SCREEN_POINTS = 150  # per feature in the multi-start ICP: 8 starts × all features stay cheap
+
+
+@dataclass
+class Start:
+    """One starting pose of the multi-start ICP and where it ended."""
+    label: str  # "tracker", "rx+15", …, "principal-axes"
+    R0: np.ndarray  # (3, 3) starting pose, model → data
+    t0: np.ndarray  # (3,) mm
+    result: RigidResult | None = None
+    basin: int = -1  # index of the distinct pose it converged to
+    omega: float | None = None  # LIBR Ω after the screening iterations, when screened
+    chosen: bool = False
+
+
+def _axis_rotation(axis: int, angle_rad: float) -> np.ndarray:
+    theta = np.zeros(3)
+    theta[axis] = angle_rad
+    from .rotation import rotation
+
+    return rotation(theta)
+
+
+def _vertex_normals(feat) -> np.ndarray:
+    """Area-weighted unit vertex normals (V, 3) of a surface feature at rest."""
+    X, F = feat.rest, feat.cells
+    fn = np.cross(X[F[:, 1]] - X[F[:, 0]], X[F[:, 2]] - X[F[:, 0]])  # |fn| = 2 × area
+    vn = np.zeros_like(X)
+    for j in range(3):
+        np.add.at(vn, F[:, j], fn)
+    return vn / np.maximum(np.linalg.norm(vn, axis=1, keepdims=True), 1e-300)
+
+
+def _screen_geometry(model: RegistrationModel, name: str):
+    """(KD-tree, vertices, vertex normals) of a data feature's model feature, kept on the
+    model: the multi-start ICP matches to vertices of the rest geometry, which never changes."""
+    feat = model.feature_for(name)
+    key = ("screen", id(feat))
+    if key not in model.cache:
+        normals = _vertex_normals(feat) if feat.kind == "surface" else None
+        model.cache[key] = (cKDTree(feat.rest), feat.rest, normals)
+    return model.cache[key]
+
+
+def start_poses(model: RegistrationModel, data: dict, angle_deg=15.0, principal_axes=True) -> list[Start]:
+    """The tracker pose, ±``angle_deg`` about each coordinate axis through the data
+    centroid (the expected error of a tracker-to-image set-up), and a principal-axes
+    alignment of the data with the model vertices they are nearest to."""
+    starts = [Start("tracker", np.eye(3), np.zeros(3))]
+    if not data:
+        return starts
+    pts = np.vstack(list(data.values()))
+    c = pts.mean(0)
+    for axis, name in enumerate("xyz"):
+        for sign in (1, -1):
+            Q = _axis_rotation(axis, sign * np.radians(angle_deg))
+            starts.append(Start(f"r{name}{'+' if sign > 0 else '-'}{angle_deg:g}", Q, c - Q @ c))
+    if principal_axes and len(pts) >= 4:
+        near = []
+        for name, Y in data.items():
+            if name == "fiducials":
+                near.append(model.features["fiducials"].rest)
+                continue
+            tree, X, _ = _screen_geometry(model, name)
+            near.append(X[tree.query(Y)[1]])
+        P = np.vstack(near)
+        cp = P.mean(0)
+        _, _, Vd = np.linalg.svd(pts - c, full_matrices=False)
+        _, _, Vp = np.linalg.svd(P - cp, full_matrices=False)
+        # the axes' signs are arbitrary: of the four proper sign choices take the rotation
+        # nearest the tracker pose (the set-up is known to within a few tens of degrees)
+        best = None
+        for s in ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)):
+            Rm = Vp.T @ np.diag(s) @ Vd  # data axes → model axes
+            if np.linalg.det(Rm) < 0:
+                Rm = Vp.T @ np.diag(s) @ np.diag([1, 1, -1]) @ Vd
+            angle = np.arccos(np.clip((np.trace(Rm) - 1) / 2, -1, 1))
+            if best is None or angle < best[0]:
+                best = (angle, Rm)
+        Rm = best[1]
+        starts.append(Start("principal-axes", Rm.T, c - Rm.T @ cp))
+    return starts
+
+
+def _rodrigues(w: np.ndarray) -> np.ndarray:
+    """(S, 3) rotation vectors → (S, 3, 3) rotation matrices."""
+    a = np.linalg.norm(w, axis=1)
+    k = w / np.maximum(a, 1e-300)[:, None]
+    K = np.zeros((len(w), 3, 3))
+    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
+    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
+    s, c = np.sin(a)[:, None, None], np.cos(a)[:, None, None]
+    return np.eye(3) + s * K + (1 - c) * K @ K
+
+
+def multi_start_icp(model: RegistrationModel, data: dict, starts: list[Start], weights: Weights = Weights(),
+                    mode="plane", features=SURFACE_FEATURES, max_iterations=30, tol_mm=1e-2,
+                    points=SCREEN_POINTS, basin_mm=1.5, merge_mm=0.5) -> list[Start]:
+    """ICP from every start at once; fills each start's ``result`` and ``basin``.
+
+    Parameters
+    ----------
+    data : dict
+        feature → (N, 3) mm, tracker space.
+    starts : list of Start
+        starting poses (model → data).
+    mode : {"plane", "point"}
+        point-to-plane (residual nᵀ(y − x) with the model's vertex normal n: the data
+        may slide along the surface, so a partial patch settles in a few iterations) or
+        point-to-point. Fiducials are always point-to-point with their own counterparts.
+    features : tuple of str
+        data features that take part when present (``RIGID_WITH_POSTERIOR`` adds the iUS
+        posterior-surface points).
+    tol_mm : float
+        stop a start once its step moves no data point by more than this (mm).
+    basin_mm : float
+        two final poses are one basin when they place the data within this mean distance.
+    merge_mm : float
+        a start whose pose comes within this of another's (same measure) stops and joins
+        that start's basin: most starts meet the tracker start's path after a few steps.
+
+    Each step is the weighted Gauss–Newton update of a small rotation ω and translation v
+    of the data in the model frame (6 × 6 per start, all starts solved together); points
+    match the nearest model *vertex* (4 mm mesh), which is what a start needs — LIBR then
+    refines τ and θ against the exact surfaces.
+    """
+    use = {k: v for k, v in data.items() if k in features} or dict(data)
+    use = {k: (v[:: -(-len(v) // points)] if k != "fiducials" else v) for k, v in use.items()}
+    S = len(starts)
+    R = np.stack([s.R0 for s in starts]).astype(float)
+    t = np.stack([s.t0 for s in starts]).astype(float)
+    if not use or S == 0:
+        for s in starts:
+            s.result, s.basin = RigidResult(s.R0, s.t0, 0, 0.0), 0
+        return starts
+    radius = max(float(np.linalg.norm(np.vstack(list(use.values())) - np.vstack(list(use.values())).mean(0),
+                                      axis=1).max()), 1.0)
+    probe = np.vstack(list(use.values()))
+    active = np.ones(S, bool)
+    merged = np.arange(S)  # a start that joined another's path follows that start's basin
+    iters = np.zeros(S, int)
+    rms = np.zeros(S)
+    for _ in range(max_iterations):
+        on = np.flatnonzero(active)
+        Ra, ta, n_on = R[on], t[on], len(on)
+        A = np.zeros((n_on, 6, 6))
+        g = np.zeros((n_on, 6))
+        sq = np.zeros(n_on)
+        wsum = 0.0
+        for name, Y in use.items():
+            Ym = np.einsum("snk,skj->snj", Y[None] - ta[:, None], Ra)  # (S, N, 3) in the model frame
+            wF = weights.features[name] / len(Y)
+            if name == "fiducials":
+                P = np.broadcast_to(model.features["fiducials"].rest, Ym.shape)
+                normals = None
+            else:
+                tree, X, vn = _screen_geometry(model, name)
+                idx = tree.query(Ym.reshape(-1, 3))[1].reshape(n_on, -1)
+                P = X[idx]
+                normals = vn[idx] if (mode == "plane" and vn is not None) else None
+            d = Ym - P
+            if normals is not None:
+                rows = [(np.cross(Ym, normals), normals, -np.einsum("snj,snj->sn", normals, d))]
+            else:  # point-to-point: one row per coordinate axis
+                rows = []
+                for k in range(3):
+                    e = np.zeros(3)
+                    e[k] = 1.0
+                    rows.append((np.cross(Ym, e), np.broadcast_to(e, Ym.shape), -d[..., k]))
+            for a_rot, a_tr, b in rows:
+                a = np.concatenate([a_rot, a_tr], axis=2)  # (S, N, 6): ∂r/∂(ω, v)
+                A += wF * np.einsum("sni,snj->sij", a, a)
+                g += wF * np.einsum("sni,sn->si", a, b)
+                sq += wF * np.einsum("sn,sn->s", b, b)
+            wsum += weights.features[name]
+        rms[on] = np.sqrt(sq / wsum)
+        # a little damping: a patch of data may leave a rotation weakly determined
+        diag = np.einsum("sii->si", A)
+        A_d = A + 1e-6 * np.maximum(diag, 1e-12 * diag.max())[:, :, None] * np.eye(6)
+        x = np.linalg.solve(A_d, g[..., None])[..., 0]
+        w, v = x[:, :3], x[:, 3:]
+        move = np.linalg.norm(w, axis=1) * radius + np.linalg.norm(v, axis=1)
+        # data in the model frame move as y_m ↦ Rd y_m + v, i.e. the pose (model → data)
+        # becomes x ↦ R Rdᵀ (x − v) + t
+        R_new = np.einsum("sij,skj->sik", Ra, _rodrigues(w))
+        t[on] = ta - np.einsum("sij,sj->si", R_new, v)
+        R[on] = R_new
+        iters[on] += 1
+        active[on] = move >= tol_mm
+        # starts whose paths have met go on as one: the later one is dropped
+        placed = np.einsum("snk,skj->snj", probe[None] - t[:, None], R)
+        for i in np.flatnonzero(active):
+            for j in range(S):
+                if j != i and merged[j] == j and (j < i or not active[j]) and \
+                        np.linalg.norm(placed[i] - placed[j], axis=1).mean() < merge_mm:
+                    merged[i], active[i] = j, False
+                    break
+        if not active.any():
+            break
+    # one basin per cluster of final poses, compared by where they put the data
+    placed = np.einsum("snk,skj->snj", probe[None] - t[:, None], R)
+    reps: list[int] = []  # the lowest-RMS start of each basin
+    roots = [i for i in np.argsort(rms, kind="stable") if merged[i] == i]
+    for i in roots:
+        same = [b for b, j in enumerate(reps) if np.linalg.norm(placed[i] - placed[j], axis=1).mean() < basin_mm]
+        starts[i].basin = same[0] if same else len(reps)
+        if not same:
+            reps.append(i)
+    for i, s in enumerate(starts):
+        root = i
+        while merged[root] != root:
+            root = merged[root]
+        s.basin = starts[root].basin
+        s.result = RigidResult(R[i].copy(), t[i].copy(), int(iters[i]), float(rms[i]))
+    return starts
+
+
+def basin_representatives(starts: list[Start]) -> list[Start]:
+    """The lowest-RMS start of each basin, best first."""
+    best: dict[int, Start] = {}
+    for s in starts:
+        if s.basin not in best or s.result.rms_mm < best[s.basin].result.rms_mm:
+            best[s.basin] = s
+    return sorted(best.values(), key=lambda s: s.result.rms_mm)
