@@ -54,6 +54,9 @@ def cmd_register(args):
     summary["seconds"] = {k: round(v, 4) for k, v in sec.items()}
     out = args.out or Path(args.case) / "registration"
     summary = write_outputs(case, reg, out, summary)
+    if reg.quality is not None and reg.quality.warning:
+        # one line, on stderr whatever the output format: a wrong answer must not pass silently
+        print(f"navapp: warning: {args.case}: {reg.quality.warning}", file=sys.stderr)
     if args.json:
         brief = {k: summary[k] for k in ("case", "iterations", "stop_reason", "omega") if k in summary}
         for key in ("tre_rigid", "tre_deformable"):
@@ -61,6 +64,8 @@ def cmd_register(args):
                 brief[key] = round(summary[key]["mean_mm"], 3)
         brief["seconds"] = summary["seconds"]
         brief["out"] = str(out)
+        if reg.quality is not None:
+            brief["warning"] = reg.quality.warning
         print(json.dumps(brief))
     else:
         print(f"registered {case.name}: results in {out}", file=sys.stderr)

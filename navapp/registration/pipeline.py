@@ -3,11 +3,16 @@
 Frames: the model lives in the preoperative frame; data arrive in tracker space. Rigid
 ICP gives T (model → tracker); LIBR then runs on the data brought into the model frame
 by T⁻¹, and every output point is mapped back to tracker space by T.
+
+Initialisation (issue 14, ``RobustOptions``): ICP from several starting poses, the
+distinct poses it reaches screened by a few LIBR iterations each, the lowest Ω
+continued; afterwards every feature's residual is checked against its expected noise
+(``quality.assess_fit``), and a poor fit first tries the other poses, then says so.
 """
 
 import json
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -18,9 +23,41 @@ from ..anatomy.meshing import cached_tetmesh
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from ..mechanics.interpolation import interpolation_matrix
 from .libr import LibrResult, LMOptions, register_libr
-from .model import RegistrationModel, build_model, usable_data
-from .rigid import TOL_BEFORE_LIBR, RigidResult, rigid_icp
+from .model import REGION_FEATURES, RegistrationModel, build_model, usable_data
+from .quality import FitQuality, assess_fit
+from .rigid import (RIGID_WITH_POSTERIOR, SURFACE_FEATURES, TOL_BEFORE_LIBR, RigidResult, Start, basin_representatives,
+                    multi_start_icp, rigid_icp, start_poses)
 from .rotation import rotation
+
+
+@dataclass
+class RobustOptions:
+    """How registration starts and guards itself (issue 14); the defaults are what the
+    robustness study chose (``results/robustness.md``)."""
+    multi_start: bool = True  # False: one exact point-to-point ICP from the tracker pose (the path before issue 14)
+    start_angle_deg: float = 15.0  # starts at ± this about each axis through the data centroid
+    principal_axes: bool = True  # add a principal-axes start
+    icp: str = "plane"  # "plane" | "point" (multi-start ICP)
+    rigid_posterior: bool = False  # iUS posterior-surface points join the rigid fit
+    screen_iterations: int = 2  # LIBR iterations per distinct pose before choosing by Ω
+    max_candidates: int = 3  # distinct poses screened (lowest rigid RMS first)
+    huber_salient_mm: float | None = 1.0  # Huber δ (mm) on falciform and ridge residuals; None: least squares
+    retry_poor_fit: bool = True  # a flagged fit is rerun from the other screened poses
+
+    @classmethod
+    def legacy(cls) -> "RobustOptions":
+        """Today's path before issue 14, bit for bit: single exact point-to-point ICP."""
+        return cls(multi_start=False, icp="point", screen_iterations=0, huber_salient_mm=None, retry_poor_fit=False)
+
+
+# the registration variants the robustness study compares ("after" is the default)
+METHODS = {
+    "before": RobustOptions.legacy,
+    "after": RobustOptions,
+    "multistart-LS": lambda: RobustOptions(huber_salient_mm=None),
+    "multistart-point": lambda: RobustOptions(icp="point"),
+    "multistart-posterior": lambda: RobustOptions(rigid_posterior=True),
+}
 
 
 @dataclass
@@ -30,6 +67,8 @@ class Registration:
     libr: LibrResult | None
     data_model_frame: dict
     seconds: dict = field(default_factory=dict)
+    starts: list[Start] = field(default_factory=list)  # the multi-start ICP's starts (empty: single ICP)
+    quality: FitQuality | None = None  # residuals against expected noise (deformable fits); .warning for the user
 
     def transform(self, points, beta=None, B=None) -> np.ndarray:
         """Preoperative points (P, 3) → registered positions in tracker space (P, 3).
@@ -73,26 +112,82 @@ def prepare(case: Case, edge=4.0, k=45, cache_root=None):
 
 
 def register(model: RegistrationModel, data: dict, deform=True, options: LMOptions | None = None,
-             callback=None, cancel=None, beta0=None, rigid: RigidResult | None = None) -> Registration:
+             callback=None, cancel=None, beta0=None, rigid: RigidResult | None = None,
+             init: RobustOptions | None = None) -> Registration:
     """Rigid initialisation then (unless ``deform`` is False) LIBR.
 
-    Warm start (e.g. after adding an iUS plane): pass the previous ``rigid`` result and
-    ``beta0`` = the previous β; ICP is then skipped and LM starts from β0.
+    Parameters
+    ----------
+    data : dict
+        feature → (N, 3) points, mm, tracker space.
+    rigid, beta0 :
+        warm start (e.g. after adding an iUS plane): pass the previous ``rigid`` result and
+        ``beta0`` = the previous β (3k + 6,); ICP is then skipped and LM starts from β0.
+    init : RobustOptions
+        the initialisation and fit guards (default ``RobustOptions()``).
     """
     data = usable_data(model, data)
     options = options or LMOptions()
+    init = init or RobustOptions()
+    if init.huber_salient_mm and not options.weights.huber_mm:
+        options = replace(options, weights=replace(options.weights, huber_mm={
+            n: init.huber_salient_mm for n in REGION_FEATURES}))
+    features = RIGID_WITH_POSTERIOR if init.rigid_posterior else SURFACE_FEATURES
     sec = {}
     t = time.perf_counter()
+    starts: list[Start] = []
+    candidates: list[RigidResult] = []
     if rigid is None:
-        rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4)
+        if init.multi_start:
+            starts = multi_start_icp(model, data, start_poses(model, {k: v for k, v in data.items() if k in features}
+                                                              or data, init.start_angle_deg, init.principal_axes),
+                                     options.weights, mode=init.icp, features=features)
+            candidates = [s.result for s in basin_representatives(starts)[:init.max_candidates]]
+            rigid = candidates[0]
+        else:
+            rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,
+                              features=features)
+    else:
+        candidates = [rigid]
+    screened = []  # (Ω after the screening iterations, candidate, its LibrResult)
+    if len(candidates) > 1 and init.screen_iterations > 0 and data:
+        # which basin: the LIBR objective after a few iterations, not the rigid RMS alone —
+        # a pose that leaves the data a few mm off may be the one the deformation explains
+        quick = replace(options, max_iterations=init.screen_iterations)
+        for cand in candidates:
+            res = register_libr(model, {n: cand.inverse(p) for n, p in data.items()}, None, quick, None, cancel)
+            screened.append((res.omega, cand, res))
+        screened.sort(key=lambda x: x[0])
+        rigid = screened[0][1]
+        for s in starts:
+            s.omega = next((o for o, c, _ in screened if c is s.result), None)
+    for s in starts:
+        s.chosen = s.result is rigid
+    if starts:
+        # the chosen basin's pose finished by today's exact point-to-point ICP: on the
+        # phantom cases LIBR went on to a lower Ω and TRE from it than from the
+        # vertex-matched point-to-plane pose (e.g. 0.48 against 0.95 mm)
+        rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4, start=rigid,
+                          features=features)
     sec["rigid"] = time.perf_counter() - t
     local = {name: rigid.inverse(p) for name, p in data.items()}
-    result = None
+    result, quality = None, None
     if deform:
         t = time.perf_counter()
         result = register_libr(model, local, beta0, options, callback, cancel)
+        quality = assess_fit(result.features)
+        if not quality.ok and init.retry_poor_fit and len(screened) > 1:
+            # the fit stayed far off: the other basins get a full fit before anyone is told
+            for _, cand, res in screened[1:]:
+                other_local = {n: cand.inverse(p) for n, p in data.items()}
+                other = register_libr(model, other_local, res.beta, options, None, cancel)
+                if other.omega < result.omega:
+                    for s in starts:
+                        s.chosen = s.result is cand
+                    rigid, local, result = cand, other_local, other
+            quality = assess_fit(result.features)
         sec["deformable"] = time.perf_counter() - t
-    return Registration(model, rigid, result, local, sec)
+    return Registration(model, rigid, result, local, sec, starts, quality)
 
 
 def write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dict:
@@ -104,6 +199,8 @@ def write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dict
         if mesh is not None:
             trimesh.Trimesh(reg.transform(mesh.vertices), mesh.faces, process=False).export(out / f"{name}.ply")
     summary = dict(extra)
+    if reg.quality is not None:
+        summary["fit_quality"] = reg.quality.as_dict()
     if case.targets is not None:
         x0, x1 = case.targets[:, :3], case.targets[:, 3:]
         pred = reg.transform(x0)
