@@ -24,6 +24,15 @@ def parts(coarse_mesh):
                 areas=areas, U=U, R=R)
 
 
+def test_stiffness_equals_scikit_fem(parts):
+    from skfem import Basis, ElementTetP1, ElementVector, MeshTet, asm
+    from skfem.models.elasticity import linear_elasticity
+
+    mesh = MeshTet(parts["nodes"].T.astype(float), parts["tets"].T)
+    ref = asm(linear_elasticity(*Material().lame()), Basis(mesh, ElementVector(ElementTetP1()), intorder=1))
+    assert abs(parts["K"] - ref).max() < 1e-12 * abs(ref).max()
+
+
 def test_control_points_and_tiles(parts):
     c, s, t = parts["control"], parts["surface"], parts["tiles"]
     assert len(set(c)) == len(c) and np.isin(c, s).all()
