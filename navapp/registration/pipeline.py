@@ -146,7 +146,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
             rigid = candidates[0]
         else:
             rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,
-                              features=features)
+                              features=features, multi_start=False)
     else:
         candidates = [rigid]
     screened = []  # (Ω after the screening iterations, candidate, its LibrResult)
@@ -164,11 +164,12 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     for s in starts:
         s.chosen = s.result is rigid
     if starts:
-        # the chosen basin's pose finished by today's exact point-to-point ICP: on the
+        # the chosen basin's pose is finished by today's exact point-to-point ICP: on the
         # phantom cases LIBR went on to a lower Ω and TRE from it than from the
-        # vertex-matched point-to-plane pose (e.g. 0.48 against 0.95 mm)
-        rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4, start=rigid,
-                          features=features)
+        # vertex-matched point-to-plane pose (e.g. 0.48 against 0.95 mm). Starting it from
+        # the basin's pose, not the tracker's, keeps the result independent of the offset
+        rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,
+                          start=rigid, features=features)
     sec["rigid"] = time.perf_counter() - t
     local = {name: rigid.inverse(p) for name, p in data.items()}
     result, quality = None, None
@@ -177,15 +178,17 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         result = register_libr(model, local, beta0, options, callback, cancel)
         quality = assess_fit(result.features)
         if not quality.ok and init.retry_poor_fit and len(screened) > 1:
-            # the fit stayed far off: the other basins get a full fit before anyone is told
+            # the fit stayed far off: the other basins get a full fit before anyone is told,
+            # and one replaces it only if its fit is plausible (a lower Ω that is still
+            # flagged is no reason to prefer it)
             for _, cand, res in screened[1:]:
                 other_local = {n: cand.inverse(p) for n, p in data.items()}
                 other = register_libr(model, other_local, res.beta, options, None, cancel)
-                if other.omega < result.omega:
+                other_quality = assess_fit(other.features)
+                if other_quality.ok and (quality.ok is False or other.omega < result.omega):
                     for s in starts:
                         s.chosen = s.result is cand
-                    rigid, local, result = cand, other_local, other
-            quality = assess_fit(result.features)
+                    rigid, local, result, quality = cand, other_local, other, other_quality
         sec["deformable"] = time.perf_counter() - t
     return Registration(model, rigid, result, local, sec, starts, quality)
 

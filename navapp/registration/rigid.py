@@ -57,7 +57,8 @@ TOL_BEFORE_LIBR = 1e-2  # mm: ICP only initialises LIBR
 
 
 def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights(), max_iterations=100,
-              tol_mm=1e-4, start: "RigidResult | None" = None, features=SURFACE_FEATURES) -> RigidResult:
+              tol_mm=1e-4, start: "RigidResult | None" = None, features=SURFACE_FEATURES,
+              multi_start=True) -> RigidResult:
     """Rigid transform taking the model onto ``data`` (feature → (N, 3) mm).
 
     Each feature is thinned to at most ICP_POINTS points by an even stride (its weight
@@ -66,18 +67,27 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights()
     ``TOL_BEFORE_LIBR`` when LIBR follows (it refines the rigid pose anyway: β carries τ, θ)
     — on the three study phantoms with S + 3 planes that halved the ICP time
     (0.13–0.20 → 0.06–0.11 s) and moved the final TRE by ≤ 0.03 mm. ``start``: the pose
-    to begin from (default the identity, i.e. the tracker's pose); ``features``: the data
+    to begin from; without one, ``multi_start`` begins from the lowest-RMS pose the
+    multi-start ICP reaches (``multi_start_icp``; the registration pipeline instead picks
+    among those poses by the LIBR objective and passes its choice as ``start``), and
+    ``multi_start=False`` from the identity, i.e. the tracker's pose (the path before
+    issue 14). Fiducials (≥ 3) give a closed-form start instead. ``features``: the data
     features that take part when present (``posterior`` can be added).
     """
     R, t = (np.eye(3), np.zeros(3)) if start is None else (start.R, start.t)
     surface = {k: v for k, v in data.items() if k in features}
     data = surface or data
-    data = {k: (v[:: -(-len(v) // ICP_POINTS)] if k != "fiducials" else v) for k, v in data.items()}
     if not data:
         return RigidResult(R, t, 0, 0.0)
     if "fiducials" in data and len(data["fiducials"]) >= 3 and start is None:
         P = model.features["fiducials"].rest
         R, t = weighted_kabsch(P, data["fiducials"], np.ones(len(P)))
+    elif start is None and multi_start:
+        # the same points and starts as the pipeline's, so the same poses
+        best = basin_representatives(multi_start_icp(model, data, start_poses(model, data), weights,
+                                                     features=features))[0]
+        R, t = best.result.R, best.result.t
+    data = {k: (v[:: -(-len(v) // ICP_POINTS)] if k != "fiducials" else v) for k, v in data.items()}
     prev = np.inf
     rms = 0.0
     it = 0
