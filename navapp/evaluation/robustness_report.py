@@ -81,6 +81,25 @@ def summary_tables(rows: list[dict], methods: list[str]) -> str:
         basins = [float(r["starts"] or 1) for r in mr]
         lines.append(f"| {m} | {np.median(sec):.3f} | {np.percentile(sec, 90):.3f} | {np.median(rig):.3f} | "
                      f"{np.median(basins):.0f} | {len(mr)} |")
+    # variants run on fewer draws: compared with "after" on exactly the same rows
+    base = {(r["case"], r["condition"], r["draw"], r["angle_deg"]): r for r in rows if r["method"] == "after"}
+    paired = [m for m in methods if m not in ("after", "before")]
+    if paired and base:
+        lines += ["", "### Variants against after, paired on the same rows (case, labels, draw, offset)", "",
+                  "| variant | rows | success, variant | success, after | median TRE − after (mm) | "
+                  "90th pct of the difference | worst | median s, variant / after |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for m in paired:
+            pairs = [(r, base[k]) for r in rows if r["method"] == m
+                     for k in [(r["case"], r["condition"], r["draw"], r["angle_deg"])] if k in base]
+            if not pairs:
+                continue
+            d = [float(a["tre_mm"]) - float(b["tre_mm"]) for a, b in pairs]
+            lines.append(f"| {m} | {len(pairs)} | {_pct([a['success'] for a, _ in pairs])} | "
+                         f"{_pct([b['success'] for _, b in pairs])} | {np.median(d):+.3f} | "
+                         f"{np.percentile(d, 90):+.3f} | {np.max(d):+.2f} | "
+                         f"{np.median([float(a['seconds']) for a, _ in pairs]):.3f} / "
+                         f"{np.median([float(b['seconds']) for _, b in pairs]):.3f} |")
     lines += ["", "### Poor-fit warnings (share of registrations with a flagged feature)", "",
               "| method | " + " | ".join(conds) + " |", "|---|" + "---|" * len(conds)]
     for m in methods:
