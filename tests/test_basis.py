@@ -24,6 +24,12 @@ def parts(coarse_mesh):
                 areas=areas, U=U, R=R)
 
 
+@pytest.fixture(scope="module")
+def exact_relaxed(parts):
+    p = parts
+    return relax_modes(p["K"], p["U"], p["R"], p["control"], p["surface"], p["tiles"], p["areas"])
+
+
 def test_stiffness_equals_scikit_fem(parts):
     from skfem import Basis, ElementTetP1, ElementVector, MeshTet, asm
     from skfem.models.elasticity import linear_elasticity
@@ -66,11 +72,11 @@ def test_superposition(parts):
     assert np.allclose(u, U @ combo, atol=1e-10)
 
 
-def test_relaxation_equilibrium(parts):
+def test_relaxation_equilibrium(parts, exact_relaxed):
     """Relaxed mode: far field held, zero force on interior nodes, and the load carried by
     the tile is the point-load reaction at c, spread by area (its resultant equals it)."""
     p = parts
-    Jr = relax_modes(p["K"], p["U"], p["R"], p["control"], p["surface"], p["tiles"], p["areas"])
+    Jr = exact_relaxed
     F = p["K"] @ Jr
     interior = np.setdiff1d(np.arange(len(p["nodes"])), p["surface"])
     scale = np.abs(p["R"]).max()
@@ -96,24 +102,23 @@ def test_relaxing_onto_the_point_itself_gives_the_point_load_mode(parts):
     assert np.allclose(Jr, p["U"], atol=1e-8)
 
 
-def test_local_relaxation_on_the_whole_mesh_is_the_exact_one(parts):
+def test_local_relaxation_on_the_whole_mesh_is_the_exact_one(parts, exact_relaxed):
     """Enough rings to cover the mesh: the local solve is the exact one (solver precision)."""
     p = parts
-    exact = relax_modes(p["K"], p["U"], p["R"], p["control"], p["surface"], p["tiles"], p["areas"])
+    exact = exact_relaxed
     whole = relax_modes(p["K"], p["U"], p["R"], p["control"], p["surface"], p["tiles"], p["areas"], layers=len(p["nodes"]))
     assert np.abs(whole - exact).max() < 1e-9 * np.abs(exact).max()
 
 
-def test_local_relaxation_is_local_and_close_to_exact(parts):
+def test_local_relaxation_is_local_and_close_to_exact(parts, exact_relaxed):
     """Few rings: the correction vanishes beyond them, and the modes stay within the
     error measured at 4 mm with the default 6 rings (≈ 24 mm, as 2 rings are here; per-mode
     median 2 %, max 6 %: docs/decisions.md)."""
     from navapp.mechanics.basis import grow, node_adjacency
 
     p = parts
-    args = (p["K"], p["U"], p["R"], p["control"], p["surface"], p["tiles"], p["areas"])
-    exact = relax_modes(*args)
-    local = relax_modes(*args, layers=2)
+    exact = exact_relaxed
+    local = relax_modes(p["K"], p["U"], p["R"], p["control"], p["surface"], p["tiles"], p["areas"], layers=2)
     A = node_adjacency(p["K"])
     for c in range(len(p["control"])):
         near = np.zeros(len(p["nodes"]), bool)
