@@ -43,6 +43,9 @@ class RobustOptions:
     max_candidates: int = 3  # distinct poses screened (lowest rigid RMS first)
     huber_salient_mm: float | None = 1.0  # Huber δ (mm) on falciform and ridge residuals; None: least squares
     retry_poor_fit: bool = True  # a flagged fit is rerun from the other screened poses
+    # continuation: first fit with the strain-energy weight × this (a stiffer organ that
+    # can only move rigidly and smoothly), then relax to the true weight from there; None: off
+    stiff_first: float | None = None
 
     @classmethod
     def legacy(cls) -> "RobustOptions":
@@ -57,6 +60,7 @@ METHODS = {
     "multistart-LS": lambda: RobustOptions(huber_salient_mm=None),
     "multistart-point": lambda: RobustOptions(icp="point"),
     "multistart-posterior": lambda: RobustOptions(rigid_posterior=True),
+    "after-continuation": lambda: RobustOptions(stiff_first=10.0),
 }
 
 
@@ -175,6 +179,9 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     result, quality = None, None
     if deform:
         t = time.perf_counter()
+        if init.stiff_first:
+            stiff = replace(options, weights=replace(options.weights, energy=options.weights.energy * init.stiff_first))
+            beta0 = register_libr(model, local, beta0, stiff, None, cancel).beta
         result = register_libr(model, local, beta0, options, callback, cancel)
         quality = assess_fit(result.features)
         if not quality.ok and init.retry_poor_fit and len(screened) > 1:
