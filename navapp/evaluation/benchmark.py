@@ -35,9 +35,12 @@ def scaled_liver(liver, volume_ml: float):
     return out
 
 
-def precompute_one(edge: float, k: int, volume_ml: float | None = None, relax: str = "local") -> dict:
+def precompute_one(edge: float, k: int, volume_ml: float | None = None, relax: str = "local",
+                   mesh_from: str | None = None) -> dict:
     """Run in a fresh process (cold cache dir) so that peak memory is this run's alone.
-    ``relax``: "local" (the default subdomain) or "exact" (whole-mesh relaxation)."""
+    ``relax``: "local" (the default subdomain) or "exact" (whole-mesh relaxation).
+    ``mesh_from``: a cached mesh file to start from (Gmsh does not give the same mesh twice,
+    and exact and local bases are compared on one mesh); its row then has no mesh time."""
     from ..anatomy.meshing import cached_tetmesh
     from ..anatomy.phantom import make_phantom
     from ..mechanics.basis import BasisSettings, basis_key, load_or_compute_basis
@@ -45,6 +48,8 @@ def precompute_one(edge: float, k: int, volume_ml: float | None = None, relax: s
 
     settings = BasisSettings(k=k) if relax == "local" else BasisSettings(k=k, relax_layers=None)
     root = Path(tempfile.mkdtemp(prefix="navapp-bench-"))
+    if mesh_from:
+        shutil.copy(mesh_from, root)
     liver = make_phantom(0).liver
     if volume_ml:
         liver = scaled_liver(liver, volume_ml)
@@ -54,13 +59,17 @@ def precompute_one(edge: float, k: int, volume_ml: float | None = None, relax: s
     total = time.perf_counter() - t0
     t1 = time.perf_counter()
     cached_tetmesh(liver, edge, root)
+    t2 = time.perf_counter()
     load_or_compute_basis(mesh, settings, cache_root=root)
-    reload = time.perf_counter() - t1
+    t3 = time.perf_counter()
     return {"edge_mm": edge, "k": k, "volume_ml": round(liver.volume / 1000.0), "relax": relax,
             "relax_layers": settings.relax_layers, "nodes": basis.M, "surface_nodes": len(basis.surface),
-            "seconds": {"mesh": round(rep["seconds"], 2), **{s: round(v, 2) for s, v in basis.timings.items()}},
-            "total_seconds": round(total, 2), "cache_load_seconds": round(reload, 3), "peak_memory_mb": round(peak_memory_mb()),
-            "basis_file": str(root / f"{basis_key(mesh, settings, Material())}.npz")}
+            "seconds": {"mesh": "reused" if mesh_from else round(rep["seconds"], 2),
+                        **{s: round(v, 2) for s, v in basis.timings.items()}},
+            "total_seconds": round(total, 2), "peak_memory_mb": round(peak_memory_mb()),
+            "cache_load_seconds": {"mesh": round(t2 - t1, 3), "basis": round(t3 - t2, 3), "total": round(t3 - t1, 3)},
+            "basis_file": str(root / f"{basis_key(mesh, settings, Material())}.npz"),
+            "mesh_file": str(next(root.glob("mesh-*.npz")))}
 
 
 def mode_errors(fast_file, exact_file) -> dict:
@@ -73,25 +82,27 @@ def mode_errors(fast_file, exact_file) -> dict:
 
 
 def bench_precompute(edges, ks, volume_ml=None, relax="local"):
-    """One row per (edge, k, relaxation); with relax="both" the exact and the local basis
-    are computed in turn and the local row also reports its per-mode error against exact."""
+    """One row per (edge, k, relaxation). With relax="both" the local basis is computed,
+    then the exact one on the same mesh (its row without mesh time), and the local row
+    also reports its per-mode error against exact."""
     rows = []
     for edge in edges:
         for k in ks:
             pair = {}
-            for how in (("exact", "local") if relax == "both" else (relax,)):
-                cmd = [sys.executable, "-m", "navapp.evaluation.benchmark", "precompute-one", str(edge), str(k), how]
-                if volume_ml:
-                    cmd.append(str(volume_ml))
+            for how in (("local", "exact") if relax == "both" else (relax,)):
+                cmd = [sys.executable, "-m", "navapp.evaluation.benchmark", "precompute-one", str(edge), str(k), how,
+                       str(volume_ml or 0)]
+                if pair:
+                    cmd.append(pair["local"]["mesh_file"])
                 out = subprocess.run(cmd, capture_output=True, text=True, check=True)
-                row = json.loads(out.stdout.strip().splitlines()[-1])
-                pair[how] = row
-                if how == "local" and "exact" in pair:
-                    row["mode_error_vs_exact"] = mode_errors(row["basis_file"], pair["exact"]["basis_file"])
-                print(json.dumps({n: v for n, v in row.items() if n != "basis_file"}), flush=True)
+                pair[how] = row = json.loads(out.stdout.strip().splitlines()[-1])
                 rows.append(row)
+            if len(pair) == 2:
+                pair["exact"]["mode_error_vs_local"] = mode_errors(pair["local"]["basis_file"], pair["exact"]["basis_file"])
             for row in pair.values():
                 shutil.rmtree(Path(row.pop("basis_file")).parent, ignore_errors=True)
+                row.pop("mesh_file")
+                print(json.dumps(row), flush=True)
     return rows
 
 
@@ -145,9 +156,10 @@ def bench_register(repeats=5, planes=3, k=45, edge=4.0):
     return out
 
 
-if __name__ == "__main__" and len(sys.argv) in (5, 6) and sys.argv[1] == "precompute-one":
+if __name__ == "__main__" and len(sys.argv) in (6, 7) and sys.argv[1] == "precompute-one":
     from .. import progress
 
     progress.QUIET = True
-    vol = float(sys.argv[5]) if len(sys.argv) == 6 else None
-    print(json.dumps(precompute_one(float(sys.argv[2]), int(sys.argv[3]), vol, sys.argv[4])))
+    vol = float(sys.argv[5]) or None
+    mesh_from = sys.argv[6] if len(sys.argv) == 7 else None
+    print(json.dumps(precompute_one(float(sys.argv[2]), int(sys.argv[3]), vol, sys.argv[4], mesh_from)))
