@@ -94,7 +94,7 @@ def test_open_liver(case_dir, tmp_path, phantoms):
     d = _copy(case_dir[0], tmp_path / "c")
     m = phantoms[0].liver
     _write_liver(d, trimesh.Trimesh(m.vertices, m.faces[1:], process=False))
-    with pytest.raises(InputError, match="not watertight"):
+    with pytest.raises(InputError, match="has holes.*must be closed"):
         read_case(d)
 
 

@@ -16,7 +16,6 @@ import tomli_w
 import trimesh
 
 from ..errors import InputError
-from ..geometry.triangles import self_intersecting_faces
 from .model import REGION_NAMES, VESSELS, Centerline, PreopModel, polyline_tangents
 
 FEATURES = (
@@ -113,8 +112,14 @@ def write_csv(path: Path, data: np.ndarray, columns: tuple[str, ...], integer_la
 
 # ---------------------------------------------------------------- meshes
 
-def read_surface(path: Path, closed: bool) -> trimesh.Trimesh:
-    """Read a PLY triangle surface; ``closed`` demands watertight, non-self-intersecting."""
+def read_surface(path: Path, closed: bool, what: str = "surface"):
+    """Read a PLY triangle surface and clean it (``cleanup.clean_surface``): duplicates
+    merged, specks dropped, winding made outward; holes, non-manifold edges,
+    self-intersections and several large pieces refused in one line. Returns
+    (trimesh.Trimesh, CleanupReport); what the repairs changed is warned about, naming
+    the file, so the mesher always gets exactly the surface that was checked."""
+    from .cleanup import clean_surface
+
     path = Path(path)
     try:
         mesh = trimesh.load(path, file_type="ply", process=False, force="mesh")
@@ -122,21 +127,14 @@ def read_surface(path: Path, closed: bool) -> trimesh.Trimesh:
         raise InputError(f"not a readable PLY triangle mesh ({exc})", path) from None
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError("holds no triangles", path)
-    if not np.all(np.isfinite(mesh.vertices)):
-        raise InputError("has NaN or infinite vertex coordinates", path)
-    if closed:
-        check = trimesh.Trimesh(mesh.vertices, mesh.faces, process=True)
-        if not check.is_watertight:
-            raise InputError("surface is not watertight (it has holes or non-manifold edges)", path)
-        if not check.is_winding_consistent:
-            raise InputError("surface has inconsistent triangle winding", path)
-        bad = self_intersecting_faces(check.vertices, check.faces)
-        if len(bad):
-            raise InputError(f"surface is self-intersecting ({len(bad)} triangles cross another)", path)
-    return mesh
+    clean, report = clean_surface(mesh, path, closed=closed, what=what)
+    for line in report.warnings:
+        warnings.warn(f"{path}: {line}", stacklevel=3)
+    return clean, report
 
 
-def _check_units(mesh: trimesh.Trimesh, path: Path):
+def check_liver_size(mesh: trimesh.Trimesh, path: Path):
+    """Refuse a liver whose largest extent is not that of a liver in mm (units check)."""
     size = float(mesh.extents.max())
     lo, hi = LIVER_SIZE_MM
     if size < lo:
@@ -167,13 +165,14 @@ def read_case(folder) -> Case:
     liver_path = pre / "liver.ply"
     if not liver_path.exists():
         raise InputError("missing: every case needs preop/liver.ply", liver_path)
-    liver = read_surface(liver_path, closed=True)
-    _check_units(liver, liver_path)
+    liver, cleaned = read_surface(liver_path, closed=True, what="liver surface")
+    check_liver_size(liver, liver_path)
     model = PreopModel(liver=liver, name=settings.get("name", folder.name))
     for v in VESSELS:
         p = pre / f"{v}.ply"
         if p.exists():
-            setattr(model, v, read_surface(p, closed=False))
+            vessel, _ = read_surface(p, closed=False, what=f"{v} surface")
+            setattr(model, v, vessel)
         p = pre / f"{v}_centerline.csv"
         if p.exists():
             data = read_csv(p, ("x", "y", "z", "branch"), dtype=int)
@@ -189,7 +188,14 @@ def read_case(folder) -> Case:
         model.fiducials = read_csv(fp, ("x", "y", "z"))
     rp = pre / "regions.csv"
     if rp.exists():
-        model.regions = read_regions(rp, len(liver.vertices))
+        codes = read_regions(rp, cleaned.vertices_in)
+        if cleaned.changed:
+            # labels were written per vertex of the file as it was: carry them to the cleaned surface
+            kept = cleaned.vertex_map >= 0
+            moved = np.zeros(len(liver.vertices), int)
+            moved[cleaned.vertex_map[kept]] = codes[kept]
+            codes = moved
+        model.regions = codes
     intraop = {}
     idir = folder / "intraop"
     if idir.is_dir():

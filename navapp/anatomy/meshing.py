@@ -1,12 +1,20 @@
-"""Tetrahedral meshing of the liver surface with Gmsh (GPL-2.0-or-later, pip wheel).
+"""Tetrahedral meshing of the liver surface: Gmsh first, fTetWild when Gmsh cannot.
 
-The input surface (e.g. marching-cubes output) is re-parametrised and remeshed by Gmsh at
-the requested edge length before the volume is filled with 3D Delaunay and optimised, so
-the tet quality does not depend on the quality of the triangles the user supplied.
+Gmsh (GPL-2.0-or-later, pip wheel) re-parametrises and remeshes the input surface at the
+requested edge length before filling the volume, so tet quality does not depend on the
+triangles the user supplied; re-parametrisation can fail or hang on sharp or unevenly
+triangulated surfaces, so every attempt runs in a child process under a wall-clock limit
+and fTetWild (pytetwild wheel), which needs no parametrisation, is the last resort. Every
+mesh returned meets the quality floor: no inverted tet, no dihedral angle under 5°.
 """
 
+import os
+import subprocess
+import sys
+import tempfile
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -100,20 +108,156 @@ def quality_report(mesh: TetMesh) -> dict:
     }
 
 
-def tetrahedralise(surface: trimesh.Trimesh, edge: float = 4.0, seed: int = 0) -> TetMesh:
+@dataclass(frozen=True)
+class MeshAttempt:
+    """One way of meshing: ``method`` "gmsh" (remesh the surface on re-parametrised patches
+    split at ``feature_angle`` degrees, then Delaunay + Netgen optimisation) or "ftetwild"
+    (envelope-based: never needs a parametrisation); ``limit`` s of wall clock at most."""
+
+    method: str
+    feature_angle: float = 40.0
+    limit: float | None = None  # None: scaled to the expected mesh (``attempt_limit``)
+
+
+ATTEMPTS = (
+    MeshAttempt("gmsh", 40.0),
+    MeshAttempt("gmsh", 60.0),
+    MeshAttempt("gmsh", 90.0),
+    MeshAttempt("ftetwild"),
+)
+"""Tried in order until one passes the quality floor. Gmsh at 40° gives the meshes navapp
+was measured with; larger angles make fewer, larger patches, which is what lets
+re-parametrisation succeed on sharp or unevenly triangulated surfaces; fTetWild is the
+fallback that cannot fail on a valid closed surface (choices and timings:
+docs/decisions.md, "Meshing any liver")."""
+
+def attempt_limit(attempt: MeshAttempt, surface: trimesh.Trimesh, edge: float) -> float:
+    """Seconds one attempt may take: its own ``limit``, else 30 s plus 3 ms (Gmsh) or
+    20 ms (fTetWild) per expected node (volume / (1.24 edge³) nodes, measured on the
+    phantoms), so that a large liver at a fine edge is not cut short."""
+    if attempt.limit is not None:
+        return attempt.limit
+    expected = abs(float(surface.volume)) / (1.24 * edge ** 3)
+    return 30.0 + (0.003 if attempt.method == "gmsh" else 0.02) * expected
+
+
+MIN_DIHEDRAL_DEG = 5.0  # the quality floor: no tet with a dihedral angle below this
+MESH_TIME_LIMIT = 1200.0  # s of wall clock for all attempts together ($NAVAPP_MESH_TIMEOUT)
+
+
+def time_limit() -> float:
+    """The meshing wall-clock limit in seconds: ``$NAVAPP_MESH_TIMEOUT`` or the default."""
+    try:
+        return float(os.environ.get("NAVAPP_MESH_TIMEOUT", MESH_TIME_LIMIT))
+    except ValueError:
+        raise NavappError(f"NAVAPP_MESH_TIMEOUT={os.environ['NAVAPP_MESH_TIMEOUT']!r} is not a number of seconds") from None
+
+
+def tetrahedralise(surface: trimesh.Trimesh, edge: float = 4.0, seed: int = 0, limit: float | None = None,
+                   attempts=ATTEMPTS) -> TetMesh:
     """Tet mesh of the solid bounded by ``surface`` with target edge length ``edge`` mm.
 
-    Steps: classify the triangles into smooth patches (40° feature angle) and rebuild a
-    parametrised geometry from them; remesh the surface with Frontal-Delaunay at ``edge``;
-    fill with 3D Delaunay; optimise (Gmsh's default plus Netgen's optimiser). Orphan
-    nodes are dropped and tets oriented positively.
+    ``attempts`` are tried in order, each in a child process that is killed when it
+    overruns its share of ``limit`` seconds (Gmsh cannot be interrupted from Python and
+    has been seen to hang on sharp surfaces). The first mesh with no inverted tet and no
+    dihedral angle under ``MIN_DIHEDRAL_DEG`` is returned, its nodes (M, 3) mm and tets
+    (E, 4) positively oriented; ``mesh.log`` says what was tried. Raises ``NavappError``
+    in one line when every attempt failed or the time ran out.
     """
-    import gmsh
+    mesh, _ = _mesh_with_log(surface, edge, seed, limit, attempts)
+    return mesh
 
-    if not surface.is_watertight:
-        raise NavappError("liver surface is not watertight: cannot mesh its volume")
+
+def _mesh_with_log(surface, edge, seed, limit, attempts):
     if edge <= 0:
         raise NavappError("edge length must be positive")
+    if not surface.is_watertight:
+        raise NavappError("liver surface is not watertight: cannot mesh its volume")
+    limit = time_limit() if limit is None else float(limit)
+    deadline = time.monotonic() + limit
+    log = []
+    v = np.asarray(surface.vertices, float)
+    f = np.asarray(surface.faces, np.int64)
+    gmsh_hung = False
+    for attempt in attempts:
+        remaining = deadline - time.monotonic()
+        if remaining <= 1.0:
+            break
+        if gmsh_hung and attempt.method == "gmsh":
+            continue  # a Gmsh hang is a property of the surface, not of the angle
+        t0 = time.perf_counter()
+        try:
+            nodes, tets = _run_attempt(v, f, edge, seed, attempt, min(attempt_limit(attempt, surface, edge), remaining))
+        except _AttemptFailed as exc:
+            log.append({"method": _label(attempt), "outcome": str(exc), "seconds": round(time.perf_counter() - t0, 1)})
+            gmsh_hung |= exc.timed_out and attempt.method == "gmsh"
+            continue
+        mesh = _tidy(nodes, tets)
+        q = quality_report(mesh)
+        entry = {"method": _label(attempt), "seconds": round(time.perf_counter() - t0, 1), "nodes": q["nodes"],
+                 "min_dihedral_deg": round(q["min_dihedral_deg"], 2)}
+        if q["inverted"] or q["tets_below_5deg"] or q["min_dihedral_deg"] < MIN_DIHEDRAL_DEG:
+            entry["outcome"] = (f"below the quality floor ({q['inverted']} inverted, {q['tets_below_5deg']} tets "
+                                f"under {MIN_DIHEDRAL_DEG:g}°)")
+            log.append(entry)
+            continue
+        entry["outcome"] = "ok"
+        log.append(entry)
+        return mesh, log
+    return _give_up(log, limit, deadline)
+
+
+def _give_up(log, limit, deadline):
+    if time.monotonic() >= deadline - 1.0:
+        raise NavappError(f"meshing did not finish within {limit:g} s (tried: "
+                          f"{'; '.join(e['method'] + ': ' + e['outcome'] for e in log) or 'nothing'}); "
+                          "raise NAVAPP_MESH_TIMEOUT or simplify the surface")
+    raise NavappError("could not mesh the liver: " + "; ".join(f"{e['method']}: {e['outcome']}" for e in log))
+
+
+def _label(attempt: MeshAttempt) -> str:
+    return f"gmsh {attempt.feature_angle:g}°" if attempt.method == "gmsh" else attempt.method
+
+
+class _AttemptFailed(Exception):
+    def __init__(self, message, timed_out=False):
+        super().__init__(message)
+        self.timed_out = timed_out
+
+
+def _run_attempt(v, f, edge, seed, attempt: MeshAttempt, limit: float):
+    """Run one attempt in ``python -m navapp.anatomy.mesh_worker`` (a fresh interpreter:
+    forking a process with viser's threads is unsafe, and spawn would re-run the caller's
+    script) and kill it if it overruns ``limit`` seconds."""
+    with tempfile.TemporaryDirectory(prefix="navapp-mesh-") as tmp:
+        src, dst = Path(tmp, "in.npz"), Path(tmp, "out.npz")
+        np.savez(src, vertices=v, faces=f, edge=edge, seed=seed, method=attempt.method,
+                 feature_angle=attempt.feature_angle)
+        env = dict(os.environ, OMP_NUM_THREADS="1")
+        proc = subprocess.Popen([sys.executable, "-m", "navapp.anatomy.mesh_worker", str(src), str(dst)],
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+        try:
+            _, err = proc.communicate(timeout=limit)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+            raise _AttemptFailed(f"stopped after {limit:.0f} s", timed_out=True) from None
+        if not dst.exists():
+            tail = err.decode(errors="replace").strip().splitlines()
+            raise _AttemptFailed(tail[-1] if tail else f"the mesher exited with status {proc.returncode}")
+        with np.load(dst) as out:
+            if "error" in out:
+                raise _AttemptFailed(str(out["error"]))
+            return out["nodes"], out["tets"]
+
+
+def gmsh_mesh(v: np.ndarray, f: np.ndarray, edge: float, seed: int = 0, feature_angle: float = 40.0):
+    """Gmsh in this process: classify the triangles into smooth patches at
+    ``feature_angle`` degrees and rebuild a parametrised geometry; remesh the surface with
+    Frontal-Delaunay at ``edge``; fill with 3D Delaunay; optimise (Gmsh's default plus
+    Netgen's). Returns raw (nodes (N, 3), tets (E, 4)); raises ``NavappError``."""
+    import gmsh
+
     initialised = gmsh.isInitialized()
     if not initialised:
         gmsh.initialize(interruptible=False)
@@ -122,12 +266,10 @@ def tetrahedralise(surface: trimesh.Trimesh, edge: float = 4.0, seed: int = 0) -
         gmsh.option.setNumber("General.NumThreads", 1)
         gmsh.option.setNumber("Mesh.RandomSeed", seed)
         gmsh.model.add("liver")
-        v = np.asarray(surface.vertices, float)
-        f = np.asarray(surface.faces)
         s = gmsh.model.addDiscreteEntity(2)
-        gmsh.model.mesh.addNodes(2, s, np.arange(1, len(v) + 1), v.ravel())
-        gmsh.model.mesh.addElementsByType(s, 2, [], (f + 1).ravel())
-        gmsh.model.mesh.classifySurfaces(np.radians(40), True, True, np.pi)
+        gmsh.model.mesh.addNodes(2, s, np.arange(1, len(v) + 1), np.asarray(v, float).ravel())
+        gmsh.model.mesh.addElementsByType(s, 2, [], (np.asarray(f) + 1).ravel())
+        gmsh.model.mesh.classifySurfaces(np.radians(feature_angle), True, True, np.pi)
         gmsh.model.mesh.createGeometry()
         surfaces = [t for _, t in gmsh.model.getEntities(2)]
         loop = gmsh.model.geo.addSurfaceLoop(surfaces)
@@ -145,38 +287,83 @@ def tetrahedralise(surface: trimesh.Trimesh, edge: float = 4.0, seed: int = 0) -
         tags, coords, _ = gmsh.model.mesh.getNodes()
         etypes, _, enodes = gmsh.model.mesh.getElements(3)
     except Exception as exc:  # gmsh raises bare Exception with its own message
-        raise NavappError(f"Gmsh failed to mesh the liver: {exc}") from None
+        raise NavappError(f"Gmsh failed: {exc}") from None
     finally:
         gmsh.model.remove()
         if not initialised:
             gmsh.finalize()
     if 4 not in list(etypes):
-        raise NavappError("Gmsh produced no tetrahedra (is the surface closed and not self-intersecting?)")
+        raise NavappError("Gmsh produced no tetrahedra")
     tet_tags = np.asarray(enodes[list(etypes).index(4)], np.int64).reshape(-1, 4)
     index = np.full(int(tags.max()) + 1, -1, np.int64)
     index[tags.astype(np.int64)] = np.arange(len(tags))
-    tets = index[tet_tags]
-    nodes = coords.reshape(-1, 3)
+    return coords.reshape(-1, 3), index[tet_tags]
+
+
+def ftetwild_mesh(v: np.ndarray, f: np.ndarray, edge: float):
+    """fTetWild (MPL-2.0, via the pytetwild wheel) in this process: an envelope-based
+    tetrahedralisation that needs no surface parametrisation, so it meshes any closed
+    surface; the boundary stays within 1e-3 of the bounding-box diagonal of the input.
+    Returns raw (nodes (N, 3), tets (E, 4))."""
+    wrapper = _pytetwild_wrapper()
+    nodes, tets = wrapper.tetrahedralize_mesh(
+        np.asarray(v, np.float64), np.asarray(f, np.uint32), True, False, 0.05, float(edge), 1e-3, 10.0, False, 1,
+        80, 6, True, False, False, np.empty((0, 3)), np.empty((0, 4), np.int32), np.empty(0))
+    return np.asarray(nodes, float), np.asarray(tets, np.int64)
+
+
+def _pytetwild_wrapper():
+    """pytetwild's compiled module. Its package ``__init__`` imports pyvista (with VTK,
+    ~0.6 GB) although its metadata lists pyvista as optional; navapp needs only the
+    compiled fTetWild binding, so it loads that directly when pyvista is absent."""
+    try:
+        from pytetwild import PyfTetWildWrapper
+
+        return PyfTetWildWrapper
+    except ImportError:
+        pass
+    import glob
+    import importlib.machinery
+    import importlib.util
+
+    spec = importlib.util.find_spec("pytetwild")
+    if spec is None or not spec.submodule_search_locations:
+        raise NavappError("the fallback mesher needs pytetwild (pip install pytetwild)")
+    found = glob.glob(os.path.join(spec.submodule_search_locations[0], "PyfTetWildWrapper*"))
+    found = [p for p in found if not p.endswith(".pyi")]
+    if not found:
+        raise NavappError("pytetwild is installed without its compiled fTetWild module")
+    loader = importlib.machinery.ExtensionFileLoader("pytetwild.PyfTetWildWrapper", found[0])
+    module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
+    loader.exec_module(module)
+    return module
+
+
+def _tidy(nodes, tets) -> TetMesh:
+    """Drop orphan nodes, orient every tet positively."""
     used = np.unique(tets)
     remap = np.full(len(nodes), -1, np.int64)
     remap[used] = np.arange(len(used))
     nodes, tets = nodes[used], remap[tets]
     neg = tet_volumes(nodes, tets) < 0
     tets[neg] = tets[neg][:, [0, 2, 1, 3]]
-    return TetMesh(nodes=np.ascontiguousarray(nodes), tets=np.ascontiguousarray(tets))
+    return TetMesh(nodes=np.ascontiguousarray(nodes, float), tets=np.ascontiguousarray(tets))
 
 
-def mesh_liver(surface: trimesh.Trimesh, edge: float = 4.0) -> tuple[TetMesh, dict]:
-    """Mesh and report: returns the mesh and its quality report with ``seconds``."""
+def mesh_liver(surface: trimesh.Trimesh, edge: float = 4.0, limit: float | None = None) -> tuple[TetMesh, dict]:
+    """Mesh and report: returns the mesh and its quality report with ``seconds``,
+    ``method`` (the attempt that succeeded) and ``attempts`` (what was tried)."""
     t0 = time.perf_counter()
-    mesh = tetrahedralise(surface, edge)
+    mesh, log = _mesh_with_log(surface, edge, 0, limit, ATTEMPTS)
     report = quality_report(mesh)
     report["edge_mm"] = edge
+    report["method"] = log[-1]["method"]
+    report["attempts"] = log
     report["seconds"] = round(time.perf_counter() - t0, 3)
     return mesh, report
 
 
-MESHER_VERSION = "gmsh-delaunay-netgen-1"
+MESHER_VERSION = "mesh-chain-2"  # gmsh 40/60/90° then fTetWild, each checked against the floor
 
 
 def cached_tetmesh(surface: trimesh.Trimesh, edge: float = 4.0, cache_root=None) -> tuple[TetMesh, dict]:
