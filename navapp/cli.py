@@ -55,6 +55,35 @@ def cmd_mesh(args):
     print(json.dumps({k: (round(v, 3) if isinstance(v, float) else v) for k, v in report.items()}))
 
 
+def cmd_import(args):
+    from .anatomy.importer import import_case
+
+    labels = None
+    if args.labels:
+        try:
+            labels = {k.strip(): int(v) for k, v in (item.split("=") for item in args.labels.split(","))}
+        except ValueError:
+            raise NavappError(f"--labels {args.labels!r}: expected liver=N,portal=N,hepatic=N") from None
+    falciform = None
+    if args.falciform:
+        try:
+            falciform = [[float(x) for x in p.split(",")] for p in args.falciform]
+        except ValueError:
+            raise NavappError("--falciform takes two points X,Y,Z X,Y,Z (mm, in the files' frame)") from None
+        if any(len(p) != 3 for p in falciform):
+            raise NavappError("--falciform takes two points X,Y,Z X,Y,Z (mm, in the files' frame)")
+    centerlines = {v: p for v, p in (("portal", args.portal_centerline), ("hepatic", args.hepatic_centerline)) if p}
+    with progress.stage("importing"):
+        rep = import_case(args.out, liver=args.liver, portal=args.portal, hepatic=args.hepatic,
+                          labelmap=args.labelmap, labels=labels, frame=args.frame, falciform=falciform,
+                          regions=args.regions, centerlines=centerlines or None, overwrite=args.overwrite)
+    for line in rep.lines:
+        print(f"navapp: {line}", file=sys.stderr)
+    for line in rep.warnings:
+        print(f"navapp: warning: {line}", file=sys.stderr)
+    print(json.dumps({"out": str(args.out), "frame": rep.frame, "warnings": len(rep.warnings)}))
+
+
 def cmd_precompute(args):
     from .anatomy.caseio import read_case
     from .anatomy.meshing import cached_tetmesh
@@ -181,6 +210,23 @@ def build_parser():
     s.add_argument("--liver", type=int, default=0, help="phantom index (0, 1, 2, …; default 0)")
     s.add_argument("--out", type=Path, required=True, help="case folder to write")
     s.set_defaults(func=cmd_phantom)
+
+    s = sub.add_parser("import", help="make a case folder from a patient's surfaces (STL/OBJ/PLY/VTK/VTP) or label map "
+                                      "(NIfTI/NRRD/.seg.nrrd), e.g. a 3D Slicer export")
+    s.add_argument("--out", type=Path, required=True, help="case folder to write")
+    s.add_argument("--liver", type=Path, help="liver surface file")
+    s.add_argument("--portal", type=Path, help="portal vein surface file")
+    s.add_argument("--hepatic", type=Path, help="hepatic vein surface file")
+    s.add_argument("--labelmap", type=Path, help="label map (instead of, or besides, surfaces)")
+    s.add_argument("--labels", help="label values, e.g. liver=1,portal=2,hepatic=3 (default: Slicer segment names)")
+    s.add_argument("--frame", type=str.upper, choices=("LPS", "RAS", "LAS"),
+                   help="frame of the surface files (3D Slicer exports STL/OBJ in LPS by default)")
+    s.add_argument("--falciform", nargs=2, metavar="X,Y,Z", help="two points on the falciform ligament (mm, files' frame)")
+    s.add_argument("--regions", type=Path, help="your regions.csv (one label per liver vertex); default: automatic")
+    s.add_argument("--portal-centerline", type=Path, help="your portal centerline CSV (x,y,z,branch); default: skeleton")
+    s.add_argument("--hepatic-centerline", type=Path, help="your hepatic centerline CSV; default: skeleton")
+    s.add_argument("--overwrite", action="store_true", help="write into a non-empty --out")
+    s.set_defaults(func=cmd_import)
 
     s = sub.add_parser("mesh", help="tetrahedralise a case's liver and print mesh statistics as JSON")
     s.add_argument("case", type=Path, help="case folder")

@@ -128,6 +128,7 @@ def read_surface(path: Path, closed: bool, what: str = "surface"):
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise InputError("holds no triangles", path)
     clean, report = clean_surface(mesh, path, closed=closed, what=what)
+    clean.metadata["file_path"] = str(path)  # named by the mesher's errors
     for line in report.warnings:
         warnings.warn(f"{path}: {line}", stacklevel=3)
     return clean, report

@@ -379,8 +379,12 @@ def cached_tetmesh(surface: trimesh.Trimesh, edge: float = 4.0, cache_root=None)
         report = quality_report(mesh)
         report.update(edge_mm=edge, seconds=0.0, cached=True)
         return mesh, report
-    with progress.stage(f"meshing at {edge:g} mm (Gmsh)"):
-        mesh, report = mesh_liver(surface, edge)
+    with progress.stage(f"meshing the liver at {edge:g} mm"):
+        try:
+            mesh, report = mesh_liver(surface, edge)
+        except NavappError as exc:
+            source = surface.metadata.get("file_path")
+            raise NavappError(f"{source}: {exc}" if source else str(exc)) from None
     report["cached"] = False
     cache.save(path, {"nodes": mesh.nodes, "tets": mesh.tets})
     return mesh, report
