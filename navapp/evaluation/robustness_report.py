@@ -163,9 +163,17 @@ pose, ±15° about each axis, principal axes), distinct poses screened by two LI
 iterations and chosen by Ω, finished by the exact ICP, Huber δ = 1 mm on the salient
 features, a flagged fit retried from the other poses; **multistart-LS** — the same without
 Huber; **multistart-point** — point-to-point multi-start ICP; **multistart-posterior** — the
-iUS posterior-surface points in the rigid fit. Times are wall-clock on a shared 2-core
+iUS posterior-surface points in the rigid fit; **after-continuation** — the default with a
+first LIBR fit at 10 × the strain-energy weight, then the true weight from there. The
+variants ran on fewer draws or offsets (see the row counts) and are compared with "after"
+on the same rows. Times are wall-clock on a shared 2-core
 machine with two registrations running at once and other users' jobs alongside: compare
 methods within this table, not with the benchmarks.
+
+The committed rows: `run_robustness(cases, "results/robustness.csv", methods=M, draws=D,
+workers=2, offsets=O)` (what `navapp study robustness` calls with before and after, 4
+draws, all offsets) for M = (before, after, multistart-LS), D = 4; M = (multistart-point,
+multistart-posterior), D = 2; M = (after-continuation,), D = 4, O = 0° only.
 
 """
 
