@@ -4,7 +4,9 @@ Point-to-point ICP between the digitised surface data (stylus: anterior, falcifo
 and fiducials) and the model surface (as DESIGN.md §1 says; iUS contours and iUS posterior
 points join only in the deformable stage — measured on
 phantom2-R with 3 planes, letting them steer ICP gave a 10.3 mm final TRE against 2.8 mm
-with stylus data alone, the contours pulling the pose toward the wrong branches). Each
+with stylus data alone, the contours pulling the pose toward the wrong branches; and over
+the robustness study's grid, the posterior points in the multi-start ICP gave 94.8 %
+success against 98.1 % without, on 270 paired registrations; ``features`` can add them). Each
 feature finds closest points on its own model feature only (falciform to the falciform
 region, ridges to their ridges), and every point carries its feature's objective weight
 w_F / N_F, so a salient feature with few points still steers the fit. Without any surface
