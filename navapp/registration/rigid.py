@@ -19,7 +19,7 @@ point-to-plane or point-to-point on the model's vertices, and returns the distin
 it converged to; the pipeline picks among them by the LIBR objective.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
