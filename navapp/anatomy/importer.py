@@ -60,6 +60,8 @@ def read_any_surface(path) -> trimesh.Trimesh:
 
 
 def _read_vtk(path: Path) -> trimesh.Trimesh:
+    if _suffix(path) == ".vtp":
+        return _read_vtp(path)
     import meshio
 
     try:
@@ -71,6 +73,22 @@ def _read_vtk(path: Path) -> trimesh.Trimesh:
         kinds = sorted({c.type for c in m.cells})
         raise InputError(f"holds no triangles (cells: {', '.join(kinds) or 'none'})", path)
     return trimesh.Trimesh(np.asarray(m.points, float)[:, :3], np.concatenate(tris), process=False)
+
+
+def _read_vtp(path: Path) -> trimesh.Trimesh:
+    """VTK XML PolyData: meshio has no reader for it, VTK has (through pyvista, optional:
+    VTK is 0.6 GB, too much to require for one file format)."""
+    try:
+        import pyvista
+    except ImportError:
+        raise InputError("reading VTP needs pyvista (pip install pyvista); or export the model as VTK, STL or "
+                         "OBJ", path) from None
+    try:
+        poly = pyvista.read(path).triangulate()
+    except Exception as exc:  # VTK raises many types for a bad file
+        raise InputError(f"not a readable VTP file ({_short(exc)})", path) from None
+    faces = np.asarray(poly.faces).reshape(-1, 4)[:, 1:]
+    return trimesh.Trimesh(np.asarray(poly.points, float), faces, process=False)
 
 
 def _short(exc: Exception) -> str:

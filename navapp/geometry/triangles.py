@@ -42,7 +42,20 @@ def self_intersecting_faces(vertices, faces, max_pairs=20_000_000):
     tri = v[f]
     cen = tri.mean(1)
     rad = np.linalg.norm(tri - cen[:, None], axis=2).max(1)
-    pairs = cKDTree(cen).query_pairs(2 * rad.max(), output_type="ndarray")
+    # one search radius for the bulk, and the few large triangles (decimated surfaces have
+    # some) searched one by one, so that one large triangle does not make every pair a candidate
+    tree = cKDTree(cen)
+    r_small = float(np.percentile(rad, 99))
+    pairs = [tree.query_pairs(2 * r_small, output_type="ndarray")]
+    big = np.flatnonzero(rad > r_small)
+    for b, near in zip(big, tree.query_ball_point(cen[big], rad[big] + r_small), strict=True):
+        near = np.asarray(near, int)
+        pairs.append(np.column_stack([np.full(len(near), b), near]))
+    if len(big) > 1:
+        bb = np.array(np.triu_indices(len(big), 1)).T
+        pairs.append(big[bb])
+    pairs = np.concatenate([p.reshape(-1, 2) for p in pairs])
+    pairs = np.unique(np.sort(pairs[pairs[:, 0] != pairs[:, 1]], axis=1), axis=0)
     if len(pairs) > max_pairs:
         raise MemoryError("surface too large for the self-intersection test")
     i, j = pairs[:, 0], pairs[:, 1]

@@ -1,0 +1,182 @@
+"""Any patient's liver: surfaces in the formats 3D Slicer exports, label maps voxelised
+here (NIfTI via nibabel, NRRD via pynrrd) in LPS and RAS, and damaged surfaces; each either
+comes through or ends in one line naming the file."""
+
+import json
+
+import meshio
+import nibabel
+import nrrd
+import numpy as np
+import pytest
+import trimesh
+from scipy.spatial import cKDTree
+
+import surface_fixtures as sf
+from navapp.anatomy.caseio import read_case
+from navapp.anatomy.cleanup import clean_surface, vessels_outside
+from navapp.anatomy.importer import import_case, read_any_surface, read_labelmap
+from navapp.anatomy.skeleton import voxelize
+from navapp.cli import main
+from navapp.errors import InputError
+
+LPS = np.diag([1.0, -1.0, 1.0])  # navapp's LAS ↔ LPS: flip y (a mirror: winding reverses)
+
+
+def _to_lps(mesh):
+    return trimesh.Trimesh(mesh.vertices @ LPS, mesh.faces[:, ::-1], process=False)
+
+
+@pytest.mark.parametrize("fmt", ["stl", "stl_ascii", "obj", "ply", "vtk"])
+def test_surface_formats_round_trip(phantoms, tmp_path, fmt):
+    liver = phantoms[0].liver
+    path = tmp_path / f"liver.{fmt.split('_')[0]}"
+    if fmt == "vtk":
+        meshio.write(path, meshio.Mesh(liver.vertices, [("triangle", liver.faces)]))
+    else:
+        liver.export(path, file_type="stl_ascii" if fmt == "stl_ascii" else fmt.split("_")[0])
+    clean, rep = clean_surface(read_any_surface(path), path)
+    # STL stores each corner separately: merged back to exactly the phantom's vertices
+    assert len(clean.vertices) == len(liver.vertices)
+    assert np.abs(np.sort(clean.vertices, axis=0) - np.sort(liver.vertices, axis=0)).max() < 1e-4
+    assert clean.volume == pytest.approx(liver.volume, rel=1e-5)
+    assert (rep.merged_vertices > 0) == fmt.startswith("stl")
+
+
+def test_vtp_without_pyvista_is_one_line(tmp_path):
+    pytest.importorskip("meshio")
+    try:
+        import pyvista  # noqa: F401
+        pytest.skip("pyvista is installed: VTP is read through it")
+    except ImportError:
+        pass
+    (tmp_path / "liver.vtp").write_text("<VTKFile/>")
+    with pytest.raises(InputError, match=r"liver\.vtp: reading VTP needs pyvista"):
+        read_any_surface(tmp_path / "liver.vtp")
+
+
+def test_import_lps_stl_gives_the_phantom_in_navapp_frame(phantoms, tmp_path):
+    m = phantoms[0]
+    for name in ("liver", "portal", "hepatic"):
+        _to_lps(getattr(m, name)).export(tmp_path / f"{name}.stl")
+    out = tmp_path / "case"
+    rep = import_case(out, liver=tmp_path / "liver.stl", portal=tmp_path / "portal.stl",
+                      hepatic=tmp_path / "hepatic.stl", frame="LPS")
+    case = read_case(out)
+    assert rep.frame == "LPS"
+    d, _ = cKDTree(m.liver.vertices).query(case.preop.liver.vertices)
+    assert d.max() < 1e-4  # exactly the phantom (float32 STL), in navapp's frame
+    assert case.preop.liver.volume > 0
+    assert case.settings["frame"]["source"] == "LPS"
+    assert np.allclose(case.settings["frame"]["source_to_case"], np.diag([1, -1, 1, 1]))
+    # automatic labels and skeleton centerlines exist and the registration reads them
+    assert case.preop.regions is not None and case.preop.portal_centerline is not None
+    agree = (case.preop.regions[cKDTree(m.liver.vertices).query(case.preop.liver.vertices)[1]] == m.regions)
+    assert agree.mean() > 0.9
+
+
+def test_surface_without_a_frame_is_refused(phantoms, tmp_path):
+    phantoms[0].liver.export(tmp_path / "liver.stl")
+    with pytest.raises(InputError, match=r"liver\.stl: its frame is unknown: give --frame"):
+        import_case(tmp_path / "case", liver=tmp_path / "liver.stl")
+
+
+def _voxelise(liver, spacing):
+    inside, origin = voxelize(liver, spacing)
+    return inside.astype(np.uint8), origin
+
+
+@pytest.mark.parametrize("kind", ["nifti_ras", "nrrd_lps", "seg_nrrd_lps"])
+def test_labelmap_round_trip_within_a_voxel(phantoms, tmp_path, kind):
+    liver = phantoms[0].liver
+    spacing = 1.5
+    mask, origin = _voxelise(liver, spacing)  # voxel centres in navapp's LAS frame
+    if kind == "nifti_ras":
+        # RAS: x_ras = -x_las; store the volume with the i axis pointing to the right
+        affine = np.diag([-spacing, spacing, spacing, 1.0])
+        affine[:3, 3] = [-origin[0], origin[1], origin[2]]
+        path = tmp_path / "seg.nii.gz"
+        nibabel.save(nibabel.Nifti1Image(mask, affine), str(path))
+    else:
+        # LPS with an anisotropic, non-axis-sign-preserving direction (j points posterior)
+        directions = np.diag([spacing, -spacing, spacing])
+        header = {"space": "left-posterior-superior", "space directions": directions,
+                  "space origin": np.array([origin[0], -origin[1], origin[2]])}
+        if kind == "seg_nrrd_lps":
+            header.update({"Segment0_Name": "Liver", "Segment0_LabelValue": "1", "Segment0_Layer": "0"})
+        path = tmp_path / ("liver.seg.nrrd" if kind == "seg_nrrd_lps" else "liver.nrrd")
+        nrrd.write(str(path), mask, header)
+    lm = read_labelmap(path)
+    assert lm.frame == ("RAS" if kind == "nifti_ras" else "LPS")
+    out = tmp_path / "case"
+    import_case(out, labelmap=path)
+    got = read_case(out).preop.liver
+    d, _ = cKDTree(liver.vertices).query(got.vertices)
+    assert np.median(d) < 0.5 * spacing and d.max() < 1.5 * spacing  # within a voxel
+    assert got.volume == pytest.approx(liver.volume, rel=0.04)
+    assert np.abs(got.centroid - liver.centroid).max() < 0.5 * spacing  # no axis mirrored
+
+
+def test_cleanup_repairs_and_says_so(phantoms):
+    liver = phantoms[0].liver
+    flipped, rep = clean_surface(sf.inward(liver), "in.ply")
+    assert rep.flipped and flipped.volume > 0 and "outward" in " ".join(rep.warnings)
+    specked, rep = clean_surface(sf.with_speck(liver), "speck.ply")
+    assert len(rep.specks) == 1 and len(specked.faces) == len(liver.faces)
+    merged, rep = clean_surface(sf.unmerged(liver), "soup.stl")
+    assert merged.is_watertight and len(merged.vertices) == len(liver.vertices)
+    assert rep.merged_vertices == 3 * len(liver.faces) - len(liver.vertices)
+
+
+@pytest.mark.parametrize("damage, message", [
+    (sf.with_hole, r"hole\.stl: liver surface has holes \(\d+ open edges\)"),
+    (sf.two_livers, r"hole\.stl: liver surface has 2 large separate pieces"),
+    (sf.self_intersecting, r"hole\.stl: liver surface is self-intersecting"),
+])
+def test_cleanup_refuses_in_one_line(phantoms, damage, message):
+    with pytest.raises(InputError, match=message) as err:
+        clean_surface(damage(phantoms[0].liver), "hole.stl", what="liver surface")
+    assert "\n" not in str(err.value)
+
+
+def test_cli_import_refusal_is_one_line(phantoms, tmp_path, capsys):
+    _to_lps(sf.with_hole(phantoms[0].liver)).export(tmp_path / "liver.stl")
+    code = main(["--quiet", "import", "--liver", str(tmp_path / "liver.stl"), "--frame", "LPS",
+                 "--out", str(tmp_path / "case")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and err[0].startswith("navapp: error: ") and "liver.stl" in err[0]
+
+
+def test_vessels_outside_the_liver_are_warned(phantoms, tmp_path):
+    m = phantoms[0]
+    assert vessels_outside(m.liver, m.portal)[0] < 0.01
+    moved = m.portal.copy()
+    moved.apply_translation([0, 0, 40.0])
+    fraction, far = vessels_outside(m.liver, moved)
+    assert fraction > 0.05 and far > 5
+    for name, mesh in (("liver", m.liver), ("portal", moved)):
+        mesh.export(tmp_path / f"{name}.ply")
+    rep = import_case(tmp_path / "case", liver=tmp_path / "liver.ply", portal=tmp_path / "portal.ply", frame="LAS")
+    assert any("lie outside the liver" in w and "portal.ply" in w for w in rep.warnings)
+
+
+def test_read_case_keeps_labels_through_cleanup(tmp_path, phantoms):
+    """A case whose liver.ply faces inward still reads, outward, with its regions."""
+    from navapp.anatomy.caseio import write_preop
+
+    d = tmp_path / "c"
+    write_preop(phantoms[0], d)
+    liver = phantoms[0].liver
+    trimesh.Trimesh(liver.vertices, liver.faces[:, ::-1], process=False).export(d / "preop" / "liver.ply")
+    with pytest.warns(UserWarning, match="turned outward"):
+        case = read_case(d)
+    assert case.preop.liver.volume > 0
+    assert np.array_equal(case.preop.regions, phantoms[0].regions)
+
+
+def test_import_cli_prints_json(phantoms, tmp_path, capsys):
+    phantoms[1].liver.export(tmp_path / "liver.ply")
+    assert main(["--quiet", "import", "--liver", str(tmp_path / "liver.ply"), "--frame", "LAS",
+                 "--out", str(tmp_path / "case")]) == 0
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["frame"] == "LAS"
