@@ -34,3 +34,67 @@ def test_open_surface_refused():
     s = trimesh.creation.icosphere(2, radius=50.0)
     with pytest.raises(NavappError, match="watertight"):
         tetrahedralise(trimesh.Trimesh(s.vertices, s.faces[1:]), 10.0)
+
+
+# ---------------------------------------------------------------- any liver
+
+import surface_fixtures as sf  # noqa: E402
+
+from navapp.anatomy.meshing import MeshAttempt, mesh_liver, quality_report as _q  # noqa: E402
+
+
+def _floor(mesh):
+    r = _q(mesh)
+    assert r["inverted"] == 0 and r["tets_below_5deg"] == 0 and r["min_dihedral_deg"] >= 5.0
+    return r
+
+
+@pytest.fixture(scope="module")
+def sharp():
+    """The plane-cut liver at 3 mm: Gmsh cannot mesh it at 40° (seen both as the error
+    users met, "Wrong topology of boundary mesh for parametrization", and as a hang)."""
+    return sf.sharp_ridged_liver(3.0)
+
+
+@pytest.fixture(scope="module")
+def fallback_run(sharp):
+    from navapp.anatomy.meshing import _mesh_with_log
+
+    # Gmsh fails on this surface, by an error or by hanging (which of the two depends on
+    # the last bits of the coordinates); a Gmsh attempt limited to 0.2 s stands in for a
+    # hang in case the first one errs
+    attempts = (MeshAttempt("gmsh", 40.0), MeshAttempt("gmsh", 90.0, limit=0.2), MeshAttempt("ftetwild"))
+    return _mesh_with_log(sharp, 10.0, 0, 900, attempts)
+
+
+def test_a_hanging_mesher_is_stopped(fallback_run):
+    _, log = fallback_run
+    assert any(e["method"].startswith("gmsh") and e["outcome"].startswith("stopped after") for e in log)
+
+
+def test_gmsh_failure_falls_back_to_ftetwild(fallback_run, sharp):
+    mesh, log = fallback_run
+    assert log[0]["method"] == "gmsh 40°" and log[0]["outcome"] != "ok"
+    assert log[-1]["method"] == "ftetwild" and log[-1]["outcome"] == "ok"
+    _floor(mesh)
+    # the fallback mesh fills the same solid
+    assert abs(_q(mesh)["volume_mm3"] - sharp.volume) / sharp.volume < 0.03
+
+
+def test_time_limit_ends_in_one_line(sharp):
+    from navapp.anatomy.meshing import tetrahedralise
+
+    with pytest.raises(NavappError, match="meshing did not finish within 3 s") as err:
+        tetrahedralise(sharp, 12.0, limit=3.0, attempts=(MeshAttempt("ftetwild"),))
+    assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("make, edge", [(sf.genus_one_liver, 10.0), (sf.thin_lobe_liver, 8.0), (sf.uneven_liver, 10.0),
+                                        (sf.other_generator_liver, 10.0)])
+def test_other_generators_mesh_above_the_floor(make, edge):
+    surface = make()
+    mesh, report = mesh_liver(surface, edge)
+    _floor(mesh)
+    assert abs(report["volume_mm3"] - surface.volume) / surface.volume < 0.05
+    boundary = trimesh.Trimesh(mesh.nodes, mesh.boundary_faces(), process=True)
+    assert boundary.is_watertight and boundary.euler_number == surface.euler_number  # genus kept

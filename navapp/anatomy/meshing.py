@@ -8,6 +8,7 @@ and fTetWild (pytetwild wheel), which needs no parametrisation, is the last reso
 mesh returned meets the quality floor: no inverted tet, no dihedral angle under 5°.
 """
 
+import json
 import os
 import subprocess
 import sys
@@ -132,13 +133,15 @@ fallback that cannot fail on a valid closed surface (choices and timings:
 docs/decisions.md, "Meshing any liver")."""
 
 def attempt_limit(attempt: MeshAttempt, surface: trimesh.Trimesh, edge: float) -> float:
-    """Seconds one attempt may take: its own ``limit``, else 30 s plus 3 ms (Gmsh) or
-    20 ms (fTetWild) per expected node (volume / (1.24 edge³) nodes, measured on the
+    """Seconds one attempt may take: its own ``limit``, else 30 s plus 3 ms per expected
+    node (Gmsh) or 300 s plus 20 ms per expected node (fTetWild) (volume / (1.24 edge³) nodes, measured on the
     phantoms), so that a large liver at a fine edge is not cut short."""
     if attempt.limit is not None:
         return attempt.limit
     expected = abs(float(surface.volume)) / (1.24 * edge ** 3)
-    return 30.0 + (0.003 if attempt.method == "gmsh" else 0.02) * expected
+    if attempt.method == "gmsh":
+        return 30.0 + 0.003 * expected
+    return 300.0 + 0.02 * expected  # fTetWild's time grows with the input surface too
 
 
 MIN_DIHEDRAL_DEG = 5.0  # the quality floor: no tet with a dihedral angle below this
@@ -376,7 +379,8 @@ def cached_tetmesh(surface: trimesh.Trimesh, edge: float = 4.0, cache_root=None)
     hit = cache.load(path)
     if hit is not None:
         mesh = TetMesh(hit["nodes"], hit["tets"])
-        report = quality_report(mesh)
+        # the report is stored with the mesh: recomputing it was most of a cached reload
+        report = json.loads(str(hit["report"])) if "report" in hit else quality_report(mesh)
         report.update(edge_mm=edge, seconds=0.0, cached=True)
         return mesh, report
     with progress.stage(f"meshing the liver at {edge:g} mm"):
@@ -386,5 +390,5 @@ def cached_tetmesh(surface: trimesh.Trimesh, edge: float = 4.0, cache_root=None)
             source = surface.metadata.get("file_path")
             raise NavappError(f"{source}: {exc}" if source else str(exc)) from None
     report["cached"] = False
-    cache.save(path, {"nodes": mesh.nodes, "tets": mesh.tets})
+    cache.save(path, {"nodes": mesh.nodes, "tets": mesh.tets, "report": np.array(json.dumps(report))})
     return mesh, report

@@ -167,7 +167,7 @@ def run_case(case_dir, trials, methods, edge=4.0, k=45) -> list[dict]:
     model, _ = prepare(case, edge, k)
     x0, x1 = case.targets[:, :3], case.targets[:, 3:]
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
-    surface = read_surface(case_dir / "truth" / "liver.ply", closed=False)
+    surface, _ = read_surface(case_dir / "truth" / "liver.ply", closed=False)
     surface = surface[0] if isinstance(surface, tuple) else surface  # (mesh, clean-up report) since 31bc815
     rows = []
     for trial, method in ((t, m) for t in trials for m in methods):

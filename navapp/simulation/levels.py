@@ -38,7 +38,7 @@ def data_level(case_dir, level: str, planes=(), spacing=3.0, case=None) -> dict:
         return out
     if level in ("CBCT", "iCT"):
         tdir = case_dir / "truth"
-        liver = read_surface(tdir / "liver.ply", closed=False)
+        liver, _ = read_surface(tdir / "liver.ply", closed=False)
         regions = case.preop.regions
         ant = np.isin(regions, [0, 2, 3, 4])  # anterior, falciform and the ridges are all anterior
         out = {"anterior": thin(np.asarray(liver.vertices)[ant], spacing),
@@ -47,7 +47,7 @@ def data_level(case_dir, level: str, planes=(), spacing=3.0, case=None) -> dict:
             for v in ("portal", "hepatic"):
                 p = tdir / f"{v}.ply"
                 if p.exists():
-                    out[f"{v}_contour"] = thin(np.asarray(read_surface(p, closed=False).vertices), spacing)
+                    out[f"{v}_contour"] = thin(np.asarray(read_surface(p, closed=False)[0].vertices), spacing)
                 c = tdir / f"{v}_centerline.csv"
                 if c.exists():
                     out[f"{v}_centerline"] = read_csv(c, ("x", "y", "z", "branch"), dtype=int)[:, :3]
