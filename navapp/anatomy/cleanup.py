@@ -90,6 +90,14 @@ def _pieces(faces: np.ndarray, n_vertices: int) -> list[np.ndarray]:
     return sorted((np.asarray(g) for g in groups), key=len, reverse=True)
 
 
+def _crossing(v, f, path, what):
+    try:
+        return self_intersecting_faces(v, f)
+    except MemoryError:
+        raise InputError(f"{what} is too large for the self-intersection test ({len(f)} triangles): "
+                         "decimate it first", path) from None
+
+
 def clean_surface(mesh: trimesh.Trimesh, path=None, closed=True, what="surface") -> tuple[trimesh.Trimesh, CleanupReport]:
     """Repair what is safe to repair, refuse the rest.
 
@@ -129,7 +137,7 @@ def clean_surface(mesh: trimesh.Trimesh, path=None, closed=True, what="surface")
         sizes = np.array([area[p].sum() for p in pieces])
         large = sizes >= SPECK_FRACTION * sizes[0]
         if closed and large.sum() > 1:
-            bad = self_intersecting_faces(v, f)
+            bad = _crossing(v, f, path, what)
             if len(bad):
                 raise InputError(f"{what} is self-intersecting ({len(bad)} triangles cross another)", path)
             ml = [abs(trimesh.Trimesh(v, f[pieces[i]]).volume) / 1000 for i in np.flatnonzero(large)]
@@ -168,7 +176,7 @@ def clean_surface(mesh: trimesh.Trimesh, path=None, closed=True, what="surface")
             out = trimesh.Trimesh(out.vertices, out.faces[:, ::-1], process=False)
             rep.flipped = True
             rep.warnings.append("the surface faced inward (negative volume): turned outward")
-        bad = self_intersecting_faces(out.vertices, out.faces)
+        bad = _crossing(out.vertices, out.faces, path, what)
         if len(bad):
             raise InputError(f"{what} is self-intersecting ({len(bad)} triangles cross another)", path)
     rep.vertices_out, rep.faces_out = len(out.vertices), len(out.faces)
