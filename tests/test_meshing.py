@@ -98,3 +98,34 @@ def test_other_generators_mesh_above_the_floor(make, edge):
     assert abs(report["volume_mm3"] - surface.volume) / surface.volume < 0.05
     boundary = trimesh.Trimesh(mesh.nodes, mesh.boundary_faces(), process=True)
     assert boundary.is_watertight and boundary.euler_number == surface.euler_number  # genus kept
+
+
+def test_no_mesher_outlives_its_caller(tmp_path):
+    """A caller killed mid-mesh (Ctrl-C'd CLI, stopped server) leaves no mesher running."""
+    import subprocess
+    import sys
+    import time
+
+    import psutil
+
+    script = tmp_path / "caller.py"
+    script.write_text(
+        "import sys; sys.path.insert(0, %r)\n"
+        "import surface_fixtures as sf\n"
+        "from navapp.anatomy.meshing import tetrahedralise, MeshAttempt\n"
+        "tetrahedralise(sf.sharp_ridged_liver(3.0), 10.0, attempts=(MeshAttempt('ftetwild'),))\n"
+        % str(__import__("pathlib").Path(__file__).parent))
+    caller = subprocess.Popen([sys.executable, str(script)])
+    try:
+        deadline = time.monotonic() + 60
+        workers = []
+        while time.monotonic() < deadline and not workers:
+            time.sleep(0.2)
+            workers = [p for p in psutil.Process(caller.pid).children() if "mesh_worker" in " ".join(p.cmdline())]
+        assert workers, "the caller never started a mesher"
+        caller.kill()
+        caller.wait()
+        gone, alive = psutil.wait_procs(workers, timeout=5)
+        assert not alive
+    finally:
+        caller.kill()

@@ -5,7 +5,10 @@ Reads the surface and the attempt from IN (.npz), meshes, and writes ``nodes`` a
 that hangs.
 """
 
+import os
 import sys
+import threading
+import time
 
 import numpy as np
 
@@ -13,7 +16,33 @@ from ..errors import NavappError
 from .meshing import ftetwild_mesh, gmsh_mesh
 
 
-def main(src: str, dst: str) -> int:
+def _exit_with_parent(parent: int):
+    """Gmsh and fTetWild run in C with the GIL released; this thread ends the process
+    when its parent is gone (killed, or interrupted), so no mesher outlives the caller."""
+    while True:
+        time.sleep(1.0)
+        if os.getppid() != parent:
+            os._exit(3)
+
+
+def _die_with_parent(parent: int):
+    """On Linux, ask the kernel to kill this process when its parent dies: fTetWild holds
+    the GIL, so the watchdog thread cannot run while it works."""
+    try:
+        import ctypes
+        import signal
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent:  # the parent died before the request took effect
+        os._exit(3)
+
+
+def main(src: str, dst: str, parent: int | None = None) -> int:
+    if parent is not None:
+        _die_with_parent(parent)
+        threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
     with np.load(src) as a:
         v, f, edge, seed = a["vertices"], a["faces"], float(a["edge"]), int(a["seed"])
         method, angle = str(a["method"]), float(a["feature_angle"])
@@ -34,4 +63,4 @@ def main(src: str, dst: str) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1], sys.argv[2]))
+    sys.exit(main(sys.argv[1], sys.argv[2], int(sys.argv[3]) if len(sys.argv) > 3 else None))

@@ -237,7 +237,7 @@ def _run_attempt(v, f, edge, seed, attempt: MeshAttempt, limit: float):
         np.savez(src, vertices=v, faces=f, edge=edge, seed=seed, method=attempt.method,
                  feature_angle=attempt.feature_angle)
         env = dict(os.environ, OMP_NUM_THREADS="1")
-        proc = subprocess.Popen([sys.executable, "-m", "navapp.anatomy.mesh_worker", str(src), str(dst)],
+        proc = subprocess.Popen([sys.executable, "-m", "navapp.anatomy.mesh_worker", str(src), str(dst), str(os.getpid())],
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
         try:
             _, err = proc.communicate(timeout=limit)
