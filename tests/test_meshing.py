@@ -109,12 +109,12 @@ def test_no_mesher_outlives_its_caller(tmp_path):
     import psutil
 
     script = tmp_path / "caller.py"
+    here = str(__import__("pathlib").Path(__file__).parent)
     script.write_text(
-        "import sys; sys.path.insert(0, %r)\n"
+        f"import sys; sys.path.insert(0, {here!r})\n"
         "import surface_fixtures as sf\n"
         "from navapp.anatomy.meshing import tetrahedralise, MeshAttempt\n"
-        "tetrahedralise(sf.sharp_ridged_liver(3.0), 10.0, attempts=(MeshAttempt('ftetwild'),))\n"
-        % str(__import__("pathlib").Path(__file__).parent))
+        "tetrahedralise(sf.sharp_ridged_liver(3.0), 10.0, attempts=(MeshAttempt('ftetwild'),))\n")
     caller = subprocess.Popen([sys.executable, str(script)])
     try:
         deadline = time.monotonic() + 60

@@ -83,7 +83,7 @@ def merge_duplicates(vertices: np.ndarray, faces: np.ndarray):
     return v, f[keep], vmap, int(len(faces) - len(keep))
 
 
-def _pieces(faces: np.ndarray, n_vertices: int) -> list[np.ndarray]:
+def _pieces(faces: np.ndarray) -> list[np.ndarray]:
     """Face indices of each edge-connected piece, largest first."""
     groups = trimesh.graph.connected_components(trimesh.graph.face_adjacency(faces), nodes=np.arange(len(faces)),
                                                 min_len=1)
@@ -98,7 +98,8 @@ def _crossing(v, f, path, what):
                          "decimate it first", path) from None
 
 
-def clean_surface(mesh: trimesh.Trimesh, path=None, closed=True, what="surface") -> tuple[trimesh.Trimesh, CleanupReport]:
+def clean_surface(mesh: trimesh.Trimesh, path=None, closed=True,
+                  what="surface") -> tuple[trimesh.Trimesh, CleanupReport]:
     """Repair what is safe to repair, refuse the rest.
 
     Parameters
@@ -131,7 +132,7 @@ def clean_surface(mesh: trimesh.Trimesh, path=None, closed=True, what="surface")
     if len(f) == 0:
         raise InputError("holds only degenerate triangles", path)
 
-    pieces = _pieces(f, len(v))
+    pieces = _pieces(f)
     if len(pieces) > 1:
         area = trimesh.triangles.area(v[f])
         sizes = np.array([area[p].sum() for p in pieces])

@@ -153,7 +153,8 @@ def time_limit() -> float:
     try:
         return float(os.environ.get("NAVAPP_MESH_TIMEOUT", MESH_TIME_LIMIT))
     except ValueError:
-        raise NavappError(f"NAVAPP_MESH_TIMEOUT={os.environ['NAVAPP_MESH_TIMEOUT']!r} is not a number of seconds") from None
+        value = os.environ["NAVAPP_MESH_TIMEOUT"]
+        raise NavappError(f"NAVAPP_MESH_TIMEOUT={value!r} is not a number of seconds") from None
 
 
 def tetrahedralise(surface: trimesh.Trimesh, edge: float = 4.0, seed: int = 0, limit: float | None = None,
@@ -237,7 +238,8 @@ def _run_attempt(v, f, edge, seed, attempt: MeshAttempt, limit: float):
         np.savez(src, vertices=v, faces=f, edge=edge, seed=seed, method=attempt.method,
                  feature_angle=attempt.feature_angle)
         env = dict(os.environ, OMP_NUM_THREADS="1")
-        proc = subprocess.Popen([sys.executable, "-m", "navapp.anatomy.mesh_worker", str(src), str(dst), str(os.getpid())],
+        command = [sys.executable, "-m", "navapp.anatomy.mesh_worker", str(src), str(dst), str(os.getpid())]
+        proc = subprocess.Popen(command,
                                 stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
         try:
             _, err = proc.communicate(timeout=limit)
