@@ -2,7 +2,7 @@
 the mesher chain) at a given edge; one row per fixture: meshed (method, nodes, minimum
 dihedral, seconds) or refused (the one line a user would read).
 
-    python scripts/mesh_fixtures.py [EDGE_MM]
+    python scripts/mesh_fixtures.py [EDGE_MM] [WORD ...]   (only fixtures whose name has a WORD)
 """
 
 import sys
@@ -37,7 +37,10 @@ fixtures = {
 }
 print(f"| fixture (edge {edge:g} mm) | outcome | method | nodes | min dihedral ° | seconds |")
 print("|---|---|---|---|---|---|")
+words = sys.argv[2:]
 for name, make in fixtures.items():
+    if words and not any(w in name for w in words):
+        continue
     surface = make()
     t0 = time.perf_counter()
     try:
