@@ -57,23 +57,36 @@ def sharp():
 
 
 @pytest.fixture(scope="module")
-def fallback_run(sharp):
+def fallback_run(sharp, tmp_path_factory, request):
+    import os
+
     from navapp.anatomy.meshing import _mesh_with_log
+
+    # run from an empty folder: fTetWild writes a debug file into its working directory,
+    # which must not be the caller's
+    here = tmp_path_factory.mktemp("caller-cwd")
+    request.addfinalizer(lambda old=os.getcwd(): os.chdir(old))
+    os.chdir(here)
 
     # Gmsh fails on this surface, by an error or by hanging (which of the two depends on
     # the last bits of the coordinates); a Gmsh attempt limited to 0.2 s stands in for a
     # hang in case the first one errs
     attempts = (MeshAttempt("gmsh", 40.0), MeshAttempt("gmsh", 90.0, limit=0.2), MeshAttempt("ftetwild"))
-    return _mesh_with_log(sharp, 10.0, 0, 900, attempts)
+    mesh, log = _mesh_with_log(sharp, 10.0, 0, 900, attempts)
+    return mesh, log, sorted(p.name for p in here.iterdir())
+
+
+def test_the_mesher_leaves_the_callers_folder_alone(fallback_run):
+    assert fallback_run[2] == []
 
 
 def test_a_hanging_mesher_is_stopped(fallback_run):
-    _, log = fallback_run
+    _, log, _ = fallback_run
     assert any(e["method"].startswith("gmsh") and e["outcome"].startswith("stopped after") for e in log)
 
 
 def test_gmsh_failure_falls_back_to_ftetwild(fallback_run, sharp):
-    mesh, log = fallback_run
+    mesh, log, _ = fallback_run
     assert log[0]["method"] == "gmsh 40°" and log[0]["outcome"] != "ok"
     assert log[-1]["method"] == "ftetwild" and log[-1]["outcome"] == "ok"
     _floor(mesh)

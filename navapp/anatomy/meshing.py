@@ -237,10 +237,13 @@ def _run_attempt(v, f, edge, seed, attempt: MeshAttempt, limit: float):
         src, dst = Path(tmp, "in.npz"), Path(tmp, "out.npz")
         np.savez(src, vertices=v, faces=f, edge=edge, seed=seed, method=attempt.method,
                  feature_angle=attempt.feature_angle)
-        env = dict(os.environ, OMP_NUM_THREADS="1")
+        # fTetWild writes a debug file (__tracked_surface.stl) into its working directory:
+        # run it in the temporary one, with navapp importable from there
+        package_root = str(Path(__file__).resolve().parents[2])
+        env = dict(os.environ, OMP_NUM_THREADS="1",
+                   PYTHONPATH=os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")])))
         command = [sys.executable, "-m", "navapp.anatomy.mesh_worker", str(src), str(dst), str(os.getpid())]
-        proc = subprocess.Popen(command,
-                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env)
+        proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, cwd=tmp)
         try:
             _, err = proc.communicate(timeout=limit)
         except subprocess.TimeoutExpired:
