@@ -17,7 +17,7 @@ import trimesh
 from ..errors import InputError, NavappError
 from . import frames
 from .cleanup import clean_surface, vessels_outside
-from .model import VESSELS, PreopModel
+from .model import REGION_NAMES, VESSELS, PreopModel
 
 SURFACE_SUFFIXES = (".ply", ".stl", ".obj", ".vtk", ".vtp")
 LABELMAP_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".seg.nrrd", ".nhdr")
@@ -48,8 +48,10 @@ def read_any_surface(path) -> trimesh.Trimesh:
     suffix = _suffix(path)
     if suffix not in SURFACE_SUFFIXES:
         raise InputError(f"not a surface format navapp reads ({', '.join(SURFACE_SUFFIXES)})", path)
-    if suffix in (".vtk", ".vtp"):
+    if suffix == ".vtk":
         return _read_vtk(path)
+    if suffix == ".vtp":
+        return _read_vtp(path)
     try:
         mesh = trimesh.load(path, file_type=suffix[1:], process=False, force="mesh")
     except Exception as exc:  # trimesh raises many types for a bad file
@@ -60,8 +62,6 @@ def read_any_surface(path) -> trimesh.Trimesh:
 
 
 def _read_vtk(path: Path) -> trimesh.Trimesh:
-    if _suffix(path) == ".vtp":
-        return _read_vtp(path)
     import meshio
 
     try:
@@ -356,9 +356,7 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
         lmk = None if falciform is None else frames.apply(M, np.asarray(falciform, float).reshape(2, 3))
         labelled = auto_regions(liver_mesh, falciform=lmk)
         model.regions = labelled.codes
-        counts = np.bincount(labelled.codes, minlength=5)
-        from .model import REGION_NAMES
-
+        counts = np.bincount(labelled.codes, minlength=len(REGION_NAMES))
         rep.lines.append("regions (automatic): " + ", ".join(f"{n} {c}" for n, c in zip(REGION_NAMES, counts,
                                                                                             strict=True)))
         rep.warnings += labelled.warnings

@@ -165,7 +165,7 @@ def tetrahedralise(surface: trimesh.Trimesh, edge: float = 4.0, seed: int = 0, l
     overruns its share of ``limit`` seconds (Gmsh cannot be interrupted from Python and
     has been seen to hang on sharp surfaces). The first mesh with no inverted tet and no
     dihedral angle under ``MIN_DIHEDRAL_DEG`` is returned, its nodes (M, 3) mm and tets
-    (E, 4) positively oriented; ``mesh.log`` says what was tried. Raises ``NavappError``
+    (E, 4) positively oriented (``mesh_liver`` also reports what was tried). Raises ``NavappError``
     in one line when every attempt failed or the time ran out.
     """
     mesh, _ = _mesh_with_log(surface, edge, seed, limit, attempts)
