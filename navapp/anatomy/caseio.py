@@ -17,6 +17,7 @@ import trimesh
 
 from ..errors import InputError
 from .model import REGION_NAMES, VESSELS, Centerline, PreopModel, polyline_tangents
+from .targets import TARGETS_DIR, read_targets, write_targets
 
 FEATURES = (
     "anterior", "posterior", "falciform", "ridge_left", "ridge_right",
@@ -197,6 +198,9 @@ def read_case(folder) -> Case:
             moved[cleaned.vertex_map[kept]] = codes[kept]
             codes = moved
         model.regions = codes
+    tdir = pre / TARGETS_DIR
+    if tdir.is_dir():
+        model.targets = read_targets(tdir, liver)
     intraop = {}
     idir = folder / "intraop"
     if idir.is_dir():
@@ -247,6 +251,8 @@ def write_preop(model: PreopModel, folder):
         write_csv(pre / "fiducials.csv", model.fiducials, ("x", "y", "z"))
     if model.regions is not None:
         (pre / "regions.csv").write_text("label\n" + "\n".join(REGION_NAMES[c] for c in model.regions) + "\n")
+    if model.targets:
+        write_targets(model.targets, pre / TARGETS_DIR)
     if not (folder / "case.toml").exists():
         write_settings(folder, {"name": model.name, "units": "mm"})
 

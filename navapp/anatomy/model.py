@@ -9,6 +9,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import trimesh
 
+from .targets import Target
+
 REGION_NAMES = ("anterior", "posterior", "falciform", "ridge_left", "ridge_right")
 """Liver-surface labels, in the order of their integer codes in ``PreopModel.regions``."""
 
@@ -68,6 +70,7 @@ class PreopModel:
     fiducials: np.ndarray | None = None  # (P, 3) mm, row i ↔ row i of intraop/fiducials.csv
     name: str = "liver"
     meta: dict = field(default_factory=dict)
+    targets: list[Target] = field(default_factory=list)  # tumours (preop/targets/); empty: none
 
     def vessel(self, name: str) -> trimesh.Trimesh | None:
         return getattr(self, name)

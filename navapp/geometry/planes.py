@@ -3,12 +3,15 @@
 import numpy as np
 
 
-def plane_section(vertices, faces, origin, normal, eps=1e-12, return_faces=False):
+def plane_section(vertices, faces, origin, normal, eps=1e-12, return_faces=False, return_edges=False):
     """Segments (S, 2, 3) where the plane through ``origin`` with ``normal`` cuts the
     triangles. Each triangle with vertices on both sides contributes one segment between
     its two edge crossings (linear interpolation of the signed distances); triangles that
     only touch the plane at a vertex contribute nothing. ``return_faces`` also returns the
-    index (S,) of the triangle each segment comes from.
+    index (S,) of the triangle each segment comes from; ``return_edges`` the mesh edge
+    (S, 2, 2) vertex indices, sorted) each segment end lies on, so that segments can be
+    chained into polylines by shared edges (``geometry.targets_distance.section_polylines``).
+    Returns ``seg``, then the faces and/or edges in that order when asked for.
     """
     v = np.asarray(vertices, float)
     n = np.asarray(normal, float)
@@ -28,4 +31,11 @@ def plane_section(vertices, faces, origin, normal, eps=1e-12, return_faces=False
     p1 = v[i0] + (d0 / (d0 - d1))[:, None] * (v[i1] - v[i0])
     p2 = v[i0] + (d0 / (d0 - d2))[:, None] * (v[i2] - v[i0])
     seg = np.stack([p1, p2], axis=1)
-    return (seg, np.flatnonzero(cut)) if return_faces else seg
+    out = [seg]
+    if return_faces:
+        out.append(np.flatnonzero(cut))
+    if return_edges:
+        e1 = np.sort(np.column_stack([i0, i1]), axis=1)
+        e2 = np.sort(np.column_stack([i0, i2]), axis=1)
+        out.append(np.stack([e1, e2], axis=1))
+    return tuple(out) if len(out) > 1 else seg
