@@ -9,7 +9,9 @@ Shape recipe (mm, +x patient-left, +y anterior, +z superior):
   makes the left and right inferior ridges;
 - a flattened posterior face (bare area), a hilum notch carved into the visceral surface,
   an umbilical notch at the inferior border where the falciform ligament ends;
-- low-frequency bumps so that no two phantoms are alike.
+- low-frequency bumps so that no two phantoms are alike;
+- two tumours (``make_tumours``), smooth irregular ellipsoids well inside the parenchyma,
+  drawn from their own random stream so that the liver and vessels are as before.
 """
 
 from dataclasses import dataclass
@@ -20,6 +22,7 @@ from skimage.measure import marching_cubes
 
 from . import sdf
 from .model import REGION_NAMES, PreopModel
+from .targets import Target, from_surface
 from .vessels import grow_hepatic_tree, grow_portal_tree, tube_surface
 
 
@@ -157,8 +160,64 @@ def label_regions(shape: LiverShape, mesh: trimesh.Trimesh) -> np.ndarray:
     return codes
 
 
+TUMOUR_DIAMETERS_MM = (22.0, 14.0)  # nominal; the irregular shape makes the largest diameter up to ~15 % more
+TUMOUR_LIVER_CLEARANCE_MM = 8.0  # every tumour vertex at least this far inside the liver surface
+TUMOUR_VESSEL_CLEARANCE_MM = 2.0  # and clear of the portal and hepatic vessel walls
+
+
+def irregular_ellipsoid(centre, radii, rng, subdivisions: int = 3) -> trimesh.Trimesh:
+    """A smooth lumpy ellipsoid: an icosphere (642 vertices at 3 subdivisions) scaled to
+    ``radii``, its radius modulated by ±~6 % low-frequency waves, randomly rotated.
+    Star-shaped about ``centre`` (hence closed and never self-intersecting)."""
+    ico = trimesh.creation.icosphere(subdivisions)
+    d = ico.vertices / np.linalg.norm(ico.vertices, axis=1, keepdims=True)
+    r = np.ones(len(d))
+    for _ in range(3):
+        k = rng.normal(size=3)
+        k *= rng.uniform(2.0, 3.5) / np.linalg.norm(k)
+        r += rng.uniform(0.02, 0.035) * np.sin(d @ k + rng.uniform(0, 2 * np.pi))
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    q *= np.sign(np.linalg.det(q))  # a rotation, not a reflection: the winding stays outward
+    v = ((d * r[:, None]) * np.asarray(radii, float)) @ q.T + np.asarray(centre, float)
+    return trimesh.Trimesh(v.astype(np.float32).astype(float), ico.faces, process=False)
+
+
+def make_tumours(shape: LiverShape, liver: trimesh.Trimesh, vessels, index: int) -> list[Target]:
+    """The phantom's tumours: one of ~22 mm in the right lobe, one of ~14 mm in the left
+    (or anywhere if the left lobe has no room), each centred at a random point of the
+    anterior half of the places where it fits: ``TUMOUR_LIVER_CLEARANCE_MM`` inside the
+    surface and clear of every vessel. Deterministic per ``index`` (own random stream)."""
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(40400 + index)
+    lo, hi = liver.bounds
+    grid = np.stack(np.meshgrid(*[np.arange(a, b, 3.0) for a, b in zip(lo, hi, strict=True)], indexing="ij"), -1)
+    grid = grid.reshape(-1, 3)
+    grid = grid[shape(grid) < 0]
+    d_liver = cKDTree(liver.vertices).query(grid)[0] - 1.5  # vertex distance overestimates by < half an edge
+    d_vessel = np.full(len(grid), np.inf)
+    for v in vessels:
+        if v is not None:
+            d_vessel = np.minimum(d_vessel, cKDTree(v.vertices).query(grid)[0])
+    tumours = []
+    for n, (diameter, side) in enumerate(zip(TUMOUR_DIAMETERS_MM, ("right", "left"), strict=True)):
+        radii = diameter / 2 * (1 + rng.uniform(-0.12, 0.12, 3))
+        reach = radii.max() * 1.08  # the largest radius the modulation can give
+        ok = (d_liver >= reach + TUMOUR_LIVER_CLEARANCE_MM) & (d_vessel >= reach + TUMOUR_VESSEL_CLEARANCE_MM)
+        for t in tumours:
+            ok &= np.linalg.norm(grid - t.centre, axis=1) >= reach + t.diameter_mm / 2 + 10.0
+        lobe = grid[:, 0] > shape.falciform_x if side == "left" else grid[:, 0] < shape.falciform_x
+        cand = grid[ok & lobe] if (ok & lobe).any() else grid[ok]
+        if len(cand) == 0:
+            continue
+        cand = cand[cand[:, 1] >= np.median(cand[:, 1])]  # the anterior half: within the probe's reach
+        centre = cand[rng.integers(len(cand))]
+        tumours.append(from_surface(f"tumour{n + 1}", irregular_ellipsoid(centre, radii, rng)))
+    return tumours
+
+
 def make_phantom(index: int = 0, surface_spacing: float = 2.0, vessel_spacing: float = 1.0) -> PreopModel:
-    """Build phantom ``index``: liver surface, PV/HV surfaces and centerlines, labels."""
+    """Build phantom ``index``: liver surface, PV/HV surfaces and centerlines, labels, tumours."""
     if index < 0:
         raise ValueError("phantom index must be >= 0")
     shape = liver_shape(index)
@@ -180,5 +239,5 @@ def make_phantom(index: int = 0, surface_spacing: float = 2.0, vessel_spacing: f
         liver=liver, portal=portal, hepatic=hepatic,
         portal_centerline=portal_cl, hepatic_centerline=hepatic_cl,
         regions=label_regions(shape, liver), name=f"phantom{index}",
-        meta={"phantom": index},
+        meta={"phantom": index}, targets=make_tumours(shape, liver, (portal, hepatic), index),
     )
