@@ -53,6 +53,8 @@ def cmd_register(args):
     sec["total"] = time.perf_counter() - t0
     summary["seconds"] = {k: round(v, 4) for k, v in sec.items()}
     out = args.out or Path(args.case) / "registration"
+    if case.preop.targets:
+        summary["targets"] = _targets(args.case, case, reg, model, out)
     summary = write_outputs(case, reg, out, summary)
     if reg.quality is not None and reg.quality.warning:
         # one line, on stderr whatever the output format: a wrong answer must not pass silently
@@ -62,6 +64,10 @@ def cmd_register(args):
         for key in ("tre_rigid", "tre_deformable"):
             if key in summary:
                 brief[key] = round(summary[key]["mean_mm"], 3)
+        for t in summary.get("targets", []):
+            if "tre" in t:
+                brief.setdefault("target_centroid_error_mm", {})[t["name"]] = t["tre"]["deformable" if reg.libr is not None
+                                                                                      else "rigid"]["centroid_mm"]
         brief["seconds"] = summary["seconds"]
         brief["out"] = str(out)
         if reg.quality is not None:
@@ -70,3 +76,30 @@ def cmd_register(args):
     else:
         print(f"registered {case.name}: results in {out}", file=sys.stderr)
         print(json.dumps(summary, indent=2))
+
+
+def _targets(case_dir, case, reg, model, out) -> list[dict]:
+    """Registered targets: surfaces written to ``out/targets/`` (PLY, tracker space), and
+    per target its centres (preoperative, registered) and, where truth is known, errors."""
+    from ..anatomy.targets import TARGETS_DIR, write_targets
+    from .targets import registered_targets, target_errors, truth_targets
+
+    targets = case.preop.targets
+    moved = registered_targets(reg, targets)
+    write_targets(moved, Path(out) / TARGETS_DIR)
+    truth, source = truth_targets(case_dir, targets, case, model.basis)
+    rigid = registered_targets(reg, targets, rigid=True) if truth is not None else None
+    rows = []
+    for i, (t, m) in enumerate(zip(targets, moved, strict=True)):
+        row = {"name": t.name, "kind": "point" if t.surface is None else "surface",
+               "diameter_mm": round(t.diameter_mm, 2),
+               "centre_preop_mm": [round(float(x), 3) for x in t.centre],
+               "centre_registered_mm": [round(float(x), 3) for x in m.centre]}
+        if t.surface is not None:
+            row["file"] = f"{TARGETS_DIR}/{t.name}.ply"
+        if truth is not None:
+            row["tre"] = {"truth": source, "rigid": target_errors(rigid[i], truth[i])}
+            if reg.libr is not None:
+                row["tre"]["deformable"] = target_errors(m, truth[i])
+        rows.append(row)
+    return rows

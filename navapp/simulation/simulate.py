@@ -7,6 +7,7 @@ stylus data plus every plane's features (the "S + all planes" level):
 - ``intraop/us/plane_XX/<feature>.csv`` and ``intraop/us/plane_XX.png`` (the B-mode image);
 - ``truth/liver.ply``, ``truth/portal.ply``, ``truth/hepatic.ply`` and the deformed
   centerlines: the true intraoperative anatomy, used for the CBCT and iCT data levels;
+- ``truth/targets/``: the tumour targets deformed by the ground truth (their TRE);
 - ``truth/report.json``: displacement statistics, coverage, points per plane, seconds and
   the ledger of stages and effects that ran.
 """
@@ -22,6 +23,7 @@ from .. import progress
 from ..anatomy.caseio import Case, read_case, write_case, write_csv
 from ..anatomy.meshing import cached_tetmesh
 from ..anatomy.phantom import make_phantom
+from ..anatomy.targets import TARGETS_DIR, map_targets, write_targets
 from ..mechanics.controlpoints import nodal_areas
 from ..mechanics.fem import Material
 from ..mechanics.interpolation import interpolation_matrix
@@ -121,6 +123,8 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
         if cl is not None:
             write_csv(tdir / f"{name}_centerline.csv", np.column_stack([moved(cl.points), cl.branch]),
                       ("x", "y", "z", "branch"), True)
+    if preop.targets:
+        write_targets(map_targets(preop.targets, moved), tdir / TARGETS_DIR)
     d = np.linalg.norm(moved(x0) - x0, axis=1)
     report = {
         "scene": scene.name, "truth_nodes": int(len(truth_mesh.nodes)),
