@@ -125,7 +125,7 @@ def cmd_serve(args):
     scene = load_scene(args.scene) if args.scene else demo_scene()
     from .app.server import serve  # viser is imported only here
 
-    serve(scene, args.host, args.port, args.session, args.edge, args.k)
+    serve(scene, args.host, args.port, args.session, args.edge, args.k, view2d_port=args.view2d_port)
 
 
 def cmd_simulate(args):
@@ -284,6 +284,8 @@ def build_parser():
                    help="session folder (default ~/navapp-sessions/<scene>-<key>, or under $NAVAPP_SESSIONS)")
     s.add_argument("--edge", type=_positive(float), default=4.0, help="registration mesh element size, mm")
     s.add_argument("--k", type=_positive(int), default=45, help="number of control points")
+    s.add_argument("--view2d-port", type=int, default=0,
+                   help="port of the 2D ultrasound view's pages (default: any free port)")
     s.set_defaults(func=cmd_serve)
 
     return p

@@ -1,6 +1,11 @@
-"""The guided demo: the steps a newcomer is walked through, each a short explanation and
-the one action its button performs (an ``App`` method name). No viser here."""
+"""The guided demo: the steps a newcomer is walked through. Each step has a short
+explanation, one action for its button, a precondition (why the button cannot be pressed
+yet, shown instead of letting it do nothing) and a completion test (the guide moves on
+only when the step's work is actually done, e.g. the whole sweep digitised). Actions and
+tests are functions of the App and the browser's ``ClientState``. No viser here: actions
+reach the browser's view through ``app.views``."""
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 
@@ -9,44 +14,159 @@ class Step:
     title: str
     text: str
     button: str
-    action: str  # name of the App method the button calls
+    action: Callable  # (app, cs) -> error message or None
+    blocked: Callable = lambda app, cs: None  # (app, cs) -> why the button cannot be pressed yet, or None
+    done: Callable | None = None  # (app, cs) -> True once the step's work is complete; None: when the action succeeds
+
+
+def _view(app, cs):
+    return app.views.get(cs.client_id)
+
+
+def _need_scene(app, cs):
+    return None if app.sd is not None else "Wait: the scene is still being prepared (see the status above)."
+
+
+def _need_model(app, cs):
+    if app.worker is None:
+        return "Wait: the registration model is still being prepared (see the status above)."
+    if app.run is not None:
+        return "Wait: a registration is running."
+    return None
+
+
+def _need_sweep(app, cs):
+    why = _need_model(app, cs)
+    if why:
+        return why
+    n, total = app.session.stylus_count, len(app.sd.stylus_path)
+    if n < total:
+        return f"Wait: the stylus sweep is at {n} of {total} points."
+    return None
+
+
+def _ran(label):
+    def done(app, cs):
+        log = app.session.log if app.session else []
+        return app.run is None and any(e["run"] == label and not e.get("cancelled") for e in log)
+    return done
+
+
+def _preop(app, cs):
+    v = _view(app, cs)
+    if v is not None:
+        for name in ("Preoperative liver", "Preoperative vessels", "Targets"):
+            v.layers.cb[name].value = True
+        v.layers.cb["True deformed liver (ghost)"].value = False
+        v.layers.apply_visibility()
+        v.layers.look("Anterior")
+
+
+def _truth(app, cs):
+    v = _view(app, cs)
+    if v is not None:
+        v.layers.cb["True deformed liver (ghost)"].value = True
+        v.layers.apply_visibility()
+
+
+def _stylus(app, cs):
+    v = _view(app, cs)
+    if v is not None:
+        v.layers.cb["True deformed liver (ghost)"].value = False
+        v.layers.apply_visibility()
+    speed = (lambda: float(v.stylus.speed.value)) if v is not None else (lambda: 1.0)
+    if not app.sweeping:
+        app.start_stylus(speed)
+
+
+def _sweep_done(app, cs):
+    return app.sd is not None and app.session.stylus_count >= len(app.sd.stylus_path) and not app.sweeping
+
+
+def demo_plane(app):
+    """The first preset plane that cuts a portal vein branch across (a closed contour to draw)."""
+    for i in sorted(app.planes):
+        if i < 100 and "portal_centerline" in app.planes[i].features:
+            return i
+    return min(app.planes)
+
+
+def _plane(app, cs):
+    i = demo_plane(app)
+    app.show_plane(cs, i)
+    v = _view(app, cs)
+    if v is not None:
+        v.layers.look_at_plane(app.planes[i].probe_to_tracker)
+        v.ultrasound.open_2d()
+
+
+def _draw(app, cs):
+    if cs.plane is None:
+        app.show_plane(cs, demo_plane(app))
+    app.contour_command(cs, "Feature", "PV contour")
+    v = _view(app, cs)
+    if v is not None:
+        v.ultrasound.open_2d()
+
+
+def _drew(app, cs):
+    return any(c.closed for c in app.session.contours)
+
+
+def _all(app, cs):
+    if cs.drawing is not None and len(cs.drawing.vertices) >= 3:
+        app.contour_command(cs, "Close")
+    v = _view(app, cs)
+    if v is not None:
+        v.layers.look("Anterior")
+    return app.register("warm" if app.worker.last is not None else "all")
+
+
+def _compare(app, cs):
+    v = _view(app, cs)
+    if v is not None:
+        v.guide.show_comparison()
 
 
 STEPS = (
     Step("Preoperative model",
-         "The liver segmented from the preoperative CT (semi-transparent), its portal vein (red) and "
-         "hepatic veins (blue) with their centerlines. Everything the surgeon navigates by lives here.",
-         "Show the preoperative model", "guide_preop"),
+         "The liver segmented from the preoperative CT (semi-transparent), its portal vein (red), hepatic "
+         "veins (blue) and the tumours to be resected (purple). Everything the surgeon navigates by lives here.",
+         "Show the preoperative model from the front", _preop),
     Step("Intraoperative deformation",
          "In theatre the liver is mobilised and packed: it sags and twists away from its CT shape. "
          "The green ghost is the true deformed liver of this simulated case; the system never sees it.",
-         "Show the true deformed liver", "guide_truth"),
+         "Show the true deformed liver", _truth, _need_scene),
     Step("Stylus digitisation",
          "A tracked stylus is swept over the exposed anterior surface; every few millimetres its tip "
-         "position is recorded. Only about a fifth of the anterior surface is reachable.",
-         "Digitise the anterior surface", "guide_stylus"),
+         "position is recorded. Only about a fifth of the anterior surface is reachable. The guide moves on "
+         "when the sweep is complete.",
+         "Digitise the anterior surface", _stylus, _need_scene, _sweep_done),
     Step("Rigid registration",
-         "First a rigid fit (weighted ICP on the salient features: falciform ligament and inferior "
-         "ridges). The error colours show what a rigid fit cannot fix.",
-         "Register rigidly", "guide_rigid"),
+         "First a rigid fit (ICP on the salient features: falciform ligament and inferior ridges). The "
+         "error colours show what a rigid fit cannot fix.",
+         "Register rigidly", lambda app, cs: app.register("rigid"), _need_sweep, _ran("rigid")),
     Step("Deformable registration, surface only",
          "LIBR deforms the model with a linear-elastic basis of boundary modes until it matches the "
          "stylus data, keeping strain energy low. Watch it converge live.",
-         "Register deformably (surface data)", "guide_surface"),
-    Step("Add an ultrasound plane",
-         "A tracked ultrasound probe images the liver's interior; the B-mode image is shown at its "
-         "true pose in 3D.",
-         "Acquire plane 1", "guide_plane"),
+         "Register deformably (surface data)", lambda app, cs: app.register("surface"), _need_model,
+         _ran("deformable, surface")),
+    Step("An ultrasound plane",
+         "A tracked ultrasound probe images the liver's interior. The plane is shown at its tracked pose in "
+         "3D, and its image in the 2D view on the left, with the model's portal vein (red), hepatic veins "
+         "(blue) and liver boundary cut by the plane: dashed before, solid after registration.",
+         "Show plane 1", _plane, _need_scene),
     Step("Draw contours",
-         "Designate features on the image: pick a type, click on the image to place vertices, close "
-         "the contour. Clicks become image pixels (Bresenham between vertices) and then 3D points "
-         "through the probe's calibration and tracking. Or let the simulation segment it.",
-         "Open the drawing view", "guide_draw"),
+         "In the 2D view on the left, choose PV contour, click around the dark portal-vein lumen to place "
+         "vertices (each is confirmed before the next), then Close. Every click becomes an image pixel and "
+         "then a 3D point through the probe's calibration and tracking. The guide moves on once a contour "
+         "is closed.",
+         "Draw in the 2D view", _draw, _need_scene, _drew),
     Step("Register with ultrasound",
          "Deformable registration with everything: stylus surface, the drawn vessel contours, their "
          "centerline points and the posterior wall. It warm-starts from the last result.",
-         "Register deformably (all data)", "guide_all"),
+         "Register deformably (all data)", _all, _need_model, _ran("deformable, all data (warm)")),
     Step("Compare errors",
          "Each registration's mean and maximum error against the true deformation, and its time.",
-         "Show the comparison", "guide_compare"),
+         "Show the comparison", _compare, _need_model),
 )

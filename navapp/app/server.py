@@ -1,756 +1,740 @@
-"""``navapp serve``: the viser web viewer. The only module that imports viser.
+"""``navapp serve``: the navigation viewer. The only package that imports viser is this one.
 
-The viewer opens at once on the preoperative anatomy; a start-up thread then simulates the
-scene (cached), restores the session and computes the basis (cached), reporting progress in
-the panel. Registrations and settings sweeps run in the worker thread (``worker.py``); the
-stylus sweep runs in its own animation thread. Every change to the user's data is written
-to the session folder at once (``session.py``).
+``App`` holds what all browsers share (scene data, session, registration model, the
+registered result) and performs every action on it under one lock; each browser tab gets a
+``ClientView`` (``panels/``) with its own GUI, 3D scene nodes, camera, plane, drawing and
+undo. A change to shared data bumps ``App.version`` and is pushed to every view.
+
+Threads: viser's callbacks, the start-up thread (``start()``), the registration worker, the
+stylus animation and the 2D view's HTTP server. They meet only in ``App``'s methods, which
+take ``App.lock`` around shared data and never call back into viser while holding it for
+long.
 """
 
+import io
+import secrets
 import threading
 import time
 from pathlib import Path
 
 import numpy as np
-import scipy.sparse as sp
-import trimesh
 import viser
-import viser.transforms as vtf
 
 from .. import progress
 from ..anatomy.phantom import make_phantom
 from ..errors import NavappError
 from ..evaluation.cost import lm_sweep, pareto_front
-from ..registration.pipeline import deform_points, prepare
-from .contours import DRAWABLE, Contour, click_to_pixel
-from .guide import STEPS
+from ..registration.libr import LibrResult
+from ..registration.pipeline import Registration, deform_points, prepare
+from ..registration.rigid import RigidResult
+from .contours import CENTERLINE_OF, DRAWABLE, Contour, contour_pixels
+from .overlays import Overlay, section_pixels
 from .scenedata import acquire_free_plane, load_scene_data
 from .session import default_folder, export, open_session
-from .worker import RegistrationWorker
+from .state import Action, ClientState, RegisteredState
+from .view2d import View2DServer
+from .worker import RegistrationWorker, cancelled
 
-LIVER = (205, 160, 140)
-PORTAL = (220, 50, 50)
-HEPATIC = (60, 90, 220)
-TRUTH = (60, 200, 90)
-REGISTERED = (240, 190, 60)
-FEATURE_COLOURS = {
-    "anterior": (255, 255, 255), "falciform": (255, 0, 255), "ridge_left": (0, 255, 255), "ridge_right": (0, 200, 200),
-    "posterior": (255, 200, 0), "portal_contour": (255, 80, 80), "hepatic_contour": (90, 140, 255),
-    "portal_centerline": (255, 0, 0), "hepatic_centerline": (0, 60, 255),
-}
 STYLUS_MM_PER_S = 40.0  # a steady sweep of the tip, at "1×"
 FRAME_S = 0.05
 FREE_PLANE_BASE = 100  # indices of planes placed by hand start here
-HOME_VIEW_MM = np.array([40.0, 260.0, 110.0])  # camera offset from the liver centroid: anterior, a little superior
-DRAWING_FOV_DEG = 60.0  # vertical field of view of the drawing view
-DRAWING_DISTANCE_MM = 110.0  # camera to image in the drawing view: the 80 mm-deep image fills ~half the height
-
-
-def _wxyz(R):
-    return vtf.SO3.from_matrix(np.asarray(R)).wxyz
-
-
-def _rotation_z_to(n):
-    """A rotation taking +z to the unit vector n."""
-    z = np.asarray(n, float) / np.linalg.norm(n)
-    a = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(a, z)
-    x /= np.linalg.norm(x)
-    return np.column_stack([x, np.cross(z, x), z])
-
-
-def error_colours(err, vmax):
-    """Per-vertex RGBA (V, 4) uint8 for errors in mm, blue (0) → red (vmax) via matplotlib's turbo."""
-    from matplotlib import colormaps
-
-    return (colormaps["turbo"](np.clip(err / max(vmax, 1e-9), 0, 1)) * 255).astype(np.uint8)
-
-
-def stylus_tool() -> trimesh.Trimesh:
-    """A stylus in its own frame: tip at the origin, shaft along +z, mm."""
-    shaft = trimesh.creation.cylinder(radius=2.5, height=110.0)
-    shaft.apply_translation([0, 0, 15.0 + 55.0])
-    tip = trimesh.creation.cone(radius=2.5, height=15.0)
-    tip.apply_transform(trimesh.transformations.rotation_matrix(np.pi, [1, 0, 0]))
-    tip.apply_translation([0, 0, 15.0])
-    return trimesh.util.concatenate([shaft, tip])
+RUN_LABELS = {"rigid": "rigid", "surface": "deformable, surface", "all": "deformable, all data",
+              "warm": "deformable, all data (warm)"}
+VESSEL_SHORT = {"portal_contour": "PV", "hepatic_contour": "HV"}
+# 2D overlay colours: preoperative (rigidly placed) dashed, registered solid
+OVERLAY_STYLE = {
+    "liver": ("#e0b090", "#ffd040"), "portal": ("#ff8080", "#ff2020"), "hepatic": ("#80a0ff", "#2f6bff"),
+    "target": ("#c080ff", "#e000ff"),
+}
+DRAWN_COLOURS = {"portal_contour": "#ff9a1f", "hepatic_contour": "#2ee6ff", "posterior": "#ffee55"}
 
 
 class App:
-    def __init__(self, scene, host="127.0.0.1", port=8080, session_dir=None, edge=4.0, k=45, cache_root=None):
+    """The shared side of the viewer. ``start()`` begins the start-up work in a thread and
+    returns an event set when the registration model is ready (or start-up failed)."""
+
+    def __init__(self, scene, host="127.0.0.1", port=8080, session_dir=None, edge=4.0, k=45, cache_root=None,
+                 view2d_port=0):
         self.scene, self.edge, self.k, self.cache_root = scene, edge, k, cache_root
         self.session_dir = session_dir
-        self.server = viser.ViserServer(host=host, port=port, label="navapp", verbose=False)
-        self.url = f"http://{self.server.get_host()}:{self.server.get_port()}"
         self.lock = threading.RLock()
+        self.version = 0  # bumped on every change to shared data
         self.sd = None
         self.session = None
-        self.planes = {}
+        self.planes: dict = {}
         self.model = None
-        self.worker = None
-        self.current_plane = None
-        self.current = None  # the contour being drawn
-        self.step = 0
+        self.worker: RegistrationWorker | None = None
+        self.result: RegisteredState | None = None  # the registered model on show
+        self.last_reg: Registration | None = None  # what Export and a warm start use
+        self.truth_nodes = None
+        self.stage = "Starting…"
+        self.stage_fraction: float | None = None
+        self.failed: str | None = None
+        self.ready = threading.Event()  # set when start-up has finished (or failed: see .failed)
+        self.run: dict | None = None  # the registration in progress: label, points, t0, trace
         self.stylus_thread = None
         self.stylus_stop = threading.Event()
-        self.run_trace = []  # (seconds, error mm or Ω) of the running registration
-        self.run_label = ""
-        self.streamed = 0
-        self.truth_nodes = None
-        self.last_error = None
-        self.n_reg = {}  # registered model in the scene: "liver", "portal", "hepatic", "error"
-        self._build_gui()
-        self._show_preop()
-        threading.Thread(target=self._start_up, daemon=True).start()
-
-    # ------------------------------------------------------------------ layout
-    def _build_gui(self):
-        g = self.server.gui
-        g.configure_theme(control_width="large", dark_mode=False)
-        self.status = g.add_markdown("**Starting…**")
-        self.bar = g.add_progress_bar(0.0, animated=True)
-        with g.add_folder("Guided demo"):
-            self.guide_md = g.add_markdown("")
-            self.guide_btn = g.add_button("", color="green")
-            self.guide_nav = g.add_button_group("Step", ("◀ Back", "Skip ▶"))
-        with g.add_folder("Scene", expand_by_default=False):
-            self.cb_preop = g.add_checkbox("Preoperative liver", True)
-            self.cb_vessels = g.add_checkbox("Vessels", True)
-            self.cb_truth = g.add_checkbox("True deformed liver (ghost)", False)
-            self.cb_registered = g.add_checkbox("Registered model", True)
-            self.cb_error = g.add_checkbox("Colour by error", True)
-        with g.add_folder("Stylus"):
-            self.stylus_md = g.add_markdown("0 points digitised")
-            self.stylus_speed = g.add_slider("Speed (× realistic)", 1.0, 20.0, 1.0, 5.0)
-            self.btn_stylus = g.add_button("Digitise anterior surface", disabled=True)
-            self.btn_stylus_all = g.add_button("Collect the whole sweep now", disabled=True)
-        with g.add_folder("Ultrasound"):
-            self.plane_dd = g.add_dropdown("Plane", ("—",), disabled=True)
-            self.btn_auto = g.add_button("Auto-segment this plane (simulation)", disabled=True)
-            self.cb_free = g.add_checkbox("Place probe freely", False, disabled=True)
-            self.draw_feature = g.add_dropdown("Draw", tuple(DRAWABLE))
-            self.cb_draw = g.add_checkbox("Click on image adds vertices", False, disabled=True)
-            self.btn_view = g.add_button("Drawing view (face-on)", disabled=True)
-            self.draw_btns = g.add_button_group("Contour", ("Close", "Finish line", "Undo", "Clear plane"))
-            self.plane_md = g.add_markdown("")
-        with g.add_folder("Registration"):
-            self.btn_rigid = g.add_button("Rigid", disabled=True)
-            self.btn_surface = g.add_button("Deformable (surface only)", disabled=True)
-            self.btn_all = g.add_button("Deformable (all data)", disabled=True)
-            self.btn_warm = g.add_button("Re-register (warm start)", disabled=True)
-            self.btn_cancel = g.add_button("Cancel", color="red", disabled=True)
-            self.reg_md = g.add_markdown("")
-            self.plot = g.add_uplot((np.zeros(2), np.zeros(2)),
-                                    ({"label": "seconds"}, {"label": "error (mm)", "stroke": "#d33", "width": 2}),
-                                    title="Error against time", aspect=1.6, scales={"x": {"time": False}})
-            self.log_md = g.add_markdown("")
-        with g.add_folder("What accuracy costs", expand_by_default=False):
-            g.add_markdown("Reruns the current data with the LM iteration cap and the stopping tolerance "
-                           "varied; each point is one registration (★ = Pareto front).")
-            self.btn_sweep = g.add_button("Sweep settings", disabled=True)
-            self.cost_plot = g.add_uplot((np.zeros(1), np.zeros(1)),
-                                         ({"label": "seconds"}, {"label": "TRE (mm)", "stroke": "#36c", "width": 0,
-                                                                 "points": {"show": True, "size": 8}}),
-                                         title="TRE against registration time", aspect=1.6,
-                                         scales={"x": {"time": False}})
-            self.cost_md = g.add_markdown("")
-        with g.add_folder("Session"):
-            self.session_md = g.add_markdown("")
-            self.btn_export = g.add_button("Export (PLY, VTK, CSV)", disabled=True)
-        self._wire()
-        self._show_step()
-
-    def _wire(self):
-        self.guide_btn.on_click(lambda e: self._guide_action(e))
-        self.guide_nav.on_click(lambda e: self._guide_nav(e.target.value))
-        for cb in (self.cb_preop, self.cb_vessels, self.cb_truth, self.cb_registered, self.cb_error):
-            cb.on_update(lambda e: self._visibility())
-        self.btn_stylus.on_click(lambda e: self.start_stylus())
-        self.btn_stylus_all.on_click(lambda e: self.collect_stylus_now())
-        self.plane_dd.on_update(lambda e: self.show_plane(self._plane_from_label(self.plane_dd.value)))
-        self.btn_auto.on_click(lambda e: self.auto_segment())
-        self.cb_free.on_update(lambda e: self._free_probe(self.cb_free.value))
-        self.btn_view.on_click(lambda e: self.drawing_view(e.client))
-        self.draw_btns.on_click(lambda e: self._contour_command(e.target.value))
-        self.btn_rigid.on_click(lambda e: self.register("rigid"))
-        self.btn_surface.on_click(lambda e: self.register("surface"))
-        self.btn_all.on_click(lambda e: self.register("all"))
-        self.btn_warm.on_click(lambda e: self.register("warm"))
-        self.btn_cancel.on_click(lambda e: self.worker and self.worker.cancel())
-        self.btn_sweep.on_click(lambda e: self.sweep())
-        self.btn_export.on_click(lambda e: self.export())
-
-    # ------------------------------------------------------------------ messages
-    def notify(self, title, body, error=False):
-        for client in self.server.get_clients().values():
-            client.add_notification(title, body, color="red" if error else None, auto_close_seconds=None if error else 6.0)
-
-    def _status(self, text, fraction=None):
-        self.status.content = text
-        if fraction is None:
-            self.bar.animated = True
-            self.bar.value = 100.0
-        else:
-            self.bar.animated = False
-            self.bar.value = 100.0 * fraction
-
-    # ------------------------------------------------------------------ start-up
-    def _show_preop(self):
-        preop = make_phantom(self.scene.phantom) if self.scene.phantom is not None else None
-        if preop is None:
-            from ..anatomy.caseio import read_case
-
-            preop = read_case(self.scene.case).preop
-        self.preop = preop
-        s = self.server.scene
-        s.set_up_direction("+z")
-        self.centre = preop.liver.vertices.mean(0)
+        self.stylus_tip: np.ndarray | None = None
+        self.states: dict[str, ClientState] = {}  # token → per-browser state
+        self.views: dict = {}  # client_id → ClientView
+        self._overlay_cache: dict = {}
+        self._image_cache: dict = {}
+        self.preop = make_phantom(scene.phantom) if scene.phantom is not None else self._read_case_preop()
+        self.centre = self.preop.liver.vertices.mean(0)
+        self.server = viser.ViserServer(host=host, port=port, label="navapp", verbose=False)
+        self.url = f"http://{self.server.get_host()}:{self.server.get_port()}"
+        view_host = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
+        self.view2d = View2DServer(self, host=host if host not in ("", "::") else "0.0.0.0", port=view2d_port)
+        self.view2d_host = view_host
+        self.server.scene.set_up_direction("+z")
         cam = self.server.initial_camera
+        from .panels.layers import HOME_VIEW_MM
+
         cam.up_direction, cam.near, cam.far = (0.0, 0.0, 1.0), 1.0, 5000.0
         cam.look_at, cam.position = self.centre, self.centre + HOME_VIEW_MM
-        self.n_liver = s.add_mesh_simple("/preop/liver", preop.liver.vertices, preop.liver.faces, color=LIVER,
-                                         opacity=0.35, side="double")
-        self.n_vessels = []
-        for name, colour in (("portal", PORTAL), ("hepatic", HEPATIC)):
-            m = preop.vessel(name)
-            if m is not None:
-                self.n_vessels.append(s.add_mesh_simple(f"/preop/{name}", m.vertices, m.faces, color=colour))
-            cl = preop.centerline(name)
-            if cl is not None:
-                self.n_vessels.append(s.add_line_segments(f"/preop/{name}_centerline", cl.points[cl.segments()],
-                                                          colour, thickness=2.0, thickness_units="screen"))
+        self.server.gui.configure_theme(control_width="large", dark_mode=False)
+        self.server.on_client_connect(self._connect)
+        self.server.on_client_disconnect(self._disconnect)
 
-    def _frame_camera(self, client):
-        client.camera.up_direction = (0.0, 0.0, 1.0)
-        client.camera.far = 5000.0
-        client.camera.near = 1.0
-        client.camera.position = self.centre + HOME_VIEW_MM
-        client.camera.look_at = self.centre
+    def _read_case_preop(self):
+        from ..anatomy.caseio import read_case
+
+        return read_case(self.scene.case).preop
+
+    # ------------------------------------------------------------------ clients
+    def new_client_state(self, client_id: int = -1) -> ClientState:
+        """A browser's own state (also used headless, by tests and scripts)."""
+        cs = ClientState(client_id, secrets.token_urlsafe(8))
+        with self.lock:
+            self.states[cs.token] = cs
+        return cs
+
+    def _connect(self, client):
+        from .panels import ClientView
+
+        cs = self.new_client_state(client.client_id)
+        view = ClientView(self, client, cs)
+        with self.lock:
+            self.views[client.client_id] = view
+        view.refresh_all()
+
+    def _disconnect(self, client):
+        with self.lock:
+            view = self.views.pop(client.client_id, None)
+            if view is not None:
+                self.states.pop(view.cs.token, None)
+
+    def each_view(self, fn):
+        """Call ``fn(view)`` for every connected browser; one failing view does not stop the others."""
+        with self.lock:
+            views = list(self.views.values())
+        for v in views:
+            try:
+                fn(v)
+            except Exception:  # a tab closing mid-update
+                pass
+
+    def changed(self, what: str = "data"):
+        """Shared data changed: bump the version, save the session, refresh every view."""
+        with self.lock:
+            self.version += 1
+            if self.session is not None and what in ("data", "result", "log"):
+                self.session.save(self.sd, self.planes)
+        self.each_view(lambda v: v.refresh(what))
+
+    def notify(self, title, body, error=False):
+        self.each_view(lambda v: v.notify(title, body, error))
+
+    def set_stage(self, text, fraction=None):
+        self.stage, self.stage_fraction = text, fraction
+        self.each_view(lambda v: v.refresh("status"))
+
+    # ------------------------------------------------------------------ start-up
+    def start(self) -> threading.Event:
+        threading.Thread(target=self._start_up, daemon=True, name="navapp-startup").start()
+        return self.ready
 
     def _start_up(self):
-        listener = progress.add_listener(lambda d, f: self._status(f"**Preparing:** {d}", f))
+        stage = {"name": "", "t0": time.monotonic()}
+
+        def on_progress(desc, fraction):
+            if desc != stage["name"]:
+                stage.update(name=desc, t0=time.monotonic())
+            eta = ""
+            elapsed = time.monotonic() - stage["t0"]
+            if fraction is not None and 0.02 < fraction < 1 and elapsed > 1.0:
+                eta = f", about {_duration(elapsed * (1 - fraction) / fraction)} left"
+            pct = f" — {100 * fraction:.0f} %" if fraction is not None else ""
+            self.set_stage(f"{stage['what']}: {desc}{pct}{eta}", fraction)
+
+        listener = progress.add_listener(on_progress)
         try:
-            self._status("**Preparing:** simulating the intraoperative scene (cached after the first start)")
-            self.sd = load_scene_data(self.scene, self.cache_root, self.edge)
-            folder = Path(self.session_dir) if self.session_dir else default_folder(self.sd)
-            self.session, self.planes = open_session(folder, self.sd)
-            self._show_scene_data()
-            self._status("**Preparing:** registration model (mesh, basis; cached after the first start)")
-            self.model, _ = prepare(self.sd.case, self.edge, self.k, self.cache_root)
-            x0 = self.sd.case.targets[:, :3] if self.sd.case.targets is not None else None
-            if x0 is not None and x0.shape == self.model.basis.nodes.shape and np.allclose(x0, self.model.basis.nodes):
-                self.truth_nodes = self.sd.case.targets[:, 3:]
-            self.worker = RegistrationWorker(self.model, self._on_update, self._on_done, self._on_error, max_rate_hz=20.0)
-            for b in (self.btn_rigid, self.btn_surface, self.btn_all, self.btn_sweep, self.btn_export):
-                b.disabled = False
-            self._status(f"**Ready.** {len(self.model.basis.nodes):,} nodes, k = {self.k}. "
-                         f"Session: `{self.session.folder}`", 1.0)
-            self.bar.visible = False
-            self._show_step()
+            stage["what"] = "Simulating the intraoperative scene (true deformation, stylus sweep, ultrasound; " \
+                            "cached after the first start)"
+            self.set_stage(stage["what"])
+            sd = load_scene_data(self.scene, self.cache_root, self.edge)
+            folder = Path(self.session_dir) if self.session_dir else default_folder(sd)
+            session, planes = open_session(folder, sd)
+            with self.lock:
+                self.sd, self.session, self.planes = sd, session, planes
+            self.changed("scene")
+            stage["what"] = (f"Building the registration model (mesh at {self.edge:g} mm, basis of k = {self.k} "
+                             f"control points; cached after the first start)")
+            self.set_stage(stage["what"])
+            model, _ = prepare(sd.case, self.edge, self.k, self.cache_root)
+            x0 = sd.case.targets[:, :3] if sd.case.targets is not None else None
+            truth = None
+            if x0 is not None and x0.shape == model.basis.nodes.shape and np.allclose(x0, model.basis.nodes):
+                truth = sd.case.targets[:, 3:]
+            with self.lock:
+                self.model, self.truth_nodes = model, truth
+                self.worker = RegistrationWorker(model, self._on_update, self._on_done, self._on_error,
+                                                 max_rate_hz=20.0)
+                self._restore_result()
+            self.set_stage(f"Ready. {len(model.basis.nodes):,} nodes, k = {self.k}. Session: {session.folder}", 1.0)
+            self.changed("model")
         except NavappError as exc:
-            self._status(f"**Error:** {exc}", 0.0)
+            self.failed = str(exc)
+            self.set_stage(f"Error: {exc}", 0.0)
             self.notify("navapp", str(exc), error=True)
         except Exception as exc:  # shown, not lost in a thread
-            self._status(f"**Error while starting:** {exc.__class__.__name__}: {exc}", 0.0)
-            self.notify("navapp", f"{exc.__class__.__name__}: {exc}", error=True)
+            self.failed = f"{exc.__class__.__name__}: {exc}"
+            self.set_stage(f"Error while starting: {self.failed}", 0.0)
+            self.notify("navapp", self.failed, error=True)
             raise
         finally:
             progress.remove_listener(listener)
+            self.ready.set()
 
-    def _show_scene_data(self):
-        s, sd = self.server.scene, self.sd
-        t = sd.truth["liver"]
-        self.n_truth = s.add_mesh_simple("/truth/liver", t.vertices, t.faces, color=TRUTH, opacity=0.3,
-                                         visible=self.cb_truth.value)
-        self.truth_normals = t.vertex_normals
-        from scipy.spatial import cKDTree
-
-        self.truth_tree = cKDTree(t.vertices)
-        self.n_tool = s.add_mesh_trimesh("/stylus/tool", stylus_tool(), visible=False)
-        self.n_data = {}
-        # probe: a frame at the tracked pose; the image plane is its child
-        self.n_probe = s.add_frame("/probe", show_axes=False, visible=False)
-        body = trimesh.creation.box((sd.probe.width_px * sd.probe.spacing_mm + 6, 12.0, 25.0))
-        body.apply_translation([0, 0, -12.5])
-        s.add_mesh_simple("/probe/body", body.vertices, body.faces, color=(80, 80, 80))
-        blank = np.zeros((sd.probe.height_px, sd.probe.width_px, 3), np.uint8)
-        H, W, sp_ = sd.probe.height_px, sd.probe.width_px, sd.probe.spacing_mm
-        # image node axes (x right, y up, z out) = probe (lateral, −depth, elevation)
-        R_img = np.column_stack([[1, 0, 0], [0, 0, -1], [0, 1, 0]]).astype(float)
-        self.n_image = s.add_image("/probe/image", blank, W * sp_, H * sp_, wxyz=_wxyz(R_img),
-                                   position=(0.0, 0.0, (H - 1) / 2 * sp_))
-        self.n_image.on_click(self._image_clicked)
-        self.n_drawn = None
-        labels = self._plane_labels()
-        self.plane_dd.options = labels
-        self.plane_dd.disabled = not self.planes
-        for w in (self.btn_stylus, self.btn_stylus_all, self.btn_auto, self.cb_free, self.cb_draw, self.btn_view):
-            w.disabled = False
-        self._refresh_data()
-        self._refresh_log()
-
-    # ------------------------------------------------------------------ data display
-    def _plane_labels(self):
-        return tuple(self._label_of(i) for i in sorted(self.planes)) or ("—",)
-
-    def _plane_from_label(self, label):
-        if label.startswith("free "):
-            return FREE_PLANE_BASE + int(label.split()[1]) - 1
-        if label == "—":
-            return None
-        return int(label.split()[0]) - 1
-
-    def _label_of(self, i):
-        return f"{i + 1} ({self.planes[i].orientation})" if i < FREE_PLANE_BASE else f"free {i - FREE_PLANE_BASE + 1}"
-
-    def _refresh_data(self):
-        """Redraw the collected data (points per feature) and save the session."""
-        with self.lock:
-            data = self.session.data(self.sd, self.planes)
-            self.session.save(self.sd, self.planes)
-        s = self.server.scene
-        for name in list(self.n_data):
-            if name not in data:
-                self.n_data.pop(name).remove()
-        for name, pts in data.items():
-            if name in self.n_data:
-                self.n_data[name].points = pts.astype(np.float32)
-            else:
-                size = 2.5 if name.endswith("centerline") else 0.6 if name.endswith("contour") or name == "posterior" else 1.2
-                self.n_data[name] = s.add_point_cloud(f"/data/{name}", pts.astype(np.float32), FEATURE_COLOURS[name],
-                                                      point_size=size, precision="float32", point_shape="circle")
-        n = min(self.session.stylus_count, len(self.sd.stylus_path))
-        self.stylus_md.content = f"{n} of {len(self.sd.stylus_path)} sweep points digitised"
-        counts = ", ".join(f"{k} {len(v)}" for k, v in sorted(data.items())) or "none yet"
-        drawn = len([c for c in self.session.contours if c.vertices])
-        self.plane_md.content = (f"Planes added (auto): {[self._label_of(i) for i in self.session.planes_added] or 'none'}; "
-                                 f"contours drawn: {drawn}.  \nData: {counts}")
-        self.btn_warm.disabled = self.worker is None or self.worker.last is None
-        self._show_drawing()
-
-    def _show_drawing(self):
-        """Vertices of the contour being drawn, as markers on the image."""
-        if self.current is None or self.current_plane is None or self.current.plane != self.current_plane:
-            if self.n_drawn is not None:
-                self.n_drawn.visible = False
+    def _restore_result(self):
+        """The registered model stored in the session (rigid pose and β) after a restart."""
+        d = self.session.result
+        if not d:
             return
-        from ..simulation.probe import pixels_to_tracker
+        rigid = RigidResult(np.array(d["R"]), np.array(d["t"]), 0, float(d.get("rms_mm", np.nan)))
+        beta = None if d.get("beta") is None else np.array(d["beta"], float)
+        if beta is not None and len(beta) != self.model.basis.Ju.shape[1] + 6:
+            return  # another basis size (different --k): nothing to restore
+        libr = None if beta is None else LibrResult(beta, float("nan"), 0, "restored", [], [], {}, 0.0, {})
+        reg = Registration(self.model, rigid, libr, {})
+        self.last_reg = self.worker.last = reg
+        self.result = RegisteredState(d.get("run", "restored"), rigid, beta, self._node_error(rigid, beta))
 
-        v = np.array(self.current.vertices, float).reshape(-1, 2)
-        pts = pixels_to_tracker(self.sd.probe, self.planes[self.current.plane].probe_to_tracker, v[:, 0], v[:, 1])
-        self.n_drawn = self.server.scene.add_point_cloud("/drawing/vertices", pts.astype(np.float32), (255, 255, 0),
-                                                         point_size=2.0, precision="float32", point_shape="diamond")
+    # ------------------------------------------------------------------ derived geometry
+    def node_positions(self, rigid, beta) -> np.ndarray:
+        """All mesh nodes at state β in tracker space, (M, 3) mm (eq. 8 through pipeline.deform_points)."""
+        import scipy.sparse as sp
 
-    def _visibility(self):
-        self.n_liver.visible = self.cb_preop.value
-        for n in self.n_vessels:
-            n.visible = self.cb_vessels.value
-        if self.sd is not None:
-            self.n_truth.visible = self.cb_truth.value
-        coloured = self.cb_error.value and "error" in self.n_reg
-        for name, node in self.n_reg.items():
-            # the error-coloured liver replaces the plain one while "Colour by error" is on
-            shown = coloured if name == "error" else (not coloured if name == "liver" else True)
-            node.visible = self.cb_registered.value and shown
+        nodes = self.model.basis.nodes
+        if beta is None:
+            return rigid.apply(nodes)
+        return rigid.apply(deform_points(self.model.basis, self.model.centroid, beta, nodes,
+                                         B=sp.identity(len(nodes), format="csr")))
+
+    def _node_error(self, rigid, beta):
+        if self.truth_nodes is None:
+            return None
+        return np.linalg.norm(self.node_positions(rigid, beta) - self.truth_nodes, axis=1)
+
+    def registered_surfaces(self, rigid=None, beta=None) -> dict:
+        """name → (vertices (V, 3) tracker mm, faces) of the registered liver and vessels,
+        for the current result unless a state is given; {} when nothing is registered."""
+        if rigid is None:
+            if self.result is None:
+                return {}
+            rigid, beta = self.result.rigid, self.result.beta
+        out = {}
+        for name in ("liver", "portal", "hepatic"):
+            f = self.model.features.get(name)
+            if f is None:
+                continue
+            v = f.rest if beta is None else self.model.positions(f, beta)[1]
+            out[name] = (rigid.apply(v), f.cells)
+        return out
+
+    def plane_label(self, i) -> str:
+        p = self.planes[i]
+        vessels = sorted({VESSEL_SHORT[f] for f in p.features if f in VESSEL_SHORT})
+        what = ", ".join(vessels) if vessels else "no vessel"
+        name = f"{i + 1} ({p.orientation})" if i < FREE_PLANE_BASE else f"free {i - FREE_PLANE_BASE + 1}"
+        return f"{name} — {what}"
+
+    def plane_from_label(self, label):
+        for i in self.planes:
+            if self.plane_label(i) == label:
+                return i
+        return None
 
     # ------------------------------------------------------------------ stylus
-    def start_stylus(self):
+    def start_stylus(self, speed=lambda: 1.0) -> bool:
+        """Start (or stop, if running) the stylus sweep; ``speed()`` is read every frame."""
+        if self.sd is None:
+            return False
         if self.stylus_thread is not None and self.stylus_thread.is_alive():
             self.stylus_stop.set()
-            return
+            return True
         self.stylus_stop.clear()
-        self.stylus_thread = threading.Thread(target=self._sweep_stylus, daemon=True)
+        self.stylus_thread = threading.Thread(target=self._sweep_stylus, args=(speed,), daemon=True)
         self.stylus_thread.start()
+        return True
 
-    def _sweep_stylus(self):
-        """Move the tool tip along the sweep at the chosen pace, leaving digitised points."""
+    @property
+    def sweeping(self) -> bool:
+        return self.stylus_thread is not None and self.stylus_thread.is_alive()
+
+    def _sweep_stylus(self, speed):
         path = self.sd.stylus_path
-        self.btn_stylus.label = "Stop digitising"
-        self.n_tool.visible = True
-        i = min(self.session.stylus_count, len(path))
+        with self.lock:
+            i = min(self.session.stylus_count, len(path))
+            start = i
         pos = path[i] if i < len(path) else path[-1]
         last_saved = time.monotonic()
         while i < len(path) and not self.stylus_stop.is_set():
-            step = STYLUS_MM_PER_S * self.stylus_speed.value * FRAME_S
+            step = STYLUS_MM_PER_S * speed() * FRAME_S
             while step > 0 and i < len(path):
                 d = np.linalg.norm(path[i] - pos)
                 if d <= step:
                     pos, step, i = path[i], step - d, i + 1
                 else:
                     pos, step = pos + (path[i] - pos) * step / d, 0.0
-            _, j = self.truth_tree.query(pos)
-            self.n_tool.wxyz = _wxyz(_rotation_z_to(self.truth_normals[j] + np.array([0.0, 0.3, 0.3])))
-            self.n_tool.position = pos
+            self.stylus_tip = pos
             with self.lock:
                 self.session.stylus_count = i
+            self.each_view(lambda v: v.show_stylus(pos))
             if time.monotonic() - last_saved > 0.5 or i == len(path):
-                self._refresh_data()
+                self.changed("data")
                 last_saved = time.monotonic()
             time.sleep(FRAME_S)
-        self._refresh_data()
-        self.n_tool.visible = False
-        self.btn_stylus.label = "Digitise anterior surface"
+        self.stylus_tip = None
+        self._record_stylus_batch(start)
+        self.each_view(lambda v: v.show_stylus(None))
+        self.changed("data")
+
+    def _record_stylus_batch(self, start):
+        """One undoable action per sweep (per browser that sees it: the stylus is shared)."""
+        with self.lock:
+            if self.session.stylus_count > start:
+                for cs in self.states.values():
+                    cs.undo.append(Action("stylus", before=start))
 
     def collect_stylus_now(self):
         self.stylus_stop.set()
         if self.stylus_thread is not None:
             self.stylus_thread.join()
         with self.lock:
+            start = self.session.stylus_count
             self.session.stylus_count = len(self.sd.stylus_path)
-        self._refresh_data()
+        self._record_stylus_batch(start)
+        self.changed("data")
 
     # ------------------------------------------------------------------ ultrasound
-    def show_plane(self, index):
+    def show_plane(self, cs: ClientState, index) -> bool:
         if index is None or index not in self.planes:
-            return
-        p = self.planes[index]
-        self.current_plane = index
-        T = p.probe_to_tracker
-        self.n_probe.wxyz, self.n_probe.position, self.n_probe.visible = _wxyz(T[:3, :3]), T[:3, 3], True
-        img = p.image if p.image is not None else np.zeros((self.sd.probe.height_px, self.sd.probe.width_px), np.uint8)
-        # viser draws an image's first row at the node's −y edge; flipped, row 0 sits at the probe face
-        self.n_image.image = np.repeat(np.flipud(img)[..., None], 3, axis=2)
-        label = self._label_of(index)
-        if self.plane_dd.value != label:
-            self.plane_dd.value = label
-        if getattr(self, "n_gizmo", None) is not None:
-            self.n_gizmo.wxyz, self.n_gizmo.position = self.n_probe.wxyz, self.n_probe.position
-        self._show_drawing()
-
-    def auto_segment(self):
-        if self.current_plane is None:
-            self.notify("Ultrasound", "Choose a plane first.")
-            return
+            return False
         with self.lock:
-            if self.current_plane not in self.session.planes_added:
-                self.session.planes_added.append(self.current_plane)
-        self._refresh_data()
+            cs.plane = index
+            if cs.drawing is not None and cs.drawing.plane != index:
+                cs.drawing = None  # an unfinished contour stays as drawn (an open line) on its own plane
+            cs.touch()
+        view = self.views.get(cs.client_id)
+        if view is not None:
+            view.refresh("plane")
+        return True
 
-    def _free_probe(self, on):
-        if not on:
-            if getattr(self, "n_gizmo", None) is not None:
-                self.n_gizmo.remove()
-                self.n_gizmo = None
-            return
-        if self.current_plane is None:
-            self.show_plane(min(self.planes))
-        self.n_gizmo = self.server.scene.add_transform_controls("/gizmo", scale=40.0, wxyz=self.n_probe.wxyz,
-                                                                position=self.n_probe.position)
+    def add_plane(self, cs: ClientState) -> str | None:
+        """The simulated segmentation of this browser's plane becomes data."""
+        if cs.plane is None:
+            return "Choose a plane first."
+        with self.lock:
+            if cs.plane in self.session.planes_added:
+                return None
+            self.session.planes_added.append(cs.plane)
+            cs.undo.append(Action("plane", plane=cs.plane))
+        self.changed("data")
+        return None
 
-        @self.n_gizmo.on_drag_end
-        def _(event):
-            R = vtf.SO3(np.asarray(self.n_gizmo.wxyz)).as_matrix()
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = R, self.n_gizmo.position
-            self.place_probe(T)
-
-    def place_probe(self, T):
-        """Acquire a new plane at a hand-placed pose (kept in the session)."""
+    def place_probe(self, cs: ClientState, T) -> int:
+        """Acquire a new plane at a hand-placed pose (kept in the session); returns its index."""
+        plane = self.acquire_at(T, None)
         with self.lock:
             index = FREE_PLANE_BASE + len(self.session.free_planes)
-            self.planes[index] = acquire_free_plane(self.sd, index, T)
+            while index in self.planes:
+                index += 1
+            plane.index = index
+            self.planes[index] = plane
             self.session.free_planes.append({"index": index, "pose": np.asarray(T).tolist()})
-        self.plane_dd.options = self._plane_labels()
-        self.show_plane(index)
-        self._refresh_data()
+            cs.undo.append(Action("free_plane", plane=index))
+        self.show_plane(cs, index)
+        self.changed("data")
+        return index
 
-    def drawing_view(self, client=None):
-        """Look at the current image face-on, top of the image up."""
-        if self.current_plane is None:
-            self.show_plane(min(self.planes))
-        self.cb_draw.value = True
-        # the image lies inside the liver: hide what would stand between it and the eye
-        self.cb_preop.value = self.cb_vessels.value = self.cb_registered.value = self.cb_truth.value = False
-        self._visibility()
-        T = self.planes[self.current_plane].probe_to_tracker
-        sp_ = self.sd.probe.spacing_mm
-        centre = T[:3, 3] + T[:3, 2] * (self.sd.probe.height_px - 1) / 2 * sp_
-        clients = [client] if client is not None else list(self.server.get_clients().values())
-        for c in clients:
-            c.camera.fov = np.radians(DRAWING_FOV_DEG)
-            c.camera.up_direction = -T[:3, 2]
-            c.camera.position = centre + T[:3, 1] * DRAWING_DISTANCE_MM  # viser moves look_at with position,
-            c.camera.look_at = centre  # so the target is set second
+    def acquire_at(self, T, index=None):
+        """A simulated plane at pose T (4×4), not kept: the free probe's preview."""
+        i = index if index is not None else FREE_PLANE_BASE + len(self.session.free_planes)
+        return acquire_free_plane(self.sd, i, np.asarray(T, float))
 
-    def _image_clicked(self, event):
-        if not self.cb_draw.value or self.current_plane is None:
-            return
-        p = self.planes[self.current_plane]
-        px = click_to_pixel(self.sd.probe, p.probe_to_tracker, event.ray_origin, event.ray_direction)
-        if px is None:
-            return
-        feature = DRAWABLE[self.draw_feature.value]
+    # ------------------------------------------------------------------ drawing
+    def click(self, cs: ClientState, col: int, row: int, feature: str | None = None) -> str | None:
+        """A vertex at image pixel (col, row) of this browser's plane; returns an error or None."""
+        if cs.plane is None:
+            return "Choose a plane first."
+        if not (0 <= col < self.sd.probe.width_px and 0 <= row < self.sd.probe.height_px):
+            return "That click is outside the image."
+        name = feature if feature in DRAWABLE else cs.feature
         with self.lock:
-            c = self.current
-            if c is None or c.plane != self.current_plane or c.feature != feature:
-                c = self.current = Contour(self.current_plane, feature)
+            cs.feature = name
+            c = cs.drawing
+            if c is None or c.plane != cs.plane or c.feature != DRAWABLE[name] or c.closed \
+                    or c not in self.session.contours:
+                c = cs.drawing = Contour(cs.plane, DRAWABLE[name])
                 self.session.contours.append(c)
-            c.vertices.append(px)
-        self._refresh_data()
+            c.vertices.append((int(col), int(row)))
+            cs.undo.append(Action("vertex", contour=c))
+            cs.touch()
+        self.changed("data")
+        return None
 
-    def _contour_command(self, cmd):
+    def contour_command(self, cs: ClientState, cmd: str, feature: str | None = None) -> str | None:
+        """Close / Finish line / Undo / Clear plane / Feature, for this browser; an error or None."""
+        msg = None
         with self.lock:
-            c = self.current
-            if cmd == "Close" and c is not None:
-                if len(c.vertices) >= 3:
-                    c.closed = True
-                    self.current = None
+            c = cs.drawing
+            if cmd == "Feature":
+                if feature in DRAWABLE:
+                    cs.feature = feature
+                    if c is not None and c.feature != DRAWABLE[feature]:
+                        cs.drawing = None
+                cs.touch()
+                return None
+            if cmd == "Close":
+                if c is None:
+                    msg = "Nothing is being drawn."
+                elif len(c.vertices) < 3:
+                    msg = "A closed contour needs at least 3 vertices."
                 else:
-                    self.notify("Contour", "A closed contour needs at least 3 vertices.")
+                    c.closed = True
+                    cs.drawing = None
+                    cs.undo.append(Action("close", contour=c))
             elif cmd == "Finish line":
-                self.current = None
+                cs.drawing = None
             elif cmd == "Undo":
-                if c is None and self.session.contours:
-                    c = self.current = self.session.contours[-1]
-                    c.closed = False
-                if c is not None:
-                    if c.vertices:
-                        c.vertices.pop()
-                    if not c.vertices:
-                        self.session.contours.remove(c)
-                        self.current = None
+                msg = self._undo(cs)
             elif cmd == "Clear plane":
-                self.session.contours = [x for x in self.session.contours if x.plane != self.current_plane]
-                if self.current_plane in self.session.planes_added:
-                    self.session.planes_added.remove(self.current_plane)
-                self.current = None
-        self._refresh_data()
+                removed = [x for x in self.session.contours if x.plane == cs.plane]
+                self.session.contours = [x for x in self.session.contours if x.plane != cs.plane]
+                was_added = cs.plane in self.session.planes_added
+                if was_added:
+                    self.session.planes_added.remove(cs.plane)
+                cs.undo.append(Action("clear", plane=cs.plane, before=(removed, was_added)))
+                cs.drawing = None
+            else:
+                return f"unknown command {cmd!r}"
+            cs.message = msg or ""
+            cs.touch()
+        self.changed("data")
+        return msg
+
+    def _undo(self, cs: ClientState) -> str | None:
+        """Undo this browser's last action of any kind; others' work is left alone."""
+        while cs.undo:
+            a = cs.undo.pop()
+            if a.kind == "vertex":
+                c = a.contour
+                if c not in self.session.contours or not c.vertices:
+                    continue  # removed meanwhile (e.g. cleared): nothing of it left to undo
+                c.vertices.pop()
+                c.closed = False
+                if not c.vertices:
+                    self.session.contours.remove(c)
+                    cs.drawing = None
+                else:
+                    cs.drawing = c
+                    cs.plane = c.plane
+                return None
+            if a.kind == "close":
+                if a.contour in self.session.contours:
+                    a.contour.closed = False
+                    cs.drawing = a.contour
+                    cs.plane = a.contour.plane
+                    return None
+                continue
+            if a.kind == "plane":
+                if a.plane in self.session.planes_added:
+                    self.session.planes_added.remove(a.plane)
+                    return None
+                continue
+            if a.kind == "free_plane":
+                used = any(c.plane == a.plane for c in self.session.contours) or a.plane in self.session.planes_added
+                if used:
+                    return "That free plane has contours or data on it now; clear it first."
+                self.session.free_planes = [f for f in self.session.free_planes if f["index"] != a.plane]
+                self.planes.pop(a.plane, None)
+                if cs.plane == a.plane:
+                    cs.plane = None
+                return None
+            if a.kind == "stylus":
+                if self.sweeping:
+                    cs.undo.append(a)
+                    return "Stop the stylus sweep first."
+                self.session.stylus_count = min(self.session.stylus_count, a.before)
+                return None
+            if a.kind == "clear":
+                removed, was_added = a.before
+                self.session.contours.extend(removed)
+                if was_added and a.plane not in self.session.planes_added:
+                    self.session.planes_added.append(a.plane)
+                return None
+        return "Nothing of yours to undo."
 
     # ------------------------------------------------------------------ registration
-    def _data(self, kind):
+    def data(self, kind="all") -> dict:
         with self.lock:
             return self.session.data(self.sd, self.planes, surface_only=kind == "surface")
 
-    def node_positions(self, rigid, beta):
-        """All mesh nodes at state β in tracker space, (M, 3) mm."""
-        nodes = self.model.basis.nodes
-        if beta is None:
-            return rigid.apply(nodes)
-        return rigid.apply(deform_points(self.model.basis, self.model.centroid, beta, nodes, B=sp.identity(len(nodes))))
-
-    def register(self, kind):
+    def register(self, kind) -> str | None:
+        """Start a registration; returns why it could not start, or None."""
         if self.worker is None:
-            self.notify("Registration", "Still preparing the registration model.")
-            return False
-        data = self._data(kind)
+            return "Still preparing the registration model."
+        data = self.data(kind)
         npts = sum(len(v) for v in data.values())
         if npts < 3:
-            self.notify("Registration", "Collect data first (stylus sweep or an ultrasound plane).", error=True)
-            return False
-        if self.worker.busy:  # checked before touching the running job's label and trace
-            self.notify("Registration", "A registration is already running; wait for it or cancel it.")
-            return False
-        self.run_label = {"rigid": "rigid", "surface": "deformable, surface", "all": "deformable, all data",
-                          "warm": "deformable, all data (warm)"}[kind]
-        self.run_trace, self.streamed = [], 0
-        self.run_points = npts
-        self.run_t0 = time.monotonic()
-        ok = self.worker.start(data, deform=kind != "rigid", warm=kind == "warm")
-        if not ok:
-            self.notify("Registration", "A registration is already running; wait for it or cancel it.")
-            return False
-        self.btn_cancel.disabled = False
-        self.reg_md.content = f"Running **{self.run_label}** on {npts} points…"
-        return True
+            return "Collect data first (stylus sweep or an ultrasound plane)."
+        if self.worker.busy:
+            return "A registration is already running; wait for it or cancel it."
+        if kind == "warm" and self.worker.last is None:
+            kind = "all"
+        run = {"label": RUN_LABELS[kind], "points": npts, "t0": time.monotonic(), "trace": [], "streamed": 0,
+               "iteration": 0, "omega": float("nan")}
+        with self.lock:
+            self.run = run
+        if not self.worker.start(data, deform=kind != "rigid", warm=kind == "warm"):
+            return "A registration is already running; wait for it or cancel it."
+        self.changed("run")
+        return None
+
+    def cancel(self):
+        if self.worker is not None:
+            self.worker.cancel()
 
     def _on_update(self, u):
-        self.streamed += 1
-        s = self.server.scene
-        for name, pts in (("liver", u.liver), *u.vessels.items()):
-            if name in self.n_reg:
-                self.n_reg[name].vertices = pts.astype(np.float32)
-            elif name == "liver":
-                self.n_reg[name] = s.add_mesh_simple("/registered/liver", pts.astype(np.float32),
-                                                     self.model.features["liver"].cells, color=REGISTERED, opacity=0.6,
-                                                     side="double")
-            else:
-                colour = tuple(int(c * 0.6) for c in (PORTAL if name == "portal" else HEPATIC))
-                self.n_reg[name] = s.add_mesh_simple(f"/registered/{name}", pts.astype(np.float32),
-                                                     self.model.features[name].cells, color=colour)
+        run = self.run
+        run["streamed"] += 1
+        run["iteration"], run["omega"] = u.iteration, u.omega
         if self.truth_nodes is not None:
-            err = np.linalg.norm(self.node_positions(u.rigid, u.beta) - self.truth_nodes, axis=1).mean()
-            self.run_trace.append((u.elapsed, err))
-            t, e = np.array(self.run_trace).T
-            if len(t) >= 2:
-                self.plot.data = (t, e)
-        err = f", mean error {self.run_trace[-1][1]:.2f} mm" if self.run_trace else ""
-        self.reg_md.content = f"**{self.run_label}** — iteration {u.iteration}, Ω = {u.omega:.4g}, {u.elapsed:.2f} s{err}"
+            err = np.linalg.norm(self.node_positions(u.rigid, u.beta) - self.truth_nodes, axis=1)
+            run["trace"].append((u.elapsed, float(err.mean())))
+            run["error"] = err
+        run["state"] = (u.rigid, u.beta)
+        self.each_view(lambda v: v.show_update(u))
 
     def _on_done(self, reg):
-        seconds = time.monotonic() - self.run_t0
-        self.btn_cancel.disabled = True
-        self.btn_warm.disabled = False
-        entry = {"run": self.run_label, "points": self.run_points, "seconds": round(seconds, 3),
+        run = self.run
+        seconds = time.monotonic() - run["t0"]
+        stopped = cancelled(reg)
+        entry = {"run": run["label"], "points": run["points"], "seconds": round(seconds, 3),
                  "iterations": reg.libr.iterations if reg.libr else 0,
-                 "stop": reg.libr.stop_reason if reg.libr else "rigid", "updates_streamed": self.streamed}
-        if self.truth_nodes is not None:
-            beta = reg.libr.beta if reg.libr is not None else None
-            x = self.node_positions(reg.rigid, beta)
-            err = np.linalg.norm(x - self.truth_nodes, axis=1)
-            entry.update(error_mean_mm=round(float(err.mean()), 3), error_max_mm=round(float(err.max()), 3))
-            self.last_error = err
-            self._colour_by_error(x, err)
+                 "stop": reg.libr.stop_reason if reg.libr else "rigid", "updates_streamed": run["streamed"],
+                 "cancelled": stopped, "trace": [[round(t, 3), round(e, 3)] for t, e in run["trace"]]}
+        if reg.quality is not None and reg.quality.warning:
+            entry["warning"] = reg.quality.warning
+        beta = reg.libr.beta if reg.libr is not None else None
+        if not stopped:
+            err = self._node_error(reg.rigid, beta)
+            if err is not None:
+                entry.update(error_mean_mm=round(float(err.mean()), 3), error_max_mm=round(float(err.max()), 3))
+            with self.lock:
+                self.result = RegisteredState(run["label"], reg.rigid, beta, err)
+                self.last_reg = reg
+                self.session.result = self.result.to_json()
         with self.lock:
             self.session.log.append(entry)
-            self.session.save(self.sd, self.planes)
-        self.last_reg = reg
-        self._refresh_log()
-        self._visibility()
-
-    def _colour_by_error(self, x, err):
-        surf = self.model.basis.surface
-        vmax = max(float(err.max()), 1e-6)
-        mesh = trimesh.Trimesh(x[surf], self.model.features["liver"].cells, process=False)
-        mesh.visual.vertex_colors = error_colours(err[surf], vmax)
-        self.n_reg["error"] = self.server.scene.add_mesh_trimesh("/registered/error", mesh)
-        self.error_scale = vmax
+            self.run = None
+        self.changed("result")
+        if stopped:
+            self.notify("Registration", "Cancelled: the previous result is kept.")
+        elif entry.get("warning"):
+            self.notify("Registration: check the fit", entry["warning"], error=True)
 
     def _on_error(self, exc):
-        self.btn_cancel.disabled = True
         msg = str(exc) if isinstance(exc, NavappError) else f"{exc.__class__.__name__}: {exc}"
-        self.reg_md.content = f"**Registration failed:** {msg}"
+        with self.lock:
+            self.run = None
         self.notify("Registration failed", msg, error=True)
+        self.changed("run")
 
-    def _refresh_log(self):
-        log = self.session.log if self.session else []
-        if not log:
-            self.log_md.content = ""
-            return
-        rows = ["| run | points | s | its | mean err | max err |", "|---|---|---|---|---|---|"]
-        for e in log[-8:]:
-            rows.append(f"| {e['run']} | {e['points']} | {e['seconds']:.2f} | {e['iterations']} | "
-                        f"{e.get('error_mean_mm', float('nan')):.2f} | {e.get('error_max_mm', float('nan')):.2f} |")
-        last = log[-1]
-        head = ""
-        if "error_mean_mm" in last:
-            head = (f"**Last: mean error {last['error_mean_mm']:.2f} mm, max {last['error_max_mm']:.2f} mm, "
-                    f"{last['seconds']:.2f} s, {last['updates_streamed']} updates streamed "
-                    f"({last['updates_streamed'] / max(last['seconds'], 1e-9):.1f}/s)**\n\n")
-        if "error_mean_mm" in last and self.last_error is not None:  # a restored log has no coloured model yet
-            head += ("<div style='height:10px;background:linear-gradient(to right,#30123b,#4686fb,#1ae4b6,#a2fc3c,"
-                     "#fabb39,#e4460a,#7a0403)'></div>\n\n"
-                     f"error colour scale: 0 mm … {self.error_scale:.1f} mm\n\n")
-        self.log_md.content = head + "\n".join(rows)
-
-    # ------------------------------------------------------------------ cost panel
-    def sweep(self):
+    # ------------------------------------------------------------------ cost sweep
+    def sweep(self, on_row=None, on_done=None) -> str | None:
         if self.truth_nodes is None:
-            self.notify("Cost", "This panel needs the true deformation (simulated scenes).")
-            return
-        data = self._data("all")
+            return "This panel needs the true deformation (simulated scenes)."
+        data = self.data("all")
         if sum(len(v) for v in data.values()) < 3:
-            self.notify("Cost", "Collect data first.", error=True)
-            return
-        rows = []
+            return "Collect data first."
+        import scipy.sparse as sp
+
         x0 = self.model.basis.nodes
-
-        def on_row(r):
-            rows.append(r)
-            t = np.array([x.seconds for x in rows])
-            e = np.array([x.tre_mean_mm for x in rows])
-            o = np.argsort(t)
-            self.cost_plot.data = (t[o], e[o])
-            front = pareto_front(t, e)
-            lines = ["| setting | s | TRE mm | its |", "|---|---|---|---|"]
-            for j in o:
-                lines.append(f"| {rows[j].label}{' ★' if front[j] else ''} | {rows[j].seconds:.2f} | "
-                             f"{rows[j].tre_mean_mm:.2f} | {rows[j].iterations} |")
-            self.cost_md.content = "\n".join(lines)
-
         B = sp.identity(len(x0), format="csr")  # the targets are the mesh nodes themselves
         ok = self.worker.submit(lambda cancel: lm_sweep(self.model, data, x0, self.truth_nodes, cancel=cancel,
-                                                        on_row=on_row, B=B),
-                                lambda rows_: self.notify("Cost", f"{len(rows_)} settings run."))
-        if not ok:
-            self.notify("Cost", "A registration is running; try again when it has finished.")
+                                                        on_row=on_row, B=B), on_done)
+        return None if ok else "A registration is running; try again when it has finished."
 
     # ------------------------------------------------------------------ export
-    def export(self):
-        reg = getattr(self, "last_reg", None)
-        if reg is None:
-            self.notify("Export", "Register first: the export holds the registered model.", error=True)
-            return
+    def export(self) -> tuple[Path | None, str]:
+        if self.last_reg is None:
+            return None, "Register first: the export holds the registered model."
         out = self.session.folder / "export"
-        files = export(out, reg, self.sd, self._data("all"))
-        self.notify("Export", f"{len(files)} files written to {out}")
-        self.session_md.content = f"Exported to `{out}`"
+        files = export(out, self.last_reg, self.sd, self.data("all"))
+        return out, f"{len(files)} files written to {out}"
 
-    # ------------------------------------------------------------------ guided demo
-    def _show_step(self):
-        st = STEPS[self.step]
-        self.guide_md.content = f"**Step {self.step + 1} of {len(STEPS)}: {st.title}**  \n{st.text}"
-        self.guide_btn.label = st.button
-        self.guide_btn.disabled = self.sd is None and self.step > 1 or self.worker is None and self.step > 2
+    # ------------------------------------------------------------------ 2D view provider
+    def _state_for(self, token):
+        with self.lock:
+            return self.states.get(token)
 
-    def _guide_nav(self, value):
-        self.step = max(0, self.step - 1) if value.startswith("◀") else min(len(STEPS) - 1, self.step + 1)
-        self._show_step()
+    def view_state(self, token) -> dict | None:
+        cs = self._state_for(token)
+        if cs is None or self.sd is None:
+            return None if cs is None else {"etag": "wait", "plane": None, "overlays": [], "contours": [],
+                                            "drawing": None, "targets": [], "legend": [],
+                                            "message": "Preparing the scene…"}
+        with self.lock:
+            etag = f"{self.version}-{cs.version}-{self._result_version()}"
+            out = {"etag": etag, "plane": None, "width": self.sd.probe.width_px, "height": self.sd.probe.height_px,
+                   "spacing": self.sd.probe.spacing_mm, "overlays": [], "contours": [], "drawing": None,
+                   "targets": [], "legend": [], "message": cs.message, "feature": cs.feature}
+            if cs.plane is None or cs.plane not in self.planes:
+                return out
+            plane = self.planes[cs.plane]
+            out["plane"] = f"Plane {self.plane_label(cs.plane)}" + \
+                (" · added as data" if cs.plane in self.session.planes_added else "")
+            out["image_id"] = f"{cs.plane}-{id(plane)}"
+            contours = [c for c in self.session.contours if c.plane == cs.plane]
+            drawing = cs.drawing if cs.drawing in contours else None
+        for ov in self.overlays(cs.plane):
+            out["overlays"].append(ov.to_json())
+        for c in contours:
+            if c is drawing:
+                continue
+            centroid = None
+            if c.closed and c.feature in CENTERLINE_OF:
+                cols, rows = contour_pixels(c)
+                centroid = [float(cols.mean()), float(rows.mean())]
+            out["contours"].append({"feature": c.feature, "colour": DRAWN_COLOURS.get(c.feature, "#fff"),
+                                    "vertices": [list(v) for v in c.vertices], "closed": c.closed,
+                                    "centroid": centroid})
+        if drawing is not None:
+            out["drawing"] = {"feature": drawing.feature, "vertices": [list(v) for v in drawing.vertices]}
+        out["legend"] = [{"name": o["name"], "colour": o["colour"]} for o in out["overlays"]] + \
+            [{"name": f"drawn {n}", "colour": DRAWN_COLOURS[f]} for n, f in DRAWABLE.items()]
+        out["targets"] = self.target_lines_for_plane(cs.plane)
+        return out
 
-    def _guide_action(self, event):
-        ok = getattr(self, STEPS[self.step].action)(event.client)
-        if ok is not False and self.step < len(STEPS) - 1:
-            self.step += 1
-        self._show_step()
+    def _result_version(self):
+        run = self.run
+        return f"{id(self.result)}-{run['streamed'] if run else 0}"
 
-    def guide_preop(self, client):
-        self.cb_preop.value, self.cb_vessels.value, self.cb_truth.value = True, True, False
-        self._visibility()
-        self._frame_camera(client)
+    def view_image(self, token) -> bytes | None:
+        cs = self._state_for(token)
+        if cs is None or cs.plane is None or self.sd is None:
+            return None
+        plane = self.planes.get(cs.plane)
+        if plane is None:
+            return None
+        key = (cs.plane, id(plane))
+        png = self._image_cache.get(key)
+        if png is None:
+            from PIL import Image
 
-    def guide_truth(self, client):
-        self.cb_truth.value = True
-        self._visibility()
+            img = plane.image if plane.image is not None else np.zeros((self.sd.probe.height_px,
+                                                                         self.sd.probe.width_px), np.uint8)
+            buf = io.BytesIO()
+            Image.fromarray(np.asarray(img, np.uint8)).save(buf, format="PNG")
+            png = self._image_cache[key] = buf.getvalue()
+        return png
 
-    def guide_stylus(self, client):
-        self.cb_truth.value = False
-        self._visibility()
-        self.start_stylus()
+    def view_click(self, token, col, row, feature) -> str | None:
+        cs = self._state_for(token)
+        if cs is None:
+            return "This view is no longer connected: reload the page."
+        return self.click(cs, col, row, feature)
 
-    def guide_rigid(self, client):
-        if self.stylus_thread is not None:
-            self.stylus_thread.join()
-        return self.register("rigid")
+    def view_command(self, token, cmd, feature) -> str | None:
+        cs = self._state_for(token)
+        if cs is None:
+            return "This view is no longer connected: reload the page."
+        return self.contour_command(cs, cmd, feature)
 
-    def guide_surface(self, client):
-        self.worker.join()
-        return self.register("surface")
+    def overlays(self, index) -> list[Overlay]:
+        """The model's sections with plane ``index``: preoperative (rigidly placed by the
+        current result, as-is before any registration) dashed, registered solid."""
+        run = self.run
+        live = run is not None and "state" in run
+        rigid, beta = run["state"] if live else ((self.result.rigid, self.result.beta) if self.result else (None, None))
+        key = (index, id(self.planes[index]), id(self.result), run["streamed"] if live else -1)
+        cached = self._overlay_cache.get(key)
+        if cached is not None:
+            return cached
+        T = self.planes[index].probe_to_tracker
+        probe = self.sd.probe
+        out = []
+        place = rigid.apply if rigid is not None else (lambda x: np.asarray(x))
+        pre = {"liver": self.preop.liver, "portal": self.preop.portal, "hepatic": self.preop.hepatic}
+        for name, mesh in pre.items():
+            if mesh is not None:
+                seg = section_pixels(probe, T, place(mesh.vertices), mesh.faces)
+                out.append(Overlay(f"{name} (preop{', rigid' if rigid is not None else ''})",
+                                   OVERLAY_STYLE[name][0], True, seg))
+        if rigid is not None and self.model is not None:
+            for name, (v, f) in self.registered_surfaces(rigid, beta).items():
+                out.append(Overlay(f"{name} (registered)", OVERLAY_STYLE[name][1], False,
+                                   section_pixels(probe, T, v, f)))
+        for name, (v, f) in self.registered_targets(rigid, beta).items():
+            out.append(Overlay(f"target {name}", OVERLAY_STYLE["target"][1], False, section_pixels(probe, T, v, f)))
+        if len(self._overlay_cache) > 64:
+            self._overlay_cache.clear()
+        self._overlay_cache[key] = out
+        return out
 
-    def guide_plane(self, client):
-        self.worker.join()
-        self.show_plane(self.demo_plane())
+    # ------------------------------------------------------------------ targets
+    def registered_targets(self, rigid=None, beta=None) -> dict:
+        """name → (vertices (V, 3) tracker mm, faces) of the tumour targets, carried by the
+        given state (the preoperative targets when nothing is registered)."""
+        targets = getattr(self.preop, "targets", None) or []
+        out = {}
+        for t in targets:
+            v = np.asarray(t.surface.vertices, float)
+            if rigid is not None and self.model is not None:
+                v = rigid.apply(v if beta is None else
+                                deform_points(self.model.basis, self.model.centroid, beta, v))
+            out[t.name] = (v, np.asarray(t.surface.faces))
+        return out
 
-    def demo_plane(self):
-        """The first preset plane that cuts a portal vein branch across (a closed contour to draw)."""
-        for i in sorted(self.planes):
-            if "portal_centerline" in self.planes[i].features:
-                return i
-        return min(self.planes)
+    def target_lines_for_plane(self, index) -> list[str]:
+        return self.target_plane_lines(index)
 
-    def guide_draw(self, client):
-        self.draw_feature.value = "PV contour"
-        self.drawing_view(client)
+    def target_plane_lines(self, index) -> list[str]:
+        return []
 
-    def guide_all(self, client):
-        self.cb_draw.value = False
-        self.cb_preop.value = self.cb_vessels.value = self.cb_registered.value = True
-        self._visibility()
-        self._contour_command("Close") if self.current is not None and len(self.current.vertices) >= 3 else None
-        self._frame_camera(client)
-        return self.register("warm" if self.worker.last is not None else "all")
-
-    def guide_compare(self, client):
-        self.worker.join()
-        self._refresh_log()
-        self.notify("Comparison", "The Registration panel lists every run with its error and time.")
+    def target_distance_lines(self, tip) -> list[str]:
+        return []
 
 
-def serve(scene, host="127.0.0.1", port=8080, session_dir=None, edge=4.0, k=45, cache_root=None):
+def _duration(seconds: float) -> str:
+    seconds = max(0.0, seconds)
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.0f} min"
+
+
+def serve(scene, host="127.0.0.1", port=8080, session_dir=None, edge=4.0, k=45, cache_root=None, view2d_port=0):
     """Start the viewer and block until interrupted."""
-    app = App(scene, host, port, session_dir, edge, k, cache_root)
+    app = App(scene, host, port, session_dir, edge, k, cache_root, view2d_port)
+    app.start()
     print(f"navapp: viewer at {app.url}  (Ctrl+C to stop)", flush=True)
     try:
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:
         pass
+    finally:
+        app.view2d.stop()
     return app

@@ -34,6 +34,7 @@ class Session:
     contours: list = field(default_factory=list)  # [Contour] drawn by hand
     free_planes: list = field(default_factory=list)  # [{"index": i, "pose": 4×4 list}]
     log: list = field(default_factory=list)  # one dict per registration run
+    result: dict | None = None  # the registered model on show (RegisteredState.to_json), restored on restart
 
     # ------------------------------------------------------------ data
     def data(self, sd: SceneData, planes: dict, surface_only=False) -> dict:
@@ -62,7 +63,7 @@ class Session:
     def to_json(self) -> dict:
         return {"version": SESSION_VERSION, "scene_key": self.key, "stylus_count": self.stylus_count,
                 "planes_added": self.planes_added, "contours": [c.to_json() for c in self.contours],
-                "free_planes": self.free_planes, "log": self.log}
+                "free_planes": self.free_planes, "log": self.log, "result": self.result}
 
     def save(self, sd: SceneData, planes: dict):
         """Write session.json and the case folder's intraop/ (atomically, file by file)."""
@@ -111,7 +112,8 @@ def open_session(folder: Path, sd: SceneData) -> tuple[Session, dict]:
         if d.get("scene_key") != key:
             raise InputError("this session folder belongs to another scene (pass a different --session)", folder)
         s = Session(folder, key, int(d["stylus_count"]), [int(i) for i in d["planes_added"]],
-                    [Contour.from_json(c) for c in d["contours"]], list(d["free_planes"]), list(d["log"]))
+                    [Contour.from_json(c) for c in d["contours"]], list(d["free_planes"]), list(d["log"]),
+                    d.get("result"))
     except (ValueError, KeyError, TypeError) as exc:
         raise InputError(f"damaged session.json ({exc.__class__.__name__}: {exc}); move it away to start afresh",
                          path) from None

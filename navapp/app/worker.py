@@ -1,6 +1,8 @@
 """Registration in a worker thread, for the viewer: one run at a time, per-iteration
 updates throttled to at most ``max_rate_hz`` (latest wins, the final state always
-delivered), cancellation within one LM iteration, errors reported instead of lost.
+delivered), cancellation within one LM iteration (a cancelled run is reported to ``on_done`` but does
+not replace the last result), errors reported instead of lost. Every run streams its
+starting state (the rigid pose or the warm start) first.
 
 No viser here: the server wires ``on_update`` / ``on_done`` / ``on_error`` to the scene.
 """
@@ -25,6 +27,11 @@ class Update:
     vessels: dict | None = None  # "portal" / "hepatic" → (V, 3) deformed vessel-surface vertices, mm
     beta: np.ndarray | None = None  # the state β (None for a rigid-only result)
     rigid: object = None  # the rigid pose of this state (RigidResult)
+
+
+def cancelled(reg: Registration) -> bool:
+    """Whether a registration was stopped by the user before it converged."""
+    return reg.libr is not None and reg.libr.stop_reason == "cancelled"
 
 
 class RegistrationWorker:
@@ -121,11 +128,15 @@ class RegistrationWorker:
                         self.on_update(self._state(p.iteration, p.omega, t0, rigid, p.beta))
 
                 beta0 = prev.libr.beta if prev is not None and prev.libr is not None else None
+                # the starting state (the rigid pose, or the warm start) is always shown first
+                self.on_update(self._state(0, float("nan"), t0, rigid, beta0))
+                last_sent = time.monotonic()
                 reg = register(self.model, data, deform=True, options=options, callback=on_iteration,
                                cancel=self._cancel, beta0=beta0, rigid=rigid)
                 final = self._state(reg.libr.iterations, reg.libr.omega, t0, rigid, reg.libr.beta, True)
-            self.last = reg
-            self.on_update(final)
+            if not cancelled(reg):  # a cancelled run is reported but never becomes the state to continue from
+                self.last = reg
+                self.on_update(final)
             self.on_done(reg)
         except Exception as exc:  # surfaced to the UI as a notification, never a dead thread
             self.on_error(exc)

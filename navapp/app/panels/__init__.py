@@ -1,0 +1,73 @@
+"""One browser tab's view: its GUI panels and 3D scene nodes, built when the tab connects
+and refreshed from the App's shared state. Each panel is a module of its own."""
+
+import numpy as np
+
+from ..state import ClientState
+from .accuracy import AccuracyPanel
+from .guide import GuidePanel
+from .layers import LayersPanel
+from .registration import RegistrationPanel
+from .session import SessionPanel
+from .stylus import StylusPanel
+from .ultrasound import UltrasoundPanel
+
+
+class ClientView:
+    """Everything one browser sees. ``refresh(what)`` is called after shared changes:
+    "status", "scene", "model", "data", "plane", "run", "result", "log"."""
+
+    def __init__(self, app, client, cs: ClientState):
+        self.app, self.client, self.cs = app, client, cs
+        g = client.gui
+        self.status = g.add_markdown("")
+        self.bar = g.add_progress_bar(0.0, animated=True)
+        self.layers = LayersPanel(self)  # first: the others show their nodes through it
+        self.guide = GuidePanel(self)
+        self.stylus = StylusPanel(self)
+        self.ultrasound = UltrasoundPanel(self)
+        self.registration = RegistrationPanel(self)
+        self.accuracy = AccuracyPanel(self)
+        self.session = SessionPanel(self)
+        self.panels = (self.layers, self.guide, self.stylus, self.ultrasound, self.registration, self.accuracy,
+                       self.session)
+
+    # ------------------------------------------------------------------ from the App
+    def refresh_all(self):
+        for what in ("status", "scene", "model", "data", "plane", "result"):
+            self.refresh(what)
+
+    def refresh(self, what: str):
+        if what == "status":
+            app = self.app
+            self.status.content = f"**{app.stage}**"
+            done = app.ready.is_set() and app.failed is None
+            self.bar.visible = not done
+            if app.stage_fraction is None:
+                self.bar.animated, self.bar.value = True, 100.0
+            else:
+                self.bar.animated, self.bar.value = False, 100.0 * app.stage_fraction
+            return
+        for p in self.panels:
+            p.refresh(what)
+
+    def notify(self, title, body, error=False):
+        self.client.add_notification(title, body, color="red" if error else None,
+                                     auto_close_seconds=None if error else 6.0)
+
+    def show_stylus(self, pos):
+        self.layers.show_stylus(pos)
+        self.stylus.show_tip(pos)
+
+    def show_update(self, u):
+        self.layers.show_registered(u.rigid, u.beta, error=self.app.run.get("error") if self.app.run else None)
+        self.registration.show_update(u)
+
+
+def rotation_z_to(n) -> np.ndarray:
+    """A rotation taking +z to the unit vector n."""
+    z = np.asarray(n, float) / np.linalg.norm(n)
+    a = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(a, z)
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z])

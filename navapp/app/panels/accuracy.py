@@ -1,0 +1,47 @@
+"""What accuracy costs: rerun the current data with the LM iteration cap and stopping
+tolerance varied; every point is one registration (★ = Pareto front)."""
+
+import numpy as np
+
+from ...evaluation.cost import pareto_front
+
+
+class AccuracyPanel:
+    def __init__(self, view):
+        self.view, self.app = view, view.app
+        g = view.client.gui
+        with g.add_folder("What accuracy costs", expand_by_default=False):
+            g.add_markdown("Reruns the current data with the LM iteration cap and the stopping tolerance "
+                           "varied; each point is one registration (★ = Pareto front).")
+            self.btn = g.add_button("Sweep settings", disabled=True)
+            self.plot = g.add_uplot((np.zeros(1), np.zeros(1)),
+                                    ({"label": "seconds"}, {"label": "TRE (mm)", "stroke": "#36c", "width": 0,
+                                                            "points": {"show": True, "size": 8}}),
+                                    title="TRE against registration time", aspect=1.6,
+                                    scales={"x": {"time": False}},
+                                    axes=({"label": "registration time (s)"}, {"label": "mean TRE (mm)"}))
+            self.md = g.add_markdown("")
+        self.btn.on_click(lambda e: self.sweep())
+
+    def refresh(self, what):
+        self.btn.disabled = self.app.worker is None or self.app.run is not None
+
+    def sweep(self):
+        rows = []
+
+        def on_row(r):
+            rows.append(r)
+            t = np.array([x.seconds for x in rows])
+            e = np.array([x.tre_mean_mm for x in rows])
+            o = np.argsort(t)
+            self.plot.data = (t[o], e[o])
+            front = pareto_front(t, e)
+            lines = ["| setting | time | TRE | iterations |", "|---|---|---|---|"]
+            for j in o:
+                lines.append(f"| {rows[j].label}{' ★' if front[j] else ''} | {rows[j].seconds:.2f} s | "
+                             f"{rows[j].tre_mean_mm:.2f} mm | {rows[j].iterations} |")
+            self.md.content = "\n".join(lines)
+
+        err = self.app.sweep(on_row, lambda out: self.view.notify("Cost", f"{len(out)} settings run."))
+        if err:
+            self.view.notify("Cost", err)

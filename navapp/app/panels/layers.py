@@ -1,0 +1,287 @@
+"""The 3D scene of one browser and its Layers panel: every object can be shown or hidden
+here (per browser: hiding the liver in one tab hides it in no other), standard views, the
+error colour scale and a legend floating over the 3D view."""
+
+import numpy as np
+import trimesh
+import viser.transforms as vtf
+
+from ..state import ERROR_SCALE_MM
+
+LIVER = (205, 160, 140)
+PORTAL = (220, 50, 50)
+HEPATIC = (60, 90, 220)
+TRUTH = (60, 200, 90)
+REGISTERED = (240, 190, 60)
+REG_PORTAL = (200, 0, 0)
+REG_HEPATIC = (0, 60, 230)
+TARGET = (170, 60, 230)
+FEATURE_COLOURS = {
+    "anterior": (255, 255, 255), "falciform": (255, 0, 255), "ridge_left": (0, 255, 255), "ridge_right": (0, 200, 200),
+    "posterior": (255, 200, 0), "portal_contour": (255, 154, 31), "hepatic_contour": (46, 230, 255),
+    "portal_centerline": (255, 0, 0), "hepatic_centerline": (0, 60, 255), "fiducials": (255, 255, 0),
+}
+HOME_VIEW_MM = np.array([40.0, 260.0, 110.0])  # camera offset from the liver centroid: anterior, a little superior
+VIEW_DISTANCE_MM = 280.0
+STANDARD_VIEWS = {  # camera direction from the liver centroid (navapp frame: +x left, +y anterior, +z superior)
+    "Anterior": (0.0, 1.0, 0.0), "Posterior": (0.0, -1.0, 0.0), "Left": (1.0, 0.0, 0.0), "Right": (-1.0, 0.0, 0.0),
+    "Superior": (0.0, 0.01, 1.0),
+}
+LAYERS = ("Preoperative liver", "Preoperative vessels", "Targets", "Collected data", "Registered liver",
+          "Registered vessels", "Error colours", "True deformed liver (ghost)", "Ultrasound plane", "Stylus")
+TURBO_CSS = "#30123b,#4686fb,#1ae4b6,#a2fc3c,#fabb39,#e4460a,#7a0403"
+
+
+def wxyz(R):
+    return vtf.SO3.from_matrix(np.asarray(R)).wxyz
+
+
+def error_colours(err, vmax):
+    """Per-point RGB (N, 3) uint8 for errors in mm on a fixed scale 0 … vmax (turbo)."""
+    from matplotlib import colormaps
+
+    return (colormaps["turbo"](np.clip(np.asarray(err) / max(vmax, 1e-9), 0, 1))[:, :3] * 255).astype(np.uint8)
+
+
+def stylus_tool() -> trimesh.Trimesh:
+    """A stylus in its own frame: tip at the origin, shaft along +z, mm."""
+    shaft = trimesh.creation.cylinder(radius=2.5, height=110.0)
+    shaft.apply_translation([0, 0, 15.0 + 55.0])
+    tip = trimesh.creation.cone(radius=2.5, height=15.0)
+    tip.apply_transform(trimesh.transformations.rotation_matrix(np.pi, [1, 0, 0]))
+    tip.apply_translation([0, 0, 15.0])
+    return trimesh.util.concatenate([shaft, tip])
+
+
+class LayersPanel:
+    def __init__(self, view):
+        self.view, self.app, self.cs = view, view.app, view.cs
+        client = view.client
+        self.s = client.scene
+        g = client.gui
+        self.nodes: dict[str, list] = {name: [] for name in LAYERS}
+        self.reg: dict = {}
+        self.data_nodes: dict = {}
+        with g.add_folder("Layers and views", expand_by_default=False):
+            self.cb = {name: g.add_checkbox(name, name not in ("True deformed liver (ghost)",)) for name in LAYERS}
+            self.views = g.add_button_group("View", tuple(STANDARD_VIEWS) + ("Reset",))
+            self.scale = g.add_number("Error colour scale, top (mm)", ERROR_SCALE_MM, min=1.0, max=100.0, step=1.0)
+        for cb in self.cb.values():
+            cb.on_update(lambda e: self.apply_visibility())
+        self.views.on_click(lambda e: self.look(e.target.value))
+        self.scale.on_update(lambda e: self._set_scale())
+        self.legend_panel = g.add_panel()
+        tab = self.legend_panel.add_tab("Legend")
+        with tab:
+            self.legend = g.add_html("")
+        self.legend_panel.float(x=15, y=-15, width=250)
+        self._build_preop()
+        self._render_legend()
+
+    # ------------------------------------------------------------------ building
+    def _add(self, layer, node):
+        self.nodes[layer].append(node)
+        node.visible = self.cb[layer].value
+        return node
+
+    def _build_preop(self):
+        preop = self.app.preop
+        s = self.s
+        self._add("Preoperative liver", s.add_mesh_simple("/preop/liver", preop.liver.vertices, preop.liver.faces,
+                                                          color=LIVER, opacity=0.3, side="double"))
+        for name, colour in (("portal", PORTAL), ("hepatic", HEPATIC)):
+            m = preop.vessel(name)
+            if m is not None:
+                self._add("Preoperative vessels", s.add_mesh_simple(f"/preop/{name}", m.vertices, m.faces,
+                                                                    color=colour, opacity=0.45))
+            cl = preop.centerline(name)
+            if cl is not None:
+                self._add("Preoperative vessels", s.add_line_segments(
+                    f"/preop/{name}_centerline", cl.points[cl.segments()], colour, thickness=2.0,
+                    thickness_units="screen"))
+        for name, (v, f) in self.app.registered_targets().items():
+            self._add("Targets", s.add_mesh_simple(f"/preop/targets/{name}", v, f, color=TARGET, opacity=0.5))
+
+    def _build_scene(self):
+        sd = self.app.sd
+        s = self.s
+        t = sd.truth.get("liver")
+        if t is not None and not self.nodes["True deformed liver (ghost)"]:
+            self._add("True deformed liver (ghost)", s.add_mesh_simple("/truth/liver", t.vertices, t.faces,
+                                                                        color=TRUTH, opacity=0.3))
+        if not self.nodes["Stylus"]:
+            self.tool = self._add("Stylus", s.add_mesh_trimesh("/stylus/tool", stylus_tool()))
+            self.tool.visible = False
+            from scipy.spatial import cKDTree
+
+            ref = t if t is not None else self.app.preop.liver
+            self._tree, self._normals = cKDTree(ref.vertices), ref.vertex_normals
+        if not self.nodes["Ultrasound plane"]:
+            probe = sd.probe
+            self.probe = self._add("Ultrasound plane", s.add_frame("/probe", show_axes=False))
+            self.probe.visible = False
+            body = trimesh.creation.box((probe.width_px * probe.spacing_mm + 6, 12.0, 25.0))
+            body.apply_translation([0, 0, -12.5])
+            s.add_mesh_simple("/probe/body", body.vertices, body.faces, color=(80, 80, 80))
+            H, W, sp_ = probe.height_px, probe.width_px, probe.spacing_mm
+            # image node axes (x right, y up, z out) = probe (lateral, −depth, elevation)
+            R_img = np.column_stack([[1, 0, 0], [0, 0, -1], [0, 1, 0]]).astype(float)
+            self.image = s.add_image("/probe/image", np.zeros((H, W, 3), np.uint8), W * sp_, H * sp_,
+                                     wxyz=wxyz(R_img), position=(0.0, 0.0, (H - 1) / 2 * sp_))
+
+    # ------------------------------------------------------------------ refresh
+    def refresh(self, what):
+        app = self.app
+        if what == "scene" and app.sd is not None:
+            self._build_scene()
+        if what in ("scene", "data") and app.sd is not None and app.session is not None:
+            self._show_data()
+        if what == "plane":
+            self.show_plane()
+        if what in ("result", "model"):
+            if app.result is not None and app.model is not None:
+                self.show_registered(app.result.rigid, app.result.beta, app.result.node_error_mm)
+            elif app.result is None:
+                for n in self.reg.values():
+                    n.visible = False
+        self.apply_visibility()
+
+    def _show_data(self):
+        data = self.app.data("all")
+        for name in list(self.data_nodes):
+            if name not in data:
+                node = self.data_nodes.pop(name)
+                self.nodes["Collected data"].remove(node)
+                node.remove()
+        for name, pts in data.items():
+            if name in self.data_nodes:
+                self.data_nodes[name].points = pts.astype(np.float32)
+            else:
+                size = 2.5 if name.endswith("centerline") else 0.6 if name.endswith("contour") or name == "posterior" else 1.2
+                self.data_nodes[name] = self._add("Collected data", self.s.add_point_cloud(
+                    f"/data/{name}", pts.astype(np.float32), FEATURE_COLOURS.get(name, (255, 255, 255)),
+                    point_size=size, precision="float32", point_shape="circle"))
+
+    def show_plane(self, plane=None):
+        """This browser's plane (or a preview plane) at its tracked pose with its image."""
+        app, cs = self.app, self.cs
+        if app.sd is None or not hasattr(self, "probe"):
+            return
+        if plane is None:
+            if cs.plane is None or cs.plane not in app.planes:
+                self.probe.visible = False
+                return
+            plane = app.planes[cs.plane]
+        T = plane.probe_to_tracker
+        self.probe.wxyz, self.probe.position = wxyz(T[:3, :3]), T[:3, 3]
+        self.probe.visible = self.cb["Ultrasound plane"].value
+        img = plane.image if plane.image is not None else np.zeros((app.sd.probe.height_px, app.sd.probe.width_px),
+                                                                   np.uint8)
+        # viser draws an image's first row at the node's −y edge; flipped, row 0 sits at the probe face
+        self.image.image = np.repeat(np.flipud(img)[..., None], 3, axis=2)
+
+    def show_stylus(self, pos):
+        if not hasattr(self, "tool"):
+            return
+        if pos is None:
+            self.tool.visible = False
+            return
+        from . import rotation_z_to
+
+        _, j = self._tree.query(pos)
+        self.tool.wxyz = wxyz(rotation_z_to(self._normals[j] + np.array([0.0, 0.3, 0.3])))
+        self.tool.position = pos
+        self.tool.visible = self.cb["Stylus"].value
+
+    def show_registered(self, rigid, beta, error=None):
+        """The registered liver, vessels, targets and error dots at state (rigid, β)."""
+        app = self.app
+        s = self.s
+        surfaces = app.registered_surfaces(rigid, beta)
+        for name, (v, f) in surfaces.items():
+            v = v.astype(np.float32)
+            if name in self.reg:
+                self.reg[name].vertices = v
+                continue
+            if name == "liver":
+                node = s.add_mesh_simple("/registered/liver", v, f, color=REGISTERED, opacity=0.4, side="double")
+                self._add("Registered liver", node)
+            else:
+                colour = REG_PORTAL if name == "portal" else REG_HEPATIC
+                self._add("Registered vessels", s.add_mesh_simple(f"/registered/{name}", v, f, color=colour))
+            self.reg[name] = node if name == "liver" else self.nodes["Registered vessels"][-1]
+        for name, (v, f) in app.registered_targets(rigid, beta).items():
+            key = f"target:{name}"
+            if key in self.reg:
+                self.reg[key].vertices = v.astype(np.float32)
+            else:
+                self.reg[key] = self._add("Targets", s.add_mesh_simple(f"/registered/targets/{name}",
+                                                                      v.astype(np.float32), f, color=(230, 0, 255)))
+        if error is not None and "liver" in surfaces:
+            self._last_error = (surfaces["liver"][0], error[app.model.basis.surface])
+            self._show_error()
+        self.apply_visibility()
+
+    def _show_error(self):
+        pts, err = self._last_error
+        colours = error_colours(err, self.cs.error_scale_mm)
+        if "error" in self.reg:
+            self.reg["error"].points = pts.astype(np.float32)
+            self.reg["error"].colors = colours
+        else:
+            self.reg["error"] = self._add("Error colours", self.s.add_point_cloud(
+                "/registered/error", pts.astype(np.float32), colours, point_size=2.2, precision="float32",
+                point_shape="circle"))
+
+    def _set_scale(self):
+        self.cs.error_scale_mm = float(self.scale.value)
+        if getattr(self, "_last_error", None) is not None:
+            self._show_error()
+        self._render_legend()
+
+    def apply_visibility(self):
+        for layer, nodes in self.nodes.items():
+            on = self.cb[layer].value
+            for n in nodes:
+                if layer == "Stylus":
+                    n.visible = on and self.app.stylus_tip is not None
+                elif layer == "Ultrasound plane":
+                    n.visible = on and self.cs.plane is not None
+                else:
+                    n.visible = on
+
+    def look(self, name):
+        cam = self.view.client.camera
+        c = self.app.centre
+        cam.up_direction = (0.0, 0.0, 1.0)
+        cam.near, cam.far = 1.0, 5000.0
+        if name == "Reset":
+            offset = HOME_VIEW_MM
+        else:
+            d = np.asarray(STANDARD_VIEWS[name], float)
+            offset = d / np.linalg.norm(d) * VIEW_DISTANCE_MM
+        cam.position = c + offset  # viser moves look_at with position, so the target is set second
+        cam.look_at = c
+
+    def look_at_plane(self, T):
+        """An oblique view onto a plane: from its front, a little above."""
+        cam = self.view.client.camera
+        centre = T[:3, 3] + T[:3, 2] * 40.0
+        cam.up_direction = (0.0, 0.0, 1.0)
+        cam.position = centre + T[:3, 1] * 200.0 + np.array([0.0, 60.0, 80.0])
+        cam.look_at = centre
+
+    def _render_legend(self):
+        vmax = self.cs.error_scale_mm
+        sw = "".join(
+            f"<div><span style='display:inline-block;width:12px;height:12px;background:rgb{c};margin-right:5px;"
+            f"opacity:{o}'></span>{t}</div>"
+            for t, c, o in (("preop liver", LIVER, 0.5), ("preop portal vein", PORTAL, 0.6),
+                            ("preop hepatic veins", HEPATIC, 0.6), ("registered liver", REGISTERED, 0.7),
+                            ("registered portal vein", REG_PORTAL, 1), ("registered hepatic veins", REG_HEPATIC, 1),
+                            ("targets (tumours)", TARGET, 1), ("true liver (ghost)", TRUTH, 0.5)))
+        self.legend.content = (
+            f"<div style='font-size:12px'>{sw}<div style='margin-top:6px'>error (dots on the registered surface)</div>"
+            f"<div style='height:10px;background:linear-gradient(to right,{TURBO_CSS})'></div>"
+            f"<div style='display:flex;justify-content:space-between'><span>0</span><span>{vmax / 2:g}</span>"
+            f"<span>{vmax:g} mm</span></div></div>")

@@ -1,0 +1,23 @@
+"""The Session panel: where the session is kept and Export."""
+
+
+class SessionPanel:
+    def __init__(self, view):
+        self.view, self.app = view, view.app
+        g = view.client.gui
+        with g.add_folder("Session", expand_by_default=False):
+            self.md = g.add_markdown("")
+            self.btn = g.add_button("Export (PLY, VTK, CSV)", disabled=True)
+        self.btn.on_click(lambda e: self.export())
+
+    def refresh(self, what):
+        app = self.app
+        if app.session is not None and what in ("scene", "model"):
+            self.md.content = f"Everything you enter is saved at once in `{app.session.folder}`."
+        self.btn.disabled = app.last_reg is None
+
+    def export(self):
+        out, msg = self.app.export()
+        self.view.notify("Export", msg, error=out is None)
+        if out is not None:
+            self.md.content = f"Exported to `{out}`"

@@ -1,0 +1,159 @@
+"""The Ultrasound panel: this browser's plane, its simulated segmentation, the free probe
+with a live preview and pose readout, and the 2D view (``view2d``) docked beside the 3D
+view, where contours are drawn."""
+
+import threading
+
+import numpy as np
+import viser.transforms as vtf
+
+from ..contours import DRAWABLE
+from .layers import wxyz
+
+IFRAME_W, IFRAME_H = 590, 860
+
+
+class UltrasoundPanel:
+    def __init__(self, view):
+        self.view, self.app, self.cs = view, view.app, view.cs
+        g = view.client.gui
+        with g.add_folder("Ultrasound"):
+            self.plane_dd = g.add_dropdown("Plane", ("—",), disabled=True)
+            self.btn_add = g.add_button("Add this plane's segmentation (simulated)", disabled=True)
+            self.cb_2d = g.add_checkbox("2D view (draw here)", True)
+            self.feature = g.add_dropdown("Draw", tuple(DRAWABLE))
+            self.cmds = g.add_button_group("Contour", ("Close", "Finish line", "Undo", "Clear plane"))
+            self.cb_free = g.add_checkbox("Place probe freely", False, disabled=True)
+            self.pose_md = g.add_markdown("")
+            self.info = g.add_markdown("")
+            self.dist = g.add_markdown("")
+        self.plane_dd.on_update(lambda e: self._choose())
+        self.btn_add.on_click(lambda e: self._msg(self.app.add_plane(self.cs)))
+        self.cb_2d.on_update(lambda e: self._show_2d(self.cb_2d.value))
+        self.feature.on_update(lambda e: self.app.contour_command(self.cs, "Feature", self.feature.value))
+        self.cmds.on_click(lambda e: self._msg(self.app.contour_command(self.cs, e.target.value, self.feature.value)))
+        self.cb_free.on_update(lambda e: self._free_probe(self.cb_free.value))
+        self.panel = g.add_panel()
+        tab = self.panel.add_tab("Ultrasound image")
+        url = view.app.view2d.page_url(self.cs.token, view.app.view2d_host)
+        with tab:
+            self.frame = g.add_html(f"<iframe src='{url}' title='ultrasound 2D view' "
+                                    f"style='width:{IFRAME_W}px;height:{IFRAME_H}px;border:0'></iframe>")
+        self.panel.dock_left()
+        self.panel.set_width(IFRAME_W + 20)
+        self.panel.minimize()
+        self.gizmo = None
+        self._preview_T = None
+        self._preview_busy = threading.Lock()
+
+    def _msg(self, err):
+        if err:
+            self.view.notify("Ultrasound", err)
+
+    def _choose(self):
+        i = self.app.plane_from_label(self.plane_dd.value)
+        if i is not None and i != self.cs.plane:
+            self.app.show_plane(self.cs, i)
+
+    def _show_2d(self, on):
+        if on:
+            self.panel.expand()
+        else:
+            self.panel.minimize()
+
+    def open_2d(self):
+        self.cb_2d.value = True
+        self.panel.expand()
+
+    def refresh(self, what):
+        app, cs = self.app, self.cs
+        if app.sd is None or app.session is None:
+            return
+        if what in ("scene", "data", "plane"):
+            labels = tuple(app.plane_label(i) for i in sorted(app.planes)) or ("—",)
+            if tuple(self.plane_dd.options) != labels:
+                self.plane_dd.options = labels
+            self.plane_dd.disabled = not app.planes
+            self.btn_add.disabled = cs.plane is None
+            self.cb_free.disabled = False
+            if cs.plane is not None and cs.plane in app.planes:
+                label = app.plane_label(cs.plane)
+                if self.plane_dd.value != label:
+                    self.plane_dd.value = label
+            if self.feature.value != cs.feature:
+                self.feature.value = cs.feature
+            with app.lock:
+                added = [app.plane_label(i) for i in app.session.planes_added]
+                drawn = [c for c in app.session.contours if c.vertices]
+                data = app.session.data(app.sd, app.planes)
+            counts = ", ".join(f"{k} {len(v)}" for k, v in sorted(data.items())) or "none yet"
+            self.info.content = (f"Planes added as data: {', '.join(added) if added else 'none'}.  \n"
+                                 f"Contours drawn: {len(drawn)} ({sum(c.closed for c in drawn)} closed).  \n"
+                                 f"Data points: {counts}")
+            if cs.plane is not None:
+                self.dist.content = "  \n".join(app.target_plane_lines(cs.plane))
+        if what == "plane" and cs.plane is not None:
+            if not self.cb_2d.value:
+                self.cb_2d.value = True
+            self.panel.expand()
+            self.view.layers.show_plane()
+            if self.gizmo is not None:
+                T = app.planes[cs.plane].probe_to_tracker
+                self.gizmo.wxyz, self.gizmo.position = wxyz(T[:3, :3]), T[:3, 3]
+            self._pose(app.planes[cs.plane].probe_to_tracker)
+
+    # ------------------------------------------------------------------ free probe
+    def _free_probe(self, on):
+        app, cs = self.app, self.cs
+        if not on:
+            if self.gizmo is not None:
+                self.gizmo.remove()
+                self.gizmo = None
+            return
+        if cs.plane is None:
+            app.show_plane(cs, min(app.planes))
+        T = app.planes[cs.plane].probe_to_tracker
+        # drawn over the liver (no depth test), so it can be grabbed where the probe is
+        self.gizmo = self.view.client.scene.add_transform_controls("/gizmo", scale=40.0, depth_test=False,
+                                                                   wxyz=wxyz(T[:3, :3]), position=T[:3, 3])
+
+        @self.gizmo.on_update
+        def _(event):
+            T = self._gizmo_pose()
+            self._pose(T)
+            self._preview_T = T
+            if self._preview_busy.acquire(blocking=False):
+                threading.Thread(target=self._preview, daemon=True).start()
+
+        @self.gizmo.on_drag_end
+        def _(event):
+            self._preview_T = None
+            app.place_probe(cs, self._gizmo_pose())
+
+    def _gizmo_pose(self):
+        T = np.eye(4)
+        T[:3, :3] = vtf.SO3(np.asarray(self.gizmo.wxyz)).as_matrix()
+        T[:3, 3] = self.gizmo.position
+        return T
+
+    def _preview(self):
+        """Simulate the image under the moving probe, latest pose wins."""
+        try:
+            while self._preview_T is not None:
+                T = self._preview_T
+                plane = self.app.acquire_at(T)
+                if self._preview_T is None:
+                    break
+                self.view.layers.show_plane(plane)
+                if self._preview_T is T:
+                    break
+        finally:
+            self._preview_busy.release()
+
+    def _pose(self, T):
+        p = T[:3, 3]
+        n = T[:3, 1]
+        d = T[:3, 2]
+        self.pose_md.content = (f"Probe face at ({p[0]:.1f}, {p[1]:.1f}, {p[2]:.1f}) mm; "
+                                f"depth axis ({d[0]:+.2f}, {d[1]:+.2f}, {d[2]:+.2f}), "
+                                f"plane normal ({n[0]:+.2f}, {n[1]:+.2f}, {n[2]:+.2f})")

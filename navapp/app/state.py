@@ -1,0 +1,63 @@
+"""The viewer's state, split by who owns it. No viser here.
+
+*Shared* (one per server, guarded by ``App.lock``): the scene data, the session (what the
+users entered), the registration model and the current registered result. It changes only
+through the App's actions, which every browser then sees.
+
+*Per browser* (``ClientState``): the plane this browser looks at, the contour it is
+drawing, its own undo history, its guide step and its colour scale. Two tabs therefore
+never move each other's clicks or undo each other's work.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .contours import Contour
+
+ERROR_SCALE_MM = 15.0  # default top of the error colour scale: the same colour means the same error in every run
+
+
+@dataclass
+class Action:
+    """One undoable change a browser made to the shared data."""
+
+    kind: str  # "vertex" | "close" | "plane" | "free_plane" | "stylus" | "clear"
+    contour: Contour | None = None  # the contour a vertex was added to / closed
+    plane: int | None = None  # the plane added / placed
+    before: object = None  # what to restore: the stylus count, or the contours a clear removed
+
+
+@dataclass
+class ClientState:
+    """What belongs to one browser tab."""
+
+    client_id: int
+    token: str  # identifies this tab's 2D view page
+    plane: int | None = None  # index of the plane shown (presets 0…, free planes from 100)
+    drawing: Contour | None = None  # the contour being drawn (it is already in the session)
+    feature: str = "PV contour"  # a key of contours.DRAWABLE
+    undo: list[Action] = field(default_factory=list)
+    version: int = 0  # bumped when anything this tab shows of its own changes
+    guide_step: int = 0
+    error_scale_mm: float = ERROR_SCALE_MM
+    message: str = ""  # last message for the 2D view
+
+    def touch(self):
+        self.version += 1
+
+
+@dataclass
+class RegisteredState:
+    """The registered model on show: rigid pose, β (None for a rigid-only result) and,
+    for simulated scenes, the per-node error against the truth."""
+
+    run: str  # the run label, e.g. "deformable, all data"
+    rigid: object  # RigidResult
+    beta: np.ndarray | None
+    node_error_mm: np.ndarray | None = None  # (M,) over the mesh nodes, when the truth is known
+
+    def to_json(self) -> dict:
+        return {"run": self.run, "R": np.asarray(self.rigid.R).tolist(), "t": np.asarray(self.rigid.t).tolist(),
+                "rms_mm": float(self.rigid.rms_mm),
+                "beta": None if self.beta is None else np.asarray(self.beta).tolist()}
