@@ -76,7 +76,8 @@ def cmd_import(args):
     with progress.stage("importing"):
         rep = import_case(args.out, liver=args.liver, portal=args.portal, hepatic=args.hepatic,
                           labelmap=args.labelmap, labels=labels, frame=args.frame, falciform=falciform,
-                          regions=args.regions, centerlines=centerlines or None, overwrite=args.overwrite)
+                          regions=args.regions, centerlines=centerlines or None, overwrite=args.overwrite,
+                          targets=args.target)
     for line in rep.lines:
         print(f"navapp: {line}", file=sys.stderr)
     for line in rep.warnings:
@@ -225,6 +226,8 @@ def build_parser():
     s.add_argument("--regions", type=Path, help="your regions.csv (one label per liver vertex); default: automatic")
     s.add_argument("--portal-centerline", type=Path, help="your portal centerline CSV (x,y,z,branch); default: skeleton")
     s.add_argument("--hepatic-centerline", type=Path, help="your hepatic centerline CSV; default: skeleton")
+    s.add_argument("--target", type=Path, action="append", metavar="FILE",
+                   help="a tumour target: a closed surface, or a CSV name,x,y,z[,radius_mm] (files' frame); repeatable")
     s.add_argument("--overwrite", action="store_true", help="write into a non-empty --out")
     s.set_defaults(func=cmd_import)
 

@@ -101,7 +101,8 @@ def slicer_frame(path) -> str | None:
     """The frame 3D Slicer wrote into a surface file's header ("LPS" or "RAS"), if any:
     Slicer names it in the STL solid name, an OBJ/PLY comment or the VTK header line."""
     try:
-        head = Path(path).open("rb").read(512).decode("latin-1")
+        with Path(path).open("rb") as fh:
+            head = fh.read(512).decode("latin-1")
     except OSError:
         return None
     for frame in ("LPS", "RAS"):
@@ -250,7 +251,7 @@ class ImportReport:
 
 
 def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, labels=None, frame=None,
-                falciform=None, regions=None, centerlines=None, name=None, overwrite=False):
+                falciform=None, regions=None, centerlines=None, name=None, overwrite=False, targets=None):
     """Write a case folder's ``preop/`` from a patient's files.
 
     Parameters
@@ -272,6 +273,10 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
         ``<vessel>_centerline.csv`` path. They win over the automatic ones.
     name : str, optional
         The case name (default: the folder's name).
+    targets : list of path-like, optional
+        Tumour targets (``anatomy.targets``): closed surfaces (any format above; named by
+        the file's stem) or CSVs of points ``name,x,y,z[,radius_mm]``, in the frame of the
+        other files; written to ``preop/targets/``.
 
     Returns
     -------
@@ -337,6 +342,19 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
         if fraction > OUTSIDE_WARN_FRACTION:
             rep.warnings.append(f"{paths[vessel]}: {100 * fraction:.0f} % of the {vessel} vertices lie outside the "
                                 f"liver (up to {far:.0f} mm): check the segmentation or the frame")
+
+    if targets:
+        from .targets import check_targets, read_target_file
+
+        for p in targets:
+            f = slicer_frame(p)
+            if f is not None and f != source_frame:
+                raise InputError(f"is in {f} but the other files are in {source_frame}", p)
+            model.targets += read_target_file(p, to_case=M)
+        check_targets(model.targets, liver_mesh)
+        for t in model.targets:
+            rep.lines.append(f"target {t.name}: {t.diameter_mm:.1f} mm across, centre "
+                             f"({', '.join(f'{x:.1f}' for x in t.centre)}) mm")
 
     user_centerlines = dict(centerlines or {})
     for vessel in VESSELS:
