@@ -1,0 +1,41 @@
+"""Live tracking over OpenIGTLink (issue 15): headless, no viser.
+
+- ``config``: TOML config (PLUS device names, ImageToProbe, watchdog timeouts, digitising rate);
+- ``events``: the typed events the app receives (StylusSample, ProbePose, ProbeSample, ToolStatus,
+  ConnectionStatus, Skipped, TransformSample);
+- ``client``: ``TrackingClient``, an OpenIGTLink client thread (pyigtl) producing those events;
+- ``watchdog``: per-device seen / stale / missing;
+- ``digitiser``: ``Digitiser``, stylus points at a set rate while recording;
+- ``replay``: ``ReplayServer``, a PLUS-like server playing a simulated scene (``navapp replay``);
+- ``results``: ``ResultsSender``, registrations back to 3D Slicer (TRANSFORM, POINT, STRING);
+- ``live``: ``LiveRegistration``, warm-started re-registration per new frame;
+- ``bench``: ``navapp bench live``.
+
+Frames: tracker coordinates (PLUS's Reference frame, mm) are passed through unchanged. The
+preoperative model is in navapp's LAS frame; registration's rigid part maps model → tracker
+space and so absorbs the tracker-to-patient transform, whatever the tracker's axes are.
+"""
+
+from .config import TrackingConfig, load_config
+from .digitiser import Digitiser
+from .events import ConnectionStatus, ProbePose, ProbeSample, Skipped, StylusSample, ToolStatus, TransformSample
+
+__all__ = ["TrackingConfig", "load_config", "Digitiser", "ConnectionStatus", "ProbePose", "ProbeSample", "Skipped",
+           "StylusSample", "ToolStatus", "TransformSample", "TrackingClient", "ReplayServer", "ResultsSender",
+           "LiveRegistration"]
+
+
+def __getattr__(name):  # the networking modules load on first use
+    if name == "TrackingClient":
+        from .client import TrackingClient
+        return TrackingClient
+    if name == "ReplayServer":
+        from .replay import ReplayServer
+        return ReplayServer
+    if name == "ResultsSender":
+        from .results import ResultsSender
+        return ResultsSender
+    if name == "LiveRegistration":
+        from .live import LiveRegistration
+        return LiveRegistration
+    raise AttributeError(name)
