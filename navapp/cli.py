@@ -197,8 +197,22 @@ def cmd_bench(args):
 
     if args.what == "precompute":
         benchmark.bench_precompute(args.edges, args.ks, args.volume_ml, args.relax)
+    elif args.what == "live":
+        from .tracking.bench import bench_live
+
+        bench_live(args.frames, args.planes, args.ks[0], args.edges[0])
     else:
         benchmark.bench_register(args.repeats, args.planes, args.ks[0], args.edges[0])
+
+
+def cmd_replay(args):
+    from .simulation.scene import demo_scene, load_scene
+    from .tracking.replay import run_replay
+
+    scene = load_scene(args.scene) if args.scene else demo_scene()
+    out = run_replay(scene, args.port, args.rate, args.latency_ms / 1000.0, duration_s=args.seconds,
+                     out=lambda line: print(line, file=sys.stderr, flush=True))
+    print(json.dumps(out))
 
 
 def build_parser():
@@ -264,15 +278,25 @@ def build_parser():
     s.set_defaults(func=cmd_study)
 
     s = sub.add_parser("bench", help="benchmarks that print timings and memory as JSON lines")
-    s.add_argument("what", choices=("precompute", "register"))
+    s.add_argument("what", choices=("precompute", "register", "live"))
     s.add_argument("--edges", type=_positive(float), nargs="+", default=[4.0], help="element sizes, mm")
     s.add_argument("--ks", type=_positive(int), nargs="+", default=[45], help="numbers of control points")
     s.add_argument("--volume-ml", type=_positive(float), help="precompute: phantom 0 scaled to this volume, ml")
     s.add_argument("--relax", choices=("local", "exact", "both"), default="local",
                    help="precompute: relaxation subdomain (both: exact and local, with the local one's error)")
     s.add_argument("--repeats", type=_positive(int), default=5, help="register: repetitions for the median")
-    s.add_argument("--planes", type=_positive(int), default=3, help="register: iUS planes (≥ 2)")
+    s.add_argument("--planes", type=_positive(int), default=3, help="register: iUS planes (≥ 2); live: planes kept")
+    s.add_argument("--frames", type=_positive(int), default=40, help="live: ultrasound frames re-registered")
     s.set_defaults(func=cmd_bench)
+
+    s = sub.add_parser("replay", help="OpenIGTLink server playing a simulated scene as PLUS would (stylus, probe, "
+                                      "B-mode frames): the demo without hardware")
+    s.add_argument("scene", type=Path, nargs="?", help="scene TOML file (default: the built-in demo scene)")
+    s.add_argument("--port", type=_positive(int), default=18944, help="port on 127.0.0.1 (default 18944)")
+    s.add_argument("--rate", type=_positive(float), default=25.0, help="messages per second per device (default 25)")
+    s.add_argument("--latency-ms", type=float, default=0.0, help="send each message this long after its timestamp")
+    s.add_argument("--seconds", type=_positive(float), help="stop after this long (default: until Ctrl-C)")
+    s.set_defaults(func=cmd_replay)
 
     s = sub.add_parser("demo", help="simulate the built-in demo scene (phantom 0, stylus, 16 iUS planes) and register it")
     s.add_argument("--out", type=Path, default=Path("navapp-demo"), help="case folder to write (default ./navapp-demo)")

@@ -143,6 +143,39 @@ def script_from_scene(scene, transit_frames: int = 6, dwell_s: float = 2.0, move
                         probe_noise_mm=eff.get("tracking_noise", {}).get("sd_mm", 0.0), seed=scene.seed)
 
 
+class _Handler(pyigtl.comm.TCPRequestHandler):
+    """pyigtl's connection handler without the traceback it prints when a client leaves."""
+
+    def handle(self):
+        server = self.server
+        server._connected = True
+        self.request.settimeout(0.01)
+        log.info("OpenIGTLink client connected from %s:%s", *self.client_address[:2])
+        while not server.communication_thread_stop_requested:
+            try:
+                while server._receive_message_from_socket(self.request):
+                    if server.communication_thread_stop_requested:
+                        break
+                while server._send_queued_message_from_socket(self.request):
+                    pass
+            except (OSError, ValueError, KeyError) as exc:
+                log.info("OpenIGTLink client left (%s)", exc)
+                break
+        server._connected = False
+
+
+def quiet_server(port: int) -> pyigtl.OpenIGTLinkServer:
+    """A pyigtl server on 127.0.0.1:``port`` (0: a free one), not yet started, that leaves
+    navapp's Ctrl-C handling alone (pyigtl installs SIGINT/SIGTERM handlers: put back at
+    once) and does not print tracebacks when a client disconnects."""
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    server = pyigtl.OpenIGTLinkServer(port=port, local_server=True, start_now=False)
+    for s, h in previous.items():
+        signal.signal(s, h)
+    server.RequestHandlerClass = _Handler
+    return server
+
+
 class ReplayServer:
     """Plays a ``ReplayScript`` on 127.0.0.1:``port`` (0: a free port, see ``.port``).
 
@@ -160,12 +193,7 @@ class ReplayServer:
         self._rng = np.random.default_rng(script.seed)
         self._stop = threading.Event()
         self._thread = None
-        previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-        # pyigtl installs its own SIGINT/SIGTERM handlers here; navapp's own (KeyboardInterrupt
-        # → stop) stay in charge, so they are put back at once
-        self._server = pyigtl.OpenIGTLinkServer(port=port, local_server=True, start_now=False)
-        for s, h in previous.items():
-            signal.signal(s, h)
+        self._server = quiet_server(port)
         self.port = self._server.server_address[1]
         self.t0 = None
 

@@ -93,12 +93,9 @@ class ResultsSender:
     def serve(cls, port: int) -> "ResultsSender":
         """navapp listens on 127.0.0.1:``port`` for Slicer's connector in client mode
         (0: a free port, ``.port``)."""
-        import signal
+        from .replay import quiet_server
 
-        previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
-        server = pyigtl.OpenIGTLinkServer(port=port, local_server=True, start_now=False)
-        for s, h in previous.items():  # keep navapp's Ctrl-C handling (see replay.py)
-            signal.signal(s, h)
+        server = quiet_server(port)
         server.start()
         return cls(server)
 
