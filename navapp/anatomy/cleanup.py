@@ -143,7 +143,8 @@ def clean_surface(mesh: trimesh.Trimesh, path=None, closed=True,
                 raise InputError(f"{what} is self-intersecting ({len(bad)} triangles cross another)", path)
             ml = [abs(trimesh.Trimesh(v, f[pieces[i]]).volume) / 1000 for i in np.flatnonzero(large)]
             raise InputError(f"{what} has {int(large.sum())} large separate pieces "
-                             f"({', '.join(f'{x:.3g} ml' for x in ml[:4])}); a liver must be one piece", path)
+                             f"({', '.join(f'{x:.3g} ml' for x in ml[:4])}); "
+                             f"{'a liver' if what.startswith('liver') else 'it'} must be one piece", path)
         keep = np.concatenate([pieces[i] for i in np.flatnonzero(large)])
         for i in np.flatnonzero(~large):
             pv = v[np.unique(f[pieces[i]])]
