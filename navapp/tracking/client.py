@@ -44,6 +44,7 @@ HEADER_SIZE = HEADER.size  # 58
 MAX_BODY = 256 << 20  # larger is garbage: a 4k RGB frame is 25 MB
 POLL_S = 0.02  # recv timeout: the loop's tick (watchdog checks, outgoing messages)
 CONNECT_TIMEOUT_S = 2.0
+STALL_S = 5.0  # a message begun but not finished for this long: the server hangs, reconnect
 _TYPE_CHARS = set(b"ABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789_")
 
 
@@ -74,6 +75,7 @@ class _Link(pyigtl.OpenIGTLinkClient):
         self.reconnect_s = reconnect_s
         self.on_message, self.on_connection, self.on_tick = on_message, on_connection, on_tick
         self._wake = threading.Event()
+        self._partial_since = time.monotonic()
 
     def stop(self, timeout=5.0):
         if not self._started:
@@ -124,9 +126,13 @@ class _Link(pyigtl.OpenIGTLinkClient):
         try:
             chunk = sock.recv(1 << 20)
         except socket.timeout:
+            if buf and time.monotonic() - self._partial_since > STALL_S:
+                raise ConnectionError(f"a message stalled for {STALL_S:g} s") from None
             return
         if not chunk:
             raise ConnectionError("connection closed by the server")
+        if not buf:
+            self._partial_since = time.monotonic()
         buf += chunk
         while len(buf) >= HEADER_SIZE:
             fields = parse_header(buf)
@@ -144,6 +150,7 @@ class _Link(pyigtl.OpenIGTLinkClient):
                 continue
             body = bytes(buf[HEADER_SIZE:end])
             del buf[:end]
+            self._partial_since = time.monotonic()
             self.on_message(fields, body)
 
 
