@@ -10,8 +10,15 @@ from navapp.anatomy.phantom import irregular_ellipsoid
 from navapp.anatomy.targets import Target, from_surface, map_targets, read_targets, sphere, target_points
 from navapp.cli import main
 from navapp.errors import InputError
-from navapp.geometry.targets_distance import (ImagePlane, plane_distances, plane_sections, rectangle_distance,
-                                              section_polylines, signed_distance, tip_distances)
+from navapp.geometry.targets_distance import (
+    ImagePlane,
+    plane_distances,
+    plane_sections,
+    rectangle_distance,
+    section_polylines,
+    signed_distance,
+    tip_distances,
+)
 
 
 def ellipsoid_liver():
@@ -304,13 +311,15 @@ def test_phantom_tumours_leave_the_anatomy_alone(phantoms):
 
 # ---------------------------------------------------------------- carried through registration
 
-def _registration(model, R=np.eye(3), t=np.zeros(3), beta=None):
+def _registration(model, R=None, t=None, beta=None):
     from navapp.registration.libr import LibrResult
     from navapp.registration.pipeline import Registration
     from navapp.registration.rigid import RigidResult
 
     libr = None if beta is None else LibrResult(beta, 0.0, 0, "test", [], [], {}, 0.0, {})
-    return Registration(model, RigidResult(np.asarray(R, float), np.asarray(t, float), 0, 0.0), libr, {})
+    R = np.eye(3) if R is None else np.asarray(R, float)
+    t = np.zeros(3) if t is None else np.asarray(t, float)
+    return Registration(model, RigidResult(R, t, 0, 0.0), libr, {})
 
 
 def _phantom_targets(phantoms):
