@@ -193,7 +193,12 @@ class ReplayServer:
         self._rng = np.random.default_rng(script.seed)
         self._stop = threading.Event()
         self._thread = None
-        self._server = quiet_server(port)
+        try:
+            self._server = quiet_server(port)
+        except OSError as exc:
+            from ..errors import NavappError
+
+            raise NavappError(f"cannot listen on 127.0.0.1:{port}: {exc.strerror or exc}") from None
         self.port = self._server.server_address[1]
         self.t0 = None
 
