@@ -25,8 +25,8 @@ from ..mechanics.interpolation import interpolation_matrix
 from .libr import LibrResult, LMOptions, register_libr
 from .model import REGION_FEATURES, RegistrationModel, build_model, usable_data
 from .quality import FitQuality, assess_fit
-from .rigid import (RIGID_WITH_POSTERIOR, SURFACE_FEATURES, TOL_BEFORE_LIBR, RigidResult, Start, basin_representatives,
-                    multi_start_icp, rigid_icp, start_poses)
+from .rigid import (RIGID_ROBUST, RIGID_WITH_POSTERIOR, SURFACE_FEATURES, TOL_BEFORE_LIBR, RigidResult, Start,
+                    basin_representatives, multi_start_icp, rigid_icp, start_poses)
 from .rotation import rotation
 
 
@@ -42,25 +42,37 @@ class RobustOptions:
     screen_iterations: int = 2  # LIBR iterations per distinct pose before choosing by Ω
     max_candidates: int = 3  # distinct poses screened (lowest rigid RMS first)
     huber_salient_mm: float | None = 1.0  # Huber δ (mm) on falciform and ridge residuals; None: least squares
+    rigid_robust: float | None = RIGID_ROBUST  # Huber on salient points in ICP, δ = this × the feature's median residual
     retry_poor_fit: bool = True  # a flagged fit is rerun from the other screened poses
     # continuation: first fit with the strain-energy weight × this (a stiffer organ that
     # can only move rigidly and smoothly), then relax to the true weight from there; None: off
-    stiff_first: float | None = None
+    stiff_first: float | None = 3.0
 
     @classmethod
     def legacy(cls) -> "RobustOptions":
         """Today's path before issue 14, bit for bit: single exact point-to-point ICP."""
-        return cls(multi_start=False, icp="point", screen_iterations=0, huber_salient_mm=None, retry_poor_fit=False)
+        return cls(multi_start=False, icp="point", screen_iterations=0, huber_salient_mm=None, retry_poor_fit=False,
+                   rigid_robust=None, stiff_first=None)
+
+    @classmethod
+    def first(cls) -> "RobustOptions":
+        """The first default of issue 14 (multi-start, Ω screen, Huber on the salient
+        features), before the robust ICP and the continuation joined it."""
+        return cls(rigid_robust=None, stiff_first=None)
 
 
 # the registration variants the robustness study compares ("after" is the default)
 METHODS = {
     "before": RobustOptions.legacy,
     "after": RobustOptions,
-    "multistart-LS": lambda: RobustOptions(huber_salient_mm=None),
-    "multistart-point": lambda: RobustOptions(icp="point"),
-    "multistart-posterior": lambda: RobustOptions(rigid_posterior=True),
-    "after-continuation": lambda: RobustOptions(stiff_first=10.0),
+    "first-after": RobustOptions.first,
+    "after-no-continuation": lambda: RobustOptions(stiff_first=None),
+    "after-plain-icp": lambda: RobustOptions(rigid_robust=None),
+    # the variants of the first default (measured before the robust ICP and the continuation)
+    "multistart-LS": lambda: RobustOptions(huber_salient_mm=None, rigid_robust=None, stiff_first=None),
+    "multistart-point": lambda: RobustOptions(icp="point", rigid_robust=None, stiff_first=None),
+    "multistart-posterior": lambda: RobustOptions(rigid_posterior=True, rigid_robust=None, stiff_first=None),
+    "after-continuation": lambda: RobustOptions(stiff_first=10.0, rigid_robust=None),  # first default + 10 ×
 }
 
 
@@ -145,12 +157,12 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         if init.multi_start:
             starts = multi_start_icp(model, data, start_poses(model, {k: v for k, v in data.items() if k in features}
                                                               or data, init.start_angle_deg, init.principal_axes),
-                                     options.weights, mode=init.icp, features=features)
+                                     options.weights, mode=init.icp, features=features, robust=init.rigid_robust)
             candidates = [s.result for s in basin_representatives(starts)[:init.max_candidates]]
             rigid = candidates[0]
         else:
             rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,
-                              features=features, multi_start=False)
+                              features=features, multi_start=False, robust=init.rigid_robust)
     else:
         candidates = [rigid]
     screened = []  # (Ω after the screening iterations, candidate, its LibrResult)
@@ -173,7 +185,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         # vertex-matched point-to-plane pose (e.g. 0.48 against 0.95 mm). Starting it from
         # the basin's pose, not the tracker's, keeps the result independent of the offset
         rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,
-                          start=rigid, features=features)
+                          start=rigid, features=features, robust=init.rigid_robust)
     sec["rigid"] = time.perf_counter() - t
     local = {name: rigid.inverse(p) for name, p in data.items()}
     result, quality = None, None

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .model import RegistrationModel
+from .model import REGION_FEATURES, RegistrationModel
 from .objective import Weights, _correspond
 
 
@@ -56,11 +56,17 @@ def weighted_kabsch(P, Q, w):
 SURFACE_FEATURES = ("anterior", "falciform", "ridge_left", "ridge_right", "fiducials")
 ICP_POINTS = 400  # per feature: an evenly strided subset is plenty for 6 parameters
 TOL_BEFORE_LIBR = 1e-2  # mm: ICP only initialises LIBR
+# Huber factors on falciform and ridge points with δ = this × the feature's median residual
+# (``_robust_scale``); None: plain weighted ICP (the path before). On the study grid a
+# mislabelled stretch of a ridge had pulled the pose 1.3 mm further off (rigid TRE 10.1
+# against 8.8 mm) and LIBR never recovered: see docs/decisions.md, "Registration: robust
+# initialisation and fit quality"
+RIGID_ROBUST = 2.0
 
 
 def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights(), max_iterations=100,
               tol_mm=1e-4, start: "RigidResult | None" = None, features=SURFACE_FEATURES,
-              multi_start=True) -> RigidResult:
+              multi_start=True, robust: float | None = RIGID_ROBUST) -> RigidResult:
     """Rigid transform taking the model onto ``data`` (feature → (N, 3) mm).
 
     Each feature is thinned to at most ICP_POINTS points by an even stride (its weight
@@ -87,7 +93,7 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights()
     elif start is None and multi_start:
         # the same points and starts as the pipeline's, so the same poses
         best = basin_representatives(multi_start_icp(model, data, start_poses(model, data), weights,
-                                                     features=features))[0]
+                                                     features=features, robust=robust))[0]
         R, t = best.result.R, best.result.t
     data = {k: (v[:: -(-len(v) // ICP_POINTS)] if k != "fiducials" else v) for k, v in data.items()}
     prev = np.inf
@@ -103,6 +109,8 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights()
             Ps.append(S @ feat.rest)
             Qs.append(Y)
             Ws.append(np.full(len(Y), weights.features[name] / len(Y)))
+            if robust and name in REGION_FEATURES:
+                Ws[-1] = Ws[-1] * _robust_scale(np.linalg.norm(Ym - Ps[-1], axis=-1), robust)
         P, Q, W = np.vstack(Ps), np.vstack(Qs), np.concatenate(Ws)
         R, t = weighted_kabsch(P, Q, W)
         rms = float(np.sqrt(np.average(np.sum((P @ R.T + t - Q) ** 2, 1), weights=W)))
@@ -110,6 +118,15 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights()
             break
         prev = rms
     return RigidResult(R, t, it, rms)
+
+
+def _robust_scale(dist, k: float) -> np.ndarray:
+    """Huber factors with a scale-adaptive δ = k × the feature's median residual (per start,
+    along the last axis): a few salient points far beyond the rest of their feature — a
+    mislabelled stretch — pull linearly, not quadratically. At the rigid stage every
+    residual still carries the organ's deformation, so a fixed δ would not do."""
+    delta = k * np.median(dist, axis=-1, keepdims=True) + 1e-9
+    return delta / np.maximum(dist, delta)
 
 
 RIGID_WITH_POSTERIOR = SURFACE_FEATURES + ("posterior",)
@@ -210,7 +227,8 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
 
 def multi_start_icp(model: RegistrationModel, data: dict, starts: list[Start], weights: Weights = Weights(),
                     mode="plane", features=SURFACE_FEATURES, max_iterations=30, tol_mm=1e-2,
-                    points=SCREEN_POINTS, basin_mm=1.5, merge_mm=0.5) -> list[Start]:
+                    points=SCREEN_POINTS, basin_mm=1.5, merge_mm=0.5,
+                    robust: float | None = RIGID_ROBUST) -> list[Start]:
     """ICP from every start at once; fills each start's ``result`` and ``basin``.
 
     Parameters
@@ -282,11 +300,15 @@ def multi_start_icp(model: RegistrationModel, data: dict, starts: list[Start], w
                     e = np.zeros(3)
                     e[k] = 1.0
                     rows.append((np.cross(Ym, e), np.broadcast_to(e, Ym.shape), -d[..., k]))
+            wN = np.full(d.shape[:2], wF)
+            if robust and name in REGION_FEATURES:
+                size = np.abs(rows[0][2]) if normals is not None else np.linalg.norm(d, axis=-1)
+                wN = wN * _robust_scale(size, robust)
             for a_rot, a_tr, b in rows:
                 a = np.concatenate([a_rot, a_tr], axis=2)  # (S, N, 6): ∂r/∂(ω, v)
-                A += wF * np.einsum("sni,snj->sij", a, a)
-                g += wF * np.einsum("sni,sn->si", a, b)
-                sq += wF * np.einsum("sn,sn->s", b, b)
+                A += np.einsum("sni,snj->sij", a * wN[..., None], a)
+                g += np.einsum("sni,sn->si", a, wN * b)
+                sq += np.einsum("sn,sn->s", wN * b, b)
             wsum += weights.features[name]
         rms[on] = np.sqrt(sq / wsum)
         # a little damping: a patch of data may leave a rotation weakly determined
