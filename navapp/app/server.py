@@ -75,17 +75,22 @@ class App:
         self.stylus_thread = None
         self.stylus_stop = threading.Event()
         self.stylus_tip: np.ndarray | None = None
+        self._sweeping = False
         self.states: dict[str, ClientState] = {}  # token → per-browser state
         self.views: dict = {}  # client_id → ClientView
+        self._pending: list[str] = []  # view refreshes not yet done, coalesced
+        self._pending_cv = threading.Condition()
+        self._refreshed = 0
+        threading.Thread(target=self._refresher, daemon=True, name="navapp-refresh").start()
         self._overlay_cache: dict = {}
         self._image_cache: dict = {}
+        self._target_B = None  # interpolation matrix of the target points in the registration mesh
         self.preop = make_phantom(scene.phantom) if scene.phantom is not None else self._read_case_preop()
         self.centre = self.preop.liver.vertices.mean(0)
         self.server = viser.ViserServer(host=host, port=port, label="navapp", verbose=False)
         self.url = f"http://{self.server.get_host()}:{self.server.get_port()}"
-        view_host = "127.0.0.1" if host in ("0.0.0.0", "::", "") else host
         self.view2d = View2DServer(self, host=host if host not in ("", "::") else "0.0.0.0", port=view2d_port)
-        self.view2d_host = view_host
+        self.view2d_host = _other_site(host)
         self.server.scene.set_up_direction("+z")
         cam = self.server.initial_camera
         from .panels.layers import HOME_VIEW_MM
@@ -135,12 +140,38 @@ class App:
                 pass
 
     def changed(self, what: str = "data"):
-        """Shared data changed: bump the version, save the session, refresh every view."""
+        """Shared data changed: bump the version and save the session now (so nothing
+        acknowledged can be lost), then refresh every view from the refresher thread, so
+        that a click is acknowledged without waiting for the GUIs of all browsers."""
         with self.lock:
             self.version += 1
             if self.session is not None and what in ("data", "result", "log"):
                 self.session.save(self.sd, self.planes)
-        self.each_view(lambda v: v.refresh(what))
+        with self._pending_cv:
+            if what not in self._pending:
+                self._pending.append(what)
+            self._pending_cv.notify()
+
+    def _refresher(self):
+        while True:
+            with self._pending_cv:
+                while not self._pending:
+                    self._pending_cv.wait()
+                todo, self._pending = self._pending, []
+            for what in todo:
+                self.each_view(lambda v, what=what: v.refresh(what))
+            with self._pending_cv:
+                self._refreshed += 1
+                self._pending_cv.notify_all()
+
+    def settle(self, timeout=10.0) -> bool:
+        """Wait until every change so far has reached the views (for tests and scripts)."""
+        t_end = time.monotonic() + timeout
+        with self._pending_cv:
+            while self._pending:
+                if not self._pending_cv.wait(max(0.0, t_end - time.monotonic())):
+                    return False
+        return True
 
     def notify(self, title, body, error=False):
         self.each_view(lambda v: v.notify(title, body, error))
@@ -270,17 +301,18 @@ class App:
         """Start (or stop, if running) the stylus sweep; ``speed()`` is read every frame."""
         if self.sd is None:
             return False
-        if self.stylus_thread is not None and self.stylus_thread.is_alive():
+        if self._sweeping:
             self.stylus_stop.set()
             return True
         self.stylus_stop.clear()
+        self._sweeping = True
         self.stylus_thread = threading.Thread(target=self._sweep_stylus, args=(speed,), daemon=True)
         self.stylus_thread.start()
         return True
 
     @property
     def sweeping(self) -> bool:
-        return self.stylus_thread is not None and self.stylus_thread.is_alive()
+        return self._sweeping
 
     def _sweep_stylus(self, speed):
         path = self.sd.stylus_path
@@ -306,6 +338,7 @@ class App:
                 last_saved = time.monotonic()
             time.sleep(FRAME_S)
         self.stylus_tip = None
+        self._sweeping = False  # before the last refresh, so the views see the sweep as over
         self._record_stylus_batch(start)
         self.each_view(lambda v: v.show_stylus(None))
         self.changed("data")
@@ -600,7 +633,9 @@ class App:
             etag = f"{self.version}-{cs.version}-{self._result_version()}"
             out = {"etag": etag, "plane": None, "width": self.sd.probe.width_px, "height": self.sd.probe.height_px,
                    "spacing": self.sd.probe.spacing_mm, "overlays": [], "contours": [], "drawing": None,
-                   "targets": [], "legend": [], "message": cs.message, "feature": cs.feature}
+                   "targets": [], "legend": [], "message": cs.message, "feature": cs.feature,
+                   "planes": [{"index": i, "label": self.plane_label(i)} for i in sorted(self.planes)],
+                   "plane_index": cs.plane}
             if cs.plane is None or cs.plane not in self.planes:
                 return out
             plane = self.planes[cs.plane]
@@ -625,7 +660,7 @@ class App:
             out["drawing"] = {"feature": drawing.feature, "vertices": [list(v) for v in drawing.vertices]}
         out["legend"] = [{"name": o["name"], "colour": o["colour"]} for o in out["overlays"]] + \
             [{"name": f"drawn {n}", "colour": DRAWN_COLOURS[f]} for n, f in DRAWABLE.items()]
-        out["targets"] = self.target_lines_for_plane(cs.plane)
+        out["targets"] = [line.replace("**", "") for line in self.target_plane_lines(cs.plane)]
         return out
 
     def _result_version(self):
@@ -657,10 +692,12 @@ class App:
             return "This view is no longer connected: reload the page."
         return self.click(cs, col, row, feature)
 
-    def view_command(self, token, cmd, feature) -> str | None:
+    def view_command(self, token, cmd, feature, plane=None) -> str | None:
         cs = self._state_for(token)
         if cs is None:
             return "This view is no longer connected: reload the page."
+        if cmd == "Plane":
+            return None if self.show_plane(cs, plane) else f"there is no plane {plane}"
         return self.contour_command(cs, cmd, feature)
 
     def overlays(self, index) -> list[Overlay]:
@@ -695,27 +732,83 @@ class App:
         return out
 
     # ------------------------------------------------------------------ targets
-    def registered_targets(self, rigid=None, beta=None) -> dict:
-        """name → (vertices (V, 3) tracker mm, faces) of the tumour targets, carried by the
-        given state (the preoperative targets when nothing is registered)."""
-        targets = getattr(self.preop, "targets", None) or []
-        out = {}
-        for t in targets:
-            v = np.asarray(t.surface.vertices, float)
-            if rigid is not None and self.model is not None:
-                v = rigid.apply(v if beta is None else
-                                deform_points(self.model.basis, self.model.centroid, beta, v))
-            out[t.name] = (v, np.asarray(t.surface.faces))
-        return out
+    def targets(self, rigid=None, beta=None) -> list:
+        """The tumour targets (``anatomy.targets.Target``) carried by a registered state
+        through eq. 8 (``pipeline.deform_points``); by default the state on show (the live
+        one while a registration streams), the preoperative targets when nothing is registered."""
+        from ..anatomy.targets import map_targets, target_points
 
-    def target_lines_for_plane(self, index) -> list[str]:
-        return self.target_plane_lines(index)
+        pre = getattr(self.preop, "targets", None) or []
+        if not pre:
+            return []
+        if rigid is None:
+            run = self.run
+            if run is not None and "state" in run:
+                rigid, beta = run["state"]
+            elif self.result is not None:
+                rigid, beta = self.result.rigid, self.result.beta
+        if rigid is None or self.model is None:
+            return pre
+        if beta is None:
+            return map_targets(pre, rigid.apply)
+        if self._target_B is None:  # locating the target points in the mesh once
+            from ..mechanics.interpolation import interpolation_matrix
+
+            self._target_B = interpolation_matrix(self.model.basis.nodes, self.model.basis.tets,
+                                                  target_points(pre))
+        B = self._target_B
+        return map_targets(pre, lambda p: rigid.apply(deform_points(self.model.basis, self.model.centroid,
+                                                                    beta, p, B)))
+
+    def registered_targets(self, rigid=None, beta=None) -> dict:
+        """name → (vertices (V, 3) tracker mm, faces) of the targets with a surface."""
+        return {t.name: (np.asarray(t.surface.vertices, float), np.asarray(t.surface.faces))
+                for t in self.targets(rigid, beta) if t.surface is not None}
+
+    def _which(self):
+        return "registered" if (self.result is not None or self.run is not None) else "preoperative"
 
     def target_plane_lines(self, index) -> list[str]:
-        return []
+        """One line per target: its distance from this plane's image (0: the image cuts it)."""
+        from ..geometry.targets_distance import ImagePlane, plane_distances
+
+        targets = self.targets()
+        if not targets or index not in self.planes:
+            return []
+        p = self.sd.probe
+        plane = ImagePlane.from_pose(self.planes[index].probe_to_tracker, p.width_px * p.spacing_mm,
+                                     p.height_px * p.spacing_mm)
+        out = []
+        for t, d in zip(targets, plane_distances(plane, targets), strict=True):
+            out.append(f"**{t.name}** ({self._which()}): " +
+                       ("in this image" if d <= 0.05 else f"{d:.1f} mm from this image"))
+        return out
 
     def target_distance_lines(self, tip) -> list[str]:
-        return []
+        """One line per target: the stylus tip's distance to its surface."""
+        from ..geometry.targets_distance import tip_distances
+
+        targets = self.targets()
+        if not targets or tip is None:
+            return []
+        return [f"**{t.name}**: " + (f"tip inside, {-d:.1f} mm deep" if d < 0 else f"{d:.1f} mm from the stylus tip")
+                for t, d in zip(targets, tip_distances(tip, targets), strict=True)]
+
+
+def _other_site(host: str) -> str:
+    """The host name the 2D view's frame is loaded from: another *site* than the viewer's
+    page where possible (127.0.0.1 ↔ localhost), so that Chromium gives the frame its own
+    renderer process and a busy 3D view (software WebGL) does not delay the clicks'
+    acknowledgements (median 20–40 ms instead of spikes of 1.5 s, measured headless)."""
+    if host == "127.0.0.1":
+        return "localhost"
+    if host == "localhost":
+        return "127.0.0.1"
+    if host in ("0.0.0.0", "::", ""):
+        import socket
+
+        return socket.gethostname()
+    return host
 
 
 def _duration(seconds: float) -> str:

@@ -35,6 +35,7 @@ PAGE = r"""<!doctype html>
 </style></head><body>
 <div id="gone">The navapp server is not answering — is it still running? Nothing drawn so far is lost; clicks wait until it is back.</div>
 <div id="bar">
+ <select id="plane" title="the plane this tab shows and draws on"></select>
  <select id="feat"><option>PV contour</option><option>HV contour</option><option>Posterior surface</option></select>
  <button id="close" title="close the contour (Enter)">Close</button>
  <button id="finish" title="end an open line">Finish line</button>
@@ -121,6 +122,13 @@ function apply(s){
   state = s; etag = s.etag;
   $("title").textContent = s.plane ? s.plane : "No plane shown yet: choose one in the Ultrasound panel.";
   if (s.feature && document.activeElement !== $("feat")) $("feat").value = s.feature;
+  const sel = $("plane"), opts = (s.planes || []).map(p => p.index + ":" + p.label).join("|");
+  if (sel.dataset.opts !== opts){
+    sel.dataset.opts = opts;
+    sel.innerHTML = `<option value="">choose a plane…</option>` +
+      (s.planes || []).map(p => `<option value="${p.index}">${p.label}</option>`).join("");
+  }
+  if (document.activeElement !== sel) sel.value = s.plane_index === null || s.plane_index === undefined ? "" : String(s.plane_index);
   if (s.plane && s.image_id !== imgId){
     imgId = s.image_id; const im = new Image(); im.onload = () => { img = im; draw(); };
     im.src = url("/us/image?id=" + encodeURIComponent(s.image_id));
@@ -168,15 +176,16 @@ cv.addEventListener("mousedown", e => {
   const p = toPixel(e); if (!p) return;
   pending.push([p[0], p[1], performance.now()]); draw(); pump();
 });
-async function command(cmd){
+async function command(cmd, extra){
   while (sending || pending.length) await new Promise(r => setTimeout(r, 20));  // after the clicks before it
-  const s = await post("/us/command", {cmd: cmd, feature: $("feat").value});
+  const s = await post("/us/command", Object.assign({cmd: cmd, feature: $("feat").value}, extra || {}));
   if (s.error) msg(s.error); else { msg(s.message || ""); apply(s); }
 }
 $("close").onclick = () => command("Close");
 $("finish").onclick = () => command("Finish line");
 $("undo").onclick = () => command("Undo");
 $("feat").onchange = () => command("Feature");
+$("plane").onchange = () => { if ($("plane").value !== "") command("Plane", {plane: parseInt($("plane").value)}); };
 $("z1").onclick = () => { zoom = 1; draw(); };
 $("z2").onclick = () => { zoom = 2; draw(); };
 document.addEventListener("keydown", e => {
@@ -238,7 +247,9 @@ class _Handler(BaseHTTPRequestHandler):
             if path == "/us/click":
                 err = self.provider.view_click(token, int(body["col"]), int(body["row"]), str(body.get("feature", "")))
             elif path == "/us/command":
-                err = self.provider.view_command(token, str(body["cmd"]), str(body.get("feature", "")))
+                plane = body.get("plane")
+                err = self.provider.view_command(token, str(body["cmd"]), str(body.get("feature", "")),
+                                                 None if plane is None else int(plane))
             else:
                 return self._send(404, b"not found", "text/plain")
         except (ValueError, KeyError, TypeError) as exc:

@@ -62,6 +62,7 @@ class LayersPanel:
         self.nodes: dict[str, list] = {name: [] for name in LAYERS}
         self.reg: dict = {}
         self.data_nodes: dict = {}
+        self._data_shown: dict = {}  # what each data node last showed
         with g.add_folder("Layers and views", expand_by_default=False):
             self.cb = {name: g.add_checkbox(name, name not in ("True deformed liver (ghost)",)) for name in LAYERS}
             self.views = g.add_button_group("View", tuple(STANDARD_VIEWS) + ("Reset",))
@@ -151,16 +152,21 @@ class LayersPanel:
         for name in list(self.data_nodes):
             if name not in data:
                 node = self.data_nodes.pop(name)
+                self._data_shown.pop(name, None)
                 self.nodes["Collected data"].remove(node)
                 node.remove()
         for name, pts in data.items():
             if name in self.data_nodes:
+                old = self._data_shown.get(name)
+                if old is not None and old.shape == pts.shape and np.array_equal(old, pts):
+                    continue  # unchanged: nothing sent to the browser (a click changes one feature)
                 self.data_nodes[name].points = pts.astype(np.float32)
             else:
                 size = 2.5 if name.endswith("centerline") else 0.6 if name.endswith("contour") or name == "posterior" else 1.2
                 self.data_nodes[name] = self._add("Collected data", self.s.add_point_cloud(
                     f"/data/{name}", pts.astype(np.float32), FEATURE_COLOURS.get(name, (255, 255, 255)),
                     point_size=size, precision="float32", point_shape="circle"))
+            self._data_shown[name] = pts
 
     def show_plane(self, plane=None):
         """This browser's plane (or a preview plane) at its tracked pose with its image."""
@@ -230,7 +236,7 @@ class LayersPanel:
             self.reg["error"].colors = colours
         else:
             self.reg["error"] = self._add("Error colours", self.s.add_point_cloud(
-                "/registered/error", pts.astype(np.float32), colours, point_size=2.2, precision="float32",
+                "/registered/error", pts.astype(np.float32), colours, point_size=1.0, precision="float32",
                 point_shape="circle"))
 
     def _set_scale(self):
@@ -268,7 +274,7 @@ class LayersPanel:
         cam = self.view.client.camera
         centre = T[:3, 3] + T[:3, 2] * 40.0
         cam.up_direction = (0.0, 0.0, 1.0)
-        cam.position = centre + T[:3, 1] * 200.0 + np.array([0.0, 60.0, 80.0])
+        cam.position = centre + T[:3, 1] * 320.0 + np.array([0.0, 80.0, 120.0])
         cam.look_at = centre
 
     def _render_legend(self):

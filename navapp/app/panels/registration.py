@@ -76,14 +76,18 @@ class RegistrationPanel:
             return
         last = log[-1]
         if last.get("cancelled"):
-            self.md.content = f"**{last['run']} cancelled** after {last['seconds']:.2f} s; the previous result is kept."
-            return
-        head = f"**Last: {last['run']}, {last['seconds']:.2f} s"
-        if "error_mean_mm" in last:
-            head += f", mean error {last['error_mean_mm']:.2f} mm, max {last['error_max_mm']:.2f} mm"
-        head += "**"
-        if last.get("warning"):
-            head += f"  \n⚠ {last['warning']}"
+            head = f"**{last['run']} cancelled** after {last['seconds']:.2f} s; the previous result is kept."
+        else:
+            head = f"**Last: {last['run']}, {last['seconds']:.2f} s"
+            if "error_mean_mm" in last:
+                head += f", mean error {last['error_mean_mm']:.2f} mm, max {last['error_max_mm']:.2f} mm"
+            head += "**"
+            if last.get("warning"):
+                head += f"  \n⚠ {last['warning']}"
+        res = app.result
+        if res is not None:
+            err = res.node_error_mm
+            head += f"  \nOn show: {res.run}" + (f" (mean error {err.mean():.2f} mm)" if err is not None else "")
         self.md.content = head
 
     def _table(self):

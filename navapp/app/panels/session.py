@@ -5,7 +5,7 @@ class SessionPanel:
     def __init__(self, view):
         self.view, self.app = view, view.app
         g = view.client.gui
-        with g.add_folder("Session", expand_by_default=False):
+        with g.add_folder("Session"):
             self.md = g.add_markdown("")
             self.btn = g.add_button("Export (PLY, VTK, CSV)", disabled=True)
         self.btn.on_click(lambda e: self.export())

@@ -41,7 +41,6 @@ class UltrasoundPanel:
                                     f"style='width:{IFRAME_W}px;height:{IFRAME_H}px;border:0'></iframe>")
         self.panel.dock_left()
         self.panel.set_width(IFRAME_W + 20)
-        self.panel.minimize()
         self.gizmo = None
         self._preview_T = None
         self._preview_busy = threading.Lock()
@@ -69,6 +68,8 @@ class UltrasoundPanel:
         app, cs = self.app, self.cs
         if app.sd is None or app.session is None:
             return
+        if what == "result" and cs.plane is not None:
+            self.dist.content = "  \n".join(app.target_plane_lines(cs.plane))
         if what in ("scene", "data", "plane"):
             labels = tuple(app.plane_label(i) for i in sorted(app.planes)) or ("—",)
             if tuple(self.plane_dd.options) != labels:
