@@ -13,7 +13,7 @@ from . import __version__, progress
 
 SCENE_DIR = Path(__file__).resolve().parents[1] / "assets" / "scenes"
 DEFAULT_TABLE2_CSV = Path("results/table2.csv")
-from .errors import NavappError
+from .errors import InputError, NavappError
 
 
 def _positive(kind):
@@ -126,7 +126,18 @@ def cmd_serve(args):
     scene = load_scene(args.scene) if args.scene else demo_scene()
     from .app.server import serve  # viser is imported only here
 
-    serve(scene, args.host, args.port, args.session, args.edge, args.k, view2d_port=args.view2d_port)
+    tracking = None
+    if args.igtl or args.igtl_config:
+        from .tracking.config import TrackingConfig, load_config
+
+        tracking = load_config(args.igtl_config) if args.igtl_config else TrackingConfig()
+        if args.igtl:
+            host, _, port = args.igtl.rpartition(":")
+            if not host or not port.isdigit():
+                raise InputError(f"--igtl wants HOST:PORT, not {args.igtl!r}")
+            tracking = tracking.with_address(host, int(port))
+    serve(scene, args.host, args.port, args.session, args.edge, args.k, view2d_port=args.view2d_port,
+          tracking=tracking)
 
 
 def cmd_simulate(args):
@@ -313,6 +324,11 @@ def build_parser():
     s.add_argument("--k", type=_positive(int), default=45, help="number of control points")
     s.add_argument("--view2d-port", type=int, default=0,
                    help="port of the 2D ultrasound view's pages (default: any free port)")
+    s.add_argument("--igtl", metavar="HOST:PORT",
+                   help="connect to an OpenIGTLink server (PLUS, 3D Slicer, navapp replay) for the tracked "
+                        "stylus and ultrasound")
+    s.add_argument("--igtl-config", type=Path, metavar="FILE",
+                   help="tracking TOML (PLUS transform names, ImageToProbe, timeouts); see README, 'With a tracker'")
     s.set_defaults(func=cmd_serve)
 
     return p

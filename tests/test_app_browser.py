@@ -154,8 +154,10 @@ def test_guided_demo_in_chromium(server, tmp_path):
         browser = p.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
         page = browser.new_page(viewport=VIEW)
         page.on("websocket", lambda ws: ws.on("framereceived", lambda f: frames.append((time.time(), f))))
+        t_open = time.time()
         page.goto(url)
-        wait_text(page, r"Ready\.", 600)
+        wait_text(page, r"Ready\.", 900)
+        print(f"\nstart-up: page opened → Ready. in {time.time() - t_open:.0f} s (this test's cache starts empty)")
         page.screenshot(path=shots / "app_preop.png")
 
         click_button(page, "Show the preoperative model from the front")

@@ -11,7 +11,7 @@ from skimage.draw import line as sk_line
 
 from navapp.anatomy.caseio import read_case
 from navapp.app.contours import Contour, click_to_pixel, contour_pixels, contour_points
-from navapp.app.scenedata import acquire_free_plane, load_scene_data, sweep_order
+from navapp.simulation.scenedata import acquire_free_plane, load_scene_data, sweep_order
 from navapp.app.session import export, open_session
 from navapp.errors import InputError
 from navapp.simulation.probe import Probe, pixels_to_tracker, pose, tracker_to_pixels

@@ -29,9 +29,10 @@ from ..registration.pipeline import Registration, deform_points, prepare
 from ..registration.rigid import RigidResult
 from .contours import CENTERLINE_OF, DRAWABLE, Contour, contour_pixels
 from .overlays import Overlay, section_pixels
-from .scenedata import acquire_free_plane, load_scene_data
+from ..simulation.scenedata import acquire_free_plane, load_scene_data
 from .session import default_folder, export, open_session
 from .state import Action, ClientState, RegisteredState
+from .live import LIVE_PLANE_BASE
 from .view2d import View2DServer
 from .worker import RegistrationWorker, cancelled
 
@@ -54,7 +55,7 @@ class App:
     returns an event set when the registration model is ready (or start-up failed)."""
 
     def __init__(self, scene, host="127.0.0.1", port=8080, session_dir=None, edge=4.0, k=45, cache_root=None,
-                 view2d_port=0):
+                 view2d_port=0, tracking=None):
         self.scene, self.edge, self.k, self.cache_root = scene, edge, k, cache_root
         self.session_dir = session_dir
         self.lock = threading.RLock()
@@ -85,6 +86,8 @@ class App:
         self._overlay_cache: dict = {}
         self._image_cache: dict = {}
         self._target_B = None  # interpolation matrix of the target points in the registration mesh
+        self.tracking_config = tracking  # a tracking.TrackingConfig: connect to a tracker once the scene is ready
+        self.live = None  # LiveLink while connected to a tracker
         self.preop = make_phantom(scene.phantom) if scene.phantom is not None else self._read_case_preop()
         self.centre = self.preop.liver.vertices.mean(0)
         self.server = viser.ViserServer(host=host, port=port, label="navapp", verbose=False)
@@ -209,6 +212,11 @@ class App:
             with self.lock:
                 self.sd, self.session, self.planes = sd, session, planes
             self.changed("scene")
+            if self.tracking_config is not None:
+                from .live import LiveLink
+
+                self.live = LiveLink(self, self.tracking_config).start()
+                self.changed("live")
             stage["what"] = (f"Building the registration model (mesh at {self.edge:g} mm, basis of k = {self.k} "
                              f"control points; cached after the first start)")
             self.set_stage(stage["what"])
@@ -285,6 +293,8 @@ class App:
 
     def plane_label(self, i) -> str:
         p = self.planes[i]
+        if p.orientation == "live":
+            return f"live {i - LIVE_PLANE_BASE + 1} (tracked frame)"
         vessels = sorted({VESSEL_SHORT[f] for f in p.features if f in VESSEL_SHORT})
         what = ", ".join(vessels) if vessels else "no vessel"
         name = f"{i + 1} ({p.orientation})" if i < FREE_PLANE_BASE else f"free {i - FREE_PLANE_BASE + 1}"
@@ -359,6 +369,58 @@ class App:
             self.session.stylus_count = len(self.sd.stylus_path)
         self._record_stylus_batch(start)
         self.changed("data")
+
+    # ------------------------------------------------------------------ tracker (live)
+    def add_live_points(self, pts, labels):
+        """Points the tracked stylus digitised (tracker mm) become session data at once."""
+        with self.lock:
+            for p, lab in zip(np.asarray(pts, float), labels, strict=True):
+                self.session.live_points.append([float(p[0]), float(p[1]), float(p[2]), str(lab)])
+        self.changed("data")
+
+    def set_live_recording(self, on: bool, label="anterior") -> str | None:
+        if self.live is None:
+            return "No tracker connected (navapp serve --igtl HOST:PORT)."
+        with self.lock:
+            if on and not self.live.recording:
+                self._live_start = len(self.session.live_points)
+        self.live.set_recording(on, label)
+        if not on:
+            with self.lock:
+                start = getattr(self, "_live_start", len(self.session.live_points))
+                if len(self.session.live_points) > start:
+                    for cs in self.states.values():
+                        cs.undo.append(Action("live", before=start))
+        self.changed("live")
+        return None
+
+    def freeze_frame(self, cs: ClientState) -> str | None:
+        """The latest tracked ultrasound frame becomes a plane of the session (to draw on)."""
+        if self.live is None:
+            return "No tracker connected (navapp serve --igtl HOST:PORT)."
+        with self.lock:
+            index = LIVE_PLANE_BASE + len(self.session.live_planes)
+            plane = self.live.frozen_plane(index)
+            if plane is None:
+                return "No ultrasound frame received yet."
+            probe = self.sd.probe
+            H, W = plane.image.shape[:2]
+            f = self.live.frame
+            spacing = f.spacing_mm
+            if (H, W) != (probe.height_px, probe.width_px) or abs(spacing[0] - probe.spacing_mm) > 1e-6 \
+                    or abs(spacing[1] - probe.spacing_mm) > 1e-6:
+                return (f"the tracked frame is {W}×{H} px at {spacing[0]:.3f}×{spacing[1]:.3f} mm, the scene's "
+                        f"probe {probe.width_px}×{probe.height_px} px at {probe.spacing_mm} mm: set the scene's probe")
+            from PIL import Image
+
+            rel = f"live/frame_{index - LIVE_PLANE_BASE:03d}.png"
+            (self.session.folder / "live").mkdir(parents=True, exist_ok=True)
+            Image.fromarray(plane.image).save(self.session.folder / rel)
+            self.planes[index] = plane
+            self.session.live_planes.append({"index": index, "pose": plane.probe_to_tracker.tolist(), "png": rel})
+        self.show_plane(cs, index)
+        self.changed("data")
+        return None
 
     # ------------------------------------------------------------------ ultrasound
     def show_plane(self, cs: ClientState, index) -> bool:
@@ -504,6 +566,12 @@ class App:
                 self.planes.pop(a.plane, None)
                 if cs.plane == a.plane:
                     cs.plane = None
+                return None
+            if a.kind == "live":
+                if self.live is not None and self.live.recording:
+                    cs.undo.append(a)
+                    return "Stop digitising first."
+                del self.session.live_points[a.before:]
                 return None
             if a.kind == "stylus":
                 if self.sweeping:
@@ -818,9 +886,11 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 60:.0f} min"
 
 
-def serve(scene, host="127.0.0.1", port=8080, session_dir=None, edge=4.0, k=45, cache_root=None, view2d_port=0):
-    """Start the viewer and block until interrupted."""
-    app = App(scene, host, port, session_dir, edge, k, cache_root, view2d_port)
+def serve(scene, host="127.0.0.1", port=8080, session_dir=None, edge=4.0, k=45, cache_root=None, view2d_port=0,
+          tracking=None):
+    """Start the viewer and block until interrupted. ``tracking``: a ``TrackingConfig`` to
+    connect to an OpenIGTLink server (PLUS, 3D Slicer, ``navapp replay``)."""
+    app = App(scene, host, port, session_dir, edge, k, cache_root, view2d_port, tracking)
     app.start()
     print(f"navapp: viewer at {app.url}  (Ctrl+C to stop)", flush=True)
     try:
@@ -830,4 +900,6 @@ def serve(scene, host="127.0.0.1", port=8080, session_dir=None, edge=4.0, k=45, 
         pass
     finally:
         app.view2d.stop()
+        if app.live is not None:
+            app.live.stop()
     return app

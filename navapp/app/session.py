@@ -20,7 +20,8 @@ import trimesh
 from ..anatomy.caseio import FEATURES, write_csv, write_preop, write_settings
 from ..errors import InputError
 from .contours import Contour, contour_points
-from .scenedata import STYLUS_FEATURES, SceneData, acquire_free_plane, scene_key
+from ..simulation.ultrasound import PlaneData
+from ..simulation.scenedata import STYLUS_FEATURES, SceneData, acquire_free_plane, scene_key
 
 SESSION_VERSION = 1
 
@@ -35,6 +36,8 @@ class Session:
     free_planes: list = field(default_factory=list)  # [{"index": i, "pose": 4×4 list}]
     log: list = field(default_factory=list)  # one dict per registration run
     result: dict | None = None  # the registered model on show (RegisteredState.to_json), restored on restart
+    live_points: list = field(default_factory=list)  # [[x, y, z, feature]] digitised with a tracked stylus
+    live_planes: list = field(default_factory=list)  # [{"index", "pose", "png"}] frozen tracked frames
 
     # ------------------------------------------------------------ data
     def data(self, sd: SceneData, planes: dict, surface_only=False) -> dict:
@@ -50,6 +53,8 @@ class Session:
         n = min(self.stylus_count, len(sd.stylus_path))
         for name in STYLUS_FEATURES:
             add(name, sd.stylus_path[:n][sd.stylus_labels[:n] == name])
+        for x, y, z, name in self.live_points:
+            add(name, [x, y, z])
         if not surface_only:
             for i in self.planes_added:
                 for name, pts in planes[i].features.items():
@@ -63,7 +68,8 @@ class Session:
     def to_json(self) -> dict:
         return {"version": SESSION_VERSION, "scene_key": self.key, "stylus_count": self.stylus_count,
                 "planes_added": self.planes_added, "contours": [c.to_json() for c in self.contours],
-                "free_planes": self.free_planes, "log": self.log, "result": self.result}
+                "free_planes": self.free_planes, "log": self.log, "result": self.result,
+                "live_points": self.live_points, "live_planes": self.live_planes}
 
     def save(self, sd: SceneData, planes: dict):
         """Write session.json and the case folder's intraop/ (atomically, file by file)."""
@@ -113,12 +119,20 @@ def open_session(folder: Path, sd: SceneData) -> tuple[Session, dict]:
             raise InputError("this session folder belongs to another scene (pass a different --session)", folder)
         s = Session(folder, key, int(d["stylus_count"]), [int(i) for i in d["planes_added"]],
                     [Contour.from_json(c) for c in d["contours"]], list(d["free_planes"]), list(d["log"]),
-                    d.get("result"))
+                    d.get("result"), [[float(a), float(b), float(c), str(f)] for a, b, c, f in d.get("live_points", [])],
+                    list(d.get("live_planes", [])))
     except (ValueError, KeyError, TypeError) as exc:
         raise InputError(f"damaged session.json ({exc.__class__.__name__}: {exc}); move it away to start afresh",
                          path) from None
     for fp in s.free_planes:
         planes[fp["index"]] = acquire_free_plane(sd, fp["index"], np.array(fp["pose"]))
+    for lp in s.live_planes:
+        from skimage.io import imread
+
+        png = folder / lp["png"]
+        if not png.exists():
+            raise InputError(f"session.json refers to a frozen frame {lp['png']} that is missing", path)
+        planes[lp["index"]] = PlaneData(lp["index"], "live", np.array(lp["pose"]), {}, imread(png))
     bad = [i for i in s.planes_added if i not in planes] + [c.plane for c in s.contours if c.plane not in planes]
     if bad:
         raise InputError(f"session.json refers to planes {sorted(set(bad))} that this scene does not have", path)

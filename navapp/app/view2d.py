@@ -135,7 +135,7 @@ function apply(s){
   }
   $("legend").innerHTML = s.legend.map(o => `<span><i style="background:${o.colour}"></i>${o.name}</span>`).join("");
   $("targets").innerHTML = s.targets.map(t => `<div>${t}</div>`).join("");
-  if (s.message) msg(s.message);
+  msg(s.message || "");
   draw();
 }
 

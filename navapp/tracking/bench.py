@@ -23,7 +23,7 @@ from .replay import interpolate_pose
 
 def _frames(sd, first_plane, count, per_transit):
     """Features of ``count`` frames of the probe gliding from plane ``first_plane`` on."""
-    from ..app.scenedata import acquire_free_plane
+    from ..simulation.scenedata import acquire_free_plane
 
     poses = [p.probe_to_tracker for p in sd.planes]
     out = []
@@ -44,7 +44,7 @@ def _pct(xs, q):
 
 
 def bench_live(frames=40, planes=3, k=45, edge=4.0, per_transit=8):
-    from ..app.scenedata import load_scene_data
+    from ..simulation.scenedata import load_scene_data
     from ..mechanics.interpolation import interpolation_matrix
     from ..registration.libr import LMOptions
     from ..registration.pipeline import prepare, register, tre_stats

@@ -10,6 +10,7 @@ from .layers import LayersPanel
 from .registration import RegistrationPanel
 from .session import SessionPanel
 from .stylus import StylusPanel
+from .tracking import TrackingPanel
 from .ultrasound import UltrasoundPanel
 
 
@@ -25,12 +26,13 @@ class ClientView:
         self.layers = LayersPanel(self)  # first: the others show their nodes through it
         self.guide = GuidePanel(self)
         self.stylus = StylusPanel(self)
+        self.tracking = TrackingPanel(self)
         self.ultrasound = UltrasoundPanel(self)
         self.registration = RegistrationPanel(self)
         self.accuracy = AccuracyPanel(self)
         self.session = SessionPanel(self)
-        self.panels = (self.layers, self.guide, self.stylus, self.ultrasound, self.registration, self.accuracy,
-                       self.session)
+        self.panels = (self.layers, self.guide, self.stylus, self.tracking, self.ultrasound, self.registration,
+                       self.accuracy, self.session)
 
     # ------------------------------------------------------------------ from the App
     def refresh_all(self):
@@ -58,6 +60,16 @@ class ClientView:
     def show_stylus(self, pos):
         self.layers.show_stylus(pos)
         self.stylus.show_tip(pos)
+
+    def show_live_tip(self, tip):
+        self.layers.show_stylus(tip)
+        self.stylus.dist.content = "  \n".join(self.app.target_distance_lines(tip))
+
+    def show_live_frame(self, frame):
+        if self.tracking.follow.value:
+            plane = self.app.live.frozen_plane(-1)
+            if plane is not None:
+                self.layers.show_plane(plane)
 
     def show_update(self, u):
         self.layers.show_registered(u.rigid, u.beta, error=self.app.run.get("error") if self.app.run else None)

@@ -173,6 +173,7 @@ class LayersPanel:
         app, cs = self.app, self.cs
         if app.sd is None or not hasattr(self, "probe"):
             return
+        live = plane is not None
         if plane is None:
             if cs.plane is None or cs.plane not in app.planes:
                 self.probe.visible = False
@@ -180,7 +181,7 @@ class LayersPanel:
             plane = app.planes[cs.plane]
         T = plane.probe_to_tracker
         self.probe.wxyz, self.probe.position = wxyz(T[:3, :3]), T[:3, 3]
-        self.probe.visible = self.cb["Ultrasound plane"].value
+        self.probe.visible = self.cb["Ultrasound plane"].value and (live or cs.plane is not None)
         img = plane.image if plane.image is not None else np.zeros((app.sd.probe.height_px, app.sd.probe.width_px),
                                                                    np.uint8)
         # viser draws an image's first row at the node's −y edge; flipped, row 0 sits at the probe face
@@ -250,9 +251,10 @@ class LayersPanel:
             on = self.cb[layer].value
             for n in nodes:
                 if layer == "Stylus":
-                    n.visible = on and self.app.stylus_tip is not None
+                    n.visible = on and (self.app.stylus_tip is not None or
+                                        (self.app.live is not None and self.app.live.tip is not None))
                 elif layer == "Ultrasound plane":
-                    n.visible = on and self.cs.plane is not None
+                    n.visible = on and (self.cs.plane is not None or self.app.live is not None)
                 else:
                     n.visible = on
 

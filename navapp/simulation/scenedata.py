@@ -4,7 +4,7 @@ The simulator writes a case folder (``simulation/simulate.py``); the viewer read
 into ``SceneData``: preoperative model, stylus data in sweep order, the iUS planes with
 their poses and B-mode images, and the true deformed anatomy. A scene is simulated into
 ``<cache>/scenes/<key>`` where the key hashes every scene parameter, so the next start
-is instant and a changed scene is simulated afresh. No viser here.
+is instant and a changed scene is simulated afresh. No viser here (the viewer and the replay server both read scenes through it).
 """
 
 import dataclasses
@@ -18,10 +18,10 @@ import trimesh
 
 from ..anatomy.caseio import Case, read_case
 from ..cache import cache_dir, content_key
-from ..simulation.probe import Probe
-from ..simulation.scene import Scene
-from ..simulation.simulate import REGISTRATION_EDGE_MM, simulate
-from ..simulation.ultrasound import PlaneData, acquire_plane
+from .probe import Probe
+from .scene import Scene
+from .simulate import REGISTRATION_EDGE_MM, simulate
+from .ultrasound import PlaneData, acquire_plane
 
 STYLUS_FEATURES = ("anterior", "falciform", "ridge_left", "ridge_right")
 SCENE_CACHE_VERSION = "1"  # bump when the simulator's output changes

@@ -1,0 +1,44 @@
+"""The Live tracking panel (shown when ``navapp serve --igtl HOST:PORT``): connection and
+per-tool status (seen / stale / missing, as SlicerIGT's Watchdog), digitising with the
+tracked stylus while a switch is on, the live image, and freezing a frame to draw on."""
+
+from ...simulation.scenedata import STYLUS_FEATURES
+
+
+class TrackingPanel:
+    def __init__(self, view):
+        self.view, self.app, self.cs = view, view.app, view.cs
+        g = view.client.gui
+        self.folder = g.add_folder("Live tracking (OpenIGTLink)", visible=self.app.tracking_config is not None)
+        with self.folder:
+            self.status = g.add_markdown("Not connected.")
+            self.label = g.add_dropdown("Digitise as", STYLUS_FEATURES)
+            self.record = g.add_checkbox("Digitise (record while on)", False)
+            self.count = g.add_markdown("")
+            self.follow = g.add_checkbox("Show the live image", True)
+            self.freeze = g.add_button("Freeze this frame as a plane (to draw on)")
+        self.record.on_update(lambda e: self._record())
+        self.freeze.on_click(lambda e: self._freeze())
+
+    def _record(self):
+        err = self.app.set_live_recording(bool(self.record.value), self.label.value)
+        if err:
+            self.view.notify("Live tracking", err, error=True)
+
+    def _freeze(self):
+        err = self.app.freeze_frame(self.cs)
+        if err:
+            self.view.notify("Live tracking", err, error=True)
+
+    def refresh(self, what):
+        live = self.app.live
+        if live is None:
+            return
+        self.folder.visible = True
+        if what in ("live", "data"):
+            self.status.content = "  \n".join(live.status_lines())
+            n = len(self.app.session.live_points) if self.app.session else 0
+            self.count.content = f"{n} points digitised with the tracked stylus" + \
+                (" — **recording**" if live.recording else "")
+            if self.record.value != live.recording:
+                self.record.value = live.recording

@@ -1,0 +1,110 @@
+"""The viewer connected to a tracker: ``navapp serve --igtl`` against a replay server on
+127.0.0.1 that plays the scene's own stylus path and two of its planes (images and poses)
+over OpenIGTLink. Checks that the live tip reaches the App, that digitised points enter the
+session exactly as sent, that a frozen frame becomes a plane whose pixels map to where the
+tracker said they were, that it survives a restart, and that Undo removes a recording."""
+
+import numpy as np
+import pytest
+from conftest import free_port
+
+from navapp.simulation.scene import parse_scene
+
+pytest.importorskip("viser")
+pytest.importorskip("pyigtl")
+
+SCENE = {"name": "apptest", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
+         "stylus": {"coverage": 0.2}, "ius": {"planes": 2}}
+
+
+def wait_until(cond, timeout=10.0):
+    import time
+
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(0.02)
+    return cond()
+
+
+@pytest.fixture(scope="module")
+def live_app(cache_root, tmp_path_factory):
+    from navapp.simulation.scenedata import load_scene_data
+    from navapp.app.server import App
+    from navapp.tracking.config import TrackingConfig
+    from navapp.tracking.replay import ProbeKeyframe, ReplayScript, ReplayServer
+
+    scene = parse_scene(SCENE)
+    sd = load_scene_data(scene, cache_root, 12.0)
+    a, b = sd.planes[0], sd.planes[1]
+    script = ReplayScript(sd.stylus_path[:300], [a.probe_to_tracker, b.probe_to_tracker],
+                          [ProbeKeyframe(0.0, a.probe_to_tracker, a.image), ProbeKeyframe(1.2, b.probe_to_tracker, b.image)],
+                          2.4, dwell_s=0.8, move_s=0.4)
+    server = ReplayServer(script, port=0, rate_hz=25).start()
+    app = App(scene, port=free_port(), session_dir=tmp_path_factory.mktemp("live"), edge=12.0, k=12,
+              cache_root=cache_root, tracking=TrackingConfig(port=server.port, rate_hz=50.0))
+    assert app.start().wait(600) and app.failed is None, app.failed
+    yield app, server, sd
+    app.live.stop()
+    app.server.stop()
+    app.view2d.stop()
+    server.stop()
+
+
+def test_live_tip_and_digitised_points_are_exactly_what_was_sent(live_app):
+    app, server, sd = live_app
+    assert wait_until(lambda: app.live.tip is not None)
+    assert app.set_live_recording(True) is None
+    assert wait_until(lambda: len(app.session.live_points) >= 20, 15)
+    app.set_live_recording(False)
+    pts = np.array([p[:3] for p in app.session.live_points])
+    sent = np.array([m[:3, 3] for _, name, m in list(server.sent) if name == "StylusTipToReference"], float)
+    d = np.abs(pts[:, None, :] - sent[None]).max(-1).min(1)
+    assert d.max() <= 1e-6  # every recorded point is a tip position that went over the wire
+    assert len(np.unique(pts, axis=0)) > 10  # the tip moved
+    assert all(p[3] == "anterior" for p in app.session.live_points)
+    data = app.data("all")
+    assert len(data["anterior"]) == len(pts)  # only live points: the simulated sweep was not collected
+    lines = app.live.status_lines()
+    assert lines[0].startswith("connected to") and any("StylusTipToReference: **seen**" in x for x in lines)
+
+
+def test_a_frozen_frame_is_a_plane_at_the_tracked_pose(live_app):
+    from navapp.app.session import open_session
+    from navapp.simulation.probe import pixels_to_tracker
+
+    app, server, sd = live_app
+    assert wait_until(lambda: app.live.frame is not None)
+    cs = app.new_client_state()
+    frame = app.live.frame
+    assert app.freeze_frame(cs) is None
+    plane = app.planes[cs.plane]
+    assert plane.orientation == "live" and np.array_equal(plane.image, np.asarray(frame.image))
+    H, W = plane.image.shape
+    cols, rows = np.array([0, W - 1, 0, W - 1, 100]), np.array([0, 0, H - 1, H - 1, 37])
+    ours = pixels_to_tracker(sd.probe, plane.probe_to_tracker, cols, rows)
+    theirs = (frame.image_to_reference @ np.column_stack([cols, rows, 0 * cols, 1 + 0 * cols]).T).T[:, :3]
+    assert np.abs(ours - theirs).max() < 1e-4  # float32 on the wire
+    R = plane.probe_to_tracker[:3, :3]
+    assert np.allclose(R.T @ R, np.eye(3), atol=1e-5) and np.linalg.det(R) > 0
+    # drawing on it works as on any plane, and a restart reads the frame back from its PNG
+    for c, r in ((60, 60), (90, 60), (90, 90)):
+        assert app.click(cs, c, r, "PV contour") is None
+    assert app.contour_command(cs, "Close") is None
+    assert "portal_contour" in app.data("all")
+    _, planes = open_session(app.session.folder, app.sd)
+    assert np.array_equal(planes[cs.plane].image, plane.image)
+    assert np.allclose(planes[cs.plane].probe_to_tracker, plane.probe_to_tracker)
+
+
+def test_undo_removes_a_live_recording(live_app):
+    app, server, sd = live_app
+    cs = app.new_client_state()
+    before = len(app.session.live_points)
+    app.set_live_recording(True)
+    assert wait_until(lambda: len(app.session.live_points) >= before + 5, 15)
+    app.set_live_recording(False)
+    assert len(app.session.live_points) > before
+    assert app.contour_command(cs, "Undo") is None
+    assert len(app.session.live_points) == before
