@@ -191,7 +191,9 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     result, quality = None, None
     if deform:
         t = time.perf_counter()
-        if init.stiff_first:
+        if init.stiff_first and beta0 is None:
+            # continuation is for leaving a wrong basin from the rigid pose; a warm start
+            # (β0 given: the last state, e.g. after adding a plane) continues from there
             stiff = replace(options, weights=replace(options.weights, energy=options.weights.energy * init.stiff_first))
             beta0 = register_libr(model, local, beta0, stiff, None, cancel).beta
         result = register_libr(model, local, beta0, options, callback, cancel)
