@@ -158,22 +158,27 @@ salient feature's points swapped with the nearest anterior points. A registratio
 *succeeds* when its TRE is at most 1.2 × the same method's zero-offset, clean-label TRE on
 the same case and plane triple, so label noise that hurts counts as a failure. Methods:
 **before** — the path before issue 14 (one exact point-to-point ICP from the tracker pose,
-least squares); **after** — the default since: multi-start point-to-plane ICP (tracker
-pose, ±15° about each axis, principal axes), distinct poses screened by two LIBR
-iterations and chosen by Ω, finished by the exact ICP, Huber δ = 1 mm on the salient
-features, a flagged fit retried from the other poses; **multistart-LS** — the same without
-Huber; **multistart-point** — point-to-point multi-start ICP; **multistart-posterior** — the
-iUS posterior-surface points in the rigid fit; **after-continuation** — the default with a
-first LIBR fit at 10 × the strain-energy weight, then the true weight from there. The
-variants ran on fewer draws or offsets (see the row counts) and are compared with "after"
-on the same rows. Times are wall-clock on a shared 2-core
-machine with two registrations running at once and other users' jobs alongside: compare
-methods within this table, not with the benchmarks.
+least squares); **after** — today's default: multi-start point-to-plane ICP (tracker pose,
+±15° about each axis, principal axes), distinct poses screened by two LIBR iterations and
+chosen by Ω, finished by the exact ICP; in both ICPs the falciform and ridge points carry
+Huber factors with δ = 2 × their feature's median residual; Huber δ = 1 mm on the salient
+features in LIBR; a first LIBR fit at 3 × the strain-energy weight, then the true weight
+from there (continuation); a flagged fit retried from the other poses; **first-after** —
+the first default of issue 14 (the same without the robust ICP and the continuation);
+**after-no-continuation** and **after-plain-icp** — the default without one of the two,
+at zero offset only (the rigid stage makes the result offset-independent), compared with
+"after" on the same rows. Times are wall-clock on a shared 2-core machine with two
+registrations running at once and other users' jobs alongside (load average 2–6 during
+the run): compare methods within this table, not with the benchmarks.
 
 The committed rows: `run_robustness(cases, "results/robustness.csv", methods=M, draws=D,
 workers=2, offsets=O)` (what `navapp study robustness` calls with before and after, 4
-draws, all offsets) for M = (before, after, multistart-LS), D = 4; M = (multistart-point,
-multistart-posterior), D = 2; M = (after-continuation,), D = 4, O = 0° only.
+draws, all offsets) for M = (before, after), D = 4 (`navapp study robustness --cases
+study-cases/* --workers 2`); M = (first-after,), D = 4; M = (after-no-continuation,
+after-plain-icp), D = 4, O = 0° only. Cases from `scripts/simulate_study.py` on the
+meshes of commit 7703fca. Variants of the first default measured earlier on older meshes
+(point-to-point starts, iUS posterior points in ICP, no Huber, continuation at 10 ×) are
+in the history of this file (commit 8a12042) and in docs/decisions.md.
 
 """
 
