@@ -26,10 +26,12 @@ CHROMIUM = Path("/usr/bin/chromium")
 ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
         "--disable-background-networking", "--disable-component-update", "--disable-sync"]
 VIEW = {"width": 1400, "height": 900}
-ROW = r"{}\s+\d+\s+[\d.]+ s\s+(?:ICP|\d+ it)\s+([\d.]+) mm\s+[\d.]+ mm"  # a run-table row: run, points, time, its, mean, max
+# a run-table row: run, points, time, iterations, mean, max
+ROW = r"{}\s+\d+\s+[\d.]+ s\s+(?:ICP|\d+ it)\s+([\d.]+) mm\s+[\d.]+ mm"
 
 pytestmark = [
-    pytest.mark.skipif(not CHROMIUM.exists(), reason="Chromium not installed (apt-get install -y chromium; .ci/run does)"),
+    pytest.mark.skipif(not CHROMIUM.exists(),
+                       reason="Chromium not installed (apt-get install -y chromium; .ci/run does)"),
 ]
 playwright = pytest.importorskip("playwright.sync_api", reason="playwright not installed (pip install -e '.[test]')")
 

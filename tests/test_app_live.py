@@ -30,8 +30,8 @@ def wait_until(cond, timeout=10.0):
 
 @pytest.fixture(scope="module")
 def live_app(cache_root, tmp_path_factory):
-    from navapp.simulation.scenedata import load_scene_data
     from navapp.app.server import App
+    from navapp.simulation.scenedata import load_scene_data
     from navapp.tracking.config import TrackingConfig
     from navapp.tracking.replay import ProbeKeyframe, ReplayScript, ReplayServer
 
@@ -39,7 +39,8 @@ def live_app(cache_root, tmp_path_factory):
     sd = load_scene_data(scene, cache_root, 12.0)
     a, b = sd.planes[0], sd.planes[1]
     script = ReplayScript(sd.stylus_path[:300], [a.probe_to_tracker, b.probe_to_tracker],
-                          [ProbeKeyframe(0.0, a.probe_to_tracker, a.image), ProbeKeyframe(1.2, b.probe_to_tracker, b.image)],
+                          [ProbeKeyframe(0.0, a.probe_to_tracker, a.image),
+                           ProbeKeyframe(1.2, b.probe_to_tracker, b.image)],
                           2.4, dwell_s=0.8, move_s=0.4)
     server = ReplayServer(script, port=0, rate_hz=25).start()
     app = App(scene, port=free_port(), session_dir=tmp_path_factory.mktemp("live"), edge=12.0, k=12,

@@ -101,7 +101,7 @@ class LiveLink:
             f = self.client.latest_frame
             if f is not None and f is not self.frame:
                 self.frame = f
-                self.app.each_view(lambda v: v.show_live_frame(f))
+                self.app.each_view(lambda v, f=f: v.show_live_frame(f))
             self._collect()
             now = time.monotonic()
             if now - last_status > 0.5:

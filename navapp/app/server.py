@@ -23,16 +23,16 @@ import viser
 from .. import progress
 from ..anatomy.phantom import make_phantom
 from ..errors import NavappError
-from ..evaluation.cost import lm_sweep, pareto_front
+from ..evaluation.cost import lm_sweep
 from ..registration.libr import LibrResult
 from ..registration.pipeline import Registration, deform_points, prepare
 from ..registration.rigid import RigidResult
-from .contours import CENTERLINE_OF, DRAWABLE, Contour, contour_pixels
-from .overlays import Overlay, section_pixels
 from ..simulation.scenedata import acquire_free_plane, load_scene_data
+from .contours import CENTERLINE_OF, DRAWABLE, Contour, contour_pixels
+from .live import LIVE_PLANE_BASE
+from .overlays import Overlay, section_pixels
 from .session import default_folder, export, open_session
 from .state import Action, ClientState, RegisteredState
-from .live import LIVE_PLANE_BASE
 from .view2d import View2DServer
 from .worker import RegistrationWorker, cancelled
 
@@ -342,7 +342,7 @@ class App:
             self.stylus_tip = pos
             with self.lock:
                 self.session.stylus_count = i
-            self.each_view(lambda v: v.show_stylus(pos))
+            self.each_view(lambda v, pos=pos: v.show_stylus(pos))
             if time.monotonic() - last_saved > 0.5 or i == len(path):
                 self.changed("data")
                 last_saved = time.monotonic()
@@ -698,8 +698,8 @@ class App:
                                             "drawing": None, "targets": [], "legend": [],
                                             "message": "Preparing the scene…"}
         with self.lock:
-            etag = f"{self.version}-{cs.version}-{self._result_version()}"
-            out = {"etag": etag, "plane": None, "width": self.sd.probe.width_px, "height": self.sd.probe.height_px,
+            out = {"etag": self.view_etag(token), "plane": None, "width": self.sd.probe.width_px,
+                   "height": self.sd.probe.height_px,
                    "spacing": self.sd.probe.spacing_mm, "overlays": [], "contours": [], "drawing": None,
                    "targets": [], "legend": [], "message": cs.message, "feature": cs.feature,
                    "planes": [{"index": i, "label": self.plane_label(i)} for i in sorted(self.planes)],
@@ -730,6 +730,15 @@ class App:
             [{"name": f"drawn {n}", "colour": DRAWN_COLOURS[f]} for n, f in DRAWABLE.items()]
         out["targets"] = [line.replace("**", "") for line in self.target_plane_lines(cs.plane)]
         return out
+
+    def view_etag(self, token) -> str | None:
+        """What ``view_state`` would call its ETag, without building the state (a poll that
+        finds nothing changed costs this only)."""
+        cs = self._state_for(token)
+        if cs is None or self.sd is None:
+            return None
+        with self.lock:
+            return f"{self.version}-{cs.version}-{self._result_version()}"
 
     def _result_version(self):
         run = self.run

@@ -19,9 +19,9 @@ import trimesh
 
 from ..anatomy.caseio import FEATURES, write_csv, write_preop, write_settings
 from ..errors import InputError
-from .contours import Contour, contour_points
-from ..simulation.ultrasound import PlaneData
 from ..simulation.scenedata import STYLUS_FEATURES, SceneData, acquire_free_plane, scene_key
+from ..simulation.ultrasound import PlaneData
+from .contours import Contour, contour_points
 
 SESSION_VERSION = 1
 
@@ -119,7 +119,8 @@ def open_session(folder: Path, sd: SceneData) -> tuple[Session, dict]:
             raise InputError("this session folder belongs to another scene (pass a different --session)", folder)
         s = Session(folder, key, int(d["stylus_count"]), [int(i) for i in d["planes_added"]],
                     [Contour.from_json(c) for c in d["contours"]], list(d["free_planes"]), list(d["log"]),
-                    d.get("result"), [[float(a), float(b), float(c), str(f)] for a, b, c, f in d.get("live_points", [])],
+                    d.get("result"),
+                    [[float(a), float(b), float(c), str(f)] for a, b, c, f in d.get("live_points", [])],
                     list(d.get("live_planes", [])))
     except (ValueError, KeyError, TypeError) as exc:
         raise InputError(f"damaged session.json ({exc.__class__.__name__}: {exc}); move it away to start afresh",

@@ -8,8 +8,8 @@ the page and sent one at a time; a vertex is drawn hollow until the server has s
 and filled once acknowledged, so no click is lost however fast they come, and a failed
 request is retried, not dropped. The page polls the state (an ETag per client) a few times
 a second, so contours committed in another tab appear here too. No viser here: the app
-passes a ``provider`` with ``view_state``, ``view_image``, ``view_click`` and
-``view_command``.
+passes a ``provider`` with ``view_etag``, ``view_state``, ``view_image``, ``view_click``
+and ``view_command``.
 """
 
 import json
@@ -33,7 +33,8 @@ PAGE = r"""<!doctype html>
  #targets{padding:2px 4px}
  canvas{display:block;cursor:crosshair}
 </style></head><body>
-<div id="gone">The navapp server is not answering — is it still running? Nothing drawn so far is lost; clicks wait until it is back.</div>
+<div id="gone">The navapp server is not answering — is it still running?
+ Nothing drawn so far is lost; clicks wait until it is back.</div>
 <div id="bar">
  <select id="plane" title="the plane this tab shows and draws on"></select>
  <select id="feat"><option>PV contour</option><option>HV contour</option><option>Posterior surface</option></select>
@@ -128,7 +129,8 @@ function apply(s){
     sel.innerHTML = `<option value="">choose a plane…</option>` +
       (s.planes || []).map(p => `<option value="${p.index}">${p.label}</option>`).join("");
   }
-  if (document.activeElement !== sel) sel.value = s.plane_index === null || s.plane_index === undefined ? "" : String(s.plane_index);
+  const idx = s.plane_index === null || s.plane_index === undefined ? "" : String(s.plane_index);
+  if (document.activeElement !== sel) sel.value = idx;
   if (s.plane && s.image_id !== imgId){
     imgId = s.image_id; const im = new Image(); im.onload = () => { img = im; draw(); };
     im.src = url("/us/image?id=" + encodeURIComponent(s.image_id));
@@ -223,6 +225,8 @@ class _Handler(BaseHTTPRequestHandler):
                 page = PAGE.replace("__TOKEN__", token).replace("__POLL__", str(POLL_MS))
                 return self._send(200, page.encode(), "text/html; charset=utf-8")
             if path == "/us/state":
+                if q.get("v") and self.provider.view_etag(token) == q.get("v"):
+                    return self._send(204, b"")
                 out = self.provider.view_state(token)
                 if out is None:
                     return self._send(404, b"unknown view")

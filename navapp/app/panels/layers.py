@@ -162,7 +162,8 @@ class LayersPanel:
                     continue  # unchanged: nothing sent to the browser (a click changes one feature)
                 self.data_nodes[name].points = pts.astype(np.float32)
             else:
-                size = 2.5 if name.endswith("centerline") else 0.6 if name.endswith("contour") or name == "posterior" else 1.2
+                thin = name.endswith("contour") or name == "posterior"
+                size = 2.5 if name.endswith("centerline") else 0.6 if thin else 1.2
                 self.data_nodes[name] = self._add("Collected data", self.s.add_point_cloud(
                     f"/data/{name}", pts.astype(np.float32), FEATURE_COLOURS.get(name, (255, 255, 255)),
                     point_size=size, precision="float32", point_shape="circle"))

@@ -1,7 +1,6 @@
 """The Stylus panel: the tracked stylus sweeps the exposed anterior surface; its tip's live
 distance to each target is shown while it moves."""
 
-import numpy as np
 
 
 class StylusPanel:
