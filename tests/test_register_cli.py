@@ -34,12 +34,12 @@ def make_case(folder):
 def test_register_hand_made_case(tmp_path, capsys):
     make_case(tmp_path / "c")
     code = main(["--quiet", "register", str(tmp_path / "c"), "--edge", "15", "--k", "10", "--json"])
-    assert code in (0, None)
+    assert code == 0
     brief = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert brief["stop_reason"] in ("converged", "stationary", "max_iterations")
     out = tmp_path / "c" / "registration"
     result = json.loads((out / "result.json").read_text())
-    assert result["tre_deformable"]["mean_mm"] <= result["tre_rigid"]["mean_mm"] + 0.5
+    assert result["tre_deformable"]["mean_mm"] < result["tre_rigid"]["mean_mm"]
     assert np.isfinite(result["omega"])
     reg = trimesh.load(out / "liver.ply")
     assert len(reg.vertices) == len(read_case(tmp_path / "c").preop.liver.vertices)

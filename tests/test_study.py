@@ -1,6 +1,7 @@
 """The Table II runner: design size, resumability, report."""
 
 import numpy as np
+import pytest
 
 from navapp.evaluation.report import markdown
 from navapp.evaluation.table2 import read_results, run_table2, scenarios
@@ -45,3 +46,23 @@ def test_quick_run_is_resumable_and_reported(tmp_path, cache_root, phantoms):
             reg = register(model, data_level(case, "S+planes", planes=planes, case=c))
             assert np.isclose(tre_stats(reg.transform(c.targets[:, :3]), c.targets[:, 3:])["mean_mm"],
                               float(r["tre_mean_mm"]), atol=1e-4)
+
+
+def test_an_unreachable_dask_scheduler_is_one_line(monkeypatch):
+    pytest.importorskip("distributed", reason="the study extra (pip install -e '.[study]') is not installed")
+    import socket
+    import time
+
+    from navapp.errors import NavappError
+    from navapp.evaluation import table2
+
+    with socket.socket() as s:  # a port where nothing listens
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    monkeypatch.setattr(table2, "DASK_CONNECT_S", 2)
+    t0 = time.time()
+    with pytest.raises(NavappError) as e:
+        table2.dask_client(f"tcp://127.0.0.1:{port}")
+    assert time.time() - t0 < 30
+    msg = str(e.value)
+    assert "\n" not in msg and f"127.0.0.1:{port}" in msg and "no Dask scheduler answers" in msg

@@ -92,6 +92,23 @@ def read_results(path):
         return list(csv.DictReader(f))
 
 
+DASK_CONNECT_S = 10  # how long to wait for a scheduler before saying it does not answer
+
+
+def dask_client(address, client_class=None):
+    """A Dask ``Client`` on ``address``; an address where no scheduler answers (or a
+    malformed one) raises ``NavappError`` in one line instead of distributed's traceback."""
+    from ..errors import NavappError
+
+    if client_class is None:
+        from distributed import Client as client_class
+    try:
+        return client_class(address, timeout=f"{DASK_CONNECT_S}s")
+    except (OSError, TimeoutError, ValueError) as exc:
+        raise NavappError(f"--scheduler {address}: no Dask scheduler answers there within {DASK_CONNECT_S} s "
+                          f"({exc.__class__.__name__}); start one with `dask scheduler` or drop --scheduler") from None
+
+
 def run_table2(case_dirs, results, workers=None, scheduler=None, quick=False, chunk=40, edge=4.0, k=45):
     """Run (or resume) the design over ``case_dirs``; appends rows to ``results`` (CSV)."""
     results = Path(results)
@@ -127,7 +144,7 @@ def run_table2(case_dirs, results, workers=None, scheduler=None, quick=False, ch
 
                 raise NavappError("--scheduler needs Dask distributed: pip install -e '.[study]'") from None
 
-            with Client(scheduler) as client:
+            with dask_client(scheduler, Client) as client:
                 futures = [client.submit(run_chunk, d, items, edge, k, pure=False) for d, items in todo]
                 for fut in dask_completed(futures):
                     take(fut.result())
