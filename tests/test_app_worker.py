@@ -28,7 +28,7 @@ def test_streams_in_order_and_ends_with_the_final_state(small_model):
     its = [u.iteration for u in updates]
     assert its == sorted(its) and updates[-1].final and sum(u.final for u in updates) == 1
     assert all(np.isfinite(u.liver).all() and u.liver.shape == small_model.features["liver"].rest.shape for u in updates)
-    assert np.allclose(updates[-1].liver, w.liver_positions(done[0].rigid, done[0].libr.beta))
+    assert np.allclose(updates[-1].liver, w.surfaces(done[0].rigid, done[0].libr.beta)["liver"])
 
 
 def test_throttle_drops_intermediate_states(small_model):

@@ -27,12 +27,13 @@ from ..evaluation.cost import lm_sweep
 from ..registration.libr import LibrResult
 from ..registration.pipeline import Registration, deform_points, prepare
 from ..registration.rigid import RigidResult
+from ..registration.targets import registered_targets, target_interpolation
 from ..simulation.scenedata import acquire_free_plane, load_scene_data
 from .contours import CENTERLINE_OF, DRAWABLE, Contour, contour_pixels
 from .live import LIVE_PLANE_BASE
 from .overlays import Overlay, section_pixels
 from .session import default_folder, export, open_session
-from .state import Action, ClientState, RegisteredState
+from .state import Action, ClientState, RegisteredState, StateGeometry
 from .view2d import View2DServer
 from .worker import RegistrationWorker, cancelled
 
@@ -86,6 +87,7 @@ class App:
         self._overlay_cache: dict = {}
         self._image_cache: dict = {}
         self._target_B = None  # interpolation matrix of the target points in the registration mesh
+        self._geometry: StateGeometry | None = None  # the last state's geometry (see geometry())
         self.tracking_config = tracking  # a tracking.TrackingConfig: connect to a tracker once the scene is ready
         self.live = None  # LiveLink while connected to a tracker
         self.preop = make_phantom(scene.phantom) if scene.phantom is not None else self._read_case_preop()
@@ -275,21 +277,34 @@ class App:
             return None
         return np.linalg.norm(self.node_positions(rigid, beta) - self.truth_nodes, axis=1)
 
-    def registered_surfaces(self, rigid=None, beta=None) -> dict:
-        """name → (vertices (V, 3) tracker mm, faces) of the registered liver and vessels,
-        for the current result unless a state is given; {} when nothing is registered."""
+    def geometry(self, rigid=None, beta=None, surfaces=None) -> StateGeometry:
+        """The model at a registered state, computed once per state (the last one is kept):
+        by default the state on show — the streaming one while a registration runs, else
+        the result, else the preoperative model as-is. ``surfaces``: the worker's vertices
+        for this state when it already has them (name → (V, 3))."""
         if rigid is None:
-            if self.result is None:
-                return {}
-            rigid, beta = self.result.rigid, self.result.beta
-        out = {}
-        for name in ("liver", "portal", "hepatic"):
-            f = self.model.features.get(name)
-            if f is None:
-                continue
-            v = f.rest if beta is None else self.model.positions(f, beta)[1]
-            out[name] = (rigid.apply(v), f.cells)
-        return out
+            run = self.run
+            if run is not None and "state" in run:
+                rigid, beta = run["state"]
+            elif self.result is not None:
+                rigid, beta = self.result.rigid, self.result.beta
+        g = self._geometry
+        if g is not None and g.rigid is rigid and g.beta is beta:
+            return g
+        pre = self.preop.targets
+        if rigid is None or self.model is None:
+            g = StateGeometry(None, None, {}, pre)
+        else:
+            if surfaces is None:
+                surfaces = self.worker.surfaces(rigid, beta)
+            cells = {name: self.model.features[name].cells for name in surfaces}
+            reg = Registration(self.model, rigid, None, {})  # transform: rigid ∘ eq. 8 at β
+            if pre and self._target_B is None:  # locating the target points in the mesh once
+                self._target_B = target_interpolation(reg, pre)
+            moved = registered_targets(reg, pre, beta, self._target_B) if pre else []
+            g = StateGeometry(rigid, beta, {n: (v, cells[n]) for n, v in surfaces.items()}, moved)
+        self._geometry = g
+        return g
 
     def plane_label(self, i) -> str:
         p = self.planes[i]
@@ -626,7 +641,8 @@ class App:
             run["trace"].append((u.elapsed, float(err.mean())))
             run["error"] = err
         run["state"] = (u.rigid, u.beta)
-        self.each_view(lambda v: v.show_update(u))
+        geom = self.geometry(u.rigid, u.beta, surfaces={"liver": u.liver, **u.vessels})
+        self.each_view(lambda v: v.show_update(u, geom))
 
     def _on_done(self, reg):
         run = self.run
@@ -780,16 +796,15 @@ class App:
     def overlays(self, index) -> list[Overlay]:
         """The model's sections with plane ``index``: preoperative (rigidly placed by the
         current result, as-is before any registration) dashed, registered solid."""
-        run = self.run
-        live = run is not None and "state" in run
-        rigid, beta = run["state"] if live else ((self.result.rigid, self.result.beta) if self.result else (None, None))
-        key = (index, id(self.planes[index]), id(self.result), run["streamed"] if live else -1)
-        cached = self._overlay_cache.get(key)
-        if cached is not None:
-            return cached
+        geom = self.geometry()
+        plane = self.planes[index]
+        cached = self._overlay_cache.get(index)
+        if cached is not None and cached[0] is plane and cached[1] is geom:  # same plane, same state
+            return cached[2]
         T = self.planes[index].probe_to_tracker
         probe = self.sd.probe
         out = []
+        rigid = geom.rigid
         place = rigid.apply if rigid is not None else (lambda x: np.asarray(x))
         pre = {"liver": self.preop.liver, "portal": self.preop.portal, "hepatic": self.preop.hepatic}
         for name, mesh in pre.items():
@@ -797,51 +812,16 @@ class App:
                 seg = section_pixels(probe, T, place(mesh.vertices), mesh.faces)
                 out.append(Overlay(f"{name} (preop{', rigid' if rigid is not None else ''})",
                                    OVERLAY_STYLE[name][0], True, seg))
-        if rigid is not None and self.model is not None:
-            for name, (v, f) in self.registered_surfaces(rigid, beta).items():
-                out.append(Overlay(f"{name} (registered)", OVERLAY_STYLE[name][1], False,
-                                   section_pixels(probe, T, v, f)))
-        for name, (v, f) in self.registered_targets(rigid, beta).items():
-            out.append(Overlay(f"target {name}", OVERLAY_STYLE["target"][1], False, section_pixels(probe, T, v, f)))
-        if len(self._overlay_cache) > 64:
-            self._overlay_cache.clear()
-        self._overlay_cache[key] = out
+        for name, (v, f) in geom.surfaces.items():
+            out.append(Overlay(f"{name} (registered)", OVERLAY_STYLE[name][1], False, section_pixels(probe, T, v, f)))
+        for t in geom.targets:
+            if t.surface is not None:
+                out.append(Overlay(f"target {t.name}", OVERLAY_STYLE["target"][1], False,
+                                   section_pixels(probe, T, t.surface.vertices, t.surface.faces)))
+        self._overlay_cache[index] = (plane, geom, out)
         return out
 
     # ------------------------------------------------------------------ targets
-    def targets(self, rigid=None, beta=None) -> list:
-        """The tumour targets (``anatomy.targets.Target``) carried by a registered state
-        through eq. 8 (``pipeline.deform_points``); by default the state on show (the live
-        one while a registration streams), the preoperative targets when nothing is registered."""
-        from ..anatomy.targets import map_targets, target_points
-
-        pre = getattr(self.preop, "targets", None) or []
-        if not pre:
-            return []
-        if rigid is None:
-            run = self.run
-            if run is not None and "state" in run:
-                rigid, beta = run["state"]
-            elif self.result is not None:
-                rigid, beta = self.result.rigid, self.result.beta
-        if rigid is None or self.model is None:
-            return pre
-        if beta is None:
-            return map_targets(pre, rigid.apply)
-        if self._target_B is None:  # locating the target points in the mesh once
-            from ..mechanics.interpolation import interpolation_matrix
-
-            self._target_B = interpolation_matrix(self.model.basis.nodes, self.model.basis.tets,
-                                                  target_points(pre))
-        B = self._target_B
-        return map_targets(pre, lambda p: rigid.apply(deform_points(self.model.basis, self.model.centroid,
-                                                                    beta, p, B)))
-
-    def registered_targets(self, rigid=None, beta=None) -> dict:
-        """name → (vertices (V, 3) tracker mm, faces) of the targets with a surface."""
-        return {t.name: (np.asarray(t.surface.vertices, float), np.asarray(t.surface.faces))
-                for t in self.targets(rigid, beta) if t.surface is not None}
-
     def _which(self):
         return "registered" if (self.result is not None or self.run is not None) else "preoperative"
 
@@ -849,7 +829,7 @@ class App:
         """One line per target: its distance from this plane's image (0: the image cuts it)."""
         from ..geometry.targets_distance import ImagePlane, plane_distances
 
-        targets = self.targets()
+        targets = self.geometry().targets
         if not targets or index not in self.planes:
             return []
         p = self.sd.probe
@@ -865,7 +845,7 @@ class App:
         """One line per target: the stylus tip's distance to its surface."""
         from ..geometry.targets_distance import tip_distances
 
-        targets = self.targets()
+        targets = self.geometry().targets
         if not targets or tip is None:
             return []
         return [f"**{t.name}**: " + (f"tip inside, {-d:.1f} mm deep" if d < 0 else f"{d:.1f} mm from the stylus tip")

@@ -48,6 +48,17 @@ class ClientState:
 
 
 @dataclass
+class StateGeometry:
+    """Where one registered state (rigid pose, β) puts the model, computed once per state
+    for every browser, the 2D overlays and the distance readouts."""
+
+    rigid: object  # RigidResult, or None: nothing registered (preoperative, as-is)
+    beta: np.ndarray | None
+    surfaces: dict  # "liver" / "portal" / "hepatic" → ((V, 3) tracker mm, (F, 3) faces); {} unregistered
+    targets: list  # [anatomy.targets.Target], carried by the state
+
+
+@dataclass
 class RegisteredState:
     """The registered model on show: rigid pose, β (None for a rigid-only result) and,
     for simulated scenes, the per-node error against the truth."""

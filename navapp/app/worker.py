@@ -73,22 +73,19 @@ class RegistrationWorker:
         if self._thread is not None:
             self._thread.join(timeout)
 
-    def liver_positions(self, rigid, beta) -> np.ndarray:
-        """Tet-surface nodes at state β, mapped to tracker space by the rigid pose."""
-        return rigid.apply(self.model.positions(self.model.features["liver"], beta)[1])
-
-    def vessel_positions(self, rigid, beta) -> dict:
-        """The registration model's vessel surfaces at state β (None: rigid only), tracker space."""
+    def surfaces(self, rigid, beta) -> dict:
+        """"liver" (the tet boundary) / "portal" / "hepatic" → (V, 3) vertices of the
+        registration model's surfaces at state β (None: rigid only), tracker space, mm."""
         out = {}
-        for name in ("portal", "hepatic"):
+        for name in ("liver", "portal", "hepatic"):
             f = self.model.features.get(name)
             if f is not None:
                 out[name] = rigid.apply(f.rest if beta is None else self.model.positions(f, beta)[1])
         return out
 
     def _state(self, iteration, omega, t0, rigid, beta, final=False) -> Update:
-        liver = rigid.apply(self.model.features["liver"].rest) if beta is None else self.liver_positions(rigid, beta)
-        return Update(iteration, omega, time.monotonic() - t0, liver, final, self.vessel_positions(rigid, beta),
+        s = self.surfaces(rigid, beta)
+        return Update(iteration, omega, time.monotonic() - t0, s.pop("liver"), final, s,
                       None if beta is None else np.array(beta), rigid)
 
     def submit(self, job, on_done=None) -> bool:

@@ -71,8 +71,8 @@ class ClientView:
             if plane is not None:
                 self.layers.show_plane(plane)
 
-    def show_update(self, u):
-        self.layers.show_registered(u.rigid, u.beta, error=self.app.run.get("error") if self.app.run else None)
+    def show_update(self, u, geom):
+        self.layers.show_registered(geom, error=self.app.run.get("error") if self.app.run else None)
         self.registration.show_update(u)
 
 

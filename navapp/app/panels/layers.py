@@ -100,8 +100,10 @@ class LayersPanel:
                 self._add("Preoperative vessels", s.add_line_segments(
                     f"/preop/{name}_centerline", cl.points[cl.segments()], colour, thickness=2.0,
                     thickness_units="screen"))
-        for name, (v, f) in self.app.registered_targets().items():
-            self._add("Targets", s.add_mesh_simple(f"/preop/targets/{name}", v, f, color=TARGET, opacity=0.5))
+        for t in preop.targets:
+            if t.surface is not None:
+                self._add("Targets", s.add_mesh_simple(f"/preop/targets/{t.name}", t.surface.vertices,
+                                                       t.surface.faces, color=TARGET, opacity=0.5))
 
     def _build_scene(self):
         sd = self.app.sd
@@ -141,7 +143,7 @@ class LayersPanel:
             self.show_plane()
         if what in ("result", "model"):
             if app.result is not None and app.model is not None:
-                self.show_registered(app.result.rigid, app.result.beta, app.result.node_error_mm)
+                self.show_registered(app.geometry(), app.result.node_error_mm)
             elif app.result is None:
                 for n in self.reg.values():
                     n.visible = False
@@ -201,11 +203,11 @@ class LayersPanel:
         self.tool.position = pos
         self.tool.visible = self.cb["Stylus"].value
 
-    def show_registered(self, rigid, beta, error=None):
-        """The registered liver, vessels, targets and error dots at state (rigid, β)."""
+    def show_registered(self, geom, error=None):
+        """The registered liver, vessels, targets and error dots of one state (``StateGeometry``)."""
         app = self.app
         s = self.s
-        surfaces = app.registered_surfaces(rigid, beta)
+        surfaces = geom.surfaces
         for name, (v, f) in surfaces.items():
             v = v.astype(np.float32)
             if name in self.reg:
@@ -218,13 +220,15 @@ class LayersPanel:
                 colour = REG_PORTAL if name == "portal" else REG_HEPATIC
                 self._add("Registered vessels", s.add_mesh_simple(f"/registered/{name}", v, f, color=colour))
             self.reg[name] = node if name == "liver" else self.nodes["Registered vessels"][-1]
-        for name, (v, f) in app.registered_targets(rigid, beta).items():
-            key = f"target:{name}"
+        for t in geom.targets:
+            if t.surface is None:
+                continue
+            key, v = f"target:{t.name}", np.asarray(t.surface.vertices, np.float32)
             if key in self.reg:
-                self.reg[key].vertices = v.astype(np.float32)
+                self.reg[key].vertices = v
             else:
-                self.reg[key] = self._add("Targets", s.add_mesh_simple(f"/registered/targets/{name}",
-                                                                      v.astype(np.float32), f, color=(230, 0, 255)))
+                self.reg[key] = self._add("Targets", s.add_mesh_simple(f"/registered/targets/{t.name}", v,
+                                                                      t.surface.faces, color=(230, 0, 255)))
         if error is not None and "liver" in surfaces:
             self._last_error = (surfaces["liver"][0], error[app.model.basis.surface])
             self._show_error()
