@@ -3,7 +3,6 @@
 
 import argparse
 import json
-import os
 import sys
 import time
 import warnings
@@ -11,7 +10,6 @@ from pathlib import Path
 
 from . import __version__, progress
 
-SCENE_DIR = Path(__file__).resolve().parents[1] / "assets" / "scenes"
 DEFAULT_TABLE2_CSV = Path("results/table2.csv")
 from .errors import InputError, NavappError
 
@@ -188,9 +186,11 @@ def _study_cases(args):
 
     cases = list(args.cases or [])
     if not cases:
-        scenes = sorted(SCENE_DIR.glob("phantom*-*.toml"))
+        from .simulation.scene import scene_dir, study_scenes
+
+        scenes = study_scenes()
         if not scenes:
-            raise NavappError(f"no study scenes in {SCENE_DIR} (installed without the repo?): pass --cases")
+            raise NavappError(f"no study scenes in {scene_dir()}: pass --cases")
         if args.quick:
             scenes = scenes[:1]
         elif args.what == "cost":
@@ -270,7 +270,7 @@ def build_parser():
     from .registration.cli import add_register_parser
     add_register_parser(sub)
 
-    s = sub.add_parser("simulate", help="simulate a scene (assets/scenes/*.toml) into a case folder")
+    s = sub.add_parser("simulate", help="simulate a scene (navapp/scenes/*.toml) into a case folder")
     s.add_argument("scene", type=Path, help="scene TOML file")
     s.add_argument("--out", type=Path, required=True, help="case folder to write")
     s.set_defaults(func=cmd_simulate)

@@ -8,12 +8,12 @@ import sys
 from pathlib import Path
 
 from navapp import progress
-from navapp.simulation.scene import load_scene
+from navapp.simulation.scene import load_scene, study_scenes
 from navapp.simulation.simulate import simulate
 
 progress.QUIET = True
 out = Path(sys.argv[1] if len(sys.argv) > 1 else "study-cases")
-scenes = sorted((Path(__file__).resolve().parents[1] / "assets" / "scenes").glob("phantom*-*.toml"))
+scenes = study_scenes()
 for path in scenes:
     r = simulate(load_scene(path), out / path.stem)
     pts = [sum(p.values()) for p in r["planes"]]

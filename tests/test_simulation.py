@@ -1,5 +1,4 @@
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -8,10 +7,10 @@ import trimesh
 from navapp.errors import InputError
 from navapp.simulation import effects as fx
 from navapp.simulation.levels import data_level
-from navapp.simulation.scene import load_scene, parse_scene
+from navapp.simulation.scene import load_scene, parse_scene, scene_dir
 from navapp.simulation.simulate import simulate
 
-SCENES = Path(__file__).resolve().parents[1] / "assets" / "scenes"
+SCENES = scene_dir()
 
 
 def small_scene(**over):

@@ -1,4 +1,4 @@
-"""Scenes: what to simulate, declared in TOML (``assets/scenes/*.toml``).
+"""Scenes: what to simulate, declared in TOML (``navapp/scenes/*.toml``, shipped in the package).
 
 Only what a scene declares is simulated: no iUS section or image without ``[ius]``
 planes, no nonlinear solve unless ``deformation.large = true``, no effect that is not
@@ -25,6 +25,7 @@ Example::
 
 import tomllib
 from dataclasses import dataclass, field
+from importlib import resources
 from pathlib import Path
 
 from ..errors import InputError
@@ -128,7 +129,7 @@ def parse_scene(data: dict, path=None) -> Scene:
     return scene
 
 
-DEMO_SCENE = {  # the built-in demo scene; assets/scenes/demo.toml says the same (a test checks)
+DEMO_SCENE = {  # the built-in demo scene; navapp/scenes/demo.toml says the same (a test checks)
     "name": "demo", "seed": 1,
     "anatomy": {"phantom": 0},
     "deformation": {"release": "L", "gravity_tilt_deg": 25.0, "large": False, "mesh_edge_mm": 3.5,
@@ -155,3 +156,13 @@ def load_scene(path) -> Scene:
     if scene.case is not None and not scene.case.is_absolute():
         scene.case = (path.parent / scene.case).resolve()
     return scene
+
+
+def scene_dir() -> Path:
+    """The scenes shipped inside the package (demo and the nine study scenes)."""
+    return Path(str(resources.files("navapp") / "scenes"))
+
+
+def study_scenes() -> list[Path]:
+    """The nine study scenes (3 phantoms × L/N/R release), sorted by name."""
+    return sorted(scene_dir().glob("phantom*-*.toml"))
