@@ -36,6 +36,9 @@ EFFECT_PARAMS = {
     "probe_compression": {"depth_mm": float, "radius_mm": float},
     "contour_jitter": {"sd_px": float},
     "dropout": {"fraction": float},
+    # live streams only (navapp replay, the viewer's live re-registration):
+    "latency": {"ms": float},  # every tracker/image message sent this late after the moment it describes
+    "auto_segmentation": {"sd_px": float},  # live frames' contours designated automatically, with this error
 }
 
 
