@@ -139,7 +139,7 @@ DEMO_SCENE = {  # the built-in demo scene; navapp/scenes/demo.toml says the same
                     "truth_E_pa": 5000.0},
     "stylus": {"coverage": 0.2},
     "ius": {"planes": 16},
-    "effects": [{"kind": "tracking_noise", "sd_mm": 0.3}],
+    "effects": [{"kind": "tracking_noise", "sd_mm": 0.3}, {"kind": "auto_segmentation", "sd_px": 1.0}],
 }
 
 

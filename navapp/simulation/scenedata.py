@@ -18,12 +18,13 @@ import trimesh
 
 from ..anatomy.caseio import Case, read_case
 from ..cache import cache_dir, content_key
+from ..features import STYLUS
 from .probe import Probe
 from .scene import Scene
 from .simulate import REGISTRATION_EDGE_MM, simulate
 from .ultrasound import PlaneData, acquire_plane
 
-STYLUS_FEATURES = ("anterior", "falciform", "ridge_left", "ridge_right")
+STYLUS_FEATURES = STYLUS  # (``navapp.features``)
 SCENE_CACHE_VERSION = "1"  # bump when the simulator's output changes
 
 
@@ -127,3 +128,34 @@ def acquire_free_plane(sd: SceneData, index: int, probe_to_tracker: np.ndarray) 
     return acquire_plane(index, "free", np.asarray(probe_to_tracker, float), sd.probe, sd.truth["liver"],
                          sd.truth.get("portal"), sd.truth.get("hepatic"), sd.scene.effects, rng, Ledger(),
                          want_image=True)
+
+
+def auto_segmentation(scene: Scene) -> float | None:
+    """The contour error (px) of the scene's declared automatic segmentation of live
+    frames, or None when the scene declares none (then live frames carry no features
+    until the user draws on a frozen one)."""
+    for e in scene.effects:
+        if e.kind == "auto_segmentation":
+            return float(e.params["sd_px"])
+    return None
+
+
+def segment_frame(sd: SceneData, index: int, probe_to_tracker: np.ndarray) -> dict:
+    """Features {name: (N, 3) mm} an automatic segmentation designates on a live frame at
+    ``probe_to_tracker``: the true anatomy cut by the frame's plane (the simulated
+    segmentation), its contours perturbed by the declared ``auto_segmentation`` error in
+    place of any ``contour_jitter``, and the scene's other effects as for any plane. Empty
+    when the scene declares no automatic segmentation."""
+    from ..simulation.effects import Ledger
+    from .scene import Effect
+
+    sd_px = auto_segmentation(sd.scene)
+    if sd_px is None:
+        return {}
+    effects = [e for e in sd.scene.effects if e.kind not in ("contour_jitter", "auto_segmentation")]
+    if sd_px > 0:
+        effects.append(Effect("contour_jitter", {"sd_px": sd_px}))
+    rng = np.random.default_rng([sd.scene.seed, 7, index])
+    return acquire_plane(index, "live", np.asarray(probe_to_tracker, float), sd.probe, sd.truth["liver"],
+                         sd.truth.get("portal"), sd.truth.get("hepatic"), effects, rng, Ledger(),
+                         want_image=False).features
