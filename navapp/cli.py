@@ -221,7 +221,10 @@ def cmd_replay(args):
     from .tracking.replay import run_replay
 
     scene = load_scene(args.scene) if args.scene else demo_scene()
-    out = run_replay(scene, args.port, args.rate, args.latency_ms / 1000.0, duration_s=args.seconds,
+    latency_ms = args.latency_ms
+    if latency_ms is None:  # the scene's declared latency, if any
+        latency_ms = next((e.params["ms"] for e in scene.effects if e.kind == "latency"), 0.0)
+    out = run_replay(scene, args.port, args.rate, latency_ms / 1000.0, duration_s=args.seconds,
                      out=lambda line: print(line, file=sys.stderr, flush=True))
     print(json.dumps(out))
 
@@ -305,7 +308,8 @@ def build_parser():
     s.add_argument("scene", type=Path, nargs="?", help="scene TOML file (default: the built-in demo scene)")
     s.add_argument("--port", type=_positive(int), default=18944, help="port on 127.0.0.1 (default 18944)")
     s.add_argument("--rate", type=_positive(float), default=25.0, help="messages per second per device (default 25)")
-    s.add_argument("--latency-ms", type=float, default=0.0, help="send each message this long after its timestamp")
+    s.add_argument("--latency-ms", type=float, default=None,
+                   help="send each message this long after its timestamp (default: the scene's declared latency, or 0)")
     s.add_argument("--seconds", type=_positive(float), help="stop after this long (default: until Ctrl-C)")
     s.set_defaults(func=cmd_replay)
 

@@ -15,8 +15,8 @@ Only the scene's declared effects apply: the stylus points already carry the sce
 tracking noise (the simulator added it when it digitised them); with ``tracking_noise``
 declared the probe's streamed position gets the same noise per message (the image's
 embedded pose with it, as PLUS derives one from the other); transit frames are simulated
-with the scene's effects (``acquire_free_plane``). Scenes declare no latency; ``latency_s``
-(``--latency-ms``) sends every message that much after the moment it describes (its
+with the scene's effects (``acquire_free_plane``). A scene's declared ``latency`` effect
+(or ``--latency-ms``) sends every message that much after the moment it describes (its
 timestamp is that moment).
 
 Frames: the scene's tracker space is the Reference frame (mm).
