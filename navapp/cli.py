@@ -9,9 +9,10 @@ import warnings
 from pathlib import Path
 
 from . import __version__, progress
+from .defaults import EDGE_MM, K
+from .errors import InputError, NavappError
 
 DEFAULT_TABLE2_CSV = Path("results/table2.csv")
-from .errors import InputError, NavappError
 
 
 def _positive(kind):
@@ -114,7 +115,7 @@ def cmd_demo(args):
           f"max {d['max']} mm); registering it", file=sys.stderr)
     from .registration.cli import cmd_register
 
-    ns = argparse.Namespace(case=args.out, out=None, k=45, edge=4.0, no_deform=False, max_iterations=100, json=True)
+    ns = argparse.Namespace(case=args.out, out=None, k=K, edge=EDGE_MM, no_deform=False, max_iterations=100, json=True)
     return cmd_register(ns)
 
 
@@ -261,13 +262,13 @@ def build_parser():
 
     s = sub.add_parser("mesh", help="tetrahedralise a case's liver and print mesh statistics as JSON")
     s.add_argument("case", type=Path, help="case folder")
-    s.add_argument("--edge", type=_positive(float), default=4.0, help="target element size in mm (default 4)")
+    s.add_argument("--edge", type=_positive(float), default=EDGE_MM, help=f"target element size in mm (default {EDGE_MM:g})")
     s.set_defaults(func=cmd_mesh)
 
     s = sub.add_parser("precompute", help="mesh a case and compute (or load) its deformation basis")
     s.add_argument("case", type=Path, help="case folder")
-    s.add_argument("--edge", type=_positive(float), default=4.0, help="target element size in mm (default 4)")
-    s.add_argument("--k", type=_positive(int), default=45, help="number of control points (default 45)")
+    s.add_argument("--edge", type=_positive(float), default=EDGE_MM, help=f"target element size in mm (default {EDGE_MM:g})")
+    s.add_argument("--k", type=_positive(int), default=K, help=f"number of control points (default {K})")
     s.set_defaults(func=cmd_precompute)
 
     from .registration.cli import add_register_parser
@@ -293,8 +294,8 @@ def build_parser():
 
     s = sub.add_parser("bench", help="benchmarks that print timings and memory as JSON lines")
     s.add_argument("what", choices=("precompute", "register", "live"))
-    s.add_argument("--edges", type=_positive(float), nargs="+", default=[4.0], help="element sizes, mm")
-    s.add_argument("--ks", type=_positive(int), nargs="+", default=[45], help="numbers of control points")
+    s.add_argument("--edges", type=_positive(float), nargs="+", default=[EDGE_MM], help="element sizes, mm")
+    s.add_argument("--ks", type=_positive(int), nargs="+", default=[K], help="numbers of control points")
     s.add_argument("--volume-ml", type=_positive(float), help="precompute: phantom 0 scaled to this volume, ml")
     s.add_argument("--relax", choices=("local", "exact", "both"), default="local",
                    help="precompute: relaxation subdomain (both: exact and local, with the local one's error)")
@@ -324,8 +325,8 @@ def build_parser():
                    help="port (default 8080; if busy the next free one is used and printed)")
     s.add_argument("--session", type=Path,
                    help="session folder (default ~/navapp-sessions/<scene>-<key>, or under $NAVAPP_SESSIONS)")
-    s.add_argument("--edge", type=_positive(float), default=4.0, help="registration mesh element size, mm")
-    s.add_argument("--k", type=_positive(int), default=45, help="number of control points")
+    s.add_argument("--edge", type=_positive(float), default=EDGE_MM, help="registration mesh element size, mm")
+    s.add_argument("--k", type=_positive(int), default=K, help="number of control points")
     s.add_argument("--view2d-port", type=int, default=0,
                    help="port of the 2D ultrasound view's pages (default: any free port)")
     s.add_argument("--igtl", metavar="HOST:PORT",

@@ -16,14 +16,11 @@ import tomli_w
 import trimesh
 
 from ..errors import InputError
+from ..features import NAMES
 from .model import REGION_NAMES, VESSELS, Centerline, PreopModel, polyline_tangents
 from .targets import TARGETS_DIR, read_targets, write_targets
 
-FEATURES = (
-    "anterior", "posterior", "falciform", "ridge_left", "ridge_right",
-    "portal_contour", "hepatic_contour", "portal_centerline", "hepatic_centerline", "fiducials",
-)
-"""Intraoperative feature names, i.e. the allowed ``intraop/<feature>.csv`` stems."""
+FEATURES = NAMES  # the allowed ``intraop/<feature>.csv`` stems (``navapp.features``)
 
 LIVER_SIZE_MM = (40.0, 400.0)  # plausible range of a liver's largest extent, for the units check
 

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from ..defaults import EDGE_MM
 from ..errors import NavappError
 
 
@@ -157,7 +158,7 @@ def time_limit() -> float:
         raise NavappError(f"NAVAPP_MESH_TIMEOUT={value!r} is not a number of seconds") from None
 
 
-def tetrahedralise(surface: trimesh.Trimesh, edge: float = 4.0, seed: int = 0, limit: float | None = None,
+def tetrahedralise(surface: trimesh.Trimesh, edge: float = EDGE_MM, seed: int = 0, limit: float | None = None,
                    attempts=ATTEMPTS) -> TetMesh:
     """Tet mesh of the solid bounded by ``surface`` with target edge length ``edge`` mm.
 
@@ -364,7 +365,7 @@ def _tidy(nodes, tets) -> TetMesh:
     return TetMesh(nodes=np.ascontiguousarray(nodes, float), tets=np.ascontiguousarray(tets))
 
 
-def mesh_liver(surface: trimesh.Trimesh, edge: float = 4.0, limit: float | None = None) -> tuple[TetMesh, dict]:
+def mesh_liver(surface: trimesh.Trimesh, edge: float = EDGE_MM, limit: float | None = None) -> tuple[TetMesh, dict]:
     """Mesh and report: returns the mesh and its quality report with ``seconds``,
     ``method`` (the attempt that succeeded) and ``attempts`` (what was tried)."""
     t0 = time.perf_counter()
@@ -380,7 +381,7 @@ def mesh_liver(surface: trimesh.Trimesh, edge: float = 4.0, limit: float | None 
 MESHER_VERSION = "mesh-chain-3"  # gmsh 40/60/90° then fTetWild, each checked against the floor
 
 
-def cached_tetmesh(surface: trimesh.Trimesh, edge: float = 4.0, cache_root=None) -> tuple[TetMesh, dict]:
+def cached_tetmesh(surface: trimesh.Trimesh, edge: float = EDGE_MM, cache_root=None) -> tuple[TetMesh, dict]:
     """``mesh_liver`` through the content-addressed cache (key: surface, edge, mesher)."""
     from .. import cache, progress
 

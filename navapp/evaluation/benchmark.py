@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ..defaults import EDGE_MM, K
+
 
 def peak_memory_mb() -> float:
     """Peak resident memory of this process so far, MB (Linux ru_maxrss is in kB)."""
@@ -106,7 +108,7 @@ def bench_precompute(edges, ks, volume_ml=None, relax="local"):
     return rows
 
 
-def bench_register(repeats=5, planes=3, k=45, edge=4.0):
+def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM):
     """Demo scene, stylus data + the first ``planes`` iUS planes; then one more plane
     added and the fit warm-started from the previous state."""
     from ..anatomy.caseio import read_case

@@ -18,10 +18,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..features import LIVER_SURFACE
 from ..registration.model import RegistrationModel, usable_data
 from ..registration.rigid import rigid_icp
 
-CPD_SURFACE_FEATURES = ("anterior", "posterior", "falciform", "ridge_left", "ridge_right")
+CPD_SURFACE_FEATURES = LIVER_SURFACE  # CPD matches points on the liver surface only
 CPD_BETA_MM = 30.0
 CPD_LAMBDA = 3.0
 CPD_W = 0.1

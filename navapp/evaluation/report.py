@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..defaults import EDGE_MM, K
 from .table2 import LEVELS, PAPER, read_results
 
 
@@ -77,7 +78,7 @@ def write_report(results_csv, out_dir, case_dirs=()):
     return out / "table2.md"
 
 
-def distance_plot(case_dirs, path, level="S+all", edge=4.0, k=45) -> float:
+def distance_plot(case_dirs, path, level="S+all", edge=EDGE_MM, k=K) -> float:
     """Per-target TRE against the distance from the target's true position to the nearest
     intraoperative data point, pooled over cases at ``level`` (like the paper's Fig. 5d).
     Returns Pearson's r."""

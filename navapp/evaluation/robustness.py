@@ -30,10 +30,11 @@ from pathlib import Path
 import numpy as np
 
 from .. import progress
+from ..defaults import EDGE_MM, K
+from ..features import SALIENT
 
 OFFSETS = ((0.0, 0.0), (5.0, 10.0), (10.0, 20.0), (15.0, 30.0), (20.0, 40.0))  # (degrees, mm)
 CONDITIONS = ("clean", "shifted", "mislabelled")
-SALIENT = ("falciform", "ridge_left", "ridge_right")
 SUCCESS_RATIO = 1.2
 COLUMNS = ("case", "method", "condition", "draw", "angle_deg", "shift_mm", "planes", "tre_mm", "tre_rigid_mm",
            "seconds", "rigid_seconds", "iterations", "stop_reason", "starts", "flagged")
@@ -155,7 +156,7 @@ def register_with(method: str, model, data):
     return pipeline.register(model, data, init=pipeline.METHODS[method]())
 
 
-def run_case(case_dir, trials, methods, edge=4.0, k=45) -> list[dict]:
+def run_case(case_dir, trials, methods, edge=EDGE_MM, k=K) -> list[dict]:
     """Every (trial, method) of one case; returns CSV rows."""
     from ..anatomy.caseio import read_case, read_surface
     from ..mechanics.interpolation import interpolation_matrix
@@ -197,7 +198,7 @@ def read_rows(path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
-def run_robustness(case_dirs, results, methods=("before", "after"), draws=4, workers=1, edge=4.0, k=45,
+def run_robustness(case_dirs, results, methods=("before", "after"), draws=4, workers=1, edge=EDGE_MM, k=K,
                    offsets=OFFSETS, conditions=CONDITIONS) -> int:
     """Run (or resume) the design; rows are appended to ``results`` (CSV) one case at a time.
 

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import progress
+from ..defaults import EDGE_MM, K
 
 LEVELS = ("rigid", "S", "S+1", "S+2", "S+3", "S+all", "CBCT", "iCT")
 PAPER = {"rigid": (13.8, None), "S": (11.4, None), "S+1": (9.0, None), "S+2": (7.4, None), "S+3": (6.4, None),
@@ -42,7 +43,7 @@ def _key(case, level, planes):
     return (case, level, "-".join(map(str, planes)))
 
 
-def run_chunk(case_dir, items, edge=4.0, k=45):
+def run_chunk(case_dir, items, edge=EDGE_MM, k=K):
     """Register one case at the given (level, planes) items; returns CSV rows (dicts)."""
     from ..anatomy.caseio import read_case
     from ..mechanics.interpolation import interpolation_matrix
@@ -109,7 +110,7 @@ def dask_client(address, client_class=None):
                           f"({exc.__class__.__name__}); start one with `dask scheduler` or drop --scheduler") from None
 
 
-def run_table2(case_dirs, results, workers=None, scheduler=None, quick=False, chunk=40, edge=4.0, k=45):
+def run_table2(case_dirs, results, workers=None, scheduler=None, quick=False, chunk=40, edge=EDGE_MM, k=K):
     """Run (or resume) the design over ``case_dirs``; appends rows to ``results`` (CSV)."""
     results = Path(results)
     done = {_key(r["case"], r["level"], tuple(int(p) for p in r["planes"].split("-") if p)) for r in read_results(results)}

@@ -33,6 +33,7 @@ import scipy.sparse as sp
 
 from .. import cache, progress
 from ..anatomy.meshing import TetMesh
+from ..defaults import K
 from .controlpoints import geodesic_tiles, nodal_areas, place_control_points
 from .fem import Material, nodal_strain_operator, stiffness
 from .sparse import Factorisation, backend
@@ -42,7 +43,7 @@ BASIS_VERSION = "basis-2"  # bump when the computation changes: it is part of th
 
 @dataclass(frozen=True)
 class BasisSettings:
-    k: int = 45
+    k: int = K
     perturbation: float = 5.0  # mm imposed at the active control point
     seed: int = 0  # k-means seed
     relax: bool = True  # False: keep the raw point-load modes (for comparison studies)

@@ -21,25 +21,20 @@ from scipy.spatial import cKDTree
 
 from ..anatomy.model import REGION_NAMES, PreopModel
 from ..errors import InputError
+from ..features import SALIENT, data_to_model, weights_si
 from ..geometry.closest import incidence
 from ..mechanics.basis import Basis
 from ..mechanics.interpolation import interpolation_matrix
 from .rotation import rotation
 
-WEIGHTS_SI = {  # m⁻² (paper §II-D); the strain-energy weight is in Pa⁻²
-    "anterior": 1.0, "posterior": 1.0, "falciform": 0.3, "ridge_left": 0.3, "ridge_right": 0.3,
-    "portal_contour": 1.0, "hepatic_contour": 1.0, "portal_centerline": 1.0, "hepatic_centerline": 1.0,
-    "fiducials": 1.0,
-}
-W_ENERGY_SI = 1e-8
+# the data features' weights (m⁻², paper §II-D), salient features and model targets come
+# from the one feature table, ``navapp.features``
+WEIGHTS_SI = weights_si()
+W_ENERGY_SI = 1e-8  # Pa⁻², the strain-energy weight w_E of eq. 7
 
-REGION_FEATURES = ("falciform", "ridge_left", "ridge_right")
+REGION_FEATURES = SALIENT
 
-DATA_TO_MODEL = {
-    "anterior": "liver", "posterior": "liver", "falciform": "falciform", "ridge_left": "ridge_left",
-    "ridge_right": "ridge_right", "portal_contour": "portal", "hepatic_contour": "hepatic",
-    "portal_centerline": "portal_centerline", "hepatic_centerline": "hepatic_centerline", "fiducials": "fiducials",
-}
+DATA_TO_MODEL = data_to_model()
 
 
 @dataclass

@@ -20,13 +20,24 @@ import trimesh
 
 from ..anatomy.caseio import Case, write_csv
 from ..anatomy.meshing import cached_tetmesh
+from ..defaults import EDGE_MM, K
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from ..mechanics.interpolation import interpolation_matrix
 from .libr import LibrResult, LMOptions, register_libr
 from .model import REGION_FEATURES, RegistrationModel, build_model, usable_data
 from .quality import FitQuality, assess_fit
-from .rigid import (RIGID_ROBUST, RIGID_WITH_POSTERIOR, SURFACE_FEATURES, TOL_BEFORE_LIBR, RigidResult, Start,
-                    basin_representatives, multi_start_icp, rigid_icp, start_poses)
+from .rigid import (
+    RIGID_ROBUST,
+    RIGID_WITH_POSTERIOR,
+    SURFACE_FEATURES,
+    TOL_BEFORE_LIBR,
+    RigidResult,
+    Start,
+    basin_representatives,
+    multi_start_icp,
+    rigid_icp,
+    start_poses,
+)
 from .rotation import rotation
 
 
@@ -112,7 +123,7 @@ def tre_stats(pred, truth) -> dict:
     return {"mean_mm": float(d.mean()), "sd_mm": float(d.std()), "max_mm": float(d.max()), "n": int(len(d))}
 
 
-def prepare(case: Case, edge=4.0, k=45, cache_root=None):
+def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None):
     """Mesh, basis and registration model of a case (cached). Returns (model, seconds)."""
     sec = {}
     t = time.perf_counter()

@@ -10,15 +10,10 @@ one line (``FitQuality.warning``) by the CLI, in ``result.json`` and on the
 
 from dataclasses import dataclass, field
 
-# Expected RMS of the data's own error per feature (mm): tracked stylus and iUS
-# segmentation about 0.5 mm; salient features more, since a surgeon's falciform and ridge
-# designations are approximate to a few millimetres; centerline points are contour
-# centroids (≈1 mm).
-EXPECTED_NOISE_MM = {
-    "anterior": 0.5, "posterior": 0.5, "falciform": 1.5, "ridge_left": 1.5, "ridge_right": 1.5,
-    "portal_contour": 0.5, "hepatic_contour": 0.5, "portal_centerline": 1.0, "hepatic_centerline": 1.0,
-    "fiducials": 0.5,
-}
+from ..features import TABLE
+
+# Expected RMS of the data's own error per feature (mm; ``Feature.noise_mm`` says why)
+EXPECTED_NOISE_MM = {f.name: f.noise_mm for f in TABLE}
 # A feature is flagged when its RMS exceeds noise + MARGIN_MM: the linear-elastic basis
 # does not reach every detail of a true deformation, so a correct fit keeps some
 # residual. Calibrated on the nine simulated study cases (noise-free data, so what stays is

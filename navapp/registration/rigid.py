@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..features import RIGID
 from .model import REGION_FEATURES, RegistrationModel
 from .objective import Weights, _correspond
 
@@ -53,7 +54,7 @@ def weighted_kabsch(P, Q, w):
     return R, qc - R @ pc
 
 
-SURFACE_FEATURES = ("anterior", "falciform", "ridge_left", "ridge_right", "fiducials")
+SURFACE_FEATURES = RIGID  # stylus data and fiducials (``navapp.features``)
 ICP_POINTS = 400  # per feature: an evenly strided subset is plenty for 6 parameters
 TOL_BEFORE_LIBR = 1e-2  # mm: ICP only initialises LIBR
 # Huber factors on falciform and ridge points with δ = this × the feature's median residual

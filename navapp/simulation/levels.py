@@ -13,9 +13,8 @@ import numpy as np
 
 from ..anatomy.caseio import read_csv, read_surface
 from ..errors import InputError
+from ..features import STYLUS
 from .stylus import thin
-
-STYLUS = ("anterior", "falciform", "ridge_left", "ridge_right")
 
 
 def data_level(case_dir, level: str, planes=(), spacing=3.0, case=None) -> dict:

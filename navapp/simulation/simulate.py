@@ -24,6 +24,8 @@ from ..anatomy.caseio import Case, read_case, write_case, write_csv
 from ..anatomy.meshing import cached_tetmesh
 from ..anatomy.phantom import make_phantom
 from ..anatomy.targets import TARGETS_DIR, map_targets, write_targets
+from ..defaults import EDGE_MM
+from ..features import STYLUS
 from ..mechanics.controlpoints import nodal_areas
 from ..mechanics.fem import Material
 from ..mechanics.interpolation import interpolation_matrix
@@ -34,7 +36,7 @@ from .stylus import swath_pattern, thin
 from .truth import Loading, solve_linear, solve_svk
 from .ultrasound import acquire_plane, plane_poses
 
-REGISTRATION_EDGE_MM = 4.0
+REGISTRATION_EDGE_MM = EDGE_MM
 
 
 def gravity_direction(release: str, tilt_deg: float) -> tuple:
@@ -79,11 +81,11 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
     ledger.mark("stylus")
     v = preop.liver.vertices
     areas = nodal_areas(v, preop.liver.faces, np.arange(len(v)))
-    idx, coverage, _ = swath_pattern(v, areas, preop.region_mask("anterior") | preop.region_mask("falciform")
-                                     | preop.region_mask("ridge_left") | preop.region_mask("ridge_right"),
+    # the stylus features are named after the liver-surface regions they are digitised on
+    idx, coverage, _ = swath_pattern(v, areas, np.any([preop.region_mask(n) for n in STYLUS], axis=0),
                                      scene.coverage, rng)
     intraop = {}
-    for label in ("anterior", "falciform", "ridge_left", "ridge_right"):
+    for label in STYLUS:
         pts = thin(liver_d.vertices[idx[preop.region_mask(label)[idx]]])
         if "tracking_noise" in eff and len(pts):
             pts = fx.tracking_noise(pts, rng, ledger, **eff["tracking_noise"])
@@ -130,7 +132,7 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
         "scene": scene.name, "truth_nodes": int(len(truth_mesh.nodes)),
         "displacement_mm": {"mean": round(float(d.mean()), 2), "max": round(float(d.max()), 2)},
         "stylus": {"coverage_of_anterior": round(coverage, 3),
-                   "points": {k: int(len(intraop[k])) for k in ("anterior", "falciform", "ridge_left", "ridge_right") if k in intraop}},
+                   "points": {k: int(len(intraop[k])) for k in STYLUS if k in intraop}},
         "planes": [{k: int(len(p)) for k, p in pl.features.items()} for pl in planes],
         "seconds": {"truth": round(t_truth, 2), "total": round(time.perf_counter() - t0, 2)},
         "ran": sorted(set(ledger.ran)),
