@@ -141,11 +141,11 @@ def test_held_correspondences_fast_path_equals_full_deformation(small_model):
     data, _ = synthetic_data(small_model, rng.normal(size=n) * 0.5, rng)
     beta0 = np.concatenate([rng.normal(size=n) * 0.2, [1.0, -2.0, 0.5], np.radians([3.0, -2.0, 4.0])])
     ev = evaluate(small_model, data, beta0, Weights())
-    assert all(len(c) == 4 for c in ev.correspondence.values())
+    assert all(c.carries_basis for c in ev.correspondence.values())
     beta1 = beta0 + np.concatenate([rng.normal(size=n) * 0.3, [0.5, 0.5, -1.0], np.radians([-2.0, 1.0, 1.0])])
     fast = evaluate(small_model, data, beta1, Weights(), jacobian=False, frozen=ev.correspondence)
     slow = evaluate(small_model, data, beta1, Weights(), jacobian=False,
-                    frozen={k: c[:2] for k, c in ev.correspondence.items()})
+                    frozen={k: c.without_basis() for k, c in ev.correspondence.items()})
     assert np.allclose(fast.f, slow.f, rtol=1e-10, atol=1e-10)
     assert np.isclose(fast.omega, slow.omega, rtol=1e-12)
 
@@ -161,11 +161,11 @@ def test_component_residuals_are_table_one_distances_with_an_exact_linear_model(
     data = {k: data[k] + rng.normal(size=data[k].shape) for k in ("portal_centerline", "fiducials")}
     beta = np.concatenate([rng.normal(size=n) * 0.2, [1.0, -2.0, 0.5], [0.05, -0.03, 0.04]])
     ev = evaluate(small_model, data, beta, Weights())
-    held = {k: c[:2] for k, c in ev.correspondence.items()}
+    held = {k: c.without_basis() for k, c in ev.correspondence.items()}
     full = evaluate(small_model, data, beta, Weights(), jacobian=False, frozen=held)
-    x = {k: c[0] @ small_model.positions(small_model.feature_for(k), beta)[1] for k, c in held.items()}
+    x = {k: c.S @ small_model.positions(small_model.feature_for(k), beta)[1] for k, c in held.items()}
     p = data["portal_centerline"] - x["portal_centerline"]
-    t = held["portal_centerline"][1]
+    t = held["portal_centerline"].direction
     f_cl = np.sqrt(np.einsum("ij,ij->i", p, p) - np.einsum("ij,ij->i", p, t) ** 2)
     f_fid = np.linalg.norm(data["fiducials"] - x["fiducials"], axis=1)
     assert np.isclose(full.features["portal_centerline"]["rms_mm"], np.sqrt(np.mean(f_cl ** 2)), rtol=1e-12)
@@ -187,10 +187,34 @@ def test_jacobian_added_later_equals_jacobian_at_once(small_model):
     beta = np.concatenate([rng.normal(size=n) * 0.2, [1.0, -2.0, 0.5], [0.05, -0.03, 0.04]])
     now = evaluate(small_model, data, beta, Weights())
     later = evaluate(small_model, data, beta, Weights(), jacobian=False)
-    assert later.J is None and all(len(c) == 2 for c in later.correspondence.values())
+    assert later.J is None and not any(c.carries_basis for c in later.correspondence.values())
     add_jacobian(small_model, later)
     assert np.array_equal(now.J, later.J) and now.omega == later.omega
     for k, c in now.correspondence.items():
-        assert all(np.array_equal(np.asarray(a.todense() if hasattr(a, "todense") else a),
-                                  np.asarray(b.todense() if hasattr(b, "todense") else b))
-                   for a, b in zip(c, later.correspondence[k]) if a is not None)
+        d = later.correspondence[k]
+        assert (c.S != d.S).nnz == 0
+        assert all(np.array_equal(a, b) for a, b in ((c.direction, d.direction), (c.SBJ, d.SBJ), (c.S_rest, d.S_rest))
+                   if a is not None)
+
+
+def test_eq8_one_implementation_agrees_at_features_and_arbitrary_points(small_model):
+    """model.positions (a feature's B·J_u), deform_points (interpolated in the mesh) and the
+    held fast path (S·B·J_u) all go through registration.model.deform; at the liver surface
+    nodes they must agree with eq. 8 written out here with scipy's rotation."""
+    from scipy.spatial.transform import Rotation
+
+    from navapp.registration.model import deform
+
+    rng = np.random.default_rng(5)
+    n = small_model.basis.Ju.shape[1]
+    beta = np.concatenate([rng.normal(size=n) * 0.4, [2.0, -1.0, 3.0], np.radians([10.0, -7.0, 4.0])])
+    feat = small_model.features["liver"]
+    local, X = small_model.positions(feat, beta)
+    # eq. 8 by hand: R(θ) = Rx Ry Rz (rotation.py), i.e. scipy's intrinsic "XYZ" angles
+    R = Rotation.from_euler("XYZ", beta[n + 3:]).as_matrix()
+    assert np.allclose(R, rotation(beta[n + 3:]), atol=1e-12)
+    u = (small_model.basis.Ju @ beta[:n]).reshape(-1, 3)[small_model.basis.surface]
+    by_hand = (feat.rest + u - small_model.centroid) @ R.T + beta[n:n + 3] + small_model.centroid
+    assert np.allclose(X, by_hand, atol=1e-9)
+    assert np.allclose(deform_points(small_model.basis, small_model.centroid, beta, feat.rest), by_hand, atol=1e-6)
+    assert np.allclose(deform(feat.rest, u, beta, small_model.centroid)[0], local, atol=1e-12)

@@ -66,8 +66,34 @@ class RegistrationModel:
     def positions(self, feat: ModelFeature, beta) -> tuple[np.ndarray, np.ndarray]:
         """Eq. 8 at a feature's points: (x0 − x̄0 + J_u α) and x(β), both (V, 3) mm."""
         n = len(beta) - 6
-        local = feat.rest + (feat.BJ.reshape(-1, n) @ beta[:n]).reshape(-1, 3) - self.centroid
-        return local, local @ rotation(beta[n + 3:]).T + beta[n:n + 3] + self.centroid
+        return deform(feat.rest, (feat.BJ.reshape(-1, n) @ beta[:n]).reshape(-1, 3), beta, self.centroid)
+
+
+def deform(rest, u, beta, centroid) -> tuple[np.ndarray, np.ndarray]:
+    """Eq. 8, the one implementation: x(β) = R(θ) (x0 − x̄0 + u) + τ + x̄0.
+
+    Parameters
+    ----------
+    rest : (P, 3) mm
+        undeformed positions x0.
+    u : (P, 3) mm
+        their displacement J_u α, however the caller carried the basis to them (a feature's
+        B·J_u, interpolation in the mesh, or held correspondences' S·B·J_u).
+    beta : (3k + 6,)
+        the state (α, τ, θ): τ in mm, θ in radians (``rotation``).
+    centroid : (3,) mm
+        x̄0, the centroid of the mesh nodes: the rotation acts about it.
+
+    Returns
+    -------
+    local : (P, 3) mm
+        x0 − x̄0 + u, the deformed points before the rigid part (what ∂x/∂θ needs).
+    x : (P, 3) mm
+        x(β).
+    """
+    n = len(beta) - 6
+    local = rest + u - centroid
+    return local, local @ rotation(beta[n + 3:n + 6]).T + beta[n:n + 3] + centroid
 
 
 # Vessel surfaces are decimated to this many triangles for registration. Measured on the

@@ -17,7 +17,7 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from ..geometry.closest import closest_on_polyline, closest_on_surface, nearest_vertices
-from .model import W_ENERGY_SI, WEIGHTS_SI, RegistrationModel
+from .model import W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform
 from .rotation import rotation, rotation_derivatives
 
 
@@ -44,7 +44,7 @@ class Evaluation:
     J: np.ndarray | None  # (R + 1, 3k + 6); None until asked for (``jacobian=True`` or ``add_jacobian``)
     features: dict  # name → {"n", "rms_mm", "mean_abs_mm", "max_abs_mm", "omega"}
     timings: dict
-    correspondence: dict  # name → (S, direction[, S·B·J_u, S·x0]): reuse with ``frozen=`` to hold them fixed
+    correspondence: dict  # name → Correspondence: reuse with ``frozen=`` to hold them fixed
     beta: np.ndarray | None = None
     terms: list | None = None  # per data feature (name, feature, S, q, rows, local): what ``add_jacobian`` needs
     scales: dict | None = None  # feature → (R,) Huber weight factors of its rows (features with a δ only)
@@ -69,11 +69,48 @@ def _rows_matrix(weights, columns, n_columns):
     return sp.csr_matrix((weights.ravel(), columns.ravel(), np.arange(0, N * m + 1, m)), shape=(N, n_columns))
 
 
-def _correspond(kind, feat, X, Y, tree=None, nearest=None):
-    """Closest points of Y on the current feature geometry X: sparse S (N × V) and the
-    direction data (normals for surfaces, tangents for centerlines). ``nearest``: Y's
-    nearest vertices of X when already found."""
+@dataclass
+class Correspondence:
+    """Where one data feature's N points meet its model feature, held fixed within an LM
+    iteration (eq. 9–10: S_i and the normals or tangents of Table I).
+
+    Attributes
+    ----------
+    S : scipy.sparse.csr_matrix, (N, V)
+        row i: the barycentric weights of point i's closest point on the model feature's
+        V points (a triangle's three, a segment's two, or the fiducial itself).
+    direction : (N, 3) array or None
+        unit normals (surfaces) or tangents (centerlines) at the closest points; None for
+        fiducials.
+    SBJ : (N, 3, 3k) array or None
+        S·B·J_u, the basis carried to the closest points (mm per unit α), and
+    S_rest : (N, 3) array or None
+        S·x0 (mm): both added with the Jacobian (``add_jacobian``). When present, x(β) at the
+        closest points costs N·3·3k instead of deforming the whole feature (the held fast path).
+    """
+
+    S: sp.csr_matrix
+    direction: np.ndarray | None
+    SBJ: np.ndarray | None = None
+    S_rest: np.ndarray | None = None
+
+    @property
+    def carries_basis(self) -> bool:
+        """S·B·J_u and S·x0 are known: the held fast path applies."""
+        return self.SBJ is not None
+
+    def without_basis(self) -> "Correspondence":
+        """The same correspondence without S·B·J_u and S·x0 (x(β) then from the whole feature)."""
+        return Correspondence(self.S, self.direction)
+
+
+def correspond(feat, X, Y, tree=None, nearest=None) -> Correspondence:
+    """Closest points of data Y (N, 3) mm on the model feature ``feat`` at its current
+    geometry X (V, 3) mm: S and the direction data (normals for surfaces, tangents for
+    centerlines). ``tree``/``nearest``: a KD-tree of X, or Y's nearest vertices of X when
+    already found."""
     N = len(Y)
+    kind = feat.kind
     if kind == "surface":
         face, bary, _ = closest_on_surface(Y, X, feat.cells, feat.table, tree=tree, nearest=nearest)
         tri = feat.cells[face]
@@ -91,16 +128,15 @@ def _correspond(kind, feat, X, Y, tree=None, nearest=None):
         off = d > 1e-9
         sign = np.where(np.einsum("ij,ij->i", p, nrm) < 0, -1.0, 1.0)
         nrm[off] = sign[off, None] * p[off] / d[off, None]
-        return S, nrm
+        return Correspondence(S, nrm)
     if kind == "centerline":
         seg, t, _ = closest_on_polyline(Y, X, feat.cells, feat.table, tree=tree, nearest=nearest)
         ends = feat.cells[seg]
         S = _rows_matrix(np.column_stack([1 - t, t]), ends, len(X))
         tan = X[ends[:, 1]] - X[ends[:, 0]]
         tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-300)
-        return S, tan
-    S = sp.identity(N, format="csr")
-    return S, None
+        return Correspondence(S, tan)
+    return Correspondence(sp.identity(N, format="csr"), None)
 
 
 def residuals(kind, p, direction):
@@ -153,8 +189,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     """
     basis = model.basis
     n = basis.Ju.shape[1]
-    alpha, tau, theta = beta[:n], beta[n:n + 3], beta[n + 3:n + 6]
-    R = rotation(theta)
+    alpha = beta[:n]
     tim = {"deform": 0.0, "kdtree": 0.0, "closest": 0.0, "jacobian": 0.0}
     fs, ws, stats, corr, terms, robust = [], [], {}, {}, [], {}
     geometry = {}  # model feature → (local, X, KD-tree): anterior and posterior share the liver
@@ -162,14 +197,14 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
         feat = model.feature_for(name)
         key = id(feat)
         local = None
-        if frozen is not None and len(frozen[name]) == 4 and not jacobian:
+        if frozen is not None and frozen[name].carries_basis and not jacobian:
             # held correspondences carry S·B·J_u and S·x0 from the evaluation that made them:
             # x at the corresponded points costs N·3·3k instead of deforming the whole
             # feature (S's rows sum to one, so S commutes with the rigid part of eq. 8)
             t0 = time.perf_counter()
-            S, direction, U, Srest = frozen[name]
-            p = Y - ((Srest - model.centroid + (U.reshape(-1, n) @ alpha).reshape(-1, 3)) @ R.T + tau + model.centroid)
-            corr[name] = frozen[name]
+            c = corr[name] = frozen[name]
+            S, direction = c.S, c.direction
+            p = Y - deform(c.S_rest, (c.SBJ.reshape(-1, n) @ alpha).reshape(-1, 3), beta, model.centroid)[1]
             tim["deform"] += time.perf_counter() - t0
         else:
             if key not in geometry:
@@ -185,8 +220,8 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
             nearest = nearest_vertices(tree, Y) if tree is not None else None
             tim["kdtree"] += time.perf_counter() - t0
             t0 = time.perf_counter()
-            S, direction = frozen[name][:2] if frozen is not None else _correspond(feat.kind, feat, X, Y, nearest=nearest)
-            corr[name] = frozen[name] if frozen is not None else (S, direction)
+            c = corr[name] = frozen[name] if frozen is not None else correspond(feat, X, Y, nearest=nearest)
+            S, direction = c.S, c.direction
             tim["closest"] += time.perf_counter() - t0
             p = Y - S @ X
         t0 = time.perf_counter()
@@ -232,8 +267,9 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation) -> Evaluation:
         if local is None:  # made by the held fast path: the feature's points were never deformed
             local = model.positions(feat, beta)[0]
         U = np.asarray(S @ feat.BJ.reshape(len(local), 3 * n)).reshape(-1, 3, n)
-        if len(ev.correspondence[name]) == 2:
-            ev.correspondence[name] = ev.correspondence[name] + (U, S @ feat.rest)
+        c = ev.correspondence[name]
+        if not c.carries_basis:
+            ev.correspondence[name] = Correspondence(c.S, c.direction, U, S @ feat.rest)
         qR = q @ R  # qᵀR, (R, 3)
         Jf = np.empty((len(q), n + 6))
         Jf[:, :n] = -np.einsum("ia,iak->ik", qR, U[rows] if len(q) != S.shape[0] else U)

@@ -24,7 +24,7 @@ from ..defaults import EDGE_MM, K
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from ..mechanics.interpolation import interpolation_matrix
 from .libr import LibrResult, LMOptions, register_libr
-from .model import REGION_FEATURES, RegistrationModel, build_model, usable_data
+from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
 from .quality import FitQuality, assess_fit
 from .rigid import (
     RIGID_ROBUST,
@@ -38,7 +38,6 @@ from .rigid import (
     rigid_icp,
     start_poses,
 )
-from .rotation import rotation
 
 
 @dataclass
@@ -114,8 +113,7 @@ def deform_points(basis: Basis, centroid, beta, points, B=None) -> np.ndarray:
     n = basis.Ju.shape[1]
     B = interpolation_matrix(basis.nodes, basis.tets, points) if B is None else B
     u = (basis.Ju @ beta[:n]).reshape(-1, 3)
-    R = rotation(beta[n + 3:n + 6])
-    return (points - centroid + B @ u) @ R.T + beta[n:n + 3] + centroid
+    return deform(np.asarray(points, float), B @ u, beta, centroid)[1]
 
 
 def tre_stats(pred, truth) -> dict:

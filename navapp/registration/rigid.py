@@ -26,7 +26,7 @@ from scipy.spatial import cKDTree
 
 from ..features import RIGID
 from .model import REGION_FEATURES, RegistrationModel
-from .objective import Weights, _correspond
+from .objective import Weights, correspond
 
 
 @dataclass
@@ -106,7 +106,7 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights()
         for name, Y in data.items():
             feat = model.feature_for(name)
             Ym = (Y - t) @ R  # data in the model frame
-            S, _ = _correspond(feat.kind, feat, feat.rest, Ym, trees.get(name))
+            S = correspond(feat, feat.rest, Ym, trees.get(name)).S
             Ps.append(S @ feat.rest)
             Qs.append(Y)
             Ws.append(np.full(len(Y), weights.features[name] / len(Y)))
