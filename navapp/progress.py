@@ -1,6 +1,12 @@
 """Progress shown on anything slow: tqdm bars on stderr, and a ticking stage timer for
-calls that report no progress of their own (e.g. Gmsh)."""
+calls that report no progress of their own (e.g. Gmsh).
 
+Silence: ``QUIET`` is the application's switch (the CLI's ``--quiet``, the test suite);
+library code that must not draw bars (a worker process, a study step) uses the scoped
+``quiet()`` context, which restores the previous state when the block ends and never
+touches ``QUIET``."""
+
+import contextvars
 import sys
 import threading
 import time
@@ -8,8 +14,25 @@ from contextlib import contextmanager
 
 from tqdm import tqdm
 
-QUIET = False  # set by the CLI's --quiet and by tests
+QUIET = False  # set by the CLI's --quiet and by tests (application-wide); library code uses quiet()
+_scoped_quiet = contextvars.ContextVar("navapp_progress_quiet", default=False)
 _listeners = []  # callables (desc, fraction or None) — e.g. the viewer's status panel
+
+
+def is_quiet() -> bool:
+    """True when bars are hidden: ``QUIET`` set, or inside a ``quiet()`` block."""
+    return QUIET or _scoped_quiet.get()
+
+
+@contextmanager
+def quiet(on: bool = True):
+    """Hide bars and stage timers inside the block (this thread / context only), then
+    restore what was there before, also when the block raises."""
+    token = _scoped_quiet.set(on)
+    try:
+        yield
+    finally:
+        _scoped_quiet.reset(token)
 
 
 def add_listener(fn):
@@ -46,9 +69,9 @@ class _Bar(tqdm):
 
 
 def bar(total, desc, unit="it"):
-    """A tqdm bar on stderr (hidden when QUIET), also reported to the listeners."""
+    """A tqdm bar on stderr (hidden when ``is_quiet()``), also reported to the listeners."""
     _notify(desc, 0.0)
-    return _Bar(total=total, desc=desc, unit=unit, file=sys.stderr, disable=QUIET, leave=False,
+    return _Bar(total=total, desc=desc, unit=unit, file=sys.stderr, disable=is_quiet(), leave=False,
                 dynamic_ncols=True, mininterval=0.2)
 
 
@@ -60,9 +83,10 @@ def stage(desc):
     stop = threading.Event()
     t0 = time.perf_counter()
     _notify(desc, None)
+    hidden = is_quiet()  # read here: the ticking thread does not see this context's quiet()
 
     def tick():
-        with tqdm(desc=desc, bar_format="{desc}: {elapsed}", file=sys.stderr, disable=QUIET, leave=False) as t:
+        with tqdm(desc=desc, bar_format="{desc}: {elapsed}", file=sys.stderr, disable=hidden, leave=False) as t:
             while not stop.wait(0.5):
                 t.refresh()
 

@@ -1,9 +1,12 @@
 """What accuracy costs in time: the settings sweep and its Pareto front."""
 
 import threading
+import time
 
 import numpy as np
+import pytest
 
+from navapp.evaluation.cost import LEVELS as LEVELS_
 from navapp.evaluation.cost import lm_sweep, pareto_front
 
 
@@ -39,9 +42,13 @@ def test_lm_sweep_more_iterations_never_hurt_much(small_model):
     assert lm_sweep(small_model, data, x0, x1, cancel=stop) == []
 
 
-def test_cost_study_rows_resume_and_report(tmp_path, cache_root):
+def test_cost_study_rows_resume_and_report(tmp_path, cache_root, monkeypatch):
+    import csv as csvmod
+
+    from navapp.evaluation import cost
     from navapp.evaluation.cost import run_cost_study
     from navapp.evaluation.cost_report import write_cost_report
+    from navapp.registration import pipeline
     from navapp.simulation.scene import parse_scene
     from navapp.simulation.simulate import simulate
 
@@ -52,7 +59,6 @@ def test_cost_study_rows_resume_and_report(tmp_path, cache_root):
     small = dict(ks=(8, 12), edges=(14.0, 12.0), caps=(0, 2), rtols=(1e-1,), plane_counts=(0, 2), peers=True,
                  edge0=12.0, k0=12)
     n = run_cost_study([case], csv, **small)
-    import csv as csvmod
 
     rows = list(csvmod.DictReader(csv.open()))
     assert n == len(rows) > 0
@@ -60,12 +66,68 @@ def test_cost_study_rows_resume_and_report(tmp_path, cache_root):
     assert sweeps == {"k", "edge", "lm", "planes", "peers"}
     assert {r["method"] for r in rows if r["sweep"] == "peers"} == {"rigid ICP", "CPD"}
     assert all(float(r["tre_mean_mm"]) > 0 and float(r["register_s"]) > 0 for r in rows)
-    # precompute is measured cold per model: the 8-control-point basis is cheaper than 12
-    pre = {int(r["k"]): float(r["precompute_s"]) for r in rows if r["sweep"] == "k"}
-    assert set(pre) == {8, 12} and all(v > 0 for v in pre.values())
-    assert run_cost_study([case], csv, **small) == 0  # resumed: nothing left to do
+    # precompute is measured cold per model (mesh + basis in an empty cache): every model's
+    # precompute takes longer than loading the same default model from a warm cache
+    from navapp.anatomy.caseio import read_case
+
+    c = read_case(case)
+    pipeline.prepare(c, 12.0, 12, cache_root=cache_root)
+    t = time.perf_counter()
+    pipeline.prepare(c, 12.0, 12, cache_root=cache_root)
+    warm = time.perf_counter() - t
+    pre = {(float(r["edge_mm"]), int(r["k"])): float(r["precompute_s"]) for r in rows if r["sweep"] in ("k", "edge")}
+    assert set(pre) == {(12.0, 8), (12.0, 12), (14.0, 12)}
+    assert all(v > warm for v in pre.values()), (pre, warm)
+
+    # resuming does no work that is done: no precompute, no registration
+    calls = {"prepare": 0, "register": 0}
+
+    def counting(name, fn):
+        def wrapped(*a, **kw):
+            calls[name] += 1
+            return fn(*a, **kw)
+        return wrapped
+
+    monkeypatch.setattr(pipeline, "prepare", counting("prepare", pipeline.prepare))
+    monkeypatch.setattr(cost, "register", counting("register", cost.register))
+    assert run_cost_study([case], csv, **small) == 0
+    assert calls == {"prepare": 0, "register": 0}
+    # rows lost from one whole model (edge 14) and one LM setting: exactly that work is redone
+    lost = [r for r in rows if r["edge_mm"] == "14.0" or (r["sweep"] == "lm" and r["setting"] == "2 it"
+                                                          and r["level"] == "S")]
+    assert len(lost) == len(LEVELS_) + 1
+    with csv.open("w", newline="") as f:
+        w = csvmod.DictWriter(f, cost.COST_COLUMNS)
+        w.writeheader()
+        w.writerows([r for r in rows if r not in lost])
+    assert run_cost_study([case], csv, **small) == len(lost)
+    assert calls == {"prepare": 2, "register": len(lost)}
+    again = list(csvmod.DictReader(csv.open()))
+    assert sorted(cost._row_key(r) for r in again) == sorted(cost._row_key(r) for r in rows)
+
     md = write_cost_report(csv, tmp_path / "rep")
     text = md.read_text()
     assert (tmp_path / "rep" / "cost_tre_vs_time.png").stat().st_size > 0
     assert (tmp_path / "rep" / "cost_tre_vs_k.png").stat().st_size > 0
     assert "| CPD |" in text and "| LIBR |" in text
+
+
+def test_cost_case_is_quiet_only_while_it_runs(tmp_path, monkeypatch):
+    """cost_case hides bars in its own scope and leaves the caller's progress state as it
+    was, also when it fails (it used to set progress.QUIET = True for good)."""
+    from navapp import progress
+    from navapp.anatomy import caseio
+    from navapp.evaluation.cost import cost_case
+
+    seen = []
+
+    def failing_read(path):
+        seen.append(progress.is_quiet())
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(progress, "QUIET", False)
+    monkeypatch.setattr(caseio, "read_case", failing_read)
+    with pytest.raises(RuntimeError, match="stop here"):
+        cost_case(tmp_path / "c", ks=(), edges=(), caps=(0,), rtols=(), plane_counts=(), peers=False)
+    assert seen == [True]
+    assert progress.QUIET is False and not progress.is_quiet()

@@ -40,13 +40,20 @@ def run_setting(model, data, x0, x1, label, options: LMOptions | None = None, de
     return CostRow(label, sec, tre, reg.libr.iterations if reg.libr else 0, settings)
 
 
+def _cap_label(cap: int) -> str:
+    return f"{cap} it" if cap else "rigid"
+
+
+def _rtol_label(rtol: float) -> str:
+    return f"rtol {rtol:g}"
+
+
 def lm_sweep(model, data, x0, x1, caps=LM_CAPS, rtols=LM_RTOLS, cancel=None, on_row=None, B=None) -> list[CostRow]:
     """Rows for each iteration cap (at the default tolerance) and each tolerance (no cap).
     ``cancel`` (threading.Event) stops between settings; ``on_row`` sees each row as it lands;
     ``B``: x0's interpolation matrix, if the caller has it."""
-    plan = [(f"{c} it" if c else "rigid", LMOptions(max_iterations=max(c, 1)), c > 0, {"max_iterations": c})
-            for c in caps]
-    plan += [(f"rtol {r:g}", LMOptions(rtol=r), True, {"rtol": r}) for r in rtols]
+    plan = [(_cap_label(c), LMOptions(max_iterations=max(c, 1)), c > 0, {"max_iterations": c}) for c in caps]
+    plan += [(_rtol_label(r), LMOptions(rtol=r), True, {"rtol": r}) for r in rtols]
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0) if B is None else B
     rows = []
     for label, opt, deform, settings in plan:
@@ -90,9 +97,33 @@ def _plan(ks, edges, edge0, k0):
     return out
 
 
+def _planned_keys(case, ks, edges, caps, rtols, plane_counts, peers, edge0, k0) -> dict:
+    """The row keys each model configuration (sweep, edge, k) of ``cost_case`` produces,
+    known before anything is computed (so that a resumed study skips whole configurations)."""
+    def key(sweep, level, method, edge, k, setting):
+        return (case, sweep, level, method, float(edge), int(k), setting)
+
+    out = {}
+    for sweep, edge, k in _plan(ks, edges, edge0, k0):
+        keys = {key("k" if sweep == "default" else sweep, lv, "LIBR", edge, k, "default") for lv in LEVELS}
+        if sweep == "default":
+            keys |= {key("edge", lv, "LIBR", edge, k, "default") for lv in LEVELS}
+            for lv in ("S", "S+3"):
+                keys |= {key("lm", lv, "LIBR" if c else "rigid ICP", edge, k, _cap_label(c)) for c in caps}
+                keys |= {key("lm", lv, "LIBR", edge, k, _rtol_label(r)) for r in rtols}
+            keys |= {key("planes", f"S+{m}", "LIBR", edge, k, "default") for m in plane_counts}
+            if peers:
+                keys |= {key("peers", lv, m, edge, k, "default") for lv in LEVELS for m in ("rigid ICP", "CPD")}
+        out[(sweep, edge, k)] = keys
+    return out
+
+
 def cost_case(case_dir, ks=KS, edges=EDGES, caps=LM_CAPS, rtols=LM_RTOLS, plane_counts=PLANE_COUNTS,
               peers=True, done=frozenset(), edge0=DEFAULT_EDGE, k0=DEFAULT_K) -> list[dict]:
-    """All cost-study rows of one simulated case (skipping row keys in ``done``).
+    """All cost-study rows of one simulated case that are not in ``done`` (row keys, see
+    ``_row_key``). Work whose rows are all done is not redone: a model configuration with
+    nothing left is neither precomputed nor registered, and within one only the missing
+    registrations run.
 
     Precompute seconds are measured cold (mesh + basis in an empty temporary cache), once
     per (edge, k); registration seconds are one run each, rigid ICP included."""
@@ -100,13 +131,22 @@ def cost_case(case_dir, ks=KS, edges=EDGES, caps=LM_CAPS, rtols=LM_RTOLS, plane_
     from pathlib import Path
 
     from .. import progress
+
+    case_dir = Path(case_dir)
+    plan = _planned_keys(case_dir.name, ks, edges, caps, rtols, plane_counts, peers, edge0, k0)
+    todo = {cfg: keys - set(done) for cfg, keys in plan.items()}
+    if not any(todo.values()):
+        return []
+    with progress.quiet():  # a study step (often in a worker process): no bars of its own
+        return _cost_case(case_dir, todo, caps, rtols, plane_counts, peers, tempfile, Path)
+
+
+def _cost_case(case_dir, todo, caps, rtols, plane_counts, peers, tempfile, Path) -> list[dict]:
     from ..anatomy.caseio import read_case
     from ..registration.pipeline import prepare
     from ..simulation.levels import data_level
     from .peers import cpd_register, icp_register
 
-    progress.QUIET = True
-    case_dir = Path(case_dir)
     case = read_case(case_dir)
     x0, x1 = case.targets[:, :3], case.targets[:, 3:]
     levels = {name: data_level(case_dir, "S+planes", planes=pl, case=case) for name, pl in LEVELS.items()}
@@ -116,10 +156,15 @@ def cost_case(case_dir, ks=KS, edges=EDGES, caps=LM_CAPS, rtols=LM_RTOLS, plane_
         r = {"case": case_dir.name, "sweep": sweep, "level": level, "method": method, "edge_mm": edge, "k": k,
              "setting": setting, "planes": planes, "nodes": nodes, "precompute_s": round(pre, 2),
              "register_s": round(reg_s, 4), "tre_mean_mm": round(tre, 4), "iterations": its}
-        if _row_key(r) not in done:
+        if _row_key(r) in want:
             rows.append(r)
 
-    for sweep, edge, k in _plan(ks, edges, edge0, k0):
+    def missing(sweep, level, method, edge, k, setting="default"):
+        return (case_dir.name, sweep, level, method, float(edge), int(k), setting) in want
+
+    for (sweep, edge, k), want in todo.items():
+        if not want:
+            continue  # every row of this model configuration is done: no precompute, no registration
         with tempfile.TemporaryDirectory(prefix="navapp-cost-") as tmp:
             t = time.perf_counter()
             model, _ = prepare(case, edge, k, cache_root=Path(tmp))
@@ -127,26 +172,39 @@ def cost_case(case_dir, ks=KS, edges=EDGES, caps=LM_CAPS, rtols=LM_RTOLS, plane_
         nodes = len(model.basis.nodes)
         B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
         for level, data in levels.items():
+            first = "k" if sweep == "default" else sweep
+            if not (missing(first, level, "LIBR", edge, k) or (sweep == "default" and missing("edge", level, "LIBR",
+                                                                                                 edge, k))):
+                continue
             r = run_setting(model, data, x0, x1, "default", B=B)
-            row("k" if sweep == "default" else sweep, level, "LIBR", edge, k, "default", len(LEVELS[level]), nodes,
-                pre, r.seconds, r.tre_mean_mm, r.iterations)
+            row(first, level, "LIBR", edge, k, "default", len(LEVELS[level]), nodes, pre, r.seconds, r.tre_mean_mm,
+                r.iterations)
             if sweep == "default":
                 row("edge", level, "LIBR", edge, k, "default", len(LEVELS[level]), nodes, pre, r.seconds,
                     r.tre_mean_mm, r.iterations)
         if sweep != "default":
             continue
         for level in ("S", "S+3"):
-            for r in lm_sweep(model, levels[level], x0, x1, caps, rtols, B=B):
+            lm_caps = [c for c in caps if missing("lm", level, "LIBR" if c else "rigid ICP", edge, k, _cap_label(c))]
+            lm_rtols = [r for r in rtols if missing("lm", level, "LIBR", edge, k, _rtol_label(r))]
+            if not lm_caps and not lm_rtols:
+                continue
+            for r in lm_sweep(model, levels[level], x0, x1, lm_caps, lm_rtols, B=B):
                 row("lm", level, "LIBR" if r.iterations or r.label != "rigid" else "rigid ICP", edge, k, r.label,
                     len(LEVELS[level]), nodes, pre, r.seconds, r.tre_mean_mm, r.iterations)
         for m in plane_counts:
+            if not missing("planes", f"S+{m}", "LIBR", edge, k):
+                continue
             planes = tuple(np.linspace(0, 15, m).round().astype(int)) if m else ()
             data = data_level(case_dir, "S+planes", planes=planes, case=case)
             r = run_setting(model, data, x0, x1, "default", B=B)
             row("planes", f"S+{m}", "LIBR", edge, k, "default", m, nodes, pre, r.seconds, r.tre_mean_mm, r.iterations)
         if peers:
             for level, data in levels.items():
-                for res in (icp_register(model, data, x0), cpd_register(model, data, x0)):
+                for method, peer in (("rigid ICP", icp_register), ("CPD", cpd_register)):
+                    if not missing("peers", level, method, edge, k):
+                        continue
+                    res = peer(model, data, x0)
                     tre = float(np.linalg.norm(res.moved - x1, axis=1).mean())
                     row("peers", level, res.method, edge, k, "default", len(LEVELS[level]), nodes, 0.0, res.seconds,
                         tre, 0)
