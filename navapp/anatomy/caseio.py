@@ -1,4 +1,4 @@
-"""Read and write case folders (DESIGN.md §3). Units mm.
+"""Read and write case folders (docs/design.md §3). Units mm.
 
 Every problem with the input raises ``InputError`` naming the file and the problem in one
 line; nothing malformed is loaded silently.
@@ -146,7 +146,29 @@ def check_liver_size(mesh: trimesh.Trimesh, path: Path):
 # ---------------------------------------------------------------- case folders
 
 def read_case(folder) -> Case:
-    """Read a case folder. Missing optional files are simply absent from the result."""
+    """Read a case folder (docs/design.md §3).
+
+    Parameters
+    ----------
+    folder : str or Path
+        holds ``preop/liver.ply`` (required) and optionally ``case.toml``, the vessels
+        (``preop/{portal,hepatic}.ply`` and ``_centerline.csv``), ``preop/fiducials.csv``,
+        ``preop/regions.csv``, ``preop/targets/``, ``intraop/<feature>.csv`` (the names of
+        ``navapp.features.NAMES``) and ``truth/targets.csv``.
+
+    Returns
+    -------
+    Case
+        ``preop``: the model, mm, preoperative frame; ``intraop``: feature → (N, 3) points,
+        mm, tracker space; ``targets``: (T, 6) x0, y0, z0, x1, y1, z1 or None.
+        Missing optional files are simply absent from the result.
+
+    Raises
+    ------
+    InputError
+        naming the file and the problem in one line (units, non-finite values, a liver of
+        the wrong size for millimetres, a surface that is not closed, …).
+    """
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError("no such case folder", folder)

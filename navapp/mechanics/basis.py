@@ -1,5 +1,5 @@
 """The LIBR deformation basis: Saint-Venant-relaxed control-point modes (paper §II-C,
-eq. 3–5; DESIGN.md §1).
+eq. 3–5; docs/design.md §1).
 
 Given a tet mesh, this computes
 - ``control`` (k,): control-point nodes; ``tiles`` (S,): tile of each surface node;

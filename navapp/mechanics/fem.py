@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-# Pa. The paper's text (and DESIGN.md) say 2100 kPa; we use 2100 Pa. Displacement modes
+# Pa. The paper's text (and docs/design.md) say 2100 kPa; we use 2100 Pa. Displacement modes
 # do not depend on E, but the strain-energy penalty w_E f_E² scales with E², and with the
 # paper's w_E = 1e-8 Pa⁻² an E of 2.1 MPa makes the penalty dominate any millimetre-scale
 # deformation. Measured on the simulated phantom0-L case (mean TRE, mm; rigid 8.28): stylus

@@ -13,7 +13,7 @@ def add_register_parser(sub):
     from ..cli import _positive
 
     s = sub.add_parser("register", help="register a case folder (rigid ICP + LIBR) and write the results")
-    s.add_argument("case", type=Path, help="case folder (DESIGN.md §3)")
+    s.add_argument("case", type=Path, help="case folder (docs/design.md §3)")
     s.add_argument("--out", type=Path, help="output folder (default CASE/registration)")
     s.add_argument("--k", type=_positive(int), default=K, help=f"control points (default {K})")
     s.add_argument("--edge", type=_positive(float), default=EDGE_MM, help=f"tet element size, mm (default {EDGE_MM:g})")

@@ -88,6 +88,23 @@ METHODS = {
 
 @dataclass
 class Registration:
+    """The result of ``register``.
+
+    Attributes
+    ----------
+    model : RegistrationModel
+        the model that was fitted (preoperative frame).
+    rigid : RigidResult
+        T, model frame → tracker space (``rigid.apply``), from the rigid ICP.
+    libr : LibrResult or None
+        the LIBR fit: ``beta`` (3k + 6,) = (α, τ, θ) of eq. 8 in the model frame, Ω (eq. 7),
+        iterations, stop reason; None for a rigid-only registration.
+    data_model_frame : dict
+        feature → (N, 3) mm, the data brought into the model frame by T⁻¹.
+    seconds, starts, quality :
+        timings per stage; the multi-start ICP's starts; the fit-quality check.
+    """
+
     model: RegistrationModel
     rigid: RigidResult
     libr: LibrResult | None
@@ -97,8 +114,9 @@ class Registration:
     quality: FitQuality | None = None  # residuals against expected noise (deformable fits); .warning for the user
 
     def transform(self, points, beta=None, B=None) -> np.ndarray:
-        """Preoperative points (P, 3) → registered positions in tracker space (P, 3).
-        ``B``: their interpolation matrix (``interpolation_matrix``), when the caller
+        """Preoperative points (P, 3) mm → registered positions in tracker space (P, 3) mm:
+        T(x(β)), eq. 8 then the rigid ICP's T. ``beta``: another state than the fit's;
+        ``B``: the points' interpolation matrix (``interpolation_matrix``), when the caller
         transforms the same points many times (locating them in the mesh dominates)."""
         b = self.libr.beta if (beta is None and self.libr is not None) else beta
         basis = self.model.basis
@@ -109,7 +127,25 @@ class Registration:
 
 
 def deform_points(basis: Basis, centroid, beta, points, B=None) -> np.ndarray:
-    """x(β) of eq. 8 for arbitrary preoperative points, displacement interpolated in the mesh."""
+    """x(β) of eq. 8 for arbitrary preoperative points, displacement interpolated in the mesh.
+
+    Parameters
+    ----------
+    basis : Basis
+        J_u (3M, 3k) on the mesh's M nodes.
+    centroid : (3,) mm
+        x̄0 (``RegistrationModel.centroid``).
+    beta : (3k + 6,)
+        (α, τ, θ); τ mm, θ radians.
+    points : (P, 3) mm
+        preoperative positions inside (or near) the mesh.
+    B : sparse (P, M), optional
+        their interpolation matrix, when already computed.
+
+    Returns
+    -------
+    (P, 3) mm, in the model frame (``Registration.transform`` adds the rigid T).
+    """
     n = basis.Ju.shape[1]
     B = interpolation_matrix(basis.nodes, basis.tets, points) if B is None else B
     u = (basis.Ju @ beta[:n]).reshape(-1, 3)
@@ -121,8 +157,28 @@ def tre_stats(pred, truth) -> dict:
     return {"mean_mm": float(d.mean()), "sd_mm": float(d.std()), "max_mm": float(d.max()), "n": int(len(d))}
 
 
-def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None):
-    """Mesh, basis and registration model of a case (cached). Returns (model, seconds)."""
+def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None) -> tuple[RegistrationModel, dict]:
+    """Mesh, basis and registration model of a case, each cached by content.
+
+    Parameters
+    ----------
+    case : Case
+        from ``read_case`` (its preoperative liver, vessels, regions and fiducials are used).
+    edge : float
+        target tet edge length, mm (default ``defaults.EDGE_MM``).
+    k : int
+        number of control points; the basis J_u has 3k modes (paper eq. 3–5, default
+        ``defaults.K``).
+    cache_root : Path, optional
+        cache folder (default ``$NAVAPP_CACHE`` or ``~/.cache/navapp``).
+
+    Returns
+    -------
+    model : RegistrationModel
+        every model feature carried by the mesh (B·J_u per point, eq. 8).
+    seconds : dict
+        ``mesh``, ``basis``, ``model``: wall time of each stage (a cache hit is fast).
+    """
     sec = {}
     t = time.perf_counter()
     mesh, _ = cached_tetmesh(case.preop.liver, edge, cache_root)
@@ -139,17 +195,37 @@ def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None):
 def register(model: RegistrationModel, data: dict, deform=True, options: LMOptions | None = None,
              callback=None, cancel=None, beta0=None, rigid: RigidResult | None = None,
              init: RobustOptions | None = None) -> Registration:
-    """Rigid initialisation then (unless ``deform`` is False) LIBR.
+    """Rigid initialisation then (unless ``deform`` is False) LIBR: β minimising Ω of eq. 7
+    (data terms of Table I plus the strain-energy term) by Levenberg–Marquardt.
 
     Parameters
     ----------
+    model : RegistrationModel
+        from ``prepare``.
     data : dict
-        feature → (N, 3) points, mm, tracker space.
+        feature → (N, 3) points, mm, tracker space (names: ``navapp.features.NAMES``).
+    deform : bool
+        False: rigid ICP only (``Registration.libr`` is None).
+    options : LMOptions
+        the solver's settings and the weights w_F, w_E (default ``LMOptions()``).
+    callback, cancel :
+        ``callback(Progress)`` after every LM iteration; setting the ``threading.Event``
+        ``cancel`` stops at the next iteration with the best β so far.
     rigid, beta0 :
         warm start (e.g. after adding an iUS plane): pass the previous ``rigid`` result and
         ``beta0`` = the previous β (3k + 6,); ICP is then skipped and LM starts from β0.
     init : RobustOptions
         the initialisation and fit guards (default ``RobustOptions()``).
+
+    Returns
+    -------
+    Registration
+        ``transform(points)`` maps preoperative points (P, 3) mm to tracker space.
+
+    Raises
+    ------
+    InputError
+        for data that are not (N, 3), not finite, or of an unknown feature.
     """
     data = usable_data(model, data)
     options = options or LMOptions()

@@ -1,7 +1,7 @@
 """Salient-feature weighted rigid ICP (the rigid initialisation of §II-D).
 
 Point-to-point ICP between the digitised surface data (stylus: anterior, falciform, ridges;
-and fiducials) and the model surface (as DESIGN.md §1 says; iUS contours and iUS posterior
+and fiducials) and the model surface (as docs/design.md §1 says; iUS contours and iUS posterior
 points join only in the deformable stage — measured on
 phantom2-R with 3 planes, letting them steer ICP gave a 10.3 mm final TRE against 2.8 mm
 with stylus data alone, the contours pulling the pose toward the wrong branches; and over
