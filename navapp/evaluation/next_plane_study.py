@@ -1,0 +1,251 @@
+"""The next best plane in the study (issue 12, part 4): ``navapp study next-plane``.
+
+Per case, starting from S, the best of the case's remaining recorded probe poses
+(``intraop/us/planes.json``: the poses, never the images' truth) is suggested from the
+current registration (``registration.next_plane.suggest_planes``), its plane's data are
+added, the case is registered again as Table II registers it (ICP on the stylus data
+once, LIBR from the rigid pose), and so on for three planes (greedy). Each suggested
+combination is then placed among all 16 / 120 / 560 combinations of a Table II CSV of the
+same cases (rank 1 = lowest mean TRE), beside the average over all combinations (the
+paper's S + n rows).
+"""
+
+import csv
+import json
+import time
+from collections import defaultdict
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from .. import progress
+from .table2 import read_results
+
+COLUMNS = ("case", "level", "planes", "tre_mean_mm", "tre_table2_mm", "rank", "combinations", "percentile",
+           "level_mean_mm", "level_best_mm", "level_worst_mm", "score_mm", "suggest_seconds", "spearman_step")
+
+
+def recorded_poses(case_dir) -> list[tuple[str, np.ndarray]]:
+    meta = json.loads((Path(case_dir) / "intraop" / "us" / "planes.json").read_text())
+    return [(p["orientation"], np.asarray(p["probe_to_tracker"], float)) for p in meta["planes"]]
+
+
+def _table(rows):
+    """case → level → {planes tuple: TRE}."""
+    out = defaultdict(lambda: defaultdict(dict))
+    for r in rows:
+        out[r["case"]][r["level"]][tuple(int(p) for p in r["planes"].split("-") if p)] = float(r["tre_mean_mm"])
+    return out
+
+
+def _spearman(score, tre):
+    from scipy.stats import spearmanr
+
+    if len(score) < 3:
+        return float("nan")
+    return float(spearmanr(score, -np.asarray(tre)).statistic)
+
+
+def criteria() -> dict:
+    """The scores compared: the default (ê = a + b·d + c·σ) and each of its two parts alone."""
+    from ..registration.uncertainty import DEFAULT_CALIBRATION as cal
+
+    return {"ê (default)": cal, "d only": replace(cal, c=0.0), "σ only": replace(cal, b=0.0)}
+
+
+def run_case(case_dir, table, steps=3, edge=4.0, k=45, calibration=None) -> list[dict]:
+    from ..anatomy.caseio import read_case
+    from ..registration.model import usable_data
+    from ..registration.next_plane import suggest_planes
+    from ..registration.pipeline import prepare, register, tre_stats
+    from ..registration.rigid import TOL_BEFORE_LIBR, rigid_icp
+    from ..simulation.levels import data_level
+
+    case_dir = Path(case_dir)
+    case = read_case(case_dir)
+    model, _ = prepare(case, edge, k)
+    x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+    poses = recorded_poses(case_dir)
+    stylus = data_level(case_dir, "S", case=case)
+    rigid_s = rigid_icp(model, usable_data(model, stylus), tol_mm=TOL_BEFORE_LIBR)
+    reg = register(model, stylus, rigid=rigid_s)
+    chosen, rows = [], []
+    known = table.get(case_dir.name, {})
+    for m in range(1, steps + 1):
+        remaining = [i for i in range(len(poses)) if i not in chosen]
+        sugg = suggest_planes(reg, poses=[poses[i] for i in remaining], calibration=calibration)
+        best = sugg.best
+        chosen.append(remaining[best.index])
+        level = f"S+{m}"
+        # how well the one-step score ranks the candidates (Spearman ρ of score against
+        # −TRE of S + chosen-so-far + candidate, from the Table II CSV)
+        cand_tre = [known.get(level, {}).get(tuple(sorted(chosen[:-1] + [remaining[c.index]])))
+                    for c in sugg.candidates]
+        ok = [t is not None for t in cand_tre]
+        rho = _spearman([c.score_mm for c, o in zip(sugg.candidates, ok, strict=True) if o],
+                        [t for t in cand_tre if t is not None]) if all(ok) else float("nan")
+        data = data_level(case_dir, "S+planes", planes=tuple(sorted(chosen)), case=case)
+        reg = register(model, data, rigid=rigid_s)
+        tre = tre_stats(reg.transform(x0), x1)["mean_mm"]
+        combo = tuple(sorted(chosen))
+        level_tres = known.get(level, {})
+        ref = level_tres.get(combo)
+        row = {"case": case_dir.name, "level": level, "planes": "-".join(map(str, combo)),
+               "tre_mean_mm": round(tre, 4), "tre_table2_mm": ref, "rank": None, "combinations": len(level_tres),
+               "percentile": None, "level_mean_mm": None, "level_best_mm": None, "level_worst_mm": None,
+               "score_mm": round(best.score_mm, 4), "suggest_seconds": round(sugg.seconds, 3),
+               "spearman_step": None if np.isnan(rho) else round(rho, 3)}
+        if level_tres:
+            v = np.array(list(level_tres.values()))
+            t = ref if ref is not None else tre
+            rank = int(1 + np.sum(v < t))
+            row.update(rank=rank, percentile=round(100.0 * (rank - 1) / len(v), 1), level_mean_mm=round(v.mean(), 4),
+                       level_best_mm=round(v.min(), 4), level_worst_mm=round(v.max(), 4))
+        rows.append(row)
+    return rows
+
+
+def benchmark(case_dir, repeats=5, edge=4.0, k=45) -> dict:
+    """Seconds for one suggestion over 16 automatic candidates (``candidate_poses``) from the
+    S registration of ``case_dir``: median and all runs."""
+    from ..anatomy.caseio import read_case
+    from ..registration.next_plane import anterior_surface_mask, suggest_planes
+    from ..registration.pipeline import prepare, register
+    from ..registration.uncertainty import estimate_error
+    from ..simulation.levels import data_level
+
+    case = read_case(case_dir)
+    model, _ = prepare(case, edge, k)
+    reg = register(model, data_level(case_dir, "S", case=case))
+    anterior = anterior_surface_mask(model, case.preop)
+    times, est_times, surf_times = [], [], []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        sugg = suggest_planes(reg, anterior=anterior, count=8)
+        times.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        estimate_error(reg)
+        est_times.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        estimate_error(reg, nodes=model.basis.surface)
+        surf_times.append(time.perf_counter() - t)
+    return {"case": Path(case_dir).name, "candidates": len(sugg.candidates), "median_s": float(np.median(times)),
+            "runs_s": [round(x, 3) for x in times], "estimate_median_s": float(np.median(est_times)),
+            "surface_estimate_median_s": float(np.median(surf_times)), "nodes": int(model.basis.M),
+            "surface_nodes": len(model.basis.surface)}
+
+
+def run_study(sets: dict, out_dir, steps=3, bench_case=None, repeats=5):
+    """``sets``: {label: (case_dirs, table2 CSV)}. Every criterion of ``criteria()`` on every
+    case; writes next_plane.md and next_plane.csv."""
+    all_rows = {}  # (set label, criterion) → rows
+    crit = criteria()
+    n = sum(len(d) for d, _ in sets.values()) * len(crit)
+    with progress.bar(n, "next plane: cases × criteria", "case") as pb:
+        for label, (dirs, csv_path) in sets.items():
+            table = _table(read_results(csv_path))
+            for cname, cal in crit.items():
+                all_rows[label, cname] = []
+                for d in dirs:
+                    all_rows[label, cname] += run_case(d, table, steps, calibration=cal)
+                    pb.update(1)
+    bench = benchmark(bench_case, repeats) if bench_case else None
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    with (out / "next_plane.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, ("set", "criterion") + COLUMNS)
+        w.writeheader()
+        for (label, cname), rows in all_rows.items():
+            for r in rows:
+                w.writerow({"set": label, "criterion": cname, **r})
+    (out / "next_plane.md").write_text(markdown(all_rows, sets, bench))
+    return all_rows, bench
+
+
+def summary(rows) -> dict:
+    """level → numbers of the suggested combinations over the cases (ranks from the CSV)."""
+    out = {}
+    for level in ("S+1", "S+2", "S+3"):
+        rr = [r for r in rows if r["level"] == level]
+        if not rr:
+            continue
+        tre = [r["tre_table2_mm"] if r["tre_table2_mm"] is not None else r["tre_mean_mm"] for r in rr]
+        have = [(t, r) for t, r in zip(tre, rr, strict=True) if r["rank"] is not None]
+        rhos = [r["spearman_step"] for r in rr if r["spearman_step"] is not None]
+        out[level] = {
+            "tre": float(np.mean(tre)), "own_tre": float(np.mean([r["tre_mean_mm"] for r in rr])),
+            "mean_all": float(np.mean([r["level_mean_mm"] for _, r in have])) if have else None,
+            "best": float(np.mean([r["level_best_mm"] for _, r in have])) if have else None,
+            "worst": float(np.mean([r["level_worst_mm"] for _, r in have])) if have else None,
+            "median_rank": float(np.median([r["rank"] for _, r in have])) if have else None,
+            "combinations": have[0][1]["combinations"] if have else 0,
+            "percentile": float(np.mean([r["percentile"] for _, r in have])) if have else None,
+            "better": sum(t < r["level_mean_mm"] for t, r in have), "cases": len(have),
+            "rho": float(np.median(rhos)) if rhos else None}
+    return out
+
+
+def _fmt(x, f="{:.2f}"):
+    return "–" if x is None or (isinstance(x, float) and np.isnan(x)) else f.format(x)
+
+
+def markdown(all_rows, sets, bench) -> str:
+    text = ["# The next best ultrasound plane (issue 12, part 4)\n\n",
+            "Greedy: from S, the best of the case's remaining 16 recorded probe poses by the expected drop of the mean "
+            "predicted error (the registered model cut by the candidate's plane gives the expected contours and far "
+            "wall; their Jacobian rows join the LM normal matrix; ê = a + b·d + c·σ, results/error_estimate.md), then "
+            "registered with that plane's data as Table II registers, and again. Rank: place of the suggested "
+            "combination's mean TRE among all combinations of that level in the Table II CSV (1 = best of 16 / 120 / "
+            "560); percentile 0 = best. ρ: Spearman correlation, over the candidates of that step, between the score "
+            "and the TRE each would have given (from the CSV).\n"]
+    labels = list(dict.fromkeys(label for label, _ in all_rows))
+    names = list(dict.fromkeys(c for _, c in all_rows))
+    for label in labels:
+        text.append(f"\n## {label} (ranks from {sets[label][1]})\n\n")
+        text.append("| criterion | level | suggested: mean TRE (mm) | (this run) | all combinations: mean (paper's "
+                    "row) | best | worst | median rank | mean percentile | suggested better than the average | "
+                    "median ρ |\n|---|---|---|---|---|---|---|---|---|---|---|\n")
+        for cname in names:
+            for level, v in summary(all_rows[label, cname]).items():
+                text.append(f"| {cname} | {level} | {v['tre']:.2f} | {v['own_tre']:.2f} | {_fmt(v['mean_all'])} | "
+                            f"{_fmt(v['best'])} | "
+                            f"{_fmt(v['worst'])} | {_fmt(v['median_rank'], '{:.0f}')} of {v['combinations']} | "
+                            f"{_fmt(v['percentile'], '{:.0f}')} % | {v['better']} of {v['cases']} cases | "
+                            f"{_fmt(v['rho'])} |\n")
+        rows = all_rows[label, names[0]]
+        text.append(f"\nPer case ({names[0]}); TRE: this run's registration, Table II CSV TRE: the CSV's row for the "
+                    "same planes (the rank uses the CSV's):\n\n| case | level | planes | TRE (mm) | Table II CSV TRE | "
+                    "rank | all: mean | score (mm) | suggest (s) |\n|---|---|---|---|---|---|---|---|---|\n")
+        for r in rows:
+            text.append(f"| {r['case']} | {r['level']} | {r['planes']} | {r['tre_mean_mm']:.2f} | "
+                        f"{_fmt(r['tre_table2_mm'])} | {_fmt(r['rank'], '{}')} of {r['combinations']} | "
+                        f"{_fmt(r['level_mean_mm'])} | {r['score_mm']:.3f} | {r['suggest_seconds']:.2f} |\n")
+    if bench:
+        text.append(f"\nSpeed: one suggestion over {bench['candidates']} automatic candidates on the registered "
+                    f"{bench['case']} liver ({bench['nodes']} nodes) at S: median {bench['median_s']:.2f} s over "
+                    f"{len(bench['runs_s'])} runs ({', '.join(map(str, bench['runs_s']))} s); the error estimate at "
+                    f"every node: median {bench['estimate_median_s'] * 1e3:.0f} ms, at the {bench['surface_nodes']} "
+                    "surface nodes "
+                    f"(the app's colour map): median {bench['surface_estimate_median_s'] * 1e3:.0f} ms. Shared 2-core "
+                    "machine (`navapp study next-plane`).\n")
+    return "".join(text)
+
+
+def study_command(case_dirs, args):
+    """``navapp study next-plane``: writes <report>/next_plane.md and .csv; ranks from
+    ``--results`` (Table II CSV of ``--cases``) and ``--with-results`` for ``--with-cases``."""
+    sets = {"study cases": (list(case_dirs), Path(args.results))}
+    if getattr(args, "with_cases", None):
+        if not getattr(args, "with_results", None):
+            from ..errors import NavappError
+
+            raise NavappError("--with-cases needs --with-results (their Table II CSV) for the ranks")
+        sets["second set"] = (list(args.with_cases), Path(args.with_results))
+    for _, csv_path in sets.values():
+        if not csv_path.exists():
+            from ..errors import InputError
+
+            raise InputError("no Table II results to rank against (run `navapp study table2` first)", csv_path)
+    run_study(sets, args.report, bench_case=case_dirs[0])
+    print(json.dumps({"report": str(Path(args.report) / "next_plane.md")}))

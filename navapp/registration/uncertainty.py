@@ -1,0 +1,221 @@
+"""A registration-error estimate that needs no truth (issue 12, part 3).
+
+Two things the registration knows about a point of the organ:
+
+- d, the distance from its registered position to the nearest data point (the paper's
+  Fig. 5d predictor: the error grows away from the data);
+- σ, the standard deviation of its registered position under the Levenberg–Marquardt
+  (Laplace) covariance at the solution, propagated through the closed-form Jacobian of
+  eq. 8, G = ∂x/∂β:
+      Σ_β = s · H⁻¹,  H = JᵀWJ + w_E f_E ∇²f_E,   σ² = tr(G Σ_β Gᵀ),
+  with s = Ω / (R − p) the reduced χ² of the fit (so that each residual's implied noise
+  variance is s / w_i) and H the same matrix the LM step uses (``libr.py``).
+
+The predicted error combines them with a calibration fitted on some study cases and
+validated on others (``navapp study error-estimate``, ``results/error_estimate.md``):
+    ê = a + b · d + c · σ   (mm),
+and a band [ê · q_lo, ê · q_hi] holding the true error for ``coverage`` of the points of
+the calibration cases (quantiles of the ratio true / ê).
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial import cKDTree
+from threadpoolctl import threadpool_limits
+
+from ..mechanics.interpolation import interpolation_matrix
+from .model import REGION_FEATURES, RegistrationModel
+from .objective import Weights, evaluate
+from .rotation import rotation, rotation_derivatives
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """ê = a + b·d + c·σ (mm) and the band factors (ê·lower, ê·upper) holding the true
+    error for ``coverage`` of the calibration points. Defaults: fitted by
+    ``navapp study error-estimate`` on the calibration cases phantom0-L/N/R at every data
+    level and validated on the six others (results/error_estimate.md, docs/decisions.md)."""
+    a: float = 0.893  # mm
+    b: float = 0.0439  # mm per mm of distance to the data
+    c: float = 2.537  # per mm of σ
+    lower: float = 0.272
+    upper: float = 2.101
+    coverage: float = 0.9
+    fitted_on: str = "phantom0-L+phantom0-N+phantom0-R"
+
+    def predict(self, d, sigma) -> np.ndarray:
+        return self.a + self.b * np.asarray(d) + self.c * np.asarray(sigma)
+
+
+DEFAULT_CALIBRATION = Calibration()
+
+
+@dataclass
+class ErrorEstimate:
+    """Predicted registration error at P points (the mesh nodes unless other points were asked for).
+
+    All lengths in mm; positions in the data (tracker) frame.
+    """
+    predicted_mm: np.ndarray  # (P,) ê
+    lower_mm: np.ndarray  # (P,) band
+    upper_mm: np.ndarray  # (P,)
+    distance_mm: np.ndarray  # (P,) d: registered position → nearest data point
+    sigma_mm: np.ndarray  # (P,) σ: LM covariance propagated to the point
+    positions: np.ndarray  # (P, 3) registered positions, tracker frame
+    calibration: Calibration = field(default_factory=Calibration)
+    noise_scale: float = 0.0  # s, the reduced χ² scaling H⁻¹ (dimensionless, Ω's units)
+
+
+@dataclass
+class Information:
+    """The LM normal matrix at a solution, split by data feature so that a new plane's
+    points can be added with the feature weights renormalised (w_F / N_F, eq. 7).
+
+    blocks: feature → (p, p) Σ_rows w_i J_iᵀ J_i with its current count ``counts[feature]``;
+    prior: the strain-energy part (JᵀWJ of f_E plus the curvature term), (p, p).
+    """
+    blocks: dict
+    counts: dict
+    prior: np.ndarray
+    scale: float  # s = Ω / (R − p)
+    beta: np.ndarray
+
+    def matrix(self, extra: dict | None = None) -> np.ndarray:
+        """H with ``extra`` (feature → (n_new, (p, p) unnormalised Σ J_iᵀ J_i · w_F·unit²))
+        joined: every feature's rows are reweighted by N_F / (N_F + n_new)."""
+        H = self.prior.copy()
+        extra = extra or {}
+        for name in set(self.blocks) | set(extra):
+            N = self.counts.get(name, 0)
+            n_new, raw = extra.get(name, (0, None))
+            if name in self.blocks:
+                H += self.blocks[name] * (N / (N + n_new))
+            if raw is not None and n_new:
+                H += raw / (N + n_new)
+        return H
+
+
+def default_weights() -> Weights:
+    """The weights ``pipeline.register`` fits with by default (Huber δ = 1 mm on the salient features)."""
+    return Weights(huber_mm={n: 1.0 for n in REGION_FEATURES})
+
+
+def information(model: RegistrationModel, data: dict, beta, weights: Weights | None = None) -> Information:
+    """Per-feature normal matrices at β (data in the model frame, feature → (N, 3) mm)."""
+    weights = weights or default_weights()
+    beta = np.asarray(beta, float)
+    n = len(beta) - 6
+    ev = evaluate(model, data, beta, weights, jacobian=True)
+    blocks, counts, start = {}, {}, 0
+    for name, _feat, _S, q, _rows, _local in ev.terms:
+        rows = slice(start, start + len(q))
+        J, w = ev.J[rows], ev.w[rows]
+        blocks[name] = (J.T * w) @ J
+        counts[name] = len(data[name])
+        start += len(q)
+    JE, wE, fE = ev.J[-1], ev.w[-1], ev.f[-1]
+    prior = wE * np.outer(JE, JE)
+    prior[:n, :n] += wE * fE * model.basis.energy / model.basis.M
+    dof = max(len(ev.f) - 1 - len(beta), 1)
+    return Information(blocks, counts, prior, float(ev.omega / dof), beta)
+
+
+def point_jacobian(model: RegistrationModel, beta, B=None, nodes=None) -> tuple[np.ndarray, np.ndarray]:
+    """x(β) of eq. 8 and G = ∂x/∂β at points, in the model frame.
+
+    Parameters
+    ----------
+    B : sparse (P, M), optional
+        interpolation matrix of the points (``mechanics.interpolation``); None: mesh nodes.
+    nodes : (P,) int, optional
+        which mesh nodes (without ``B``); None: all of them.
+
+    Returns
+    -------
+    x : (P, 3) mm
+    G : (P, 3, 3k + 6) mm per unit of β (α, τ, θ)
+    """
+    basis = model.basis
+    beta = np.asarray(beta, float)
+    n = len(beta) - 6
+    if B is not None:
+        modes, rest = basis.modes_at(B), np.asarray(B @ basis.nodes)
+    else:
+        idx = slice(None) if nodes is None else np.asarray(nodes)
+        modes, rest = basis.Ju.reshape(basis.M, 3, n)[idx], basis.nodes[idx]
+    R = rotation(beta[n + 3:])
+    dR = rotation_derivatives(beta[n + 3:])
+    local = rest - model.centroid + (modes.reshape(-1, n) @ beta[:n]).reshape(-1, 3)
+    G = np.empty((len(rest), 3, n + 6))
+    G[:, :, :n] = np.einsum("ab,pbk->pak", R, modes)
+    G[:, :, n:n + 3] = np.eye(3)
+    for j in range(3):
+        G[:, :, n + 3 + j] = local @ dR[j].T
+    return local @ R.T + beta[n:n + 3] + model.centroid, G
+
+
+def covariance(info: Information, H=None) -> np.ndarray:
+    """Σ_β = s · H⁻¹ (p, p). Directions the data and the energy leave free (H singular,
+    e.g. a rigid mode of the basis against τ, θ) get the pseudo-inverse's zero: they move
+    no point of the organ differently from another."""
+    H = info.matrix() if H is None else H
+    d = np.sqrt(np.maximum(np.diag(H), 1e-300))
+    Hn = H / np.outer(d, d)  # equilibrate: α, τ, θ have very different scales
+    w, V = np.linalg.eigh(Hn)
+    keep = w > 1e-10 * w.max()
+    inv = (V[:, keep] / w[keep]) @ V[:, keep].T
+    return info.scale * inv / np.outer(d, d)
+
+
+def point_sigma(G, cov) -> np.ndarray:
+    """σ (P,) mm: sqrt(tr(G Σ Gᵀ)) per point, G (P, 3, p)."""
+    w, V = np.linalg.eigh(cov)
+    L = V * np.sqrt(np.maximum(w, 0.0))  # Σ = L Lᵀ
+    GL = G.reshape(-1, G.shape[-1]) @ L
+    return np.sqrt(np.einsum("ij,ij->i", GL, GL).reshape(len(G), 3).sum(1))
+
+
+def nearest_data_distance(positions, data: dict) -> np.ndarray:
+    """d (P,) mm from each position to the nearest point of any data feature (same frame)."""
+    pts = [np.asarray(v, float) for v in data.values() if len(v)]
+    if not pts:
+        return np.full(len(positions), np.inf)
+    return cKDTree(np.vstack(pts)).query(positions)[0]
+
+
+def estimate_error(reg, points=None, calibration: Calibration | None = None, B=None,
+                   weights: Weights | None = None, nodes=None) -> ErrorEstimate:
+    """Predicted registration error of a deformable registration, without the truth.
+
+    Parameters
+    ----------
+    reg : pipeline.Registration
+        a deformable registration (``reg.libr`` set); its ``data_model_frame`` is the data.
+    points : (P, 3) preoperative points, optional
+        where to predict (e.g. targets); None: every mesh node (``reg.model.basis.nodes``),
+        whose surface subset (``basis.surface``) colours the liver.
+    B : sparse (P, M), optional
+        the points' interpolation matrix, when already computed.
+    nodes : (P,) int, optional
+        mesh-node indices instead of all nodes (without ``points``), e.g. ``basis.surface``
+        for a colour map of the liver surface: σ costs time in proportion to the points.
+
+    Returns
+    -------
+    ErrorEstimate with (P,) arrays in mm and positions in the tracker frame.
+    """
+    if reg.libr is None:
+        raise ValueError("the error estimate needs a deformable registration (reg.libr is None)")
+    calibration = calibration or DEFAULT_CALIBRATION
+    model, data = reg.model, reg.data_model_frame
+    if points is not None and B is None:
+        B = interpolation_matrix(model.basis.nodes, model.basis.tets, np.asarray(points, float))
+    with threadpool_limits(1):  # small matrices: threaded BLAS only synchronises (see libr.py)
+        info = information(model, data, reg.libr.beta, weights)
+        x, G = point_jacobian(model, reg.libr.beta, B, nodes=None if B is not None else nodes)
+        sigma = point_sigma(G, covariance(info))
+    d = nearest_data_distance(x, data)
+    pred = calibration.predict(d, sigma)
+    return ErrorEstimate(pred, pred * calibration.lower, pred * calibration.upper, d, sigma, reg.rigid.apply(x),
+                         calibration, info.scale)

@@ -1,0 +1,133 @@
+"""The truth-free error estimate (issue 12, part 3): its Jacobian against finite
+differences, its behaviour away from the data, and the calibration of its band."""
+
+import numpy as np
+import pytest
+
+from navapp.evaluation.error_estimate import Sample, fit_calibration, validate
+from navapp.mechanics.interpolation import interpolation_matrix
+from navapp.registration.libr import register_libr
+from navapp.registration.pipeline import Registration, deform_points
+from navapp.registration.rigid import RigidResult
+from navapp.registration.uncertainty import covariance, estimate_error, information, point_jacobian, point_sigma
+
+
+def _half_covered(model, rng, alpha_scale=0.4):
+    """A deformation in the basis and anterior data over the half x < 0 of the liver only."""
+    n = model.basis.Ju.shape[1]
+    alpha = rng.normal(size=n) * alpha_scale
+    beta_true = np.concatenate([alpha, np.zeros(6)])
+    feat = model.features["liver"]
+    _, X = model.positions(feat, beta_true)
+    up = X[:, 1] > np.median(X[:, 1])  # the upper (anterior-ish) half of the surface
+    pts = X[up & (X[:, 0] < 0)]
+    data = {"anterior": pts + rng.normal(size=pts.shape) * 0.3}
+    return data, beta_true
+
+
+def _registration(model, data):
+    res = register_libr(model, data)
+    return Registration(model, RigidResult(np.eye(3), np.zeros(3), 0, 0.0), res, data)
+
+
+def test_point_jacobian_matches_central_differences(small_model):
+    rng = np.random.default_rng(3)
+    n = small_model.basis.Ju.shape[1]
+    beta = np.concatenate([rng.normal(size=n) * 0.3, [1.0, -2.0, 0.5], [0.05, -0.03, 0.04]])
+    nodes = small_model.basis.nodes
+    pts = nodes[rng.choice(len(nodes), 40, replace=False)] * 0.9 + nodes.mean(0) * 0.1  # inside the mesh
+    B = interpolation_matrix(nodes, small_model.basis.tets, pts)
+    x, G = point_jacobian(small_model, beta, B)
+    assert np.allclose(x, deform_points(small_model.basis, small_model.centroid, beta, pts, B))
+    h = 1e-6
+    Gfd = np.empty_like(G)
+    for j in range(len(beta)):
+        e = np.zeros_like(beta)
+        e[j] = h
+        Gfd[:, :, j] = (deform_points(small_model.basis, small_model.centroid, beta + e, pts, B)
+                        - deform_points(small_model.basis, small_model.centroid, beta - e, pts, B)) / (2 * h)
+    assert np.abs(G - Gfd).max() <= 1e-6 * np.abs(Gfd).max()
+    # σ through the finite-difference Jacobian equals σ through the closed form
+    cov = np.diag(rng.uniform(0.1, 1.0, len(beta))) * 1e-2
+    assert np.allclose(point_sigma(Gfd, cov), point_sigma(G, cov), rtol=1e-6)
+    # and σ² is tr(G Σ Gᵀ), computed plainly
+    direct = np.sqrt([np.trace(g @ cov @ g.T) for g in G])
+    assert np.allclose(point_sigma(G, cov), direct, rtol=1e-9)
+
+
+def test_estimate_is_larger_far_from_the_data(small_model):
+    rng = np.random.default_rng(4)
+    data, beta_true = _half_covered(small_model, rng)
+    reg = _registration(small_model, data)
+    est = estimate_error(reg)
+    M = small_model.basis.M
+    assert est.predicted_mm.shape == (M,) and est.lower_mm.shape == (M,) and est.upper_mm.shape == (M,)
+    assert np.all(est.lower_mm <= est.predicted_mm) and np.all(est.predicted_mm <= est.upper_mm)
+    near, far = est.distance_mm < 10, est.distance_mm > 60
+    assert near.sum() > 10 and far.sum() > 10
+    assert est.predicted_mm[far].mean() > est.predicted_mm[near].mean()
+    # the covariance part on its own, not only through d: the LM knows less where there is no data
+    assert est.sigma_mm[far].mean() > 1.5 * est.sigma_mm[near].mean()
+    # and the true error of this fit agrees in direction
+    truth = small_model.basis.nodes + (small_model.basis.Ju @ beta_true[:-6]).reshape(M, 3)
+    true = np.linalg.norm(est.positions - truth, axis=1)
+    assert true[far].mean() > true[near].mean()
+
+
+def test_covariance_is_the_inverse_normal_matrix(small_model):
+    """Σ H = s·I on the directions H determines (the pseudo-inverse used for σ)."""
+    rng = np.random.default_rng(5)
+    data, _ = _half_covered(small_model, rng)
+    reg = _registration(small_model, data)
+    info = information(small_model, data, reg.libr.beta)
+    H = info.matrix()
+    cov = covariance(info)
+    assert np.allclose(cov, cov.T, rtol=1e-8, atol=1e-12 * np.abs(cov).max())
+    d = np.sqrt(np.diag(H))
+    Hn, Cn = H / np.outer(d, d), cov * np.outer(d, d) / info.scale
+    w, V = np.linalg.eigh(Hn)
+    keep = w > 1e-10 * w.max()
+    P = V[:, keep] @ V[:, keep].T  # projector on the determined directions
+    assert np.allclose(Cn @ Hn, P, atol=1e-6)
+
+
+def _synthetic_samples(rng, n_regs, a=0.8, b=0.05, c=2.0, spread=0.4):
+    out = []
+    for i in range(n_regs):
+        d = rng.uniform(0, 60, 3000)
+        s = rng.uniform(0.1, 1.0, 3000)
+        err = (a + b * d + c * s) * rng.lognormal(0.0, spread, 3000)
+        out.append(Sample(f"case{i % 3}", "S", (), d, s, err, 0.0))
+    return out
+
+
+def test_calibration_recovers_a_known_error_model_and_its_coverage():
+    rng = np.random.default_rng(6)
+    fit = _synthetic_samples(rng, 6)
+    cal = fit_calibration(fit, coverage=0.9)
+    m = np.exp(0.4 ** 2 / 2)  # mean of the log-normal factor
+    assert cal.a == pytest.approx(0.8 * m, rel=0.15)
+    assert cal.b == pytest.approx(0.05 * m, rel=0.1)
+    assert cal.c == pytest.approx(2.0 * m, rel=0.15)
+    held = validate(_synthetic_samples(rng, 6), cal)[0]  # fresh draws of the same model
+    assert held["coverage"] == pytest.approx(0.9, abs=0.02)
+    assert held["r_pred"] > 0.5
+
+
+def test_calibration_on_one_small_case(small_model):
+    """Fit the band on registrations of one small case and check it holds for a fresh one."""
+    rng = np.random.default_rng(7)
+    M = small_model.basis.M
+    samples = []
+    for _ in range(3):
+        data, beta_true = _half_covered(small_model, rng)
+        est = estimate_error(_registration(small_model, data))
+        truth = small_model.basis.nodes + (small_model.basis.Ju @ beta_true[:-6]).reshape(M, 3)
+        samples.append(Sample("small", "S", (), est.distance_mm, est.sigma_mm,
+                              np.linalg.norm(est.positions - truth, axis=1), 0.0))
+    cal = fit_calibration(samples[:2], coverage=0.8)
+    assert cal.lower < 1.0 < cal.upper
+    fitted = validate(samples[:2], cal)[0]
+    assert fitted["coverage"] == pytest.approx(0.8, abs=0.02)  # by construction of the quantiles
+    held = validate(samples[2:], cal)[0]
+    assert 0.5 < held["coverage"] <= 1.0
