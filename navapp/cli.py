@@ -135,8 +135,14 @@ def cmd_serve(args):
             if not host or not port.isdigit():
                 raise InputError(f"--igtl wants HOST:PORT, not {args.igtl!r}")
             tracking = tracking.with_address(host, int(port))
+    slicer = None
+    if args.slicer:
+        host, _, port = args.slicer.rpartition(":")
+        if not port.isdigit() or not 0 < int(port) < 65536:
+            raise InputError(f"--slicer wants HOST:PORT or PORT, not {args.slicer!r}")
+        slicer = (host or None, int(port))
     serve(scene, args.host, args.port, args.session, args.edge, args.k, view2d_port=args.view2d_port,
-          tracking=tracking)
+          tracking=tracking, slicer=slicer)
 
 
 def cmd_simulate(args):
@@ -332,6 +338,9 @@ def build_parser():
     s.add_argument("--igtl", metavar="HOST:PORT",
                    help="connect to an OpenIGTLink server (PLUS, 3D Slicer, navapp replay) for the tracked "
                         "stylus and ultrasound")
+    s.add_argument("--slicer", metavar="[HOST:]PORT",
+                   help="send registrations to 3D Slicer over OpenIGTLink: HOST:PORT connects to Slicer's "
+                        "OpenIGTLinkIF connector in server mode; PORT alone listens for it in client mode")
     s.add_argument("--igtl-config", type=Path, metavar="FILE",
                    help="tracking TOML (PLUS transform names, ImageToProbe, timeouts); see README, 'With a tracker'")
     s.set_defaults(func=cmd_serve)

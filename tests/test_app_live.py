@@ -2,7 +2,9 @@
 127.0.0.1 that plays the scene's own stylus path and two of its planes (images and poses)
 over OpenIGTLink. Checks that the live tip reaches the App, that digitised points enter the
 session exactly as sent, that a frozen frame becomes a plane whose pixels map to where the
-tracker said they were, that it survives a restart, and that Undo removes a recording."""
+tracker said they were, that it survives a restart, that Undo removes a recording, and that
+re-registering on every frame follows the frames and reaches a pyigtl client standing in
+for 3D Slicer."""
 
 import numpy as np
 import pytest
@@ -14,7 +16,7 @@ pytest.importorskip("viser")
 pytest.importorskip("pyigtl")
 
 SCENE = {"name": "apptest", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
-         "stylus": {"coverage": 0.2}, "ius": {"planes": 2}}
+         "stylus": {"coverage": 0.2}, "ius": {"planes": 2}, "effects": [{"kind": "auto_segmentation", "sd_px": 1.0}]}
 
 
 def wait_until(cond, timeout=10.0):
@@ -109,3 +111,61 @@ def test_undo_removes_a_live_recording(live_app):
     assert len(app.session.live_points) > before
     assert app.contour_command(cs, "Undo") is None
     assert len(app.session.live_points) == before
+
+
+def test_live_re_registration_follows_the_frames_and_reaches_slicer(live_app):
+    import time
+
+    import pyigtl
+
+    from navapp.simulation.scenedata import segment_frame
+    from navapp.tracking.results import RIGID, TARGETS, ResultsSender, rigid_matrix
+
+    app, server, sd = live_app
+    if len(app.session.live_points) < 20:
+        app.set_live_recording(True)
+        assert wait_until(lambda: len(app.session.live_points) >= 20, 15)
+        app.set_live_recording(False)
+    app.results = ResultsSender.serve(0)
+    slicer = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=app.results.port)
+    try:
+        follower = app.live.follower
+        assert app.set_live_follow(True) is None
+        assert wait_until(lambda: follower.frames >= 6, 120), follower.summary()
+        assert app.result.run.startswith("live")
+        assert "Live re-registration is on" in app.register("all")  # one registration at a time
+        # each update registered the kept data plus its frame's automatic contours
+        frame_data = follower.reg.frame
+        assert frame_data and sum(len(v) for v in frame_data.values()) > 20
+        n_kept = sum(len(v) for v in app.data("all").values())
+        assert sum(len(v) for v in follower.reg.base.values()) == n_kept
+        assert app.set_live_follow(False) is None
+        assert wait_until(lambda: app.session.log and "live" in app.session.log[-1], 60)
+        final = app.last_reg
+        assert final.libr is not None and np.isfinite(final.libr.beta).all()
+        assert app.session.result["run"].startswith("live")  # kept, and saved for a restart
+        # the live updates before it are queued ahead of the final result: read until it arrives
+        centres = np.array([t.centre for t in app.preop.targets])
+        want = {RIGID: rigid_matrix(final.rigid), TARGETS: final.transform(centres)}
+        last = {}
+        end = time.monotonic() + 20
+        while time.monotonic() < end and len(last) < 2:
+            for name in want:
+                m = slicer.wait_for_message(name, timeout=0.2)
+                if m is None:
+                    continue
+                got = m.matrix if name == RIGID else np.asarray(m.positions)
+                if np.abs(got - want[name]).max() < 1e-3:
+                    last[name] = got
+        assert set(last) == set(want), f"received {sorted(last)} of {sorted(want)} as registered; {app.results_error}"
+    finally:
+        app.set_live_follow(False)
+        slicer.stop()
+        app.results.close()
+        app.results = None
+    # the simulated segmentation is the declared effect: none declared, no contours
+    from dataclasses import replace
+
+    bare = replace(sd, scene=replace(sd.scene, effects=[]))
+    assert segment_frame(bare, 0, sd.planes[0].probe_to_tracker) == {}
+    assert segment_frame(sd, 0, sd.planes[0].probe_to_tracker)

@@ -281,3 +281,25 @@ def test_a_pyigtl_client_receives_the_registration_as_slicer_would():
     assert got[TARGETS].names == ["T1", "T2"]
     assert np.allclose(got["PortalCenterline"].positions, reg.transform(portal), atol=1e-4)
     assert got[STATUS].string == "deformable: 2 iterations"
+
+
+def test_status_text_that_pyigtl_cannot_encode_is_spelled_out_and_never_kills_the_link():
+    """pyigtl 0.3 encodes STRING messages as ASCII only, and a message it cannot pack
+    raises in its connection thread, which drops the connection: the quality warning's
+    "≤" once stopped every later result from reaching Slicer."""
+    from navapp.tracking.results import ascii_text
+
+    text = "poor fit: residual 2.1 mm ≤ 3σ, Ω 0.4 — 90°"
+    assert ascii_text(text) == "poor fit: residual 2.1 mm <= 3sd, Omega 0.4 - 90 deg"
+    sender = ResultsSender.serve(0)
+    slicer = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=sender.port)
+    try:
+        assert wait_until(lambda: slicer.is_connected() and sender.connected, 5)
+        sender.send_status(text)
+        sender.send_registration(_Registration(), status=text)
+        sender.send_status("still here")
+        assert wait_until(lambda: (m := slicer.wait_for_message(STATUS, 0.1)) is not None and m.string == "still here",
+                          5)
+    finally:
+        slicer.stop()
+        sender.close()

@@ -56,7 +56,7 @@ class App:
     returns an event set when the registration model is ready (or start-up failed)."""
 
     def __init__(self, scene, host="127.0.0.1", port=8080, session_dir=None, edge=4.0, k=45, cache_root=None,
-                 view2d_port=0, tracking=None):
+                 view2d_port=0, tracking=None, results=None):
         self.scene, self.edge, self.k, self.cache_root = scene, edge, k, cache_root
         self.session_dir = session_dir
         self.lock = threading.RLock()
@@ -90,6 +90,8 @@ class App:
         self._geometry: StateGeometry | None = None  # the last state's geometry (see geometry())
         self.tracking_config = tracking  # a tracking.TrackingConfig: connect to a tracker once the scene is ready
         self.live = None  # LiveLink while connected to a tracker
+        self.results = results  # a tracking.ResultsSender: registrations go to 3D Slicer
+        self.results_error: str | None = None
         self.preop = make_phantom(scene.phantom) if scene.phantom is not None else self._read_case_preop()
         self.centre = self.preop.liver.vertices.mean(0)
         self.server = viser.ViserServer(host=host, port=port, label="navapp", verbose=False)
@@ -409,6 +411,68 @@ class App:
         self.changed("live")
         return None
 
+    def set_live_follow(self, on: bool) -> str | None:
+        """Re-register on every new tracked frame while on; switched off, the fit is
+        converged on the last frame's data and kept as the result."""
+        if self.live is None:
+            return "No tracker connected (navapp serve --igtl HOST:PORT)."
+        if on and self.worker is not None and self.worker.busy:
+            return "A registration is running; wait for it or cancel it."
+        err = self.live.follower.set(on)
+        self.changed("live")
+        return err
+
+    def show_live_registration(self, reg, final: bool, summary: str = ""):
+        """A live re-registration (``LiveFollower``): shown at most ``VIEW_MIN_S`` apart
+        while the probe moves, sent to Slicer, and kept as the result when ``final``."""
+        from .live import VIEW_MIN_S
+
+        beta = reg.libr.beta if reg.libr is not None else None
+        now = time.monotonic()
+        self.send_results(reg, throttle=not final)
+        if not final and now - getattr(self, "_live_shown", 0.0) < VIEW_MIN_S:
+            return
+        self._live_shown = now
+        err = self._node_error(reg.rigid, beta)
+        state = RegisteredState("live (every frame)", reg.rigid, beta, err)
+        with self.lock:
+            self.result, self.last_reg = state, reg
+            if self.worker is not None:
+                self.worker.last = reg  # a warm start continues from here
+            if final:
+                self.session.result = state.to_json()
+                entry = {"run": state.run, "points": int(sum(len(v) for v in self.data("all").values())),
+                         "iterations": reg.libr.iterations if reg.libr else 0, "live": summary}
+                if err is not None:
+                    entry.update(error_mean_mm=round(float(err.mean()), 3), error_max_mm=round(float(err.max()), 3))
+                self.session.log.append(entry)
+        if final:
+            self.changed("result")
+            return
+        geom = self.geometry(reg.rigid, beta)
+        self.each_view(lambda v: v.show_live_registration(geom, err))
+
+    # ------------------------------------------------------------------ results to 3D Slicer
+    def send_results(self, reg, throttle=False):
+        """The registration to 3D Slicer over OpenIGTLink (``--slicer``): rigid pose,
+        registered targets and centerlines, status; at most 10 a second while live."""
+        sender = self.results
+        if sender is None:
+            return
+        now = time.monotonic()
+        if throttle and now - getattr(self, "_results_sent", 0.0) < 0.1:
+            return
+        self._results_sent = now
+        from ..tracking.results import status_line
+
+        pre = self.preop
+        centres = np.array([t.centre for t in pre.targets]) if pre.targets else None
+        lines = {n: pre.centerline(n).points for n in ("portal", "hepatic") if pre.centerline(n) is not None}
+        try:
+            sender.send_registration(reg, centres, lines, status=status_line(reg))
+        except Exception as exc:  # Slicer gone: the viewer carries on
+            self.results_error = f"{exc.__class__.__name__}: {exc}"
+
     def freeze_frame(self, cs: ClientState) -> str | None:
         """The latest tracked ultrasound frame becomes a plane of the session (to draw on)."""
         if self.live is None:
@@ -617,6 +681,8 @@ class App:
             return "Collect data first (stylus sweep or an ultrasound plane)."
         if self.worker.busy:
             return "A registration is already running; wait for it or cancel it."
+        if self.live is not None and self.live.follower.on:
+            return "Live re-registration is on (Live tracking panel): switch it off first."
         if kind == "warm" and self.worker.last is None:
             kind = "all"
         run = {"label": RUN_LABELS[kind], "points": npts, "t0": time.monotonic(), "trace": [], "streamed": 0,
@@ -667,6 +733,8 @@ class App:
             self.session.log.append(entry)
             self.run = None
         self.changed("result")
+        if not stopped:
+            self.send_results(reg)
         if stopped:
             self.notify("Registration", "Cancelled: the previous result is kept.")
         elif entry.get("warning"):
@@ -876,12 +944,23 @@ def _duration(seconds: float) -> str:
 
 
 def serve(scene, host="127.0.0.1", port=8080, session_dir=None, edge=4.0, k=45, cache_root=None, view2d_port=0,
-          tracking=None):
+          tracking=None, slicer=None):
     """Start the viewer and block until interrupted. ``tracking``: a ``TrackingConfig`` to
-    connect to an OpenIGTLink server (PLUS, 3D Slicer, ``navapp replay``)."""
-    app = App(scene, host, port, session_dir, edge, k, cache_root, view2d_port, tracking)
+    connect to an OpenIGTLink server (PLUS, 3D Slicer, ``navapp replay``); ``slicer``:
+    where registrations go, ``(host, port)`` of Slicer's OpenIGTLinkIF connector as server,
+    or ``(None, port)`` to listen for it as client."""
+    results = None
+    if slicer is not None:
+        from ..tracking.results import ResultsSender
+
+        host_s, port_s = slicer
+        results = ResultsSender.connect(host_s, port_s) if host_s else ResultsSender.serve(port_s)
+    app = App(scene, host, port, session_dir, edge, k, cache_root, view2d_port, tracking, results)
     app.start()
     print(f"navapp: viewer at {app.url}  (Ctrl+C to stop)", flush=True)
+    if results is not None:
+        where = f"to {slicer[0]}:{slicer[1]}" if slicer[0] else f"on 127.0.0.1:{results.port} (Slicer connects)"
+        print(f"navapp: registrations go to 3D Slicer over OpenIGTLink {where}", flush=True)
     try:
         while True:
             time.sleep(3600)
@@ -891,4 +970,6 @@ def serve(scene, host="127.0.0.1", port=8080, session_dir=None, edge=4.0, k=45, 
         app.view2d.stop()
         if app.live is not None:
             app.live.stop()
+        if results is not None:
+            results.close()
     return app

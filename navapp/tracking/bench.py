@@ -44,12 +44,12 @@ def _pct(xs, q):
 
 
 def bench_live(frames=40, planes=3, k=45, edge=4.0, per_transit=8):
-    from ..simulation.scenedata import load_scene_data
     from ..mechanics.interpolation import interpolation_matrix
     from ..registration.libr import LMOptions
     from ..registration.pipeline import prepare, register, tre_stats
     from ..simulation.levels import data_level
     from ..simulation.scene import demo_scene
+    from ..simulation.scenedata import load_scene_data
 
     sd = load_scene_data(demo_scene(), edge=edge)
     base = data_level(sd.case_dir, "S+planes", planes=range(planes), case=sd.case)

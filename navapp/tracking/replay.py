@@ -117,8 +117,8 @@ def interpolate_pose(a, b, f) -> np.ndarray:
 def script_from_scene(scene, transit_frames: int = 6, dwell_s: float = 2.0, move_s: float = 1.0,
                       cache_root=None) -> ReplayScript:
     """The scene simulated (or loaded from the cache) as the viewer does, made playable."""
-    from ..simulation.scenedata import acquire_free_plane, load_scene_data
     from ..errors import InputError
+    from ..simulation.scenedata import acquire_free_plane, load_scene_data
 
     sd = load_scene_data(scene, cache_root)
     if not sd.planes:

@@ -28,7 +28,8 @@ PREOP_RAS = "PreopRASToReference"
 TARGETS = "NavappTargets"
 CENTERLINES = {"portal": "PortalCenterline", "hepatic": "HepaticCenterline"}
 STATUS = "NavappStatus"
-COLOURS = {TARGETS: (255, 255, 0, 255), "PortalCenterline": (255, 80, 80, 255), "HepaticCenterline": (90, 140, 255, 255)}
+COLOURS = {TARGETS: (255, 255, 0, 255), "PortalCenterline": (255, 80, 80, 255),
+           "HepaticCenterline": (90, 140, 255, 255)}
 
 
 def rigid_matrix(rigid) -> np.ndarray:
@@ -36,6 +37,16 @@ def rigid_matrix(rigid) -> np.ndarray:
     m = np.eye(4)
     m[:3, :3], m[:3, 3] = rigid.R, rigid.t
     return m
+
+
+_ASCII = str.maketrans({"≤": "<=", "≥": ">=", "Ω": "Omega", "°": " deg", "–": "-", "—": "-", "×": "x", "β": "beta",
+                        "σ": "sd", "±": "+/-", "→": "->", "…": "..."})
+
+
+def ascii_text(text: str) -> str:
+    """``text`` in ASCII (pyigtl 0.3 encodes no other text, and its connection thread dies
+    on it): the symbols navapp writes spelled out, anything else as "?"."""
+    return text.translate(_ASCII).encode("ascii", "replace").decode()
 
 
 def status_line(reg) -> str:
@@ -48,7 +59,7 @@ def status_line(reg) -> str:
     q = getattr(reg, "quality", None)
     if q is not None:
         parts.append("fit ok" if q.ok else f"poor fit: {q.warning}")
-    return "; ".join(parts)
+    return ascii_text("; ".join(parts))
 
 
 def registration_messages(reg, targets=None, centerlines=None, status=None) -> list:
@@ -64,7 +75,8 @@ def registration_messages(reg, targets=None, centerlines=None, status=None) -> l
         if pts is not None and len(pts):
             dev = CENTERLINES.get(name, name[:20])
             msgs.append(points_message(dev, reg.transform(np.asarray(pts, float))))
-    msgs.append(pyigtl.StringMessage(status if status is not None else status_line(reg), device_name=STATUS))
+    msgs.append(pyigtl.StringMessage(ascii_text(status) if status is not None else status_line(reg),
+                                     device_name=STATUS))
     return msgs
 
 
@@ -110,6 +122,10 @@ class ResultsSender:
 
     def send(self, messages) -> int:
         for m in messages:
+            # packed here first: a message pyigtl cannot encode (e.g. non-ASCII text) raises
+            # in the caller instead of killing the connection thread, which packs it again
+            m.pack()
+        for m in messages:
             self.link.send_message(m, wait=False)
         self.sent += len(messages)
         return len(messages)
@@ -118,6 +134,7 @@ class ResultsSender:
         return self.send(registration_messages(reg, targets, centerlines, status))
 
     def send_status(self, text: str) -> int:
+        text = ascii_text(text)
         return self.send([pyigtl.StringMessage(text, device_name=STATUS)])
 
     def close(self):

@@ -71,6 +71,9 @@ class ClientView:
             if plane is not None:
                 self.layers.show_plane(plane)
 
+    def show_live_registration(self, geom, error):
+        self.layers.show_registered(geom, error=error)
+
     def show_update(self, u, geom):
         self.layers.show_registered(geom, error=self.app.run.get("error") if self.app.run else None)
         self.registration.show_update(u)

@@ -17,12 +17,28 @@ class TrackingPanel:
             self.count = g.add_markdown("")
             self.follow = g.add_checkbox("Show the live image", True)
             self.freeze = g.add_button("Freeze this frame as a plane (to draw on)")
+            self.live_reg = g.add_checkbox("Re-register on every frame", False,
+                                           hint="each new frame's contours join the data kept and the model is "
+                                                "re-registered from the last state; off: converged and kept")
+            self.live_summary = g.add_markdown("")
+            self.slicer = g.add_markdown("")
         self.record.on_update(lambda e: self._record())
         self.freeze.on_click(lambda e: self._freeze())
+        self.live_reg.on_update(lambda e: self._live_reg())
 
     def _record(self):
         err = self.app.set_live_recording(bool(self.record.value), self.label.value)
         if err:
+            self.view.notify("Live tracking", err, error=True)
+
+    def _live_reg(self):
+        on = bool(self.live_reg.value)
+        live = self.app.live
+        if live is not None and live.follower.on == on:
+            return  # the echo of a refresh
+        err = self.app.set_live_follow(on)
+        if err:
+            self.live_reg.value = False
             self.view.notify("Live tracking", err, error=True)
 
     def _freeze(self):
@@ -42,3 +58,15 @@ class TrackingPanel:
                 (" — **recording**" if live.recording else "")
             if self.record.value != live.recording:
                 self.record.value = live.recording
+            f = live.follower
+            if self.live_reg.value != f.on:
+                self.live_reg.value = f.on
+            seg = f.segmentation_px
+            self.live_summary.content = f.summary() + (
+                f"  \nContours of live frames: automatic (simulated segmentation, {seg:g} px error)"
+                if seg is not None else "  \nLive frames carry no contours until drawn on (no automatic segmentation)")
+            r = self.app.results
+            if r is not None:
+                state = "connected" if r.connected else "waiting for Slicer"
+                self.slicer.content = (f"3D Slicer (OpenIGTLink, port {r.port}): {state}, {r.sent} messages sent"
+                                       + (f" — {self.app.results_error}" if self.app.results_error else ""))
