@@ -42,11 +42,12 @@ class Case:
 
 # ---------------------------------------------------------------- CSV
 
-def read_csv(path: Path, columns: tuple[str, ...], dtype=float) -> np.ndarray:
+def read_csv(path: Path, columns: tuple[str, ...], integer_last: bool = False) -> np.ndarray:
     """Read a numeric CSV with exactly ``columns`` (an optional header naming them).
 
-    Returns (N, len(columns)). Raises InputError for an empty file, a wrong number of
-    columns, a header that names other columns, non-numeric cells, NaN or infinity.
+    Returns (N, len(columns)) floats. Raises InputError for an empty file, a wrong number of
+    columns, a header that names other columns, non-numeric cells, NaN or infinity, and
+    with ``integer_last`` (a branch id) for a last column that is not whole numbers.
     """
     path = Path(path)
     try:
@@ -77,10 +78,8 @@ def read_csv(path: Path, columns: tuple[str, ...], dtype=float) -> np.ndarray:
             raise InputError(f"row {lineno} has a NaN or infinite value", path)
         rows.append(vals)
     out = np.array(rows, float)
-    if dtype is not float:
-        if not np.all(out[:, -1] == np.round(out[:, -1])):
-            raise InputError(f"column {columns[-1]!r} must hold whole numbers", path)
-        return out
+    if integer_last and not np.all(out[:, -1] == np.round(out[:, -1])):
+        raise InputError(f"column {columns[-1]!r} must hold whole numbers", path)
     return out
 
 
@@ -196,7 +195,7 @@ def read_case(folder) -> Case:
             setattr(model, v, vessel)
         p = pre / f"{v}_centerline.csv"
         if p.exists():
-            data = read_csv(p, ("x", "y", "z", "branch"), dtype=int)
+            data = read_csv(p, ("x", "y", "z", "branch"), integer_last=True)
             cl = Centerline(points=data[:, :3], branch=data[:, 3].astype(int))
             counts = np.unique(cl.branch, return_counts=True)[1]
             if (counts < 2).any():

@@ -36,13 +36,11 @@ def plot_time(rows, path, level="S+3"):
     """Left: TRE against registration seconds for every setting at one data level (k, edge,
     LM cap/tolerance, peers), Pareto front drawn. Right: TRE against precompute seconds
     (k and edge settings)."""
-    import matplotlib
     import matplotlib.ticker
+    from matplotlib.figure import Figure  # no pyplot: no global backend or figure state
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4.2), dpi=110)
+    fig = Figure(figsize=(11, 4.2), dpi=110)
+    a, b = fig.subplots(1, 2)
     sel = [r for r in rows if r["level"] == level and r["sweep"] in ("k", "edge", "lm", "peers")]
     pts = _mean_by(sel, lambda r: (r["sweep"], r["method"], r["edge_mm"], r["k"], r["setting"]))
     style = {"k": ("o", "C0"), "edge": ("s", "C1"), "lm": ("^", "C2"), "peers": ("D", "C3")}
@@ -78,17 +76,14 @@ def plot_time(rows, path, level="S+3"):
     b.set_title(f"{level}: accuracy against precompute time")
     fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)
 
 
 def plot_k(rows, path):
     """Mean TRE against k for each data level (4 mm mesh), like the paper's Fig. 9."""
-    import matplotlib
+    from matplotlib.figure import Figure  # no pyplot: no global backend or figure state
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 4), dpi=110)
+    fig = Figure(figsize=(6, 4), dpi=110)
+    ax = fig.subplots()
     sel = _mean_by([r for r in rows if r["sweep"] == "k" and r["method"] == "LIBR"], lambda r: (r["level"], r["k"]))
     for level in ("S", "S+3", "S+all"):
         ks = sorted(k for (lv, k) in sel if lv == level)
@@ -100,7 +95,6 @@ def plot_k(rows, path):
     ax.legend()
     fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)
 
 
 def write_cost_report(results_csv, out_dir) -> Path:

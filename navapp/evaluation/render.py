@@ -3,14 +3,12 @@
 Used for the committed figures in the README; the interactive viewer is ``navapp.app``.
 """
 
-import matplotlib
+import numpy as np
+from matplotlib.figure import Figure  # no pyplot: no global backend or figure state
+from matplotlib.patches import Rectangle
+from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from mpl_toolkits.mplot3d.art3d import Poly3DCollection  # noqa: E402
-
-from ..anatomy.model import REGION_NAMES, PreopModel  # noqa: E402
+from ..anatomy.model import REGION_NAMES, PreopModel
 
 REGION_COLOURS = {
     "anterior": (0.85, 0.62, 0.52),
@@ -51,7 +49,7 @@ def frame(ax, points, elev=20, azim=-60):
 
 def phantom_figure(model: PreopModel, path, title=None):
     """Two views: liver coloured by region label, and the vessel trees inside it."""
-    fig = plt.figure(figsize=(12, 5.6), dpi=110)
+    fig = Figure(figsize=(12, 5.6), dpi=110)
     liver = model.liver
     ax = fig.add_subplot(1, 2, 1, projection="3d")
     if model.regions is not None:
@@ -62,7 +60,7 @@ def phantom_figure(model: PreopModel, path, title=None):
     add_mesh(ax, liver, REGION_COLOURS["anterior"], 1.0, fc)
     frame(ax, liver.vertices, elev=25, azim=70)
     ax.set_title("surface regions (anterior view)")
-    handles = [plt.Rectangle((0, 0), 1, 1, color=REGION_COLOURS[n]) for n in REGION_NAMES]
+    handles = [Rectangle((0, 0), 1, 1, color=REGION_COLOURS[n]) for n in REGION_NAMES]
     ax.legend(handles, REGION_NAMES, loc="lower left", fontsize=8)
     ax = fig.add_subplot(1, 2, 2, projection="3d")
     if model.portal is not None:
@@ -75,53 +73,3 @@ def phantom_figure(model: PreopModel, path, title=None):
     fig.suptitle(title or model.name)
     fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)
-
-
-def case_figure(case_dir, path, title=None):
-    """The simulated case like the paper's Fig. 4: the deformed liver, its vessels, the
-    stylus data, and the 16 iUS image planes as outlined rectangles with their contours."""
-    import json
-    from pathlib import Path
-
-    import trimesh
-
-    case_dir = Path(case_dir)
-    fig = plt.figure(figsize=(12, 6), dpi=110)
-    ax = fig.add_subplot(1, 1, 1, projection="3d")
-    liver = trimesh.load(case_dir / "truth/liver.ply")
-    for name, colour in (("portal", (0.85, 0.15, 0.15)), ("hepatic", (0.2, 0.35, 0.9))):
-        p = case_dir / "truth" / f"{name}.ply"
-        if p.exists():
-            add_mesh(ax, trimesh.load(p), colour, 0.5)
-    add_mesh(ax, liver, (0.8, 0.7, 0.6), 0.10)
-    for feat, colour, size in (("anterior", "k", 2), ("falciform", "y", 6), ("ridge_left", "g", 6), ("ridge_right", "c", 6)):
-        f = case_dir / "intraop" / f"{feat}.csv"
-        if f.exists():
-            pts = np.loadtxt(f, delimiter=",", skiprows=1, ndmin=2)
-            ax.scatter(*pts.T, s=size, c=colour, depthshade=False, label=f"stylus: {feat}")
-    meta_path = case_dir / "intraop/us/planes.json"
-    if meta_path.exists():
-        meta = json.loads(meta_path.read_text())
-        S = np.array(meta["image_to_probe"])
-        w, h = meta["width_px"], meta["height_px"]
-        corners = np.array([[0, 0, 0, 1], [w - 1, 0, 0, 1], [w - 1, h - 1, 0, 1], [0, h - 1, 0, 1], [0, 0, 0, 1]], float)
-        for p in meta["planes"]:
-            T = np.array(p["probe_to_tracker"])
-            c = (T @ S @ corners.T).T[:, :3]
-            ax.plot(*c.T, color="tab:purple" if p["orientation"] == "vertical" else "tab:orange", lw=0.8)
-            pdir = case_dir / "intraop/us" / f"plane_{p['index']:02d}"
-            for f in pdir.glob("*_contour.csv"):
-                pts = np.loadtxt(f, delimiter=",", skiprows=1, ndmin=2)
-                ax.scatter(*pts.T, s=1, c="r" if f.stem.startswith("portal") else "b", depthshade=False)
-            f = pdir / "posterior.csv"
-            if f.exists():
-                pts = np.loadtxt(f, delimiter=",", skiprows=1, ndmin=2)
-                ax.scatter(*pts.T, s=1, c="m", depthshade=False)
-    frame(ax, liver.vertices, elev=28, azim=65)
-    ax.legend(loc="upper left", fontsize=8)
-    ax.set_title(title or f"{case_dir.name}: deformed liver, stylus swaths, iUS planes "
-                 "(purple vertical, orange lateral) and their contours")
-    fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)

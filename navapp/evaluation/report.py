@@ -43,15 +43,13 @@ def markdown(rows) -> str:
 
 
 def plot_levels(rows, path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # no pyplot: no global backend or figure state
 
     _, overall = summarise(rows)
     levels = [lv for lv in LEVELS if lv in overall]
     data = [[float(r["tre_mean_mm"]) for r in rows if r["level"] == lv] for lv in levels]
-    fig, ax = plt.subplots(figsize=(8, 4), dpi=110)
+    fig = Figure(figsize=(8, 4), dpi=110)
+    ax = fig.subplots()
     ax.boxplot(data, tick_labels=levels, showfliers=True)
     ax.plot(range(1, len(levels) + 1), [PAPER[lv][0] for lv in levels], "r^", label="paper (mean)")
     ax.set_ylabel("mean TRE per registration (mm)")
@@ -59,7 +57,6 @@ def plot_levels(rows, path):
     ax.legend()
     fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)
 
 
 def write_report(results_csv, out_dir, case_dirs=()):
@@ -82,10 +79,7 @@ def distance_plot(case_dirs, path, level="S+all", edge=EDGE_MM, k=K) -> float:
     """Per-target TRE against the distance from the target's true position to the nearest
     intraoperative data point, pooled over cases at ``level`` (like the paper's Fig. 5d).
     Returns Pearson's r."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # no pyplot: no global backend or figure state
     from scipy.spatial import cKDTree
     from scipy.stats import pearsonr
 
@@ -106,12 +100,12 @@ def distance_plot(case_dirs, path, level="S+all", edge=EDGE_MM, k=K) -> float:
         err.append(np.linalg.norm(reg.transform(x0) - x1, axis=1))
     dist, err = np.concatenate(dist), np.concatenate(err)
     r = float(pearsonr(dist, err)[0])
-    fig, ax = plt.subplots(figsize=(6, 4.5), dpi=110)
+    fig = Figure(figsize=(6, 4.5), dpi=110)
+    ax = fig.subplots()
     ax.hexbin(dist, err, gridsize=50, bins="log", cmap="viridis")
     ax.set_xlabel("distance to nearest data point (mm)")
     ax.set_ylabel("target registration error (mm)")
     ax.set_title(f"{level}: TRE vs distance to data, Pearson r = {r:.2f} ({len(dist):,} targets)")
     fig.tight_layout()
     fig.savefig(path)
-    plt.close(fig)
     return r

@@ -110,15 +110,13 @@ def summary_tables(rows: list[dict], methods: list[str]) -> str:
 
 def plot(rows: list[dict], methods: list[str], path: Path) -> Path:
     """Success rate and TRE ratio against the offset, per method and label condition."""
-    import matplotlib
-
-    matplotlib.use("Agg")  # here, not at import: the viewer and tests may use another backend
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # no pyplot: no global backend or figure state
 
     rows = with_reference(rows)
     offs = [o for o in OFFSETS if any(float(r["angle_deg"]) == o[0] for r in rows)]
     conds = [c for c in CONDITIONS if any(r["condition"] == c for r in rows)]
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig = Figure(figsize=(12, 4.5))
+    ax1, ax2 = fig.subplots(1, 2)
     styles = {"clean": "-", "shifted": "--", "mislabelled": ":"}
     x = np.arange(len(offs))
     for i, m in enumerate(methods):
@@ -144,7 +142,6 @@ def plot(rows: list[dict], methods: list[str], path: Path) -> Path:
     ax2.legend(fontsize=8)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return path
 
 

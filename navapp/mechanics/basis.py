@@ -74,10 +74,6 @@ class Basis:
     def M(self) -> int:
         return len(self.nodes)
 
-    def modes_at_nodes(self, idx) -> np.ndarray:
-        """Rows of J_u for nodes ``idx``: (len(idx), 3, 3k)."""
-        return self.Ju.reshape(self.M, 3, -1)[idx]
-
     def modes_at(self, B: sp.spmatrix) -> np.ndarray:
         """Modes carried to points by an interpolation matrix B (P × M): (P, 3, 3k)."""
         n = self.Ju.shape[1]

@@ -43,15 +43,32 @@ def place_control_points(nodes, surface, k, seed=0):
     # threads spinning against other work on a 2-core machine took 8–10 s (measured).
     with threadpool_limits(1):
         km = KMeans(n_clusters=k, n_init=4, random_state=seed).fit(nodes[surface])
-    tree = cKDTree(nodes[surface])
+    return surface[snap_distinct(nodes[surface], km.cluster_centers_)]
+
+
+def snap_distinct(points, centres, near=32) -> np.ndarray:
+    """Each centre (k, 3) snapped to its nearest point (S, 3) not taken by an earlier
+    centre: k distinct indices into ``points`` (k ≤ S). Centres that crowd together (more
+    than ``near`` of them on one clump of points, e.g. k-means on duplicated nodes) fall
+    back to the nearest free point of all."""
+    points = np.asarray(points, float)
+    if len(centres) > len(points):
+        raise ValueError(f"{len(centres)} centres but only {len(points)} points to snap them to")
+    tree = cKDTree(points)
+    free = np.ones(len(points), bool)
     chosen = []
-    taken = set()
-    for c in km.cluster_centers_:
-        _, idx = tree.query(c, k=min(len(surface), 32))
-        pick = next(int(i) for i in np.atleast_1d(idx) if int(i) not in taken)
-        taken.add(pick)
+    for c in np.asarray(centres, float):
+        _, idx = tree.query(c, k=min(len(points), near))
+        idx = np.atleast_1d(idx)
+        idx = idx[free[idx]]
+        if len(idx):
+            pick = int(idx[0])
+        else:  # every one of the nearest points is taken
+            rest = np.flatnonzero(free)
+            pick = int(rest[np.argmin(np.linalg.norm(points[rest] - c, axis=1))])
+        free[pick] = False
         chosen.append(pick)
-    return surface[np.array(chosen)]
+    return np.array(chosen, int)
 
 
 def geodesic_tiles(nodes, faces, surface, control):

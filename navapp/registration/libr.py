@@ -13,9 +13,11 @@ Choices where the paper is open:
   strain-energy term that Gauss–Newton drops. f_E is quadratic in α, so w_E f_E² is
   quartic, and without C the model underestimates it and λ must stay large (measured on
   the default phantom: 2–3× more iterations). It changes the path, not the objective;
-  ``LMOptions(energy_curvature=False)`` gives the plain step of eq. 14. Stop reasons: "converged" (|ΔΩ| < tol on an accepted step),
-"max_iterations", "stalled" (λ grew past 1e16 without an accepted step), "no_data",
-"cancelled".
+  ``LMOptions(energy_curvature=False)`` gives the plain step of eq. 14.
+
+Stop reasons (``STOP_REASONS``): "converged" (|ΔΩ| < tol on an accepted step, or Ω = 0),
+"stationary" (|ΔΩ| < rtol · Ω on two accepted steps in a row), "max_iterations",
+"stalled" (λ grew past 1e16 without an accepted step), "no_data", "cancelled".
 """
 
 import threading
@@ -46,6 +48,10 @@ class LMOptions:
     deform: bool = True  # False: only τ, θ move (a rigid fit through the same machinery)
     recompute_in_ratio: bool = False  # True: ρ from Ω with recomputed correspondences (for comparison)
     energy_curvature: bool = True  # add w_E f_E ∇²f_E to JᵀWJ (see module doc)
+
+
+
+STOP_REASONS = ("converged", "stationary", "max_iterations", "stalled", "no_data", "cancelled")
 
 
 @dataclass

@@ -4,12 +4,12 @@ Every model feature is a set of points carried by the tet mesh (``B`` maps nodal
 to them, so they deform as B·(x0 + J_u α)) plus its cells: triangles for sliding surfaces,
 segments for centerlines, none for fiducials.
 
-Data feature → model feature (a choice where the paper is open): anterior and posterior
-points slide on the whole liver surface (restricting posterior iUS points to the labelled
-posterior region was measured worse: S + 16 planes, mean TRE 2.86/3.00/2.22 mm against
-2.06/2.55/1.77 on phantom0-L/1-N/2-R — the region's edges stop points sliding); falciform
-and ridge points only on their own labelled region (salient features); iUS contours on the PV/HV surfaces; centerline points
-on the centerline polylines; fiducials on their preoperative counterparts, row by row.
+Data feature → model feature (a choice where the paper is open; ``navapp.features`` holds
+the table): anterior and posterior points slide on the whole liver surface (restricting
+posterior iUS points to the labelled posterior region was measured worse — the region's
+edges stop points sliding; docs/decisions.md); falciform and ridge points only on their
+own labelled region (salient features); iUS contours on the PV/HV surfaces; centerline
+points on the centerline polylines; fiducials on their preoperative counterparts, row by row.
 """
 
 import warnings
@@ -96,13 +96,9 @@ def deform(rest, u, beta, centroid) -> tuple[np.ndarray, np.ndarray]:
     return local, local @ rotation(beta[n + 3:n + 6]).T + beta[n:n + 3] + centroid
 
 
-# Vessel surfaces are decimated to this many triangles for registration. Measured on the
-# three phantoms (PV and HV, 15–26k faces): the original vertices lie on average
-# 0.02–0.03 mm (max 0.17 mm) from the 4,000-face surface, against 0.01–0.02 (max 0.10) at
-# 8,000 and 0.03–0.05 (max 0.30) at 2,000, all far below the 4 mm tet mesh. Over the nine
-# study cases the mean TRE at 4,000 and 8,000 faces agreed within 0.003 mm (S + 3 planes
-# 3.265 / 3.262, S + all 2.297 / 2.298 mm), and 4,000 makes the warm-started demo fit
-# 42 instead of 48 ms: both vessels are deformed and searched at every LM evaluation.
+# Vessel surfaces are decimated to this many triangles for registration: both vessels are
+# deformed and searched at every LM evaluation, and the decimation error stays far below
+# the 4 mm tet mesh (measurements: docs/decisions.md, "Measured choices moved out of docstrings").
 VESSEL_FACES = 4000
 
 

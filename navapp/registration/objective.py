@@ -241,7 +241,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
         stats[name] = _stats(dist, wF)
         terms.append((name, feat, S, q, rows, local))
         tim["jacobian"] += time.perf_counter() - t0
-    fE = float(alpha @ basis.energy @ alpha) / (2 * basis.M)
+    fE = basis.strain_energy_density(alpha)
     fs.append(np.array([fE]))
     ws.append(np.array([weights.energy]))
     f = np.concatenate(fs)

@@ -2,11 +2,9 @@
 
 Point-to-point ICP between the digitised surface data (stylus: anterior, falciform, ridges;
 and fiducials) and the model surface (as docs/design.md §1 says; iUS contours and iUS posterior
-points join only in the deformable stage — measured on
-phantom2-R with 3 planes, letting them steer ICP gave a 10.3 mm final TRE against 2.8 mm
-with stylus data alone, the contours pulling the pose toward the wrong branches; and over
-the robustness study's grid, the posterior points in the multi-start ICP gave 94.8 %
-success against 98.1 % without, on 270 paired registrations; ``features`` can add them). Each
+points join only in the deformable stage: the contours pulled the pose toward the wrong
+branches and the posterior points lowered the success rate — docs/decisions.md, "Measured
+choices moved out of docstrings"; ``features`` can add them). Each
 feature finds closest points on its own model feature only (falciform to the falciform
 region, ridges to their ridges), and every point carries its feature's objective weight
 w_F / N_F, so a salient feature with few points still steers the fit. Without any surface
@@ -44,7 +42,14 @@ class RigidResult:
 
 
 def weighted_kabsch(P, Q, w):
-    """R, t minimising Σ w_i |R p_i + t − q_i|² (proper rotation, det R = +1)."""
+    """R, t minimising Σ w_i |R p_i + t − q_i|² (proper rotation, det R = +1).
+
+    Why not ``trimesh.registration.procrustes(P, Q, weights=w)``: it weights the centroids
+    but not the cross-covariance, so with unequal weights (every feature's w_F / N_F, the
+    Huber factors) its rotation is not the weighted optimum, as its docstring says. The
+    weighted problem has this closed form; with equal or 0/1 weights both agree (a test
+    checks both cases against trimesh and the weighted one against scipy's align_vectors).
+    """
     w = w / w.sum()
     pc, qc = w @ P, w @ Q
     H = (P - pc).T @ ((Q - qc) * w[:, None])
@@ -73,9 +78,8 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights()
     Each feature is thinned to at most ICP_POINTS points by an even stride (its weight
     w_F / N_F is per point of the subset, so every feature keeps its total weight w_F).
     Stops when the weighted RMS changes by less than ``tol_mm``; the pipeline passes
-    ``TOL_BEFORE_LIBR`` when LIBR follows (it refines the rigid pose anyway: β carries τ, θ)
-    — on the three study phantoms with S + 3 planes that halved the ICP time
-    (0.13–0.20 → 0.06–0.11 s) and moved the final TRE by ≤ 0.03 mm. ``start``: the pose
+    ``TOL_BEFORE_LIBR`` when LIBR follows (it refines the rigid pose anyway: β carries τ, θ;
+    what that saves and costs: docs/decisions.md). ``start``: the pose
     to begin from; without one, ``multi_start`` begins from the lowest-RMS pose the
     multi-start ICP reaches (``multi_start_icp``; the registration pipeline instead picks
     among those poses by the LIBR objective and passes its choice as ``start``), and

@@ -44,10 +44,3 @@ def rotation_derivatives(theta) -> np.ndarray:
     Rx, Ry, Rz = _rx(tx), _ry(ty), _rz(tz)
     return np.stack([_drx(tx) @ Ry @ Rz, Rx @ _dry(ty) @ Rz, Rx @ Ry @ _drz(tz)])
 
-
-def angles_from_matrix(R) -> np.ndarray:
-    """θ with rotation(θ) == R (for |θy| < π/2)."""
-    ty = np.arcsin(np.clip(R[0, 2], -1, 1))
-    tx = np.arctan2(-R[1, 2], R[2, 2])
-    tz = np.arctan2(-R[0, 1], R[0, 0])
-    return np.array([tx, ty, tz])

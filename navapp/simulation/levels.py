@@ -49,6 +49,6 @@ def data_level(case_dir, level: str, planes=(), spacing=3.0, case=None) -> dict:
                     out[f"{v}_contour"] = thin(np.asarray(read_surface(p, closed=False)[0].vertices), spacing)
                 c = tdir / f"{v}_centerline.csv"
                 if c.exists():
-                    out[f"{v}_centerline"] = read_csv(c, ("x", "y", "z", "branch"), dtype=int)[:, :3]
+                    out[f"{v}_centerline"] = read_csv(c, ("x", "y", "z", "branch"), integer_last=True)[:, :3]
         return out
     raise InputError(f"unknown data level {level!r} (S, S+planes, CBCT, iCT)")

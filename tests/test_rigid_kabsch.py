@@ -1,0 +1,43 @@
+"""The rigid ICP's update, weighted Kabsch, against trimesh's and scipy's solvers."""
+
+import numpy as np
+import trimesh
+from scipy.spatial.transform import Rotation
+
+from navapp.registration.rigid import weighted_kabsch
+
+
+def _problem(seed, n=60):
+    rng = np.random.default_rng(seed)
+    P = rng.normal(size=(n, 3)) * [40.0, 25.0, 15.0]
+    R = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+    Q = P @ R.T + [5.0, -3.0, 12.0] + rng.normal(size=P.shape) * 2.0  # noisy: weights matter
+    return P, Q, rng
+
+
+def _cost(R, t, P, Q, w):
+    return float(w @ np.sum((P @ R.T + t - Q) ** 2, axis=1))
+
+
+def test_equal_and_binary_weights_agree_with_trimesh_procrustes():
+    P, Q, rng = _problem(1)
+    for w in (np.ones(len(P)), (rng.random(len(P)) < 0.6).astype(float)):
+        R, t = weighted_kabsch(P, Q, w)
+        M = trimesh.registration.procrustes(P, Q, weights=w, reflection=False, scale=False, return_cost=False)
+        assert np.allclose(R, M[:3, :3], atol=1e-10) and np.allclose(t, M[:3, 3], atol=1e-8)
+        assert np.isclose(np.linalg.det(R), 1.0)
+
+
+def test_unequal_weights_give_the_weighted_optimum():
+    """scipy's align_vectors solves the weighted rotation problem exactly; trimesh weights
+    only the centroids, so its rotation has a higher weighted cost."""
+    P, Q, rng = _problem(2)
+    w = rng.uniform(0.05, 5.0, len(P))
+    R, t = weighted_kabsch(P, Q, w)
+    wn = w / w.sum()
+    pc, qc = wn @ P, wn @ Q
+    ref, _ = Rotation.align_vectors(Q - qc, P - pc, weights=w)
+    assert np.allclose(R, ref.as_matrix(), atol=1e-10)
+    assert np.allclose(t, qc - ref.as_matrix() @ pc, atol=1e-8)
+    M = trimesh.registration.procrustes(P, Q, weights=w, reflection=False, scale=False, return_cost=False)
+    assert _cost(R, t, P, Q, w) < _cost(M[:3, :3], M[:3, 3], P, Q, w)
