@@ -162,6 +162,10 @@ def cmd_study(args):
         from .evaluation.robustness import study_command
 
         return study_command(cases, args)
+    if args.what in ("error-estimate", "next-plane"):
+        from .evaluation import error_estimate, next_plane_study
+
+        return (error_estimate if args.what == "error-estimate" else next_plane_study).study_command(cases, args)
     if args.what == "cost":
         from .evaluation.cost import run_cost_study
         from .evaluation.cost_report import write_cost_report
@@ -287,7 +291,10 @@ def build_parser():
 
     s = sub.add_parser("study", help="table2: the paper's Table II design; cost: accuracy against time; "
                                      "robustness: initial offsets × label noise (all resumable)")
-    s.add_argument("what", choices=("table2", "cost", "robustness"))
+    s.add_argument("what", choices=("table2", "cost", "robustness", "error-estimate", "next-plane"))
+    s.add_argument("--with-cases", type=Path, nargs="+", help="error-estimate, next-plane: a second set of cases "
+                   "judged beside --cases (e.g. the laparoscopic ones)")
+    s.add_argument("--with-results", type=Path, help="next-plane: the second set's Table II CSV (for the ranks)")
     s.add_argument("--cases", type=Path, nargs="+", help="case folders (default: simulate the nine study scenes)")
     s.add_argument("--case-root", type=Path, default=Path("study-cases"), help="where simulated cases go")
     s.add_argument("--workers", type=_positive(int), help="local worker processes (default: all cores for table2, 1 for cost, whose timings would compete)")

@@ -9,7 +9,14 @@ from navapp.mechanics.interpolation import interpolation_matrix
 from navapp.registration.libr import register_libr
 from navapp.registration.pipeline import Registration, deform_points
 from navapp.registration.rigid import RigidResult
-from navapp.registration.uncertainty import covariance, estimate_error, information, point_jacobian, point_sigma
+from navapp.registration.uncertainty import (
+    covariance,
+    estimate_error,
+    information,
+    point_jacobian,
+    point_sigma,
+    surface_estimate,
+)
 
 
 def _half_covered(model, rng, alpha_scale=0.4):
@@ -131,3 +138,16 @@ def test_calibration_on_one_small_case(small_model):
     assert fitted["coverage"] == pytest.approx(0.8, abs=0.02)  # by construction of the quantiles
     held = validate(samples[2:], cal)[0]
     assert 0.5 < held["coverage"] <= 1.0
+
+
+def test_surface_estimate_carries_the_surface_nodes(small_model, phantoms):
+    rng = np.random.default_rng(8)
+    data, _ = _half_covered(small_model, rng)
+    reg = _registration(small_model, data)
+    V = np.asarray(phantoms[0].liver.vertices)
+    est = surface_estimate(reg, V)
+    assert est.predicted_mm.shape == (len(V),)
+    full = estimate_error(reg)
+    surf = small_model.basis.surface
+    near = np.linalg.norm(small_model.basis.nodes[surf][:, None] - V[None, :200], axis=2).argmin(0)
+    assert np.allclose(est.predicted_mm[:200], full.predicted_mm[surf][near])

@@ -172,12 +172,12 @@ def _cases(samples) -> str:
 
 def markdown(tables, cal, calib, held, secs, sets) -> str:
     cases = _cases
-    text = ["# A registration-error estimate without the truth (issue 12, part 3)\n",
+    text = ["# A registration-error estimate without the truth (issue 12, part 3)\n\n",
             "Per mesh node, from what the registration knows: d = distance from the node's registered position to the "
             "nearest data point, and σ = the LM covariance at the solution, s·H⁻¹ (H the LM normal matrix with the "
             "strain-energy curvature, s = Ω/(R − p)), propagated through the closed-form ∂x/∂β of eq. 8. Predicted "
             f"error ê = a + b·d + c·σ, band [ê·{cal.lower:.2f}, ê·{cal.upper:.2f}] for a nominal "
-            f"{cal.coverage:.0%} of nodes.\n",
+            f"{cal.coverage:.0%} of nodes.\n\n",
             f"Calibration (non-negative least squares, {FIT_NODES} nodes per registration) on {cases(calib)}: "
             f"a = {cal.a:.3f} mm, b = {cal.b:.4f}, c = {cal.c:.3f}. Validated on {cases(held)} "
             "(other liver geometries). Levels as in Table II; S + 1/2/3: seeded random plane choices per case. "

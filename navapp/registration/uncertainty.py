@@ -219,3 +219,21 @@ def estimate_error(reg, points=None, calibration: Calibration | None = None, B=N
     pred = calibration.predict(d, sigma)
     return ErrorEstimate(pred, pred * calibration.lower, pred * calibration.upper, d, sigma, reg.rigid.apply(x),
                          calibration, info.scale)
+
+
+def surface_estimate(reg, vertices, calibration: Calibration | None = None) -> ErrorEstimate:
+    """The estimate on a display surface, e.g. the preoperative liver mesh's vertices
+    (V, 3): computed at the mesh's surface nodes (``basis.surface``, a few thousand, so
+    interactive) and carried to each vertex from its nearest surface node (rest positions;
+    the node map is cached in ``reg.model.cache``). Arrays (V,); ``positions`` are the
+    surface nodes' registered positions carried the same way."""
+    model = reg.model
+    vertices = np.asarray(vertices, float)
+    key = ("uncertainty.surface_map", vertices.shape, float(vertices.sum()))
+    near = model.cache.get(key)
+    if near is None:
+        near = cKDTree(model.basis.nodes[model.basis.surface]).query(vertices)[1]
+        model.cache[key] = near
+    est = estimate_error(reg, calibration=calibration, nodes=model.basis.surface)
+    return ErrorEstimate(est.predicted_mm[near], est.lower_mm[near], est.upper_mm[near], est.distance_mm[near],
+                         est.sigma_mm[near], est.positions[near], est.calibration, est.noise_scale)
