@@ -23,7 +23,34 @@ from .. import progress
 from .table2 import read_results
 
 COLUMNS = ("case", "level", "planes", "tre_mean_mm", "tre_table2_mm", "rank", "combinations", "percentile",
-           "level_mean_mm", "level_best_mm", "level_worst_mm", "score_mm", "suggest_seconds", "spearman_step")
+           "level_mean_mm", "level_best_mm", "level_worst_mm", "score_mm", "suggest_seconds", "spearman_step",
+           "expected_presence", "expected_median_mm", "expected_count_ratio")
+
+
+def compare_expected(candidates, plane_ids, case_dir) -> dict:
+    """How the expected features of the candidates (tracker frame) compare with what each
+    recorded plane really imaged (``intraop/us/plane_XX``): the fraction of (plane,
+    contour/far-wall feature) pairs where both agree on presence, the median over pairs
+    present in both of the median distance from each acquired point to the expected
+    points, and the median ratio expected pixel count / acquired points."""
+    from scipy.spatial import cKDTree
+
+    from ..anatomy.caseio import read_csv
+
+    agree, dist, ratio = [], [], []
+    for c in candidates:
+        pdir = Path(case_dir) / "intraop" / "us" / f"plane_{plane_ids[c.index]:02d}"
+        for name in ("portal_contour", "hepatic_contour", "posterior"):
+            f = pdir / f"{name}.csv"
+            got = read_csv(f, ("x", "y", "z")) if f.exists() else np.zeros((0, 3))
+            exp = c.features.get(name, np.zeros((0, 3)))
+            agree.append((len(got) > 0) == (len(exp) > 0))
+            if len(got) and len(exp):
+                dist.append(float(np.median(cKDTree(exp).query(got)[0])))
+                ratio.append(c.pixels[name] / len(got))
+    return {"expected_presence": round(float(np.mean(agree)), 3),
+            "expected_median_mm": round(float(np.median(dist)), 3) if dist else None,
+            "expected_count_ratio": round(float(np.median(ratio)), 3) if ratio else None}
 
 
 def recorded_poses(case_dir) -> list[tuple[str, np.ndarray]]:
@@ -96,6 +123,8 @@ def run_case(case_dir, table, steps=3, edge=4.0, k=45, calibration=None) -> list
                "percentile": None, "level_mean_mm": None, "level_best_mm": None, "level_worst_mm": None,
                "score_mm": round(best.score_mm, 4), "suggest_seconds": round(sugg.seconds, 3),
                "spearman_step": None if np.isnan(rho) else round(rho, 3)}
+        if m == 1:  # the expected features against what the planes really showed, from S
+            row.update(compare_expected(sugg.candidates, remaining, case_dir))
         if level_tres:
             v = np.array(list(level_tres.values()))
             t = ref if ref is not None else tre
@@ -214,6 +243,15 @@ def markdown(all_rows, sets, bench) -> str:
                             f"{_fmt(v['percentile'], '{:.0f}')} % | {v['better']} of {v['cases']} cases | "
                             f"{_fmt(v['rho'])} |\n")
         rows = all_rows[label, names[0]]
+        first = [r for r in rows if r["level"] == "S+1" and r.get("expected_presence") is not None]
+        if first:
+            med = [r["expected_median_mm"] for r in first if r["expected_median_mm"] is not None]
+            rat = [r["expected_count_ratio"] for r in first if r["expected_count_ratio"] is not None]
+            text.append(f"\nExpected features against the planes' real data, from the S registration (16 planes × "
+                        f"portal, hepatic contours and far wall per case): presence agrees in "
+                        f"{np.mean([r['expected_presence'] for r in first]):.0%} of pairs; acquired points lie a "
+                        f"median {np.median(med):.2f} mm from the expected section (median over cases); expected "
+                        f"pixels / acquired points: median {np.median(rat):.2f}.\n")
         text.append(f"\nPer case ({names[0]}); TRE: this run's registration, Table II CSV TRE: the CSV's row for the "
                     "same planes (the rank uses the CSV's):\n\n| case | level | planes | TRE (mm) | Table II CSV TRE | "
                     "rank | all: mean | score (mm) | suggest (s) |\n|---|---|---|---|---|---|---|---|---|\n")

@@ -32,7 +32,7 @@ from .uncertainty import (
     DEFAULT_CALIBRATION,
     Calibration,
     Information,
-    covariance,
+    covariance_factor,
     default_weights,
     information,
     nearest_data_distance,
@@ -99,8 +99,11 @@ def anterior_surface_mask(model, preop) -> np.ndarray:
     liver = model.features["liver"]
     if preop is None or preop.regions is None:
         return np.ones(len(liver.rest), bool)
-    _, near = cKDTree(np.asarray(preop.liver.vertices)).query(liver.rest)
-    return np.asarray(preop.regions)[near] == 0
+    key = ("next_plane.anterior", hash(np.asarray(preop.regions).tobytes()), len(preop.liver.vertices))
+    if key not in model.cache:
+        _, near = cKDTree(np.asarray(preop.liver.vertices)).query(liver.rest)
+        model.cache[key] = np.asarray(preop.regions)[near] == 0
+    return model.cache[key]
 
 
 def _vertex_normals(X, faces):
@@ -262,7 +265,7 @@ def suggest_planes(reg, anterior=None, preop=None, poses=None, calibration: Cali
         x, G = point_jacobian(model, beta, nodes=sample)
         deformed = deformed_surfaces(model, beta)
         d0 = nearest_data_distance(x, data)
-        e0 = calibration.predict(d0, point_sigma(G, covariance(info)))
+        e0 = calibration.predict(d0, point_sigma(G, factor=covariance_factor(info)))
         # rigid map model → tracker, to bring the candidate poses into the model frame
         Tm = np.eye(4)
         Tm[:3, :3], Tm[:3, 3] = reg.rigid.R, reg.rigid.t
@@ -274,7 +277,7 @@ def suggest_planes(reg, anterior=None, preop=None, poses=None, calibration: Cali
             if feats:
                 H = info.matrix(_extra_blocks(model, beta, feats, pixels, weights))
                 d1 = np.minimum(d0, nearest_data_distance(x, feats))
-                e1 = calibration.predict(d1, point_sigma(G, covariance(info, H)))
+                e1 = calibration.predict(d1, point_sigma(G, factor=covariance_factor(info, H)))
             else:
                 e1 = e0
             out.append(PlaneCandidate(i, orientation, np.asarray(pose, float), float(e0.mean() - e1.mean()),

@@ -155,24 +155,31 @@ def point_jacobian(model: RegistrationModel, beta, B=None, nodes=None) -> tuple[
     return local @ R.T + beta[n:n + 3] + model.centroid, G
 
 
-def covariance(info: Information, H=None) -> np.ndarray:
-    """Σ_β = s · H⁻¹ (p, p). Directions the data and the energy leave free (H singular,
-    e.g. a rigid mode of the basis against τ, θ) get the pseudo-inverse's zero: they move
-    no point of the organ differently from another."""
+def covariance_factor(info: Information, H=None) -> np.ndarray:
+    """L (p, r) with Σ_β = s · H⁻¹ = L Lᵀ. H is inverted on the directions it determines
+    (eigenvalues above 1e-10 of the largest, after equilibration: α, τ, θ have very
+    different scales); the free ones are combinations of a rigid mode of the basis and
+    τ, θ that move no point of the organ (to first order), so they add nothing to σ."""
     H = info.matrix() if H is None else H
     d = np.sqrt(np.maximum(np.diag(H), 1e-300))
-    Hn = H / np.outer(d, d)  # equilibrate: α, τ, θ have very different scales
-    w, V = np.linalg.eigh(Hn)
+    w, V = np.linalg.eigh(H / np.outer(d, d))
     keep = w > 1e-10 * w.max()
-    inv = (V[:, keep] / w[keep]) @ V[:, keep].T
-    return info.scale * inv / np.outer(d, d)
+    return np.sqrt(info.scale) * (V[:, keep] / np.sqrt(w[keep])) / d[:, None]
 
 
-def point_sigma(G, cov) -> np.ndarray:
-    """σ (P,) mm: sqrt(tr(G Σ Gᵀ)) per point, G (P, 3, p)."""
-    w, V = np.linalg.eigh(cov)
-    L = V * np.sqrt(np.maximum(w, 0.0))  # Σ = L Lᵀ
-    GL = G.reshape(-1, G.shape[-1]) @ L
+def covariance(info: Information, H=None) -> np.ndarray:
+    """Σ_β = s · H⁻¹ (p, p), as ``covariance_factor`` (pseudo-inverse on the free directions)."""
+    L = covariance_factor(info, H)
+    return L @ L.T
+
+
+def point_sigma(G, cov=None, factor=None) -> np.ndarray:
+    """σ (P,) mm: sqrt(tr(G Σ Gᵀ)) per point, G (P, 3, p); Σ given as ``cov`` (p, p) or as
+    a factor L (p, r) with Σ = L Lᵀ (one eigen-decomposition fewer)."""
+    if factor is None:
+        w, V = np.linalg.eigh(cov)
+        factor = V * np.sqrt(np.maximum(w, 0.0))
+    GL = G.reshape(-1, G.shape[-1]) @ factor
     return np.sqrt(np.einsum("ij,ij->i", GL, GL).reshape(len(G), 3).sum(1))
 
 
@@ -214,7 +221,7 @@ def estimate_error(reg, points=None, calibration: Calibration | None = None, B=N
     with threadpool_limits(1):  # small matrices: threaded BLAS only synchronises (see libr.py)
         info = information(model, data, reg.libr.beta, weights)
         x, G = point_jacobian(model, reg.libr.beta, B, nodes=None if B is not None else nodes)
-        sigma = point_sigma(G, covariance(info))
+        sigma = point_sigma(G, factor=covariance_factor(info))
     d = nearest_data_distance(x, data)
     pred = calibration.predict(d, sigma)
     return ErrorEstimate(pred, pred * calibration.lower, pred * calibration.upper, d, sigma, reg.rigid.apply(x),
