@@ -43,6 +43,7 @@ def _key(case, level, planes):
     return (case, level, "-".join(map(str, planes)))
 
 
+@progress.quiet()  # scoped: it also runs in the caller's process (cache warming) and must not silence it
 def run_chunk(case_dir, items, edge=EDGE_MM, k=K):
     """Register one case at the given (level, planes) items; returns CSV rows (dicts)."""
     from ..anatomy.caseio import read_case
@@ -52,7 +53,6 @@ def run_chunk(case_dir, items, edge=EDGE_MM, k=K):
     from ..registration.rigid import TOL_BEFORE_LIBR, rigid_icp
     from ..simulation.levels import data_level
 
-    progress.QUIET = True
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)

@@ -48,7 +48,7 @@ class LMOptions:
     deform: bool = True  # False: only τ, θ move (a rigid fit through the same machinery)
     recompute_in_ratio: bool = False  # True: ρ from Ω with recomputed correspondences (for comparison)
     energy_curvature: bool = True  # add w_E f_E ∇²f_E to JᵀWJ (see module doc)
-
+    condition: bool = False  # report LibrResult.condition (one small eigen-decomposition per iteration)
 
 
 STOP_REASONS = ("converged", "stationary", "max_iterations", "stalled", "no_data", "cancelled")
@@ -78,6 +78,9 @@ class LibrResult:
     # seconds in deform / kdtree (build + nearest-vertex query) / closest (exact points on
     # the candidate cells, normals, tangents) / jacobian / solve
     timings: dict
+    # 2-norm condition number of the last undamped LM matrix JᵀWJ + C, Jacobi-scaled (unit
+    # diagonal, so units of α, τ, θ do not count); inf when singular. Only with LMOptions(condition=True)
+    condition: float | None = None
 
 
 def _solve(A, g):
@@ -92,7 +95,7 @@ def _solve(A, g):
     return sla.lstsq(A, g, check_finite=False)[0]
 
 
-def register_libr(model: RegistrationModel, data: dict, beta0=None, options: LMOptions = LMOptions(),
+def register_libr(model: RegistrationModel, data: dict, beta0=None, options: LMOptions | None = None,
                   callback=None, cancel: threading.Event | None = None) -> LibrResult:
     """Fit β to ``data`` (feature → (N, 3) mm, in the model's frame).
 
@@ -102,7 +105,7 @@ def register_libr(model: RegistrationModel, data: dict, beta0=None, options: LMO
     threaded BLAS spent ~20× longer synchronising than computing on a 2-core machine.
     """
     with threadpool_limits(1):
-        return _register(model, data, beta0, options, callback, cancel)
+        return _register(model, data, beta0, options or LMOptions(), callback, cancel)
 
 
 def _register(model, data, beta0, options, callback, cancel):
@@ -132,6 +135,7 @@ def _register(model, data, beta0, options, callback, cancel):
         return LibrResult(beta, ev.omega, 0, "no_data", history, [], ev.features, time.perf_counter() - start, tim)
     lam = options.lam0
     reason = "max_iterations"
+    condition = None
     it = 0
     for it in range(1, options.max_iterations + 1):
         if cancel is not None and cancel.is_set():
@@ -152,6 +156,9 @@ def _register(model, data, beta0, options, callback, cancel):
             A[:n, :n] += wE * fE * model.basis.energy / model.basis.M
         d = np.diag(A).copy()
         d = np.maximum(d, 1e-12 * max(d.max(), 1e-300))
+        if options.condition:
+            eig = np.linalg.eigvalsh(A / np.sqrt(np.outer(d, d)))
+            condition = float(eig[-1] / eig[0]) if eig[0] > 0 else float("inf")
         step = np.zeros(n + 6)
         step[free] = _solve(A + lam * np.diag(d), g)
         tim["solve"] += time.perf_counter() - t0
@@ -198,4 +205,5 @@ def _register(model, data, beta0, options, callback, cancel):
     if ev.omega > best[0]:  # jitter at the end: report the best state seen
         beta = best[1]
         ev = run(beta, jac=False)
-    return LibrResult(beta, ev.omega, it, reason, history, steps, ev.features, time.perf_counter() - start, tim)
+    return LibrResult(beta, ev.omega, it, reason, history, steps, ev.features, time.perf_counter() - start, tim,
+                      condition)
