@@ -157,6 +157,10 @@ def cmd_study(args):
     from .evaluation.report import write_report
     from .evaluation.table2 import run_table2
 
+    if args.what == "hard":  # its own phantom model and data: no study cases
+        from .evaluation.hard import study_command as hard_command
+
+        return hard_command(args)
     cases = _study_cases(args)
     if args.what == "robustness":
         from .evaluation.robustness import study_command
@@ -291,7 +295,7 @@ def build_parser():
 
     s = sub.add_parser("study", help="table2: the paper's Table II design; cost: accuracy against time; "
                                      "robustness: initial offsets × label noise (all resumable)")
-    s.add_argument("what", choices=("table2", "cost", "robustness", "error-estimate", "next-plane"))
+    s.add_argument("what", choices=("table2", "cost", "robustness", "error-estimate", "next-plane", "hard"))
     s.add_argument("--with-cases", type=Path, nargs="+", help="error-estimate, next-plane: a second set of cases "
                    "judged beside --cases (e.g. the laparoscopic ones)")
     s.add_argument("--with-results", type=Path, help="next-plane: the second set's Table II CSV (for the ranks)")

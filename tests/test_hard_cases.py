@@ -1,5 +1,6 @@
 """Hard cases stay numerically stable: finite β and pose, a fit that never ends with a
-larger Ω than it started from, and either a result or a typed error."""
+larger Ω than it started from, and either a result or a typed error; and the table of
+``navapp study hard`` (navapp/evaluation/hard.py) holds its stated bounds case by case."""
 
 import numpy as np
 import pytest
@@ -35,12 +36,14 @@ def test_no_data(small_model):
 
 @pytest.mark.parametrize("count", [1, 2, 3])
 def test_few_points(small_model, count):
-    check(register(small_model, {"anterior": surface_points(small_model, np.arange(count) * 7) + 1.0}))
+    with pytest.warns(UserWarning, match="not determined"):
+        check(register(small_model, {"anterior": surface_points(small_model, np.arange(count) * 7) + 1.0}))
 
 
 def test_collinear(small_model):
     line = np.linspace([-40.0, 40.0, 0.0], [40.0, 40.0, 10.0], 30)
-    check(register(small_model, {"anterior": line}))
+    with pytest.warns(UserWarning, match="one line"):
+        check(register(small_model, {"anterior": line}))
 
 
 def test_coplanar(small_model):
@@ -109,3 +112,120 @@ def test_non_finite_input_rejected_before_solving(small_model, bad):
     p[3, 1] = bad
     with pytest.raises(InputError, match="NaN or infinite"):
         register(small_model, {"anterior": p})
+
+
+# ---------------------------------------------------------------- the hard-case table
+
+
+@pytest.fixture(scope="module")
+def hard_setup(phantoms, cache_root):
+    from navapp.evaluation.hard import make_setup
+
+    return make_setup(phantoms[0], edge=12.0, k=12, cache_root=cache_root)  # the suite's 12 mm phantom mesh
+
+
+@pytest.fixture(scope="module")
+def hard_results(hard_setup):
+    from navapp.evaluation.hard import run_hard
+
+    return {r.case: r for r in run_hard(hard_setup)}
+
+
+# Cases whose deformation exceeds the stated bound 2 d + 2 mm (docs/decisions.md, "Hard
+# cases"): coplanar data ask little at their own points while the true bending elsewhere is
+# larger (the fit finds it: TRE improves), collinear data fit anywhere along a wrong pose,
+# and an almost unregularised fit bends where no data are. All stay within the energy
+# bound the solver guarantees. Listed so that a change either way is seen.
+EXCEEDS_STATED_BOUND = {"collinear", "coplanar", "soft"}
+
+
+def _case_names():
+    from navapp.evaluation.hard import CASES
+
+    return [c.name for c in CASES]
+
+
+@pytest.mark.parametrize("name", _case_names())
+def test_hard_case_within_its_bounds(hard_results, name):
+    from navapp.evaluation.hard import CASES
+
+    case = next(c for c in CASES if c.name == name)
+    r = hard_results[name]
+    assert r.outcome in case.allowed, r.message
+    assert r.identical  # bit-identical β, pose and TRE from the same input
+    assert "\n" not in r.message
+    if r.outcome == "refused":
+        return
+    assert r.raw_mm <= r.energy_bound_mm  # the guarantee: Ω never ends above its start
+    if name in EXCEEDS_STATED_BOUND:
+        assert r.displacement_mm > r.bound_mm
+    else:
+        assert r.displacement_mm <= r.bound_mm
+    if case.margin_mm is not None:
+        assert r.tre_mm <= r.tre_rigid_mm + case.margin_mm
+    assert r.iterations is not None and r.condition is not None and r.condition > 0
+    others = [f for f in r.failures if "bound" not in f or name not in EXCEEDS_STATED_BOUND]
+    assert not others
+
+
+def test_far_data_frame_registers_like_the_aligned_one(hard_results):
+    """A tracker frame 560 mm from the model's: the principal-axes start now matches the
+    data to the model's vertices from the model's centroid (before: a wrong basin, TRE
+    59.8 mm, flagged as a poor fit)."""
+    base, far = hard_results["baseline"], hard_results["far"]
+    assert far.outcome == "registered"
+    assert abs(far.tre_mm - base.tre_mm) < 0.05 and abs(far.tre_rigid_mm - base.tre_rigid_mm) < 0.05
+
+
+def test_metres_read_as_millimetres_are_refused(hard_results):
+    r = hard_results["metres as mm"]
+    assert r.outcome == "refused" and "metres" in r.message and "millimetres" in r.message
+
+
+@pytest.mark.parametrize("name", ["few", "collinear", "k >> data"])
+def test_an_undetermined_pose_is_said(hard_results, name):
+    """Data that cannot fix the rigid pose (registered silently before: TRE 50–98 mm)."""
+    r = hard_results[name]
+    assert r.outcome == "warned" and "not determined" in r.message
+    assert r.condition > 1e5  # the LM system says the same
+
+
+def test_condition_number_reported_only_when_asked(small_model):
+    p = surface_points(small_model, np.arange(0, 300, 3)) * 1.02
+    assert register(small_model, {"anterior": p}).libr.condition is None
+    a = register(small_model, {"anterior": p}, options=LMOptions(condition=True)).libr
+    b = register(small_model, {"anterior": p}).libr
+    assert 1 <= a.condition < np.inf
+    assert np.array_equal(a.beta, b.beta)  # asking for it changes nothing else
+
+
+def test_undetermined_pose_rules():
+    from navapp.registration.pipeline import undetermined_pose
+
+    rng = np.random.default_rng(0)
+    cloud = rng.normal(size=(50, 3)) * 30
+    line = np.linspace([0, 0, 0], [60, 10, 5], 20) + rng.normal(size=(20, 3)) * 0.01
+    assert undetermined_pose({"anterior": cloud}) is None
+    assert "5 data points" in undetermined_pose({"anterior": cloud[:5]})
+    assert "one line" in undetermined_pose({"anterior": line})
+    # three fiducials off a line fix the pose on their own
+    assert undetermined_pose({"anterior": line, "fiducials": cloud[:3]}) is None
+    assert undetermined_pose({}) is None
+
+
+def test_energy_bound_against_random_states(small_model):
+    """The energy bound holds for any α (not just the fitted ones): random α scaled to
+    f_E = √(Ω₀ / w_E) never displace a node further than it says, and some come close."""
+    from navapp.evaluation.hard import energy_bound
+
+    basis = small_model.basis
+    omega0, w = 2.5e-5, 1e-8
+    bound = energy_bound(small_model, omega0, w)
+    f_max = np.sqrt(omega0 / w)
+    rng = np.random.default_rng(1)
+    worst = 0.0
+    for _ in range(200):
+        a = rng.normal(size=basis.Ju.shape[1])
+        a *= np.sqrt(f_max * 2 * basis.M / (a @ basis.energy @ a))
+        worst = max(worst, np.linalg.norm((basis.Ju @ a).reshape(-1, 3), axis=1).max())
+    assert worst <= bound and worst > 0.05 * bound

@@ -12,6 +12,7 @@ continued; afterwards every feature's residual is checked against its expected n
 
 import json
 import time
+import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -21,6 +22,7 @@ import trimesh
 from ..anatomy.caseio import Case, write_csv
 from ..anatomy.meshing import cached_tetmesh
 from ..defaults import EDGE_MM, K
+from ..errors import InputError
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from ..mechanics.interpolation import interpolation_matrix
 from .libr import LibrResult, LMOptions, register_libr
@@ -192,6 +194,52 @@ def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None) -> tuple[Registratio
     return model, sec
 
 
+# data this many times smaller than the model: metres read as millimetres (a 250 mm organ's
+# data then span ≤ 0.25 mm); no real stylus or iUS set of ≥ 4 points is that small
+UNIT_RATIO = 500.0
+
+
+MIN_SURFACE_POINTS = 6  # one point-to-surface distance per point, six pose parameters
+COLLINEAR = 0.02  # second singular value of the centred points below this × the first: a line
+
+
+def undetermined_pose(data: dict) -> str | None:
+    """One line when the data cannot fix the rigid pose (hard cases "few", "collinear",
+    "k >> data": registered silently before, TRE 50–140 mm): fewer than six points, or
+    points on one line (the rotation about it leaves every residual unchanged); three or
+    more fiducials off a line fix it on their own. None when the pose is determined."""
+    def spread(p):
+        return np.linalg.svd(p - p.mean(0), compute_uv=False) if len(p) > 1 else np.zeros(3)
+
+    fid = data.get("fiducials")
+    if fid is not None and len(fid) >= 3 and spread(fid)[1] > COLLINEAR * spread(fid)[0]:
+        return None
+    pts = np.vstack(list(data.values())) if data else np.zeros((0, 3))
+    if not len(pts):
+        return None
+    if len(pts) < MIN_SURFACE_POINTS:
+        return (f"only {len(pts)} data points: the rigid pose needs at least {MIN_SURFACE_POINTS} and is not "
+                "determined — the result may be far off; add data")
+    s = spread(pts)
+    if s[1] <= COLLINEAR * s[0]:
+        return (f"the {len(pts)} data points lie on one line: the rotation about it is not determined — the "
+                "result may be far off; add data off that line")
+    return None
+
+
+def check_units(model: RegistrationModel, data: dict) -> None:
+    """Refuse data whose extent is a tiny fraction of the model's (hard case "metres as
+    mm": registered silently before, to a meaningless pose)."""
+    pts = [p for p in data.values() if len(p)]
+    if not pts or sum(len(p) for p in pts) < 4:
+        return
+    span = float(np.ptp(np.vstack(pts), axis=0).max())
+    size = float(np.ptp(model.basis.nodes, axis=0).max())
+    if span < size / UNIT_RATIO:
+        raise InputError(f"the data points span {span:.3g} mm against a {size:.0f} mm model: are they in metres? "
+                         "navapp reads coordinates in millimetres")
+
+
 def register(model: RegistrationModel, data: dict, deform=True, options: LMOptions | None = None,
              callback=None, cancel=None, beta0=None, rigid: RigidResult | None = None,
              init: RobustOptions | None = None) -> Registration:
@@ -228,6 +276,9 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         for data that are not (N, 3), not finite, or of an unknown feature.
     """
     data = usable_data(model, data)
+    check_units(model, data)
+    if rigid is None and (why := undetermined_pose(data)):
+        warnings.warn(why, stacklevel=2)
     options = options or LMOptions()
     init = init or RobustOptions()
     if init.huber_salient_mm and not options.weights.huber_mm:
