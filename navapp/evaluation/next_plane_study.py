@@ -24,7 +24,7 @@ from .table2 import read_results
 
 COLUMNS = ("case", "level", "planes", "tre_mean_mm", "tre_table2_mm", "rank", "combinations", "percentile",
            "level_mean_mm", "level_best_mm", "level_worst_mm", "score_mm", "suggest_seconds", "spearman_step",
-           "expected_presence", "expected_median_mm", "expected_count_ratio")
+           "expected_presence", "expected_median_mm", "expected_count_ratio", "rank_fresh", "spearman_fresh")
 
 
 def compare_expected(candidates, plane_ids, case_dir) -> dict:
@@ -81,7 +81,30 @@ def criteria() -> dict:
     return {"ê (default)": cal, "d only": replace(cal, c=0.0), "σ only": replace(cal, b=0.0)}
 
 
-def run_case(case_dir, table, steps=3, edge=4.0, k=45, calibration=None) -> list[dict]:
+def fresh_single_planes(case_dir, edge=4.0, k=45) -> dict:
+    """Mean TRE of S + each single plane registered now (as Table II registers), so that
+    the S + 1 rank does not depend on a CSV made by an older registration: {plane: TRE}."""
+    from ..anatomy.caseio import read_case
+    from ..registration.model import usable_data
+    from ..registration.pipeline import prepare, register, tre_stats
+    from ..registration.rigid import TOL_BEFORE_LIBR, rigid_icp
+    from ..simulation.levels import data_level
+
+    case_dir = Path(case_dir)
+    case = read_case(case_dir)
+    model, _ = prepare(case, edge, k)
+    x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+    rigid_s = rigid_icp(model, usable_data(model, data_level(case_dir, "S", case=case)), tol_mm=TOL_BEFORE_LIBR)
+    out = {}
+    for i in range(len(recorded_poses(case_dir))):
+        reg = register(model, data_level(case_dir, "S+planes", planes=(i,), case=case), rigid=rigid_s)
+        out[i] = tre_stats(reg.transform(x0), x1)["mean_mm"]
+    return out
+
+
+def run_case(case_dir, table, steps=3, edge=4.0, k=45, calibration=None, fresh=None) -> list[dict]:
+    """Greedy suggestions from S on one case; ``fresh``: ``fresh_single_planes`` of the case
+    (adds the S + 1 rank among this run's own single-plane registrations)."""
     from ..anatomy.caseio import read_case
     from ..registration.model import usable_data
     from ..registration.next_plane import suggest_planes
@@ -125,6 +148,11 @@ def run_case(case_dir, table, steps=3, edge=4.0, k=45, calibration=None) -> list
                "spearman_step": None if np.isnan(rho) else round(rho, 3)}
         if m == 1:  # the expected features against what the planes really showed, from S
             row.update(compare_expected(sugg.candidates, remaining, case_dir))
+            if fresh:
+                v = np.array(list(fresh.values()))
+                row["rank_fresh"] = int(1 + np.sum(v < fresh[chosen[0]]))
+                row["spearman_fresh"] = round(_spearman([c.score_mm for c in sugg.candidates],
+                                                        [fresh[remaining[c.index]] for c in sugg.candidates]), 3)
         if level_tres:
             v = np.array(list(level_tres.values()))
             t = ref if ref is not None else tre
@@ -174,10 +202,11 @@ def run_study(sets: dict, out_dir, steps=3, bench_case=None, repeats=5):
     with progress.bar(n, "next plane: cases × criteria", "case") as pb:
         for label, (dirs, csv_path) in sets.items():
             table = _table(read_results(csv_path))
+            fresh = {Path(d).name: fresh_single_planes(d) for d in dirs}
             for cname, cal in crit.items():
                 all_rows[label, cname] = []
                 for d in dirs:
-                    all_rows[label, cname] += run_case(d, table, steps, calibration=cal)
+                    all_rows[label, cname] += run_case(d, table, steps, calibration=cal, fresh=fresh[Path(d).name])
                     pb.update(1)
     bench = benchmark(bench_case, repeats) if bench_case else None
     out = Path(out_dir)
@@ -211,7 +240,9 @@ def summary(rows) -> dict:
             "combinations": have[0][1]["combinations"] if have else 0,
             "percentile": float(np.mean([r["percentile"] for _, r in have])) if have else None,
             "better": sum(t < r["level_mean_mm"] for t, r in have), "cases": len(have),
-            "rho": float(np.median(rhos)) if rhos else None}
+            "rho": float(np.median(rhos)) if rhos else None,
+            "rank_fresh": [r["rank_fresh"] for r in rr if r.get("rank_fresh") is not None],
+            "rho_fresh": [r["spearman_fresh"] for r in rr if r.get("spearman_fresh") is not None]}
     return out
 
 
@@ -242,6 +273,12 @@ def markdown(all_rows, sets, bench) -> str:
                             f"{_fmt(v['worst'])} | {_fmt(v['median_rank'], '{:.0f}')} of {v['combinations']} | "
                             f"{_fmt(v['percentile'], '{:.0f}')} % | {v['better']} of {v['cases']} cases | "
                             f"{_fmt(v['rho'])} |\n")
+        for cname in names:
+            v = summary(all_rows[label, cname]).get("S+1")
+            if v and v["rank_fresh"]:
+                text.append(f"\n{cname}, S + 1 against this run's own registration of S + each single plane (not the "
+                            f"CSV): ranks {', '.join(map(str, v['rank_fresh']))} of 16 (median "
+                            f"{np.median(v['rank_fresh']):.0f}), median ρ {np.median(v['rho_fresh']):.2f}.\n")
         rows = all_rows[label, names[0]]
         first = [r for r in rows if r["level"] == "S+1" and r.get("expected_presence") is not None]
         if first:
