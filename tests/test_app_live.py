@@ -141,6 +141,7 @@ def test_live_re_registration_follows_the_frames_and_reaches_slicer(live_app):
         assert sum(len(v) for v in follower.reg.base.values()) == n_kept
         assert app.set_live_follow(False) is None
         assert wait_until(lambda: app.session.log and "live" in app.session.log[-1], 60)
+        assert {"seconds", "stop", "iterations", "points"} <= set(app.session.log[-1])  # what the run table shows
         final = app.last_reg
         assert final.libr is not None and np.isfinite(final.libr.beta).all()
         assert app.session.result["run"].startswith("live")  # kept, and saved for a restart

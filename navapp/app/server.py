@@ -441,8 +441,12 @@ class App:
                 self.worker.last = reg  # a warm start continues from here
             if final:
                 self.session.result = state.to_json()
+                lm = reg.libr
                 entry = {"run": state.run, "points": int(sum(len(v) for v in self.data("all").values())),
-                         "iterations": reg.libr.iterations if reg.libr else 0, "live": summary}
+                         "seconds": round(float(sum(reg.seconds.values())), 3),
+                         "iterations": lm.iterations if lm else 0, "stop": lm.stop_reason if lm else "rigid",
+                         "updates_streamed": 0, "cancelled": False, "trace": [], "live": summary,
+                         "note": summary.split(",")[0]}
                 if err is not None:
                     entry.update(error_mean_mm=round(float(err.mean()), 3), error_max_mm=round(float(err.max()), 3))
                 self.session.log.append(entry)

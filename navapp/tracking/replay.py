@@ -115,12 +115,14 @@ def interpolate_pose(a, b, f) -> np.ndarray:
 
 
 def script_from_scene(scene, transit_frames: int = 6, dwell_s: float = 2.0, move_s: float = 1.0,
-                      cache_root=None) -> ReplayScript:
-    """The scene simulated (or loaded from the cache) as the viewer does, made playable."""
+                      cache_root=None, edge: float | None = None) -> ReplayScript:
+    """The scene simulated (or loaded from the cache) as the viewer does, made playable.
+    ``edge``: the viewer's registration mesh size, to share its cached simulation (what is
+    played does not depend on it)."""
     from ..errors import InputError
     from ..simulation.scenedata import acquire_free_plane, load_scene_data
 
-    sd = load_scene_data(scene, cache_root)
+    sd = load_scene_data(scene, cache_root) if edge is None else load_scene_data(scene, cache_root, edge)
     if not sd.planes:
         raise InputError("the scene has no iUS planes to replay ([ius] planes = 0)", scene.source)
     if len(sd.stylus_path) == 0:

@@ -1,6 +1,8 @@
 """One browser tab's view: its GUI panels and 3D scene nodes, built when the tab connects
 and refreshed from the App's shared state. Each panel is a module of its own."""
 
+import time
+
 import numpy as np
 
 from ..state import ClientState
@@ -13,6 +15,8 @@ from .stylus import StylusPanel
 from .tracking import TrackingPanel
 from .ultrasound import UltrasoundPanel
 
+DISTANCE_TEXT_S = 0.2  # tumour-distance text refreshed at most this often while a tracked tip moves
+
 
 class ClientView:
     """Everything one browser sees. ``refresh(what)`` is called after shared changes:
@@ -20,6 +24,7 @@ class ClientView:
 
     def __init__(self, app, client, cs: ClientState):
         self.app, self.client, self.cs = app, client, cs
+        self._dist_shown = 0.0
         g = client.gui
         self.status = g.add_markdown("")
         self.bar = g.add_progress_bar(0.0, animated=True)
@@ -63,7 +68,10 @@ class ClientView:
 
     def show_live_tip(self, tip):
         self.layers.show_stylus(tip)
-        self.stylus.dist.content = "  \n".join(self.app.target_distance_lines(tip))
+        now = time.monotonic()
+        if now - self._dist_shown >= DISTANCE_TEXT_S:  # the tip moves at tracker rate; text needs less
+            self._dist_shown = now
+            self.stylus.dist.content = "  \n".join(self.app.target_distance_lines(tip))
 
     def show_live_frame(self, frame):
         if self.tracking.follow.value:

@@ -101,6 +101,6 @@ class RegistrationPanel:
             its = "ICP" if e["stop"] == "rigid" else f"{e['iterations']} it"
             mean = f"{e['error_mean_mm']:.2f} mm" if "error_mean_mm" in e else "–"
             mx = f"{e['error_max_mm']:.2f} mm" if "error_max_mm" in e else "–"
-            note = "cancelled" if e.get("cancelled") else ("⚠ poor fit" if e.get("warning") else "")
+            note = "cancelled" if e.get("cancelled") else ("⚠ poor fit" if e.get("warning") else e.get("note", ""))
             rows.append(f"| {e['run']} | {e['points']} | {e['seconds']:.2f} s | {its} | {mean} | {mx} | {note} |")
         self.table.content = "\n".join(rows)

@@ -1,0 +1,160 @@
+"""A live session in a real browser: ``navapp replay``'s server plays the demo scene over
+OpenIGTLink (stylus sweep, probe moving between plane poses, B-mode frames at 25 Hz);
+``navapp serve --igtl`` connects to it and ``--slicer`` sends results to a pyigtl server
+standing in for 3D Slicer. In Chromium: the tools are seen, the stylus digitises while the
+switch is on, a frame is frozen and shown in the 2D view, "Re-register on every frame"
+follows the frames, and switched off keeps a converged result that reaches "Slicer".
+
+The tracker → browser latency is measured on the way: each stylus position the browser's
+websocket receives is matched to the replayed message carrying exactly that position
+(printed; the closing numbers come from this test run with -s, not asserted).
+
+Needs /usr/bin/chromium and playwright, like test_app_browser.py.
+"""
+
+import os
+import re
+import statistics
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import free_port
+from test_app_browser import ARGS, CHROMIUM, VIEW, us_frame, wait_text
+
+pytestmark = [pytest.mark.skipif(not CHROMIUM.exists(),
+                                 reason="Chromium not installed (apt-get install -y chromium; .ci/run does)")]
+playwright = pytest.importorskip("playwright.sync_api", reason="playwright not installed (pip install -e '.[test]')")
+
+EDGE, K = 6.0, 20  # as the other browser tests: a short cold start on 2 cores
+
+
+def stylus_positions(frame: bytes) -> list:
+    """Positions (3,) of the stylus node in one viser websocket frame (see
+    test_app_browser.registered_liver_updates for the frame layout)."""
+    import msgspec
+    import zstandard
+
+    if not isinstance(frame, bytes) or len(frame) < 16:
+        return []
+    n = int.from_bytes(frame[8:16], "little")
+    inner = msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(frame[16:16 + n]))
+    out = []
+    for m in inner.get("messages", ()):
+        if m.get("name") == "/stylus/tool":
+            pos = m.get("updates", {}).get("position", m.get("position"))
+            if pos is not None and len(pos) == 3:
+                out.append(np.array(pos, float))
+    return out
+
+
+def toggle(page, label, on):
+    """Set a checkbox, checking that the click took (the panel re-renders as status changes)."""
+    box = page.get_by_label(label, exact=True).first
+    for _ in range(5):
+        if box.is_checked() == on:
+            return
+        box.click()
+        page.wait_for_timeout(300)
+    assert box.is_checked() == on, f"{label!r} did not turn {'on' if on else 'off'}"
+
+
+def test_a_live_session_from_the_replay_server(tmp_path):
+
+    from navapp.simulation.scene import demo_scene
+    from navapp.tracking.replay import ReplayServer, quiet_server, script_from_scene
+    from navapp.tracking.results import RIGID, TARGETS
+
+    shots = Path(os.environ.get("NAVAPP_SCREENSHOTS", tmp_path))
+    shots.mkdir(parents=True, exist_ok=True)
+    script = script_from_scene(demo_scene(), transit_frames=2, edge=EDGE)  # simulates into the shared cache
+    replay = ReplayServer(script, port=0, rate_hz=25).start()
+    slicer = quiet_server(0)  # 3D Slicer's OpenIGTLinkIF connector in server mode
+    slicer.start()
+    port = free_port()
+    log = tmp_path / "server.log"
+    proc = subprocess.Popen([sys.executable, "-m", "navapp.cli", "--quiet", "serve", "--port", str(port),
+                             "--session", str(tmp_path / "session"), "--edge", str(EDGE), "--k", str(K),
+                             "--igtl", f"127.0.0.1:{replay.port}", "--slicer", f"127.0.0.1:{slicer.server_address[1]}"],
+                            stdout=log.open("w"), stderr=subprocess.STDOUT, text=True,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1"})  # a file: a full pipe would block it
+    frames = []
+    try:
+        url = None
+        t0 = time.time()
+        while time.time() - t0 < 120 and url is None and proc.poll() is None:
+            m = re.search(r"viewer at (http://\S+)", log.read_text())
+            url = m.group(1) if m else None
+            time.sleep(0.1)
+        assert url, f"the server did not print its URL: {log.read_text()[-2000:]}"
+        with playwright.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
+            page = browser.new_page(viewport=VIEW)
+            page.on("websocket", lambda ws: ws.on("framereceived", lambda f: frames.append((time.time(), f))))
+            page.goto(url)
+            wait_text(page, r"Ready\.", 900)
+            wait_text(page, rf"connected to 127\.0\.0\.1:{replay.port}", 30)
+            wait_text(page, r"StylusTipToReference: \*?\*?seen", 30)
+            wait_text(page, r"Image_Reference: \*?\*?seen", 30)
+
+            # digitise while the switch is on
+            toggle(page, "Digitise (record while on)", True)
+            page.wait_for_timeout(2500)
+            toggle(page, "Digitise (record while on)", False)
+            n = int(wait_text(page, r"(\d+) points digitised with the tracked stylus", 10).group(1))
+            assert n >= 10
+
+            # freeze the live frame: it becomes a plane shown in the 2D view
+            page.get_by_role("button", name="Freeze this frame as a plane (to draw on)").click()
+            us = us_frame(page)
+            end = time.time() + 20
+            while time.time() < end and "live 1" not in us.inner_text("#title"):
+                page.wait_for_timeout(100)
+            assert "live 1" in us.inner_text("#title"), us.inner_text("#title")
+
+            # re-register on every frame, then switch off: converged, kept, sent to Slicer
+            toggle(page, "Re-register on every frame", True)
+            m = wait_text(page, r"(\d+) frames re-registered, (\d+) ms median", 180)
+            end = time.time() + 60
+            while time.time() < end and int(m.group(1)) < 10:
+                page.wait_for_timeout(500)
+                m = wait_text(page, r"(\d+) frames re-registered, (\d+) ms median", 5)
+            assert int(m.group(1)) >= 10
+            page.mouse.move(700, 600)  # no tooltip over the panel in the picture
+            page.wait_for_timeout(300)
+            page.screenshot(path=shots / "app_live.png")
+            toggle(page, "Re-register on every frame", False)
+            wait_text(page, r"live \(every frame\)", 60)  # the kept result's row in the run table
+            rigid = slicer.wait_for_message(RIGID, timeout=10)
+            targets = slicer.wait_for_message(TARGETS, timeout=10)
+            assert rigid is not None and targets is not None
+            assert np.isfinite(rigid.matrix).all() and len(targets.positions) == 2
+            browser.close()
+    except BaseException:
+        print("server output:\n" + log.read_text()[-4000:])
+        raise
+    finally:
+        proc.terminate()
+        proc.wait(20)
+        replay.stop()
+        slicer.stop()
+
+    # tracker message → browser: match the stylus positions the browser received to the
+    # replayed messages carrying exactly them (float32 on the wire)
+    sent = {}
+    for stamp, name, m in list(replay.sent):
+        if name == "StylusTipToReference":
+            sent.setdefault(tuple(np.round(m[:3, 3].astype(float), 3)), stamp)
+    lat = []
+    for t, f in frames:
+        for pos in stylus_positions(f):
+            stamp = sent.get(tuple(np.round(pos, 3)))
+            if stamp is not None:
+                lat.append(1000 * (t - stamp))
+    assert len(lat) >= 20, f"only {len(lat)} stylus positions matched"
+    lat.sort()
+    print(f"\ntracker message → browser websocket: {len(lat)} stylus updates, median "
+          f"{statistics.median(lat):.1f} ms, p90 {lat[int(0.9 * len(lat))]:.1f} ms, max {lat[-1]:.1f} ms")
