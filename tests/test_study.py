@@ -15,18 +15,33 @@ def test_design_has_the_papers_counts():
     assert len(set(s)) == len(s)
 
 
-def test_quick_run_is_resumable_and_reported(tmp_path, cache_root, phantoms):
+@pytest.fixture(scope="module")
+def quick_case(tmp_path_factory, cache_root):
+    """A small simulated case (phantom 0, 16 planes) registered on a 12 mm mesh, k = 12."""
     from navapp.simulation.scene import parse_scene
     from navapp.simulation.simulate import simulate
 
     scene = parse_scene({"name": "q", "anatomy": {"phantom": 0},
                          "deformation": {"release": "L", "mesh_edge_mm": 10.0}, "ius": {"planes": 16}})
-    case = tmp_path / "q"
+    case = tmp_path_factory.mktemp("study") / "q"
     simulate(scene, case, cache_root, registration_edge=12.0)
-    csv = tmp_path / "t2.csv"
-    n = run_table2([case], csv, workers=1, quick=True, edge=12.0, k=12)
+    return case
+
+
+@pytest.fixture(scope="module")
+def local_rows(quick_case, tmp_path_factory):
+    """The quick design run on local processes: (CSV path, rows)."""
+    csv = tmp_path_factory.mktemp("local") / "t2.csv"
+    n = run_table2([quick_case], csv, workers=1, quick=True, edge=12.0, k=12)
     rows = read_results(csv)
-    assert n == len(rows) == 11
+    assert n == len(rows)
+    return csv, rows
+
+
+def test_quick_run_is_resumable_and_reported(quick_case, local_rows):
+    case = quick_case
+    csv, rows = local_rows
+    assert len(rows) == 11
     assert all(np.isfinite(float(r["tre_mean_mm"])) for r in rows)
     assert run_table2([case], csv, workers=1, quick=True, edge=12.0, k=12) == 0  # everything done: nothing reruns
     assert len(read_results(csv)) == 11
@@ -66,3 +81,95 @@ def test_an_unreachable_dask_scheduler_is_one_line(monkeypatch):
     assert time.time() - t0 < 30
     msg = str(e.value)
     assert "\n" not in msg and f"127.0.0.1:{port}" in msg and "no Dask scheduler answers" in msg
+
+
+NO_DASK = "Dask distributed is not installed (pip install -e '.[test]')"
+
+
+def _same_rows(a, b):
+    """Rows equal up to order and wall time (seconds differ from run to run)."""
+    def key(r):
+        return (r["case"], r["level"], r["planes"])
+
+    def strip(r):
+        return {k: v for k, v in r.items() if k != "seconds"}
+
+    return [strip(r) for r in sorted(a, key=key)] == [strip(r) for r in sorted(b, key=key)]
+
+
+def _study_cli(monkeypatch, case, tmp, *extra):
+    """`navapp study table2 --quick` on ``case`` at the small test model (12 mm, k = 12:
+    the CLI's defaults are the 4 mm, k = 45 model), its 11 scenarios in two chunks (so that
+    two workers both get one). Returns (exit code, CSV path)."""
+    import functools
+
+    from navapp import cli
+    from navapp.evaluation import table2
+
+    monkeypatch.setattr(table2, "run_table2", functools.partial(table2.run_table2, edge=12.0, k=12, chunk=6))
+    csv = tmp / "t2.csv"
+    code = cli.main(["--quiet", "study", "table2", "--quick", "--cases", str(case), "--results", str(csv),
+                     "--report", str(tmp / "report"), *extra])
+    return code, csv
+
+
+def test_dask_scheduler_matches_the_local_run(quick_case, local_rows, tmp_path, monkeypatch):
+    """`navapp study table2 --quick --scheduler ADDRESS` against a real Dask cluster (two
+    worker processes): it finishes and every row equals the local run's (TRE, iterations,
+    stop reason; only the wall time differs)."""
+    distributed = pytest.importorskip("distributed", reason=NO_DASK)
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                                  host="127.0.0.1") as cluster:
+        code, csv = _study_cli(monkeypatch, quick_case, tmp_path, "--scheduler", cluster.scheduler_address)
+        assert code == 0
+        with distributed.Client(cluster) as client:  # both workers were there to take chunks
+            assert len(client.scheduler_info()["workers"]) == 2
+    rows = read_results(csv)
+    assert len(rows) == len(local_rows[1]) == 11
+    assert _same_rows(rows, local_rows[1])
+
+
+def test_an_unreachable_scheduler_from_the_command_line_is_one_line(quick_case, tmp_path, monkeypatch, capsys):
+    pytest.importorskip("distributed", reason=NO_DASK)
+    import socket
+
+    from navapp.evaluation import table2
+
+    with socket.socket() as s:  # a port where nothing listens
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    monkeypatch.setattr(table2, "DASK_CONNECT_S", 2)
+    code, _ = _study_cli(monkeypatch, quick_case, tmp_path, "--scheduler", f"tcp://127.0.0.1:{port}")
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert "\n" not in err and "Traceback" not in err
+    assert err.startswith(f"navapp: error: --scheduler tcp://127.0.0.1:{port}: no Dask scheduler answers")
+
+
+def test_quiet_is_scoped(monkeypatch):
+    """progress.quiet() hides bars inside its block only, nests, and restores on error;
+    run_chunk (which also runs in the caller's process, to warm caches) no longer leaves
+    progress.QUIET set behind it."""
+    from navapp import progress
+    from navapp.anatomy import caseio
+    from navapp.evaluation.table2 import run_chunk
+
+    monkeypatch.setattr(progress, "QUIET", False)
+    assert not progress.is_quiet()
+    with progress.quiet():
+        assert progress.is_quiet() and progress.bar(3, "x").disable
+        with progress.quiet(False):
+            assert not progress.is_quiet()
+        assert progress.is_quiet()
+    assert not progress.is_quiet() and not progress.bar(3, "x").disable
+    seen = []
+
+    def failing_read(path):
+        seen.append(progress.is_quiet())
+        raise RuntimeError("stop here")
+
+    monkeypatch.setattr(caseio, "read_case", failing_read)
+    with pytest.raises(RuntimeError, match="stop here"):
+        run_chunk("no-such-case", [])
+    assert seen == [True]
+    assert progress.QUIET is False and not progress.is_quiet()
