@@ -179,9 +179,6 @@ def _screen_geometry(model: RegistrationModel, name: str):
     return model.cache[key]
 
 
-FAR_MM = 50.0  # data centroid this far from every model surface point: the tracker pose aligns nothing
-
-
 def start_poses(model: RegistrationModel, data: dict, angle_deg=15.0, principal_axes=True) -> list[Start]:
     """The tracker pose, ±``angle_deg`` about each coordinate axis through the data
     centroid (the expected error of a tracker-to-image set-up), and a principal-axes
@@ -196,11 +193,12 @@ def start_poses(model: RegistrationModel, data: dict, angle_deg=15.0, principal_
             Q = _axis_rotation(axis, sign * np.radians(angle_deg))
             starts.append(Start(f"r{name}{'+' if sign > 0 else '-'}{angle_deg:g}", Q, c - Q @ c))
     if principal_axes and len(pts) >= 4:
-        # data far from the model (a tracker frame nothing aligned: the hard case "far"):
-        # their nearest model vertices say nothing, so take those of the data moved onto
-        # the model's centroid instead
-        surface = model.features["liver"].rest
-        shift = model.centroid - c if np.min(np.linalg.norm(surface - c, axis=1)) > FAR_MM else np.zeros(3)
+        # data centred outside the sphere around the organ (a tracker frame nothing aligned:
+        # the hard case "far"): their nearest model vertices say nothing, so take those of
+        # the data moved onto the model's centroid instead. Aligned study data centre
+        # within 40 mm of it (radius 130–137 mm), so 40 mm offsets never get here
+        radius = np.linalg.norm(model.features["liver"].rest - model.centroid, axis=1).max()
+        shift = model.centroid - c if np.linalg.norm(c - model.centroid) > radius else np.zeros(3)
         near = []
         for name, Y in data.items():
             if name == "fiducials":
