@@ -183,6 +183,38 @@ def test_warm_rerun_sweep_and_export(app):
     assert (out / "data_anterior.csv").exists()
 
 
+def test_predicted_error_and_the_suggested_next_plane(app):
+    """Issue 12 in the viewer: a deformable result carries the error predicted without the
+    truth, at the surface and the targets; a tab colours by it or by the true error; and
+    "Suggest the next plane" acquires the best-ranked pose as this tab's plane."""
+    wait_idle(app)
+    res = app.result
+    S = app.model.basis.surface
+    assert res.beta is not None and res.predicted_mm is not None and res.predicted_mm.shape == S.shape
+    assert np.isfinite(res.predicted_mm).all() and (res.predicted_mm > 0).all()
+    assert [b.name for b in res.target_bands] == [t.name for t in app.preop.targets]
+    assert all(0 < b.lower_mm < b.predicted_mm < b.upper_mm for b in res.target_bands)
+    cs = app.new_client_state()
+    assert np.array_equal(app.surface_error(cs), res.node_error_mm[S])  # the truth is known: true error first
+    cs.error_source = "predicted"
+    assert app.surface_error(cs) is res.predicted_mm
+    messages = []
+    n_free = len(app.session.free_planes)
+    assert app.suggest_plane(cs, messages.append) is None
+    wait_idle(app)
+    assert messages and messages[0].startswith("Suggested"), messages
+    assert len(app.session.free_planes) == n_free + 1 and cs.plane == app.session.free_planes[-1]["index"]
+    T = app.planes[cs.plane].probe_to_tracker
+    assert np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-9)
+    assert any("predicted error" in line for line in app.target_plane_lines(cs.plane))
+    rigid_only = app.new_client_state()
+    app.last_reg, kept = None, app.last_reg
+    try:
+        assert "Register deformably first" in app.suggest_plane(rigid_only, messages.append)
+    finally:
+        app.last_reg = kept
+
+
 def test_a_restarted_server_restores_the_session_and_the_registered_model(app, cache_root):
     wait_idle(app)
     again = start_app(cache_root, app.session.folder)
@@ -192,6 +224,7 @@ def test_a_restarted_server_restores_the_session_and_the_registered_model(app, c
         assert again.result is not None and again.result.run == app.result.run
         assert np.allclose(again.result.beta, app.result.beta)
         assert np.allclose(again.result.node_error_mm, app.result.node_error_mm)
+        assert np.allclose(again.result.predicted_mm, app.result.predicted_mm)  # from the saved data
         out, _ = again.export()  # Export works without registering again
         assert out is not None and (out / "registered_liver.ply").exists()
         assert again.register("warm") is None  # and a warm start continues from it

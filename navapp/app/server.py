@@ -33,7 +33,7 @@ from .contours import CENTERLINE_OF, DRAWABLE, Contour, contour_pixels
 from .live import LIVE_PLANE_BASE
 from .overlays import Overlay, section_pixels
 from .session import default_folder, export, open_session
-from .state import Action, ClientState, RegisteredState, StateGeometry
+from .state import Action, ClientState, RegisteredState, StateGeometry, TargetBand
 from .view2d import View2DServer
 from .worker import RegistrationWorker, cancelled
 
@@ -259,9 +259,75 @@ class App:
         if beta is not None and len(beta) != self.model.basis.Ju.shape[1] + 6:
             return  # another basis size (different --k): nothing to restore
         libr = None if beta is None else LibrResult(beta, float("nan"), 0, "restored", [], [], {}, 0.0, {})
-        reg = Registration(self.model, rigid, libr, {})
+        # the data in the model frame (T⁻¹), for the predicted error: what the session holds now
+        inv = {k: (np.asarray(v, float) - rigid.t) @ rigid.R for k, v in self.data("all").items()}
+        reg = Registration(self.model, rigid, libr, inv)
         self.last_reg = self.worker.last = reg
-        self.result = RegisteredState(d.get("run", "restored"), rigid, beta, self._node_error(rigid, beta))
+        self.result = RegisteredState(d.get("run", "restored"), rigid, beta, self._node_error(rigid, beta),
+                                      *self._predict(reg))
+
+    def _predict(self, reg) -> tuple:
+        """The predicted error without the truth (``registration.uncertainty``): (S,) at the
+        surface nodes, and a ``TargetBand`` per target; (None, []) for a rigid result or
+        when it cannot be had (too few data)."""
+        from ..registration.uncertainty import estimate_error
+
+        if reg.libr is None or not reg.data_model_frame:
+            return None, []
+        try:
+            surface = estimate_error(reg, nodes=self.model.basis.surface).predicted_mm
+            bands = []
+            if self.preop.targets:
+                est = estimate_error(reg, points=np.array([t.centre for t in self.preop.targets]))
+                bands = [TargetBand(t.name, float(e), float(lo), float(hi)) for t, e, lo, hi in
+                         zip(self.preop.targets, est.predicted_mm, est.lower_mm, est.upper_mm, strict=True)]
+            return surface, bands
+        except (np.linalg.LinAlgError, ValueError):
+            return None, []
+
+    def surface_error(self, cs: ClientState, node_error=None) -> np.ndarray | None:
+        """(S,) the error this tab colours the registered surface by: the predicted error
+        of the result on show, or the true error (``node_error`` (M,) of a streaming state,
+        else the result's) when the truth is known and the tab chose it."""
+        res = self.result
+        if cs.error_source == "predicted" or self.truth_nodes is None:
+            return None if res is None or node_error is not None else res.predicted_mm
+        e = node_error if node_error is not None else (res.node_error_mm if res is not None else None)
+        return None if e is None else e[self.model.basis.surface]
+
+    def suggest_plane(self, cs: ClientState, on_done) -> str | None:
+        """Rank candidate probe poses by the expected drop of the mean predicted error
+        (``registration.next_plane``) in the worker thread; the best is acquired as this
+        tab's plane and ``on_done(message)`` says what was suggested."""
+        from ..registration.next_plane import suggest_planes
+
+        reg = self.last_reg
+        if reg is None or reg.libr is None or not reg.data_model_frame:
+            return "Register deformably first: the suggestion ranks planes by what they would add to a fit."
+        if self.live is not None and self.live.follower.on:
+            return "Live re-registration is on: switch it off first."
+
+        def job(cancel):
+            try:
+                return suggest_planes(reg, preop=self.preop)
+            except Exception as exc:  # said in the panel; the button comes back
+                return f"No suggestion: {exc.__class__.__name__}: {exc}"
+
+        def done(sug):
+            if isinstance(sug, str) or not sug.candidates:
+                on_done(sug if isinstance(sug, str) else "No candidate pose on the anterior surface.")
+                return
+            best = sug.best
+            index = self.place_probe(cs, best.pose)
+            o = best.pose[:3, 3]
+            feats = ", ".join(sorted(best.features)) or "nothing"
+            on_done(f"Suggested: a {best.orientation} plane with its probe face at ({o[0]:.0f}, {o[1]:.0f}, "
+                    f"{o[2]:.0f}) mm (now {self.plane_label(index)}), expected to show {feats}; mean predicted "
+                    f"error over the organ {sug.current_mean_mm:.2f} → {best.predicted_mean_mm:.2f} mm. "
+                    f"{len(sug.candidates)} poses ranked in {sug.seconds:.1f} s. Add its segmentation or draw on it.")
+
+        ok = self.worker.submit(job, done)
+        return None if ok else "A registration is running; try again when it has finished."
 
     # ------------------------------------------------------------------ derived geometry
     def node_positions(self, rigid, beta) -> np.ndarray:
@@ -434,7 +500,8 @@ class App:
             return
         self._live_shown = now
         err = self._node_error(reg.rigid, beta)
-        state = RegisteredState("live (every frame)", reg.rigid, beta, err)
+        predicted = self._predict(reg) if final else (None, [])  # ~0.1 s: not on every frame
+        state = RegisteredState("live (every frame)", reg.rigid, beta, err, *predicted)
         with self.lock:
             self.result, self.last_reg = state, reg
             if self.worker is not None:
@@ -729,8 +796,9 @@ class App:
             err = self._node_error(reg.rigid, beta)
             if err is not None:
                 entry.update(error_mean_mm=round(float(err.mean()), 3), error_max_mm=round(float(err.max()), 3))
+            predicted = self._predict(reg)
             with self.lock:
-                self.result = RegisteredState(run["label"], reg.rigid, beta, err)
+                self.result = RegisteredState(run["label"], reg.rigid, beta, err, *predicted)
                 self.last_reg = reg
                 self.session.result = self.result.to_json()
         with self.lock:
@@ -907,10 +975,13 @@ class App:
         p = self.sd.probe
         plane = ImagePlane.from_pose(self.planes[index].probe_to_tracker, p.width_px * p.spacing_mm,
                                      p.height_px * p.spacing_mm)
+        bands = {b.name: b for b in self.result.target_bands} if self.result is not None else {}
         out = []
         for t, d in zip(targets, plane_distances(plane, targets), strict=True):
+            band = bands.get(t.name)
             out.append(f"**{t.name}** ({self._which()}): " +
-                       ("in this image" if d <= 0.05 else f"{d:.1f} mm from this image"))
+                       ("in this image" if d <= 0.05 else f"{d:.1f} mm from this image") +
+                       (f"; {band.text()}" if band is not None and self.run is None else ""))
         return out
 
     def target_distance_lines(self, tip) -> list[str]:

@@ -41,6 +41,7 @@ class ClientState:
     version: int = 0  # bumped when anything this tab shows of its own changes
     guide_step: int = 0
     error_scale_mm: float = ERROR_SCALE_MM
+    error_source: str = "true"  # colour the registered surface by the "true" or the "predicted" error
     message: str = ""  # last message for the 2D view
 
     def touch(self):
@@ -67,8 +68,24 @@ class RegisteredState:
     rigid: object  # RigidResult
     beta: np.ndarray | None
     node_error_mm: np.ndarray | None = None  # (M,) over the mesh nodes, when the truth is known
+    predicted_mm: np.ndarray | None = None  # (S,) predicted error at the surface nodes (no truth needed)
+    target_bands: list = field(default_factory=list)  # [TargetBand]: predicted error at each target
 
     def to_json(self) -> dict:
         return {"run": self.run, "R": np.asarray(self.rigid.R).tolist(), "t": np.asarray(self.rigid.t).tolist(),
                 "rms_mm": float(self.rigid.rms_mm),
                 "beta": None if self.beta is None else np.asarray(self.beta).tolist()}
+
+
+@dataclass(frozen=True)
+class TargetBand:
+    """The predicted registration error at one target's centre (mm): ê and the band that
+    held the true error for 90 % of the calibration cases' points."""
+
+    name: str
+    predicted_mm: float
+    lower_mm: float
+    upper_mm: float
+
+    def text(self) -> str:
+        return f"predicted error {self.predicted_mm:.1f} mm ({self.lower_mm:.1f}–{self.upper_mm:.1f})"

@@ -80,10 +80,11 @@ class ClientView:
                 self.layers.show_plane(plane)
 
     def show_live_registration(self, geom, error):
-        self.layers.show_registered(geom, error=error)
+        self.layers.show_registered(geom, error=self.app.surface_error(self.cs, error) if error is not None else None)
 
     def show_update(self, u, geom):
-        self.layers.show_registered(geom, error=self.app.run.get("error") if self.app.run else None)
+        err = self.app.run.get("error") if self.app.run else None
+        self.layers.show_registered(geom, error=self.app.surface_error(self.cs, err) if err is not None else None)
         self.registration.show_update(u)
 
 

@@ -29,6 +29,8 @@ STANDARD_VIEWS = {  # camera direction from the liver centroid (navapp frame: +x
 }
 LAYERS = ("Preoperative liver", "Preoperative vessels", "Targets", "Collected data", "Registered liver",
           "Registered vessels", "Error colours", "True deformed liver (ghost)", "Ultrasound plane", "Stylus")
+TRUE, PREDICTED = "true error", "predicted error"
+ERROR_SOURCES = {TRUE: "true error", PREDICTED: "predicted error, no truth needed"}  # choice → legend label
 TURBO_CSS = "#30123b,#4686fb,#1ae4b6,#a2fc3c,#fabb39,#e4460a,#7a0403"
 
 
@@ -67,10 +69,14 @@ class LayersPanel:
             self.cb = {name: g.add_checkbox(name, name not in ("True deformed liver (ghost)",)) for name in LAYERS}
             self.views = g.add_button_group("View", tuple(STANDARD_VIEWS) + ("Reset",))
             self.scale = g.add_number("Error colour scale, top (mm)", ERROR_SCALE_MM, min=1.0, max=100.0, step=1.0)
+            self.source = g.add_dropdown("Error colours show", tuple(ERROR_SOURCES),
+                                         hint="the true error (simulated scenes only) or the error predicted "
+                                              "from the data and the fit, as in the operating room")
         for cb in self.cb.values():
             cb.on_update(lambda e: self.apply_visibility())
         self.views.on_click(lambda e: self.look(e.target.value))
         self.scale.on_update(lambda e: self._set_scale())
+        self.source.on_update(lambda e: self._set_source())
         self.legend_panel = g.add_panel()
         tab = self.legend_panel.add_tab("Legend")
         with tab:
@@ -142,8 +148,12 @@ class LayersPanel:
         if what == "plane":
             self.show_plane()
         if what in ("result", "model"):
+            if what == "model" and app.truth_nodes is None:  # no truth: only the prediction can colour
+                self.source.value, self.source.disabled = PREDICTED, True
+                self.cs.error_source = "predicted"
+                self._render_legend()
             if app.result is not None and app.model is not None:
-                self.show_registered(app.geometry(), app.result.node_error_mm)
+                self.show_registered(app.geometry(), app.surface_error(self.cs))
             elif app.result is None:
                 for n in self.reg.values():
                     n.visible = False
@@ -204,8 +214,8 @@ class LayersPanel:
         self.tool.visible = self.cb["Stylus"].value
 
     def show_registered(self, geom, error=None):
-        """The registered liver, vessels, targets and error dots of one state (``StateGeometry``)."""
-        app = self.app
+        """The registered liver, vessels, targets and error dots of one state (``StateGeometry``);
+        ``error`` (S,) mm at the surface nodes, or None (grey dots)."""
         s = self.s
         surfaces = geom.surfaces
         for name, (v, f) in surfaces.items():
@@ -229,14 +239,16 @@ class LayersPanel:
             else:
                 self.reg[key] = self._add("Targets", s.add_mesh_simple(f"/registered/targets/{t.name}", v,
                                                                       t.surface.faces, color=(230, 0, 255)))
-        if error is not None and "liver" in surfaces:
-            self._last_error = (surfaces["liver"][0], error[app.model.basis.surface])
+        if "liver" in surfaces and (error is not None or "error" in self.reg):
+            # no error for this state (a prediction comes with the result): grey dots, never stale colours
+            self._last_error = (surfaces["liver"][0], error)
             self._show_error()
         self.apply_visibility()
 
     def _show_error(self):
         pts, err = self._last_error
-        colours = error_colours(err, self.cs.error_scale_mm)
+        colours = error_colours(err, self.cs.error_scale_mm) if err is not None else \
+            np.full((len(pts), 3), 170, np.uint8)
         if "error" in self.reg:
             self.reg["error"].points = pts.astype(np.float32)
             self.reg["error"].colors = colours
@@ -244,6 +256,13 @@ class LayersPanel:
             self.reg["error"] = self._add("Error colours", self.s.add_point_cloud(
                 "/registered/error", pts.astype(np.float32), colours, point_size=1.0, precision="float32",
                 point_shape="circle"))
+
+    def _set_source(self):
+        self.cs.error_source = "predicted" if self.source.value == PREDICTED else "true"
+        app = self.app
+        if app.result is not None and app.model is not None and app.run is None:
+            self.show_registered(app.geometry(), app.surface_error(self.cs))
+        self._render_legend()
 
     def _set_scale(self):
         self.cs.error_scale_mm = float(self.scale.value)
@@ -294,7 +313,8 @@ class LayersPanel:
                             ("registered portal vein", REG_PORTAL, 1), ("registered hepatic veins", REG_HEPATIC, 1),
                             ("targets (tumours)", TARGET, 1), ("true liver (ghost)", TRUTH, 0.5)))
         self.legend.content = (
-            f"<div style='font-size:12px'>{sw}<div style='margin-top:6px'>error (dots on the registered surface)</div>"
+            f"<div style='font-size:12px'>{sw}<div style='margin-top:6px'>{ERROR_SOURCES[self.source.value]} "
+            f"(dots on the registered surface)</div>"
             f"<div style='height:10px;background:linear-gradient(to right,{TURBO_CSS})'></div>"
             f"<div style='display:flex;justify-content:space-between'><span>0</span><span>{vmax / 2:g}</span>"
             f"<span>{vmax:g} mm</span></div></div>")

@@ -88,6 +88,10 @@ class RegistrationPanel:
         if res is not None:
             err = res.node_error_mm
             head += f"  \nOn show: {res.run}" + (f" (mean error {err.mean():.2f} mm)" if err is not None else "")
+            if res.predicted_mm is not None:
+                head += f"  \nPredicted error over the surface (no truth used): mean {res.predicted_mm.mean():.1f} mm"
+            for b in res.target_bands:
+                head += f"  \n{b.name}: {b.text()}"
         self.md.content = head
 
     def _table(self):

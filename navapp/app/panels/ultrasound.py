@@ -23,6 +23,10 @@ class UltrasoundPanel:
             self.cb_2d = g.add_checkbox("2D view (draw here)", True)
             self.feature = g.add_dropdown("Draw", tuple(DRAWABLE))
             self.cmds = g.add_button_group("Contour", ("Close", "Finish line", "Undo", "Clear plane"))
+            self.btn_suggest = g.add_button("Suggest the next plane",
+                                            hint="ranks probe poses on the registered anterior surface by how much "
+                                                 "each plane is expected to lower the predicted error")
+            self.suggestion = g.add_markdown("")
             self.cb_free = g.add_checkbox("Place probe freely", False, disabled=True)
             self.pose_md = g.add_markdown("")
             self.info = g.add_markdown("")
@@ -33,6 +37,7 @@ class UltrasoundPanel:
         self.feature.on_update(lambda e: self.app.contour_command(self.cs, "Feature", self.feature.value))
         self.cmds.on_click(lambda e: self._msg(self.app.contour_command(self.cs, e.target.value, self.feature.value)))
         self.cb_free.on_update(lambda e: self._free_probe(self.cb_free.value))
+        self.btn_suggest.on_click(lambda e: self._suggest())
         self.panel = g.add_panel()
         tab = self.panel.add_tab("Ultrasound image")
         url = view.app.view2d.page_url(self.cs.token, view.app.view2d_host)
@@ -53,6 +58,20 @@ class UltrasoundPanel:
         i = self.app.plane_from_label(self.plane_dd.value)
         if i is not None and i != self.cs.plane:
             self.app.show_plane(self.cs, i)
+
+    def _suggest(self):
+        self.suggestion.content = "Ranking candidate planes…"
+        self.btn_suggest.disabled = True
+
+        def done(message):
+            self.suggestion.content = message
+            self.btn_suggest.disabled = False
+
+        err = self.app.suggest_plane(self.cs, done)
+        if err:
+            self.suggestion.content = ""
+            self.btn_suggest.disabled = False
+            self.view.notify("Ultrasound", err)
 
     def _show_2d(self, on):
         if on:
