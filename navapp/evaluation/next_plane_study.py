@@ -54,8 +54,17 @@ def compare_expected(candidates, plane_ids, case_dir) -> dict:
 
 
 def recorded_poses(case_dir) -> list[tuple[str, np.ndarray]]:
-    meta = json.loads((Path(case_dir) / "intraop" / "us" / "planes.json").read_text())
-    return [(p["orientation"], np.asarray(p["probe_to_tracker"], float)) for p in meta["planes"]]
+    """The case's recorded probe poses (orientation, 4×4 ProbeToTracker) from intraop/us/planes.json."""
+    from ..errors import InputError
+
+    path = Path(case_dir) / "intraop" / "us" / "planes.json"
+    try:
+        meta = json.loads(path.read_text())
+        return [(p["orientation"], np.asarray(p["probe_to_tracker"], float).reshape(4, 4)) for p in meta["planes"]]
+    except OSError:
+        raise InputError("no recorded probe poses (a simulated case has them)", path) from None
+    except (ValueError, KeyError, TypeError):
+        raise InputError("not a planes file (expected planes: [{orientation, probe_to_tracker 4×4}])", path) from None
 
 
 def _table(rows):
