@@ -84,10 +84,11 @@ def _spearman(score, tre):
 
 
 def criteria() -> dict:
-    """The scores compared: the default (ê = a + b·d + c·σ) and each of its two parts alone."""
+    """The scores compared: the default (ê = a + b·d + c·σ + e·d·m) and its distance and
+    covariance parts alone."""
     from ..registration.uncertainty import DEFAULT_CALIBRATION as cal
 
-    return {"ê (default)": cal, "d only": replace(cal, c=0.0), "σ only": replace(cal, b=0.0)}
+    return {"ê (default)": cal, "d only": replace(cal, c=0.0), "σ only": replace(cal, b=0.0, e=0.0)}
 
 
 def fresh_single_planes(case_dir, edge=4.0, k=45) -> dict:
@@ -263,8 +264,9 @@ def markdown(all_rows, sets, bench) -> str:
     text = ["# The next best ultrasound plane (issue 12, part 4)\n\n",
             "Greedy: from S, the best of the case's remaining 16 recorded probe poses by the expected drop of the mean "
             "predicted error (the registered model cut by the candidate's plane gives the expected contours and far "
-            "wall; their Jacobian rows join the LM normal matrix; ê = a + b·d + c·σ, results/error_estimate.md), then "
-            "registered with that plane's data as Table II registers, and again. Rank: place of the suggested "
+            "wall; their Jacobian rows join the LM normal matrix; ê = a + b·d + c·σ + e·d·m, "
+            "results/error_estimate.md), then registered with that plane's data as Table II registers, and again. "
+            "Rank: place of the suggested "
             "combination's mean TRE among all combinations of that level in the Table II CSV (1 = best of 16 / 120 / "
             "560); percentile 0 = best. ρ: Spearman correlation, over the candidates of that step, between the score "
             "and the TRE each would have given (from the CSV).\n"]

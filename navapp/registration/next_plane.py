@@ -9,8 +9,8 @@ mean predicted error over the organ (``uncertainty``) that its plane would bring
 2. those points join the data at zero residual: their closest-point Jacobian rows
    (objective.py, Table I) add to the LM normal matrix, with every feature's weight
    renormalised to w_F / N_F (eq. 7) as the registration itself would;
-3. the predicted error ê = a + b·d + c·σ is recomputed at a fixed sample of mesh nodes
-   with d shortened by the new points and σ from the new covariance;
+3. the predicted error ê = a + b·d + c·σ + e·d·m is recomputed at a fixed sample of mesh
+   nodes with d shortened by the new points (m their median), σ from the new covariance;
 4. score = mean(ê now − ê with the plane) in mm; candidates are returned best first.
 
 Candidate poses: unless given, ``count`` contact points on the registered anterior
@@ -265,7 +265,7 @@ def suggest_planes(reg, anterior=None, preop=None, poses=None, calibration: Cali
         x, G = point_jacobian(model, beta, nodes=sample)
         deformed = deformed_surfaces(model, beta)
         d0 = nearest_data_distance(x, data)
-        e0 = calibration.predict(d0, point_sigma(G, factor=covariance_factor(info)))
+        e0 = calibration.predict(d0, point_sigma(G, factor=covariance_factor(info)), np.median(d0))
         # rigid map model → tracker, to bring the candidate poses into the model frame
         Tm = np.eye(4)
         Tm[:3, :3], Tm[:3, 3] = reg.rigid.R, reg.rigid.t
@@ -277,7 +277,7 @@ def suggest_planes(reg, anterior=None, preop=None, poses=None, calibration: Cali
             if feats:
                 H = info.matrix(_extra_blocks(model, beta, feats, pixels, weights))
                 d1 = np.minimum(d0, nearest_data_distance(x, feats))
-                e1 = calibration.predict(d1, point_sigma(G, factor=covariance_factor(info, H)))
+                e1 = calibration.predict(d1, point_sigma(G, factor=covariance_factor(info, H)), np.median(d1))
             else:
                 e1 = e0
             out.append(PlaneCandidate(i, orientation, np.asarray(pose, float), float(e0.mean() - e1.mean()),

@@ -13,9 +13,11 @@ Two things the registration knows about a point of the organ:
 
 The predicted error combines them with a calibration fitted on some study cases and
 validated on others (``navapp study error-estimate``, ``results/error_estimate.md``):
-    ê = a + b · d + c · σ   (mm),
-and a band [ê · q_lo, ê · q_hi] holding the true error for ``coverage`` of the points of
-the calibration cases (quantiles of the ratio true / ê).
+    ê = a + b·d + c·σ + e·d·m   (mm),
+m the median of d over the mesh nodes (how sparse the data are: with a complete surface
+(CBCT) the nodes far from the data are deep ones the elastic model keeps right, and d
+alone was anti-correlated with the error), and a band [ê · q_lo, ê · q_hi] holding the
+true error for ``coverage`` of the points of the calibration cases (quantiles of true / ê).
 """
 
 from dataclasses import dataclass, field
@@ -32,20 +34,23 @@ from .rotation import rotation, rotation_derivatives
 
 @dataclass(frozen=True)
 class Calibration:
-    """ê = a + b·d + c·σ (mm) and the band factors (ê·lower, ê·upper) holding the true
-    error for ``coverage`` of the calibration points. Defaults: fitted by
+    """ê = a + b·d + c·σ + e·d·m (mm) and the band factors (ê·lower, ê·upper) holding the
+    true error for ``coverage`` of the calibration points. Defaults: fitted by
     ``navapp study error-estimate`` on the calibration cases phantom0-L/N/R at every data
     level and validated on the six others (results/error_estimate.md, docs/decisions.md)."""
-    a: float = 0.893  # mm
-    b: float = 0.0439  # mm per mm of distance to the data
-    c: float = 2.537  # per mm of σ
-    lower: float = 0.272
-    upper: float = 2.101
+    a: float = 1.0246  # mm
+    b: float = 0.003528  # mm per mm of distance to the data
+    c: float = 2.3755  # per mm of σ
+    e: float = 0.0015123  # per mm of m (× d)
+    lower: float = 0.2720
+    upper: float = 2.0964
     coverage: float = 0.9
     fitted_on: str = "phantom0-L+phantom0-N+phantom0-R"
 
-    def predict(self, d, sigma) -> np.ndarray:
-        return self.a + self.b * np.asarray(d) + self.c * np.asarray(sigma)
+    def predict(self, d, sigma, m=0.0) -> np.ndarray:
+        """ê (mm) from d, σ (mm, same shapes) and m (mm, scalar: median d over the mesh nodes)."""
+        d = np.asarray(d)
+        return self.a + self.b * d + self.c * np.asarray(sigma) + self.e * d * m
 
 
 DEFAULT_CALIBRATION = Calibration()
@@ -62,6 +67,7 @@ class ErrorEstimate:
     upper_mm: np.ndarray  # (P,)
     distance_mm: np.ndarray  # (P,) d: registered position → nearest data point
     sigma_mm: np.ndarray  # (P,) σ: LM covariance propagated to the point
+    spread_mm: float  # m: median over the mesh nodes of their distance to the data
     positions: np.ndarray  # (P, 3) registered positions, tracker frame
     calibration: Calibration = field(default_factory=Calibration)
     noise_scale: float = 0.0  # s, the reduced χ² scaling H⁻¹ (dimensionless, Ω's units)
@@ -183,6 +189,19 @@ def point_sigma(G, cov=None, factor=None) -> np.ndarray:
     return np.sqrt(np.einsum("ij,ij->i", GL, GL).reshape(len(G), 3).sum(1))
 
 
+def node_positions(model: RegistrationModel, beta) -> np.ndarray:
+    """x(β) of eq. 8 at every mesh node (M, 3), model frame."""
+    beta = np.asarray(beta, float)
+    n = len(beta) - 6
+    local = model.basis.nodes - model.centroid + (model.basis.Ju @ beta[:n]).reshape(-1, 3)
+    return local @ rotation(beta[n + 3:]).T + beta[n:n + 3] + model.centroid
+
+
+def data_spread(model: RegistrationModel, beta, data: dict) -> float:
+    """m (mm): the median over the mesh nodes of their distance to the nearest data point."""
+    return float(np.median(nearest_data_distance(node_positions(model, beta), data)))
+
+
 def nearest_data_distance(positions, data: dict) -> np.ndarray:
     """d (P,) mm from each position to the nearest point of any data feature (same frame)."""
     pts = [np.asarray(v, float) for v in data.values() if len(v)]
@@ -223,8 +242,9 @@ def estimate_error(reg, points=None, calibration: Calibration | None = None, B=N
         x, G = point_jacobian(model, reg.libr.beta, B, nodes=None if B is not None else nodes)
         sigma = point_sigma(G, factor=covariance_factor(info))
     d = nearest_data_distance(x, data)
-    pred = calibration.predict(d, sigma)
-    return ErrorEstimate(pred, pred * calibration.lower, pred * calibration.upper, d, sigma, reg.rigid.apply(x),
+    m = float(np.median(d)) if B is None and nodes is None else data_spread(model, reg.libr.beta, data)
+    pred = calibration.predict(d, sigma, m)
+    return ErrorEstimate(pred, pred * calibration.lower, pred * calibration.upper, d, sigma, m, reg.rigid.apply(x),
                          calibration, info.scale)
 
 
@@ -243,4 +263,4 @@ def surface_estimate(reg, vertices, calibration: Calibration | None = None) -> E
         model.cache[key] = near
     est = estimate_error(reg, calibration=calibration, nodes=model.basis.surface)
     return ErrorEstimate(est.predicted_mm[near], est.lower_mm[near], est.upper_mm[near], est.distance_mm[near],
-                         est.sigma_mm[near], est.positions[near], est.calibration, est.noise_scale)
+                         est.sigma_mm[near], est.spread_mm, est.positions[near], est.calibration, est.noise_scale)
