@@ -148,8 +148,8 @@ class LayersPanel:
         if what == "plane":
             self.show_plane()
         if what in ("result", "model"):
-            if what == "model" and app.truth_nodes is None:  # no truth: only the prediction can colour
-                self.source.value, self.source.disabled = PREDICTED, True
+            if what == "model" and app.model is not None and app.truth_nodes is None:
+                self.source.value, self.source.disabled = PREDICTED, True  # no truth: only the prediction
                 self.cs.error_source = "predicted"
                 self._render_legend()
             if app.result is not None and app.model is not None:

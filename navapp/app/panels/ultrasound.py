@@ -66,6 +66,8 @@ class UltrasoundPanel:
         def done(message):
             self.suggestion.content = message
             self.btn_suggest.disabled = False
+            if message.startswith("Suggested") and self.cs.plane in self.app.planes:
+                self.view.layers.look_at_plane(self.app.planes[self.cs.plane].probe_to_tracker)
 
         err = self.app.suggest_plane(self.cs, done)
         if err:
