@@ -11,7 +11,8 @@ import scipy.sparse as sp
 from scipy.sparse.csgraph import dijkstra
 from scipy.spatial import cKDTree
 from sklearn.cluster import KMeans
-from threadpoolctl import threadpool_limits
+
+from ..threads import limit_threads
 
 
 def surface_graph(nodes, faces, surface):
@@ -41,7 +42,7 @@ def place_control_points(nodes, surface, k, seed=0):
         raise ValueError(f"k must be between 1 and the number of surface nodes ({len(surface)})")
     # One thread: a few thousand 3-D points take a fraction of a second, while OpenMP
     # threads spinning against other work on a 2-core machine took 8–10 s (measured).
-    with threadpool_limits(1):
+    with limit_threads(1):
         km = KMeans(n_clusters=k, n_init=4, random_state=seed).fit(nodes[surface])
     return surface[snap_distinct(nodes[surface], km.cluster_centers_)]
 

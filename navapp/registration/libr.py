@@ -27,8 +27,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.linalg as sla
-from threadpoolctl import threadpool_limits
 
+from ..threads import limit_threads
 from .model import RegistrationModel
 from .objective import Weights, add_jacobian, evaluate
 
@@ -104,7 +104,7 @@ def register_libr(model: RegistrationModel, data: dict, beta0=None, options: LMO
     BLAS is pinned to one thread inside: the matrices here are small (≈141 columns) and
     threaded BLAS spent ~20× longer synchronising than computing on a 2-core machine.
     """
-    with threadpool_limits(1):
+    with limit_threads(1):
         return _register(model, data, beta0, options or LMOptions(), callback, cancel)
 
 

@@ -24,9 +24,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.spatial import cKDTree
-from threadpoolctl import threadpool_limits
 
 from ..geometry.planes import plane_section
+from ..threads import limit_threads
 from .objective import evaluate
 from .uncertainty import (
     DEFAULT_CALIBRATION,
@@ -258,7 +258,7 @@ def suggest_planes(reg, anterior=None, preop=None, poses=None, calibration: Cali
         if anterior is None:
             anterior = anterior_surface_mask(model, preop)
         poses = candidate_poses(reg, anterior, count)
-    with threadpool_limits(1):  # small matrices: threaded BLAS only synchronises (see libr.py)
+    with limit_threads(1):  # small matrices: threaded BLAS only synchronises (see libr.py)
         info: Information = information(model, data, beta, weights)
         rng = np.random.default_rng(seed)
         sample = np.sort(rng.choice(model.basis.M, min(eval_nodes, model.basis.M), replace=False))

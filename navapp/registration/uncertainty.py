@@ -24,9 +24,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.spatial import cKDTree
-from threadpoolctl import threadpool_limits
 
 from ..mechanics.interpolation import interpolation_matrix
+from ..threads import limit_threads
 from .model import REGION_FEATURES, RegistrationModel
 from .objective import Weights, evaluate
 from .rotation import rotation, rotation_derivatives
@@ -237,7 +237,7 @@ def estimate_error(reg, points=None, calibration: Calibration | None = None, B=N
     model, data = reg.model, reg.data_model_frame
     if points is not None and B is None:
         B = interpolation_matrix(model.basis.nodes, model.basis.tets, np.asarray(points, float))
-    with threadpool_limits(1):  # small matrices: threaded BLAS only synchronises (see libr.py)
+    with limit_threads(1):  # small matrices: threaded BLAS only synchronises (see libr.py)
         info = information(model, data, reg.libr.beta, weights)
         x, G = point_jacobian(model, reg.libr.beta, B, nodes=None if B is not None else nodes)
         sigma = point_sigma(G, factor=covariance_factor(info))

@@ -10,7 +10,8 @@ from contextlib import nullcontext
 from dataclasses import replace
 
 import numpy as np
-from threadpoolctl import threadpool_limits
+
+from ..threads import limit_threads
 
 
 def merge(*datasets) -> dict:
@@ -49,7 +50,7 @@ class LiveRegistration:
         self.history: list = []  # (seconds, iterations) per update
 
     def _limits(self):
-        return threadpool_limits(self.threads) if self.threads else nullcontext()
+        return limit_threads(self.threads) if self.threads else nullcontext()
 
     def register(self, frame: dict | None = None):
         """Cold registration (multi-start rigid + LIBR) of base ∪ frame."""
