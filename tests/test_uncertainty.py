@@ -152,3 +152,19 @@ def test_surface_estimate_carries_the_surface_nodes(small_model, phantoms):
     surf = small_model.basis.surface
     near = np.linalg.norm(small_model.basis.nodes[surf][:, None] - V[None, :200], axis=2).argmin(0)
     assert np.allclose(est.predicted_mm[:200], full.predicted_mm[surf][near])
+
+
+def test_estimate_at_points_equals_the_estimate_at_those_nodes(small_model):
+    """Points given as preoperative positions (targets) go through the interpolation matrix;
+    at mesh nodes they must give the nodes' own estimate (m from all nodes either way)."""
+    rng = np.random.default_rng(9)
+    data, _ = _half_covered(small_model, rng)
+    reg = _registration(small_model, data)
+    full = estimate_error(reg)
+    idx = rng.choice(small_model.basis.M, 30, replace=False)
+    at = estimate_error(reg, points=small_model.basis.nodes[idx])
+    sub = estimate_error(reg, nodes=idx)
+    for est in (at, sub):
+        assert est.spread_mm == pytest.approx(full.spread_mm)
+        assert np.allclose(est.predicted_mm, full.predicted_mm[idx], rtol=1e-6)
+        assert np.allclose(est.positions, full.positions[idx], atol=1e-6)
