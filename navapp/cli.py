@@ -39,9 +39,10 @@ def cmd_phantom(args):
         "phantom": args.liver, "out": str(args.out),
         "liver_vertices": len(liver.vertices), "liver_faces": len(liver.faces),
         "extent_mm": [round(float(x), 1) for x in liver.extents], "volume_ml": round(float(liver.volume) / 1000, 1),
-        "portal_branches": int(model.portal_centerline.branch.max() + 1),
-        "hepatic_branches": int(model.hepatic_centerline.branch.max() + 1),
     }
+    for v in ("portal", "hepatic"):  # a phantom has both trees
+        cl = model.centerline(v)
+        summary[f"{v}_branches"] = int(cl.branch.max() + 1) if cl is not None else 0
     print(json.dumps(summary))
 
 

@@ -44,10 +44,10 @@ def test_drawn_polyline_matches_skimage_and_lies_in_the_plane():
     c = Contour(plane=0, feature="portal_contour", vertices=verts, closed=True)
     cols, rows = contour_pixels(c)
     expect = set()
-    for (c0, r0), (c1, r1) in zip(verts, verts[1:] + verts[:1]):
+    for (c0, r0), (c1, r1) in zip(verts, verts[1:] + verts[:1], strict=True):
         rr, cc = sk_line(r0, c0, r1, c1)
-        expect |= set(zip(cc.tolist(), rr.tolist()))
-    assert set(zip(cols.tolist(), rows.tolist())) == expect and len(cols) == len(expect)
+        expect |= set(zip(cc.tolist(), rr.tolist(), strict=True))
+    assert set(zip(cols.tolist(), rows.tolist(), strict=True)) == expect and len(cols) == len(expect)
     pts = contour_points(PROBE, T, c)
     back_c, back_r, off = tracker_to_pixels(PROBE, T, pts["portal_contour"])
     assert np.allclose(off, 0, atol=1e-9)

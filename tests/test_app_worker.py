@@ -27,7 +27,8 @@ def test_streams_in_order_and_ends_with_the_final_state(small_model):
     assert not errors and len(done) == 1
     its = [u.iteration for u in updates]
     assert its == sorted(its) and updates[-1].final and sum(u.final for u in updates) == 1
-    assert all(np.isfinite(u.liver).all() and u.liver.shape == small_model.features["liver"].rest.shape for u in updates)
+    shape = small_model.features["liver"].rest.shape
+    assert all(np.isfinite(u.liver).all() and u.liver.shape == shape for u in updates)
     assert np.allclose(updates[-1].liver, w.surfaces(done[0].rigid, done[0].libr.beta)["liver"])
 
 

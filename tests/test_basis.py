@@ -3,8 +3,15 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from navapp.mechanics.basis import (BasisSettings, _dofs, basis_key, compute_basis, load_or_compute_basis,
-                                    point_load_modes, relax_modes)
+from navapp.mechanics.basis import (
+    BasisSettings,
+    _dofs,
+    basis_key,
+    compute_basis,
+    load_or_compute_basis,
+    point_load_modes,
+    relax_modes,
+)
 from navapp.mechanics.controlpoints import geodesic_tiles, nodal_areas, place_control_points
 from navapp.mechanics.fem import Material, stiffness
 from navapp.mechanics.interpolation import interpolation_matrix
@@ -106,7 +113,8 @@ def test_local_relaxation_on_the_whole_mesh_is_the_exact_one(parts, exact_relaxe
     """Enough rings to cover the mesh: the local solve is the exact one (solver precision)."""
     p = parts
     exact = exact_relaxed
-    whole = relax_modes(p["K"], p["U"], p["R"], p["control"], p["surface"], p["tiles"], p["areas"], layers=len(p["nodes"]))
+    whole = relax_modes(p["K"], p["U"], p["R"], p["control"], p["surface"], p["tiles"], p["areas"],
+                        layers=len(p["nodes"]))
     assert np.abs(whole - exact).max() < 1e-9 * np.abs(exact).max()
 
 

@@ -19,7 +19,7 @@ def test_bresenham_matches_skimage_in_every_octant():
 
 def test_polyline_closed_has_no_repeats():
     rr, cc = polyline([[0, 0], [0, 10], [10, 10]], closed=True)
-    px = list(zip(rr, cc))
+    px = list(zip(rr, cc, strict=True))
     assert len(px) == len(set(px)) == 30
     assert (rr[0], cc[0]) == (0, 0)
 
@@ -64,7 +64,8 @@ def test_closest_on_surface_matches_trimesh():
     dirs = rng.normal(size=(400, 3))
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
     pts = dirs * (50.0 + rng.uniform(-3, 3, size=(400, 1)))
-    face, bary, q = closest_on_surface(pts, sphere.vertices, sphere.faces, incidence(len(sphere.vertices), sphere.faces))
+    table = incidence(len(sphere.vertices), sphere.faces)
+    face, bary, q = closest_on_surface(pts, sphere.vertices, sphere.faces, table)
     ref, dist, _ = trimesh.proximity.closest_point(sphere, pts)
     assert np.allclose(np.linalg.norm(q - pts, axis=1), dist, atol=1e-9)
     assert np.allclose(q, ref, atol=1e-6)

@@ -9,10 +9,10 @@ import nibabel
 import nrrd
 import numpy as np
 import pytest
+import surface_fixtures as sf
 import trimesh
 from scipy.spatial import cKDTree
 
-import surface_fixtures as sf
 from navapp.anatomy.caseio import read_case
 from navapp.anatomy.cleanup import clean_surface, vessels_outside
 from navapp.anatomy.importer import import_case, read_any_surface, read_labelmap

@@ -40,7 +40,8 @@ def test_open_surface_refused():
 
 import surface_fixtures as sf  # noqa: E402
 
-from navapp.anatomy.meshing import MeshAttempt, mesh_liver, quality_report as _q  # noqa: E402
+from navapp.anatomy.meshing import MeshAttempt, mesh_liver  # noqa: E402
+from navapp.anatomy.meshing import quality_report as _q  # noqa: E402
 
 
 def _floor(mesh):
@@ -65,7 +66,8 @@ def fallback_run(sharp, tmp_path_factory, request):
     # run from an empty folder: fTetWild writes a debug file into its working directory,
     # which must not be the caller's
     here = tmp_path_factory.mktemp("caller-cwd")
-    request.addfinalizer(lambda old=os.getcwd(): os.chdir(old))
+    old = os.getcwd()
+    request.addfinalizer(lambda: os.chdir(old))
     os.chdir(here)
 
     # Gmsh fails on this surface, by an error or by hanging (which of the two depends on

@@ -21,11 +21,13 @@ def make_case(folder):
     v = liver.vertices
 
     def bend(p):  # a smooth sag of the anterior-left part plus a shift
-        return p + np.column_stack([np.full(len(p), 1.5), -3.0 * np.clip(p[:, 0] / 90.0, 0, 1) ** 2 * 4, np.zeros(len(p))])
+        sag = -3.0 * np.clip(p[:, 0] / 90.0, 0, 1) ** 2 * 4
+        return p + np.column_stack([np.full(len(p), 1.5), sag, np.zeros(len(p))])
 
     ant = v[v[:, 1] > 20]
     pts = bend(ant[::3])
-    (folder / "intraop/anterior.csv").write_text("x,y,z\n" + "\n".join(",".join(repr(float(x)) for x in r) for r in pts) + "\n")
+    rows = "\n".join(",".join(repr(float(x)) for x in r) for r in pts)
+    (folder / "intraop/anterior.csv").write_text("x,y,z\n" + rows + "\n")
     inner = v[::15] * 0.5
     (folder / "truth/targets.csv").write_text(
         "\n".join(",".join(repr(float(x)) for x in r) for r in np.column_stack([inner, bend(inner)])) + "\n")

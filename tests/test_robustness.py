@@ -165,9 +165,8 @@ def test_huber_weights_are_held_within_an_iteration(small_model):
 
 @pytest.mark.parametrize("flag", [False, True])
 def test_cli_prints_one_warning_line_and_result_json_keeps_it(tmp_path, capsys, flag):
-    from tests.test_register_cli import make_case
-
     from navapp.cli import main
+    from tests.test_register_cli import make_case
 
     make_case(tmp_path / "c")
     if flag:  # stylus data of a much flatter organ: unreachable for this liver
@@ -209,7 +208,7 @@ def test_rigid_icp_discounts_a_mislabelled_stretch(small_model):
                                        data["anterior"][rng.choice(far, m, replace=False)]])
         clean = rigid_icp(small_model, data, robust=None).apply(nodes)
 
-        def off(pose):
+        def off(pose, clean=clean):
             return np.linalg.norm(pose.apply(nodes) - clean, axis=1).mean()
 
         plain, robust = off(rigid_icp(small_model, bad, robust=None)), off(rigid_icp(small_model, bad, robust=2.0))

@@ -139,10 +139,13 @@ def test_data_levels(plane_case):
 
 
 def test_every_declared_effect_runs(tmp_path, cache_root):
-    effects = [{"kind": "tracking_noise", "sd_mm": 0.2}, {"kind": "calibration_error", "rotation_deg": 1.0, "translation_mm": 0.5},
-               {"kind": "probe_compression", "depth_mm": 3.0, "radius_mm": 15.0}, {"kind": "contour_jitter", "sd_px": 1.0},
+    effects = [{"kind": "tracking_noise", "sd_mm": 0.2},
+               {"kind": "calibration_error", "rotation_deg": 1.0, "translation_mm": 0.5},
+               {"kind": "probe_compression", "depth_mm": 3.0, "radius_mm": 15.0},
+               {"kind": "contour_jitter", "sd_px": 1.0},
                {"kind": "dropout", "fraction": 0.1}]
-    report = simulate(small_scene(ius={"planes": 2}, effects=effects), tmp_path / "fx", cache_root, registration_edge=12.0)
+    report = simulate(small_scene(ius={"planes": 2}, effects=effects), tmp_path / "fx", cache_root,
+                      registration_edge=12.0)
     assert {e["kind"] for e in effects} <= set(report["ran"])
     # and a scene with the same planes but no effects runs none of them
     plain = simulate(small_scene(ius={"planes": 2}), tmp_path / "nofx", cache_root, registration_edge=12.0)

@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 import trimesh
-
 from skimage.measure import marching_cubes
 
 from navapp.anatomy import sdf
@@ -63,7 +62,7 @@ def _tube(cl: Centerline, spacing: float = 0.5) -> trimesh.Trimesh:
     # degenerate triangles and the merged mesh is not watertight)
     lo = cl.points.min(0) - cl.radius.max() - 2 * spacing + 0.0123
     hi = cl.points.max(0) + cl.radius.max() + 2 * spacing
-    axes = [np.arange(a, b + spacing, spacing) for a, b in zip(lo, hi)]
+    axes = [np.arange(a, b + spacing, spacing) for a, b in zip(lo, hi, strict=True)]
     g = np.stack(np.meshgrid(*axes, indexing="ij"), -1)
     field = np.full(g.shape[:3], np.inf)
     for i, j in cl.segments():

@@ -6,7 +6,6 @@ frame rate is measured here but asserted loosely (CI machines have 2 shared core
 import socket
 import subprocess
 import sys
-import textwrap
 import time
 
 import numpy as np
@@ -18,7 +17,7 @@ from navapp.tracking.client import TrackingClient
 from navapp.tracking.config import TrackingConfig, load_config
 from navapp.tracking.digitiser import Digitiser
 from navapp.tracking.events import ProbeSample, Skipped, StylusSample
-from navapp.tracking.replay import ProbeKeyframe, ReplayScript, ReplayServer
+from navapp.tracking.replay import ReplayServer
 from navapp.tracking.results import PREOP_RAS, RIGID, STATUS, TARGETS, ResultsSender, rigid_matrix
 from navapp.tracking.watchdog import Watchdog
 
@@ -36,6 +35,7 @@ def synthetic_script(seed=0):
     return ReplayScript(path, [a, b], kf, 2.4, dwell_s=0.8, move_s=0.4)
 """
 exec(SCRIPT_CODE)  # defines synthetic_script (the subprocess server below runs the same code)
+synthetic_script = globals()["synthetic_script"]  # named for linters: exec defined it
 
 
 def wait_until(cond, timeout=5.0, step=0.01):
@@ -269,7 +269,8 @@ def test_a_pyigtl_client_receives_the_registration_as_slicer_would():
     try:
         assert wait_until(lambda: slicer.is_connected() and sender.connected, 5)
         sender.send_registration(reg, targets, {"portal": portal}, status="deformable: 2 iterations")
-        got = {n: slicer.wait_for_message(n, timeout=5) for n in (RIGID, PREOP_RAS, TARGETS, "PortalCenterline", STATUS)}
+        names = (RIGID, PREOP_RAS, TARGETS, "PortalCenterline", STATUS)
+        got = {n: slicer.wait_for_message(n, timeout=5) for n in names}
     finally:
         slicer.stop()
         sender.close()

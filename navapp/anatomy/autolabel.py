@@ -111,7 +111,8 @@ def _edge_graph(mesh: trimesh.Trimesh, keep: np.ndarray | None = None) -> sp.csr
         ok = keep[e[:, 0]] & keep[e[:, 1]]
         e, w = e[ok], w[ok]
     V = len(mesh.vertices)
-    return sp.csr_matrix((np.concatenate([w, w]), (np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]]))), shape=(V, V))
+    rows, cols = np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]])
+    return sp.csr_matrix((np.concatenate([w, w]), (rows, cols)), shape=(V, V))
 
 
 def _near(points: np.ndarray, subset: np.ndarray, d: float) -> np.ndarray:
@@ -150,7 +151,8 @@ def _remove_islands(mesh: trimesh.Trimesh, codes: np.ndarray, min_area: float) -
     V = len(codes)
     e = mesh.edges_unique
     area = _vertex_area(mesh)
-    A = sp.csr_matrix((np.ones(2 * len(e)), (np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]]))), shape=(V, V))
+    rows, cols = np.concatenate([e[:, 0], e[:, 1]]), np.concatenate([e[:, 1], e[:, 0]])
+    A = sp.csr_matrix((np.ones(2 * len(e)), (rows, cols)), shape=(V, V))
     codes = codes.copy()
     for _ in range(3):
         same = codes[e[:, 0]] == codes[e[:, 1]]
@@ -170,7 +172,8 @@ def _remove_islands(mesh: trimesh.Trimesh, codes: np.ndarray, min_area: float) -
     return codes
 
 
-def falciform_band(mesh: trimesh.Trimesh, landmarks: np.ndarray, left: np.ndarray, width: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
+def falciform_band(mesh: trimesh.Trimesh, landmarks: np.ndarray, left: np.ndarray,
+                   width: float = 10.0) -> tuple[np.ndarray, np.ndarray]:
     """The falciform band between two landmark points and the plane that splits left/right.
 
     The ligament runs in a near-sagittal plane: the path follows the surface inside a slab

@@ -248,7 +248,8 @@ def read_regions(path: Path, n_vertices: int) -> np.ndarray:
     lookup = {n: i for i, n in enumerate(REGION_NAMES)}
     unknown = sorted({ln for ln in lines if ln not in lookup})
     if unknown:
-        raise InputError(f"unknown label(s) {', '.join(map(repr, unknown[:5]))}; known: {', '.join(REGION_NAMES)}", path)
+        raise InputError(f"unknown label(s) {', '.join(map(repr, unknown[:5]))}; "
+                         f"known: {', '.join(REGION_NAMES)}", path)
     return np.array([lookup[ln] for ln in lines], int)
 
 
@@ -264,7 +265,8 @@ def write_preop(model: PreopModel, folder):
             mesh.export(pre / f"{v}.ply", encoding="binary")
         cl = model.centerline(v)
         if cl is not None:
-            write_csv(pre / f"{v}_centerline.csv", np.column_stack([cl.points, cl.branch]), ("x", "y", "z", "branch"), True)
+            write_csv(pre / f"{v}_centerline.csv", np.column_stack([cl.points, cl.branch]), ("x", "y", "z", "branch"),
+                      True)
     if model.fiducials is not None:
         write_csv(pre / "fiducials.csv", model.fiducials, ("x", "y", "z"))
     if model.regions is not None:
@@ -283,7 +285,8 @@ def write_case(case: Case, folder):
     """Write a whole case folder: case.toml, preop/, intraop/, truth/."""
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    settings = {"name": case.name, "units": "mm", **{k: v for k, v in case.settings.items() if k not in ("name", "units")}}
+    rest = {k: v for k, v in case.settings.items() if k not in ("name", "units")}
+    settings = {"name": case.name, "units": "mm", **rest}
     write_settings(folder, settings)
     write_preop(case.preop, folder)
     if case.intraop:

@@ -10,6 +10,7 @@ the transform into navapp's. Every problem is one ``InputError`` line naming the
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import trimesh
@@ -92,8 +93,8 @@ def _read_vtp(path: Path) -> trimesh.Trimesh:
 
 
 def _short(exc: Exception) -> str:
-    text = str(exc).strip().splitlines()
-    text = text[0] if text else type(exc).__name__
+    lines = str(exc).strip().splitlines()
+    text = lines[0] if lines else type(exc).__name__
     return text if len(text) <= 80 else text[:79] + "…"
 
 
@@ -139,7 +140,7 @@ def read_labelmap(path) -> LabelMap:
         import nibabel
 
         try:
-            img = nibabel.load(str(path))
+            img: Any = nibabel.load(str(path))  # a spatial image (dataobj, affine)
             data = np.asarray(img.dataobj)
         except Exception as exc:  # nibabel raises many types for a bad file
             raise InputError(f"not a readable NIfTI image ({_short(exc)})", path) from None
@@ -178,7 +179,7 @@ def _read_nrrd(path: Path) -> LabelMap:
     affine = np.eye(4)
     affine[:3, :3] = np.column_stack(rows)
     affine[:3, 3] = np.asarray(header.get("space origin", np.zeros(3)), float)
-    names = {}
+    names: dict[Any, str] = {}
     i = 0
     while f"Segment{i}_Name" in header:
         layer = int(header.get(f"Segment{i}_Layer", 0))
@@ -197,7 +198,7 @@ def _read_nrrd(path: Path) -> LabelMap:
 
 
 def _is_none(row) -> bool:
-    return isinstance(row, str) or (np.ndim(row) == 1 and np.all(np.isnan(np.asarray(row, float))))
+    return isinstance(row, str) or bool(np.ndim(row) == 1 and np.all(np.isnan(np.asarray(row, float))))
 
 
 def _integer_labels(data: np.ndarray, path) -> np.ndarray:
@@ -316,6 +317,7 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
             source_frame = f.upper()
     if "liver" not in surfaces:
         raise InputError("no liver: give --liver FILE or a --labelmap with a liver label")
+    assert source_frame is not None  # every surface above either had a frame or raised
     M = frames.to_case(source_frame)
     rep = ImportReport(frame=source_frame, to_case=M)
     rep.lines.append(f"frame: {source_frame} → navapp's {frames.CASE_FRAME} (+x left, +y anterior, +z superior)")
@@ -360,10 +362,11 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
     for vessel in VESSELS:
         if vessel in user_centerlines:
             continue
-        if model.vessel(vessel) is None:
+        vessel_mesh = model.vessel(vessel)
+        if vessel_mesh is None:
             continue
         try:
-            cl = vessel_centerline(model.vessel(vessel))
+            cl = vessel_centerline(vessel_mesh)
         except (ValueError, NavappError) as exc:
             rep.warnings.append(f"{paths[vessel]}: no centerline could be extracted ({exc})")
             continue

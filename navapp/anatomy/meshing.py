@@ -349,7 +349,10 @@ def _pytetwild_wrapper():
     if not found:
         raise NavappError("pytetwild is installed without its compiled fTetWild module")
     loader = importlib.machinery.ExtensionFileLoader("pytetwild.PyfTetWildWrapper", found[0])
-    module = importlib.util.module_from_spec(importlib.util.spec_from_loader(loader.name, loader))
+    wrapper_spec = importlib.util.spec_from_loader(loader.name, loader)
+    if wrapper_spec is None:
+        raise NavappError("pytetwild's compiled fTetWild module cannot be loaded")
+    module = importlib.util.module_from_spec(wrapper_spec)
     loader.exec_module(module)
     return module
 

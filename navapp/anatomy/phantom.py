@@ -114,7 +114,7 @@ def polygonise(fn, lo, hi, spacing: float) -> trimesh.Trimesh:
     """Marching-cubes surface of {fn < 0} in the box [lo, hi] (mm), outward normals."""
     lo = np.asarray(lo, float) - 2 * spacing
     hi = np.asarray(hi, float) + 2 * spacing
-    axes = [np.arange(a, b + spacing, spacing) for a, b in zip(lo, hi)]
+    axes = [np.arange(a, b + spacing, spacing) for a, b in zip(lo, hi, strict=True)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
     values = fn(grid.reshape(-1, 3)).reshape(grid.shape[:3])
     values[[0, -1], :, :] = values[:, [0, -1], :] = values[:, :, [0, -1]] = 1.0
@@ -199,7 +199,7 @@ def make_tumours(shape: LiverShape, liver: trimesh.Trimesh, vessels, index: int)
     for v in vessels:
         if v is not None:
             d_vessel = np.minimum(d_vessel, cKDTree(v.vertices).query(grid)[0])
-    tumours = []
+    tumours: list[Target] = []
     for n, (diameter, side) in enumerate(zip(TUMOUR_DIAMETERS_MM, ("right", "left"), strict=True)):
         radii = diameter / 2 * (1 + rng.uniform(-0.12, 0.12, 3))
         reach = radii.max() * 1.08  # the largest radius the modulation can give

@@ -266,9 +266,10 @@ def vessel_centerline(
     width = max(int(round(smooth / voxel)), 1)
     polys = [_smooth(xyz[b], width) for b in branches]
     radii = [rad[b] for b in branches]
-    polys, radii = _place_junctions(polys, radii, [(cluster[b[0]], cluster[b[-1]]) for b in branches], xyz, rad, cluster)
+    ends = [(cluster[b[0]], cluster[b[-1]]) for b in branches]
+    polys, radii = _place_junctions(polys, radii, ends, xyz, rad, cluster)
     pts, bid, rr = [], [], []
-    for p, r in zip(polys, radii):
+    for p, r in zip(polys, radii, strict=True):
         if _length(p) < 1e-6:
             continue
         q, qr = _resample(p, r, step)
@@ -355,7 +356,7 @@ def _prune_and_merge(chains, cluster, xyz, rad, min_reach, voxel) -> list[list[i
     changed = True
     while changed:
         changed = False
-        nodes = {}
+        nodes: dict = {}
         for ci, c in enumerate(chains):
             for pos in (0, -1):
                 nodes.setdefault(end_node(c[pos]), []).append((ci, pos))

@@ -155,7 +155,7 @@ def check_targets(targets: list[Target], liver: trimesh.Trimesh):
     from ..geometry.targets_distance import winding_numbers
     from .cleanup import vessels_outside
 
-    seen = {}
+    seen: dict[str, str | None] = {}  # name → the file that defined it
     for t in targets:
         if t.name in seen:
             raise InputError(f"target {t.name!r} is also defined in {seen[t.name]}: target names must differ",
@@ -231,11 +231,11 @@ def with_points(targets: list[Target], points) -> list[Target]:
     for t in targets:
         if t.surface is not None:
             n = len(t.surface.vertices)
-            out.append(Target(t.name, None, trimesh.Trimesh(points[i:i + n], t.surface.faces, process=False),
-                              t.source))
+            out.append(Target(t.name, np.empty(3), trimesh.Trimesh(points[i:i + n], t.surface.faces, process=False),
+                              t.source))  # centre set below
             i += n
         else:
-            out.append(Target(t.name, None, None, t.source))
+            out.append(Target(t.name, np.empty(3), None, t.source))
     for t in out:
         t.centre = points[i].copy()
         i += 1

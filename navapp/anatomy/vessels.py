@@ -48,7 +48,9 @@ def _grow(fn, p0, d, length, r0, r1, rng, curl=0.04):
 
 def _grow_tree(fn, root, direction, lengths, radii, rng, angle=np.radians(34)):
     """Binary tree: generation g has branches of length lengths[g] and radius radii[g]."""
-    points, branch, rad = [], [], []
+    points: list[np.ndarray] = []
+    branch: list[int] = []
+    rad: list[float] = []
 
     def recurse(p0, d, g):
         bid = len({*branch}) if branch else 0
@@ -122,6 +124,8 @@ def tube_surface(cl: Centerline, spacing: float = 1.0) -> trimesh.Trimesh:
     The union is evaluated on a grid of ``spacing`` mm, one local box per segment, and
     polygonised with marching cubes; mild Taubin smoothing removes the voxel steps.
     """
+    if cl.radius is None:
+        raise ValueError("tube_surface needs the centerline's radii")
     seg = cl.segments()
     rmax = cl.radius.max()
     lo = cl.points.min(0) - rmax - 3 * spacing

@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..defaults import EDGE_MM, K
+from ..errors import NavappError
 
 
 def peak_memory_mb() -> float:
@@ -78,7 +79,10 @@ def mode_errors(fast_file, exact_file) -> dict:
     """Per-mode relative error ‖Ju_fast − Ju_exact‖/‖Ju_exact‖ (one per column): median, max."""
     from .. import cache
 
-    a, b = cache.load(Path(fast_file))["Ju"], cache.load(Path(exact_file))["Ju"]
+    fast, exact = cache.load(Path(fast_file)), cache.load(Path(exact_file))
+    if fast is None or exact is None:
+        raise NavappError(f"basis cache entry missing: {fast_file if fast is None else exact_file}")
+    a, b = fast["Ju"], exact["Ju"]
     e = np.linalg.norm(a - b, axis=0) / np.linalg.norm(b, axis=0)
     return {"median": float(f"{np.median(e):.3g}"), "max": float(f"{e.max():.3g}")}
 
@@ -90,7 +94,7 @@ def bench_precompute(edges, ks, volume_ml=None, relax="local"):
     rows = []
     for edge in edges:
         for k in ks:
-            pair = {}
+            pair: dict[str, dict] = {}
             for how in (("local", "exact") if relax == "both" else (relax,)):
                 cmd = [sys.executable, "-m", "navapp.evaluation.benchmark", "precompute-one", str(edge), str(k), how,
                        str(volume_ml or 0)]
@@ -100,7 +104,8 @@ def bench_precompute(edges, ks, volume_ml=None, relax="local"):
                 pair[how] = row = json.loads(out.stdout.strip().splitlines()[-1])
                 rows.append(row)
             if len(pair) == 2:
-                pair["exact"]["mode_error_vs_local"] = mode_errors(pair["local"]["basis_file"], pair["exact"]["basis_file"])
+                pair["exact"]["mode_error_vs_local"] = mode_errors(pair["local"]["basis_file"],
+                                                                   pair["exact"]["basis_file"])
             for row in pair.values():
                 shutil.rmtree(Path(row.pop("basis_file")).parent, ignore_errors=True)
                 row.pop("mesh_file")
@@ -124,19 +129,24 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM):
     data = data_level(folder, "S+planes", planes=range(planes), case=case)
     more = data_level(folder, "S+planes", planes=range(planes + 1), case=case)
     model, _ = prepare(case, edge, k)
+    assert case.targets is not None and case.targets.size  # the demo scene is simulated with its truth
     x0, x1 = case.targets[:, :3], case.targets[:, 3:]
     times, rigid_s, iters = [], [], []
     for _ in range(repeats):
         reg = register(model, data)
+        assert reg.libr is not None  # deformable registration
         times.append(reg.seconds["rigid"] + reg.seconds["deformable"])
         rigid_s.append(reg.seconds["rigid"])
         iters.append(reg.libr.iterations)
-    per_iter = {s: round(1000 * v / max(reg.libr.iterations, 1), 2) for s, v in reg.libr.timings.items()}
+    libr = reg.libr
+    assert libr is not None
+    per_iter = {s: round(1000 * v / max(libr.iterations, 1), 2) for s, v in libr.timings.items()}
     warm_times = []
     for _ in range(repeats):
         t = time.perf_counter()
-        warm = register(model, more, beta0=reg.libr.beta, rigid=reg.rigid)
+        warm = register(model, more, beta0=libr.beta, rigid=reg.rigid)
         warm_times.append(time.perf_counter() - t)
+    warm_iterations = warm.libr.iterations if warm.libr is not None else 0
     cold = register(model, more)
     quick = register(model, data, options=LMOptions(max_iterations=5))
     out = {
@@ -144,9 +154,9 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM):
         "points": {n: len(p) for n, p in reg.data_model_frame.items()},
         "median_seconds": round(statistics.median(times), 3), "min_seconds": round(min(times), 3),
         "median_rigid_icp_seconds": round(statistics.median(rigid_s), 3),
-        "iterations": iters[0], "stop_reason": reg.libr.stop_reason, "per_iteration_ms": per_iter,
+        "iterations": iters[0], "stop_reason": libr.stop_reason, "per_iteration_ms": per_iter,
         "add_one_plane": {"warm_median_seconds": round(statistics.median(warm_times), 4),
-                          "warm_min_seconds": round(min(warm_times), 4), "warm_iterations": warm.libr.iterations,
+                          "warm_min_seconds": round(min(warm_times), 4), "warm_iterations": warm_iterations,
                           "cold_seconds": round(cold.seconds["rigid"] + cold.seconds["deformable"], 3),
                           "tre_warm_mm": round(tre_stats(warm.transform(x0), x1)["mean_mm"], 2),
                           "tre_cold_mm": round(tre_stats(cold.transform(x0), x1)["mean_mm"], 2)},

@@ -56,8 +56,8 @@ def plot_time(rows, path, level="S+3"):
     o = np.argsort(t[front])
     a.plot(t[front][o], e[front][o], "k--", lw=1, label="Pareto front")
     for s, (m, c) in style.items():
-        a.scatter([], [], marker=m, color=c, label={"k": "k (4 mm)", "edge": "mesh edge (k 45)", "lm": "LM cap / tolerance",
-                                                    "peers": "peers"}[s])
+        label = {"k": "k (4 mm)", "edge": "mesh edge (k 45)", "lm": "LM cap / tolerance", "peers": "peers"}[s]
+        a.scatter([], [], marker=m, color=c, label=label)
     a.set_xscale("log")
     a.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
     a.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
@@ -106,7 +106,8 @@ def write_cost_report(results_csv, out_dir) -> Path:
     cases = sorted({r["case"] for r in rows})
     md = [f"# What accuracy costs in time\n\nCases: {', '.join(cases)} (means over cases). "
           "Precompute = cold mesh + basis; registration = one run, rigid ICP included.\n"]
-    md.append("## Model size (k, mesh edge)\n\n| edge mm | k | nodes | precompute s | level | TRE mm | registration s |\n|---|---|---|---|---|---|---|")
+    md.append("## Model size (k, mesh edge)\n\n"
+              "| edge mm | k | nodes | precompute s | level | TRE mm | registration s |\n|---|---|---|---|---|---|---|")
     sel = _mean_by([r for r in rows if r["sweep"] in ("k", "edge") and r["method"] == "LIBR"],
                    lambda r: (r["edge_mm"], r["k"], r["level"]))
     for (edge, k, level), v in sorted(sel.items(), key=lambda x: (-x[0][0], x[0][1], x[0][2])):
@@ -124,7 +125,8 @@ def write_cost_report(results_csv, out_dir) -> Path:
                      lambda r: (r["method"], r["level"]))
     if base:
         edge, k = sorted(base)[0]
-        md.append(f"\n## Peers on the same data ({edge:g} mm, k = {k})\n\n| method | S | S+3 | S+all |\n|---|---|---|---|")
+        md.append(f"\n## Peers on the same data ({edge:g} mm, k = {k})\n\n| method | S | S+3 | S+all |\n"
+                  "|---|---|---|---|")
         for method in ("rigid ICP", "CPD", "LIBR"):
             cells = [f"{peers[(method, lv)]['tre']:.2f} mm, {peers[(method, lv)]['reg']:.2f} s"
                      if (method, lv) in peers else "—" for lv in ("S", "S+3", "S+all")]

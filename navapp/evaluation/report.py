@@ -7,12 +7,13 @@ from pathlib import Path
 import numpy as np
 
 from ..defaults import EDGE_MM, K
+from ..errors import InputError
 from .table2 import LEVELS, PAPER, read_results
 
 
 def summarise(rows):
     """{case: {level: (mean, sd, n)}} and {level: (mean, sd, n)} over all registrations."""
-    by = defaultdict(lambda: defaultdict(list))
+    by: dict = defaultdict(lambda: defaultdict(list))
     for r in rows:
         by[r["case"]][r["level"]].append(float(r["tre_mean_mm"]))
     per_case = {c: {lv: (np.mean(v), np.std(v), len(v)) for lv, v in d.items()} for c, d in by.items()}
@@ -32,7 +33,8 @@ def markdown(rows) -> str:
     for c in sorted(per_case):
         cells = [f"{per_case[c][lv][0]:.1f} ± {per_case[c][lv][1]:.1f}" if lv in per_case[c] else "" for lv in levels]
         body += f"| {c} | " + " | ".join(cells) + " |\n"
-    body += "| **average (navapp)** | " + " | ".join(f"**{overall[lv][0]:.1f} ± {overall[lv][1]:.1f}**" for lv in levels) + " |\n"
+    means = (f"**{overall[lv][0]:.1f} ± {overall[lv][1]:.1f}**" for lv in levels)
+    body += "| **average (navapp)** | " + " | ".join(means) + " |\n"
     body += "| paper (Table II) | " + " | ".join(f"{PAPER[lv][0]:.1f}" for lv in levels) + " |\n"
     secs = [float(r["seconds"]) for r in rows if r["level"] != "rigid"]
     n = {lv: overall[lv][2] for lv in levels}
@@ -94,18 +96,20 @@ def distance_plot(case_dirs, path, level="S+all", edge=EDGE_MM, k=K) -> float:
         planes = range(16) if level == "S+all" else ()
         data = data_level(d, "S+planes" if level.startswith("S+") else level, planes=planes, case=case)
         reg = register(model, data)
+        if case.targets is None:
+            raise InputError("the distance plot needs truth/targets.csv", d)
         x0, x1 = case.targets[:, :3], case.targets[:, 3:]
         pts = np.vstack(list(data.values()))
         dist.append(cKDTree(pts).query(x1)[0])
         err.append(np.linalg.norm(reg.transform(x0) - x1, axis=1))
-    dist, err = np.concatenate(dist), np.concatenate(err)
-    r = float(pearsonr(dist, err)[0])
+    d_all, e_all = np.concatenate(dist), np.concatenate(err)
+    r = float(pearsonr(d_all, e_all)[0])
     fig = Figure(figsize=(6, 4.5), dpi=110)
     ax = fig.subplots()
-    ax.hexbin(dist, err, gridsize=50, bins="log", cmap="viridis")
+    ax.hexbin(d_all, e_all, gridsize=50, bins="log", cmap="viridis")
     ax.set_xlabel("distance to nearest data point (mm)")
     ax.set_ylabel("target registration error (mm)")
-    ax.set_title(f"{level}: TRE vs distance to data, Pearson r = {r:.2f} ({len(dist):,} targets)")
+    ax.set_title(f"{level}: TRE vs distance to data, Pearson r = {r:.2f} ({len(d_all):,} targets)")
     fig.tight_layout()
     fig.savefig(path)
     return r

@@ -31,6 +31,7 @@ import numpy as np
 
 from .. import progress
 from ..defaults import EDGE_MM, K
+from ..errors import InputError
 from ..features import SALIENT
 
 OFFSETS = ((0.0, 0.0), (5.0, 10.0), (10.0, 20.0), (15.0, 30.0), (20.0, 40.0))  # (degrees, mm)
@@ -109,6 +110,7 @@ def mislabel(data: dict, rng, fraction=0.1) -> dict:
     if ant is None or not len(ant):
         return out
     taken = np.zeros(len(ant), bool)
+    moved: list[np.ndarray] = []  # salient points that go to the anterior feature
     for name in SALIENT:
         if name not in out or not len(out[name]):
             continue
@@ -120,8 +122,7 @@ def mislabel(data: dict, rng, fraction=0.1) -> dict:
         come = np.argsort(dist)[:m]
         taken[come] = True
         out[name] = np.vstack([np.delete(pts, gone, axis=0), ant[come]])
-        out.setdefault("_to_anterior", []).append(pts[gone])
-    moved = out.pop("_to_anterior", [])
+        moved.append(pts[gone])
     out["anterior"] = np.vstack([ant[~taken]] + moved)
     return out
 
@@ -166,6 +167,8 @@ def run_case(case_dir, trials, methods, edge=EDGE_MM, k=K) -> list[dict]:
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
+    if case.targets is None:
+        raise InputError("the robustness study needs truth/targets.csv", case_dir)
     x0, x1 = case.targets[:, :3], case.targets[:, 3:]
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
     surface, _ = read_surface(case_dir / "truth" / "liver.ply", closed=False)

@@ -48,7 +48,7 @@ def polyline(points_rc, closed=False) -> tuple[np.ndarray, np.ndarray]:
     if closed and len(pts) > 2:
         pts = np.vstack([pts, pts[:1]])
     rows, cols = [pts[:1, 0]], [pts[:1, 1]]
-    for (r0, c0), (r1, c1) in zip(pts[:-1], pts[1:]):
+    for (r0, c0), (r1, c1) in zip(pts[:-1], pts[1:], strict=True):
         rr, cc = line(r0, c0, r1, c1)
         rows.append(rr[1:])
         cols.append(cc[1:])

@@ -118,7 +118,8 @@ def closest_on_polyline(points, vertices, segments, table, near=NEAR, tree=None,
     a = vertices[segments[cs, 0]]
     b = vertices[segments[cs, 1]]
     ab = b - a
-    t = np.clip(np.einsum("ncj,ncj->nc", points[:, None] - a, ab) / np.maximum(np.einsum("ncj,ncj->nc", ab, ab), 1e-300), 0, 1)
+    t = np.einsum("ncj,ncj->nc", points[:, None] - a, ab) / np.maximum(np.einsum("ncj,ncj->nc", ab, ab), 1e-300)
+    t = np.clip(t, 0, 1)
     q = a + t[..., None] * ab
     d = np.linalg.norm(q - points[:, None], axis=2)
     d[~valid] = np.inf

@@ -123,7 +123,8 @@ def segment_distances(p1, q1, p2, q2) -> np.ndarray:
     denom = a * e - b * b
     s = np.where(denom > 1e-12 * np.maximum(a * e, tiny), np.clip((b * f - c * e) / np.maximum(denom, tiny), 0, 1), 0.0)
     t = (b * s + f) / np.maximum(e, tiny)
-    s = np.where(t < 0, np.clip(-c / np.maximum(a, tiny), 0, 1), np.where(t > 1, np.clip((b - c) / np.maximum(a, tiny), 0, 1), s))
+    s = np.where(t < 0, np.clip(-c / np.maximum(a, tiny), 0, 1),
+                 np.where(t > 1, np.clip((b - c) / np.maximum(a, tiny), 0, 1), s))
     t = np.clip(t, 0, 1)
     return np.linalg.norm(p1 + s[:, None] * d1 - p2 - t[:, None] * d2, axis=1)
 
@@ -210,7 +211,7 @@ def section_polylines(plane: ImagePlane, vertices, faces) -> list[np.ndarray]:
         fill[a] += 1
         nbr[b, fill[b]] = a
         fill[b] += 1
-    nbr = nbr.tolist()
+    nbrs = nbr.tolist()
     seen = np.zeros(n, bool)
     lines = []
     # open chains from their ends first, then the loops
@@ -220,7 +221,7 @@ def section_polylines(plane: ImagePlane, vertices, faces) -> list[np.ndarray]:
         chain, prev, cur = [start], -1, start
         seen[start] = True
         while True:
-            nxt = next((x for x in nbr[cur] if x >= 0 and x != prev and (x == start or not seen[x])), None)
+            nxt = next((x for x in nbrs[cur] if x >= 0 and x != prev and (x == start or not seen[x])), None)
             if nxt is None:
                 break
             chain.append(nxt)

@@ -54,11 +54,11 @@ def self_intersecting_faces(vertices, faces, max_pairs=20_000_000):
     if len(big) > 1:
         bb = np.array(np.triu_indices(len(big), 1)).T
         pairs.append(big[bb])
-    pairs = np.concatenate([p.reshape(-1, 2) for p in pairs])
-    pairs = np.unique(np.sort(pairs[pairs[:, 0] != pairs[:, 1]], axis=1), axis=0)
-    if len(pairs) > max_pairs:
+    allp = np.concatenate([p.reshape(-1, 2) for p in pairs])
+    allp = np.unique(np.sort(allp[allp[:, 0] != allp[:, 1]], axis=1), axis=0)
+    if len(allp) > max_pairs:
         raise MemoryError("surface too large for the self-intersection test")
-    i, j = pairs[:, 0], pairs[:, 1]
+    i, j = allp[:, 0], allp[:, 1]
     close = np.linalg.norm(cen[i] - cen[j], axis=1) <= rad[i] + rad[j]
     i, j = i[close], j[close]
     shared = (f[i][:, :, None] == f[j][:, None, :]).any(axis=(1, 2))

@@ -44,7 +44,7 @@ def cmd_register(args):
                    options=LMOptions(max_iterations=args.max_iterations), callback=on_iteration)
     bar.close()
     sec.update(reg.seconds)
-    summary = {"case": case.name, "nodes": model.basis.M, "k": model.basis.k,
+    summary: dict = {"case": case.name, "nodes": model.basis.M, "k": model.basis.k,
                "features": {n: len(p) for n, p in reg.data_model_frame.items()},
                "rigid": {"iterations": reg.rigid.iterations, "rms_mm": reg.rigid.rms_mm}}
     if reg.libr is not None:
@@ -61,14 +61,14 @@ def cmd_register(args):
         # one line, on stderr whatever the output format: a wrong answer must not pass silently
         print(f"navapp: warning: {args.case}: {reg.quality.warning}", file=sys.stderr)
     if args.json:
-        brief = {k: summary[k] for k in ("case", "iterations", "stop_reason", "omega") if k in summary}
+        brief: dict = {k: summary[k] for k in ("case", "iterations", "stop_reason", "omega") if k in summary}
         for key in ("tre_rigid", "tre_deformable"):
             if key in summary:
                 brief[key] = round(summary[key]["mean_mm"], 3)
         for t in summary.get("targets", []):
             if "tre" in t:
-                brief.setdefault("target_centroid_error_mm", {})[t["name"]] = t["tre"]["deformable" if reg.libr is not None
-                                                                                      else "rigid"]["centroid_mm"]
+                how = "deformable" if reg.libr is not None else "rigid"
+                brief.setdefault("target_centroid_error_mm", {})[t["name"]] = t["tre"][how]["centroid_mm"]
         brief["seconds"] = summary["seconds"]
         brief["out"] = str(out)
         if reg.quality is not None:
@@ -89,7 +89,7 @@ def _targets(case_dir, case, reg, model, out) -> list[dict]:
     moved = registered_targets(reg, targets)
     write_targets(moved, Path(out) / TARGETS_DIR)
     truth, source = truth_targets(case_dir, targets, case, model.basis)
-    rigid = registered_targets(reg, targets, rigid=True) if truth is not None else None
+    rigid = registered_targets(reg, targets, rigid=True) if truth is not None else []
     rows = []
     for i, (t, m) in enumerate(zip(targets, moved, strict=True)):
         row = {"name": t.name, "kind": "point" if t.surface is None else "surface",

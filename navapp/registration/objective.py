@@ -45,8 +45,8 @@ class Evaluation:
     features: dict  # name → {"n", "rms_mm", "mean_abs_mm", "max_abs_mm", "omega"}
     timings: dict
     correspondence: dict  # name → Correspondence: reuse with ``frozen=`` to hold them fixed
-    beta: np.ndarray | None = None
-    terms: list | None = None  # per data feature (name, feature, S, q, rows, local): what ``add_jacobian`` needs
+    beta: np.ndarray  # (3k + 6,) the state evaluated
+    terms: list  # per data feature (name, feature, S, q, rows, local): what ``add_jacobian`` needs
     scales: dict | None = None  # feature → (R,) Huber weight factors of its rows (features with a δ only)
 
 

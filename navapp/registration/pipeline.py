@@ -54,7 +54,7 @@ class RobustOptions:
     screen_iterations: int = 2  # LIBR iterations per distinct pose before choosing by Ω
     max_candidates: int = 3  # distinct poses screened (lowest rigid RMS first)
     huber_salient_mm: float | None = 1.0  # Huber δ (mm) on falciform and ridge residuals; None: least squares
-    rigid_robust: float | None = RIGID_ROBUST  # Huber on salient points in ICP, δ = this × the feature's median residual
+    rigid_robust: float | None = RIGID_ROBUST  # Huber on salient points in ICP, δ = this × their median residual
     retry_poor_fit: bool = True  # a flagged fit is rerun from the other screened poses
     # continuation: first fit with the strain-energy weight × this (a stiffer organ that
     # can only move rigidly and smoothly), then relax to the true weight from there; None: off
@@ -294,7 +294,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
             starts = multi_start_icp(model, data, start_poses(model, {k: v for k, v in data.items() if k in features}
                                                               or data, init.start_angle_deg, init.principal_axes),
                                      options.weights, mode=init.icp, features=features, robust=init.rigid_robust)
-            candidates = [s.result for s in basin_representatives(starts)[:init.max_candidates]]
+            candidates = [s.fitted for s in basin_representatives(starts)[:init.max_candidates]]
             rigid = candidates[0]
         else:
             rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,

@@ -70,7 +70,7 @@ TOL_BEFORE_LIBR = 1e-2  # mm: ICP only initialises LIBR
 RIGID_ROBUST = 2.0
 
 
-def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights(), max_iterations=100,
+def rigid_icp(model: RegistrationModel, data: dict, weights: Weights | None = None, max_iterations=100,
               tol_mm=1e-4, start: "RigidResult | None" = None, features=SURFACE_FEATURES,
               multi_start=True, robust: float | None = RIGID_ROBUST) -> RigidResult:
     """Rigid transform taking the model onto ``data`` (feature → (N, 3) mm).
@@ -87,6 +87,7 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights()
     issue 14). Fiducials (≥ 3) give a closed-form start instead. ``features``: the data
     features that take part when present (``posterior`` can be added).
     """
+    weights = weights or Weights()
     R, t = (np.eye(3), np.zeros(3)) if start is None else (start.R, start.t)
     surface = {k: v for k, v in data.items() if k in features}
     data = surface or data
@@ -99,13 +100,13 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights = Weights()
         # the same points and starts as the pipeline's, so the same poses
         best = basin_representatives(multi_start_icp(model, data, start_poses(model, data), weights,
                                                      features=features, robust=robust))[0]
-        R, t = best.result.R, best.result.t
+        R, t = best.fitted.R, best.fitted.t
     data = {k: (v[:: -(-len(v) // ICP_POINTS)] if k != "fiducials" else v) for k, v in data.items()}
     prev = np.inf
     rms = 0.0
     it = 0
     trees = {name: cKDTree(model.feature_for(name).rest) for name in data if name != "fiducials"}
-    for it in range(1, max_iterations + 1):
+    for it in range(1, max_iterations + 1):  # noqa: B007 (``it`` is the count returned)
         Ps, Qs, Ws = [], [], []
         for name, Y in data.items():
             feat = model.feature_for(name)
@@ -148,6 +149,13 @@ class Start:
     basin: int = -1  # index of the distinct pose it converged to
     omega: float | None = None  # LIBR Ω after the screening iterations, when screened
     chosen: bool = False
+
+    @property
+    def fitted(self) -> RigidResult:
+        """Where the ICP from this start ended (set by ``multi_start_icp``)."""
+        if self.result is None:
+            raise ValueError(f"start {self.label!r} has not been run")
+        return self.result
 
 
 def _axis_rotation(axis: int, angle_rad: float) -> np.ndarray:
@@ -212,13 +220,13 @@ def start_poses(model: RegistrationModel, data: dict, angle_deg=15.0, principal_
         _, _, Vp = np.linalg.svd(P - cp, full_matrices=False)
         # the axes' signs are arbitrary: of the four proper sign choices take the rotation
         # nearest the tracker pose (the set-up is known to within a few tens of degrees)
-        best = None
+        best = (np.inf, np.eye(3))  # (angle from the tracker pose, rotation)
         for s in ((1, 1, 1), (1, -1, -1), (-1, 1, -1), (-1, -1, 1)):
             Rm = Vp.T @ np.diag(s) @ Vd  # data axes → model axes
             if np.linalg.det(Rm) < 0:
                 Rm = Vp.T @ np.diag(s) @ np.diag([1, 1, -1]) @ Vd
             angle = np.arccos(np.clip((np.trace(Rm) - 1) / 2, -1, 1))
-            if best is None or angle < best[0]:
+            if angle < best[0]:
                 best = (angle, Rm)
         Rm = best[1]
         starts.append(Start("principal-axes", Rm.T, c - Rm.T @ cp))
@@ -236,7 +244,7 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + s * K + (1 - c) * K @ K
 
 
-def multi_start_icp(model: RegistrationModel, data: dict, starts: list[Start], weights: Weights = Weights(),
+def multi_start_icp(model: RegistrationModel, data: dict, starts: list[Start], weights: Weights | None = None,
                     mode="plane", features=SURFACE_FEATURES, max_iterations=30, tol_mm=1e-2,
                     points=SCREEN_POINTS, basin_mm=1.5, merge_mm=0.5,
                     robust: float | None = RIGID_ROBUST) -> list[Start]:
@@ -268,6 +276,7 @@ def multi_start_icp(model: RegistrationModel, data: dict, starts: list[Start], w
     match the nearest model *vertex* (4 mm mesh), which is what a start needs — LIBR then
     refines τ and θ against the exact surfaces.
     """
+    weights = weights or Weights()
     use = {k: v for k, v in data.items() if k in features} or dict(data)
     use = {k: (v[:: -(-len(v) // points)] if k != "fiducials" else v) for k, v in use.items()}
     S = len(starts)
@@ -348,18 +357,18 @@ def multi_start_icp(model: RegistrationModel, data: dict, starts: list[Start], w
     # one basin per cluster of final poses, compared by where they put the data
     placed = np.einsum("snk,skj->snj", probe[None] - t[:, None], R)
     reps: list[int] = []  # the lowest-RMS start of each basin
-    roots = [i for i in np.argsort(rms, kind="stable") if merged[i] == i]
-    for i in roots:
-        same = [b for b, j in enumerate(reps) if np.linalg.norm(placed[i] - placed[j], axis=1).mean() < basin_mm]
-        starts[i].basin = same[0] if same else len(reps)
+    roots = [int(r) for r in np.argsort(rms, kind="stable") if merged[r] == r]
+    for r in roots:
+        same = [b for b, j in enumerate(reps) if np.linalg.norm(placed[r] - placed[j], axis=1).mean() < basin_mm]
+        starts[r].basin = same[0] if same else len(reps)
         if not same:
-            reps.append(i)
-    for i, s in enumerate(starts):
-        root = i
+            reps.append(r)
+    for k, s in enumerate(starts):
+        root = k
         while merged[root] != root:
-            root = merged[root]
+            root = int(merged[root])
         s.basin = starts[root].basin
-        s.result = RigidResult(R[i].copy(), t[i].copy(), int(iters[i]), float(rms[i]))
+        s.result = RigidResult(R[k].copy(), t[k].copy(), int(iters[k]), float(rms[k]))
     return starts
 
 
@@ -367,6 +376,6 @@ def basin_representatives(starts: list[Start]) -> list[Start]:
     """The lowest-RMS start of each basin, best first."""
     best: dict[int, Start] = {}
     for s in starts:
-        if s.basin not in best or s.result.rms_mm < best[s.basin].result.rms_mm:
+        if s.basin not in best or s.fitted.rms_mm < best[s.basin].fitted.rms_mm:
             best[s.basin] = s
-    return sorted(best.values(), key=lambda s: s.result.rms_mm)
+    return sorted(best.values(), key=lambda s: s.fitted.rms_mm)

@@ -9,7 +9,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
-
 @dataclass
 class Ledger:
     """Names of the stages and effects that ran, in order, with how often."""

@@ -4,7 +4,8 @@ The simulator writes a case folder (``simulation/simulate.py``); the viewer read
 into ``SceneData``: preoperative model, stylus data in sweep order, the iUS planes with
 their poses and B-mode images, and the true deformed anatomy. A scene is simulated into
 ``<cache>/scenes/<key>`` where the key hashes every scene parameter, so the next start
-is instant and a changed scene is simulated afresh. No viser here (the viewer and the replay server both read scenes through it).
+is instant and a changed scene is simulated afresh. No viser here (the viewer and the replay
+server both read scenes through it).
 """
 
 import dataclasses

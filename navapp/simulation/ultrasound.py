@@ -111,7 +111,8 @@ def acquire_plane(index, orientation, T, probe, liver, portal, hepatic, scene_ef
             continue
         seg_px = sections[name]
         if "contour_jitter" in eff:
-            c, r = fx.contour_jitter(seg_px[..., 0].ravel(), seg_px[..., 1].ravel(), rng, ledger, **eff["contour_jitter"])
+            c, r = fx.contour_jitter(seg_px[..., 0].ravel(), seg_px[..., 1].ravel(), rng, ledger,
+                                     **eff["contour_jitter"])
             seg_px = np.stack([c, r], -1).reshape(seg_px.shape)
         cols, rows = _rasterise(seg_px, probe)
         if len(cols):
@@ -120,9 +121,11 @@ def acquire_plane(index, orientation, T, probe, liver, portal, hepatic, scene_ef
             lab, closed = _components(sections[name])
             cents = []
             for c in np.flatnonzero(closed):
-                cc, rr = _rasterise(seg_px[lab == c], probe)
-                if len(cc) >= 6 and np.all(seg_px[lab == c].reshape(-1, 2) >= 0) and \
-                        np.all(seg_px[lab == c][..., 0] < probe.width_px) and np.all(seg_px[lab == c][..., 1] < probe.height_px):
+                piece = seg_px[lab == c]
+                cc, rr = _rasterise(piece, probe)
+                inside = (np.all(piece.reshape(-1, 2) >= 0) and np.all(piece[..., 0] < probe.width_px)
+                          and np.all(piece[..., 1] < probe.height_px))
+                if len(cc) >= 6 and inside:
                     cents.append(pixels_to_tracker(probe, measured, [cc.mean()], [rr.mean()])[0])
             if cents:
                 feats[f"{name}_centerline"] = np.array(cents)
