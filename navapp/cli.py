@@ -266,9 +266,11 @@ def build_parser():
     s.add_argument("--labels", help="label values, e.g. liver=1,portal=2,hepatic=3 (default: Slicer segment names)")
     s.add_argument("--frame", type=str.upper, choices=("LPS", "RAS", "LAS"),
                    help="frame of the surface files (3D Slicer exports STL/OBJ in LPS by default)")
-    s.add_argument("--falciform", nargs=2, metavar="X,Y,Z", help="two points on the falciform ligament (mm, files' frame)")
+    s.add_argument("--falciform", nargs=2, metavar="X,Y,Z",
+                   help="two points on the falciform ligament (mm, files' frame)")
     s.add_argument("--regions", type=Path, help="your regions.csv (one label per liver vertex); default: automatic")
-    s.add_argument("--portal-centerline", type=Path, help="your portal centerline CSV (x,y,z,branch); default: skeleton")
+    s.add_argument("--portal-centerline", type=Path,
+                   help="your portal centerline CSV (x,y,z,branch); default: skeleton")
     s.add_argument("--hepatic-centerline", type=Path, help="your hepatic centerline CSV; default: skeleton")
     s.add_argument("--target", type=Path, action="append", metavar="FILE",
                    help="a tumour target: a closed surface, or a CSV name,x,y,z[,radius_mm] (files' frame); repeatable")
@@ -277,12 +279,14 @@ def build_parser():
 
     s = sub.add_parser("mesh", help="tetrahedralise a case's liver and print mesh statistics as JSON")
     s.add_argument("case", type=Path, help="case folder")
-    s.add_argument("--edge", type=_positive(float), default=EDGE_MM, help=f"target element size in mm (default {EDGE_MM:g})")
+    s.add_argument("--edge", type=_positive(float), default=EDGE_MM,
+                   help=f"target element size in mm (default {EDGE_MM:g})")
     s.set_defaults(func=cmd_mesh)
 
     s = sub.add_parser("precompute", help="mesh a case and compute (or load) its deformation basis")
     s.add_argument("case", type=Path, help="case folder")
-    s.add_argument("--edge", type=_positive(float), default=EDGE_MM, help=f"target element size in mm (default {EDGE_MM:g})")
+    s.add_argument("--edge", type=_positive(float), default=EDGE_MM,
+                   help=f"target element size in mm (default {EDGE_MM:g})")
     s.add_argument("--k", type=_positive(int), default=K, help=f"number of control points (default {K})")
     s.set_defaults(func=cmd_precompute)
 
@@ -302,7 +306,9 @@ def build_parser():
     s.add_argument("--with-results", type=Path, help="next-plane: the second set's Table II CSV (for the ranks)")
     s.add_argument("--cases", type=Path, nargs="+", help="case folders (default: simulate the nine study scenes)")
     s.add_argument("--case-root", type=Path, default=Path("study-cases"), help="where simulated cases go")
-    s.add_argument("--workers", type=_positive(int), help="local worker processes (default: all cores for table2, 1 for cost, whose timings would compete)")
+    s.add_argument("--workers", type=_positive(int),
+                   help="local worker processes (default: all cores for table2, 1 for cost, "
+                        "whose timings would compete)")
     s.add_argument("--scheduler", help="Dask distributed scheduler address (e.g. tcp://host:8786)")
     s.add_argument("--quick", action="store_true", help="one case, two scenarios per plane level")
     s.add_argument("--results", type=Path, default=DEFAULT_TABLE2_CSV,
@@ -332,7 +338,8 @@ def build_parser():
     s.add_argument("--seconds", type=_positive(float), help="stop after this long (default: until Ctrl-C)")
     s.set_defaults(func=cmd_replay)
 
-    s = sub.add_parser("demo", help="simulate the built-in demo scene (phantom 0, stylus, 16 iUS planes) and register it")
+    s = sub.add_parser("demo",
+                       help="simulate the built-in demo scene (phantom 0, stylus, 16 iUS planes) and register it")
     s.add_argument("--out", type=Path, default=Path("navapp-demo"), help="case folder to write (default ./navapp-demo)")
     s.set_defaults(func=cmd_demo)
 
