@@ -20,9 +20,10 @@ from pathlib import Path
 import numpy as np
 
 from navapp import progress
+from navapp.defaults import EDGE_MM, K
 
 
-def modes_table(layers, volume_ml=None, edge=4.0, k=45):
+def modes_table(layers, volume_ml=None, edge=EDGE_MM, k=K):
     from navapp.anatomy.meshing import cached_tetmesh
     from navapp.anatomy.phantom import make_phantom
     from navapp.evaluation.benchmark import scaled_liver
@@ -61,7 +62,7 @@ def modes_table(layers, volume_ml=None, edge=4.0, k=45):
     print(f"| exact (whole mesh) | {exact_s:.1f} | 0 | 0 |", flush=True)
 
 
-def tre_table(case_dirs, layers, combos, edge=4.0, k=45, seed=0):
+def tre_table(case_dirs, layers, combos, edge=EDGE_MM, k=K, seed=0):
     from navapp.anatomy.caseio import read_case
     from navapp.anatomy.meshing import cached_tetmesh
     from navapp.mechanics.basis import BasisSettings, load_or_compute_basis
