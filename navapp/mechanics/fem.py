@@ -16,10 +16,9 @@ import scipy.sparse as sp
 # Pa. The paper's text (and docs/design.md) say 2100 kPa; we use 2100 Pa. Displacement modes
 # do not depend on E, but the strain-energy penalty w_E f_E² scales with E², and with the
 # paper's w_E = 1e-8 Pa⁻² an E of 2.1 MPa makes the penalty dominate any millimetre-scale
-# deformation. Measured on the simulated phantom0-L case (mean TRE, mm; rigid 8.28): stylus
-# data only → 8.22 with 2100 kPa but → 5.21 with 2100 Pa; stylus + 16 iUS planes → 5.78
-# with 2100 kPa but → 2.13 with 2100 Pa. The paper's Table II shows the
-# latter kind of gain, and 2.1 kPa is the order of liver stiffness in the literature.
+# deformation; 2.1 kPa is the order of liver stiffness in the literature and gives the
+# kind of gain the paper's Table II shows (the measurement: docs/decisions.md, "Measured
+# choices moved out of docstrings").
 E_LIVER = 2100.0
 NU_LIVER = 0.45
 

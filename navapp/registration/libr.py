@@ -11,8 +11,8 @@ Choices where the paper is open:
   it (×2), a rejected step grows it ×4;
 - C = w_E f_E ∇²f_E = w_E f_E J_σᵀJ_ε / M is the part of the exact Hessian of the
   strain-energy term that Gauss–Newton drops. f_E is quadratic in α, so w_E f_E² is
-  quartic, and without C the model underestimates it and λ must stay large (measured on
-  the default phantom: 2–3× more iterations). It changes the path, not the objective;
+  quartic, and without C the model underestimates it and λ must stay large (more
+  iterations; docs/decisions.md). It changes the path, not the objective;
   ``LMOptions(energy_curvature=False)`` gives the plain step of eq. 14.
 
 Stop reasons (``STOP_REASONS``): "converged" (|ΔΩ| < tol on an accepted step, or Ω = 0),
@@ -37,10 +37,7 @@ from .objective import Weights, add_jacobian, evaluate
 class LMOptions:
     tol: float = 1e-12  # on |ΔΩ| (Ω dimensionless, SI), the paper's rule
     # on |ΔΩ| / Ω, twice in a row: correspondence switching keeps Ω jittering far above tol.
-    # 0.1, not 0.01, measured over the nine study cases at S, S + 3 planes and S + all: mean
-    # TRE 0.010–0.033 mm higher (≤ 0.17 mm in any one case), S + 3 in 0.148 instead of
-    # 0.170 s, and the warm-started demo after adding a plane in 43 instead of 75 ms (2
-    # instead of 3 iterations) — see README, "What accuracy costs in time"
+    # 0.1, not 0.01: a few hundredths of a mm of TRE for fewer iterations (docs/decisions.md)
     rtol: float = 1e-1
     max_iterations: int = 100
     lam0: float = 1e-2
