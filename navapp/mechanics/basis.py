@@ -43,6 +43,22 @@ BASIS_VERSION = "basis-2"  # bump when the computation changes: it is part of th
 
 @dataclass(frozen=True)
 class BasisSettings:
+    """How the deformation basis is built (paper §II-B–C, eq. 3–5).
+
+    Attributes
+    ----------
+    k : int
+        control points on the surface (k-means of the surface nodes); the basis has 3k modes.
+    perturbation : float
+        displacement imposed at the active control point, mm.
+    seed : int
+        k-means seed.
+    relax : bool
+        Saint-Venant relaxation of the point-load modes over each control point's tile.
+    relax_layers : int or None
+        the relaxation subdomain: the tile plus this many node rings (None: the whole mesh).
+    """
+
     k: int = K
     perturbation: float = 5.0  # mm imposed at the active control point
     seed: int = 0  # k-means seed
@@ -54,6 +70,13 @@ class BasisSettings:
 
 @dataclass
 class Basis:
+    """The linear-elastic deformation basis of one tet mesh: u = J_u α (eq. 3–5).
+
+    ``Ju`` (3M, 3k) maps the mode weights α to nodal displacements (mm per unit α, rows
+    x, y, z per node); ``energy`` (3k, 3k) = J_σᵀ J_ε (Pa) gives the strain-energy density
+    f_E = αᵀ·energy·α / (2M) of eq. 13 (``strain_energy_density``).
+    """
+
     nodes: np.ndarray  # (M, 3) mm
     tets: np.ndarray  # (E, 4)
     surface_faces: np.ndarray  # (F, 3) outward boundary triangles

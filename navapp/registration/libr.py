@@ -35,6 +35,12 @@ from .objective import Weights, add_jacobian, evaluate
 
 @dataclass
 class LMOptions:
+    """Settings of the Levenberg–Marquardt fit of β (paper eq. 14).
+
+    ``tol`` on |ΔΩ| (the paper's rule) and ``rtol`` on |ΔΩ| / Ω twice in a row end the fit;
+    ``weights`` holds w_F (m⁻²) and w_E (Pa⁻²) of eq. 7; ``deform=False`` fits only τ, θ.
+    """
+
     tol: float = 1e-12  # on |ΔΩ| (Ω dimensionless, SI), the paper's rule
     # on |ΔΩ| / Ω, twice in a row: correspondence switching keeps Ω jittering far above tol.
     # 0.1, not 0.01: a few hundredths of a mm of TRE for fewer iterations (docs/decisions.md)
@@ -64,6 +70,9 @@ class Progress:
 
 @dataclass
 class LibrResult:
+    """A LIBR fit: ``beta`` (3k + 6,) = (α, τ mm, θ rad) of eq. 8 in the model frame, its Ω
+    (eq. 7, dimensionless), the ``stop_reason`` (``STOP_REASONS``) and per-feature residuals."""
+
     beta: np.ndarray
     omega: float
     iterations: int

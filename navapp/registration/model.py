@@ -49,6 +49,10 @@ class ModelFeature:
 
 @dataclass
 class RegistrationModel:
+    """The preoperative geometry carried by the basis' mesh: each model feature (liver
+    surface, labelled regions, vessel surfaces, centerlines, fiducials) deforms by eq. 8;
+    ``feature_for`` says which one a data feature slides on (``navapp.features``)."""
+
     basis: Basis
     features: dict  # model feature name → ModelFeature
     centroid: np.ndarray  # x̄0 (3,), centroid of the mesh nodes

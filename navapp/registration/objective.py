@@ -23,6 +23,9 @@ from .rotation import rotation, rotation_derivatives
 
 @dataclass
 class Weights:
+    """The weights of Ω (eq. 7): w_F per data feature (m⁻², ``navapp.features``), w_E on the
+    strain energy (Pa⁻²), and optional Huber thresholds (mm) per feature."""
+
     features: dict = field(default_factory=lambda: dict(WEIGHTS_SI))  # m⁻²
     energy: float = W_ENERGY_SI  # Pa⁻²
     unit_m: float = 1e-3  # metres per model length unit (mm)

@@ -155,6 +155,8 @@ def deform_points(basis: Basis, centroid, beta, points, B=None) -> np.ndarray:
 
 
 def tre_stats(pred, truth) -> dict:
+    """Target registration error of predicted (T, 3) against true (T, 3) positions, mm:
+    ``mean_mm``, ``sd_mm``, ``max_mm`` and the count ``n``."""
     d = np.linalg.norm(pred - truth, axis=1)
     return {"mean_mm": float(d.mean()), "sd_mm": float(d.std()), "max_mm": float(d.max()), "n": int(len(d))}
 

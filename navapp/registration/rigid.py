@@ -29,6 +29,9 @@ from .objective import Weights, correspond
 
 @dataclass
 class RigidResult:
+    """A rigid pose T(x) = R x + t from the model (preoperative) frame to the data (tracker)
+    frame, mm; ``apply`` maps (P, 3) points by T, ``inverse`` by T⁻¹."""
+
     R: np.ndarray  # (3, 3): model frame → data frame
     t: np.ndarray  # (3,)
     iterations: int
