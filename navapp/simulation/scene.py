@@ -14,6 +14,11 @@ Example::
     gravity_tilt_deg = 25.0  # gravity tilted from posterior toward the released side
     large = false            # true: St-Venant–Kirchhoff, Newton
     mesh_edge_mm = 3.5       # the truth's own (finer) mesh
+    pressure_pa = 0.0        # inward pressure on the anterior surface (insufflation)
+    head_up_deg = 0.0        # reverse Trendelenburg: gravity turned this far toward inferior
+    # transpose_from = {phantom = 3, mesh_edge_mm = 5.0}
+    #   the loads above deform reference phantom 3 instead, and its displacement is carried
+    #   onto this liver through an inexact correspondence (transpose.py)
     [stylus]
     coverage = 0.2           # fraction of the anterior surface the swaths cover
     [ius]
@@ -48,6 +53,18 @@ class Effect:
     params: dict
 
 
+@dataclass(frozen=True)
+class Transposition:
+    """Where a transposed truth comes from (``simulation/transpose.py``): the reference
+    phantom, deformed by the scene's loads on its own tet mesh of ``mesh_edge_mm``."""
+
+    phantom: int
+    mesh_edge_mm: float = 5.0
+
+
+_TRANSPOSE_KEYS = {"phantom": int, "mesh_edge_mm": float}
+
+
 @dataclass
 class Scene:
     name: str
@@ -58,6 +75,9 @@ class Scene:
     large: bool = False
     mesh_edge_mm: float = 3.5
     truth_E_pa: float = 5000.0
+    pressure_pa: float = 0.0
+    head_up_deg: float = 0.0
+    transpose_from: "Transposition | None" = None
     coverage: float = 0.2
     planes: int = 16
     effects: list = field(default_factory=list)
@@ -68,7 +88,8 @@ class Scene:
 _SECTIONS = {
     "anatomy": {"phantom": int, "case": str},
     "deformation": {"release": str, "gravity_tilt_deg": float, "large": bool, "mesh_edge_mm": float,
-                    "truth_E_pa": float},
+                    "truth_E_pa": float, "pressure_pa": float, "head_up_deg": float,
+                    "transpose_from": dict},
     "stylus": {"coverage": float},
     "ius": {"planes": int},
 }
@@ -82,6 +103,21 @@ def _typed(value, kind, key, path):
     if isinstance(value, kind):
         return value
     raise InputError(f"{key} must be a {kind.__name__}, got {value!r}", path)
+
+
+def _transposition(table: dict, path) -> Transposition:
+    for key in table:
+        if key not in _TRANSPOSE_KEYS:
+            known = ", ".join(_TRANSPOSE_KEYS)
+            raise InputError(f"unknown key deformation.transpose_from.{key} (known: {known})", path)
+    if "phantom" not in table:
+        raise InputError("deformation.transpose_from needs phantom (the reference liver's index)", path)
+    values = {k: _typed(v, _TRANSPOSE_KEYS[k], f"deformation.transpose_from.{k}", path) for k, v in table.items()}
+    if values["phantom"] < 0:
+        raise InputError("deformation.transpose_from.phantom must be >= 0", path)
+    if values.get("mesh_edge_mm", 1.0) <= 0:
+        raise InputError("deformation.transpose_from.mesh_edge_mm must be positive", path)
+    return Transposition(**values)
 
 
 def parse_scene(data: dict, path=None) -> Scene:
@@ -99,7 +135,12 @@ def parse_scene(data: dict, path=None) -> Scene:
         for key, value in table.items():
             if key not in keys:
                 raise InputError(f"unknown key {section}.{key} (known: {', '.join(keys)})", path)
-            value = _typed(value, keys[key], f"{section}.{key}", path)
+            if keys[key] is dict:
+                if not isinstance(value, dict):
+                    raise InputError(f"{section}.{key} must be a table, e.g. {{phantom = 3}}", path)
+                value = _transposition(value, path)
+            else:
+                value = _typed(value, keys[key], f"{section}.{key}", path)
             setattr(scene, key, Path(value) if key == "case" else value)
     if "case" in data.get("anatomy", {}):
         scene.phantom = None
@@ -111,6 +152,10 @@ def parse_scene(data: dict, path=None) -> Scene:
         raise InputError("ius.planes must be between 0 and 16", path)
     if scene.mesh_edge_mm <= 0 or scene.truth_E_pa <= 0:
         raise InputError("deformation.mesh_edge_mm and deformation.truth_E_pa must be positive", path)
+    if not -90.0 < scene.head_up_deg < 90.0:
+        raise InputError("deformation.head_up_deg must be between -90 and 90", path)
+    if scene.pressure_pa < 0:
+        raise InputError("deformation.pressure_pa must be >= 0 (an inward pressure on the anterior surface)", path)
     effects = data.get("effects", [])
     if not isinstance(effects, list):
         raise InputError("effects must be an array of tables ([[effects]])", path)
@@ -166,6 +211,13 @@ def scene_dir() -> Path:
     return Path(str(resources.files("navapp") / "scenes"))
 
 
-def study_scenes() -> list[Path]:
-    """The nine study scenes (3 phantoms × L/N/R release), sorted by name."""
-    return sorted(scene_dir().glob("phantom*-*.toml"))
+SCENE_SETS = {"direct": "phantom*-*.toml", "lap": "lap*-*.toml"}
+"""The study scene sets: ``direct`` (each liver deformed by its own elastic model under
+gravity) and ``lap`` (laparoscopic loading of a reference liver, transposed)."""
+
+
+def study_scenes(which: str = "direct") -> list[Path]:
+    """The nine study scenes of a set (3 phantoms × L/N/R release), sorted by name."""
+    if which not in SCENE_SETS:
+        raise InputError(f"unknown scene set {which!r} (known: {', '.join(SCENE_SETS)})")
+    return sorted(scene_dir().glob(SCENE_SETS[which]))

@@ -39,11 +39,18 @@ from .ultrasound import acquire_plane, plane_poses
 REGISTRATION_EDGE_MM = EDGE_MM
 
 
-def gravity_direction(release: str, tilt_deg: float) -> tuple:
-    """Posterior gravity tilted toward the released side (L: +x, R: −x, N: inferior)."""
+def gravity_direction(release: str, tilt_deg: float, head_up_deg: float = 0.0) -> tuple:
+    """Posterior gravity tilted toward the released side (L: +x, R: −x, N: inferior), then
+    by ``head_up_deg`` toward inferior (reverse Trendelenburg, the usual position for
+    upper-abdominal laparoscopy). Unit vector."""
     t = np.radians(tilt_deg)
     side = {"L": np.array([1.0, 0.0, 0.0]), "R": np.array([-1.0, 0.0, 0.0]), "N": np.array([0.0, 0.0, -1.0])}[release]
-    return tuple(np.cos(t) * np.array([0.0, -1.0, 0.0]) + np.sin(t) * side)
+    g = np.cos(t) * np.array([0.0, -1.0, 0.0]) + np.sin(t) * side
+    if head_up_deg:
+        h = np.radians(head_up_deg)
+        g = np.cos(h) * g + np.sin(h) * np.array([0.0, 0.0, -1.0])
+        g = g / np.linalg.norm(g)
+    return tuple(g)
 
 
 def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTRATION_EDGE_MM) -> dict:
@@ -58,15 +65,20 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
 
         raise InputError("the scene's anatomy needs preop/regions.csv (anterior surface for the stylus and probe)")
     truth_mesh, _ = cached_tetmesh(preop.liver, scene.mesh_edge_mm, cache_root)
-    loading = Loading(gravity_dir=gravity_direction(scene.release, scene.gravity_tilt_deg), release=scene.release)
+    loading = Loading(gravity_dir=gravity_direction(scene.release, scene.gravity_tilt_deg, scene.head_up_deg),
+                      pressure=scene.pressure_pa, release=scene.release)
     material = Material(E=scene.truth_E_pa, nu=0.45)
-    with progress.stage("ground truth" + (" (St-Venant–Kirchhoff, Newton)" if scene.large else " (linear)")):
-        if scene.large:
-            ledger.mark("nonlinear_solve")
-            u = solve_svk(truth_mesh, loading, material)
-        else:
-            ledger.mark("linear_solve")
-            u = solve_linear(truth_mesh, loading, material)
+    transposed = None
+    if scene.transpose_from is not None:
+        u, transposed = _transposed_truth(scene, preop, truth_mesh, loading, material, ledger, cache_root)
+    else:
+        with progress.stage("ground truth" + (" (St-Venant–Kirchhoff, Newton)" if scene.large else " (linear)")):
+            if scene.large:
+                ledger.mark("nonlinear_solve")
+                u = solve_svk(truth_mesh, loading, material)
+            else:
+                ledger.mark("linear_solve")
+                u = solve_linear(truth_mesh, loading, material)
     t_truth = time.perf_counter() - t0
 
     def moved(points):
@@ -137,8 +149,39 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
         "seconds": {"truth": round(t_truth, 2), "total": round(time.perf_counter() - t0, 2)},
         "ran": sorted(set(ledger.ran)),
     }
+    if transposed is not None:
+        report["transposed"] = transposed
     (tdir / "report.json").write_text(json.dumps(report, indent=1))
     return report
+
+
+def _transposed_truth(scene, preop, truth_mesh, loading, material, ledger, cache_root):
+    """The scene's loads deform the reference phantom; its displacement is carried onto
+    this liver's truth mesh through an inexact correspondence (``transpose.py``).
+    Returns the nodal displacements (M, 3) mm and what the report says about them."""
+    from .transpose import correspondence, reference_deformation, transpose
+    from .truth import supported_nodes
+
+    src = scene.transpose_from
+    ref = make_phantom(src.phantom)
+    with progress.stage(f"reference liver (phantom {src.phantom}) under laparoscopic loading"
+                        + (" (St-Venant–Kirchhoff, Newton)" if scene.large else " (linear)")):
+        ledger.mark("nonlinear_solve" if scene.large else "linear_solve")
+        ref_mesh, u_ref = reference_deformation(ref.liver, src.mesh_edge_mm, loading, material, scene.large, cache_root)
+    with progress.stage("correspondence (affine + deformable CPD, thin-plate spline) and transposition"):
+        ledger.mark("transposition")
+        phi = correspondence(preop.liver.vertices, ref.liver.vertices, seed=scene.seed)
+        u = transpose(ref_mesh, u_ref, phi, truth_mesh.nodes)
+    held = np.unique(np.concatenate(list(supported_nodes(truth_mesh, scene.release).values())))
+
+    def stats(u):
+        d = np.linalg.norm(u, axis=1)
+        return {"mean": round(float(d.mean()), 2), "max": round(float(d.max()), 2)}
+
+    return u, {"reference_phantom": src.phantom, "reference_nodes": int(len(ref_mesh.nodes)),
+               "reference_displacement_mm": stats(u_ref), "correspondence_residual_mm": round(phi.residual_mm, 2),
+               # the target's own supports are not re-clamped (transpose.py): how far they move
+               "support_displacement_mm": stats(u[held])}
 
 
 def _write_planes(out, planes, probe):
