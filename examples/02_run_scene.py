@@ -36,7 +36,7 @@ def main(argv=None) -> dict:
 
     case = navapp.read_case(args.out)
     model, _ = navapp.prepare(case, edge=args.edge, k=args.k)
-    x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+    x0, x1 = case.truth_pairs()
     out = {}
     for label, data in (("S", navapp.data_level(args.out, "S", case=case)),
                         (f"S+{args.planes}", navapp.data_level(args.out, "S+planes", range(args.planes), case=case))):

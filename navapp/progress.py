@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 QUIET = False  # set by the CLI's --quiet and by tests (application-wide); library code uses quiet()
 _scoped_quiet = contextvars.ContextVar("navapp_progress_quiet", default=False)
-_listeners = []  # callables (desc, fraction or None) — e.g. the viewer's status panel
+_listeners: list = []  # callables (desc, fraction or None) — e.g. the viewer's status panel
 
 
 def is_quiet() -> bool:
@@ -79,7 +79,7 @@ def bar(total, desc, unit="it"):
 def stage(desc):
     """Show ``desc`` with elapsed seconds ticking while the block runs; yields a dict that
     receives ``seconds`` when the block ends."""
-    out = {}
+    out: dict = {}
     stop = threading.Event()
     t0 = time.perf_counter()
     _notify(desc, None)

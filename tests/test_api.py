@@ -19,3 +19,13 @@ def test_import_is_lazy():
     code = "import sys, navapp; print('scipy' in sys.modules, 'trimesh' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
     assert out == ["False", "False"]
+
+
+def test_every_public_name_is_documented():
+    import inspect
+
+    for name in navapp.__all__:
+        obj = getattr(navapp, name)
+        if callable(obj) or inspect.isclass(obj):
+            doc = obj.__doc__ or ""
+            assert doc and not doc.startswith(f"{name}("), name  # a dataclass's generated signature is no doc

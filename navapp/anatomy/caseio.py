@@ -39,6 +39,13 @@ class Case:
     def name(self) -> str:
         return self.settings.get("name", self.preop.name)
 
+    def truth_pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """(x0, x1), each (T, 3) mm: preoperative target points and where they truly are
+        intraoperatively (``truth/targets.csv``). Raises InputError when the case has none."""
+        if self.targets is None:
+            raise InputError(f"case {self.name!r} has no truth/targets.csv: this needs the true target positions")
+        return self.targets[:, :3], self.targets[:, 3:]
+
 
 # ---------------------------------------------------------------- CSV
 

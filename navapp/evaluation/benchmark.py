@@ -129,8 +129,7 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM):
     data = data_level(folder, "S+planes", planes=range(planes), case=case)
     more = data_level(folder, "S+planes", planes=range(planes + 1), case=case)
     model, _ = prepare(case, edge, k)
-    assert case.targets is not None and case.targets.size  # the demo scene is simulated with its truth
-    x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+    x0, x1 = case.truth_pairs()
     times, rigid_s, iters = [], [], []
     for _ in range(repeats):
         reg = register(model, data)

@@ -148,9 +148,9 @@ def _cost_case(case_dir, todo, caps, rtols, plane_counts, peers, tempfile, Path)
     from .peers import cpd_register, icp_register
 
     case = read_case(case_dir)
-    x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+    x0, x1 = case.truth_pairs()
     levels = {name: data_level(case_dir, "S+planes", planes=pl, case=case) for name, pl in LEVELS.items()}
-    rows = []
+    rows: list[dict] = []
 
     def row(sweep, level, method, edge, k, setting, planes, nodes, pre, reg_s, tre, its):
         r = {"case": case_dir.name, "sweep": sweep, "level": level, "method": method, "edge_mm": edge, "k": k,
@@ -231,7 +231,7 @@ def run_cost_study(case_dirs, results_csv, workers=1, quick=False, **settings) -
     if results_csv.exists():
         with results_csv.open() as f:
             done = {_row_key(r) for r in csv.DictReader(f)}
-    kw = {"done": frozenset(done)}
+    kw: dict = {"done": frozenset(done)}
     if quick:
         kw.update(ks=(15, 45), edges=(6.0, 4.0), caps=(0, 2, 100), rtols=(1e-1,), plane_counts=(0, 2), peers=False)
     kw.update(settings)

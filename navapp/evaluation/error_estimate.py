@@ -61,7 +61,7 @@ def collect_case(case_dir, levels=LEVELS, combos=3, seed=0, edge=4.0, k=45) -> l
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
-    x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+    x0, x1 = case.truth_pairs()
     if x0.shape != model.basis.nodes.shape or not np.allclose(x0, model.basis.nodes):
         from ..errors import InputError
 
@@ -94,11 +94,12 @@ def fit_calibration(samples: list[Sample], coverage=NOMINAL, seed=0, name="") ->
     all its nodes), then the band factors: the (1 ± coverage)/2 quantiles of true / ê over
     the same nodes."""
     rng = np.random.default_rng(seed)
-    D, S, E, Mm = [], [], [], []
+    parts: tuple[list, list, list, list] = ([], [], [], [])
     for s in samples:
         i = rng.choice(len(s.err), min(FIT_NODES, len(s.err)), replace=False)
-        D.append(s.d[i]), S.append(s.sigma[i]), E.append(s.err[i]), Mm.append(np.full(len(i), np.median(s.d)))
-    D, S, E, Mm = map(np.concatenate, (D, S, E, Mm))
+        for part, v in zip(parts, (s.d[i], s.sigma[i], s.err[i], np.full(len(i), np.median(s.d))), strict=True):
+            part.append(v)
+    D, S, E, Mm = (np.concatenate(p) for p in parts)
     A = np.column_stack([np.ones_like(D), D, S, D * Mm])
     (a, b, c, e), _ = nnls(A, E)
     cal = Calibration(float(a), float(b), float(c), float(e), coverage=coverage, fitted_on=name)
@@ -139,7 +140,7 @@ def run_study(case_dirs, calibration_cases, out_dir, combos=3, seed=0, extra_set
     {label: case_dirs} judged with the same calibration (e.g. the laparoscopic cases)."""
     sets = {"study": list(case_dirs)}
     sets.update(extra_sets or {})
-    collected = {}
+    collected: dict = {}
     with progress.bar(sum(len(v) for v in sets.values()), "error estimate: cases", "case") as pb:
         for label, dirs in sets.items():
             collected[label] = []

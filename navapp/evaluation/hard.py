@@ -29,8 +29,14 @@ import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ..anatomy.meshing import TetMesh
+    from ..anatomy.model import PreopModel
+    from ..registration.model import RegistrationModel
 
 # how the hard cases' data are made (mm, the model frame of phantom 0: +x left, +y anterior, +z superior)
 BEND_MM = 8.0  # amplitude of the analytic bending field
@@ -48,9 +54,9 @@ FLOOR_MM, FACTOR = 2.0, 2.0  # the stated displacement bound 2 d + 2 mm
 @dataclass
 class Setup:
     """Phantom 0, its registration model, and the one true deformation every case uses."""
-    preop: object  # PreopModel
-    mesh: object  # TetMesh
-    model: object  # RegistrationModel
+    preop: "PreopModel"
+    mesh: "TetMesh"
+    model: "RegistrationModel"
     edge: float
     k: int
     cache_root: object

@@ -69,7 +69,7 @@ def recorded_poses(case_dir) -> list[tuple[str, np.ndarray]]:
 
 def _table(rows):
     """case → level → {planes tuple: TRE}."""
-    out = defaultdict(lambda: defaultdict(dict))
+    out: dict = defaultdict(lambda: defaultdict(dict))
     for r in rows:
         out[r["case"]][r["level"]][tuple(int(p) for p in r["planes"].split("-") if p)] = float(r["tre_mean_mm"])
     return out
@@ -103,7 +103,7 @@ def fresh_single_planes(case_dir, edge=4.0, k=45) -> dict:
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
-    x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+    x0, x1 = case.truth_pairs()
     rigid_s = rigid_icp(model, usable_data(model, data_level(case_dir, "S", case=case)), tol_mm=TOL_BEFORE_LIBR)
     out = {}
     for i in range(len(recorded_poses(case_dir))):
@@ -125,7 +125,7 @@ def run_case(case_dir, table, steps=3, edge=4.0, k=45, calibration=None, fresh=N
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
-    x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+    x0, x1 = case.truth_pairs()
     poses = recorded_poses(case_dir)
     stylus = data_level(case_dir, "S", case=case)
     rigid_s = rigid_icp(model, usable_data(model, stylus), tol_mm=TOL_BEFORE_LIBR)
@@ -206,7 +206,7 @@ def benchmark(case_dir, repeats=5, edge=4.0, k=45) -> dict:
 def run_study(sets: dict, out_dir, steps=3, bench_case=None, repeats=5):
     """``sets``: {label: (case_dirs, table2 CSV)}. Every criterion of ``criteria()`` on every
     case; writes next_plane.md and next_plane.csv."""
-    all_rows = {}  # (set label, criterion) → rows
+    all_rows: dict = {}  # (set label, criterion) → rows
     crit = criteria()
     n = sum(len(d) for d, _ in sets.values()) * len(crit)
     with progress.bar(n, "next plane: cases × criteria", "case") as pb:

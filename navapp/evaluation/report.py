@@ -7,7 +7,6 @@ from pathlib import Path
 import numpy as np
 
 from ..defaults import EDGE_MM, K
-from ..errors import InputError
 from .table2 import LEVELS, PAPER, read_results
 
 
@@ -96,9 +95,7 @@ def distance_plot(case_dirs, path, level="S+all", edge=EDGE_MM, k=K) -> float:
         planes = range(16) if level == "S+all" else ()
         data = data_level(d, "S+planes" if level.startswith("S+") else level, planes=planes, case=case)
         reg = register(model, data)
-        if case.targets is None:
-            raise InputError("the distance plot needs truth/targets.csv", d)
-        x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+        x0, x1 = case.truth_pairs()
         pts = np.vstack(list(data.values()))
         dist.append(cKDTree(pts).query(x1)[0])
         err.append(np.linalg.norm(reg.transform(x0) - x1, axis=1))

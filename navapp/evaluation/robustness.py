@@ -31,7 +31,6 @@ import numpy as np
 
 from .. import progress
 from ..defaults import EDGE_MM, K
-from ..errors import InputError
 from ..features import SALIENT
 
 OFFSETS = ((0.0, 0.0), (5.0, 10.0), (10.0, 20.0), (15.0, 30.0), (20.0, 40.0))  # (degrees, mm)
@@ -167,9 +166,7 @@ def run_case(case_dir, trials, methods, edge=EDGE_MM, k=K) -> list[dict]:
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
-    if case.targets is None:
-        raise InputError("the robustness study needs truth/targets.csv", case_dir)
-    x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+    x0, x1 = case.truth_pairs()
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
     surface, _ = read_surface(case_dir / "truth" / "liver.ply", closed=False)
     surface = surface[0] if isinstance(surface, tuple) else surface  # (mesh, clean-up report) since 31bc815

@@ -28,7 +28,7 @@ COLUMNS = ("case", "level", "planes", "tre_mean_mm", "tre_sd_mm", "tre_max_mm", 
 
 def scenarios(n_planes=16, quick=False, rng_seed=0):
     """(level, planes) pairs of the design; ``quick`` keeps two choices per plane level."""
-    out = [("rigid", ()), ("S", ())]
+    out: list[tuple[str, tuple[int, ...]]] = [("rigid", ()), ("S", ())]
     for m in (1, 2, 3):
         combos = list(itertools.combinations(range(n_planes), m))
         if quick:
@@ -56,7 +56,7 @@ def run_chunk(case_dir, items, edge=EDGE_MM, k=K):
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
-    x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+    x0, x1 = case.truth_pairs()
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)  # once: it costs as much as a registration
     # The rigid initialisation sees only the stylus features (registration/rigid.py), which
     # are the same for S and every S + planes scenario of a case: ICP runs once per chunk
@@ -102,7 +102,9 @@ def dask_client(address, client_class=None):
     from ..errors import NavappError
 
     if client_class is None:
-        from distributed import Client as client_class
+        from distributed import Client
+
+        client_class = Client
     try:
         return client_class(address, timeout=f"{DASK_CONNECT_S}s")
     except (OSError, TimeoutError, ValueError) as exc:
@@ -113,7 +115,8 @@ def dask_client(address, client_class=None):
 def run_table2(case_dirs, results, workers=None, scheduler=None, quick=False, chunk=40, edge=EDGE_MM, k=K):
     """Run (or resume) the design over ``case_dirs``; appends rows to ``results`` (CSV)."""
     results = Path(results)
-    done = {_key(r["case"], r["level"], tuple(int(p) for p in r["planes"].split("-") if p)) for r in read_results(results)}
+    done = {_key(r["case"], r["level"], tuple(int(p) for p in r["planes"].split("-") if p))
+            for r in read_results(results)}
     todo = []
     for d in case_dirs:
         items = [s for s in scenarios(quick=quick) if _key(Path(d).name, *s) not in done]

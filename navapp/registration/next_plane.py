@@ -221,7 +221,7 @@ def _extra_blocks(model, beta, feats, pixels, weights) -> dict:
     out, start = {}, 0
     for name, _feat, _S, q, _rows, _local in ev.terms:
         rows = slice(start, start + len(q))
-        J, w = ev.J[rows], ev.w[rows]
+        J, w = ev.jacobian[rows], ev.w[rows]
         out[name] = (pixels[name], ((J.T * w) @ J) * pixels[name])  # w = w_F·unit²/n_samples
         start += len(q)
     return out

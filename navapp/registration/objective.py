@@ -52,6 +52,13 @@ class Evaluation:
     terms: list  # per data feature (name, feature, S, q, rows, local): what ``add_jacobian`` needs
     scales: dict | None = None  # feature → (R,) Huber weight factors of its rows (features with a δ only)
 
+    @property
+    def jacobian(self) -> np.ndarray:
+        """J (R + 1, 3k + 6); evaluate with ``jacobian=True`` or call ``add_jacobian`` first."""
+        if self.J is None:
+            raise ValueError("this evaluation has no Jacobian (evaluate with jacobian=True or add_jacobian)")
+        return self.J
+
 
 def _stats(f, wF) -> dict:
     """Per-feature statistics of the per-point residuals f (N,), mm."""

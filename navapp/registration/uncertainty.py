@@ -116,11 +116,11 @@ def information(model: RegistrationModel, data: dict, beta, weights: Weights | N
     blocks, counts, start = {}, {}, 0
     for name, _feat, _S, q, _rows, _local in ev.terms:
         rows = slice(start, start + len(q))
-        J, w = ev.J[rows], ev.w[rows]
+        J, w = ev.jacobian[rows], ev.w[rows]
         blocks[name] = (J.T * w) @ J
         counts[name] = len(data[name])
         start += len(q)
-    JE, wE, fE = ev.J[-1], ev.w[-1], ev.f[-1]
+    JE, wE, fE = ev.jacobian[-1], ev.w[-1], ev.f[-1]
     prior = wE * np.outer(JE, JE)
     prior[:n, :n] += wE * fE * model.basis.energy / model.basis.M
     dof = max(len(ev.f) - 1 - len(beta), 1)

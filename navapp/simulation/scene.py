@@ -67,6 +67,11 @@ _TRANSPOSE_KEYS = {"phantom": int, "mesh_edge_mm": float}
 
 @dataclass
 class Scene:
+    """What to simulate (a scene TOML, ``navapp/scenes/*.toml``): the anatomy (a phantom
+    index or a case folder), the true deformation (ligament release, gravity tilt, linear or
+    St-Venant–Kirchhoff, truth mesh edge mm, E Pa, pressure Pa, or a transposition), the
+    stylus coverage, the number of iUS planes and the acquisition effects."""
+
     name: str
     phantom: int | None = 0
     case: Path | None = None
@@ -85,7 +90,7 @@ class Scene:
     source: Path | None = None
 
 
-_SECTIONS = {
+_SECTIONS: dict[str, dict[str, type]] = {
     "anatomy": {"phantom": int, "case": str},
     "deformation": {"release": str, "gravity_tilt_deg": float, "large": bool, "mesh_edge_mm": float,
                     "truth_E_pa": float, "pressure_pa": float, "head_up_deg": float,
@@ -168,7 +173,8 @@ def parse_scene(data: dict, path=None) -> Scene:
             if key == "kind":
                 continue
             if key not in EFFECT_PARAMS[kind]:
-                raise InputError(f"unknown key effects[{i}].{key} for {kind} (known: {', '.join(EFFECT_PARAMS[kind])})", path)
+                raise InputError(f"unknown key effects[{i}].{key} for {kind} "
+                                 f"(known: {', '.join(EFFECT_PARAMS[kind])})", path)
             params[key] = _typed(value, EFFECT_PARAMS[kind][key], f"effects[{i}].{key}", path)
         missing = set(EFFECT_PARAMS[kind]) - set(params)
         if missing:
@@ -189,10 +195,13 @@ DEMO_SCENE = {  # the built-in demo scene; navapp/scenes/demo.toml says the same
 
 
 def demo_scene() -> Scene:
+    """The built-in demo scene (phantom 0, stylus, 16 iUS planes; ``navapp/scenes/demo.toml``)."""
     return parse_scene(DEMO_SCENE, "demo.toml")
 
 
 def load_scene(path) -> Scene:
+    """Read a scene TOML; a relative ``anatomy.case`` is resolved against the file's folder.
+    Raises InputError (one line) for a missing file, invalid TOML or an unknown key."""
     path = Path(path)
     try:
         data = tomllib.loads(path.read_text())

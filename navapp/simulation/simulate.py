@@ -1,6 +1,6 @@
 """Run a scene: ground truth, stylus data, iUS planes and images, effects → a case folder.
 
-Writes, besides the standard case folder (DESIGN.md §3) whose ``intraop/`` holds the
+Writes, besides the standard case folder (docs/design.md §3) whose ``intraop/`` holds the
 stylus data plus every plane's features (the "S + all planes" level):
 - ``intraop/us/planes.json``: per plane its index, orientation, true ProbeToTracker
   pose, the probe calibration (ImageToProbe) and its feature files;
@@ -65,12 +65,10 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
 
         raise InputError("the scene's anatomy needs preop/regions.csv (anterior surface for the stylus and probe)")
     truth_mesh, _ = cached_tetmesh(preop.liver, scene.mesh_edge_mm, cache_root)
-    loading = Loading(gravity_dir=gravity_direction(scene.release, scene.gravity_tilt_deg, scene.head_up_deg),
-                      pressure=scene.pressure_pa, release=scene.release)
-    material = Material(E=scene.truth_E_pa, nu=0.45)
+    loading, material = scene_loading(scene)
     transposed = None
     if scene.transpose_from is not None:
-        u, transposed = _transposed_truth(scene, preop, truth_mesh, loading, material, ledger, cache_root)
+        u, transposed = transposed_truth(scene, preop, truth_mesh, ledger, cache_root)
     else:
         with progress.stage("ground truth" + (" (St-Venant–Kirchhoff, Newton)" if scene.large else " (linear)")):
             if scene.large:
@@ -85,8 +83,8 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
         return points + interpolation_matrix(truth_mesh.nodes, truth_mesh.tets, points) @ u
 
     liver_d = trimesh.Trimesh(moved(preop.liver.vertices), preop.liver.faces, process=False)
-    portal_d = trimesh.Trimesh(moved(preop.portal.vertices), preop.portal.faces, process=False) if preop.portal is not None else None
-    hepatic_d = trimesh.Trimesh(moved(preop.hepatic.vertices), preop.hepatic.faces, process=False) if preop.hepatic is not None else None
+    portal_d, hepatic_d = (None if m is None else trimesh.Trimesh(moved(m.vertices), m.faces, process=False)
+                           for m in (preop.portal, preop.hepatic))
     eff = {e.kind: e.params for e in scene.effects}
 
     # stylus
@@ -110,7 +108,8 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
     probe = Probe()
     planes = []
     if scene.planes:
-        poses = plane_poses(liver_d.vertices, liver_d.vertex_normals, preop.region_mask("anterior"), scene.planes, scene.seed)
+        poses = plane_poses(liver_d.vertices, liver_d.vertex_normals, preop.region_mask("anterior"), scene.planes,
+                            scene.seed)
         with progress.bar(len(poses), "iUS planes", "plane") as pb:
             for i, (orientation, T) in enumerate(poses):
                 planes.append(acquire_plane(i, orientation, T, probe, liver_d, portal_d, hepatic_d, scene.effects,
@@ -155,13 +154,23 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
     return report
 
 
-def _transposed_truth(scene, preop, truth_mesh, loading, material, ledger, cache_root):
-    """The scene's loads deform the reference phantom; its displacement is carried onto
-    this liver's truth mesh through an inexact correspondence (``transpose.py``).
-    Returns the nodal displacements (M, 3) mm and what the report says about them."""
+def scene_loading(scene: Scene) -> tuple[Loading, Material]:
+    """The truth's loads and material as the scene declares them."""
+    loading = Loading(gravity_dir=gravity_direction(scene.release, scene.gravity_tilt_deg, scene.head_up_deg),
+                      pressure=scene.pressure_pa, release=scene.release)
+    return loading, Material(E=scene.truth_E_pa, nu=0.45)
+
+
+def transposed_truth(scene: Scene, preop, truth_mesh, ledger=None, cache_root=None) -> tuple[np.ndarray, dict]:
+    """The scene's loads deform the reference phantom (``deformation.transpose_from``); its
+    displacement is carried onto the nodes of ``truth_mesh`` (this liver's) through an
+    inexact correspondence (``transpose.py``). Returns the nodal displacements (M, 3) mm
+    and what the report says about them."""
     from .transpose import correspondence, reference_deformation, transpose
     from .truth import supported_nodes
 
+    ledger = ledger or fx.Ledger()
+    loading, material = scene_loading(scene)
     src = scene.transpose_from
     ref = make_phantom(src.phantom)
     with progress.stage(f"reference liver (phantom {src.phantom}) under laparoscopic loading"
