@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..defaults import EDGE_MM, K
 from ..mechanics.interpolation import interpolation_matrix
 from ..registration.libr import LMOptions
 from ..registration.pipeline import register, tre_stats
@@ -85,7 +86,7 @@ KS = (15, 30, 45, 60, 90)
 EDGES = (6.0, 4.0, 3.0)
 PLANE_COUNTS = (0, 1, 2, 4, 8, 16)
 LEVELS = {"S": (), "S+3": (0, 5, 10), "S+all": tuple(range(16))}  # data levels of the k and edge sweeps
-DEFAULT_EDGE, DEFAULT_K = 4.0, 45
+DEFAULT_EDGE, DEFAULT_K = EDGE_MM, K
 
 
 def _plan(ks, edges, edge0, k0):

@@ -19,6 +19,7 @@ import numpy as np
 from scipy.optimize import nnls
 
 from .. import progress
+from ..defaults import EDGE_MM, K
 from ..registration.uncertainty import Calibration
 
 LEVELS = ("S", "S+1", "S+2", "S+3", "S+all", "CBCT")
@@ -47,7 +48,7 @@ def plane_choices(level, n_planes, combos, rng):
     return [allc[i] for i in sorted(rng.choice(len(allc), min(combos, len(allc)), replace=False))]
 
 
-def collect_case(case_dir, levels=LEVELS, combos=3, seed=0, edge=4.0, k=45) -> list[Sample]:
+def collect_case(case_dir, levels=LEVELS, combos=3, seed=0, edge=EDGE_MM, k=K) -> list[Sample]:
     """Register one case at every level and record d, σ and the true error per mesh node."""
     import time
 

@@ -33,6 +33,8 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..defaults import EDGE_MM, K
+
 if TYPE_CHECKING:
     from ..anatomy.meshing import TetMesh
     from ..anatomy.model import PreopModel
@@ -85,7 +87,7 @@ def bend(x, centre, half):
     return BEND_MM * np.column_stack([-0.25 * s[:, 1] * s[:, 2], -s[:, 0] ** 2, 0.5 * s[:, 0] * s[:, 2]])
 
 
-def make_setup(preop=None, edge=4.0, k=45, cache_root=None) -> Setup:
+def make_setup(preop=None, edge=EDGE_MM, k=K, cache_root=None) -> Setup:
     """Mesh and basis of phantom 0 (cached), the true deformation, targets and data."""
     from ..anatomy.meshing import cached_tetmesh
     from ..anatomy.phantom import make_phantom

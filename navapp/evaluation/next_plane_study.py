@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import progress
+from ..defaults import EDGE_MM, K
 from .table2 import read_results
 
 COLUMNS = ("case", "level", "planes", "tre_mean_mm", "tre_table2_mm", "rank", "combinations", "percentile",
@@ -91,7 +92,7 @@ def criteria() -> dict:
     return {"ê (default)": cal, "d only": replace(cal, c=0.0), "σ only": replace(cal, b=0.0, e=0.0)}
 
 
-def fresh_single_planes(case_dir, edge=4.0, k=45) -> dict:
+def fresh_single_planes(case_dir, edge=EDGE_MM, k=K) -> dict:
     """Mean TRE of S + each single plane registered now (as Table II registers), so that
     the S + 1 rank does not depend on a CSV made by an older registration: {plane: TRE}."""
     from ..anatomy.caseio import read_case
@@ -112,7 +113,7 @@ def fresh_single_planes(case_dir, edge=4.0, k=45) -> dict:
     return out
 
 
-def run_case(case_dir, table, steps=3, edge=4.0, k=45, calibration=None, fresh=None) -> list[dict]:
+def run_case(case_dir, table, steps=3, edge=EDGE_MM, k=K, calibration=None, fresh=None) -> list[dict]:
     """Greedy suggestions from S on one case; ``fresh``: ``fresh_single_planes`` of the case
     (adds the S + 1 rank among this run's own single-plane registrations)."""
     from ..anatomy.caseio import read_case
@@ -173,7 +174,7 @@ def run_case(case_dir, table, steps=3, edge=4.0, k=45, calibration=None, fresh=N
     return rows
 
 
-def benchmark(case_dir, repeats=5, edge=4.0, k=45) -> dict:
+def benchmark(case_dir, repeats=5, edge=EDGE_MM, k=K) -> dict:
     """Seconds for one suggestion over 16 automatic candidates (``candidate_poses``) from the
     S registration of ``case_dir``: median and all runs."""
     from ..anatomy.caseio import read_case
