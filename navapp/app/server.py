@@ -326,7 +326,7 @@ class App:
                     f"error over the organ {sug.current_mean_mm:.2f} → {best.predicted_mean_mm:.2f} mm. "
                     f"{len(sug.candidates)} poses ranked in {sug.seconds:.1f} s. Add its segmentation or draw on it.")
 
-        ok = self.worker.submit(job, done)
+        ok = self.worker is not None and self.worker.submit(job, done)
         return None if ok else "A registration is running; try again when it has finished."
 
     # ------------------------------------------------------------------ derived geometry
@@ -364,6 +364,7 @@ class App:
             g = StateGeometry(None, None, {}, pre)
         else:
             if surfaces is None:
+                assert self.worker is not None  # the model (hence the worker) exists: rigid is not None
                 surfaces = self.worker.surfaces(rigid, beta)
             cells = {name: self.model.features[name].cells for name in surfaces}
             reg = Registration(self.model, rigid, None, {})  # transform: rigid ∘ eq. 8 at β
@@ -509,7 +510,7 @@ class App:
             if final:
                 self.session.result = state.to_json()
                 lm = reg.libr
-                entry = {"run": state.run, "points": int(sum(len(v) for v in self.data("all").values())),
+                entry: dict = {"run": state.run, "points": int(sum(len(v) for v in self.data("all").values())),
                          "seconds": round(float(sum(reg.seconds.values())), 3),
                          "iterations": lm.iterations if lm else 0, "stop": lm.stop_reason if lm else "rigid",
                          "updates_streamed": 0, "cancelled": False, "trace": [], "live": summary,
@@ -685,7 +686,7 @@ class App:
             a = cs.undo.pop()
             if a.kind == "vertex":
                 c = a.contour
-                if c not in self.session.contours or not c.vertices:
+                if c is None or c not in self.session.contours or not c.vertices:
                     continue  # removed meanwhile (e.g. cleared): nothing of it left to undo
                 c.vertices.pop()
                 c.closed = False
@@ -697,7 +698,7 @@ class App:
                     cs.plane = c.plane
                 return None
             if a.kind == "close":
-                if a.contour in self.session.contours:
+                if a.contour is not None and a.contour in self.session.contours:
                     a.contour.closed = False
                     cs.drawing = a.contour
                     cs.plane = a.contour.plane
@@ -830,6 +831,7 @@ class App:
 
         x0 = self.model.basis.nodes
         B = sp.identity(len(x0), format="csr")  # the targets are the mesh nodes themselves
+        assert self.worker is not None  # checked by the caller's truth_nodes: the model is ready
         ok = self.worker.submit(lambda cancel: lm_sweep(self.model, data, x0, self.truth_nodes, cancel=cancel,
                                                         on_row=on_row, B=B), on_done)
         return None if ok else "A registration is running; try again when it has finished."

@@ -44,7 +44,7 @@ class Session:
         """Registration data {feature: (N, 3) mm}: digitised stylus points, then (unless
         ``surface_only``) every added plane's segmentation and every drawn contour.
         ``planes``: plane index → PlaneData (presets and free planes)."""
-        parts = {}
+        parts: dict[str, list] = {}
 
         def add(name, pts):
             if len(pts):

@@ -10,9 +10,11 @@ never move each other's clicks or undo each other's work.
 """
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
+from ..registration.rigid import RigidResult
 from .contours import Contour
 
 ERROR_SCALE_MM = 15.0  # default top of the error colour scale: the same colour means the same error in every run
@@ -25,7 +27,7 @@ class Action:
     kind: str  # "vertex" | "close" | "plane" | "free_plane" | "stylus" | "clear"
     contour: Contour | None = None  # the contour a vertex was added to / closed
     plane: int | None = None  # the plane added / placed
-    before: object = None  # what to restore: the stylus count, or the contours a clear removed
+    before: Any = None  # what to restore: a count (stylus, live points), or (contours removed, was added) of a clear
 
 
 @dataclass
@@ -53,7 +55,7 @@ class StateGeometry:
     """Where one registered state (rigid pose, β) puts the model, computed once per state
     for every browser, the 2D overlays and the distance readouts."""
 
-    rigid: object  # RigidResult, or None: nothing registered (preoperative, as-is)
+    rigid: RigidResult | None  # None: nothing registered (preoperative, as-is)
     beta: np.ndarray | None
     surfaces: dict  # "liver" / "portal" / "hepatic" → ((V, 3) tracker mm, (F, 3) faces); {} unregistered
     targets: list  # [anatomy.targets.Target], carried by the state
@@ -65,7 +67,7 @@ class RegisteredState:
     for simulated scenes, the per-node error against the truth."""
 
     run: str  # the run label, e.g. "deformable, all data"
-    rigid: object  # RigidResult
+    rigid: RigidResult
     beta: np.ndarray | None
     node_error_mm: np.ndarray | None = None  # (M,) over the mesh nodes, when the truth is known
     predicted_mm: np.ndarray | None = None  # (S,) predicted error at the surface nodes (no truth needed)

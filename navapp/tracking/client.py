@@ -33,8 +33,15 @@ from pyigtl.messages import CRC64, MessageBase
 
 from .config import TrackingConfig
 from .digitiser import Digitiser
-from .events import (ConnectionStatus, ProbePose, ProbeSample, Skipped, StylusSample, ToolStatus, TransformSample,
-                     as_matrix)
+from .events import (
+    ConnectionStatus,
+    ProbePose,
+    ProbeSample,
+    Skipped,
+    StylusSample,
+    TransformSample,
+    as_matrix,
+)
 from .watchdog import Watchdog
 
 log = logging.getLogger("navapp.tracking")
@@ -125,7 +132,7 @@ class _Link(pyigtl.OpenIGTLinkClient):
     def _pump(self, sock, buf):
         try:
             chunk = sock.recv(1 << 20)
-        except socket.timeout:
+        except TimeoutError:
             if buf and time.monotonic() - self._partial_since > STALL_S:
                 raise ConnectionError(f"a message stalled for {STALL_S:g} s") from None
             return
@@ -142,7 +149,7 @@ class _Link(pyigtl.OpenIGTLinkClient):
             if len(buf) < end:
                 try:  # the rest of a large body (an image) is on its way
                     more = sock.recv(max(end - len(buf), 1 << 16))
-                except socket.timeout:
+                except TimeoutError:
                     return
                 if not more:
                     raise ConnectionError("connection closed by the server mid-message")
@@ -175,7 +182,7 @@ class TrackingClient:
         self.latest_stylus: StylusSample | None = None
         self.latest_probe_pose: ProbePose | None = None
         self.latest_frame: ProbeSample | None = None
-        self.counts = Counter()  # "TRANSFORM", "IMAGE", … received; "skipped:<kind>"
+        self.counts: Counter[str] = Counter()  # "TRANSFORM", "IMAGE", … received; "skipped:<kind>"
         self.connects = 0
         self.connection = ConnectionStatus(False, f"{c.host}:{c.port}", 0)
         self._last_ts: dict = {}

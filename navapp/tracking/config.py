@@ -71,7 +71,7 @@ class TrackingConfig:
         return replace(self, host=host or self.host, port=port or self.port)
 
 
-_KEYS = {  # section → key → (type, field)
+_KEYS: dict[str, dict[str, type]] = {  # section → key → type
     "server": {"host": str, "port": int, "reconnect_s": float},
     "devices": {"stylus": str, "probe": str, "image": str, "image_pose": str},
     "calibration": {"image_to_probe": list},

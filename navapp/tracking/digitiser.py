@@ -24,7 +24,7 @@ class Digitiser:
         self._points: list = []
         self._times: list = []
         self._labels: list = []
-        self._due = None
+        self._due: float | None = None
 
     # ------------------------------------------------------------------ control
     def start(self, label: str = "anterior"):
@@ -75,7 +75,7 @@ class Digitiser:
     def points(self, label: str | None = None) -> np.ndarray:
         """(N, 3) mm, Reference frame, in recording order."""
         with self._lock:
-            pts = [p for p, lab in zip(self._points, self._labels) if label is None or lab == label]
+            pts = [p for p, lab in zip(self._points, self._labels, strict=True) if label is None or lab == label]
         return np.array(pts, float).reshape(-1, 3)
 
     def timestamps(self) -> np.ndarray:
@@ -89,8 +89,8 @@ class Digitiser:
     def features(self) -> dict:
         """label → (N, 3) points: the stylus part of ``register()``'s data."""
         with self._lock:
-            out = {}
-            for p, lab in zip(self._points, self._labels):
+            out: dict[str, list] = {}
+            for p, lab in zip(self._points, self._labels, strict=True):
                 out.setdefault(lab, []).append(p)
         return {k: np.array(v) for k, v in out.items()}
 

@@ -11,12 +11,13 @@ from dataclasses import replace
 
 import numpy as np
 
+from ..registration.pipeline import Registration
 from ..threads import limit_threads
 
 
 def merge(*datasets) -> dict:
     """Feature-wise concatenation of data dictionaries (feature → (N, 3) mm)."""
-    out = {}
+    out: dict[str, np.ndarray] = {}
     for d in datasets:
         for k, v in (d or {}).items():
             v = np.asarray(v, float).reshape(-1, 3)
@@ -44,9 +45,9 @@ class LiveRegistration:
         self.options = options or LMOptions()
         self.frame_options = (replace(self.options, max_iterations=iterations_per_frame)
                               if iterations_per_frame else self.options)
-        self.frame = None
+        self.frame: dict | None = None
         self.base = merge(base)
-        self.last = None  # Registration
+        self.last: Registration | None = None
         self.history: list = []  # (seconds, iterations) per update
 
     def _limits(self):
@@ -65,17 +66,19 @@ class LiveRegistration:
 
     def update(self, frame: dict, options=None):
         """Warm-started re-registration with the newest frame's data."""
-        if self.last is None or self.last.libr is None:
+        last = self.last
+        if last is None or last.libr is None:
             return self.register(frame)
         from ..registration.pipeline import register
 
         self.frame = frame
         with self._limits():
             t = time.perf_counter()
-            self.last = register(self.model, merge(self.base, frame), options=options or self.frame_options,
-                                 beta0=self.last.libr.beta, rigid=self.last.rigid)
-            self.history.append((time.perf_counter() - t, self.last.libr.iterations))
-        return self.last
+            reg = register(self.model, merge(self.base, frame), options=options or self.frame_options,
+                           beta0=last.libr.beta, rigid=last.rigid)
+            self.history.append((time.perf_counter() - t, reg.libr.iterations if reg.libr else 0))
+        self.last = reg
+        return reg
 
     def settle(self):
         """Converge on the current data (warm-started, no iteration cap)."""

@@ -137,6 +137,7 @@ def script_from_scene(scene, transit_frames: int = 6, dwell_s: float = 2.0, move
             f = j / (transit_frames + 1)
             pose = interpolate_pose(plane.probe_to_tracker, nxt, f)
             frame = acquire_free_plane(sd, 1000 + i * 100 + j, pose)
+            assert frame.image is not None  # acquired with its image
             keyframes.append(ProbeKeyframe(i * period + dwell_s + (f - 0.5 / (transit_frames + 1)) * move_s,
                                            pose, frame.image))
     eff = {e.kind: e.params for e in scene.effects}
@@ -194,7 +195,7 @@ class ReplayServer:
         self.frames_sent = 0
         self._rng = np.random.default_rng(script.seed)
         self._stop = threading.Event()
-        self._thread = None
+        self._thread: threading.Thread | None = None
         try:
             self._server = quiet_server(port)
         except OSError as exc:
@@ -202,7 +203,7 @@ class ReplayServer:
 
             raise NavappError(f"cannot listen on 127.0.0.1:{port}: {exc.strerror or exc}") from None
         self.port = self._server.server_address[1]
-        self.t0 = None
+        self.t0: float | None = None
 
     def start(self) -> "ReplayServer":
         self._server.start()

@@ -13,8 +13,8 @@ class Watchdog:
         self.devices = list(devices)
         self.stale_s, self.missing_s = stale_s, missing_s
         self.clock = clock
-        self._last = {}
-        self._reported = {}
+        self._last: dict[str, float] = {}
+        self._reported: dict[str, str] = {}
         self._lock = threading.Lock()
 
     def seen(self, device: str, t: float | None = None):
