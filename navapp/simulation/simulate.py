@@ -172,6 +172,8 @@ def transposed_truth(scene: Scene, preop, truth_mesh, ledger=None, cache_root=No
     ledger = ledger or fx.Ledger()
     loading, material = scene_loading(scene)
     src = scene.transpose_from
+    if src is None:
+        raise ValueError(f"scene {scene.name!r} declares no deformation.transpose_from")
     ref = make_phantom(src.phantom)
     with progress.stage(f"reference liver (phantom {src.phantom}) under laparoscopic loading"
                         + (" (St-Venant–Kirchhoff, Newton)" if scene.large else " (linear)")):
