@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cost import pareto_front
+from .cost import DEFAULT_EDGE, DEFAULT_K, pareto_front
 
 
 def _rows(path):
@@ -56,7 +56,8 @@ def plot_time(rows, path, level="S+3"):
     o = np.argsort(t[front])
     a.plot(t[front][o], e[front][o], "k--", lw=1, label="Pareto front")
     for s, (m, c) in style.items():
-        label = {"k": "k (4 mm)", "edge": "mesh edge (k 45)", "lm": "LM cap / tolerance", "peers": "peers"}[s]
+        label = {"k": f"k ({DEFAULT_EDGE:g} mm)", "edge": f"mesh edge (k {DEFAULT_K})", "lm": "LM cap / tolerance",
+                 "peers": "peers"}[s]
         a.scatter([], [], marker=m, color=c, label=label)
     a.set_xscale("log")
     a.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%g"))
@@ -112,11 +113,12 @@ def write_cost_report(results_csv, out_dir) -> Path:
                    lambda r: (r["edge_mm"], r["k"], r["level"]))
     for (edge, k, level), v in sorted(sel.items(), key=lambda x: (-x[0][0], x[0][1], x[0][2])):
         md.append(f"| {edge:g} | {k} | {v['nodes']:,} | {v['pre']:.1f} | {level} | {v['tre']:.2f} | {v['reg']:.2f} |")
-    md.append("\n## Solver settings (4 mm, k = 45)\n\n| level | setting | TRE mm | registration s |\n|---|---|---|---|")
+    base = f"{DEFAULT_EDGE:g} mm, k = {DEFAULT_K}"  # the sweeps other than k and edge run at the defaults
+    md.append(f"\n## Solver settings ({base})\n\n| level | setting | TRE mm | registration s |\n|---|---|---|---|")
     sel = _mean_by([r for r in rows if r["sweep"] == "lm"], lambda r: (r["level"], r["setting"]))
     for (level, setting), v in sorted(sel.items(), key=lambda x: (x[0][0], x[1]["reg"])):
         md.append(f"| {level} | {setting} | {v['tre']:.2f} | {v['reg']:.3f} |")
-    md.append("\n## Amount of data (4 mm, k = 45)\n\n| planes | TRE mm | registration s |\n|---|---|---|")
+    md.append(f"\n## Amount of data ({base})\n\n| planes | TRE mm | registration s |\n|---|---|---|")
     sel = _mean_by([r for r in rows if r["sweep"] == "planes"], lambda r: r["planes"])
     for m, v in sorted(sel.items()):
         md.append(f"| {m} | {v['tre']:.2f} | {v['reg']:.2f} |")
