@@ -143,23 +143,17 @@ def test_study_scene_sets():
         study_scenes("x")
 
 
-def test_coarse_transposed_case_has_the_calibrated_displacement(tmp_path):
-    """lap0-N as shipped, on coarse meshes, without iUS: the displacement statistics stay in
-    the calibrated range (study: mean 10–20 mm, maximum > 20 mm) and the report says what
-    ran. Coarse meshes shift the numbers by a few percent; the range allows for that."""
-    import json
-
-    from navapp import progress
+def test_coarse_transposed_truth_has_the_calibrated_displacement(phantoms, coarse_mesh, cache_root):
+    """lap0-N as shipped, its reference on a coarse 10 mm mesh, carried onto phantom 0's
+    12 mm mesh: the displacement statistics stay in the calibrated range (the study cases:
+    mean 10–20 mm, maximum > 20 mm; lap0-N itself 18.0 / 51.6 mm at full resolution).
+    Coarse meshes shift the numbers by a few mm; the range allows for that."""
     from navapp.simulation.scene import scene_dir
-    from navapp.simulation.simulate import simulate
+    from navapp.simulation.simulate import transposed_truth
 
     scene = load_scene(scene_dir() / "lap0-N.toml")
-    scene.mesh_edge_mm = 8.0
-    scene.planes = 0
-    scene.transpose_from = type(scene.transpose_from)(phantom=scene.transpose_from.phantom, mesh_edge_mm=8.0)
-    progress.QUIET = True
-    report = simulate(scene, tmp_path / "case", cache_root=tmp_path / "cache", registration_edge=8.0)
-    d = report["displacement_mm"]
-    assert 10.0 <= d["mean"] <= 22.0 and d["max"] > 20.0, d
-    assert "transposition" in report["ran"] and report["transposed"]["reference_phantom"] == 3
-    assert json.loads((tmp_path / "case" / "truth" / "report.json").read_text())["transposed"] == report["transposed"]
+    scene.transpose_from = type(scene.transpose_from)(phantom=scene.transpose_from.phantom, mesh_edge_mm=10.0)
+    u, info = transposed_truth(scene, phantoms[0], coarse_mesh, cache_root=cache_root)
+    d = np.linalg.norm(u, axis=1)
+    assert 12.0 <= d.mean() <= 24.0 and d.max() > 30.0, (d.mean(), d.max())
+    assert info["reference_phantom"] == 3 and info["correspondence_residual_mm"] < 10.0
