@@ -22,6 +22,7 @@ import viser
 
 from .. import progress
 from ..anatomy.phantom import make_phantom
+from ..defaults import EDGE_MM, K
 from ..errors import NavappError
 from ..evaluation.cost import lm_sweep
 from ..registration.libr import LibrResult
@@ -55,7 +56,7 @@ class App:
     """The shared side of the viewer. ``start()`` begins the start-up work in a thread and
     returns an event set when the registration model is ready (or start-up failed)."""
 
-    def __init__(self, scene, host="127.0.0.1", port=8080, session_dir=None, edge=4.0, k=45, cache_root=None,
+    def __init__(self, scene, host="127.0.0.1", port=8080, session_dir=None, edge=EDGE_MM, k=K, cache_root=None,
                  view2d_port=0, tracking=None, results=None):
         self.scene, self.edge, self.k, self.cache_root = scene, edge, k, cache_root
         self.session_dir = session_dir
@@ -1020,7 +1021,7 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 60:.0f} min"
 
 
-def serve(scene, host="127.0.0.1", port=8080, session_dir=None, edge=4.0, k=45, cache_root=None, view2d_port=0,
+def serve(scene, host="127.0.0.1", port=8080, session_dir=None, edge=EDGE_MM, k=K, cache_root=None, view2d_port=0,
           tracking=None, slicer=None):
     """Start the viewer and block until interrupted. ``tracking``: a ``TrackingConfig`` to
     connect to an OpenIGTLink server (PLUS, 3D Slicer, ``navapp replay``); ``slicer``:

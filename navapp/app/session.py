@@ -1,7 +1,7 @@
 """What the user entered in the viewer, kept so that nothing is lost: stylus points
 collected, planes added, contours drawn, registrations run.
 
-The session folder is a complete case folder (DESIGN.md §3: case.toml, preop/, intraop/,
+The session folder is a complete case folder (docs/design.md §3: case.toml, preop/, intraop/,
 truth/targets.csv), so ``navapp register SESSION`` reproduces a registration from it, plus
 ``session.json`` holding what the case format has no place for (contours in image pixels,
 which planes were added, free probe poses, the log of registrations). Every change is
@@ -17,9 +17,11 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from ..anatomy.caseio import FEATURES, write_csv, write_preop, write_settings
+from ..anatomy.caseio import write_csv, write_preop, write_settings
 from ..errors import InputError
-from ..simulation.scenedata import STYLUS_FEATURES, SceneData, acquire_free_plane, scene_key
+from ..features import NAMES as FEATURES
+from ..features import STYLUS as STYLUS_FEATURES
+from ..simulation.scenedata import SceneData, acquire_free_plane, scene_key
 from ..simulation.ultrasound import PlaneData
 from .contours import Contour, contour_points
 

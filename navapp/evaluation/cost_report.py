@@ -113,12 +113,12 @@ def write_cost_report(results_csv, out_dir) -> Path:
                    lambda r: (r["edge_mm"], r["k"], r["level"]))
     for (edge, k, level), v in sorted(sel.items(), key=lambda x: (-x[0][0], x[0][1], x[0][2])):
         md.append(f"| {edge:g} | {k} | {v['nodes']:,} | {v['pre']:.1f} | {level} | {v['tre']:.2f} | {v['reg']:.2f} |")
-    base = f"{DEFAULT_EDGE:g} mm, k = {DEFAULT_K}"  # the sweeps other than k and edge run at the defaults
-    md.append(f"\n## Solver settings ({base})\n\n| level | setting | TRE mm | registration s |\n|---|---|---|---|")
+    at = f"{DEFAULT_EDGE:g} mm, k = {DEFAULT_K}"  # the sweeps other than k and edge run at the defaults
+    md.append(f"\n## Solver settings ({at})\n\n| level | setting | TRE mm | registration s |\n|---|---|---|---|")
     sel = _mean_by([r for r in rows if r["sweep"] == "lm"], lambda r: (r["level"], r["setting"]))
     for (level, setting), v in sorted(sel.items(), key=lambda x: (x[0][0], x[1]["reg"])):
         md.append(f"| {level} | {setting} | {v['tre']:.2f} | {v['reg']:.3f} |")
-    md.append(f"\n## Amount of data ({base})\n\n| planes | TRE mm | registration s |\n|---|---|---|")
+    md.append(f"\n## Amount of data ({at})\n\n| planes | TRE mm | registration s |\n|---|---|---|")
     sel = _mean_by([r for r in rows if r["sweep"] == "planes"], lambda r: r["planes"])
     for m, v in sorted(sel.items()):
         md.append(f"| {m} | {v['tre']:.2f} | {v['reg']:.2f} |")

@@ -25,6 +25,7 @@ import time
 import numpy as np
 from threadpoolctl import threadpool_info
 
+from ..defaults import EDGE_MM, K
 from .live import LiveRegistration
 from .replay import interpolate_pose
 
@@ -49,7 +50,7 @@ def _pct(xs, q):
     return round(float(np.percentile(xs, q)), 1)
 
 
-def bench_live(frames=40, planes=3, k=45, edge=4.0, per_transit=8):
+def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8):
     from ..mechanics.interpolation import interpolation_matrix
     from ..registration.pipeline import prepare, register, tre_stats
     from ..simulation.levels import data_level

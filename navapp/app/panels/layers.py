@@ -6,6 +6,7 @@ import numpy as np
 import trimesh
 import viser.transforms as vtf
 
+from ...features import TABLE as FEATURE_TABLE
 from ..state import ERROR_SCALE_MM
 
 LIVER = (205, 160, 140)
@@ -16,11 +17,7 @@ REGISTERED = (240, 190, 60)
 REG_PORTAL = (200, 0, 0)
 REG_HEPATIC = (0, 60, 230)
 TARGET = (170, 60, 230)
-FEATURE_COLOURS = {
-    "anterior": (255, 255, 255), "falciform": (255, 0, 255), "ridge_left": (0, 255, 255), "ridge_right": (0, 200, 200),
-    "posterior": (255, 200, 0), "portal_contour": (255, 154, 31), "hepatic_contour": (46, 230, 255),
-    "portal_centerline": (255, 0, 0), "hepatic_centerline": (0, 60, 255), "fiducials": (255, 255, 0),
-}
+FEATURE_COLOURS = {f.name: f.colour for f in FEATURE_TABLE}  # data points, by feature (navapp.features)
 HOME_VIEW_MM = np.array([40.0, 260.0, 110.0])  # camera offset from the liver centroid: anterior, a little superior
 VIEW_DISTANCE_MM = 280.0
 STANDARD_VIEWS = {  # camera direction from the liver centroid (navapp frame: +x left, +y anterior, +z superior)

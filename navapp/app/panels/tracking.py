@@ -2,7 +2,7 @@
 per-tool status (seen / stale / missing, as SlicerIGT's Watchdog), digitising with the
 tracked stylus while a switch is on, the live image, and freezing a frame to draw on."""
 
-from ...simulation.scenedata import STYLUS_FEATURES
+from ...features import STYLUS as STYLUS_FEATURES
 
 
 class TrackingPanel:
