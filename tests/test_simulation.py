@@ -35,7 +35,7 @@ def test_builtin_demo_scene_equals_the_shipped_file():
 
 def test_shipped_scenes_parse():
     names = sorted(p.stem for p in SCENES.glob("*.toml"))
-    assert "demo" in names and len(names) == 10
+    assert "demo" in names and len(names) == 19  # demo, nine direct-gravity and nine transposed (lap) scenes
     for p in SCENES.glob("*.toml"):
         s = load_scene(p)
         assert s.planes == 16 and s.release in "LNR"
