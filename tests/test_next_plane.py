@@ -112,3 +112,25 @@ def test_needs_a_deformable_registration(small_model):
 def test_anterior_mask_follows_the_labels(small_model, phantoms):
     m = anterior_surface_mask(small_model, phantoms[0])
     assert m.shape == (len(small_model.features["liver"].rest),) and 0 < m.sum() < len(m)
+
+
+def test_table2_section_summarises_the_two_studies(tmp_path):
+    import csv
+
+    from navapp.evaluation.next_plane_study import table2_section
+
+    with (tmp_path / "error_estimate.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, ("set", "level", "r_pred", "coverage"))
+        w.writeheader()
+        for lv, r in (("S", 0.6), ("CBCT", 0.2), ("all", 0.5)):
+            w.writerow({"set": "validation cases", "level": lv, "r_pred": r, "coverage": 0.9})
+    with (tmp_path / "next_plane.csv").open("w", newline="") as f:
+        w = csv.DictWriter(f, ("set", "criterion", "level", "tre_mean_mm", "tre_table2_mm", "rank", "combinations",
+                               "level_mean_mm"))
+        w.writeheader()
+        for case_rank, tre in ((2, 3.0), (6, 4.0)):
+            w.writerow({"set": "study cases", "criterion": "ê (default)", "level": "S+1", "tre_mean_mm": tre,
+                        "tre_table2_mm": tre, "rank": case_rank, "combinations": 16, "level_mean_mm": 3.5})
+    text = table2_section(tmp_path)
+    assert "| r | 0.60 | 0.20 |" in text and "| coverage | 90% | 90% |" in text
+    assert "| S + 1 suggested | 3.50 | 3.50 | 4 of 16 | 1 of 2 cases |" in text

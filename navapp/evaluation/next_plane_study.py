@@ -336,3 +336,60 @@ def study_command(case_dirs, args):
             raise InputError("no Table II results to rank against (run `navapp study table2` first)", csv_path)
     run_study(sets, args.report, bench_case=case_dirs[0])
     print(json.dumps({"report": str(Path(args.report) / "next_plane.md")}))
+
+
+
+def table2_section(results_dir="results") -> str:
+    """The short section on parts 3–4 of issue 12 for the end of results/table2.md, from
+    error_estimate.csv, next_plane.csv and (when present) next_plane_lap.csv in
+    ``results_dir``. Append it after ``report.write_report`` has (re)written table2.md."""
+    res = Path(results_dir)
+    with (res / "error_estimate.csv").open() as f:
+        ee = list(csv.DictReader(f))
+    with (res / "next_plane.csv").open() as f:
+        npl = list(csv.DictReader(f))
+    if (res / "next_plane_lap.csv").exists():
+        with (res / "next_plane_lap.csv").open() as f:
+            npl += [dict(r, set="laparoscopic cases") for r in csv.DictReader(f)]
+    label = {"second set (all cases, same calibration)": "laparoscopic cases (study-cases-lap), same calibration",
+             "validation cases": "validation cases (phantom1-*, phantom2-*)"}
+    out = ["\n\n## Error estimate without the truth, and suggested planes (issue 12, parts 3–4)\n\n",
+           "Details: [error_estimate.md](error_estimate.md), [next_plane.md](next_plane.md) "
+           "(`navapp study error-estimate`, `navapp study next-plane`).\n\n"]
+    for s in dict.fromkeys(r["set"] for r in ee if r["set"] != "calibration cases (fit)"):
+        rows = [r for r in ee if r["set"] == s and r["level"] != "all"]
+        out.append("Predicted per-node error ê = a + b·d + c·σ + e·d·m (d: distance to the data, σ: LM covariance "
+                   f"through J_u, m: median d), calibrated on phantom0-L/N/R; {label.get(s, s)}: Pearson r (ê vs "
+                   "true per-node error) and band coverage (nominal 90 %):\n\n")
+        out.append("| | " + " | ".join(r["level"] for r in rows) + " |\n|---|" + "---|" * len(rows) + "\n")
+        out.append("| r | " + " | ".join(f"{float(r['r_pred']):.2f}" for r in rows) + " |\n")
+        out.append("| coverage | " + " | ".join(f"{float(r['coverage']):.0%}" for r in rows) + " |\n\n")
+    levels = ("S+1", "S+2", "S+3")
+    for s in dict.fromkeys(r["set"] for r in npl):
+        rows = [r for r in npl if r["set"] == s and r["criterion"] == "ê (default)"]
+        if s == "laparoscopic cases":
+            tre = [np.mean([float(r["tre_mean_mm"]) for r in rows if r["level"] == lv]) for lv in levels]
+            fr = [int(r["rank_fresh"]) for r in rows if r["level"] == "S+1" and r["rank_fresh"]]
+            rho = [float(r["spearman_fresh"]) for r in rows if r["level"] == "S+1" and r["spearman_fresh"]]
+            out.append("Suggested planes on the laparoscopic cases ([next_plane_lap.md](next_plane_lap.md); "
+                       "table2_lap.csv was incomplete when read, so no ranks among all combinations): mean TRE of "
+                       f"the greedy S + 1 / 2 / 3 suggestions {' / '.join(f'{t:.2f}' for t in tre)} mm; the first "
+                       f"suggested plane ranks {', '.join(map(str, fr))} of 16 (median {np.median(fr):.0f}) among "
+                       "the study's own registrations of S + each single plane (median Spearman ρ of the score with "
+                       f"those TREs {np.median(rho):.2f}).\n\n")
+            continue
+        out.append(f"Suggested planes, greedy from S ({s}; TRE and ranks from results/table2.csv, the nine phantom "
+                   "cases):\n\n| level | mean TRE, suggested | mean TRE, all combinations (the paper-style row) | "
+                   "median rank of the suggestion | suggestion better than the average |\n|---|---|---|---|---|\n")
+        for lv in levels:
+            rr = [r for r in rows if r["level"] == lv and r["rank"]]
+            if not rr:
+                continue
+            tre = [float(r["tre_table2_mm"] or r["tre_mean_mm"]) for r in rr]
+            better = sum(t < float(r["level_mean_mm"]) for t, r in zip(tre, rr, strict=True))
+            out.append(f"| S + {lv[2]} suggested | {np.mean(tre):.2f} | "
+                       f"{np.mean([float(r['level_mean_mm']) for r in rr]):.2f} | "
+                       f"{np.median([int(r['rank']) for r in rr]):.0f} of {rr[0]['combinations']} | "
+                       f"{better} of {len(rr)} cases |\n")
+        out.append("\n")
+    return "".join(out)
