@@ -27,7 +27,7 @@ from scipy.spatial import cKDTree
 
 from ..mechanics.interpolation import interpolation_matrix
 from ..threads import limit_threads
-from .model import REGION_FEATURES, RegistrationModel
+from .model import REGION_FEATURES, RegistrationModel, deform
 from .objective import Weights, evaluate
 from .rotation import rotation, rotation_derivatives
 
@@ -152,13 +152,13 @@ def point_jacobian(model: RegistrationModel, beta, B=None, nodes=None) -> tuple[
         modes, rest = basis.Ju.reshape(basis.M, 3, n)[idx], basis.nodes[idx]
     R = rotation(beta[n + 3:])
     dR = rotation_derivatives(beta[n + 3:])
-    local = rest - model.centroid + (modes.reshape(-1, n) @ beta[:n]).reshape(-1, 3)
+    local, x = deform(rest, (modes.reshape(-1, n) @ beta[:n]).reshape(-1, 3), beta, model.centroid)  # eq. 8
     G = np.empty((len(rest), 3, n + 6))
     G[:, :, :n] = np.einsum("ab,pbk->pak", R, modes)
     G[:, :, n:n + 3] = np.eye(3)
     for j in range(3):
         G[:, :, n + 3 + j] = local @ dR[j].T
-    return local @ R.T + beta[n:n + 3] + model.centroid, G
+    return x, G
 
 
 def covariance_factor(info: Information, H=None) -> np.ndarray:
