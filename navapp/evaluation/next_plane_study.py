@@ -368,7 +368,7 @@ def table2_section(results_dir="results") -> str:
     for s in dict.fromkeys(r["set"] for r in npl):
         rows = [r for r in npl if r["set"] == s and r["criterion"] == "ê (default)"]
         if s == "laparoscopic cases":
-            tre = [np.mean([float(r["tre_mean_mm"]) for r in rows if r["level"] == lv]) for lv in levels]
+            tre = [float(np.mean([float(r["tre_mean_mm"]) for r in rows if r["level"] == lv])) for lv in levels]
             fr = [int(r["rank_fresh"]) for r in rows if r["level"] == "S+1" and r["rank_fresh"]]
             rho = [float(r["spearman_fresh"]) for r in rows if r["level"] == "S+1" and r["spearman_fresh"]]
             out.append("Suggested planes on the laparoscopic cases ([next_plane_lap.md](next_plane_lap.md); "
