@@ -170,3 +170,14 @@ def test_live_re_registration_follows_the_frames_and_reaches_slicer(live_app):
     bare = replace(sd, scene=replace(sd.scene, effects=[]))
     assert segment_frame(bare, 0, sd.planes[0].probe_to_tracker) == {}
     assert segment_frame(sd, 0, sd.planes[0].probe_to_tracker)
+
+
+def test_a_lost_stylus_is_neither_shown_nor_measured_from(live_app):
+    """Once the tracker says the stylus is missing, the tip is taken away (no tool drawn
+    where it was last seen, no tumour distances from it). Runs last: it stops the replay."""
+    app, server, sd = live_app
+    assert wait_until(lambda: app.live.tip is not None)
+    server.stop()
+    assert wait_until(lambda: app.live.tip is None, 10 + app.live.config.missing_s)
+    lines = app.live.status_lines()
+    assert any("StylusTipToReference: **missing**" in x and "/s" not in x for x in lines), lines

@@ -224,7 +224,9 @@ def test_a_restarted_server_restores_the_session_and_the_registered_model(app, c
         assert again.result is not None and again.result.run == app.result.run
         assert np.allclose(again.result.beta, app.result.beta)
         assert np.allclose(again.result.node_error_mm, app.result.node_error_mm)
-        assert np.allclose(again.result.predicted_mm, app.result.predicted_mm)  # from the saved data
+        # kept in the session (to 1 µm): a live result was predicted from frames the session does not hold
+        assert np.allclose(again.result.predicted_mm, app.result.predicted_mm, atol=1e-3)
+        assert again.result.target_bands == app.result.target_bands
         out, _ = again.export()  # Export works without registering again
         assert out is not None and (out / "registered_liver.ply").exists()
         assert again.register("warm") is None  # and a warm start continues from it

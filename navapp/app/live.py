@@ -102,7 +102,8 @@ class LiveLink:
                   f" (connections so far: {c.connects})")]
         for dev, st in c.status().items():
             age = "never" if st.age_s is None else f"{st.age_s * 1000:.0f} ms ago"
-            lines.append(f"{dev}: **{st.state}** ({age}, {c.rate_hz(dev):.0f}/s)")
+            rate = f", {c.rate_hz(dev):.0f}/s" if st.state == "seen" else ""
+            lines.append(f"{dev}: **{st.state}** ({age}{rate})")
         return lines
 
     def _collect(self):
@@ -136,6 +137,10 @@ class LiveLink:
                 self._collect()
             if now - last_status > 0.5:
                 last_status = now
+                st = self.client.status().get(self.config.stylus)
+                if self.tip is not None and (st is None or st.state == "missing"):
+                    self.tip = None  # a lost tool is not shown where it was last seen, nor measured from
+                    self.app.each_view(lambda v: v.show_live_tip(None))
                 self.app.each_view(lambda v: v.refresh("live"))
 
     def frozen_plane(self, index) -> PlaneData | None:

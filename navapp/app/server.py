@@ -264,8 +264,13 @@ class App:
         inv = {k: (np.asarray(v, float) - rigid.t) @ rigid.R for k, v in self.data("all").items()}
         reg = Registration(self.model, rigid, libr, inv)
         self.last_reg = self.worker.last = reg
+        predicted = self._predict(reg)
+        saved = d.get("predicted_mm")
+        if saved is not None and len(saved) == len(self.model.basis.surface):
+            predicted = (np.array(saved, float), [TargetBand(*b) for b in d.get("target_bands", [])])
         self.result = RegisteredState(d.get("run", "restored"), rigid, beta, self._node_error(rigid, beta),
-                                      *self._predict(reg))
+                                      *predicted)
+        self.send_results(reg)  # queued: a Slicer connecting later receives the result on show
 
     def _predict(self, reg) -> tuple:
         """The predicted error without the truth (``registration.uncertainty``): (S,) at the
@@ -319,12 +324,20 @@ class App:
                 on_done(sug if isinstance(sug, str) else "No candidate pose on the anterior surface.")
                 return
             best = sug.best
-            index = self.place_probe(cs, best.pose)
+            with self.lock:  # suggested again at the same pose (unchanged fit): show that plane, make no copy
+                same = [i for i, p in self.planes.items() if i >= FREE_PLANE_BASE and p.orientation == "free"
+                        and np.allclose(p.probe_to_tracker, best.pose, atol=1e-6)]
+            if same:
+                index = same[0]
+                self.show_plane(cs, index)
+            else:
+                index = self.place_probe(cs, best.pose)
             o = best.pose[:3, 3]
-            feats = ", ".join(sorted(best.features)) or "nothing"
+            feats = ", ".join(FEATURE_WORDS.get(f, f) for f in sorted(best.features)) or "nothing"
             on_done(f"Suggested: a {best.orientation} plane with its probe face at ({o[0]:.0f}, {o[1]:.0f}, "
                     f"{o[2]:.0f}) mm (now {self.plane_label(index)}), expected to show {feats}; mean predicted "
-                    f"error over the organ {sug.current_mean_mm:.2f} → {best.predicted_mean_mm:.2f} mm. "
+                    f"error over the whole organ (sampled mesh nodes) {sug.current_mean_mm:.2f} → "
+                    f"{best.predicted_mean_mm:.2f} mm. "
                     f"{len(sug.candidates)} poses ranked in {sug.seconds:.1f} s. Add its segmentation or draw on it.")
 
         ok = self.worker is not None and self.worker.submit(job, done)
@@ -996,6 +1009,11 @@ class App:
             return []
         return [f"**{t.name}**: " + (f"tip inside, {-d:.1f} mm deep" if d < 0 else f"{d:.1f} mm from the stylus tip")
                 for t, d in zip(targets, tip_distances(tip, targets), strict=True)]
+
+
+FEATURE_WORDS = {"portal_contour": "portal-vein contours", "hepatic_contour": "hepatic-vein contours",
+                 "posterior": "the posterior liver wall", "portal_centerline": "portal-vein centres",
+                 "hepatic_centerline": "hepatic-vein centres"}
 
 
 def _other_site(host: str) -> str:

@@ -74,9 +74,13 @@ class RegisteredState:
     target_bands: list = field(default_factory=list)  # [TargetBand]: predicted error at each target
 
     def to_json(self) -> dict:
+        # the prediction is kept too: it was made from the data of the fit, which for a live
+        # result include frames' contours the session does not hold
         return {"run": self.run, "R": np.asarray(self.rigid.R).tolist(), "t": np.asarray(self.rigid.t).tolist(),
                 "rms_mm": float(self.rigid.rms_mm),
-                "beta": None if self.beta is None else np.asarray(self.beta).tolist()}
+                "beta": None if self.beta is None else np.asarray(self.beta).tolist(),
+                "predicted_mm": None if self.predicted_mm is None else np.round(self.predicted_mm, 3).tolist(),
+                "target_bands": [[b.name, b.predicted_mm, b.lower_mm, b.upper_mm] for b in self.target_bands]}
 
 
 @dataclass(frozen=True)

@@ -68,6 +68,10 @@ class ClientView:
 
     def show_live_tip(self, tip):
         self.layers.show_stylus(tip)
+        if tip is None:
+            self.stylus.dist.content = "Stylus not tracked: no distances."
+            self._dist_shown = 0.0
+            return
         now = time.monotonic()
         if now - self._dist_shown >= DISTANCE_TEXT_S:  # the tip moves at tracker rate; text needs less
             self._dist_shown = now

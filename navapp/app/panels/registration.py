@@ -43,6 +43,10 @@ class RegistrationPanel:
         for kind, b in self.btn.items():
             b.disabled = not ready or running or (kind == "warm" and (app.worker is None or app.worker.last is None))
         self.btn_cancel.disabled = not running
+        live = app.live
+        if what == "live" and live is not None and live.follower.on:
+            self.md.content = (f"**Live re-registration on**: {live.follower.summary()}. The result is kept "
+                               f"when it is switched off.")
         if what in ("model", "result", "run", "log", "scene"):
             self._table()
             if running:
@@ -89,7 +93,8 @@ class RegistrationPanel:
             err = res.node_error_mm
             head += f"  \nOn show: {res.run}" + (f" (mean error {err.mean():.2f} mm)" if err is not None else "")
             if res.predicted_mm is not None:
-                head += f"  \nPredicted error over the surface (no truth used): mean {res.predicted_mm.mean():.1f} mm"
+                head += (f"  \nPredicted error (no truth used): mean {res.predicted_mm.mean():.1f} mm over the "
+                         f"liver surface")
             for b in res.target_bands:
                 head += f"  \n{b.name}: {b.text()}"
         self.md.content = head

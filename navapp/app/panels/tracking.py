@@ -68,5 +68,6 @@ class TrackingPanel:
             r = self.app.results
             if r is not None:
                 state = "connected" if r.connected else "waiting for Slicer"
-                self.slicer.content = (f"3D Slicer (OpenIGTLink, port {r.port}): {state}, {r.sent} messages sent"
+                self.slicer.content = (f"3D Slicer (OpenIGTLink, port {r.port}): {state}, {r.sent} messages sent "
+                                       f"or queued"
                                        + (f" — {self.app.results_error}" if self.app.results_error else ""))

@@ -89,7 +89,7 @@ class UltrasoundPanel:
         app, cs = self.app, self.cs
         if app.sd is None or app.session is None:
             return
-        if what == "result" and cs.plane is not None:
+        if what in ("result", "model", "run") and cs.plane is not None and cs.plane in app.planes:
             self.dist.content = "  \n".join(app.target_plane_lines(cs.plane))
         if what in ("scene", "data", "plane"):
             labels = tuple(app.plane_label(i) for i in sorted(app.planes)) or ("—",)
