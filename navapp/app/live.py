@@ -29,7 +29,7 @@ from ..simulation.ultrasound import PlaneData
 from ..tracking.client import TrackingClient
 from ..tracking.config import TrackingConfig
 from ..tracking.events import ProbeSample, StylusSample
-from ..tracking.live import LiveRegistration
+from ..tracking.live import LiveRegistration, merge
 
 PUMP_HZ = 20.0  # status refresh and digitiser collection; tip and frames go out as they arrive
 TIP_MIN_S = 1.0 / 60  # at most this often per browser: a 100 Hz tracker would flood the websockets
@@ -223,8 +223,7 @@ class LiveFollower:
                 if app.last_reg is not None and app.last_reg.libr is not None:
                     self.reg.last = app.last_reg  # continue from the result on show
             else:
-                self.reg.base = {}
-                self.reg.keep(data)
+                self.reg.base = merge(data)
 
     def _run(self):
         while not self._stop.is_set():
@@ -237,11 +236,9 @@ class LiveFollower:
                     self._settle()
                 continue
             f = self.link.frame
-            if f is None or f is self._last_frame:
-                if self.reg is None or self.reg.last is None:
-                    f = f or None  # nothing yet: register the kept data once
-                else:
-                    continue
+            fresh = f is not None and f is not self._last_frame
+            if not fresh and self.reg is not None and self.reg.last is not None:
+                continue  # nothing new; the first pass registers the kept data even without a frame
             self.skipped += max(self._pending - 1, 0)
             self._pending = 0
             self._last_frame = f
