@@ -367,19 +367,10 @@ def table2_section(results_dir="results") -> str:
     levels = ("S+1", "S+2", "S+3")
     for s in dict.fromkeys(r["set"] for r in npl):
         rows = [r for r in npl if r["set"] == s and r["criterion"] == "ê (default)"]
-        if s == "laparoscopic cases":
-            tre = [float(np.mean([float(r["tre_mean_mm"]) for r in rows if r["level"] == lv])) for lv in levels]
-            fr = [int(r["rank_fresh"]) for r in rows if r["level"] == "S+1" and r["rank_fresh"]]
-            rho = [float(r["spearman_fresh"]) for r in rows if r["level"] == "S+1" and r["spearman_fresh"]]
-            out.append("Suggested planes on the laparoscopic cases ([next_plane_lap.md](next_plane_lap.md); "
-                       "table2_lap.csv was incomplete when read, so no ranks among all combinations): mean TRE of "
-                       f"the greedy S + 1 / 2 / 3 suggestions {' / '.join(f'{t:.2f}' for t in tre)} mm; the first "
-                       f"suggested plane ranks {', '.join(map(str, fr))} of 16 (median {np.median(fr):.0f}) among "
-                       "the study's own registrations of S + each single plane (median Spearman ρ of the score with "
-                       f"those TREs {np.median(rho):.2f}).\n\n")
-            continue
-        out.append(f"Suggested planes, greedy from S ({s}; TRE and ranks from results/table2.csv, the nine phantom "
-                   "cases):\n\n| level | mean TRE, suggested | mean TRE, all combinations (the paper-style row) | "
+        source = ("results/table2_lap.csv, the nine transposed cases" if s == "laparoscopic cases"
+                  else "results/table2.csv, the nine phantom cases")
+        out.append(f"Suggested planes, greedy from S ({s}; TRE and ranks from {source}):\n\n"
+                   "| level | mean TRE, suggested | mean TRE, all combinations (the paper-style row) | "
                    "median rank of the suggestion | suggestion better than the average |\n|---|---|---|---|---|\n")
         for lv in levels:
             rr = [r for r in rows if r["level"] == lv and r["rank"]]
