@@ -93,6 +93,9 @@ class App:
         self.live = None  # LiveLink while connected to a tracker
         self.results = results  # a tracking.ResultsSender: registrations go to 3D Slicer
         self.results_error: str | None = None
+        self._live_start: int | None = None  # live points before the recording in progress (its undo point)
+        self._live_shown = 0.0  # when a live registration was last drawn
+        self._results_sent = 0.0  # when results last went to Slicer
         self.preop = make_phantom(scene.phantom) if scene.phantom is not None else self._read_case_preop()
         self.centre = self.preop.liver.vertices.mean(0)
         self.server = viser.ViserServer(host=host, port=port, label="navapp", verbose=False)
@@ -485,8 +488,8 @@ class App:
         self.live.set_recording(on, label)
         if not on:
             with self.lock:
-                start = getattr(self, "_live_start", len(self.session.live_points))
-                if len(self.session.live_points) > start:
+                start, self._live_start = self._live_start, None
+                if start is not None and len(self.session.live_points) > start:
                     for cs in self.states.values():
                         cs.undo.append(Action("live", before=start))
         self.changed("live")
@@ -511,7 +514,7 @@ class App:
         beta = reg.libr.beta if reg.libr is not None else None
         now = time.monotonic()
         self.send_results(reg, throttle=not final)
-        if not final and now - getattr(self, "_live_shown", 0.0) < VIEW_MIN_S:
+        if not final and now - self._live_shown < VIEW_MIN_S:
             return
         self._live_shown = now
         err = self._node_error(reg.rigid, beta)
@@ -525,10 +528,10 @@ class App:
                 self.session.result = state.to_json()
                 lm = reg.libr
                 entry: dict = {"run": state.run, "points": int(sum(len(v) for v in self.data("all").values())),
-                         "seconds": round(float(sum(reg.seconds.values())), 3),
-                         "iterations": lm.iterations if lm else 0, "stop": lm.stop_reason if lm else "rigid",
-                         "updates_streamed": 0, "cancelled": False, "trace": [], "live": summary,
-                         "note": summary.split(",")[0]}
+                               "seconds": round(float(sum(reg.seconds.values())), 3),
+                               "iterations": lm.iterations if lm else 0, "stop": lm.stop_reason if lm else "rigid",
+                               "updates_streamed": 0, "cancelled": False, "trace": [], "live": summary,
+                               "note": summary.split(",")[0]}
                 if err is not None:
                     entry.update(error_mean_mm=round(float(err.mean()), 3), error_max_mm=round(float(err.max()), 3))
                 self.session.log.append(entry)
@@ -546,7 +549,7 @@ class App:
         if sender is None:
             return
         now = time.monotonic()
-        if throttle and now - getattr(self, "_results_sent", 0.0) < 0.1:
+        if throttle and now - self._results_sent < 0.1:
             return
         self._results_sent = now
         from ..tracking.results import status_line

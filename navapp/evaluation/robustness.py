@@ -156,13 +156,13 @@ def register_with(method: str, model, data):
     return pipeline.register(model, data, init=pipeline.METHODS[method]())
 
 
+@progress.quiet()  # scoped, as table2.run_chunk: a study step must not silence its caller
 def run_case(case_dir, trials, methods, edge=EDGE_MM, k=K) -> list[dict]:
     """Every (trial, method) of one case; returns CSV rows."""
     from ..anatomy.caseio import read_case, read_surface
     from ..mechanics.interpolation import interpolation_matrix
     from ..registration.pipeline import prepare, tre_stats
 
-    progress.QUIET = True
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
