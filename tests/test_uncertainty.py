@@ -4,12 +4,21 @@ differences, its behaviour away from the data, and the calibration of its band."
 import numpy as np
 import pytest
 
-from navapp.evaluation.error_estimate import Sample, fit_calibration, validate
+from navapp.errors import InputError, NavappError
+from navapp.evaluation.error_estimate import (
+    Sample,
+    band_coverage,
+    fit_calibration,
+    liver_id,
+    split_and_fit,
+    validate,
+)
 from navapp.mechanics.interpolation import interpolation_matrix
 from navapp.registration.libr import register_libr
 from navapp.registration.pipeline import Registration, deform_points
 from navapp.registration.rigid import RigidResult
 from navapp.registration.uncertainty import (
+    Calibration,
     covariance,
     estimate_error,
     information,
@@ -168,3 +177,64 @@ def test_estimate_at_points_equals_the_estimate_at_those_nodes(small_model):
         assert est.spread_mm == pytest.approx(full.spread_mm)
         assert np.allclose(est.predicted_mm, full.predicted_mm[idx], rtol=1e-6)
         assert np.allclose(est.positions, full.positions[idx], atol=1e-6)
+
+
+def test_band_coverage_against_a_hand_count():
+    # ê = a + b·d + c·σ + e·d·m with b = e = 0: ê = 1 + 2σ; band [0.5 ê, 2 ê]
+    cal = Calibration(a=1.0, b=0.0, c=2.0, e=0.0, lower=0.5, upper=2.0)
+    sigma = np.array([0.0, 0.0, 0.0, 0.5, 0.5, 0.5, 1.0, 1.0])  # ê = 1, 1, 1, 2, 2, 2, 3, 3
+    err = np.array([0.4, 0.5, 2.0, 0.9, 4.1, 3.0, 6.0, 1.4])
+    # in the band: 0.5 (edge), 2.0 (edge), 3.0, 6.0 (edge) → 4 of 8; 0.4 < 0.5, 0.9 < 1, 4.1 > 4, 1.4 < 1.5
+    pred = cal.predict(np.zeros(8), sigma)
+    assert np.allclose(pred, [1, 1, 1, 2, 2, 2, 3, 3])
+    assert band_coverage(err, pred, cal.lower, cal.upper) == 0.5
+    # validate pools the registrations of a level: a second one with 1 of 2 inside → 5 of 10
+    s1 = Sample("x-L", "S", (), np.zeros(8), sigma, err, 0.0)
+    s2 = Sample("x-N", "S", (), np.zeros(2), np.zeros(2), np.array([1.0, 2.5]), 0.0)
+    rows = {r["level"]: r for r in validate([s1, s2], cal)}
+    assert rows["S"]["coverage"] == 0.5 and rows["S"]["nodes"] == 10
+    assert rows["S"]["below_upper"] == 0.8  # everything but 4.1 and 2.5
+
+
+def _liver_samples(rng, liver, n_regs, scale):
+    out = []
+    for i in range(n_regs):
+        d = rng.uniform(0, 60.0, 2500)
+        s = rng.uniform(0.1, 1.0, 2500)
+        err = scale * (0.8 + 0.05 * d + 2.0 * s) * rng.lognormal(0.0, 0.3, 2500)
+        out.append(Sample(f"{liver}-{'LNR'[i % 3]}", ("S", "S+1")[i % 2], (), d, s, err, 0.0, liver))
+    return out
+
+
+def test_calibration_is_fitted_on_one_liver_and_validated_on_the_others():
+    """Two case sets, three livers: the fit sees only the calibration liver's registrations
+    (in both sets), the validation tables only the others'; a liver cannot be on both sides."""
+    rng = np.random.default_rng(10)
+    # the held-out livers' errors are 20× larger: any leak into the fit would move the coefficients
+    direct = _liver_samples(rng, "A", 4, 1.0) + _liver_samples(rng, "B", 4, 20.0)
+    transposed = _liver_samples(rng, "A", 4, 1.5) + _liver_samples(rng, "C", 4, 20.0)
+    cal, tables, calib, held = split_and_fit({"direct": direct, "transposed": transposed}, ["A"])
+    assert {s.liver for s in calib} == {"A"} and {s.liver for s in held} == {"B", "C"}
+    assert len(calib) == 8 and len(held) == 8
+    assert cal == fit_calibration(direct[:4] + transposed[:4], name=cal.fitted_on)
+    assert cal.c < 4.0  # the calibration liver's scale (2.0 to 3.0), not the held-out livers' (40)
+    assert set(tables) == {"direct: calibration cases (fit)", "direct: validation cases (held out)",
+                           "transposed: calibration cases (fit)", "transposed: validation cases (held out)"}
+    for set_name in ("direct", "transposed"):
+        fit_all = {r["level"]: r for r in tables[f"{set_name}: calibration cases (fit)"]}["all"]
+        held_all = {r["level"]: r for r in tables[f"{set_name}: validation cases (held out)"]}["all"]
+        assert fit_all["registrations"] == held_all["registrations"] == 4
+        assert fit_all["coverage"] > 0.7  # the fitted liver: near the nominal 90 %
+        assert held_all["coverage"] < 0.5  # errors 20× the prediction fall above the band
+    with pytest.raises(NavappError):
+        split_and_fit({"direct": direct}, ["A", "B"])  # no liver left to validate on
+
+
+def test_liver_id_is_the_preoperative_surface(tmp_path):
+    for name, text in (("p0-L", "liver 0"), ("lap0-R", "liver 0"), ("p1-L", "liver 1")):
+        (tmp_path / name / "preop").mkdir(parents=True)
+        (tmp_path / name / "preop" / "liver.ply").write_text(text)
+    assert liver_id(tmp_path / "p0-L") == liver_id(tmp_path / "lap0-R") != liver_id(tmp_path / "p1-L")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(InputError, match="preop/liver.ply"):
+        liver_id(tmp_path / "empty")

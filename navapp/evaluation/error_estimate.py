@@ -4,13 +4,17 @@ Every study case is registered at the levels S, S + 1, S + 2, S + 3 (``combos`` 
 random plane choices each), S + all and CBCT, the way Table II registers them; at every
 mesh node (the cases' targets are the mesh nodes) the estimate's d and σ are recorded
 beside the true error. The calibration ê = a + b·d + c·σ + e·d·m (m: median d over the
-nodes) and its band are fitted on the calibration cases only and judged on the others: per
-level, Pearson r between ê and the true error (pooled over the level's registrations, and
-the median of per-registration r), r of d alone and σ alone, and the fraction of nodes
-whose true error lies in the band.
+nodes) and its band are fitted on the calibration livers' cases only — in every case set
+given (e.g. the direct gravity cases and the transposed ones) — and judged on the cases of
+the other livers, per set and per level: Pearson r between ê and the true error (pooled
+over the level's registrations, and the median of per-registration r), r of d alone and σ
+alone, and the fraction of nodes whose true error lies in the band. A liver is identified
+by its preoperative surface file (``liver_id``), so no liver is in both the fit and the
+validation whatever the cases are called.
 """
 
 import csv
+import hashlib
 import itertools
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -36,6 +40,20 @@ class Sample:
     sigma: np.ndarray  # (M,) mm
     err: np.ndarray  # (M,) true error, mm
     seconds: float  # the estimate's time at all M nodes
+    liver: str = ""  # ``liver_id`` of the case: which preoperative liver it registers
+
+
+def liver_id(case_dir) -> str:
+    """Which liver a case is (12 hex digits): a hash of its preoperative surface,
+    ``preop/liver.ply``. Cases of one anatomy share it whatever deformation they simulate
+    (phantom0-L and lap0-R are the same liver); the split into calibration and validation
+    cases is made on it."""
+    path = Path(case_dir) / "preop" / "liver.ply"
+    if not path.is_file():
+        from ..errors import InputError
+
+        raise InputError("no preoperative liver surface (preop/liver.ply)", Path(case_dir))
+    return hashlib.sha1(path.read_bytes()).hexdigest()[:12]
 
 
 def plane_choices(level, n_planes, combos, rng):
@@ -85,28 +103,40 @@ def collect_case(case_dir, levels=LEVELS, combos=3, seed=0, edge=EDGE_MM, k=K) -
             est = estimate_error(reg)
             sec = time.perf_counter() - t
             err = np.linalg.norm(est.positions - x1, axis=1)
-            out.append(Sample(case_dir.name, level, planes, est.distance_mm, est.sigma_mm, err, sec))
+            out.append(Sample(case_dir.name, level, planes, est.distance_mm, est.sigma_mm, err, sec,
+                              liver_id(case_dir)))
     return out
 
 
 def fit_calibration(samples: list[Sample], coverage=NOMINAL, seed=0, name="") -> Calibration:
     """ê = a + b·d + c·σ + e·d·m by non-negative least squares on the pooled samples
     (``FIT_NODES`` random nodes of each registration; m = the registration's median d over
-    all its nodes), then the band factors: the (1 ± coverage)/2 quantiles of true / ê over
-    the same nodes."""
+    all its nodes), each registration's rows weighted by 1 / (its mean true error)² so that
+    the fit is on relative errors and cases with errors several times larger (the
+    transposed ones) do not set the coefficients alone; then the band factors: the
+    (1 ± coverage)/2 quantiles of true / ê over the same nodes."""
     rng = np.random.default_rng(seed)
-    parts: tuple[list, list, list, list] = ([], [], [], [])
+    parts: tuple[list, list, list, list, list] = ([], [], [], [], [])
     for s in samples:
         i = rng.choice(len(s.err), min(FIT_NODES, len(s.err)), replace=False)
-        for part, v in zip(parts, (s.d[i], s.sigma[i], s.err[i], np.full(len(i), np.median(s.d))), strict=True):
+        w = 1.0 / max(float(np.mean(s.err)), 1e-6)
+        for part, v in zip(parts, (s.d[i], s.sigma[i], s.err[i], np.full(len(i), np.median(s.d)),
+                                   np.full(len(i), w)), strict=True):
             part.append(v)
-    D, S, E, Mm = (np.concatenate(p) for p in parts)
+    D, S, E, Mm, W = (np.concatenate(p) for p in parts)
     A = np.column_stack([np.ones_like(D), D, S, D * Mm])
-    (a, b, c, e), _ = nnls(A, E)
+    (a, b, c, e), _ = nnls(A * W[:, None], E * W)
     cal = Calibration(float(a), float(b), float(c), float(e), coverage=coverage, fitted_on=name)
     ratio = E / np.maximum(cal.predict(D, S, Mm), 1e-9)
     lo, hi = np.quantile(ratio, [(1 - coverage) / 2, (1 + coverage) / 2])
     return replace(cal, lower=float(lo), upper=float(hi))
+
+
+def band_coverage(err, predicted, lower: float, upper: float) -> float:
+    """The fraction of points whose true error lies in the band [ê·lower, ê·upper]
+    (edges included); err, predicted (P,) mm."""
+    err, predicted = np.asarray(err, float), np.asarray(predicted, float)
+    return float(((err >= predicted * lower) & (err <= predicted * upper)).mean())
 
 
 def _r(x, y):
@@ -125,22 +155,54 @@ def validate(samples: list[Sample], cal: Calibration) -> list[dict]:
         d, sg, e = (np.concatenate([getattr(s, a) for s in ss]) for a in ("d", "sigma", "err"))
         each = [cal.predict(s.d, s.sigma, np.median(s.d)) for s in ss]
         p = np.concatenate(each)
-        inside = (e >= p * cal.lower) & (e <= p * cal.upper)
         rows.append({"level": level, "registrations": len(ss), "nodes": len(e),
                      "r_pred": _r(p, e),
                      "r_pred_median_per_reg": float(np.median([_r(q, s.err) for q, s in zip(each, ss, strict=True)])),
-                     "r_distance": _r(d, e), "r_sigma": _r(sg, e), "coverage": float(inside.mean()),
+                     "r_distance": _r(d, e), "r_sigma": _r(sg, e),
+                     "coverage": band_coverage(e, p, cal.lower, cal.upper),
                      "below_upper": float((e <= p * cal.upper).mean()), "mean_pred_mm": float(p.mean()),
                      "mean_true_mm": float(e.mean())})
     return rows
 
 
-def run_study(case_dirs, calibration_cases, out_dir, combos=3, seed=0, extra_sets=None):
-    """Collect, fit on ``calibration_cases`` (case names), validate on the rest, write
-    ``error_estimate.md`` and ``error_estimate.csv`` in ``out_dir``. ``extra_sets``:
-    {label: case_dirs} judged with the same calibration (e.g. the laparoscopic cases)."""
-    sets = {"study": list(case_dirs)}
-    sets.update(extra_sets or {})
+def split_and_fit(collected: dict, calibration_livers, coverage=NOMINAL) -> tuple[Calibration, dict, list, list]:
+    """Fit on the samples of ``calibration_livers`` (``liver_id`` values) in every set and
+    judge each set's other livers with it.
+
+    Parameters
+    ----------
+    collected : {set label: [Sample]}
+    calibration_livers : the livers to fit on; every other liver validates.
+
+    Returns
+    -------
+    (calibration, {table name: validate rows}, calibration samples, validation samples).
+    Raises NavappError when a liver would be both fitted and validated or a side is empty.
+    """
+    from ..errors import NavappError
+
+    livers = set(calibration_livers)
+    calib = [s for v in collected.values() for s in v if s.liver in livers]
+    held = [s for v in collected.values() for s in v if s.liver not in livers]
+    if not calib or not held:
+        raise NavappError("error-estimate needs cases of at least two livers (calibrated on the first case's liver, "
+                          "validated on the others)")
+    if {s.liver for s in calib} & {s.liver for s in held}:  # the split above makes this impossible; keep it so
+        raise NavappError("error-estimate: a liver is in both the calibration and the validation cases")
+    cal = fit_calibration(calib, coverage=coverage, name="+".join(sorted({s.case for s in calib})))
+    tables = {}
+    for label, samples in collected.items():
+        for part, ss in (("calibration cases (fit)", [s for s in samples if s.liver in livers]),
+                         ("validation cases (held out)", [s for s in samples if s.liver not in livers])):
+            if ss:
+                tables[f"{label}: {part}"] = validate(ss, cal)
+    return cal, tables, calib, held
+
+
+def run_study(sets: dict, out_dir, combos=3, seed=0):
+    """Collect every set's cases ({label: case_dirs}), fit on the first case's liver in all
+    sets (``split_and_fit``), validate on the other livers, write ``error_estimate.md`` and
+    ``error_estimate.csv`` in ``out_dir``."""
     collected: dict = {}
     with progress.bar(sum(len(v) for v in sets.values()), "error estimate: cases", "case") as pb:
         for label, dirs in sets.items():
@@ -148,14 +210,8 @@ def run_study(case_dirs, calibration_cases, out_dir, combos=3, seed=0, extra_set
             for d in dirs:
                 collected[label] += collect_case(d, combos=combos, seed=seed)
                 pb.update(1)
-    base = collected["study"]
-    calib = [s for s in base if s.case in calibration_cases]
-    held = [s for s in base if s.case not in calibration_cases]
-    cal = fit_calibration(calib, name="+".join(sorted(calibration_cases)))
-    tables = {"calibration cases (fit)": validate(calib, cal), "validation cases": validate(held, cal)}
-    for label in sets:
-        if label != "study":
-            tables[f"{label} (all cases, same calibration)"] = validate(collected[label], cal)
+    first = next(iter(sets.values()))[0]
+    cal, tables, calib, held = split_and_fit(collected, [liver_id(first)])
     secs = [s.seconds for v in collected.values() for s in v]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -182,11 +238,13 @@ def markdown(tables, cal, calib, held, secs, sets) -> str:
             "nearest data point, and σ = the LM covariance at the solution, s·H⁻¹ (H the LM normal matrix with the "
             "strain-energy curvature, s = Ω/(R − p)), propagated through the closed-form ∂x/∂β of eq. 8. Predicted "
             f"error ê = a + b·d + c·σ + e·d·m (m = the median of d over the mesh nodes: how sparse the data are), "
-            f"band [ê·{cal.lower:.2f}, ê·{cal.upper:.2f}] for a nominal "
+            f"band [ê·{cal.lower:.3f}, ê·{cal.upper:.3f}] for a nominal "
             f"{cal.coverage:.0%} of nodes.\n\n",
-            f"Calibration (non-negative least squares, {FIT_NODES} nodes per registration) on {cases(calib)}: "
-            f"a = {cal.a:.3f} mm, b = {cal.b:.4f}, c = {cal.c:.3f}, e = {cal.e:.5f} /mm. Validated on {cases(held)} "
-            "(other liver geometries). Levels as in Table II; S + 1/2/3: seeded random plane choices per case. "
+            f"Calibration (non-negative least squares on relative errors: each registration's {FIT_NODES} sampled "
+            f"nodes weighted by 1/(its mean true error)²) on {cases(calib)}: "
+            f"a = {cal.a:.4f} mm, b = {cal.b:.5f}, c = {cal.c:.4f}, e = {cal.e:.6f} /mm. Validated on {cases(held)}: "
+            "no liver is in both (livers told apart by their preoperative surface). Levels as in Table II; "
+            "S + 1/2/3: seeded random plane choices per case. "
             "r: Pearson r between predicted and true per-node error pooled over the level's registrations "
             "(median over registrations beside it); coverage: fraction of nodes whose true error lies in the band; "
             "below upper: fraction under the band's upper edge.\n"]
@@ -205,24 +263,20 @@ def markdown(tables, cal, calib, held, secs, sets) -> str:
     return "".join(text)
 
 
-def calibration_split(case_dirs) -> list[str]:
-    """The calibration cases: those of the first case's liver (its name up to the last '-',
-    e.g. phantom0-L/N/R); the others, other geometries, validate."""
-    names = [Path(d).name for d in case_dirs]
-    liver = names[0].rsplit("-", 1)[0]
-    calib = [n for n in names if n.rsplit("-", 1)[0] == liver]
-    if len(calib) == len(names):
-        from ..errors import NavappError
-
-        raise NavappError("error-estimate needs cases of at least two livers (calibrated on the first, validated "
-                          "on the others)")
-    return calib
+def set_label(case_dirs) -> str:
+    """A set's name in the report: its cases' common folder (e.g. study-cases-lap)."""
+    parents = {Path(d).resolve().parent.name for d in case_dirs}
+    return parents.pop() if len(parents) == 1 else "cases"
 
 
 def study_command(case_dirs, args):
-    """``navapp study error-estimate``: writes <report>/error_estimate.md and .csv."""
+    """``navapp study error-estimate``: writes <report>/error_estimate.md and .csv. The
+    calibration livers: the first case's liver, in ``--cases`` and in ``--with-cases``."""
     import json
 
-    extra = {"second set": list(args.with_cases)} if getattr(args, "with_cases", None) else None
-    cal, _ = run_study(case_dirs, calibration_split(case_dirs), args.report, extra_sets=extra)
+    sets = {set_label(case_dirs): list(case_dirs)}
+    if getattr(args, "with_cases", None):
+        label = set_label(args.with_cases)
+        sets[label if label not in sets else label + " (second set)"] = list(args.with_cases)
+    cal, _ = run_study(sets, args.report)
     print(json.dumps({"report": str(Path(args.report) / "error_estimate.md"), "calibration": cal.__dict__}))
