@@ -302,7 +302,8 @@ def build_parser():
                                      "robustness: initial offsets × label noise (all resumable)")
     s.add_argument("what", choices=("table2", "cost", "robustness", "error-estimate", "next-plane", "hard"))
     s.add_argument("--with-cases", type=Path, nargs="+", help="error-estimate, next-plane: a second set of cases "
-                   "judged beside --cases (e.g. the laparoscopic ones)")
+                   "judged beside --cases (e.g. the laparoscopic ones); error-estimate calibrates on the first "
+                   "case's liver in both sets and validates on the other livers")
     s.add_argument("--with-results", type=Path, help="next-plane: the second set's Table II CSV (for the ranks)")
     s.add_argument("--cases", type=Path, nargs="+", help="case folders (default: simulate the nine study scenes)")
     s.add_argument("--case-root", type=Path, default=Path("study-cases"), help="where simulated cases go")
