@@ -45,12 +45,22 @@ def tet_volumes(nodes, tets):
     return np.einsum("ij,ij->i", np.cross(b - a, c - a), d - a) / 6.0
 
 
+def simplex_keys(simplices: np.ndarray) -> np.ndarray:
+    """One int64 per row of ``simplices`` (k, 2 or 3) node indices, equal for rows holding
+    the same nodes in any order (a 1-D ``np.unique`` is several times faster than one over rows)."""
+    s = np.sort(np.asarray(simplices, np.int64), axis=1)
+    base = int(s.max()) + 1 if s.size else 1
+    key = s[:, 0]
+    for j in range(1, s.shape[1]):
+        key = key * base + s[:, j]
+    return key
+
+
 def boundary_faces(tets, nodes):
     """Faces used by exactly one tet, oriented with outward normals."""
     local = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
     faces = tets[:, local].reshape(-1, 3)
-    key = np.sort(faces, axis=1)
-    _, idx, counts = np.unique(key, axis=0, return_index=True, return_counts=True)
+    _, idx, counts = np.unique(simplex_keys(faces), return_index=True, return_counts=True)
     # for a positively oriented tet these local faces wind outward, so boundary faces do too
     return faces[idx[counts == 1]]
 
@@ -119,6 +129,7 @@ class MeshAttempt:
     method: str
     feature_angle: float = 40.0
     limit: float | None = None  # None: scaled to the expected mesh (``attempt_limit``)
+    edge_scale: float = 1.0  # the attempt meshes at edge × edge_scale
 
 
 ATTEMPTS = (
@@ -126,12 +137,14 @@ ATTEMPTS = (
     MeshAttempt("gmsh", 60.0),
     MeshAttempt("gmsh", 90.0),
     MeshAttempt("ftetwild"),
+    MeshAttempt("ftetwild", edge_scale=0.85),
 )
 """Tried in order until one passes the quality floor. Gmsh at 40° gives the meshes navapp
 was measured with; larger angles make fewer, larger patches, which is what lets
 re-parametrisation succeed on sharp or unevenly triangulated surfaces; fTetWild is the
-fallback that cannot fail on a valid closed surface (choices and timings:
-docs/decisions.md, "Meshing any liver")."""
+fallback that cannot fail on a valid closed surface, tried a second time on a slightly
+finer edge because its boundary can come out pinched beyond mending (choices and timings:
+docs/decisions.md, "Meshing any liver" and "Pinched boundaries")."""
 
 def attempt_limit(attempt: MeshAttempt, surface: trimesh.Trimesh, edge: float) -> float:
     """Seconds one attempt may take: its own ``limit``, else 30 s plus 3 ms per expected
@@ -192,15 +205,23 @@ def _mesh_with_log(surface, edge, seed, limit, attempts):
             continue  # a Gmsh hang is a property of the surface, not of the angle
         t0 = time.perf_counter()
         try:
-            nodes, tets = _run_attempt(v, f, edge, seed, attempt, min(attempt_limit(attempt, surface, edge), remaining))
+            nodes, tets = _run_attempt(v, f, edge * attempt.edge_scale, seed, attempt,
+                                       min(attempt_limit(attempt, surface, edge), remaining))
         except _AttemptFailed as exc:
             log.append({"method": _label(attempt), "outcome": str(exc), "seconds": round(time.perf_counter() - t0, 1)})
             gmsh_hung |= exc.timed_out and attempt.method == "gmsh"
             continue
         mesh = _tidy(nodes, tets)
+        mesh, mended = _closed_manifold(mesh)
+        if mesh is None:
+            log.append({"method": _label(attempt), "seconds": round(time.perf_counter() - t0, 1),
+                        "outcome": f"boundary not a closed manifold ({mended})"})
+            continue
         q = quality_report(mesh)
         entry = {"method": _label(attempt), "seconds": round(time.perf_counter() - t0, 1), "nodes": q["nodes"],
                  "min_dihedral_deg": round(q["min_dihedral_deg"], 2)}
+        if mended:
+            entry["mended"] = mended
         if q["inverted"] or q["tets_below_5deg"] or q["min_dihedral_deg"] < MIN_DIHEDRAL_DEG:
             entry["outcome"] = (f"below the quality floor ({q['inverted']} inverted, {q['tets_below_5deg']} tets "
                                 f"under {MIN_DIHEDRAL_DEG:g}°)")
@@ -221,7 +242,25 @@ def _give_up(log, limit, deadline):
 
 
 def _label(attempt: MeshAttempt) -> str:
-    return f"gmsh {attempt.feature_angle:g}°" if attempt.method == "gmsh" else attempt.method
+    scale = "" if attempt.edge_scale == 1.0 else f" at {attempt.edge_scale:g} × edge"
+    return (f"gmsh {attempt.feature_angle:g}°" if attempt.method == "gmsh" else attempt.method) + scale
+
+
+def _closed_manifold(mesh: TetMesh):
+    """(mesh, what was mended) with every pinch of its boundary opened, or (None, why)
+    when mending could not make the boundary one closed manifold (``manifold.py``)."""
+    from .manifold import boundary_defects, mend_pinches  # manifold.py builds on this module
+
+    defects = boundary_defects(mesh)
+    if defects.ok:
+        return mesh, ""
+    before = float(tet_volumes(mesh.nodes, mesh.tets).sum())
+    mended, removed = mend_pinches(mesh)
+    left = boundary_defects(mended)
+    if not left.ok:
+        return None, f"{defects.describe()}; still {left.describe()} after removing {removed} tets"
+    lost = 1.0 - float(tet_volumes(mended.nodes, mended.tets).sum()) / before
+    return mended, f"{defects.describe()}: opened by removing {removed} tets ({100 * lost:.2g} % of the volume)"
 
 
 class _AttemptFailed(Exception):
@@ -381,7 +420,8 @@ def mesh_liver(surface: trimesh.Trimesh, edge: float = EDGE_MM, limit: float | N
     return mesh, report
 
 
-MESHER_VERSION = "mesh-chain-3"  # gmsh 40/60/90° then fTetWild, each checked against the floor
+# gmsh 40/60/90° then fTetWild twice, each with pinches mended, checked against the floor
+MESHER_VERSION = "mesh-chain-4"
 
 
 def cached_tetmesh(surface: trimesh.Trimesh, edge: float = EDGE_MM, cache_root=None) -> tuple[TetMesh, dict]:
