@@ -1,18 +1,11 @@
-"""Ground-truth solvers against analytic results and each other."""
+"""Ground-truth solvers against analytic results and each other (the neo-Hookean one: test_hyperelastic.py)."""
 
 import numpy as np
 from skfem import MeshTet
 
 from navapp.anatomy.meshing import TetMesh
 from navapp.mechanics.fem import Material
-from navapp.simulation.truth import (
-    Loading,
-    _body_force,
-    solve_linear,
-    solve_svk,
-    supported_nodes,
-    svk_forces_and_tangent,
-)
+from navapp.simulation.truth import Loading, _body_force, supported_nodes
 
 
 def column(h=100.0, n=(4, 4, 26)):
@@ -56,29 +49,6 @@ def test_linear_truth_converges_under_refinement():
         tip = np.argmin(mesh.nodes[:, 2])
         errs.append(abs(uz[tip] - exact[tip]))
     assert errs[1] < errs[0]
-
-
-def test_svk_tangent_matches_finite_differences(coarse_mesh):
-    rng = np.random.default_rng(0)
-    mat = Material(E=3000.0, nu=0.45)
-    u = rng.normal(size=(len(coarse_mesh.nodes), 3)) * 0.5
-    f0, K = svk_forces_and_tangent(coarse_mesh.nodes, coarse_mesh.tets, u, mat)
-    du = rng.normal(size=u.shape) * 1e-6
-    fp, _ = svk_forces_and_tangent(coarse_mesh.nodes, coarse_mesh.tets, u + du, mat, tangent=False)
-    fm, _ = svk_forces_and_tangent(coarse_mesh.nodes, coarse_mesh.tets, u - du, mat, tangent=False)
-    assert np.allclose((fp - fm) / 2, K @ du.ravel(), rtol=1e-5, atol=1e-9 * np.abs(f0).max())
-
-
-def test_svk_small_load_matches_linear_and_newton_converges(coarse_mesh):
-    mat = Material(E=3000.0, nu=0.45)
-    small = Loading(gravity=0.05)
-    lin = solve_linear(coarse_mesh, small, mat)
-    residuals = []
-    non = solve_svk(coarse_mesh, small, mat, steps=1, report=lambda s, i, r: residuals.append(r))
-    assert np.abs(non - lin).max() < 1e-2 * np.abs(lin).max()
-    # quadratic convergence: once small, each residual is far below the previous one
-    assert residuals[-1] < 1e-8 and residuals[-2] < 1e-2
-    assert all(b < a for a, b in zip(residuals[1:-1], residuals[2:], strict=True))
 
 
 def test_supports_and_release(coarse_mesh):

@@ -12,7 +12,7 @@ Example::
     [deformation]
     release = "L"            # supporting ligaments released: "L", "N" (none) or "R"
     gravity_tilt_deg = 25.0  # gravity tilted from posterior toward the released side
-    large = false            # true: St-Venant–Kirchhoff, Newton
+    large = false            # true: neo-Hookean, Newton
     mesh_edge_mm = 3.5       # the truth's own (finer) mesh
     pressure_pa = 0.0        # inward pressure on the anterior surface (insufflation)
     head_up_deg = 0.0        # reverse Trendelenburg: gravity turned this far toward inferior
@@ -69,7 +69,7 @@ _TRANSPOSE_KEYS = {"phantom": int, "mesh_edge_mm": float}
 class Scene:
     """What to simulate (a scene TOML, ``navapp/scenes/*.toml``): the anatomy (a phantom
     index or a case folder), the true deformation (ligament release, gravity tilt, linear or
-    St-Venant–Kirchhoff, truth mesh edge mm, E Pa, pressure Pa, or a transposition), the
+    neo-Hookean, truth mesh edge mm, E Pa, pressure Pa, or a transposition), the
     stylus coverage, the number of iUS planes and the acquisition effects."""
 
     name: str

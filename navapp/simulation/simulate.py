@@ -33,7 +33,7 @@ from . import effects as fx
 from .probe import Probe
 from .scene import Scene
 from .stylus import swath_pattern, thin
-from .truth import Loading, solve_linear, solve_svk
+from .truth import Loading, solve_linear, solve_neo_hookean
 from .ultrasound import acquire_plane, plane_poses
 
 REGISTRATION_EDGE_MM = EDGE_MM
@@ -70,10 +70,10 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
     if scene.transpose_from is not None:
         u, transposed = transposed_truth(scene, preop, truth_mesh, ledger, cache_root)
     else:
-        with progress.stage("ground truth" + (" (St-Venant–Kirchhoff, Newton)" if scene.large else " (linear)")):
+        with progress.stage("ground truth" + (" (neo-Hookean, Newton)" if scene.large else " (linear)")):
             if scene.large:
                 ledger.mark("nonlinear_solve")
-                u = solve_svk(truth_mesh, loading, material)
+                u = solve_neo_hookean(truth_mesh, loading, material)
             else:
                 ledger.mark("linear_solve")
                 u = solve_linear(truth_mesh, loading, material)
@@ -176,7 +176,7 @@ def transposed_truth(scene: Scene, preop, truth_mesh, ledger=None, cache_root=No
         raise ValueError(f"scene {scene.name!r} declares no deformation.transpose_from")
     ref = make_phantom(src.phantom)
     with progress.stage(f"reference liver (phantom {src.phantom}) under laparoscopic loading"
-                        + (" (St-Venant–Kirchhoff, Newton)" if scene.large else " (linear)")):
+                        + (" (neo-Hookean, Newton)" if scene.large else " (linear)")):
         ledger.mark("nonlinear_solve" if scene.large else "linear_solve")
         ref_mesh, u_ref = reference_deformation(ref.liver, src.mesh_edge_mm, loading, material, scene.large, cache_root)
     with progress.stage("correspondence (affine + deformable CPD, thin-plate spline) and transposition"):

@@ -10,7 +10,7 @@ organ, which surface data cannot reveal but vessels can.
 Here:
 
 1. ``reference_deformation``: the reference liver's own force-driven truth (anterior
-   pressure, gravity, L/N/R ligament release, St-Venant–Kirchhoff when ``large``);
+   pressure, gravity, L/N/R ligament release, neo-Hookean when ``large``);
    cached by content.
 2. ``correspondence``: φ, target liver → reference liver. Coherent Point Drift
    (``pycpd``) on surface samples: affine, then deformable (Gaussian motion coherence);
@@ -44,7 +44,7 @@ CPD_POINTS = 700  # surface samples per liver for CPD (O(N²) per iteration)
 CPD_BETA_MM = 40.0  # width of CPD's Gaussian motion-coherence kernel
 CPD_ALPHA = 2.0  # CPD's smoothness weight
 TPS_SMOOTHING = 10.0  # thin-plate smoothing (mm² scale): φ does not interpolate CPD exactly
-LOAD_STEPS = 6  # Newton load increments of the large-deformation reference
+LOAD_STEPS = 4  # first Newton load increment of the large-deformation reference: 1/4 of the load (adaptive after)
 
 
 @dataclass(frozen=True)
@@ -152,21 +152,23 @@ def reference_deformation(reference_surface, mesh_edge_mm: float, loading, mater
                           cache_root=None) -> tuple[TetMesh, np.ndarray]:
     """The reference liver's own truth: its tet mesh and nodal displacements (M, 3) mm
     under ``loading`` (``truth.Loading``: gravity, anterior pressure, release), linear or
-    St-Venant–Kirchhoff (``large``). Cached by content (surface, mesh, loads, material)."""
+    neo-Hookean (``large``). Cached by content (surface, mesh, loads, material, model)."""
     from dataclasses import asdict
 
     from .. import cache
     from ..anatomy.meshing import cached_tetmesh
-    from .truth import solve_linear, solve_svk
+    from .truth import solve_linear, solve_neo_hookean
 
     mesh, _ = cached_tetmesh(reference_surface, mesh_edge_mm, cache_root)
     root = cache.cache_dir() if cache_root is None else cache_root
-    key = cache.content_key("reference-deformation-1", mesh.nodes, mesh.tets, asdict(loading),
-                            {"E": material.E, "nu": material.nu}, bool(large))
+    # the linear entry keeps its old key; the neo-Hookean one has its own tag (no SVK entry was ever saved)
+    key = cache.content_key("reference-deformation-nh-1" if large else "reference-deformation-1", mesh.nodes,
+                            mesh.tets, asdict(loading), {"E": material.E, "nu": material.nu}, bool(large))
     path = root / f"refdef-{key}.npz"
     hit = cache.load(path)
     if hit is not None:
         return mesh, hit["u"]
-    u = solve_svk(mesh, loading, material, steps=LOAD_STEPS) if large else solve_linear(mesh, loading, material)
+    u = (solve_neo_hookean(mesh, loading, material, steps=LOAD_STEPS) if large
+         else solve_linear(mesh, loading, material))
     cache.save(path, {"u": u})
     return mesh, u

@@ -9,7 +9,12 @@ the released side, optional uniform pressure on the anterior surface (insufflati
 posterior bare area is always held, and so are the left and right triangular ligaments
 and the falciform/coronary attachment unless a scene releases them (L, N or R).
 Small deformation: linear elasticity. Large deformation (a scene's ``large = true``):
-St-Venant–Kirchhoff hyperelasticity, total Lagrangian, Newton with load stepping.
+compressible neo-Hookean hyperelasticity, total Lagrangian, P1 tetrahedra, Newton with
+adaptive load stepping and a backtracking line search (``solve_neo_hookean``). The loads
+are dead loads (gravity and the anterior pressure act in the reference configuration),
+so the problem has a potential energy, which the line search descends.
+St-Venant–Kirchhoff was tried first and dropped: it softens in compression and its
+Newton failed at the laparoscopic loads (docs/decisions.md).
 """
 
 from dataclasses import dataclass
@@ -91,59 +96,234 @@ def solve_linear(mesh: TetMesh, loading: Loading, material: Material = Material(
     return u.reshape(-1, 3)
 
 
-def svk_forces_and_tangent(nodes, tets, u, material: Material, tangent=True):
-    """St-Venant–Kirchhoff internal forces (3M,) and tangent stiffness (3M × 3M) at
-    displacement u (M, 3): F = I + ∇u, E = ½(FᵀF − I), S = λ tr E I + 2μE, P = FS;
-    f_a = V P ∇N_a; K from ∂P/∂F = δ_ik S_lj + λ F_ij F_kl + μ(F_il F_kj + (FFᵀ)_ik δ_jl)."""
-    lam, mu = material.lame()
-    G, vol = shape_gradients(nodes, tets)  # (E, 4, 3)
-    ue = u[tets]  # (E, 4, 3)
-    F = np.eye(3) + np.einsum("eai,eaj->eij", ue, G)
-    E = 0.5 * (np.einsum("eki,ekj->eij", F, F) - np.eye(3))
-    S = lam * np.trace(E, axis1=1, axis2=2)[:, None, None] * np.eye(3) + 2 * mu * E
-    P = F @ S
-    fe = vol[:, None, None] * np.einsum("eij,eaj->eai", P, G)  # (E, 4, 3)
-    M = len(nodes)
-    f = np.zeros((M, 3))
-    for a in range(4):
-        np.add.at(f, tets[:, a], fe[:, a])
-    if not tangent:
-        return f.ravel(), None
-    I3 = np.eye(3)
-    FFt = F @ F.transpose(0, 2, 1)
-    A = (np.einsum("ik,elj->eijkl", I3, S) + lam * np.einsum("eij,ekl->eijkl", F, F)
-         + mu * (np.einsum("eil,ekj->eijkl", F, F) + np.einsum("eik,jl->eijkl", FFt, I3)))
-    Ke = vol[:, None, None, None, None] * np.einsum("eaj,eijkl,ebl->eaibk", G, A, G)
-    dof = 3 * tets[:, :, None] + np.arange(3)  # (E, 4, 3)
-    rows = np.broadcast_to(dof[:, :, :, None, None], Ke.shape).ravel()
-    cols = np.broadcast_to(dof[:, None, None, :, :], Ke.shape).ravel()
-    K = sp.csr_matrix((Ke.ravel(), (rows, cols)), shape=(3 * M, 3 * M))
-    return f.ravel(), K
 
+class NeoHookean:
+    """Compressible neo-Hookean strain energy on a P1 tet mesh, total Lagrangian.
 
-def solve_svk(mesh: TetMesh, loading: Loading, material: Material = Material(), steps=4, tol=1e-8,
-              max_newton=20, report=None) -> np.ndarray:
-    """Large-deformation truth: Newton on St-Venant–Kirchhoff with ``steps`` load increments.
+    ψ(F) = μ/2 (I₁ − 3) − μ ln J + λ/2 (ln J)², I₁ = tr FᵀF, J = det F (Pa), with
+    λ, μ the Lamé constants of ``material`` (so it is linear elasticity for small strain).
+    First Piola–Kirchhoff stress P = μ (F − F⁻ᵀ) + λ ln J F⁻ᵀ; its derivative
+    ∂P_iJ/∂F_kL = μ δ_ik δ_JL + (μ − λ ln J) F⁻¹_Jk F⁻¹_Li + λ F⁻¹_Ji F⁻¹_Lk.
+    One-point integration is exact for P1 (F constant per tet).
 
-    Converged when the free-DOF residual norm falls below ``tol`` × the load norm.
-    ``report(step, iteration, relative_residual)`` sees every Newton iteration.
+    The shape gradients and the sparsity pattern of the tangent restricted to ``free``
+    (DOF indices; all DOFs if None) are computed once, so that each Newton iteration is
+    one vectorised evaluation and one ``bincount``.
+
+    Parameters
+    ----------
+    nodes : (M, 3) mm, reference positions
+    tets : (E, 4) node indices
+    material : Young's modulus (Pa) and Poisson ratio
+    free : (n,) DOF indices (3 node + axis) the tangent is restricted to
     """
+
+    def __init__(self, nodes, tets, material: Material, free=None):
+        self.tets = np.asarray(tets)
+        self.n_dof = 3 * len(nodes)
+        self.lam, self.mu = material.lame()
+        self.G, self.vol = shape_gradients(np.asarray(nodes, float), self.tets)  # (E, 4, 3) 1/mm, (E,) mm³
+        dof = (3 * self.tets[:, :, None] + np.arange(3)).reshape(len(self.tets), 12)
+        self.dof = dof
+        self.free = np.arange(self.n_dof) if free is None else np.asarray(free)
+        where = np.full(self.n_dof, -1)
+        where[self.free] = np.arange(len(self.free))
+        fd = where[dof]  # (E, 12): free index of each element DOF, −1 if held
+        rows = np.repeat(fd, 12, axis=1).ravel()
+        cols = np.tile(fd, (1, 12)).ravel()
+        keep = (rows >= 0) & (cols >= 0)
+        n = len(self.free)
+        key = rows[keep].astype(np.int64) * n + cols[keep]
+        uniq, self._slot = np.unique(key, return_inverse=True)
+        self._keep = keep
+        self._pattern = (uniq // n, uniq % n, n)
+
+    def deformation_gradient(self, u) -> np.ndarray:
+        """F = I + Σ_a u_a ⊗ ∇N_a per tet, (E, 3, 3), from nodal displacements u (M, 3) mm."""
+        return np.eye(3) + np.einsum("eai,eaj->eij", np.asarray(u).reshape(-1, 3)[self.tets], self.G)
+
+    def energy(self, u) -> float:
+        """Strain energy Σ V ψ (Pa·mm³ = 1e-9 J); +inf if any tet is inverted (J ≤ 0)."""
+        F = self.deformation_gradient(u)
+        J = np.linalg.det(F)
+        if not np.all(J > 0):
+            return np.inf
+        lnJ = np.log(J)
+        I1 = np.einsum("eij,eij->e", F, F)
+        psi = 0.5 * self.mu * (I1 - 3) - self.mu * lnJ + 0.5 * self.lam * lnJ ** 2
+        return float(self.vol @ psi)
+
+    def forces(self, u, tangent=True):
+        """Internal nodal forces f_a = V P ∇N_a, (3M,) in Pa·mm², and, if ``tangent``, the
+        tangent stiffness ∂f/∂u restricted to ``free`` × ``free`` (CSR, Pa·mm), else None.
+        Raises ValueError if a tet is inverted (J ≤ 0): the energy is not defined there."""
+        F = self.deformation_gradient(u)
+        J = np.linalg.det(F)
+        if not np.all(J > 0):
+            raise ValueError(f"inverted element (min J = {J.min():.3g})")
+        Finv = np.linalg.inv(F)
+        FinvT = Finv.transpose(0, 2, 1)
+        lnJ = np.log(J)
+        P = self.mu * (F - FinvT) + (self.lam * lnJ)[:, None, None] * FinvT
+        fe = self.vol[:, None, None] * np.einsum("eij,eaj->eai", P, self.G)  # (E, 4, 3)
+        f = np.bincount(self.dof.ravel(), fe.ravel(), minlength=self.n_dof)
+        if not tangent:
+            return f, None
+        # A_iJkL = ∂P_iJ/∂F_kL (class doc); contracted with ∇N_a (J) and ∇N_b (L) per tet.
+        # With h_a = F⁻ᵀ ∇N_a (the spatial gradient), the three terms give per (a, b):
+        # μ (∇N_a·∇N_b) δ_ik + (μ − λ ln J) h_b,i h_a,k + λ h_a,i h_b,k
+        h = np.einsum("eij,eaj->eai", FinvT, self.G)  # (E, 4, 3)
+        gg = np.einsum("eaj,ebj->eab", self.G, self.G)
+        c1 = (self.mu - self.lam * lnJ) * self.vol
+        Ke = c1[:, None, None, None, None] * np.einsum("ebi,eak->eaibk", h, h)
+        Ke += (self.lam * self.vol)[:, None, None, None, None] * np.einsum("eai,ebk->eaibk", h, h)
+        for i in range(3):
+            Ke[:, :, i, :, i] += (self.mu * self.vol)[:, None, None] * gg
+        data = np.bincount(self._slot, Ke.reshape(len(self.tets), 144).ravel()[self._keep],
+                           minlength=len(self._pattern[0]))
+        r, c, n = self._pattern
+        return f, sp.csr_matrix((data, (r, c)), shape=(n, n))
+
+
+def neo_hookean_energy(nodes, tets, u, material: Material) -> float:
+    """Neo-Hookean strain energy (Pa·mm³) of displacement u (M, 3) mm; ``NeoHookean``."""
+    return NeoHookean(nodes, tets, material).energy(u)
+
+
+def neo_hookean_forces_and_tangent(nodes, tets, u, material: Material, tangent=True):
+    """Neo-Hookean internal forces (3M,) Pa·mm² and tangent (3M × 3M CSR, Pa·mm, or None)
+    at displacement u (M, 3) mm, all DOFs free; ``NeoHookean``."""
+    return NeoHookean(nodes, tets, material).forces(u, tangent)
+
+
+def solve_neo_hookean(mesh: TetMesh, loading: Loading, material: Material = Material(), steps=4, tol=1e-8,
+                      max_newton=25, min_increment=1.0 / 512, report=None) -> np.ndarray:
+    """Large-deformation truth: the liver's supports and loads (``Loading``) solved with
+    the compressible neo-Hookean model by ``solve_hyperelastic``. Returns (M, 3) mm."""
     f_ext = _body_force(mesh, loading)
     free = _free_dofs(mesh, loading)
-    u = np.zeros(3 * len(mesh.nodes))
+    return solve_hyperelastic(mesh.nodes, mesh.tets, f_ext, free, material, steps, tol, max_newton,
+                              min_increment, report)
+
+
+def solve_hyperelastic(nodes, tets, f_ext, free, material: Material = Material(), steps=4, tol=1e-8,
+                       max_newton=25, min_increment=1.0 / 512, report=None) -> np.ndarray:
+    """Static equilibrium f_int(u) = f_ext of the neo-Hookean body, the DOFs not in ``free`` held at 0.
+
+    The load goes from 0 to 1 in increments that start at 1/``steps``. Within an increment,
+    Newton with a backtracking line search: a step is halved until the potential energy
+    Π(u) = Σ V ψ − f·u decreases (Armijo) or, once energy differences are at round-off,
+    the residual norm does; a trial with an inverted tet (J ≤ 0) has Π = ∞. Where the
+    tangent is not positive definite (or its step does not descend), a shifted tangent
+    K + τ diag|K| gives the step (``_descent_step``). An increment fails if the line search
+    finds no decrease or ``max_newton`` iterations do not converge; it is then halved and
+    retried from the last converged state, down to ``min_increment``, after which one
+    NavappError line says where. After an increment that converged in a few iterations the
+    next one doubles (up to 1/``steps``).
+
+    Parameters
+    ----------
+    nodes : (M, 3) mm; tets : (E, 4)
+    f_ext : (3M,) dead-load nodal forces, Pa·mm² (1e-6 N)
+    free : (n,) indices of the unconstrained DOFs (3 node + axis)
+    tol : converged when the free-DOF residual norm is below ``tol`` × the full load's norm
+    report : ``report(load_fraction, iteration, relative_residual)`` sees every Newton iteration
+
+    Returns
+    -------
+    (M, 3) nodal displacements, mm
+    """
+    free = np.asarray(free)
+    model = NeoHookean(nodes, tets, material, free)
     scale = np.linalg.norm(f_ext[free])
-    for step in range(1, steps + 1):
-        load = f_ext * step / steps
-        for it in range(1, max_newton + 1):
-            fint, K = svk_forces_and_tangent(mesh.nodes, mesh.tets, u.reshape(-1, 3), material)
-            r = (load - fint)[free]
-            rel = np.linalg.norm(r) / scale
-            if report:
-                report(step, it, rel)
-            if rel < tol:
-                break
-            with Factorisation(K[free][:, free]) as Fz:
-                u[free] += Fz.solve(r)
-        else:
-            raise NavappError(f"large-deformation truth did not converge (load step {step}, residual {rel:.2e})")
+    u = np.zeros(3 * len(nodes))
+    if scale == 0:
+        return u.reshape(-1, 3)
+    t, dt, first = 0.0, 1.0 / steps, 1.0 / steps
+    prev = None  # (load fraction, u) of the previous converged state, for the predictor
+    failure = ""
+    while t < 1.0 - 1e-12:
+        dt = min(dt, 1.0 - t)
+        start = u
+        if prev is not None:  # secant predictor along the load path; kept only if admissible
+            guess = u + (u - prev[1]) * dt / (t - prev[0])
+            if np.isfinite(model.energy(guess)):
+                start = guess
+        done, its, failure = _newton(model, f_ext, free, start, t + dt, scale, tol, max_newton, report)
+        if done is None:
+            dt /= 2
+            if dt < min_increment:
+                raise NavappError(f"neo-Hookean truth did not converge at load {t:.3f} of 1 ({failure}; "
+                                  f"increment cut to {dt:.1e})")
+            continue
+        prev = (t, u)
+        u, t = done, t + dt
+        if its <= 6:
+            dt = min(2 * dt, first)
     return u.reshape(-1, 3)
+
+
+def _descent_step(K, r):
+    """The Newton step K⁻¹ r, or, where K is not positive definite (away from a stable
+    equilibrium, K is the Hessian of a non-convex energy), the step of K + τ diag|K| with
+    the smallest τ in 1e-4 … 1e2 that factorises and descends (Levenberg-style shift).
+    Returns (step, r · step, τ) or (None, 0, τ) when no shift works."""
+    d = np.abs(K.diagonal())
+    tau = 0.0
+    while tau <= 1e2:
+        A = K if tau == 0 else K + sp.diags(tau * d)
+        try:
+            with Factorisation(A) as Fz:
+                du = Fz.solve(r)
+            slope = float(r @ du)  # −dΠ/ds at s = 0: positive for a descent direction
+            if np.isfinite(slope) and slope > 0:
+                return du, slope, tau
+        except Exception:  # noqa: BLE001 - any back end's refusal of a non-SPD matrix means: shift it
+            pass
+        tau = 1e-4 if tau == 0 else 10 * tau
+    return None, 0.0, tau
+
+
+def _newton(model: NeoHookean, f_ext, free, u, load, scale, tol, max_newton, report):
+    """Newton with a backtracking line search at load fraction ``load``, from ``u`` (3M,).
+    Returns (u, iterations, "") when converged, or (None, iterations, why) when not."""
+    u = u.copy()
+    f = f_ext * load
+
+    def potential(v):
+        e = model.energy(v)
+        return e - f @ v if np.isfinite(e) else np.inf
+
+    pi = potential(u)
+    if not np.isfinite(pi):
+        return None, 0, "inverted element at the start of the increment"
+    fint, K = model.forces(u)
+    rel = np.inf
+    for it in range(1, max_newton + 1):
+        r = f[free] - fint[free]
+        rel = np.linalg.norm(r) / scale
+        if report:
+            report(load, it, rel)
+        if rel < tol:
+            return u, it, ""
+        du, slope, _ = _descent_step(K, r)
+        if du is None:
+            return None, it, "tangent not positive definite even when shifted"
+        s = 1.0
+        for _ in range(30):
+            v = u.copy()
+            v[free] += s * du
+            pv = potential(v)
+            if np.isfinite(pv):
+                if pv <= pi - 1e-4 * s * slope:
+                    break
+                # energy differences at round-off near convergence: accept a residual decrease
+                fint_v, _ = model.forces(v, tangent=False)
+                if np.linalg.norm(f[free] - fint_v[free]) < (1 - 1e-4 * s) * np.linalg.norm(r):
+                    break
+            s /= 2
+        else:
+            return None, it, f"line search found no decrease (residual {rel:.1e})"
+        u, pi = v, pv
+        fint, K = model.forces(u)
+    return None, max_newton, f"{max_newton} Newton iterations (residual {rel:.1e})"
