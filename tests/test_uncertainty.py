@@ -11,6 +11,7 @@ from navapp.evaluation.error_estimate import (
     fit_calibration,
     liver_id,
     split_and_fit,
+    table2_part,
     validate,
 )
 from navapp.mechanics.interpolation import interpolation_matrix
@@ -238,3 +239,24 @@ def test_liver_id_is_the_preoperative_surface(tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(InputError, match="preop/liver.ply"):
         liver_id(tmp_path / "empty")
+
+
+def test_table2_part_reports_the_held_out_sets():
+    """The lines results/table2.md gets from error_estimate.csv: every held-out set's r and
+    coverage per level, with its cases and the calibration's."""
+    cal = Calibration(a=0.5, b=0.01, c=5.0, e=0.0001, lower=0.3, upper=2.4)
+    rng = np.random.default_rng(11)
+    collected = {"direct": _liver_samples(rng, "A", 4, 1.0) + _liver_samples(rng, "B", 4, 1.0),
+                 "lap": _liver_samples(rng, "A", 2, 1.5) + _liver_samples(rng, "C", 2, 1.5)}
+    _, tables, _, _ = split_and_fit(collected, ["A"])
+    rows = []
+    for name, rr in tables.items():
+        rows += [{"set": name, **{k: str(v) for k, v in r.items()}, **{k: str(getattr(cal, k)) for k in "abce"},
+                  "lower": "0.3", "upper": "2.4"} for r in rr]
+    text = table2_part(rows)
+    held = {r["level"]: r for r in tables["lap: validation cases (held out)"]}
+    assert (f"| r | {held['S']['r_pred']:.2f} | {held['S+1']['r_pred']:.2f} |\n"
+            f"| coverage | {held['S']['coverage']:.0%} | {held['S+1']['coverage']:.0%} |") in text
+    assert "lap: validation cases (C-L, C-N):" in text and "direct: validation cases (B-L, B-N, B-R):" in text
+    assert "band [0.3 ê, 2.4 ê]" in text and "(A-L, A-N, A-R)" in text
+    assert text.count("| r |") == 2  # the calibration cases get one sentence, not a table

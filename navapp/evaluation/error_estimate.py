@@ -155,7 +155,7 @@ def validate(samples: list[Sample], cal: Calibration) -> list[dict]:
         d, sg, e = (np.concatenate([getattr(s, a) for s in ss]) for a in ("d", "sigma", "err"))
         each = [cal.predict(s.d, s.sigma, np.median(s.d)) for s in ss]
         p = np.concatenate(each)
-        rows.append({"level": level, "registrations": len(ss), "nodes": len(e),
+        rows.append({"level": level, "cases": _cases(ss), "registrations": len(ss), "nodes": len(e),
                      "r_pred": _r(p, e),
                      "r_pred_median_per_reg": float(np.median([_r(q, s.err) for q, s in zip(each, ss, strict=True)])),
                      "r_distance": _r(d, e), "r_sigma": _r(sg, e),
@@ -215,14 +215,16 @@ def run_study(sets: dict, out_dir, combos=3, seed=0):
     secs = [s.seconds for v in collected.values() for s in v]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    cols = ("set", "level", "registrations", "nodes", "r_pred", "r_pred_median_per_reg", "r_distance", "r_sigma",
-            "coverage", "below_upper", "mean_pred_mm", "mean_true_mm")
-    with (out / "error_estimate.csv").open("w", newline="") as f:
+    fitted = {k: getattr(cal, k) for k in ("a", "b", "c", "e", "lower", "upper")}
+    cols = ("set", "level", "cases", "registrations", "nodes", "r_pred", "r_pred_median_per_reg", "r_distance",
+            "r_sigma", "coverage", "below_upper", "mean_pred_mm", "mean_true_mm", *fitted)
+    with (out / "error_estimate.csv").open("w", newline="") as f:  # every row carries the calibration it judges
         w = csv.DictWriter(f, cols)
         w.writeheader()
         for name, rows in tables.items():
             for r in rows:
-                w.writerow({"set": name, **{k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()}})
+                w.writerow({"set": name, **{k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()},
+                            **{k: f"{v:.6g}" for k, v in fitted.items()}})
     (out / "error_estimate.md").write_text(markdown(tables, cal, calib, held, secs, sets))
     return cal, tables
 
@@ -261,6 +263,54 @@ def markdown(tables, cal, calib, held, secs, sets) -> str:
                 f"(max {np.max(secs) * 1e3:.0f} ms) per registration on this shared machine.\n")
     text.append("\nCases: " + "; ".join(f"{k}: {', '.join(Path(d).name for d in v)}" for k, v in sets.items()) + "\n")
     return "".join(text)
+
+
+def table2_part(rows: list[dict]) -> str:
+    """The error-estimate lines of results/table2.md from error_estimate.csv's rows (dicts
+    of strings): per held-out set, Pearson r and band coverage per level; the calibration
+    cases' ranges in one sentence."""
+    def levels(name):
+        return [r for r in rows if r["set"] == name and r["level"] != "all"]
+
+    def span(vals, fmt):
+        lo, hi = fmt(min(vals)), fmt(max(vals))
+        return lo if lo == hi else f"{lo}–{hi}"
+
+    def cases_of(name):
+        return sorted({c.strip() for r in rows if r["set"] == name and r.get("cases") for c in r["cases"].split(",")})
+
+    names = list(dict.fromkeys(r["set"] for r in rows))
+    first = rows[0] if rows else {}
+    if first.get("a"):
+        fit = (f" (a = {float(first['a']):.3g} mm, b = {float(first['b']):.3g}, c = {float(first['c']):.3g}, "
+               f"e = {float(first['e']):.2g} /mm; band [{float(first['lower']):.3g} ê, {float(first['upper']):.3g} ê])")
+    else:
+        fit = ""
+    calib = sorted({c for n in names if "calibration" in n for c in cases_of(n)})
+    where = f" ({', '.join(calib)})" if calib else ""
+    out = ["Predicted per-node error ê = a + b·d + c·σ + e·d·m (d: distance to the data, σ: LM covariance through "
+           f"J_u, m: median d) with a band for a nominal 90 %, calibrated{fit} on the cases of one liver in every "
+           f"case set{where} and judged on the other livers' cases (details in error_estimate.md).\n\n"]
+    for name in names:
+        if "calibration" in name:
+            continue
+        rr = levels(name)
+        cases = f" ({', '.join(cases_of(name))})" if cases_of(name) else ""
+        label = name.replace(" (held out)", "")
+        out.append(f"{label}{cases}: Pearson r (ê vs true per-node error, pooled over the level's registrations) "
+                   "and band coverage:\n\n")
+        out.append("| | " + " | ".join(r["level"] for r in rr) + " |\n|---|" + "---|" * len(rr) + "\n")
+        out.append("| r | " + " | ".join(f"{float(r['r_pred']):.2f}" for r in rr) + " |\n")
+        out.append("| coverage | " + " | ".join(f"{float(r['coverage']):.0%}" for r in rr) + " |\n\n")
+    fits = [n for n in names if "calibration" in n]
+    if fits:
+        parts = []
+        for name in fits:
+            rr = levels(name)
+            parts.append(f"{name.split(':')[0]}: r {span([float(r['r_pred']) for r in rr], '{:.2f}'.format)}, "
+                         f"coverage {span([float(r['coverage']) for r in rr], '{:.0%}'.format)}")
+        out.append("On the calibration cases (all levels) — " + "; ".join(parts) + ".\n\n")
+    return "".join(out)
 
 
 def set_label(case_dirs) -> str:

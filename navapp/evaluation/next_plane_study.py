@@ -343,6 +343,8 @@ def table2_section(results_dir="results") -> str:
     """The short section on parts 3–4 of issue 12 for the end of results/table2.md, from
     error_estimate.csv, next_plane.csv and (when present) next_plane_lap.csv in
     ``results_dir``. Append it after ``report.write_report`` has (re)written table2.md."""
+    from .error_estimate import table2_part
+
     res = Path(results_dir)
     with (res / "error_estimate.csv").open() as f:
         ee = list(csv.DictReader(f))
@@ -351,19 +353,9 @@ def table2_section(results_dir="results") -> str:
     if (res / "next_plane_lap.csv").exists():
         with (res / "next_plane_lap.csv").open() as f:
             npl += [dict(r, set="laparoscopic cases") for r in csv.DictReader(f)]
-    label = {"second set (all cases, same calibration)": "laparoscopic cases (study-cases-lap), same calibration",
-             "validation cases": "validation cases (phantom1-*, phantom2-*)"}
     out = ["\n\n## Error estimate without the truth, and suggested planes (issue 12, parts 3–4)\n\n",
            "Details: [error_estimate.md](error_estimate.md), [next_plane.md](next_plane.md) "
-           "(`navapp study error-estimate`, `navapp study next-plane`).\n\n"]
-    for s in dict.fromkeys(r["set"] for r in ee if r["set"] != "calibration cases (fit)"):
-        rows = [r for r in ee if r["set"] == s and r["level"] != "all"]
-        out.append("Predicted per-node error ê = a + b·d + c·σ + e·d·m (d: distance to the data, σ: LM covariance "
-                   f"through J_u, m: median d), calibrated on phantom0-L/N/R; {label.get(s, s)}: Pearson r (ê vs "
-                   "true per-node error) and band coverage (nominal 90 %):\n\n")
-        out.append("| | " + " | ".join(r["level"] for r in rows) + " |\n|---|" + "---|" * len(rows) + "\n")
-        out.append("| r | " + " | ".join(f"{float(r['r_pred']):.2f}" for r in rows) + " |\n")
-        out.append("| coverage | " + " | ".join(f"{float(r['coverage']):.0%}" for r in rows) + " |\n\n")
+           "(`navapp study error-estimate`, `navapp study next-plane`).\n\n", table2_part(ee)]
     levels = ("S+1", "S+2", "S+3")
     for s in dict.fromkeys(r["set"] for r in npl):
         rows = [r for r in npl if r["set"] == s and r["criterion"] == "ê (default)"]
