@@ -144,16 +144,18 @@ def test_study_scene_sets():
 
 
 def test_coarse_transposed_truth_has_the_calibrated_displacement(phantoms, coarse_mesh, cache_root):
-    """lap0-N as shipped, its reference on a coarse 10 mm mesh, carried onto phantom 0's
-    12 mm mesh: the displacement statistics stay in the calibrated range (the study cases:
-    mean 10–20 mm, maximum > 20 mm; lap0-N itself 18.0 / 51.6 mm at full resolution).
+    """lap0-N as shipped (neo-Hookean reference), its reference on a coarse 10 mm mesh,
+    carried onto phantom 0's 12 mm mesh: the displacement statistics stay in the calibrated
+    range (the study cases: mean 10–20 mm on average, maximum > 20 mm; lap0-N itself
+    13.3 / 50.5 mm at full resolution, 13.5 / 48.5 mm on these coarse meshes).
     Coarse meshes shift the numbers by a few mm; the range allows for that."""
     from navapp.simulation.scene import scene_dir
     from navapp.simulation.simulate import transposed_truth
 
     scene = load_scene(scene_dir() / "lap0-N.toml")
+    assert scene.large  # the calibrated loads are the neo-Hookean model's (docs/decisions.md)
     scene.transpose_from = type(scene.transpose_from)(phantom=scene.transpose_from.phantom, mesh_edge_mm=10.0)
     u, info = transposed_truth(scene, phantoms[0], coarse_mesh, cache_root=cache_root)
     d = np.linalg.norm(u, axis=1)
-    assert 12.0 <= d.mean() <= 24.0 and d.max() > 30.0, (d.mean(), d.max())
+    assert 9.0 <= d.mean() <= 20.0 and d.max() > 30.0, (d.mean(), d.max())
     assert info["reference_phantom"] == 3 and info["correspondence_residual_mm"] < 10.0
