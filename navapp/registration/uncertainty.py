@@ -37,17 +37,17 @@ from .rotation import rotation, rotation_derivatives
 class Calibration:
     """ê = a + b·d + c·σ + e·d·m (mm) and the band factors (ê·lower, ê·upper) holding the
     true error for ``coverage`` of the calibration points. Defaults: fitted by
-    ``navapp study error-estimate --cases /work/study-cases/phantom* --with-cases
-    /work/study-cases-lap/lap*`` on the cases of one liver (phantom 0) in both case sets —
-    the direct gravity cases phantom0-L/N/R and the transposed, paper-difficulty cases
-    lap0-L/N/R — at every data level, on relative errors; validated on the twelve cases of
+    ``navapp study error-estimate --cases STUDY/phantom* --with-cases STUDY_LAP/lap*`` on the
+    cases of one liver (phantom 0) in both case sets — the direct gravity cases
+    phantom0-L/N/R and the transposed, paper-difficulty cases lap0-L/N/R (neo-Hookean
+    reference) — at every data level, on relative errors; validated on the twelve cases of
     the two other livers (results/error_estimate.md, docs/decisions.md)."""
-    a: float = 0.56578  # mm
-    b: float = 0.010492  # mm per mm of distance to the data
-    c: float = 5.1229  # per mm of σ
-    e: float = 0.0000892  # per mm of m (× d)
-    lower: float = 0.28513
-    upper: float = 2.3684
+    a: float = 0.59697  # mm
+    b: float = 0.0038633  # mm per mm of distance to the data
+    c: float = 5.1995  # per mm of σ
+    e: float = 0.00027235  # per mm of m (× d)
+    lower: float = 0.29774
+    upper: float = 2.3591
     coverage: float = 0.9
     fitted_on: str = "lap0-L+lap0-N+lap0-R+phantom0-L+phantom0-N+phantom0-R"
 
