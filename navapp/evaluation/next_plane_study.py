@@ -359,7 +359,7 @@ def table2_section(results_dir="results") -> str:
     levels = ("S+1", "S+2", "S+3")
     for s in dict.fromkeys(r["set"] for r in npl):
         rows = [r for r in npl if r["set"] == s and r["criterion"] == "ê (default)"]
-        source = ("results/table2_lap.csv, the nine transposed cases" if s == "laparoscopic cases"
+        source = ("results/table2_lapnh.csv, the nine transposed cases" if s == "laparoscopic cases"
                   else "results/table2.csv, the nine phantom cases")
         out.append(f"Suggested planes, greedy from S ({s}; TRE and ranks from {source}):\n\n"
                    "| level | mean TRE, suggested | mean TRE, all combinations (the paper-style row) | "
