@@ -281,7 +281,13 @@ def test_guided_demo_in_chromium(server, tmp_path):
           f"max {max(latencies):.0f} ms over {len(latencies)} clicks 0.2 s apart")
     assert surface < rigid and final < rigid, (rigid, surface, final)
     n_updates = sum(n for _, n in updates)
-    assert n_updates >= 2, "no deformed vertices reached the browser"
+    assert n_updates >= 1, "no deformed vertices reached the browser"
+    # the run streamed its states (the start, iterations, the final one); the browser may see
+    # fewer: viser replaces a node's update still waiting in its send buffer by a newer one
+    # (latest wins), so a warm-started run that converges within one flush arrives as one state
+    streamed = next(e for e in json.loads((session / "session.json").read_text())["log"]
+                    if e["run"] == "deformable, all data")["updates_streamed"]
+    assert streamed >= 2, streamed
     times = [t for t, n in updates if n]
     rate = (n_updates - 1) / max(times[-1] - times[0], 1e-9) if len(times) > 1 else float("nan")
     log = json.loads((session / "session.json").read_text())["log"]
