@@ -61,6 +61,19 @@ def _trimesh_boundary(mesh):
     return trimesh.Trimesh(mesh.nodes, mesh.boundary_faces(), process=True)
 
 
+def test_simplex_keys_match_for_the_same_nodes_in_any_order_also_past_int64():
+    from navapp.anatomy.meshing import simplex_keys
+
+    faces = np.array([[3, 1, 2], [2, 3, 1], [1, 2, 4], [4, 1, 2], [5, 6, 7]])
+    k = simplex_keys(faces)
+    assert k[0] == k[1] and k[2] == k[3] and len(set(k.tolist())) == 3
+    # with 2²² nodes, a·base² + b·base + c wraps past 2⁶⁴: these two faces would share a key
+    n = 2 ** 22
+    big = np.array([[1, 2 ** 21, n - 1], [1 + 2 ** 20, 2 ** 21, n - 1], [n - 1, 2 ** 21, 1]])
+    k = simplex_keys(big)
+    assert k[0] != k[1] and k[0] == k[2]
+
+
 def test_a_solid_block_is_a_closed_manifold():
     mask = np.ones((3, 2, 4), bool)
     mesh = voxel_mesh(mask)

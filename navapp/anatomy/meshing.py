@@ -50,6 +50,8 @@ def simplex_keys(simplices: np.ndarray) -> np.ndarray:
     the same nodes in any order (a 1-D ``np.unique`` is several times faster than one over rows)."""
     s = np.sort(np.asarray(simplices, np.int64), axis=1)
     base = int(s.max()) + 1 if s.size else 1
+    if base ** s.shape[1] >= 2 ** 63:  # would overflow (over 2 million nodes for faces): rank the rows instead
+        return np.unique(s, axis=0, return_inverse=True)[1].ravel().astype(np.int64)
     key = s[:, 0]
     for j in range(1, s.shape[1]):
         key = key * base + s[:, j]
