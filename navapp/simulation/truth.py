@@ -185,17 +185,6 @@ class NeoHookean:
         return f, sp.csr_matrix((data, (r, c)), shape=(n, n))
 
 
-def neo_hookean_energy(nodes, tets, u, material: Material) -> float:
-    """Neo-Hookean strain energy (Pa·mm³) of displacement u (M, 3) mm; ``NeoHookean``."""
-    return NeoHookean(nodes, tets, material).energy(u)
-
-
-def neo_hookean_forces_and_tangent(nodes, tets, u, material: Material, tangent=True):
-    """Neo-Hookean internal forces (3M,) Pa·mm² and tangent (3M × 3M CSR, Pa·mm, or None)
-    at displacement u (M, 3) mm, all DOFs free; ``NeoHookean``."""
-    return NeoHookean(nodes, tets, material).forces(u, tangent)
-
-
 def solve_neo_hookean(mesh: TetMesh, loading: Loading, material: Material = Material(), steps=4, tol=1e-8,
                       max_newton=25, min_increment=1.0 / 512, report=None) -> np.ndarray:
     """Large-deformation truth: the liver's supports and loads (``Loading``) solved with
