@@ -73,16 +73,24 @@ def cmd_import(args):
         if any(len(p) != 3 for p in falciform):
             raise NavappError("--falciform takes two points X,Y,Z X,Y,Z (mm, in the files' frame)")
     centerlines = {v: p for v, p in (("portal", args.portal_centerline), ("hepatic", args.hepatic_centerline)) if p}
+    once = {}
+    for flag in ("liver", "portal", "hepatic", "labelmap"):
+        given = getattr(args, flag) or []
+        if len(given) > 1:  # never keep one and drop the other silently
+            raise NavappError(f"--{flag} given {len(given)} times ({', '.join(given)}): give each structure once "
+                              "(--liver, --portal, --hepatic take one file each)")
+        once[flag] = given[0] if given else None
     with progress.stage("importing"):
-        rep = import_case(args.out, liver=args.liver, portal=args.portal, hepatic=args.hepatic,
-                          labelmap=args.labelmap, labels=labels, frame=args.frame, falciform=falciform,
+        rep = import_case(args.out, liver=once["liver"], portal=once["portal"], hepatic=once["hepatic"],
+                          labelmap=once["labelmap"], labels=labels, frame=args.frame, falciform=falciform,
                           regions=args.regions, centerlines=centerlines or None, overwrite=args.overwrite,
                           targets=args.target)
     for line in rep.lines:
         print(f"navapp: {line}", file=sys.stderr)
     for line in rep.warnings:
         print(f"navapp: warning: {line}", file=sys.stderr)
-    print(json.dumps({"out": str(args.out), "frame": rep.frame, "warnings": len(rep.warnings)}))
+    print(json.dumps({"out": str(args.out), "frame": rep.frame, "warnings": len(rep.warnings),
+                      "seconds": {k: round(v, 2) for k, v in rep.seconds.items()}}))
 
 
 def cmd_precompute(args):
@@ -256,13 +264,16 @@ def build_parser():
     s.add_argument("--out", type=Path, required=True, help="case folder to write")
     s.set_defaults(func=cmd_phantom)
 
-    s = sub.add_parser("import", help="make a case folder from a patient's surfaces (STL/OBJ/PLY/VTK/VTP) or label map "
-                                      "(NIfTI/NRRD/.seg.nrrd), e.g. a 3D Slicer export")
+    s = sub.add_parser("import", help="make a case folder from a patient's surfaces (STL/OBJ/PLY/VTK/VTP) or masks "
+                                      "(NIfTI/NRRD/.seg.nrrd/DICOM SEG), e.g. a 3D Slicer or TotalSegmentator export")
     s.add_argument("--out", type=Path, required=True, help="case folder to write")
-    s.add_argument("--liver", type=Path, help="liver surface file")
-    s.add_argument("--portal", type=Path, help="portal vein surface file")
-    s.add_argument("--hepatic", type=Path, help="hepatic vein surface file")
-    s.add_argument("--labelmap", type=Path, help="label map (instead of, or besides, surfaces)")
+    structure = "a surface, or a mask (NIfTI/NRRD/DICOM SEG) as FILE or FILE:LABEL (value or segment name)"
+    s.add_argument("--liver", action="append", metavar="FILE[:LABEL]", help=f"the liver: {structure}")
+    s.add_argument("--portal", action="append", metavar="FILE[:LABEL]", help=f"the portal vein: {structure}")
+    s.add_argument("--hepatic", action="append", metavar="FILE[:LABEL]", help=f"the hepatic veins: {structure}")
+    s.add_argument("--labelmap", action="append", metavar="FILE|DIR",
+                   help="one label map holding several structures, or a folder of one mask per structure "
+                        "(TotalSegmentator's output: liver.nii.gz, portal_vein_and_splenic_vein.nii.gz, …)")
     s.add_argument("--labels", help="label values, e.g. liver=1,portal=2,hepatic=3 (default: Slicer segment names)")
     s.add_argument("--frame", type=str.upper, choices=("LPS", "RAS", "LAS"),
                    help="frame of the surface files (3D Slicer exports STL/OBJ in LPS by default)")
@@ -272,8 +283,9 @@ def build_parser():
     s.add_argument("--portal-centerline", type=Path,
                    help="your portal centerline CSV (x,y,z,branch); default: skeleton")
     s.add_argument("--hepatic-centerline", type=Path, help="your hepatic centerline CSV; default: skeleton")
-    s.add_argument("--target", type=Path, action="append", metavar="FILE",
-                   help="a tumour target: a closed surface, or a CSV name,x,y,z[,radius_mm] (files' frame); repeatable")
+    s.add_argument("--target", action="append", metavar="FILE[:LABEL]",
+                   help="a tumour target: a closed surface, a CSV name,x,y,z[,radius_mm] (files' frame), or a mask "
+                        "(one target per piece); repeatable")
     s.add_argument("--overwrite", action="store_true", help="write into a non-empty --out")
     s.set_defaults(func=cmd_import)
 

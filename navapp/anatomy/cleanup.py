@@ -91,11 +91,8 @@ def _pieces(faces: np.ndarray) -> list[np.ndarray]:
 
 
 def _crossing(v, f, path, what):
-    try:
-        return self_intersecting_faces(v, f)
-    except MemoryError:
-        raise InputError(f"{what} is too large for the self-intersection test ({len(f)} triangles): "
-                         "decimate it first", path) from None
+    # a spatial hash over the triangles: any size is checked, in bounded memory
+    return self_intersecting_faces(v, f)
 
 
 def clean_surface(mesh: trimesh.Trimesh, path=None, closed=True,

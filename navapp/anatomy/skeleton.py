@@ -52,13 +52,24 @@ def voxelize(mesh: trimesh.Trimesh, voxel: float, pad: int = 2) -> tuple[np.ndar
     lo, hi = mesh.bounds
     origin = lo - pad * voxel + voxel * np.array([0.1234567, 0.2345671, 0.3456712])
     shape = np.ceil((hi - origin) / voxel).astype(int) + pad + 1
-    tri = (mesh.triangles - origin) / voxel  # grid units
-    votes = np.zeros(shape, np.uint8)
+    return inside_grid((mesh.triangles - origin) / voxel, shape), origin
+
+
+def inside_grid(tri: np.ndarray, shape) -> np.ndarray:
+    """Inside test of a closed surface at the integer points of a grid, by ray parity voted
+    over the three axes (``voxelize``'s test).
+
+    ``tri`` (T, 3, 3) triangle corners in grid units (voxel (i, j, k) is the point (i, j, k):
+    an oblique or anisotropic grid is handled by mapping the surface through the inverse of
+    its affine first); ``shape`` (3,) the grid's size. Returns (nx, ny, nz) bool.
+    """
+    shape = np.asarray(shape, int)
+    votes = np.zeros(tuple(shape), np.uint8)
     for axis in range(3):
         perm = [k for k in range(3) if k != axis] + [axis]
         inside = _parity(tri[:, :, perm], shape[perm])
         votes += np.moveaxis(inside, 2, axis)
-    return votes >= 2, origin
+    return votes >= 2
 
 
 def _parity(tri: np.ndarray, shape: np.ndarray) -> np.ndarray:
@@ -94,6 +105,20 @@ def _parity(tri: np.ndarray, shape: np.ndarray) -> np.ndarray:
     toggles = np.zeros(tuple(shape), np.uint8)
     np.add.at(toggles, (ci, cj, k), 1)
     return np.logical_xor.accumulate(toggles % 2 == 1, axis=2)
+
+
+def _wall_distance(inside: np.ndarray, idx: np.ndarray) -> np.ndarray:
+    """Euclidean distance (voxels) from the voxels ``idx`` (N, 3) to the nearest voxel
+    outside: the distance transform's value there, found among the outside voxels that
+    touch the volume (the nearest outside voxel always does: its neighbour toward the
+    query voxel is nearer, so inside) instead of over the whole grid (a CT vessel tree's
+    grid has millions of voxels; its skeleton, thousands)."""
+    from scipy.spatial import cKDTree
+
+    padded = np.pad(inside, 1)
+    rim = ndimage.binary_dilation(padded, structure=np.ones((3, 3, 3), bool)) & ~padded
+    d, _ = cKDTree(np.argwhere(rim) - 1).query(idx)
+    return np.asarray(d, float)
 
 
 def _skeleton_graph(skel: np.ndarray) -> tuple[np.ndarray, sp.csr_matrix]:
@@ -252,13 +277,12 @@ def vessel_centerline(
         raise ValueError(f"the vessel surface encloses no {voxel} mm voxel (not closed, or too thin?)")
     # voxel centres inside have distance ≥ 0.5 voxel to the wall; the surface lies on average
     # half a voxel beyond the last inside centre
-    edt = ndimage.distance_transform_edt(inside, sampling=voxel) + 0.5 * voxel
     skel = skeletonize(inside).astype(bool)
     idx, A = _skeleton_graph(skel)
     if len(idx) < 2:
         raise ValueError("the vessel volume thins to fewer than two skeleton voxels")
     xyz = origin + voxel * idx
-    rad = edt[tuple(idx.T)]
+    rad = _wall_distance(inside, idx) * voxel + 0.5 * voxel
     cluster = _junction_clusters(A)
     chains = _branches(A)
     branches = _prune_and_merge(chains, cluster, xyz, rad, min_reach, voxel)

@@ -5,7 +5,6 @@ triangle surfaces built on it.
 """
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 
 def segment_hits_triangle(p0, p1, a, b, c, eps=1e-9):
@@ -30,43 +29,75 @@ def segment_hits_triangle(p0, p1, a, b, c, eps=1e-9):
     return hit, t
 
 
-def self_intersecting_faces(vertices, faces, max_pairs=20_000_000):
+CHUNK_PAIRS = 2_000_000  # candidate pairs tested at once: bounds the test's memory (~0.5 GB)
+
+
+def self_intersecting_faces(vertices, faces):
     """Indices of faces that cross another face of the same surface (empty if none).
 
-    Candidate pairs are triangles whose circumscribing spheres overlap (KD-tree on the
-    centroids); pairs that share a vertex are adjacent and skipped. For each remaining
-    pair the three edges of either triangle are tested against the other.
+    Candidate pairs come from a spatial hash of the triangles' bounding boxes: a uniform
+    grid of cells about twice the typical triangle's size, each triangle entered into every
+    cell its box touches, a pair kept in the one cell that holds the low corner of the
+    overlap of their boxes (so no pair is made twice). Pairs that share a vertex are
+    adjacent and skipped; for each remaining pair the three edges of either triangle are
+    tested against the other, in chunks, so any size of surface is checked in bounded
+    memory (a 100k-triangle surface in a few seconds).
     """
     v = np.asarray(vertices, float)
-    f = np.asarray(faces)
+    f = np.asarray(faces, np.int64)
+    if len(f) < 2:
+        return np.zeros(0, np.int64)
     tri = v[f]
-    cen = tri.mean(1)
-    rad = np.linalg.norm(tri - cen[:, None], axis=2).max(1)
-    # one search radius for the bulk, and the few large triangles (decimated surfaces have
-    # some) searched one by one, so that one large triangle does not make every pair a candidate
-    tree = cKDTree(cen)
-    r_small = float(np.percentile(rad, 99))
-    pairs = [tree.query_pairs(2 * r_small, output_type="ndarray")]
-    big = np.flatnonzero(rad > r_small)
-    for b, near in zip(big, tree.query_ball_point(cen[big], rad[big] + r_small), strict=True):
-        near = np.asarray(near, int)
-        pairs.append(np.column_stack([np.full(len(near), b), near]))
-    if len(big) > 1:
-        bb = np.array(np.triu_indices(len(big), 1)).T
-        pairs.append(big[bb])
-    allp = np.concatenate([p.reshape(-1, 2) for p in pairs])
-    allp = np.unique(np.sort(allp[allp[:, 0] != allp[:, 1]], axis=1), axis=0)
-    if len(allp) > max_pairs:
-        raise MemoryError("surface too large for the self-intersection test")
-    i, j = allp[:, 0], allp[:, 1]
-    close = np.linalg.norm(cen[i] - cen[j], axis=1) <= rad[i] + rad[j]
-    i, j = i[close], j[close]
-    shared = (f[i][:, :, None] == f[j][:, None, :]).any(axis=(1, 2))
-    i, j = i[~shared], j[~shared]
-    bad = np.zeros(len(i), bool)
-    for s, o in ((i, j), (j, i)):
-        A, B = tri[s], tri[o]
-        for e0, e1 in ((0, 1), (1, 2), (2, 0)):
-            hit, _ = segment_hits_triangle(A[:, e0], A[:, e1], B[:, 0], B[:, 1], B[:, 2])
-            bad |= hit
-    return np.unique(np.concatenate([i[bad], j[bad]]))
+    lo, hi = tri.min(1), tri.max(1)
+    size = (hi - lo).max(1)
+    cell = max(2.0 * float(np.percentile(size, 90)), 1e-9)
+    origin = lo.min(0)
+    c0 = np.floor((lo - origin) / cell).astype(np.int64)
+    c1 = np.floor((hi - origin) / cell).astype(np.int64)
+    dims = c1.max(0) + 1
+    span = c1 - c0 + 1
+    count = span.prod(1)
+    # every (triangle, cell) entry
+    t = np.repeat(np.arange(len(f)), count)
+    local = np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)
+    sy, sz = span[t, 1], span[t, 2]
+    ci = c0[t, 0] + local // (sy * sz)
+    cj = c0[t, 1] + (local // sz) % sy
+    ck = c0[t, 2] + local % sz
+    key = (ci * dims[1] + cj) * dims[2] + ck
+    order = np.argsort(key, kind="stable")
+    key, t = key[order], t[order]
+    start = np.flatnonzero(np.concatenate([[True], key[1:] != key[:-1]]))
+    end = np.append(start[1:], len(key))
+    group_end = np.repeat(end, end - start)
+    partners = group_end - np.arange(len(key)) - 1  # later entries of the same cell
+    bad = np.zeros(len(f), bool)
+    # entries in chunks whose pair counts stay under CHUNK_PAIRS
+    csum = np.cumsum(partners)
+    pos = 0
+    while pos < len(key):
+        stop = int(np.searchsorted(csum, (csum[pos - 1] if pos else 0) + CHUNK_PAIRS, side="right"))
+        stop = max(stop, pos + 1)
+        e = np.arange(pos, stop)
+        n = partners[e]
+        a = np.repeat(e, n)
+        b = a + 1 + (np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n))
+        i, j, cell_key = t[a], t[b], key[a]
+        # boxes overlap, and this cell holds the overlap's low corner
+        olo = np.maximum(lo[i], lo[j])
+        keep = np.all(olo <= np.minimum(hi[i], hi[j]), axis=1)
+        oc = np.floor((olo - origin) / cell).astype(np.int64)
+        keep &= ((oc[:, 0] * dims[1] + oc[:, 1]) * dims[2] + oc[:, 2]) == cell_key
+        i, j = i[keep], j[keep]
+        shared = (f[i][:, :, None] == f[j][:, None, :]).any(axis=(1, 2))
+        i, j = i[~shared], j[~shared]
+        hit = np.zeros(len(i), bool)
+        for s, o in ((i, j), (j, i)):
+            A, B = tri[s], tri[o]
+            for e0, e1 in ((0, 1), (1, 2), (2, 0)):
+                h, _ = segment_hits_triangle(A[:, e0], A[:, e1], B[:, 0], B[:, 1], B[:, 2])
+                hit |= h
+        bad[i[hit]] = True
+        bad[j[hit]] = True
+        pos = stop
+    return np.flatnonzero(bad)
