@@ -232,6 +232,10 @@ def cmd_bench(args):
 
     if args.what == "precompute":
         benchmark.bench_precompute(args.edges, args.ks, args.volume_ml, args.relax)
+    elif args.what == "import":
+        from .anatomy.importbench import bench_import
+
+        bench_import(args.repeats)
     elif args.what == "live":
         from .tracking.bench import bench_live
 
@@ -330,7 +334,7 @@ def build_parser():
     s.set_defaults(func=cmd_study)
 
     s = sub.add_parser("bench", help="benchmarks that print timings and memory as JSON lines")
-    s.add_argument("what", choices=("precompute", "register", "live"))
+    s.add_argument("what", choices=("precompute", "register", "live", "import"))
     s.add_argument("--edges", type=_positive(float), nargs="+", default=[EDGE_MM], help="element sizes, mm")
     s.add_argument("--ks", type=_positive(int), nargs="+", default=[K], help="numbers of control points")
     s.add_argument("--volume-ml", type=_positive(float), help="precompute: phantom 0 scaled to this volume, ml")

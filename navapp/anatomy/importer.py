@@ -249,6 +249,29 @@ def fill_liver(liver: StructureMask, others: list[StructureMask]) -> StructureMa
     return StructureMask(mask, liver.affine, liver.path, liver.label)
 
 
+def clip_to_liver(vessel: StructureMask, liver: StructureMask, within_mm: float) -> tuple[StructureMask, float]:
+    """The voxels of ``vessel`` inside the liver or within ``within_mm`` of it (same grid),
+    and the volume (ml) dropped: TotalSegmentator's portal vein comes with the splenic vein,
+    which runs 10-15 cm outside the liver."""
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    P = np.linalg.inv(liver.affine) @ vessel.affine
+    idx = np.argwhere(vessel.mask)
+    ijk = np.round(frames.apply(P, idx.astype(float))).astype(int)
+    ok = np.all((ijk >= 0) & (ijk < liver.mask.shape), axis=1)
+    inside = np.zeros(len(idx), bool)
+    inside[ok] = liver.mask[tuple(ijk[ok].T)]
+    rim = liver.mask & ~ndimage.binary_erosion(liver.mask)
+    d, _ = cKDTree(frames.apply(liver.affine, np.argwhere(rim).astype(float))).query(
+        frames.apply(vessel.affine, idx[~inside].astype(float)), distance_upper_bound=within_mm)
+    keep = inside.copy()
+    keep[~inside] = np.isfinite(d)
+    mask = np.zeros_like(vessel.mask)
+    mask[tuple(idx[keep].T)] = True
+    return StructureMask(mask, vessel.affine, vessel.path, vessel.label), float((~keep).sum()) * vessel.voxel_ml
+
+
 def _ellipsoid(r: np.ndarray) -> np.ndarray:
     """Structuring element: the voxels within an ellipsoid of semi-axes ``r`` voxels."""
     g = np.indices(2 * r + 1).astype(float)
@@ -264,6 +287,7 @@ class Source:
 
     path: Path
     label: int | str | None = None
+    clip_mm: float | None = None  # keep only the voxels within this of the liver (a mask)
 
     @property
     def is_labelmap(self) -> bool:
@@ -357,7 +381,8 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
             found, tfiles, lines = recognise_folder(lm_path)
             early += [f"{lm_path.name}/{line}" for line in lines]
             for organ, p in found.items():
-                _add_source(sources, organ, Source(p), lm_path)
+                clip = PORTAL_CLIP_MM if stem(p).lower() == "portal_vein_and_splenic_vein" else None
+                _add_source(sources, organ, Source(p, clip_mm=clip), lm_path)
                 early.append(f"{lm_path.name}/: {p.name} is the {organ}")
             target_sources += [Source(p) for p in tfiles]
         else:
@@ -394,6 +419,12 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
         with _timed(timings, "checks"):
             check_liver_like(masks["liver"].volume_ml, mask_solidity(masks["liver"]), sources["liver"].path, early)
             masks["liver"] = fill_liver(masks["liver"], [masks[v] for v in VESSELS if v in masks])
+            for v in VESSELS:
+                clip = sources[v].clip_mm if v in masks else None
+                if clip is not None:
+                    masks[v], dropped = clip_to_liver(masks[v], masks["liver"], clip)
+                    early.append(f"{sources[v].path.name} ({v}): kept within {clip:g} mm of the liver "
+                                 f"({dropped:.0f} ml outside dropped: the splenic vein)")
     for organ in ("liver", *VESSELS):
         src = sources.get(organ)
         if src is None:
@@ -541,6 +572,9 @@ def centerline_voxel(vessel: trimesh.Trimesh) -> float:
     return CENTERLINE_VOXEL_MM * max(1.0, (n / CENTERLINE_MAX_VOXELS) ** (1.0 / 3.0))
 
 
+PORTAL_CLIP_MM = 15.0
+"""TotalSegmentator's portal_vein_and_splenic_vein mask is kept within this of the liver:
+the portal trunk at the hilum stays, the splenic vein goes."""
 MIN_TARGET_ML = 0.05  # pieces of a tumour mask smaller than this are specks
 
 
