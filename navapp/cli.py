@@ -340,7 +340,7 @@ def build_parser():
     s.add_argument("--volume-ml", type=_positive(float), help="precompute: phantom 0 scaled to this volume, ml")
     s.add_argument("--relax", choices=("local", "exact", "both"), default="local",
                    help="precompute: relaxation subdomain (both: exact and local, with the local one's error)")
-    s.add_argument("--repeats", type=_positive(int), default=5, help="register: repetitions for the median")
+    s.add_argument("--repeats", type=_positive(int), default=5, help="register, import: repetitions for the median")
     s.add_argument("--planes", type=_positive(int), default=3, help="register: iUS planes (≥ 2); live: planes kept")
     s.add_argument("--frames", type=_positive(int), default=40, help="live: ultrasound frames re-registered")
     s.set_defaults(func=cmd_bench)

@@ -24,15 +24,17 @@ from navapp.errors import InputError
 GRID = (420, 330, 82)
 NAMES = {1: "liver", 2: "portal", 3: "hepatic"}
 # tolerances against the phantom's own surfaces (the STL route gives them exactly)
+# (measured: liver Hausdorff 1.2-1.5 mm, volume within 0.05 %; vessel p95 0.7-0.8 mm;
+# centerline median 0.6-0.65 mm, as from the phantom's own surfaces)
 LIVER_HAUSDORFF_MM = 2.5  # one slice spacing
-LIVER_VOLUME_REL = 0.02
-VESSEL_P95_MM = 1.5  # vessel surface to the phantom's vessel surface, 95th percentile
+LIVER_VOLUME_REL = 0.01
+VESSEL_P95_MM = 1.2  # vessel surface to the phantom's vessel surface, 95th percentile
 CENTERLINE_MEDIAN_MM = 1.0  # centerline points to the phantom's centerline
 
 
-def _surface_distance(a: trimesh.Trimesh, b: trimesh.Trimesh, n: int = 200_000) -> np.ndarray:
-    """Distances (mm) from points on ``a`` to ``b``, both ways stacked (b sampled densely:
-    a point-to-surface distance within ~0.2 mm)."""
+def _surface_distance(a: trimesh.Trimesh, b: trimesh.Trimesh, n: int = 600_000) -> np.ndarray:
+    """Distances (mm) from the vertices of ``a`` to ``b`` and of ``b`` to ``a``, stacked
+    (each surface sampled densely: a point-to-surface distance within ~0.4 mm)."""
     d1, _ = cKDTree(trimesh.sample.sample_surface(b, n, seed=2)[0]).query(a.vertices)
     d2, _ = cKDTree(trimesh.sample.sample_surface(a, n, seed=3)[0]).query(b.vertices)
     return np.concatenate([d1, d2])
@@ -61,8 +63,7 @@ def routes(phantoms, tmp_path_factory):
                       hepatic=folder / "hepatic.nii.gz"),
         "nrrd": dict(labelmap=folder / "Segmentation.seg.nrrd"),
         "dicom_seg": dict(labelmap=folder / "seg.dcm"),
-        "dicom_seg_per_structure": dict(liver=f"{folder / 'seg.dcm'}:liver", portal=f"{folder / 'seg.dcm'}:portal",
-                                        hepatic=f"{folder / 'seg.dcm'}:3"),
+        "dicom_seg_segment": dict(liver=f"{folder / 'seg.dcm'}:liver"),  # one segment by its name
         "stl": dict(liver=folder / "liver.stl", portal=folder / "portal.stl", hepatic=folder / "hepatic.stl"),
     }
 
@@ -78,13 +79,12 @@ def imported(routes, tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("route", ["nifti", "nrrd", "dicom_seg", "dicom_seg_per_structure", "stl"])
+@pytest.mark.parametrize("route", ["nifti", "nrrd", "dicom_seg", "dicom_seg_segment", "stl"])
 def test_every_route_gives_the_phantoms_liver(phantoms, imported, route):
     m = phantoms[0]
     case, rep = imported[route]
     liver = case.preop.liver
     d = _surface_distance(liver, m.liver)
-    print("METRIC", route, "liver hausdorff", round(d.max(), 2), "vol", round(liver.volume / m.liver.volume - 1, 4))
     assert d.max() < LIVER_HAUSDORFF_MM, f"{route}: Hausdorff {d.max():.2f} mm"
     assert liver.volume == pytest.approx(m.liver.volume, rel=LIVER_VOLUME_REL)
     assert len(liver.faces) <= max(LIVER_MAX_FACES, len(m.liver.faces))
@@ -98,11 +98,9 @@ def test_every_route_gives_the_phantoms_vessels(phantoms, imported, route):
     for v in ("portal", "hepatic"):
         got = case.preop.vessel(v)
         d = _surface_distance(got, getattr(m, v))
-        print("METRIC", route, v, "p95", round(np.percentile(d, 95), 2), "max", round(d.max(), 2))
         assert np.percentile(d, 95) < VESSEL_P95_MM, f"{route} {v}: p95 {np.percentile(d, 95):.2f} mm"
         cl, ref = case.preop.centerline(v), m.centerline(v)
         dc, _ = cKDTree(ref.points).query(cl.points)
-        print("METRIC", route, v, "cl median", round(np.median(dc), 2), "p95", round(np.percentile(dc, 95), 2))
         assert np.median(dc) < CENTERLINE_MEDIAN_MM, f"{route} {v}: centerline median {np.median(dc):.2f} mm"
 
 

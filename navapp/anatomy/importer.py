@@ -274,8 +274,8 @@ def clip_to_liver(vessel: StructureMask, liver: StructureMask, within_mm: float)
 
 def _ellipsoid(r: np.ndarray) -> np.ndarray:
     """Structuring element: the voxels within an ellipsoid of semi-axes ``r`` voxels."""
-    g = np.indices(2 * r + 1).astype(float)
-    return sum(((g[k] - r[k]) / r[k]) ** 2 for k in range(3)) <= 1.0
+    g = np.indices(tuple(int(x) for x in 2 * r + 1)).astype(float)
+    return np.sum([((g[k] - r[k]) / r[k]) ** 2 for k in range(3)], axis=0) <= 1.0
 
 
 # ---------------------------------------------------------------- sources
@@ -423,6 +423,8 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
                 clip = sources[v].clip_mm if v in masks else None
                 if clip is not None:
                     masks[v], dropped = clip_to_liver(masks[v], masks["liver"], clip)
+                    if not masks[v].mask.any():
+                        raise InputError(f"no voxel of the {v} lies within {clip:g} mm of the liver", sources[v].path)
                     early.append(f"{sources[v].path.name} ({v}): kept within {clip:g} mm of the liver "
                                  f"({dropped:.0f} ml outside dropped: the splenic vein)")
     for organ in ("liver", *VESSELS):
