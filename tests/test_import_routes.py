@@ -56,6 +56,10 @@ def routes(phantoms, tmp_path_factory):
     ctcase.write_nifti(vc.masks["liver"], vc.affine, ts / "liver.nii.gz")
     ctcase.write_nifti(vc.masks["portal"], vc.affine, ts / "portal_vein_and_splenic_vein.nii.gz")
     ctcase.write_nifti(np.zeros(GRID, np.uint8), vc.affine, ts / "spleen.nii.gz")  # one of 117 others
+    tumours = np.zeros(GRID, np.uint8)
+    for t in m.targets:
+        tumours |= ctcase.voxelise(t.surface, vc.affine, GRID).astype(np.uint8)
+    ctcase.write_nifti(tumours, vc.affine, ts / "liver_tumor.nii.gz")
     for s in ("liver", "portal", "hepatic"):
         ctcase.write_stl(getattr(m, s), folder / f"{s}.stl")
     return folder, vc, {
@@ -112,6 +116,13 @@ def test_totalsegmentator_folder_is_recognised(phantoms, routes, tmp_path):
     case = read_case(tmp_path / "case")
     assert case.preop.portal is not None and case.preop.hepatic is None
     assert case.preop.liver.volume == pytest.approx(phantoms[0].liver.volume, rel=LIVER_VOLUME_REL)
+    # liver_tumor.nii.gz: one target per piece, the phantom's two tumours
+    got = sorted(case.preop.targets, key=lambda t: -t.volume_ml)
+    want = sorted(phantoms[0].targets, key=lambda t: -t.volume_ml)
+    assert [t.name for t in got] == ["liver_tumor_1", "liver_tumor_2"]
+    for g, w in zip(got, want, strict=True):
+        assert np.linalg.norm(g.centre - w.centre) < 1.0
+        assert g.volume_ml == pytest.approx(w.volume_ml, rel=0.1)
 
 
 # ---------------------------------------------------------------- regression cases of the issue
@@ -198,11 +209,14 @@ def test_masks_of_another_grid_are_refused_with_the_offset(routes, tmp_path):
         import_case(tmp_path / "case", liver=folder / "liver.nii.gz", portal=tmp_path / "portal.nii.gz")
 
 
-def test_a_vessel_mostly_outside_the_liver_is_refused(routes, tmp_path):
+def test_a_vessel_mostly_outside_the_liver_is_refused(phantoms, routes, tmp_path):
     folder, vc, _ = routes
-    shifted = np.zeros_like(vc.masks["portal"])
-    shifted[:-120] = vc.masks["portal"][120:]  # 84 mm off: not this liver's vein
-    ctcase.write_nifti(shifted, vc.affine, tmp_path / "portal.nii.gz")
+    portal = phantoms[0].portal.copy()
+    portal.apply_translation([0.0, 90.0, 0.0])  # 9 cm anterior: not this liver's vein
+    # the same lattice, 100 voxels wider on each side along j (a larger field of view)
+    wide = (GRID[0], GRID[1] + 200, GRID[2])
+    A = ctcase.grid_affine(phantoms[0].liver.bounds.mean(0), shape=wide)
+    ctcase.write_nifti(ctcase.voxelise(portal, A, wide), A, tmp_path / "portal.nii.gz")
     with pytest.raises(InputError, match=r"portal\.nii\.gz: \d+ % of the portal surface lies outside the liver"):
         import_case(tmp_path / "case", liver=folder / "liver.nii.gz", portal=tmp_path / "portal.nii.gz")
 
