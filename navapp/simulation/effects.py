@@ -43,6 +43,27 @@ def calibration_error(probe_to_tracker, rng, ledger: Ledger, rotation_deg: float
     return probe_to_tracker @ delta
 
 
+def tracker_offset(pivot, rng, ledger: Ledger, rotation_deg: float, translation_mm: float) -> np.ndarray:
+    """The tracker frame is not the preoperative one: a 4 × 4 rigid transform, a rotation
+    of ``rotation_deg`` about a random axis through ``pivot`` (3,) mm, then a shift of
+    ``translation_mm`` along a random direction."""
+    ledger.mark("tracker_offset")
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    shift = rng.normal(size=3)
+    shift *= translation_mm / np.linalg.norm(shift)
+    T = np.eye(4)
+    R = _axis_angle(axis, np.radians(rotation_deg))
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(pivot) - R @ np.asarray(pivot) + shift
+    return T
+
+
+def apply(T, points) -> np.ndarray:
+    """(P, 3) points moved by a 4 × 4 rigid transform."""
+    return np.asarray(points) @ T[:3, :3].T + T[:3, 3]
+
+
 def _axis_angle(axis, angle):
     k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
     return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k

@@ -41,6 +41,9 @@ EFFECT_PARAMS = {
     "probe_compression": {"depth_mm": float, "radius_mm": float},
     "contour_jitter": {"sd_px": float},
     "dropout": {"fraction": float},
+    # every intraoperative point (data, truth targets and surfaces, probe poses) moved by one
+    # rigid transform about the data centroid: the tracker frame is not the preoperative one
+    "tracker_offset": {"rotation_deg": float, "translation_mm": float},
     # live streams only (navapp replay, the viewer's live re-registration):
     "latency": {"ms": float},  # every tracker/image message sent this late after the moment it describes
     "auto_segmentation": {"sd_px": float},  # live frames' contours designated automatically, with this error
@@ -64,6 +67,24 @@ class Transposition:
 
 _TRANSPOSE_KEYS = {"phantom": int, "mesh_edge_mm": float}
 
+TOOL_SITES = ("anterior", "inferior")
+SUPPORTS = ("ligaments", "posterior", "bare_area")  # ``truth.Supports``
+
+
+@dataclass(frozen=True)
+class ToolSpec:
+    """A scene's ``[tool]``: where the indentation is (``site``, a point ``at`` mm near it),
+    its footprint radius and depth (mm) and how it is applied (``truth.ToolLoad``)."""
+
+    site: str
+    at: tuple
+    radius_mm: float
+    depth_mm: float
+    load: str = "displacement"
+
+
+_TOOL_KEYS = {"site": str, "at": list, "radius_mm": float, "depth_mm": float, "load": str}
+
 
 @dataclass
 class Scene:
@@ -83,7 +104,13 @@ class Scene:
     pressure_pa: float = 0.0
     head_up_deg: float = 0.0
     transpose_from: "Transposition | None" = None
+    gravity: bool = True
+    supports: str = "ligaments"
+    tool: "ToolSpec | None" = None
     coverage: float = 0.2
+    pattern: str = "swaths"
+    points: int = 500
+    patch_at: tuple | None = None
     planes: int = 16
     effects: list = field(default_factory=list)
     seed: int = 0
@@ -94,8 +121,8 @@ _SECTIONS: dict[str, dict[str, type]] = {
     "anatomy": {"phantom": int, "case": str},
     "deformation": {"release": str, "gravity_tilt_deg": float, "large": bool, "mesh_edge_mm": float,
                     "truth_E_pa": float, "pressure_pa": float, "head_up_deg": float,
-                    "transpose_from": dict},
-    "stylus": {"coverage": float},
+                    "transpose_from": dict, "gravity": bool, "supports": str},
+    "stylus": {"coverage": float, "pattern": str, "points": int, "at": list},
     "ius": {"planes": int},
 }
 
@@ -125,9 +152,39 @@ def _transposition(table: dict, path) -> Transposition:
     return Transposition(**values)
 
 
+def _point(value, key, path) -> tuple:
+    if not (isinstance(value, list) and len(value) == 3
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value)):
+        raise InputError(f"{key} must be three numbers [x, y, z] (mm), got {value!r}", path)
+    return tuple(float(v) for v in value)
+
+
+def _tool(table, path) -> ToolSpec:
+    if not isinstance(table, dict):
+        raise InputError("[tool] must be a table", path)
+    for key in table:
+        if key not in _TOOL_KEYS:
+            raise InputError(f"unknown key tool.{key} (known: {', '.join(_TOOL_KEYS)})", path)
+    missing = {"site", "at", "radius_mm", "depth_mm"} - set(table)
+    if missing:
+        raise InputError(f"[tool] needs {', '.join(sorted(missing))}", path)
+    values = {k: (_point(v, f"tool.{k}", path) if k == "at" else _typed(v, _TOOL_KEYS[k], f"tool.{k}", path))
+              for k, v in table.items()}
+    spec = ToolSpec(**values)
+    if spec.site not in TOOL_SITES:
+        raise InputError(f"tool.site must be one of {', '.join(TOOL_SITES)}, got {spec.site!r}", path)
+    if not 2.0 <= spec.radius_mm <= 40.0:
+        raise InputError(f"tool.radius_mm must be between 2 and 40, got {spec.radius_mm:g}", path)
+    if not 0.0 < spec.depth_mm <= 80.0:
+        raise InputError(f"tool.depth_mm must be in (0, 80], got {spec.depth_mm:g}", path)
+    if spec.load not in ("displacement", "pressure"):
+        raise InputError(f"tool.load must be \"displacement\" or \"pressure\", got {spec.load!r}", path)
+    return spec
+
+
 def parse_scene(data: dict, path=None) -> Scene:
     """Validate a scene dictionary (as loaded from TOML)."""
-    known = {"name", "seed", "effects", *_SECTIONS}
+    known = {"name", "seed", "effects", "tool", *_SECTIONS}
     for key in data:
         if key not in known:
             raise InputError(f"unknown key {key!r} (known: {', '.join(sorted(known))})", path)
@@ -144,9 +201,28 @@ def parse_scene(data: dict, path=None) -> Scene:
                 if not isinstance(value, dict):
                     raise InputError(f"{section}.{key} must be a table, e.g. {{phantom = 3}}", path)
                 value = _transposition(value, path)
+            elif keys[key] is list:
+                value = _point(value, f"{section}.{key}", path)
             else:
                 value = _typed(value, keys[key], f"{section}.{key}", path)
-            setattr(scene, key, Path(value) if key == "case" else value)
+            attr = "patch_at" if (section, key) == ("stylus", "at") else key
+            setattr(scene, attr, Path(value) if key == "case" else value)
+    if "tool" in data:
+        scene.tool = _tool(data["tool"], path)
+    if scene.supports not in SUPPORTS:
+        raise InputError(f"deformation.supports must be one of {', '.join(SUPPORTS)}, got {scene.supports!r}", path)
+    if scene.tool is not None and scene.transpose_from is not None:
+        raise InputError("a [tool] presses on this liver's own truth: it cannot be combined with "
+                         "deformation.transpose_from", path)
+    if scene.tool is not None and scene.tool.load == "displacement" and scene.large:
+        raise InputError("tool.load = \"displacement\" needs the linear truth (large = false); "
+                         "use load = \"pressure\"", path)
+    if scene.pattern not in ("swaths", "patch"):
+        raise InputError(f"stylus.pattern must be \"swaths\" or \"patch\", got {scene.pattern!r}", path)
+    if scene.pattern == "patch" and scene.patch_at is None:
+        raise InputError("stylus.pattern = \"patch\" needs stylus.at = [x, y, z] (the patch centre, mm)", path)
+    if not 10 <= scene.points <= 100000:
+        raise InputError(f"stylus.points must be between 10 and 100000, got {scene.points}", path)
     if "case" in data.get("anatomy", {}):
         scene.phantom = None
     if scene.release not in ("L", "N", "R"):
@@ -157,6 +233,9 @@ def parse_scene(data: dict, path=None) -> Scene:
         raise InputError("ius.planes must be between 0 and 16", path)
     if scene.mesh_edge_mm <= 0 or scene.truth_E_pa <= 0:
         raise InputError("deformation.mesh_edge_mm and deformation.truth_E_pa must be positive", path)
+    if not 0.0 <= scene.gravity_tilt_deg <= 90.0:
+        raise InputError(f"deformation.gravity_tilt_deg must be between 0 and 90, got {scene.gravity_tilt_deg:g}",
+                         path)
     if not -90.0 < scene.head_up_deg < 90.0:
         raise InputError("deformation.head_up_deg must be between -90 and 90", path)
     if scene.pressure_pa < 0:
@@ -220,13 +299,14 @@ def scene_dir() -> Path:
     return Path(str(resources.files("navapp") / "scenes"))
 
 
-SCENE_SETS = {"direct": "phantom*-*.toml", "lap": "lap*-*.toml"}
+SCENE_SETS = {"direct": "phantom*-*.toml", "lap": "lap*-*.toml", "tool": "tool*-*.toml"}
 """The study scene sets: ``direct`` (each liver deformed by its own elastic model under
-gravity) and ``lap`` (laparoscopic loading of a reference liver, transposed)."""
+gravity), ``lap`` (laparoscopic loading of a reference liver, transposed) and ``tool``
+(a local tool indentation of a liver held at its supports, partial surface data)."""
 
 
 def study_scenes(which: str = "direct") -> list[Path]:
-    """The nine study scenes of a set (3 phantoms × L/N/R release), sorted by name."""
+    """The study scenes of a set (``SCENE_SETS``), sorted by name."""
     if which not in SCENE_SETS:
         raise InputError(f"unknown scene set {which!r} (known: {', '.join(SCENE_SETS)})")
     return sorted(scene_dir().glob(SCENE_SETS[which]))

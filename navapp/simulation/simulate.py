@@ -32,8 +32,9 @@ from ..mechanics.interpolation import interpolation_matrix
 from . import effects as fx
 from .probe import Probe
 from .scene import Scene
-from .stylus import swath_pattern, thin
-from .truth import Loading, solve_linear, solve_neo_hookean
+from .stylus import surface_patch, swath_pattern, thin
+from .tool import place_tool
+from .truth import Loading, Supports, solve_linear, solve_neo_hookean
 from .ultrasound import acquire_plane, plane_poses
 
 REGISTRATION_EDGE_MM = EDGE_MM
@@ -65,7 +66,9 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
 
         raise InputError("the scene's anatomy needs preop/regions.csv (anterior surface for the stylus and probe)")
     truth_mesh, _ = cached_tetmesh(preop.liver, scene.mesh_edge_mm, cache_root)
-    loading, material = scene_loading(scene)
+    loading, material = scene_loading(scene, truth_mesh)
+    if loading.tool is not None:
+        ledger.mark("tool")
     transposed = None
     if scene.transpose_from is not None:
         u, transposed = transposed_truth(scene, preop, truth_mesh, ledger, cache_root)
@@ -79,24 +82,42 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
                 u = solve_linear(truth_mesh, loading, material)
     t_truth = time.perf_counter() - t0
 
-    def moved(points):
+    eff = {e.kind: e.params for e in scene.effects}
+    offset = np.eye(4)
+    if "tracker_offset" in eff:
+        # its own stream: declaring it leaves every other draw of the scene as it was
+        offset = fx.tracker_offset(preop.liver.vertices.mean(0), np.random.default_rng([scene.seed, 7]), ledger,
+                                   **eff["tracker_offset"])
+
+    def deformed(points):
         return points + interpolation_matrix(truth_mesh.nodes, truth_mesh.tets, points) @ u
+
+    def moved(points):  # where a preoperative point is, in tracker space
+        return fx.apply(offset, deformed(points))
 
     liver_d = trimesh.Trimesh(moved(preop.liver.vertices), preop.liver.faces, process=False)
     portal_d, hepatic_d = (None if m is None else trimesh.Trimesh(moved(m.vertices), m.faces, process=False)
                            for m in (preop.portal, preop.hepatic))
-    eff = {e.kind: e.params for e in scene.effects}
 
     # stylus
     ledger.mark("stylus")
     v = preop.liver.vertices
     areas = nodal_areas(v, preop.liver.faces, np.arange(len(v)))
-    # the stylus features are named after the liver-surface regions they are digitised on
-    idx, coverage, _ = swath_pattern(v, areas, np.any([preop.region_mask(n) for n in STYLUS], axis=0),
-                                     scene.coverage, rng)
     intraop = {}
-    for label in STYLUS:
-        pts = thin(liver_d.vertices[idx[preop.region_mask(label)[idx]]])
+    stylus_regions = np.any([preop.region_mask(n) for n in STYLUS], axis=0)
+    if scene.pattern == "patch":
+        ledger.mark("surface_patch")
+        if scene.patch_at is None:
+            raise ValueError("a patch pattern needs stylus.at")
+        _, pick, bary, covered = surface_patch(v, preop.liver.faces, scene.patch_at, scene.coverage,
+                                               float(areas[stylus_regions].sum()), scene.points, rng)
+        coverage = covered / float(areas[stylus_regions].sum())
+        clouds = {"anterior": np.einsum("pk,pkj->pj", bary, liver_d.vertices[preop.liver.faces[pick]])}
+    else:
+        # the stylus features are named after the liver-surface regions they are digitised on
+        idx, coverage, _ = swath_pattern(v, areas, stylus_regions, scene.coverage, rng)
+        clouds = {label: thin(liver_d.vertices[idx[preop.region_mask(label)[idx]]]) for label in STYLUS}
+    for label, pts in clouds.items():
         if "tracking_noise" in eff and len(pts):
             pts = fx.tracking_noise(pts, rng, ledger, **eff["tracking_noise"])
         if "dropout" in eff and len(pts):
@@ -138,7 +159,7 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
                       ("x", "y", "z", "branch"), True)
     if preop.targets:
         write_targets(map_targets(preop.targets, moved), tdir / TARGETS_DIR)
-    d = np.linalg.norm(moved(x0) - x0, axis=1)
+    d = np.linalg.norm(deformed(x0) - x0, axis=1)
     report = {
         "scene": scene.name, "truth_nodes": int(len(truth_mesh.nodes)),
         "displacement_mm": {"mean": round(float(d.mean()), 2), "max": round(float(d.max()), 2)},
@@ -150,14 +171,29 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
     }
     if transposed is not None:
         report["transposed"] = transposed
+    if loading.tool is not None:
+        tool = loading.tool
+        c = np.asarray(tool.centre)[None]
+        report["tool"] = {"centre_mm": np.round(tool.centre, 2).tolist(), "push": np.round(tool.direction, 4).tolist(),
+                          "radius_mm": tool.radius_mm, "load": str(tool.load),
+                          "depth_mm": round(float((deformed(c) - c)[0] @ np.asarray(tool.direction)), 2)}
+    if "tracker_offset" in eff:
+        report["tracker_offset"] = offset.round(6).tolist()
     (tdir / "report.json").write_text(json.dumps(report, indent=1))
     return report
 
 
-def scene_loading(scene: Scene) -> tuple[Loading, Material]:
-    """The truth's loads and material as the scene declares them."""
-    loading = Loading(gravity_dir=gravity_direction(scene.release, scene.gravity_tilt_deg, scene.head_up_deg),
-                      pressure=scene.pressure_pa, release=scene.release)
+def scene_loading(scene: Scene, mesh=None) -> tuple[Loading, Material]:
+    """The truth's loads and material as the scene declares them; a ``[tool]`` is placed on
+    ``mesh`` (the truth's own)."""
+    tool = None
+    if scene.tool is not None:
+        if mesh is None:
+            raise ValueError("a scene with a tool needs the truth mesh to place it")
+        tool = place_tool(mesh, scene.tool)
+    loading = Loading(gravity=9.81 if scene.gravity else 0.0,
+                      gravity_dir=gravity_direction(scene.release, scene.gravity_tilt_deg, scene.head_up_deg),
+                      pressure=scene.pressure_pa, release=scene.release, supports=Supports(scene.supports), tool=tool)
     return loading, Material(E=scene.truth_E_pa, nu=0.45)
 
 

@@ -5,9 +5,13 @@ basis' prescribed control-point displacements, so it is not in the span of the L
 basis (no inverse crime).
 
 Loads and supports (mm, Pa): gravity (ρ = 1060 kg/m³) along a direction tilted toward
-the released side, optional uniform pressure on the anterior surface (insufflation); the
-posterior bare area is always held, and so are the left and right triangular ligaments
-and the falciform/coronary attachment unless a scene releases them (L, N or R).
+the released side, optional uniform pressure on the anterior surface (insufflation), and
+an optional local tool indentation (``Tool``: a smooth patch pressed in by a prescribed
+displacement or by a dead-load pressure). Supports ``"ligaments"``: the posterior bare
+area is always held, and so are the left and right triangular ligaments and the
+falciform/coronary attachment unless a scene releases them (L, N or R); ``"posterior"``:
+every boundary node facing posterior is held (the organ lying on a firm bed);
+``"bare_area"``: the bare area alone.
 Small deformation: linear elasticity. Large deformation (a scene's ``large = true``):
 compressible neo-Hookean hyperelasticity, total Lagrangian, P1 tetrahedra, Newton with
 adaptive load stepping and a backtracking line search (``solve_neo_hookean``). The loads
@@ -18,6 +22,7 @@ Newton failed at the laparoscopic loads (docs/decisions.md).
 """
 
 from dataclasses import dataclass
+from enum import StrEnum
 
 import numpy as np
 import scipy.sparse as sp
@@ -30,17 +35,80 @@ from ..mechanics.sparse import Factorisation
 RHO = 1060.0  # kg/m³, liver density
 
 
+class ToolLoad(StrEnum):
+    """How a tool indents the surface."""
+    DISPLACEMENT = "displacement"  # the patch is moved by the profile (Dirichlet; linear truth only)
+    PRESSURE = "pressure"  # a dead-load pressure with the profile, scaled to reach the depth (linear solve)
+
+
+class Supports(StrEnum):
+    """What holds the liver in the truth."""
+    LIGAMENTS = "ligaments"  # bare area + triangular ligaments + falciform (``release`` frees one side)
+    POSTERIOR = "posterior"  # every boundary node whose outward normal faces posterior
+    BARE_AREA = "bare_area"  # the bare area alone (the caval attachment): the lobes swing under a load
+
+
+@dataclass(frozen=True)
+class Tool:
+    """A local indentation: a tool tip or retractor pressing on the surface.
+
+    ``centre`` (3,) mm is a boundary point of the undeformed liver, ``direction`` (3,) the
+    unit push direction (into the organ); boundary nodes within ``radius_mm`` of the centre
+    that face against the push carry the profile w(r) = (1 − (r/R)²)² (a rounded tip, no
+    edge at the rim), and the centre moves ``depth_mm`` along ``direction``.
+    """
+    centre: tuple
+    direction: tuple
+    radius_mm: float
+    depth_mm: float
+    load: ToolLoad = ToolLoad.DISPLACEMENT
+
+
 @dataclass(frozen=True)
 class Loading:
-    gravity: float = 9.81  # m/s²
+    gravity: float = 9.81  # m/s²; 0: no gravity load
     gravity_dir: tuple = (0.0, -1.0, 0.0)  # supine patient: toward posterior
     pressure: float = 0.0  # Pa on the anterior surface (inward)
     release: str = "N"  # which triangular ligament is released: "L", "N" or "R"
+    supports: Supports = Supports.LIGAMENTS
+    tool: Tool | None = None
 
 
-def supported_nodes(mesh: TetMesh, release: str = "N") -> dict:
+def outward_normals(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
+    """Boundary node indices (S,) and their area-weighted outward unit normals (S, 3)."""
+    faces = mesh.boundary_faces()
+    s = np.unique(faces)
+    tri = mesh.nodes[faces]
+    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    n = np.zeros((len(mesh.nodes), 3))
+    for a in range(3):
+        np.add.at(n, faces[:, a], fn)
+    n = n[s]
+    return s, n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+
+
+def tool_patch(mesh: TetMesh, tool: Tool) -> tuple[np.ndarray, np.ndarray]:
+    """The boundary nodes (P,) the tool touches and their profile weights (P,) in (0, 1]."""
+    s, n = outward_normals(mesh)
+    d = np.asarray(tool.direction, float)
+    r = np.linalg.norm(mesh.nodes[s] - np.asarray(tool.centre, float), axis=1)
+    on = (r < tool.radius_mm) & (n @ d < -0.2)  # facing the tool: not the far side of a thin lobe
+    if not on.any():
+        raise NavappError(f"the tool at {np.round(tool.centre, 1).tolist()} touches no boundary node "
+                          f"within {tool.radius_mm:g} mm facing it")
+    w = (1 - (r[on] / tool.radius_mm) ** 2) ** 2
+    return s[on], w
+
+
+def supported_nodes(mesh: TetMesh, release: str = "N", supports: Supports = Supports.LIGAMENTS) -> dict:
     """Node sets held fixed, by name: bare area, left/right triangular ligaments,
-    falciform attachment (as geometric regions of the boundary; see module doc)."""
+    falciform attachment (as geometric regions of the boundary; see module doc), or
+    the posterior-facing boundary (``Supports.POSTERIOR``)."""
+    if supports == Supports.POSTERIOR:
+        s, n = outward_normals(mesh)
+        return {"posterior_bed": s[n[:, 1] < -0.5]}
+    if supports == Supports.BARE_AREA:
+        return {"bare_area": supported_nodes(mesh, release)["bare_area"]}
     faces = mesh.boundary_faces()
     s = np.unique(faces)
     p = mesh.nodes[s]
@@ -63,7 +131,7 @@ def supported_nodes(mesh: TetMesh, release: str = "N") -> dict:
 def _body_force(mesh, loading):
     _, vol = shape_gradients(mesh.nodes, mesh.tets)  # mm³
     # ρ g V: kg/m³ · m/s² · mm³ · 1e-9 m³/mm³ = N; K is in Pa·mm, forces in Pa·mm² = 1e-6 N
-    w = RHO * loading.gravity * vol * 1e-9 * 1e6
+    w = RHO * loading.gravity * vol * 1e-9 * 1e6  # gravity = 0: no body force
     g = np.asarray(loading.gravity_dir, float)
     g = g / np.linalg.norm(g)
     f = np.zeros((len(mesh.nodes), 3))
@@ -79,20 +147,66 @@ def _body_force(mesh, loading):
     return f.ravel()
 
 
-def _free_dofs(mesh, loading):
-    fixed = np.unique(np.concatenate(list(supported_nodes(mesh, loading.release).values())))
-    fd = (3 * fixed[:, None] + np.arange(3)).ravel()
-    return np.setdiff1d(np.arange(3 * len(mesh.nodes)), fd)
+def _dofs(nodes) -> np.ndarray:
+    return (3 * np.asarray(nodes)[:, None] + np.arange(3)).ravel()
+
+
+def _free_dofs(mesh, loading, extra_fixed=None):
+    fixed = np.unique(np.concatenate(list(supported_nodes(mesh, loading.release, loading.supports).values())
+                                     + ([] if extra_fixed is None else [extra_fixed])))
+    return np.setdiff1d(np.arange(3 * len(mesh.nodes)), _dofs(fixed))
+
+
+def _tool_pressure(mesh, tool: Tool, nodes, w) -> np.ndarray:
+    """Nodal forces (3M,) of a unit-peak pressure with the tool's profile along its push."""
+    _, n = outward_normals(mesh)
+    areas = np.zeros(len(mesh.nodes))
+    faces = mesh.boundary_faces()
+    tri = mesh.nodes[faces]
+    a = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    np.add.at(areas, faces.ravel(), np.repeat(a / 3, 3))
+    f = np.zeros((len(mesh.nodes), 3))
+    f[nodes] = np.outer(w * areas[nodes], np.asarray(tool.direction, float))
+    return f.ravel()
+
+
+def _centre_node(mesh, tool: Tool, nodes) -> int:
+    return int(nodes[np.argmin(np.linalg.norm(mesh.nodes[nodes] - np.asarray(tool.centre, float), axis=1))])
+
+
+def tool_force(mesh: TetMesh, loading: Loading, material: Material) -> np.ndarray:
+    """The tool's dead-load nodal forces (3M,), Pa·mm²: its profile's pressure scaled so
+    that the *linear* solution moves the patch centre ``depth_mm`` along the push (zeros
+    without a pressure tool). The large-deformation truth then reaches about that depth."""
+    tool = loading.tool
+    if tool is None or tool.load != ToolLoad.PRESSURE:
+        return np.zeros(3 * len(mesh.nodes))
+    nodes, w = tool_patch(mesh, tool)
+    f = _tool_pressure(mesh, tool, nodes, w)
+    K = stiffness(mesh.nodes, mesh.tets, material)
+    free = _free_dofs(mesh, loading)
+    u = np.zeros(3 * len(mesh.nodes))
+    with Factorisation(K[free][:, free]) as F:
+        u[free] = F.solve(f[free])
+    c = _centre_node(mesh, tool, nodes)
+    reach = float(u[_dofs([c])] @ np.asarray(tool.direction, float))
+    if reach <= 0:
+        raise NavappError("the tool's pressure does not push the surface in (is the patch held by a support?)")
+    return f * (tool.depth_mm / reach)
 
 
 def solve_linear(mesh: TetMesh, loading: Loading, material: Material = Material()) -> np.ndarray:
     """Nodal displacements (M, 3) mm of the loaded, supported liver (linear elasticity)."""
     K = stiffness(mesh.nodes, mesh.tets, material)
-    f = _body_force(mesh, loading)
-    free = _free_dofs(mesh, loading)
+    f = _body_force(mesh, loading) + tool_force(mesh, loading, material)
     u = np.zeros(3 * len(mesh.nodes))
+    held = None
+    if loading.tool is not None and loading.tool.load == ToolLoad.DISPLACEMENT:
+        held, w = tool_patch(mesh, loading.tool)
+        u[_dofs(held)] = (np.outer(w, np.asarray(loading.tool.direction, float)) * loading.tool.depth_mm).ravel()
+    free = _free_dofs(mesh, loading, held)
     with Factorisation(K[free][:, free]) as F:
-        u[free] = F.solve(f[free])
+        u[free] = F.solve(f[free] - K[free] @ u)
     return u.reshape(-1, 3)
 
 
@@ -189,7 +303,9 @@ def solve_neo_hookean(mesh: TetMesh, loading: Loading, material: Material = Mate
                       max_newton=25, min_increment=1.0 / 512, report=None) -> np.ndarray:
     """Large-deformation truth: the liver's supports and loads (``Loading``) solved with
     the compressible neo-Hookean model by ``solve_hyperelastic``. Returns (M, 3) mm."""
-    f_ext = _body_force(mesh, loading)
+    if loading.tool is not None and loading.tool.load == ToolLoad.DISPLACEMENT:
+        raise NavappError("a prescribed tool displacement needs the linear truth: use the pressure tool load")
+    f_ext = _body_force(mesh, loading) + tool_force(mesh, loading, material)
     free = _free_dofs(mesh, loading)
     return solve_hyperelastic(mesh.nodes, mesh.tets, f_ext, free, material, steps, tol, max_newton,
                               min_increment, report)
