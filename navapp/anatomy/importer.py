@@ -375,6 +375,7 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
         if item is not None:
             sources[organ] = parse_source(item)
     target_sources = [parse_source(t) for t in (targets or [])]
+    maps: dict[Path, LabelMap] = {}  # every label map is read once
     if labelmap is not None:
         lm_path = Path(labelmap)
         if lm_path.is_dir():
@@ -387,15 +388,13 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
             target_sources += [Source(p) for p in tfiles]
         else:
             with _timed(timings, "read"):
-                lm = read_labelmap(lm_path)
+                lm = maps[lm_path] = read_labelmap(lm_path)
             for organ, value in _label_values(lm, labels, lm_path).items():
                 _add_source(sources, organ, Source(lm_path, value), lm_path)
     if "liver" not in sources:
         raise InputError("no liver: give --liver FILE (a surface or a mask) or a --labelmap with a liver label")
 
-    # every label map is read once; all must lie on the liver's grid (one scan)
-    maps: dict[Path, LabelMap] = {}
-
+    # all label maps must lie on the liver's grid (one scan)
     def read_map(p: Path) -> LabelMap:
         if p not in maps:
             with _timed(timings, "read"):
