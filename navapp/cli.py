@@ -175,6 +175,11 @@ def cmd_study(args):
         from .evaluation.robustness import study_command
 
         return study_command(cases, args)
+    if args.what == "loads":
+        from .evaluation.loads import study_command as loads_command
+
+        results = args.results if args.results != DEFAULT_TABLE2_CSV else args.report / "loads.csv"
+        return loads_command(cases, results, args.report, args.workers or 1)
     if args.what in ("error-estimate", "next-plane"):
         from .evaluation import error_estimate, next_plane_study
 
@@ -212,7 +217,7 @@ def _study_cases(args):
     if not cases:
         from .simulation.scene import scene_dir, study_scenes
 
-        scenes = study_scenes()
+        scenes = study_scenes("tool" if args.what == "loads" else "direct")
         if not scenes:
             raise NavappError(f"no study scenes in {scene_dir()}: pass --cases")
         if args.quick:
@@ -315,8 +320,9 @@ def build_parser():
     s.set_defaults(func=cmd_simulate)
 
     s = sub.add_parser("study", help="table2: the paper's Table II design; cost: accuracy against time; "
-                                     "robustness: initial offsets × label noise (all resumable)")
-    s.add_argument("what", choices=("table2", "cost", "robustness", "error-estimate", "next-plane", "hard"))
+                                     "robustness: initial offsets × label noise; loads: local tool loads, "
+                                     "identity / rigid / LIBR (all resumable)")
+    s.add_argument("what", choices=("table2", "cost", "robustness", "error-estimate", "next-plane", "hard", "loads"))
     s.add_argument("--with-cases", type=Path, nargs="+", help="error-estimate, next-plane: a second set of cases "
                    "judged beside --cases (e.g. the laparoscopic ones); error-estimate calibrates on the first "
                    "case's liver in both sets and validates on the other livers")

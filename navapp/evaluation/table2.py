@@ -44,8 +44,9 @@ def _key(case, level, planes):
 
 
 @progress.quiet()  # scoped: it also runs in the caller's process (cache warming) and must not silence it
-def run_chunk(case_dir, items, edge=EDGE_MM, k=K):
-    """Register one case at the given (level, planes) items; returns CSV rows (dicts)."""
+def run_chunk(case_dir, items, edge=EDGE_MM, k=K, init=None):
+    """Register one case at the given (level, planes) items; returns CSV rows (dicts).
+    ``init``: the registration's ``RobustOptions`` (default: the pipeline's)."""
     from ..anatomy.caseio import read_case
     from ..mechanics.interpolation import interpolation_matrix
     from ..registration.model import usable_data
@@ -75,7 +76,7 @@ def run_chunk(case_dir, items, edge=EDGE_MM, k=K):
             data = data_level(case_dir, level, case=case)
         shared = level == "S" or level.startswith("S+")
         t = time.perf_counter()
-        reg = register(model, data, deform=level != "rigid", rigid=rigid_s if shared else None)
+        reg = register(model, data, deform=level != "rigid", rigid=rigid_s if shared else None, init=init)
         sec = time.perf_counter() - t + (icp_sec if shared else 0.0)
         tre = tre_stats(reg.transform(x0, B=B), x1)
         rows.append({"case": case_dir.name, "level": level, "planes": "-".join(map(str, planes)),

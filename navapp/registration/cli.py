@@ -57,9 +57,9 @@ def cmd_register(args):
     if case.preop.targets:
         summary["targets"] = _targets(args.case, case, reg, model, out)
     summary = write_outputs(case, reg, out, summary)
-    if reg.quality is not None and reg.quality.warning:
-        # one line, on stderr whatever the output format: a wrong answer must not pass silently
-        print(f"navapp: warning: {args.case}: {reg.quality.warning}", file=sys.stderr)
+    for line in summary["warnings"]:
+        # one line each, on stderr whatever the output format: a wrong answer must not pass silently
+        print(f"navapp: warning: {case.name}: {line}", file=sys.stderr)
     if args.json:
         brief: dict = {k: summary[k] for k in ("case", "iterations", "stop_reason", "omega") if k in summary}
         for key in ("tre_rigid", "tre_deformable"):
@@ -67,12 +67,13 @@ def cmd_register(args):
                 brief[key] = round(summary[key]["mean_mm"], 3)
         for t in summary.get("targets", []):
             if "tre" in t:
-                how = "deformable" if reg.libr is not None else "rigid"
+                how = "deformable" if "deformable" in t["tre"] else "rigid"
                 brief.setdefault("target_centroid_error_mm", {})[t["name"]] = t["tre"][how]["centroid_mm"]
         brief["seconds"] = summary["seconds"]
         brief["out"] = str(out)
-        if reg.quality is not None:
-            brief["warning"] = reg.quality.warning
+        brief["answer"] = summary["answer"]
+        brief["warning"] = summary["warning"]
+        brief["warnings"] = summary["warnings"]
         print(json.dumps(brief))
     else:
         print(f"registered {case.name}: results in {out}", file=sys.stderr)
@@ -83,10 +84,15 @@ def _targets(case_dir, case, reg, model, out) -> list[dict]:
     """Registered targets: surfaces written to ``out/targets/`` (PLY, tracker space), and
     per target its centres (preoperative, registered) and, where truth is known, errors."""
     from ..anatomy.targets import TARGETS_DIR, write_targets
+    from .support import target_support
     from .targets import registered_targets, target_errors, truth_targets
 
     targets = case.preop.targets
     moved = registered_targets(reg, targets)
+    # the data are in the model frame and the model point is the preoperative centre
+    # (deformation is small against the distances that matter here)
+    supports = target_support(reg.support, {t.name: t.centre for t in targets}, reg.data_model_frame) \
+        if reg.libr is not None else []
     write_targets(moved, Path(out) / TARGETS_DIR)
     truth, source = truth_targets(case_dir, targets, case, model.basis)
     rigid = registered_targets(reg, targets, rigid=True) if truth is not None else []
@@ -98,6 +104,11 @@ def _targets(case_dir, case, reg, model, out) -> list[dict]:
                "centre_registered_mm": [round(float(x), 3) for x in m.centre]}
         if t.surface is not None:
             row["file"] = f"{TARGETS_DIR}/{t.name}.ply"
+        if supports:
+            row["nearest_data_mm"] = round(supports[i].nearest_data_mm, 1)
+            row["determined"] = supports[i].determined
+            if supports[i].warning:
+                row["warning"] = supports[i].warning
         if truth is not None:
             row["tre"] = {"truth": source, "rigid": target_errors(rigid[i], truth[i])}
             if reg.libr is not None:

@@ -49,6 +49,7 @@ class LMOptions:
     lam0: float = 1e-2
     weights: Weights = field(default_factory=Weights)
     deform: bool = True  # False: only τ, θ move (a rigid fit through the same machinery)
+    pose: bool = True  # False: τ, θ stay at β0's (the rigid stage's pose is kept; only α moves)
     recompute_in_ratio: bool = False  # True: ρ from Ω with recomputed correspondences (for comparison)
     energy_curvature: bool = True  # add w_E f_E ∇²f_E to JᵀWJ (see module doc)
     condition: bool = False  # report LibrResult.condition (one small eigen-decomposition per iteration)
@@ -123,6 +124,8 @@ def _register(model, data, beta0, options, callback, cancel):
     free = np.ones(n + 6, bool)
     if not options.deform:
         free[:n] = False
+    if not options.pose:
+        free[n:] = False
     tim = {"deform": 0.0, "kdtree": 0.0, "closest": 0.0, "jacobian": 0.0, "solve": 0.0}
 
     def run(b, jac=True, frozen=None, scales=None):

@@ -27,6 +27,7 @@ from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from ..mechanics.interpolation import interpolation_matrix
 from .libr import LibrResult, LMOptions, register_libr
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
+from .pose import Determinacy, PoseChoice, choose_pose, pose_determinacy
 from .quality import FitQuality, assess_fit
 from .rigid import (
     RIGID_ROBUST,
@@ -40,6 +41,7 @@ from .rigid import (
     rigid_icp,
     start_poses,
 )
+from .support import Support, SupportOptions, check_support
 
 
 @dataclass
@@ -59,24 +61,35 @@ class RobustOptions:
     # continuation: first fit with the strain-energy weight × this (a stiffer organ that
     # can only move rigidly and smoothly), then relax to the true weight from there; None: off
     stiff_first: float | None = 3.0
+    # the given (tracker) pose is kept when a trimmed fit from it hardly moves the data
+    # (``pose.choose_pose``); a kept pose is kept by LIBR too (τ, θ fixed): docs/decisions.md, "Local loads"
+    keep_given_pose: bool = True
+    # spatial cross-validation of the deformation against the rigid answer; None: off
+    support: SupportOptions | None = field(default_factory=SupportOptions)
 
     @classmethod
     def legacy(cls) -> "RobustOptions":
         """Today's path before issue 14, bit for bit: single exact point-to-point ICP."""
         return cls(multi_start=False, icp="point", screen_iterations=0, huber_salient_mm=None, retry_poor_fit=False,
-                   rigid_robust=None, stiff_first=None)
+                   rigid_robust=None, stiff_first=None, keep_given_pose=False, support=None)
 
     @classmethod
     def first(cls) -> "RobustOptions":
         """The first default of issue 14 (multi-start, Ω screen, Huber on the salient
         features), before the robust ICP and the continuation joined it."""
-        return cls(rigid_robust=None, stiff_first=None)
+        return cls(rigid_robust=None, stiff_first=None, keep_given_pose=False, support=None)
+
+    @classmethod
+    def unguarded(cls) -> "RobustOptions":
+        """The default without the guards against local loads: no kept pose, no cross-validation."""
+        return cls(keep_given_pose=False, support=None)
 
 
 # the registration variants the robustness study compares ("after" is the default)
 METHODS = {
     "before": RobustOptions.legacy,
     "after": RobustOptions,
+    "unguarded": RobustOptions.unguarded,
     "first-after": RobustOptions.first,
     "after-no-continuation": lambda: RobustOptions(stiff_first=None),
     "after-plain-icp": lambda: RobustOptions(rigid_robust=None),
@@ -114,13 +127,35 @@ class Registration:
     seconds: dict = field(default_factory=dict)
     starts: list[Start] = field(default_factory=list)  # the multi-start ICP's starts (empty: single ICP)
     quality: FitQuality | None = None  # residuals against expected noise (deformable fits); .warning for the user
+    pose_choice: PoseChoice | None = None  # given pose kept or replaced by ICP's (``pose.choose_pose``)
+    determinacy: Determinacy | None = None  # the pose's sliding directions (``pose.pose_determinacy``)
+    support: Support | None = None  # the deformation's held-out prediction against rigid (``support``)
+    notes: list[str] = field(default_factory=list)  # warnings raised before the fit (e.g. too few points)
+
+    @property
+    def deformed(self) -> bool:
+        """True when the answer is the deformable fit; False when it is the rigid pose alone
+        (no LIBR, or a deformation the data do not support)."""
+        return self.libr is not None and (self.support is None or self.support.supported)
+
+    @property
+    def warnings(self) -> list[str]:
+        """Every warning about this answer, one line each (the CLI, result.json and the viewer show them)."""
+        lines = list(self.notes)
+        for w in (self.determinacy.warning if self.determinacy else None,
+                  self.support.warning if self.support else None,
+                  self.quality.warning if self.quality else None):
+            if w:
+                lines.append(w)
+        return lines
 
     def transform(self, points, beta=None, B=None) -> np.ndarray:
         """Preoperative points (P, 3) mm → registered positions in tracker space (P, 3) mm:
-        T(x(β)), eq. 8 then the rigid ICP's T. ``beta``: another state than the fit's;
+        T(x(β)), eq. 8 then the rigid ICP's T (the rigid pose alone when the deformation is
+        not supported, ``deformed``). ``beta``: another state than the fit's;
         ``B``: the points' interpolation matrix (``interpolation_matrix``), when the caller
         transforms the same points many times (locating them in the mesh dominates)."""
-        b = self.libr.beta if (beta is None and self.libr is not None) else beta
+        b = self.libr.beta if (beta is None and self.deformed and self.libr is not None) else beta
         basis = self.model.basis
         points = np.asarray(points, float)
         if b is None:
@@ -279,8 +314,12 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     """
     data = usable_data(model, data)
     check_units(model, data)
+    notes = []
     if rigid is None and (why := undetermined_pose(data)):
         warnings.warn(why, stacklevel=2)
+        notes.append(why)
+    warm = rigid is not None  # the pose is given: no choice of pose
+    fresh = beta0 is None  # a deformable fit from β = 0 (not a warm re-registration): cross-validated
     options = options or LMOptions()
     init = init or RobustOptions()
     if init.huber_salient_mm and not options.weights.huber_mm:
@@ -324,6 +363,17 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         # the basin's pose, not the tracker's, keeps the result independent of the offset
         rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,
                           start=rigid, features=features, robust=init.rigid_robust)
+    choice = None
+    if not warm and init.keep_given_pose and "fiducials" not in data:
+        given = RigidResult(np.eye(3), np.zeros(3), 0, 0.0, kept=True)
+        choice = choose_pose(model, data, given)
+        if choice.kept:
+            rigid = given
+            for s in starts:
+                s.chosen = False
+    if rigid.kept:
+        options = replace(options, pose=False)
+    determinacy = pose_determinacy(model, data, rigid)
     sec["rigid"] = time.perf_counter() - t
     local = {name: rigid.inverse(p) for name, p in data.items()}
     result, quality = None, None
@@ -349,7 +399,12 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
                         s.chosen = s.result is cand
                     rigid, local, result, quality = cand, other_local, other, other_quality
         sec["deformable"] = time.perf_counter() - t
-    return Registration(model, rigid, result, local, sec, starts, quality)
+    support = None
+    if deform and fresh and init.support is not None and result is not None:
+        t = time.perf_counter()
+        support = check_support(model, local, options, init.support, cancel)
+        sec["support"] = time.perf_counter() - t
+    return Registration(model, rigid, result, local, sec, starts, quality, choice, determinacy, support, notes)
 
 
 def write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dict:
@@ -363,12 +418,19 @@ def write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dict
     summary = dict(extra)
     if reg.quality is not None:
         summary["fit_quality"] = reg.quality.as_dict()
+    summary["answer"] = "deformable" if reg.deformed else "rigid"
+    for key, part in (("pose", reg.pose_choice), ("pose_determinacy", reg.determinacy), ("support", reg.support)):
+        if part is not None:
+            summary[key] = part.as_dict()
+    lines = reg.warnings + [w for t in summary.get("targets", []) if (w := t.get("warning"))]
+    summary["warnings"] = lines
+    summary["warning"] = "; ".join(lines) if lines else None
     if case.targets is not None:
         x0, x1 = case.targets[:, :3], case.targets[:, 3:]
         pred = reg.transform(x0)
         write_csv(out / "targets.csv", np.column_stack([x0, pred]), ("x0", "y0", "z0", "x1", "y1", "z1"))
         summary["tre_rigid"] = tre_stats(reg.rigid.apply(x0), x1)
         if reg.libr is not None:
-            summary["tre_deformable"] = tre_stats(pred, x1)
+            summary["tre_deformable"] = tre_stats(pred, x1)  # the answer: rigid when not ``reg.deformed``
     (out / "result.json").write_text(json.dumps(summary, indent=2))
     return summary

@@ -36,6 +36,9 @@ class RigidResult:
     t: np.ndarray  # (3,)
     iterations: int
     rms_mm: float
+    # the given (tracker) pose, kept because no fitted pose was better (``pose.choose_pose``):
+    # the deformable fit then keeps it too (τ, θ fixed), warm re-registrations included
+    kept: bool = False
 
     def apply(self, x):
         return np.asarray(x) @ self.R.T + self.t

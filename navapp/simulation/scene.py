@@ -168,9 +168,9 @@ def _tool(table, path) -> ToolSpec:
     missing = {"site", "at", "radius_mm", "depth_mm"} - set(table)
     if missing:
         raise InputError(f"[tool] needs {', '.join(sorted(missing))}", path)
-    values = {k: (_point(v, f"tool.{k}", path) if k == "at" else _typed(v, _TOOL_KEYS[k], f"tool.{k}", path))
-              for k, v in table.items()}
-    spec = ToolSpec(**values)
+    scalars = {k: _typed(v, _TOOL_KEYS[k], f"tool.{k}", path) for k, v in table.items() if k != "at"}
+    spec = ToolSpec(site=scalars["site"], at=_point(table["at"], "tool.at", path), radius_mm=scalars["radius_mm"],
+                    depth_mm=scalars["depth_mm"], load=scalars.get("load", "displacement"))
     if spec.site not in TOOL_SITES:
         raise InputError(f"tool.site must be one of {', '.join(TOOL_SITES)}, got {spec.site!r}", path)
     if not 2.0 <= spec.radius_mm <= 40.0:

@@ -1,0 +1,191 @@
+"""Local loads: the tool indentation truth, the kept pose and its sliding directions, and
+the cross-validated warning when the data cannot determine the answer."""
+
+import numpy as np
+import pytest
+import trimesh
+
+from navapp.errors import InputError, NavappError
+from navapp.mechanics.fem import Material
+from navapp.simulation.scene import parse_scene
+from navapp.simulation.truth import (
+    Loading,
+    Supports,
+    Tool,
+    ToolLoad,
+    solve_linear,
+    solve_neo_hookean,
+    supported_nodes,
+    tool_patch,
+)
+
+
+@pytest.fixture(scope="module")
+def block():
+    """A 60 × 30 × 40 mm block of P1 tets (scikit-fem's generator, not navapp's mesher)."""
+    from skfem import MeshTet
+
+    from navapp.anatomy.meshing import TetMesh
+
+    m = MeshTet.init_tensor(np.linspace(0, 60, 13), np.linspace(0, 30, 7), np.linspace(0, 40, 9))
+    nodes, tets = np.asarray(m.p.T, float), np.asarray(m.t.T, int)
+    e = nodes[tets[:, 1:]] - nodes[tets[:, :1]]
+    flip = np.linalg.det(e) < 0  # navapp's meshes are positively oriented
+    tets[flip] = tets[flip][:, [1, 0, 2, 3]]
+    return TetMesh(nodes, tets)
+
+
+def _press(mesh, depth=6.0, load=ToolLoad.DISPLACEMENT):
+    # a tip on the top (anterior, +y) face pushing down; the bottom face rests on a bed
+    return Loading(gravity=0.0, supports=Supports.POSTERIOR,
+                   tool=Tool((30.0, 30.0, 20.0), (0.0, -1.0, 0.0), 12.0, depth, load))
+
+
+def test_tool_displacement_truth_equals_scikit_fem(block):
+    """The prescribed indentation solved by navapp equals scikit-fem's own solve of the
+    same boundary-value problem (its assembly, its condensation, its solver)."""
+    from skfem import Basis, ElementTetP1, ElementVector, MeshTet, asm, condense, solve
+    from skfem.models.elasticity import linear_elasticity
+
+    mat = Material(E=5000.0, nu=0.45)
+    loading = _press(block)
+    u = solve_linear(block, loading, mat)
+    m = MeshTet(block.nodes.T, block.tets.T)
+    ib = Basis(m, ElementVector(ElementTetP1()), intorder=1)
+    K = asm(linear_elasticity(*mat.lame()), ib)
+    # the same boundary condition: the bed (posterior-facing nodes) held, the patch prescribed
+    bottom = supported_nodes(block, supports=Supports.POSTERIOR)["posterior_bed"]
+    assert np.all(block.nodes[bottom, 1] < 1e-9) and len(bottom) > 100
+    nodes, w = tool_patch(block, loading.tool)
+    x = np.zeros(K.shape[0])
+    # skfem's vector P1 DOFs are node-major like navapp's (3 i + axis)
+    for n, wi in zip(nodes, w, strict=True):
+        x[3 * n + 1] = -6.0 * wi
+    held = np.concatenate([(3 * bottom[:, None] + np.arange(3)).ravel(), (3 * nodes[:, None] + np.arange(3)).ravel()])
+    ref = solve(*condense(K, np.zeros(K.shape[0]), x=x, D=held))
+    assert np.abs(u.ravel() - ref).max() < 1e-8 * 6.0
+    centre = nodes[np.argmin(np.linalg.norm(block.nodes[nodes] - [30.0, 30.0, 20.0], axis=1))]
+    assert u[centre, 1] == pytest.approx(-6.0)
+    assert np.abs(u[bottom]).max() == 0.0
+
+
+def test_tool_pressure_reaches_its_depth_and_neo_hookean_agrees_at_small_load(block):
+    mat = Material(E=5000.0, nu=0.45)
+    lin = solve_linear(block, _press(block, 0.5, ToolLoad.PRESSURE), mat)
+    nodes, _ = tool_patch(block, _press(block).tool)
+    centre = nodes[np.argmin(np.linalg.norm(block.nodes[nodes] - [30.0, 30.0, 20.0], axis=1))]
+    assert lin[centre, 1] == pytest.approx(-0.5, rel=1e-6)
+    # pressure, not a prescribed dent: the patch's rim is free and moves less than the centre
+    assert np.abs(lin[nodes, 1]).min() < 0.5 * np.abs(lin[centre, 1])
+    nh = solve_neo_hookean(block, _press(block, 0.5, ToolLoad.PRESSURE), mat)
+    assert np.abs(nh - lin).max() < 0.03 * 0.5  # 1 % strain: geometric nonlinearity is small
+    with pytest.raises(NavappError, match="linear truth"):
+        solve_neo_hookean(block, _press(block), mat)
+
+
+def test_tool_scene_keys_are_checked():
+    base = {"anatomy": {"phantom": 0}, "deformation": {"gravity": False, "supports": "bare_area"},
+            "tool": {"site": "anterior", "at": [0.0, 60.0, 0.0], "radius_mm": 15.0, "depth_mm": 30.0}}
+    scene = parse_scene(base)
+    assert scene.tool.site == "anterior" and scene.tool.at == (0.0, 60.0, 0.0) and not scene.gravity
+    bad = [({"tool": {**base["tool"], "site": "posterior"}}, "tool.site"),
+           ({"tool": {**base["tool"], "depth_mm": 200.0}}, "tool.depth_mm"),
+           ({"tool": {**base["tool"], "at": [1.0, 2.0]}}, "tool.at"),
+           ({"tool": {**base["tool"], "tip": 3}}, "unknown key tool.tip"),
+           ({"deformation": {"supports": "table"}}, "deformation.supports"),
+           ({"deformation": {"large": True}}, "needs the linear truth"),
+           ({"deformation": {"gravity_tilt_deg": 720.0}}, "gravity_tilt_deg"),
+           ({"stylus": {"pattern": "patch"}}, "needs stylus.at")]
+    for change, message in bad:
+        data = {**base, **change}
+        if "deformation" in change and "large" in change["deformation"]:
+            data["deformation"] = {**base["deformation"], **change["deformation"]}
+        with pytest.raises(InputError, match=message):
+            parse_scene(data)
+
+
+@pytest.fixture(scope="module")
+def sphere_model(cache_root):
+    """A ball of radius 60 mm, meshed and given a small basis: the most regular surface."""
+    from navapp.anatomy.meshing import cached_tetmesh
+    from navapp.anatomy.model import PreopModel
+    from navapp.mechanics.basis import BasisSettings, load_or_compute_basis
+    from navapp.registration.model import build_model
+
+    ball = trimesh.creation.icosphere(subdivisions=4, radius=60.0)
+    mesh, _ = cached_tetmesh(ball, 10.0, cache_root)
+    basis, _ = load_or_compute_basis(mesh, BasisSettings(k=12), cache_root=cache_root)
+    return build_model(basis, PreopModel(liver=ball))
+
+
+def _dented_cap(model, depth=12.0, radius=20.0):
+    """Points on the upper cap of the ball, already in the model's frame, pressed in near
+    one side of the cap by a smooth dent (no rigid motion at all)."""
+    rest = model.features["liver"].rest
+    cap = rest[rest[:, 2] > 25.0]
+    centre = np.array([0.0, 35.0, 48.7])
+    centre *= 60.0 / np.linalg.norm(centre)
+    r = np.linalg.norm(cap - centre, axis=1)
+    inward = -cap / np.linalg.norm(cap, axis=1, keepdims=True)
+    return {"anterior": cap + (depth * np.clip(1 - (r / radius) ** 2, 0, None) ** 2)[:, None] * inward}
+
+
+def test_a_partial_sphere_keeps_its_given_pose_and_names_its_sliding_motions(sphere_model):
+    from navapp.registration.pipeline import RobustOptions, register
+
+    data = _dented_cap(sphere_model)
+    probe = sphere_model.basis.nodes
+    slid = register(sphere_model, data, deform=False, init=RobustOptions.unguarded())
+    moved = np.linalg.norm(slid.rigid.apply(probe) - probe, axis=1).mean()
+    assert moved > 1.0  # without the rule, ICP slides the ball to share out the dent
+    reg = register(sphere_model, data, deform=False)
+    assert reg.pose_choice is not None and reg.pose_choice.kept
+    assert np.array_equal(reg.rigid.apply(probe), probe)
+    assert reg.determinacy is not None
+    rotations = [r for r, _, _ in reg.determinacy.weak if r is not None]
+    assert len(rotations) == 3  # a ball turns freely about its centre
+    assert "rotation about" in reg.determinacy.warning
+    assert reg.determinacy.warning in reg.warnings
+
+
+def test_a_distinctive_surface_has_no_sliding_motion_and_moved_data_are_refitted(small_model):
+    from navapp.registration.pipeline import register
+    from navapp.registration.rotation import rotation
+
+    rest = small_model.features["liver"].rest
+    front = rest[rest[:, 1] > np.median(rest[:, 1])]
+    R, c = rotation(np.radians([6.0, -4.0, 5.0])), small_model.centroid
+    reg = register(small_model, {"anterior": (front - c) @ R.T + c + [4.0, -3.0, 2.0]}, deform=False)
+    assert not reg.pose_choice.kept  # the given pose is 8 mm off: ICP's is better by the margin
+    assert reg.determinacy.warning is None and reg.determinacy.condition < 1e3
+    err = np.linalg.norm(reg.rigid.apply(rest) - ((rest - c) @ R.T + c + [4.0, -3.0, 2.0]), axis=1).max()
+    assert err < 0.5
+
+
+def test_the_warning_fires_where_the_data_cannot_determine_the_answer(small_model):
+    """Data already aligned, on the undeformed model but for one local dent: the deformation
+    fitted to part of them predicts the rest worse than none, so the answer is the given
+    pose itself (no worse than no correction) and one line says why. A deformation that is
+    in the basis is supported and kept."""
+    from navapp.registration.pipeline import register
+
+    rest = small_model.features["liver"].rest
+    front = rest[rest[:, 1] > np.percentile(rest[:, 1], 40)]
+    centre = front[np.argmax(front[:, 0])]
+    r = np.linalg.norm(front - centre, axis=1)
+    dented = front + (15.0 * np.clip(1 - (r / 30.0) ** 2, 0, None) ** 2)[:, None] * [0.0, -1.0, 0.0]
+    reg = register(small_model, {"anterior": dented})
+    assert reg.support is not None and not reg.support.supported
+    assert not reg.deformed
+    probe = small_model.basis.nodes
+    assert np.array_equal(reg.transform(probe), probe)  # exactly the given pose
+    assert any(w.startswith("deformation not supported by the data") for w in reg.warnings)
+
+    n = small_model.basis.Ju.shape[1]
+    alpha = np.zeros(n)
+    alpha[::7] = 1.5
+    moved = front + (small_model.features["liver"].B @ (small_model.basis.Ju @ alpha).reshape(-1, 3))[
+        rest[:, 1] > np.percentile(rest[:, 1], 40)]
+    good = register(small_model, {"anterior": moved})
+    assert good.support is not None and good.support.supported and good.deformed
+    assert not any(w.startswith("deformation not supported") for w in good.warnings)
