@@ -242,7 +242,7 @@ def cmd_bench(args):
 
         bench_import(args.repeats)
     elif args.what == "live":
-        from .tracking.bench import bench_live
+        from .evaluation.live_bench import bench_live
 
         bench_live(args.frames, args.planes, args.ks[0], args.edges[0])
     else:

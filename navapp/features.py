@@ -37,6 +37,8 @@ class Feature:
         expected RMS of the data's own error (``registration.quality``): tracked stylus and
         iUS segmentation about 0.5 mm; a surgeon's falciform and ridge designations are
         approximate to a few mm; centerline points are contour centroids (≈1 mm).
+    words : str
+        what the viewer calls its points in a sentence ("portal-vein contours").
     """
 
     name: str
@@ -46,6 +48,7 @@ class Feature:
     source: str
     colour: tuple[int, int, int]
     noise_mm: float
+    words: str
 
     @property
     def salient(self) -> bool:
@@ -56,16 +59,18 @@ class Feature:
 REGION_TARGETS = ("falciform", "ridge_left", "ridge_right")  # labelled liver-surface regions (anatomy.model)
 
 TABLE: tuple[Feature, ...] = (
-    Feature("anterior", "surface", "liver", 1.0, "stylus", (255, 255, 255), 0.5),
-    Feature("posterior", "surface", "liver", 1.0, "ius", (255, 200, 0), 0.5),
-    Feature("falciform", "surface", "falciform", 0.3, "stylus", (255, 0, 255), 1.5),
-    Feature("ridge_left", "surface", "ridge_left", 0.3, "stylus", (0, 255, 255), 1.5),
-    Feature("ridge_right", "surface", "ridge_right", 0.3, "stylus", (0, 200, 200), 1.5),
-    Feature("portal_contour", "surface", "portal", 1.0, "ius", (255, 154, 31), 0.5),
-    Feature("hepatic_contour", "surface", "hepatic", 1.0, "ius", (46, 230, 255), 0.5),
-    Feature("portal_centerline", "centerline", "portal_centerline", 1.0, "ius", (255, 0, 0), 1.0),
-    Feature("hepatic_centerline", "centerline", "hepatic_centerline", 1.0, "ius", (0, 60, 255), 1.0),
-    Feature("fiducials", "fiducial", "fiducials", 1.0, "fiducial", (255, 255, 0), 0.5),
+    Feature("anterior", "surface", "liver", 1.0, "stylus", (255, 255, 255), 0.5, "the anterior surface"),
+    Feature("posterior", "surface", "liver", 1.0, "ius", (255, 200, 0), 0.5, "the posterior liver wall"),
+    Feature("falciform", "surface", "falciform", 0.3, "stylus", (255, 0, 255), 1.5, "the falciform ligament"),
+    Feature("ridge_left", "surface", "ridge_left", 0.3, "stylus", (0, 255, 255), 1.5, "the left inferior ridge"),
+    Feature("ridge_right", "surface", "ridge_right", 0.3, "stylus", (0, 200, 200), 1.5, "the right inferior ridge"),
+    Feature("portal_contour", "surface", "portal", 1.0, "ius", (255, 154, 31), 0.5, "portal-vein contours"),
+    Feature("hepatic_contour", "surface", "hepatic", 1.0, "ius", (46, 230, 255), 0.5, "hepatic-vein contours"),
+    Feature("portal_centerline", "centerline", "portal_centerline", 1.0, "ius", (255, 0, 0), 1.0,
+            "portal-vein centres"),
+    Feature("hepatic_centerline", "centerline", "hepatic_centerline", 1.0, "ius", (0, 60, 255), 1.0,
+            "hepatic-vein centres"),
+    Feature("fiducials", "fiducial", "fiducials", 1.0, "fiducial", (255, 255, 0), 0.5, "fiducials"),
 )
 """Every data feature, in the order files and tables list them."""
 

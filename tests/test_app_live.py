@@ -10,10 +10,8 @@ import numpy as np
 import pytest
 from conftest import free_port
 
+from navapp.app.runs import RunKind
 from navapp.simulation.scene import parse_scene
-
-pytest.importorskip("viser")
-pytest.importorskip("pyigtl")
 
 SCENE = {"name": "apptest", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
          "stylus": {"coverage": 0.2}, "ius": {"planes": 2}, "effects": [{"kind": "auto_segmentation", "sd_px": 1.0}]}
@@ -47,7 +45,7 @@ def live_app(cache_root, tmp_path_factory):
     server = ReplayServer(script, port=0, rate_hz=25).start()
     app = App(scene, port=free_port(), session_dir=tmp_path_factory.mktemp("live"), edge=12.0, k=12,
               cache_root=cache_root, tracking=TrackingConfig(port=server.port, rate_hz=50.0))
-    assert app.start().wait(600) and app.failed is None, app.failed
+    assert app.start().wait(600) and app.core.failed is None, app.core.failed
     yield app, server, sd
     app.live.stop()
     app.server.stop()
@@ -58,18 +56,18 @@ def live_app(cache_root, tmp_path_factory):
 def test_live_tip_and_digitised_points_are_exactly_what_was_sent(live_app):
     app, server, sd = live_app
     assert wait_until(lambda: app.live.tip is not None)
-    assert app.set_live_recording(True) is None
-    assert wait_until(lambda: len(app.session.live_points) >= 20, 15)
-    app.set_live_recording(False)
-    pts = np.array([p[:3] for p in app.session.live_points])
+    assert app.live.set_recording(True) is None
+    assert wait_until(lambda: len(app.core.session.live_points) >= 20, 15)
+    app.live.set_recording(False)
+    pts = np.array([p[:3] for p in app.core.session.live_points])
     sent = np.array([m[:3, 3] for _, name, m in list(server.sent) if name == "StylusTipToReference"], float)
     d = np.abs(pts[:, None, :] - sent[None]).max(-1).min(1)
     assert d.max() <= 1e-6  # every recorded point is a tip position that went over the wire
     assert len(np.unique(pts, axis=0)) > 10  # the tip moved
-    assert all(p[3] == "anterior" for p in app.session.live_points)
-    data = app.data("all")
+    assert all(p[3] == "anterior" for p in app.core.session.live_points)
+    data = app.core.data()
     assert len(data["anterior"]) == len(pts)  # only live points: the simulated sweep was not collected
-    lines = app.live.status_lines()
+    lines = app.live.link.status_lines()
     assert lines[0].startswith("connected to") and any("StylusTipToReference: **seen**" in x for x in lines)
 
 
@@ -78,11 +76,11 @@ def test_a_frozen_frame_is_a_plane_at_the_tracked_pose(live_app):
     from navapp.simulation.probe import pixels_to_tracker
 
     app, server, sd = live_app
-    assert wait_until(lambda: app.live.frame is not None)
-    cs = app.new_client_state()
-    frame = app.live.frame
-    assert app.freeze_frame(cs) is None
-    plane = app.planes[cs.plane]
+    assert wait_until(lambda: app.live.link.frame is not None)
+    cs = app.core.new_client_state()
+    frame = app.live.link.frame
+    assert app.live.freeze_frame(cs) is None
+    plane = app.core.planes[cs.plane]
     assert plane.orientation == "live" and np.array_equal(plane.image, np.asarray(frame.image))
     H, W = plane.image.shape
     cols, rows = np.array([0, W - 1, 0, W - 1, 100]), np.array([0, 0, H - 1, H - 1, 37])
@@ -93,24 +91,24 @@ def test_a_frozen_frame_is_a_plane_at_the_tracked_pose(live_app):
     assert np.allclose(R.T @ R, np.eye(3), atol=1e-5) and np.linalg.det(R) > 0
     # drawing on it works as on any plane, and a restart reads the frame back from its PNG
     for c, r in ((60, 60), (90, 60), (90, 90)):
-        assert app.click(cs, c, r, "PV contour") is None
-    assert app.contour_command(cs, "Close") is None
-    assert "portal_contour" in app.data("all")
-    _, planes = open_session(app.session.folder, app.sd)
+        assert app.drawing.click(cs, c, r, "PV contour") is None
+    assert app.drawing.command(cs, "Close") is None
+    assert "portal_contour" in app.core.data()
+    _, planes = open_session(app.core.session.folder, app.core.sd)
     assert np.array_equal(planes[cs.plane].image, plane.image)
     assert np.allclose(planes[cs.plane].probe_to_tracker, plane.probe_to_tracker)
 
 
 def test_undo_removes_a_live_recording(live_app):
     app, server, sd = live_app
-    cs = app.new_client_state()
-    before = len(app.session.live_points)
-    app.set_live_recording(True)
-    assert wait_until(lambda: len(app.session.live_points) >= before + 5, 15)
-    app.set_live_recording(False)
-    assert len(app.session.live_points) > before
-    assert app.contour_command(cs, "Undo") is None
-    assert len(app.session.live_points) == before
+    cs = app.core.new_client_state()
+    before = len(app.core.session.live_points)
+    app.live.set_recording(True)
+    assert wait_until(lambda: len(app.core.session.live_points) >= before + 5, 15)
+    app.live.set_recording(False)
+    assert len(app.core.session.live_points) > before
+    assert app.drawing.command(cs, "Undo") is None
+    assert len(app.core.session.live_points) == before
 
 
 def test_live_re_registration_follows_the_frames_and_reaches_slicer(live_app):
@@ -122,31 +120,32 @@ def test_live_re_registration_follows_the_frames_and_reaches_slicer(live_app):
     from navapp.tracking.results import RIGID, TARGETS, ResultsSender, rigid_matrix
 
     app, server, sd = live_app
-    if len(app.session.live_points) < 20:
-        app.set_live_recording(True)
-        assert wait_until(lambda: len(app.session.live_points) >= 20, 15)
-        app.set_live_recording(False)
-    app.results = ResultsSender.serve(0)
-    slicer = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=app.results.port)
+    if len(app.core.session.live_points) < 20:
+        app.live.set_recording(True)
+        assert wait_until(lambda: len(app.core.session.live_points) >= 20, 15)
+        app.live.set_recording(False)
+    app.slicer.sender = ResultsSender.serve(0)
+    slicer = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=app.slicer.sender.port)
     try:
-        follower = app.live.follower
-        assert app.set_live_follow(True) is None
+        follower = app.live.link.follower
+        assert app.live.set_follow(True) is None
         assert wait_until(lambda: follower.frames >= 6, 120), follower.summary()
-        assert app.result.run.startswith("live")
-        assert "Live re-registration is on" in app.register("all")  # one registration at a time
+        assert app.core.result.run.startswith("live")
+        assert "Live re-registration is on" in app.runs.start(RunKind.ALL)  # one registration at a time
         # each update registered the kept data plus its frame's automatic contours
         frame_data = follower.reg.frame
         assert frame_data and sum(len(v) for v in frame_data.values()) > 20
-        n_kept = sum(len(v) for v in app.data("all").values())
+        n_kept = sum(len(v) for v in app.core.data().values())
         assert sum(len(v) for v in follower.reg.base.values()) == n_kept
-        assert app.set_live_follow(False) is None
-        assert wait_until(lambda: app.session.log and "live" in app.session.log[-1], 60)
-        assert {"seconds", "stop", "iterations", "points"} <= set(app.session.log[-1])  # what the run table shows
-        final = app.last_reg
+        assert app.live.set_follow(False) is None
+        assert wait_until(lambda: app.core.session.log and app.core.session.log[-1].live is not None, 60)
+        last = app.core.session.log[-1]
+        assert last.seconds > 0 and last.stop and last.points > 0  # what the run table shows
+        final = app.core.last_reg
         assert final.libr is not None and np.isfinite(final.libr.beta).all()
-        assert app.session.result["run"].startswith("live")  # kept, and saved for a restart
+        assert app.core.session.result["run"].startswith("live")  # kept, and saved for a restart
         # the live updates before it are queued ahead of the final result: read until it arrives
-        centres = np.array([t.centre for t in app.preop.targets])
+        centres = np.array([t.centre for t in app.core.preop.targets])
         want = {RIGID: rigid_matrix(final.rigid), TARGETS: final.transform(centres)}
         last = {}
         end = time.monotonic() + 20
@@ -158,12 +157,12 @@ def test_live_re_registration_follows_the_frames_and_reaches_slicer(live_app):
                 got = m.matrix if name == RIGID else np.asarray(m.positions)
                 if np.abs(got - want[name]).max() < 1e-3:
                     last[name] = got
-        assert set(last) == set(want), f"received {sorted(last)} of {sorted(want)} as registered; {app.results_error}"
+        assert set(last) == set(want), f"received {sorted(last)} of {sorted(want)} as registered; {app.slicer.error}"
     finally:
-        app.set_live_follow(False)
+        app.live.set_follow(False)
         slicer.stop()
-        app.results.close()
-        app.results = None
+        app.slicer.sender.close()
+        app.slicer.sender = None
     # the simulated segmentation is the declared effect: none declared, no contours
     from dataclasses import replace
 
@@ -179,5 +178,5 @@ def test_a_lost_stylus_is_neither_shown_nor_measured_from(live_app):
     assert wait_until(lambda: app.live.tip is not None)
     server.stop()
     assert wait_until(lambda: app.live.tip is None, 10 + app.live.config.missing_s)
-    lines = app.live.status_lines()
+    lines = app.live.link.status_lines()
     assert any("StylusTipToReference: **missing**" in x and "/s" not in x for x in lines), lines

@@ -4,7 +4,7 @@ trimesh's own plane section of the same mesh (another library's answer)."""
 import numpy as np
 import trimesh
 
-from navapp.app.overlays import section_pixels
+from navapp.app.view2d.overlays import section_pixels
 from navapp.simulation.probe import Probe, pose, tracker_to_pixels
 
 

@@ -10,9 +10,8 @@ import numpy as np
 import pytest
 from conftest import free_port
 
+from navapp.app.runs import RunKind
 from navapp.simulation.scene import parse_scene
-
-pytest.importorskip("viser")
 
 SCENE = {"name": "apptest", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
          "stylus": {"coverage": 0.2}, "ius": {"planes": 2}}
@@ -23,7 +22,7 @@ def start_app(cache_root, folder):
 
     a = App(parse_scene(SCENE), port=free_port(), session_dir=folder, edge=12.0, k=12, cache_root=cache_root)
     assert a.start().wait(600), "start-up did not finish"
-    assert a.failed is None, a.failed
+    assert a.core.failed is None, a.core.failed
     return a
 
 
@@ -36,112 +35,112 @@ def app(cache_root, tmp_path_factory):
 
 
 def wait_idle(app):
-    app.worker.join(120)
-    assert not app.worker.busy
+    app.core.worker.join(120)
+    assert not app.core.worker.busy
 
 
 def test_register_refuses_without_data_then_runs(app):
-    assert "Collect data first" in app.register("all")  # nothing collected yet: refused, with the reason
-    app.collect_stylus_now()
-    assert app.session.stylus_count == len(app.sd.stylus_path)
-    assert app.register("rigid") is None
+    assert "Collect data first" in app.runs.start(RunKind.ALL)  # nothing collected yet: refused, with the reason
+    app.stylus.collect_now()
+    assert app.core.session.stylus_count == len(app.core.sd.stylus_path)
+    assert app.runs.start(RunKind.RIGID) is None
     wait_idle(app)
-    assert app.register("surface") is None
+    assert app.runs.start(RunKind.SURFACE) is None
     wait_idle(app)
-    log = app.session.log
-    assert [e["run"] for e in log[-2:]] == ["rigid", "deformable, surface"]
-    assert log[-1]["error_mean_mm"] < log[-2]["error_mean_mm"]
-    assert log[-1]["updates_streamed"] >= 2
+    log = app.core.session.log
+    assert [e.run for e in log[-2:]] == ["rigid", "deformable, surface"]
+    assert log[-1].error_mean_mm < log[-2].error_mean_mm
+    assert log[-1].updates_streamed >= 2
     # the error trace starts at the rigid pose it began from
-    assert log[-1]["trace"][0][1] == pytest.approx(log[-2]["error_mean_mm"], abs=0.01)
-    saved = json.loads((app.session.folder / "session.json").read_text())
-    assert saved["log"] == log
+    assert log[-1].trace[0][1] == pytest.approx(log[-2].error_mean_mm, abs=0.01)
+    saved = json.loads((app.core.session.folder / "session.json").read_text())
+    assert saved["log"] == [e.to_json() for e in log]
     assert saved["result"]["run"] == "deformable, surface" and len(saved["result"]["beta"]) > 6
 
 
 def test_plane_contour_and_free_probe_reach_the_data(app):
-    cs = app.new_client_state()
-    assert app.add_plane(cs) == "Choose a plane first."
-    app.show_plane(cs, 0)
-    assert app.add_plane(cs) is None and 0 in app.session.planes_added
-    T = app.planes[1].probe_to_tracker.copy()
+    cs = app.core.new_client_state()
+    assert app.imaging.add(cs) == "Choose a plane first."
+    app.imaging.show(cs, 0)
+    assert app.imaging.add(cs) is None and 0 in app.core.session.planes_added
+    T = app.core.planes[1].probe_to_tracker.copy()
     T[:3, 3] += T[:3, 0] * 5.0  # slide the probe 5 mm sideways
-    free = app.place_probe(cs, T)
+    free = app.imaging.place_probe(cs, T)
     assert free >= 100 and cs.plane == free
-    assert np.allclose(app.session.free_planes[-1]["pose"], T)
+    assert np.allclose(app.core.session.free_planes[-1]["pose"], T)
     for c, r in ((100, 100), (140, 100), (140, 150)):
-        assert app.click(cs, c, r, "HV contour") is None
-    assert app.click(cs, 9999, 0) == "That click is outside the image."
-    assert app.contour_command(cs, "Close") is None
-    c = app.session.contours[-1]
+        assert app.drawing.click(cs, c, r, "HV contour") is None
+    assert app.drawing.click(cs, 9999, 0) == "That click is outside the image."
+    assert app.drawing.command(cs, "Close") is None
+    c = app.core.session.contours[-1]
     assert c.closed and c.plane == free and c.vertices == [(100, 100), (140, 100), (140, 150)]
-    data = app.data("all")
+    data = app.core.data()
     assert "hepatic_contour" in data and "hepatic_centerline" in data
-    app.contour_command(cs, "Undo")  # undoes the Close
+    app.drawing.command(cs, "Undo")  # undoes the Close
     assert not c.closed and len(c.vertices) == 3
-    app.contour_command(cs, "Undo")  # then the last vertex
+    app.drawing.command(cs, "Undo")  # then the last vertex
     assert c.vertices == [(100, 100), (140, 100)]
-    app.contour_command(cs, "Clear plane")
-    assert all(x.plane != free for x in app.session.contours)
-    app.contour_command(cs, "Undo")  # the clear is undone too
-    assert any(x.plane == free for x in app.session.contours)
+    app.drawing.command(cs, "Clear plane")
+    assert all(x.plane != free for x in app.core.session.contours)
+    app.drawing.command(cs, "Undo")  # the clear is undone too
+    assert any(x.plane == free for x in app.core.session.contours)
 
 
 def test_two_browsers_draw_at_once_without_interfering(app):
-    a, b = app.new_client_state(), app.new_client_state()
-    app.show_plane(a, 0)
-    app.show_plane(b, 1)
-    n0 = len(app.session.contours)
+    a, b = app.core.new_client_state(), app.core.new_client_state()
+    app.imaging.show(a, 0)
+    app.imaging.show(b, 1)
+    n0 = len(app.core.session.contours)
     for k in range(4):  # interleaved, as two surgeons' clicks arrive
-        app.click(a, 60 + 10 * k, 80, "PV contour")
-        app.click(b, 60 + 10 * k, 200, "HV contour")
+        app.drawing.click(a, 60 + 10 * k, 80, "PV contour")
+        app.drawing.click(b, 60 + 10 * k, 200, "HV contour")
     ca, cb = a.drawing, b.drawing
     assert ca.plane == 0 and cb.plane == 1 and len(ca.vertices) == 4 and len(cb.vertices) == 4
     assert ca.feature == "portal_contour" and cb.feature == "hepatic_contour"
-    app.contour_command(a, "Close")
-    app.contour_command(b, "Undo")  # b's own last vertex; a's closed contour is untouched
+    app.drawing.command(a, "Close")
+    app.drawing.command(b, "Undo")  # b's own last vertex; a's closed contour is untouched
     assert len(cb.vertices) == 3 and ca.closed and len(ca.vertices) == 4
-    app.contour_command(b, "Undo")
-    app.contour_command(b, "Undo")
-    app.contour_command(b, "Undo")
-    assert cb not in app.session.contours and ca.closed  # a second, third Undo never reopens a's contour
-    assert "Nothing of yours" in app.contour_command(b, "Undo")
-    assert len(app.session.contours) == n0 + 1
-    app.show_plane(b, 0)  # b switching planes does not move a's plane
+    app.drawing.command(b, "Undo")
+    app.drawing.command(b, "Undo")
+    app.drawing.command(b, "Undo")
+    assert cb not in app.core.session.contours and ca.closed  # a second, third Undo never reopens a's contour
+    assert "Nothing of yours" in app.drawing.command(b, "Undo")
+    assert len(app.core.session.contours) == n0 + 1
+    app.imaging.show(b, 0)  # b switching planes does not move a's plane
     assert a.plane == 0 and b.plane == 0
 
 
 def test_undo_covers_planes_and_stylus_batches(app):
-    cs = app.new_client_state()
-    app.show_plane(cs, 1)
-    app.add_plane(cs)
-    assert 1 in app.session.planes_added
-    app.contour_command(cs, "Undo")
-    assert 1 not in app.session.planes_added
-    app.session.stylus_count = 10
-    app.collect_stylus_now()
-    assert app.session.stylus_count == len(app.sd.stylus_path)
-    app.contour_command(cs, "Undo")
-    assert app.session.stylus_count == 10
-    app.collect_stylus_now()
+    cs = app.core.new_client_state()
+    app.imaging.show(cs, 1)
+    app.imaging.add(cs)
+    assert 1 in app.core.session.planes_added
+    app.drawing.command(cs, "Undo")
+    assert 1 not in app.core.session.planes_added
+    app.core.session.stylus_count = 10
+    app.stylus.collect_now()
+    assert app.core.session.stylus_count == len(app.core.sd.stylus_path)
+    app.drawing.command(cs, "Undo")
+    assert app.core.session.stylus_count == 10
+    app.stylus.collect_now()
 
 
 def test_cancel_keeps_the_previous_result(app):
     wait_idle(app)
-    before = app.result
+    before = app.core.result
     assert before is not None
-    assert app.register("all") is None
-    app.cancel()
+    assert app.runs.start(RunKind.ALL) is None
+    app.runs.cancel()
     wait_idle(app)
-    last = app.session.log[-1]
-    assert last["cancelled"] and last["stop"] == "cancelled"
-    assert app.result is before  # the model on show is still the previous run's
-    assert app.worker.last.libr.stop_reason != "cancelled"  # a warm start continues from the good run
+    last = app.core.session.log[-1]
+    assert last.cancelled and last.stop == "cancelled"
+    assert app.core.result is before  # the model on show is still the previous run's
+    assert app.core.worker.last.libr.stop_reason != "cancelled"  # a warm start continues from the good run
 
 
 def test_view2d_serves_state_overlays_and_clicks(app):
-    cs = app.new_client_state()
-    app.show_plane(cs, 0)
+    cs = app.core.new_client_state()
+    app.imaging.show(cs, 0)
     base = f"http://127.0.0.1:{app.view2d.port}"
     page = urllib.request.urlopen(f"{base}/us?c={cs.token}").read().decode()
     assert "<canvas" in page and cs.token in page
@@ -166,16 +165,16 @@ def test_view2d_serves_state_overlays_and_clicks(app):
         urllib.request.urlopen(f"{base}/us/state?c=nobody")
     assert e.value.code == 404
     assert urllib.request.urlopen(f"{base}/us/state?c={cs.token}").status == 200  # still serving
-    app.contour_command(cs, "Undo")
+    app.drawing.command(cs, "Undo")
 
 
 def test_warm_rerun_sweep_and_export(app):
-    app.collect_stylus_now()
-    assert app.register("warm") is None
+    app.stylus.collect_now()
+    assert app.runs.start(RunKind.WARM) is None
     wait_idle(app)
-    assert app.session.log[-1]["run"].endswith("(warm)")
+    assert app.core.session.log[-1].run.endswith("(warm)")
     rows = []
-    assert app.sweep(rows.append) is None
+    assert app.runs.sweep(rows.append) is None
     wait_idle(app)
     assert len(rows) > 2 and any(r.label.startswith("rigid") or "rigid" in r.label for r in rows)
     out, msg = app.export()
@@ -188,50 +187,50 @@ def test_predicted_error_and_the_suggested_next_plane(app):
     truth, at the surface and the targets; a tab colours by it or by the true error; and
     "Suggest the next plane" acquires the best-ranked pose as this tab's plane."""
     wait_idle(app)
-    res = app.result
-    S = app.model.basis.surface
+    res = app.core.result
+    S = app.core.model.basis.surface
     assert res.beta is not None and res.predicted_mm is not None and res.predicted_mm.shape == S.shape
     assert np.isfinite(res.predicted_mm).all() and (res.predicted_mm > 0).all()
-    assert [b.name for b in res.target_bands] == [t.name for t in app.preop.targets]
+    assert [b.name for b in res.target_bands] == [t.name for t in app.core.preop.targets]
     assert all(0 < b.lower_mm < b.predicted_mm < b.upper_mm for b in res.target_bands)
-    cs = app.new_client_state()
-    assert np.array_equal(app.surface_error(cs), res.node_error_mm[S])  # the truth is known: true error first
+    cs = app.core.new_client_state()
+    assert np.array_equal(app.shown.surface_error(cs), res.node_error_mm[S])  # the truth is known: true error first
     cs.error_source = "predicted"
-    assert app.surface_error(cs) is res.predicted_mm
+    assert app.shown.surface_error(cs) is res.predicted_mm
     messages = []
-    n_free = len(app.session.free_planes)
-    assert app.suggest_plane(cs, messages.append) is None
+    n_free = len(app.core.session.free_planes)
+    assert app.imaging.suggest(cs, messages.append) is None
     wait_idle(app)
     assert messages and messages[0].startswith("Suggested"), messages
-    assert len(app.session.free_planes) == n_free + 1 and cs.plane == app.session.free_planes[-1]["index"]
-    T = app.planes[cs.plane].probe_to_tracker
+    assert len(app.core.session.free_planes) == n_free + 1 and cs.plane == app.core.session.free_planes[-1]["index"]
+    T = app.core.planes[cs.plane].probe_to_tracker
     assert np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-9)
-    assert any("predicted error" in line for line in app.target_plane_lines(cs.plane))
-    rigid_only = app.new_client_state()
-    app.last_reg, kept = None, app.last_reg
+    assert any("predicted error" in line for line in app.shown.target_plane_lines(cs.plane))
+    rigid_only = app.core.new_client_state()
+    app.core.last_reg, kept = None, app.core.last_reg
     try:
-        assert "Register deformably first" in app.suggest_plane(rigid_only, messages.append)
+        assert "Register deformably first" in app.imaging.suggest(rigid_only, messages.append)
     finally:
-        app.last_reg = kept
+        app.core.last_reg = kept
 
 
 def test_a_restarted_server_restores_the_session_and_the_registered_model(app, cache_root):
     wait_idle(app)
-    again = start_app(cache_root, app.session.folder)
+    again = start_app(cache_root, app.core.session.folder)
     try:
-        assert again.session.to_json() == app.session.to_json()
-        assert set(again.planes) == set(app.planes)  # free planes re-simulated from their poses
-        assert again.result is not None and again.result.run == app.result.run
-        assert np.allclose(again.result.beta, app.result.beta)
-        assert np.allclose(again.result.node_error_mm, app.result.node_error_mm)
+        assert again.core.session.to_json() == app.core.session.to_json()
+        assert set(again.core.planes) == set(app.core.planes)  # free planes re-simulated from their poses
+        assert again.core.result is not None and again.core.result.run == app.core.result.run
+        assert np.allclose(again.core.result.beta, app.core.result.beta)
+        assert np.allclose(again.core.result.node_error_mm, app.core.result.node_error_mm)
         # kept in the session (to 1 µm): a live result was predicted from frames the session does not hold
-        assert np.allclose(again.result.predicted_mm, app.result.predicted_mm, atol=1e-3)
-        assert again.result.target_bands == app.result.target_bands
+        assert np.allclose(again.core.result.predicted_mm, app.core.result.predicted_mm, atol=1e-3)
+        assert again.core.result.target_bands == app.core.result.target_bands
         out, _ = again.export()  # Export works without registering again
         assert out is not None and (out / "registered_liver.ply").exists()
-        assert again.register("warm") is None  # and a warm start continues from it
-        again.worker.join(120)
-        assert again.session.log[-1]["run"].endswith("(warm)") and not again.session.log[-1]["cancelled"]
+        assert again.runs.start(RunKind.WARM) is None  # and a warm start continues from it
+        again.core.worker.join(120)
+        assert again.core.session.log[-1].run.endswith("(warm)") and not again.core.session.log[-1].cancelled
     finally:
         again.server.stop()
         again.view2d.stop()

@@ -14,11 +14,6 @@ import numpy as np
 from ..geometry.bresenham import polyline
 from ..simulation.probe import Probe, pixels_to_tracker, ray_to_pixel
 
-DRAWABLE = {  # what the user can designate on an image → the data feature it becomes
-    "PV contour": "portal_contour",
-    "HV contour": "hepatic_contour",
-    "Posterior surface": "posterior",
-}
 CENTERLINE_OF = {"portal_contour": "portal_centerline", "hepatic_contour": "hepatic_centerline"}
 MIN_CENTROID_PIXELS = 6  # a closed contour smaller than this gives no centerline point (as in simulation)
 
@@ -26,7 +21,7 @@ MIN_CENTROID_PIXELS = 6  # a closed contour smaller than this gives no centerlin
 @dataclass
 class Contour:
     plane: int  # index of the plane it was drawn on
-    feature: str  # a value of DRAWABLE
+    feature: str  # a value of palette.DRAWABLE
     vertices: list = field(default_factory=list)  # [(col, row)] integer pixels, in drawing order
     closed: bool = False
 

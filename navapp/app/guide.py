@@ -3,10 +3,13 @@ explanation, one action for its button, a precondition (why the button cannot be
 yet, shown instead of letting it do nothing) and a completion test (the guide moves on
 only when the step's work is actually done, e.g. the whole sweep digitised). Actions and
 tests are functions of the App and the browser's ``ClientState``. No viser here: actions
-reach the browser's view through ``app.views``."""
+reach the browser's view through ``core.views``."""
 
 from collections.abc import Callable
 from dataclasses import dataclass
+
+from .imaging import FREE_PLANE_BASE
+from .runs import RunKind
 
 
 @dataclass(frozen=True)
@@ -20,17 +23,17 @@ class Step:
 
 
 def _view(app, cs):
-    return app.views.get(cs.client_id)
+    return app.core.views.get(cs.client_id)
 
 
 def _need_scene(app, cs):
-    return None if app.sd is not None else "Wait: the scene is still being prepared (see the status above)."
+    return None if app.core.sd is not None else "Wait: the scene is still being prepared (see the status above)."
 
 
 def _need_model(app, cs):
-    if app.worker is None:
+    if app.core.worker is None:
         return "Wait: the registration model is still being prepared (see the status above)."
-    if app.run is not None:
+    if app.core.run is not None:
         return "Wait: a registration is running."
     return None
 
@@ -39,16 +42,17 @@ def _need_sweep(app, cs):
     why = _need_model(app, cs)
     if why:
         return why
-    n, total = app.session.stylus_count, len(app.sd.stylus_path)
+    sd, session = app.core.need_scene()
+    n, total = session.stylus_count, len(sd.stylus_path)
     if n < total:
         return f"Wait: the stylus sweep is at {n} of {total} points."
     return None
 
 
-def _ran(label):
+def _ran(kind: RunKind):
     def done(app, cs):
-        log = app.session.log if app.session else []
-        return app.run is None and any(e["run"] == label and not e.get("cancelled") for e in log)
+        log = app.core.session.log if app.core.session else []
+        return app.core.run is None and any(e.kind is kind and not e.cancelled for e in log)
     return done
 
 
@@ -75,51 +79,55 @@ def _stylus(app, cs):
         v.layers.cb["True deformed liver (ghost)"].value = False
         v.layers.apply_visibility()
     speed = (lambda: float(v.stylus.speed.value)) if v is not None else (lambda: 1.0)
-    if not app.sweeping:
-        app.start_stylus(speed)
+    if not app.stylus.sweeping:
+        app.stylus.start(speed)
 
 
 def _sweep_done(app, cs):
-    return app.sd is not None and app.session.stylus_count >= len(app.sd.stylus_path) and not app.sweeping
+    sd, session = app.core.sd, app.core.session
+    return sd is not None and session is not None and session.stylus_count >= len(sd.stylus_path) \
+        and not app.stylus.sweeping
 
 
 def demo_plane(app):
     """The first preset plane that cuts a portal vein branch across (a closed contour to draw)."""
-    for i in sorted(app.planes):
-        if i < 100 and "portal_centerline" in app.planes[i].features:
+    planes = app.core.planes
+    for i in sorted(planes):
+        if i < FREE_PLANE_BASE and "portal_centerline" in planes[i].features:
             return i
-    return min(app.planes)
+    return min(planes)
 
 
 def _plane(app, cs):
     i = demo_plane(app)
-    app.show_plane(cs, i)
+    app.imaging.show(cs, i)
     v = _view(app, cs)
     if v is not None:
-        v.layers.look_at_plane(app.planes[i].probe_to_tracker)
+        v.layers.look_at_plane(app.core.planes[i].probe_to_tracker)
         v.ultrasound.open_2d()
 
 
 def _draw(app, cs):
     if cs.plane is None:
-        app.show_plane(cs, demo_plane(app))
-    app.contour_command(cs, "Feature", "PV contour")
+        app.imaging.show(cs, demo_plane(app))
+    app.drawing.command(cs, "Feature", "PV contour")
     v = _view(app, cs)
     if v is not None:
         v.ultrasound.open_2d()
 
 
 def _drew(app, cs):
-    return any(c.closed for c in app.session.contours)
+    return any(c.closed for c in app.core.need_session().contours)
 
 
 def _all(app, cs):
     if cs.drawing is not None and len(cs.drawing.vertices) >= 3:
-        app.contour_command(cs, "Close")
+        app.drawing.command(cs, "Close")
     v = _view(app, cs)
     if v is not None:
         v.layers.look("Anterior")
-    return app.register("warm" if app.worker.last is not None else "all")
+    _, worker = app.core.need_model()
+    return app.runs.start(RunKind.WARM if worker.last is not None else RunKind.ALL)
 
 
 def _compare(app, cs):
@@ -145,12 +153,12 @@ STEPS = (
     Step("Rigid registration",
          "First a rigid fit (ICP on the salient features: falciform ligament and inferior ridges). The "
          "error colours show what a rigid fit cannot fix.",
-         "Register rigidly", lambda app, cs: app.register("rigid"), _need_sweep, _ran("rigid")),
+         "Register rigidly", lambda app, cs: app.runs.start(RunKind.RIGID), _need_sweep, _ran(RunKind.RIGID)),
     Step("Deformable registration, surface only",
          "LIBR deforms the model with a linear-elastic basis of boundary modes until it matches the "
          "stylus data, keeping strain energy low. Watch it converge live.",
-         "Register deformably (surface data)", lambda app, cs: app.register("surface"), _need_model,
-         _ran("deformable, surface")),
+         "Register deformably (surface data)", lambda app, cs: app.runs.start(RunKind.SURFACE), _need_model,
+         _ran(RunKind.SURFACE)),
     Step("An ultrasound plane",
          "A tracked ultrasound probe images the liver's interior. The plane is shown at its tracked pose in "
          "3D, and its image in the 2D view on the left, with the model's portal vein (red), hepatic veins "
@@ -165,7 +173,7 @@ STEPS = (
     Step("Register with ultrasound",
          "Deformable registration with everything: stylus surface, the drawn vessel contours, their "
          "centerline points and the posterior wall. It warm-starts from the last result.",
-         "Register deformably (all data)", _all, _need_model, _ran("deformable, all data (warm)")),
+         "Register deformably (all data)", _all, _need_model, _ran(RunKind.WARM)),
     Step("Compare errors",
          "Each registration's mean and maximum error against the true deformation, and its time.",
          "Show the comparison", _compare, _need_model),

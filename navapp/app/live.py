@@ -1,5 +1,9 @@
 """The viewer's link to a tracker: a ``tracking.TrackingClient`` (OpenIGTLink, e.g. a PLUS
-server or ``navapp replay``) pumped into the App a few times a second. No viser here.
+server or ``navapp replay``) pumped into the shared state as messages arrive. No viser here.
+
+``Live`` is the room the panels and the other rooms talk to (it exists without a tracker:
+then it refuses with the reason); ``LiveLink`` is the connection, ``LiveFollower`` the
+re-registration on every frame.
 
 - The stylus tip moves live in every browser (at most ``TIP_HZ`` updates a second).
 - While digitising is on, the client's ``Digitiser`` records points at the configured
@@ -10,31 +14,42 @@ server or ``navapp replay``) pumped into the App a few times a second. No viser 
   other plane.
 - "Re-register on every frame" (``LiveFollower``): each new frame's contours (designated
   automatically when the scene declares ``auto_segmentation``) join the kept data and the
-  model is re-registered warm-started from the last state (``tracking.LiveRegistration``),
+  model is re-registered warm-started from the last state (``registration.live``),
   in a thread of its own so the tip never waits for it; frames that arrive while an update
   runs are skipped, the newest one is taken next.
 - The pump wakes on every stylus or frame message (not on a timer), so a tracker message
   reaches the browsers within milliseconds.
 """
 
+from __future__ import annotations
+
 import statistics
 import threading
 import time
 from collections import deque
+from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..registration.live import LiveRegistration, merge
+from ..registration.pipeline import Registration
 from ..simulation.scenedata import auto_segmentation, segment_frame
 from ..simulation.ultrasound import PlaneData
 from ..tracking.client import TrackingClient
 from ..tracking.config import TrackingConfig
 from ..tracking.events import ProbeSample, StylusSample
-from ..tracking.live import LiveRegistration, merge
+from .drawing import LivePoints
+from .imaging import LIVE_PLANE_BASE
+from .runs import RunEntry, RunKind
+from .state import Change, ClientState, RegisteredState
+
+if TYPE_CHECKING:
+    from .server import App
 
 PUMP_HZ = 20.0  # status refresh and digitiser collection; tip and frames go out as they arrive
 TIP_MIN_S = 1.0 / 60  # at most this often per browser: a 100 Hz tracker would flood the websockets
 VIEW_MIN_S = 1.0 / 15  # live registrations shown at most this often (the model mesh is large)
-LIVE_PLANE_BASE = 1000  # indices of frozen live frames start here
+NO_TRACKER = "No tracker connected (navapp serve --igtl HOST:PORT)."
 
 
 def probe_pose_from_image(image_to_reference, width_px, height_px) -> tuple[np.ndarray, float]:
@@ -54,20 +69,20 @@ def probe_pose_from_image(image_to_reference, width_px, height_px) -> tuple[np.n
 
 
 class LiveLink:
-    def __init__(self, app, config: TrackingConfig):
-        self.app = app
+    def __init__(self, live: Live, config: TrackingConfig):
+        self.live, self.core = live, live.core
         self.config = config
         self._wake = threading.Event()
         self.client = TrackingClient(config, on_event=self._on_event)
         self.follower = LiveFollower(self)
-        self.tip = None
-        self.frame = None  # latest ProbeSample
+        self.tip: np.ndarray | None = None
+        self.frame: ProbeSample | None = None  # latest ProbeSample
         self.recorded = 0  # digitiser points already moved into the session
         self._stop = threading.Event()
         self._collect_lock = threading.Lock()
-        self._thread = None
+        self._thread: threading.Thread | None = None
 
-    def start(self):
+    def start(self) -> LiveLink:
         self.client.start()
         self._thread = threading.Thread(target=self._pump, daemon=True, name="navapp-live")
         self._thread.start()
@@ -113,7 +128,7 @@ class LiveLink:
             if len(pts) > self.recorded:
                 new, new_labels = pts[self.recorded:], labels[self.recorded:len(pts)]
                 self.recorded = len(pts)
-                self.app.add_live_points(new, new_labels)
+                self.live.add_points(new, new_labels)
 
     def _pump(self):
         last_status = last_tip = last_collect = 0.0
@@ -123,14 +138,14 @@ class LiveLink:
             now = time.monotonic()
             s = self.client.latest_stylus
             moved = s is not None and (self.tip is None or not np.array_equal(s.tip, self.tip))
-            if moved and now - last_tip >= TIP_MIN_S:
+            if s is not None and moved and now - last_tip >= TIP_MIN_S:
                 last_tip = now
                 self.tip = np.array(s.tip, float)
-                self.app.each_view(lambda v: v.show_live_tip(self.tip))
+                self.core.each_view(_shows("show_live_tip", self.tip))
             f = self.client.latest_frame
             if f is not None and f is not self.frame:
                 self.frame = f
-                self.app.each_view(lambda v, f=f: v.show_live_frame(f))
+                self.core.each_view(_shows("show_live_frame", f))
                 self.follower.new_frame()
             if now - last_collect >= 1.0 / PUMP_HZ:
                 last_collect = now
@@ -140,8 +155,8 @@ class LiveLink:
                 st = self.client.status().get(self.config.stylus)
                 if self.tip is not None and (st is None or st.state == "missing"):
                     self.tip = None  # a lost tool is not shown where it was last seen, nor measured from
-                    self.app.each_view(lambda v: v.show_live_tip(None))
-                self.app.each_view(lambda v: v.refresh("live"))
+                    self.core.each_view(lambda v: v.show_live_tip(None))
+                self.core.each_view(lambda v: v.refresh(Change.LIVE))
 
     def frozen_plane(self, index) -> PlaneData | None:
         """The latest frame as a plane of the session, or None (no frame yet)."""
@@ -153,6 +168,11 @@ class LiveLink:
         return PlaneData(index, "live", T, {}, img.astype(np.uint8))
 
 
+def _shows(method: str, arg):
+    """``fn(view)`` calling the view's ``method(arg)`` (bound now, not when called)."""
+    return lambda v: getattr(v, method)(arg)
+
+
 class LiveFollower:
     """Re-registration on every new frame while ``on`` (see the module doc). The kept data
     are the session's (stylus, live points, planes, drawn contours), re-read whenever the
@@ -160,15 +180,15 @@ class LiveFollower:
     segmentation designates (none without it: then each update re-fits the kept data)."""
 
     def __init__(self, link: LiveLink):
-        self.link, self.app = link, link.app
+        self.link, self.live, self.core = link, link.live, link.core
         self.on = False
         self.reg: LiveRegistration | None = None
         self.frames = 0  # frames registered
         self.skipped = 0  # frames that arrived while an update ran
         self.ms: deque = deque(maxlen=2000)  # wall time per update
         self.last_error: str | None = None
-        self._version = None
-        self._last_frame = None
+        self._version: int | None = None  # Core.version the kept data were read at
+        self._last_frame: ProbeSample | None = None
         self._pending = 0
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -183,15 +203,15 @@ class LiveFollower:
 
     @property
     def segmentation_px(self) -> float | None:
-        sd = self.app.sd
+        sd = self.core.sd
         return None if sd is None else auto_segmentation(sd.scene)
 
     def set(self, on: bool) -> str | None:
-        app = self.app
+        core = self.core
         if on:
-            if app.model is None:
+            if core.model is None:
                 return "Still preparing the registration model."
-            if sum(len(v) for v in app.data("all").values()) < 3 and self.segmentation_px is None:
+            if sum(len(v) for v in core.data().values()) < 3 and self.segmentation_px is None:
                 return "Collect data first: the scene declares no automatic segmentation of live frames."
             self.on = True
             self._wake.set()
@@ -214,14 +234,15 @@ class LiveFollower:
                 f"(max {max(ms):.0f} ms), {self.skipped} frames skipped while busy")
 
     def _base(self):
-        app = self.app
-        if app.version != self._version or self.reg is None:
-            self._version = app.version
-            data = app.data("all")
+        core = self.core
+        if core.version != self._version or self.reg is None:
+            self._version = core.version
+            data = core.data()
             if self.reg is None:
-                self.reg = LiveRegistration(app.model, data)
-                if app.last_reg is not None and app.last_reg.libr is not None:
-                    self.reg.last = app.last_reg  # continue from the result on show
+                model, _ = core.need_model()
+                self.reg = LiveRegistration(model, data)
+                if core.last_reg is not None and core.last_reg.libr is not None:
+                    self.reg.last = core.last_reg  # continue from the result on show
             else:
                 self.reg.base = merge(data)
 
@@ -247,27 +268,162 @@ class LiveFollower:
             except Exception as exc:  # shown, and the follower switches off
                 self.on = False
                 self.last_error = f"{exc.__class__.__name__}: {exc}"
-                self.app.notify("Live re-registration stopped", self.last_error, error=True)
+                self.core.notify("Live re-registration stopped", self.last_error, error=True)
 
     def _update(self, f):
-        app = self.app
         self._base()
+        assert self.reg is not None  # made by _base
         features = {}
         if f is not None and self.segmentation_px is not None:
+            sd, _ = self.core.need_scene()
             img = np.asarray(f.image)
             T, _ = probe_pose_from_image(f.image_to_reference, img.shape[1], img.shape[0])
-            features = segment_frame(app.sd, 100_000 + self.frames, T)
+            features = segment_frame(sd, 100_000 + self.frames, T)
         t = time.perf_counter()
         reg = self.reg.update(features)
         self.ms.append(1000 * (time.perf_counter() - t))
         self.frames += 1
-        app.show_live_registration(reg, final=False)
+        self.live.show_registration(reg, final=False)
 
     def _settle(self):
         """The follower was switched off: converge on the last frame's data and keep it."""
+        live_reg = self.reg
+        assert live_reg is not None  # only called once it registered a frame
         try:
-            reg = self.reg.settle()
-            self.app.show_live_registration(reg, final=True, summary=self.summary())
+            reg = live_reg.settle()
+            self.live.show_registration(reg, final=True, summary=self.summary())
         except Exception as exc:
-            self.app.notify("Live re-registration", f"{exc.__class__.__name__}: {exc}", error=True)
-        self.reg.frame = None
+            self.core.notify("Live re-registration", f"{exc.__class__.__name__}: {exc}", error=True)
+        live_reg.frame = None
+
+
+class Live:
+    """The tracker side of the viewer: digitising with the tracked stylus, freezing frames,
+    live re-registration. Without a tracker (``link`` None) every action says so."""
+
+    def __init__(self, app: App, config: TrackingConfig | None):
+        self.app, self.core = app, app.core
+        self.config = config  # connect once the scene is ready (``connect``)
+        self.link: LiveLink | None = None
+        self._record_start: int | None = None  # live points before the recording in progress (its undo point)
+        self._shown = 0.0  # when a live registration was last drawn
+
+    def connect(self):
+        if self.config is not None:
+            self.link = LiveLink(self, self.config).start()
+            self.core.changed(Change.LIVE)
+
+    def stop(self):
+        if self.link is not None:
+            self.link.stop()
+
+    @property
+    def recording(self) -> bool:
+        return self.link is not None and self.link.recording
+
+    @property
+    def following(self) -> bool:
+        """Live re-registration is on."""
+        return self.link is not None and self.link.follower.on
+
+    @property
+    def tip(self) -> np.ndarray | None:
+        return self.link.tip if self.link is not None else None
+
+    def add_points(self, pts, labels):
+        """Points the tracked stylus digitised (tracker mm) become session data at once."""
+        core = self.core
+        with core.lock:
+            live_points = core.need_session().live_points
+            for p, lab in zip(np.asarray(pts, float), labels, strict=True):
+                live_points.append([float(p[0]), float(p[1]), float(p[2]), str(lab)])
+        core.changed(Change.DATA)
+
+    def set_recording(self, on: bool, label: str = "anterior") -> str | None:
+        link, core = self.link, self.core
+        if link is None:
+            return NO_TRACKER
+        session = core.need_session()
+        with core.lock:
+            if on and not link.recording:
+                self._record_start = len(session.live_points)
+        link.set_recording(on, label)
+        if not on:
+            with core.lock:
+                start, self._record_start = self._record_start, None
+                if start is not None and len(session.live_points) > start:
+                    for cs in core.states.values():
+                        cs.undo.append(LivePoints(start))
+        core.changed(Change.LIVE)
+        return None
+
+    def set_follow(self, on: bool) -> str | None:
+        """Re-register on every new tracked frame while on; switched off, the fit is
+        converged on the last frame's data and kept as the result."""
+        link, core = self.link, self.core
+        if link is None:
+            return NO_TRACKER
+        if on and core.worker is not None and core.worker.busy:
+            return "A registration is running; wait for it or cancel it."
+        err = link.follower.set(on)
+        core.changed(Change.LIVE)
+        return err
+
+    def show_registration(self, reg: Registration, final: bool, summary: str = ""):
+        """A live re-registration (``LiveFollower``): shown at most ``VIEW_MIN_S`` apart
+        while the probe moves, sent to Slicer, and kept as the result when ``final``."""
+        core, shown = self.core, self.app.shown
+        beta = reg.libr.beta if reg.libr is not None else None
+        now = time.monotonic()
+        self.app.slicer.send(reg, throttle=not final)
+        if not final and now - self._shown < VIEW_MIN_S:
+            return
+        self._shown = now
+        err = shown.node_error(reg.rigid, beta)
+        predicted = shown.predict(reg) if final else (None, [])  # ~0.1 s: not on every frame
+        state = RegisteredState(RunKind.LIVE.label, reg.rigid, beta, err, *predicted)
+        with core.lock:
+            core.result, core.last_reg = state, reg
+            if core.worker is not None:
+                core.worker.last = reg  # a warm start continues from here
+            if final:
+                session = core.need_session()
+                session.result = state.to_json()
+                points = int(sum(len(v) for v in core.data().values()))
+                session.log.append(RunEntry.of(RunKind.LIVE, reg, points, sum(reg.seconds.values()), err,
+                                               live=summary))
+        if final:
+            core.changed(Change.RESULT)
+            return
+        geom = shown.geometry(reg.rigid, beta)
+        core.each_view(lambda v: v.show_live_registration(geom, err))
+
+    def freeze_frame(self, cs: ClientState) -> str | None:
+        """The latest tracked ultrasound frame becomes a plane of the session (to draw on)."""
+        link, core = self.link, self.core
+        if link is None:
+            return NO_TRACKER
+        sd, session = core.need_scene()
+        with core.lock:
+            index = LIVE_PLANE_BASE + len(session.live_planes)
+            plane = link.frozen_plane(index)
+            f = link.frame
+            if plane is None or f is None or plane.image is None:
+                return "No ultrasound frame received yet."
+            probe = sd.probe
+            H, W = plane.image.shape[:2]
+            spacing = f.spacing_mm
+            if (H, W) != (probe.height_px, probe.width_px) or abs(spacing[0] - probe.spacing_mm) > 1e-6 \
+                    or abs(spacing[1] - probe.spacing_mm) > 1e-6:
+                return (f"the tracked frame is {W}×{H} px at {spacing[0]:.3f}×{spacing[1]:.3f} mm, the scene's "
+                        f"probe {probe.width_px}×{probe.height_px} px at {probe.spacing_mm} mm: set the scene's probe")
+            from PIL import Image
+
+            rel = f"live/frame_{index - LIVE_PLANE_BASE:03d}.png"
+            (session.folder / "live").mkdir(parents=True, exist_ok=True)
+            Image.fromarray(plane.image).save(session.folder / rel)
+            core.planes[index] = plane
+            session.live_planes.append({"index": index, "pose": plane.probe_to_tracker.tolist(), "png": rel})
+        self.app.imaging.show(cs, index)
+        core.changed(Change.DATA)
+        return None

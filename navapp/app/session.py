@@ -24,6 +24,7 @@ from ..features import STYLUS as STYLUS_FEATURES
 from ..simulation.scenedata import SceneData, acquire_free_plane, scene_key
 from ..simulation.ultrasound import PlaneData
 from .contours import Contour, contour_points
+from .runs import RunEntry
 
 SESSION_VERSION = 1
 
@@ -36,7 +37,7 @@ class Session:
     planes_added: list = field(default_factory=list)  # plane indices whose (auto) segmentation is data
     contours: list = field(default_factory=list)  # [Contour] drawn by hand
     free_planes: list = field(default_factory=list)  # [{"index": i, "pose": 4×4 list}]
-    log: list = field(default_factory=list)  # one dict per registration run
+    log: list[RunEntry] = field(default_factory=list)  # one row per registration run
     result: dict | None = None  # the registered model on show (RegisteredState.to_json), restored on restart
     live_points: list = field(default_factory=list)  # [[x, y, z, feature]] digitised with a tracked stylus
     live_planes: list = field(default_factory=list)  # [{"index", "pose", "png"}] frozen tracked frames
@@ -70,7 +71,7 @@ class Session:
     def to_json(self) -> dict:
         return {"version": SESSION_VERSION, "scene_key": self.key, "stylus_count": self.stylus_count,
                 "planes_added": self.planes_added, "contours": [c.to_json() for c in self.contours],
-                "free_planes": self.free_planes, "log": self.log, "result": self.result,
+                "free_planes": self.free_planes, "log": [e.to_json() for e in self.log], "result": self.result,
                 "live_points": self.live_points, "live_planes": self.live_planes}
 
     def save(self, sd: SceneData, planes: dict):
@@ -120,7 +121,8 @@ def open_session(folder: Path, sd: SceneData) -> tuple[Session, dict]:
         if d.get("scene_key") != key:
             raise InputError("this session folder belongs to another scene (pass a different --session)", folder)
         s = Session(folder, key, int(d["stylus_count"]), [int(i) for i in d["planes_added"]],
-                    [Contour.from_json(c) for c in d["contours"]], list(d["free_planes"]), list(d["log"]),
+                    [Contour.from_json(c) for c in d["contours"]], list(d["free_planes"]),
+                    [RunEntry.from_json(e) for e in d["log"]],
                     d.get("result"),
                     [[float(a), float(b), float(c), str(f)] for a, b, c, f in d.get("live_points", [])],
                     list(d.get("live_planes", [])))

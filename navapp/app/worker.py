@@ -15,6 +15,7 @@ import numpy as np
 
 from ..registration.libr import LMOptions
 from ..registration.pipeline import Registration, register
+from ..registration.rigid import RigidResult
 
 
 @dataclass
@@ -26,7 +27,7 @@ class Update:
     final: bool = False
     vessels: dict | None = None  # "portal" / "hepatic" → (V, 3) deformed vessel-surface vertices, mm
     beta: np.ndarray | None = None  # the state β (None for a rigid-only result)
-    rigid: object = None  # the rigid pose of this state (RigidResult)
+    rigid: RigidResult | None = None  # the rigid pose of this state
 
 
 def cancelled(reg: Registration) -> bool:
@@ -111,8 +112,11 @@ class RegistrationWorker:
         t0 = time.monotonic()
         last_sent = -np.inf
         try:
-            rigid_run = None if prev is not None else register(self.model, data, deform=False, options=options)
-            rigid = prev.rigid if prev is not None else rigid_run.rigid
+            if prev is not None:
+                rigid_run, rigid = None, prev.rigid
+            else:
+                rigid_run = register(self.model, data, deform=False, options=options)
+                rigid = rigid_run.rigid
             if not deform:
                 reg = rigid_run or register(self.model, data, deform=False, options=options, rigid=rigid)
                 final = self._state(0, float("nan"), t0, rigid, None, True)
@@ -130,7 +134,9 @@ class RegistrationWorker:
                 last_sent = time.monotonic()
                 reg = register(self.model, data, deform=True, options=options, callback=on_iteration,
                                cancel=self._cancel, beta0=beta0, rigid=rigid)
-                final = self._state(reg.libr.iterations, reg.libr.omega, t0, rigid, reg.libr.beta, True)
+                lm = reg.libr
+                assert lm is not None  # a deformable run has an LM result
+                final = self._state(lm.iterations, lm.omega, t0, rigid, lm.beta, True)
             if not cancelled(reg):  # a cancelled run is reported but never becomes the state to continue from
                 self.last = reg
                 self.on_update(final)

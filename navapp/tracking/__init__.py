@@ -1,4 +1,5 @@
-"""Live tracking over OpenIGTLink (issue 15): headless, no viser.
+"""Live tracking over OpenIGTLink: headless, no viser; I/O only (the re-registration of live
+data is ``registration.live``, its benchmark ``evaluation.live_bench``).
 
 - ``config``: TOML config (PLUS device names, ImageToProbe, watchdog timeouts, digitising rate);
 - ``events``: the typed events the app receives (StylusSample, ProbePose, ProbeSample, ToolStatus,
@@ -8,8 +9,6 @@
 - ``digitiser``: ``Digitiser``, stylus points at a set rate while recording;
 - ``replay``: ``ReplayServer``, a PLUS-like server playing a simulated scene (``navapp replay``);
 - ``results``: ``ResultsSender``, registrations back to 3D Slicer (TRANSFORM, POINT, STRING);
-- ``live``: ``LiveRegistration``, warm-started re-registration per new frame;
-- ``bench``: ``navapp bench live``.
 
 Frames: tracker coordinates (PLUS's Reference frame, mm) are passed through unchanged. The
 preoperative model is in navapp's LAS frame; registration's rigid part maps model → tracker
@@ -21,8 +20,7 @@ from .digitiser import Digitiser
 from .events import ConnectionStatus, ProbePose, ProbeSample, Skipped, StylusSample, ToolStatus, TransformSample
 
 __all__ = ["TrackingConfig", "load_config", "Digitiser", "ConnectionStatus", "ProbePose", "ProbeSample", "Skipped",
-           "StylusSample", "ToolStatus", "TransformSample", "TrackingClient", "ReplayServer", "ResultsSender",
-           "LiveRegistration"]
+           "StylusSample", "ToolStatus", "TransformSample", "TrackingClient", "ReplayServer", "ResultsSender"]
 
 
 def __getattr__(name):  # the networking modules load on first use
@@ -35,7 +33,4 @@ def __getattr__(name):  # the networking modules load on first use
     if name == "ResultsSender":
         from .results import ResultsSender
         return ResultsSender
-    if name == "LiveRegistration":
-        from .live import LiveRegistration
-        return LiveRegistration
     raise AttributeError(name)

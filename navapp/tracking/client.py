@@ -83,6 +83,7 @@ class _Link(pyigtl.OpenIGTLinkClient):
         self.on_message, self.on_connection, self.on_tick = on_message, on_connection, on_tick
         self._wake = threading.Event()
         self._partial_since = time.monotonic()
+        self._started: bool = False  # pyigtl's flag, set by its start()
 
     def stop(self, timeout=5.0):
         if not self._started:

@@ -40,7 +40,7 @@ from .config import TrackingConfig, full_image_matrix
 
 log = logging.getLogger("navapp.tracking")
 
-STYLUS_MM_PER_S = 40.0  # the viewer's sweep at 1× (navapp/app/server.py)
+STYLUS_MM_PER_S = 40.0  # the viewer's sweep at 1× (navapp/app/stylus.py)
 
 
 @dataclass
@@ -234,7 +234,9 @@ class ReplayServer:
     def _run(self):
         period = 1.0 / self.rate_hz
         wall0 = time.time()
-        next_t = self.t0
+        t0 = self.t0
+        assert t0 is not None  # set by start() before the thread runs
+        next_t = t0
         while not self._stop.is_set():
             now = time.monotonic()
             if now < next_t:
@@ -243,7 +245,7 @@ class ReplayServer:
             next_t += period
             if next_t < now - 1.0:  # fell far behind (a stalled machine): do not burst
                 next_t = now + period
-            t = now - self.t0 - self.latency_s  # the moment these messages describe
+            t = now - t0 - self.latency_s  # the moment these messages describe
             if self._server.is_connected():
                 try:
                     self._send_tick(t, wall0 + t)

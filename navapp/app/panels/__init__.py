@@ -1,11 +1,16 @@
 """One browser tab's view: its GUI panels and 3D scene nodes, built when the tab connects
-and refreshed from the App's shared state. Each panel is a module of its own."""
+and refreshed from the shared state (``core.Core``) through the rooms. Each panel is a
+module of its own."""
+
+from __future__ import annotations
 
 import time
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from ..state import ClientState
+from ..core import ON_CONNECT
+from ..state import Change, ClientState
 from .accuracy import AccuracyPanel
 from .guide import GuidePanel
 from .layers import LayersPanel
@@ -15,15 +20,18 @@ from .stylus import StylusPanel
 from .tracking import TrackingPanel
 from .ultrasound import UltrasoundPanel
 
+if TYPE_CHECKING:
+    from ..server import App
+    from ..worker import Update
+
 DISTANCE_TEXT_S = 0.2  # tumour-distance text refreshed at most this often while a tracked tip moves
 
 
 class ClientView:
-    """Everything one browser sees. ``refresh(what)`` is called after shared changes:
-    "status", "scene", "model", "data", "plane", "run", "result", "log"."""
+    """Everything one browser sees. ``refresh(what)`` is called after shared changes (``Change``)."""
 
-    def __init__(self, app, client, cs: ClientState):
-        self.app, self.client, self.cs = app, client, cs
+    def __init__(self, app: App, client, cs: ClientState):
+        self.app, self.core, self.client, self.cs = app, app.core, client, cs
         self._dist_shown = 0.0
         g = client.gui
         self.status = g.add_markdown("")
@@ -41,19 +49,19 @@ class ClientView:
 
     # ------------------------------------------------------------------ from the App
     def refresh_all(self):
-        for what in ("status", "scene", "model", "data", "plane", "result"):
+        for what in ON_CONNECT:
             self.refresh(what)
 
-    def refresh(self, what: str):
-        if what == "status":
-            app = self.app
-            self.status.content = f"**{app.stage}**"
-            done = app.ready.is_set() and app.failed is None
+    def refresh(self, what: Change):
+        if what is Change.STATUS:
+            core = self.core
+            self.status.content = f"**{core.stage}**"
+            done = core.ready.is_set() and core.failed is None
             self.bar.visible = not done
-            if app.stage_fraction is None:
+            if core.stage_fraction is None:
                 self.bar.animated, self.bar.value = True, 100.0
             else:
-                self.bar.animated, self.bar.value = False, 100.0 * app.stage_fraction
+                self.bar.animated, self.bar.value = False, 100.0 * core.stage_fraction
             return
         for p in self.panels:
             p.refresh(what)
@@ -75,20 +83,23 @@ class ClientView:
         now = time.monotonic()
         if now - self._dist_shown >= DISTANCE_TEXT_S:  # the tip moves at tracker rate; text needs less
             self._dist_shown = now
-            self.stylus.dist.content = "  \n".join(self.app.target_distance_lines(tip))
+            self.stylus.dist.content = "  \n".join(self.app.shown.target_distance_lines(tip))
 
     def show_live_frame(self, frame):
-        if self.tracking.follow.value:
-            plane = self.app.live.frozen_plane(-1)
+        link = self.app.live.link
+        if self.tracking.follow.value and link is not None:
+            plane = link.frozen_plane(-1)
             if plane is not None:
                 self.layers.show_plane(plane)
 
     def show_live_registration(self, geom, error):
-        self.layers.show_registered(geom, error=self.app.surface_error(self.cs, error) if error is not None else None)
+        self.layers.show_registered(geom, error=self.app.shown.surface_error(self.cs, error)
+                                    if error is not None else None)
 
-    def show_update(self, u, geom):
-        err = self.app.run.get("error") if self.app.run else None
-        self.layers.show_registered(geom, error=self.app.surface_error(self.cs, err) if err is not None else None)
+    def show_update(self, u: Update, geom):
+        run = self.core.run
+        err = run.error if run is not None else None
+        self.layers.show_registered(geom, error=self.app.shown.surface_error(self.cs, err) if err is not None else None)
         self.registration.show_update(u)
 
 

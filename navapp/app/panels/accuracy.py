@@ -24,7 +24,8 @@ class AccuracyPanel:
         self.btn.on_click(lambda e: self.sweep())
 
     def refresh(self, what):
-        self.btn.disabled = self.app.worker is None or self.app.run is not None
+        core = self.app.core
+        self.btn.disabled = core.worker is None or core.run is not None
 
     def sweep(self):
         rows = []
@@ -42,6 +43,6 @@ class AccuracyPanel:
                              f"{rows[j].tre_mean_mm:.2f} mm | {rows[j].iterations} |")
             self.md.content = "\n".join(lines)
 
-        err = self.app.sweep(on_row, lambda out: self.view.notify("Cost", f"{len(out)} settings run."))
+        err = self.app.runs.sweep(on_row, lambda out: self.view.notify("Cost", f"{len(out)} settings run."))
         if err:
             self.view.notify("Cost", err)

@@ -6,18 +6,21 @@ import numpy as np
 import trimesh
 import viser.transforms as vtf
 
-from ...features import TABLE as FEATURE_TABLE
-from ..state import ERROR_SCALE_MM
+from ...anatomy.model import VESSELS
+from ..palette import (
+    FEATURE_COLOURS,
+    LEGEND,
+    LIVER,
+    REG_TARGET,
+    REG_VESSEL,
+    REGISTERED,
+    TARGET,
+    TRUTH,
+    TURBO_CSS,
+    VESSEL,
+)
+from ..state import ERROR_SCALE_MM, Change
 
-LIVER = (205, 160, 140)
-PORTAL = (220, 50, 50)
-HEPATIC = (60, 90, 220)
-TRUTH = (60, 200, 90)
-REGISTERED = (240, 190, 60)
-REG_PORTAL = (200, 0, 0)
-REG_HEPATIC = (0, 60, 230)
-TARGET = (170, 60, 230)
-FEATURE_COLOURS = {f.name: f.colour for f in FEATURE_TABLE}  # data points, by feature (navapp.features)
 HOME_VIEW_MM = np.array([40.0, 260.0, 110.0])  # camera offset from the liver centroid: anterior, a little superior
 VIEW_DISTANCE_MM = 280.0
 STANDARD_VIEWS = {  # camera direction from the liver centroid (navapp frame: +x left, +y anterior, +z superior)
@@ -28,7 +31,6 @@ LAYERS = ("Preoperative liver", "Preoperative vessels", "Targets", "Collected da
           "Registered vessels", "Error colours", "True deformed liver (ghost)", "Ultrasound plane", "Stylus")
 TRUE, PREDICTED = "true error", "predicted error"
 ERROR_SOURCES = {TRUE: "true error", PREDICTED: "predicted error, no truth needed"}  # choice → legend label
-TURBO_CSS = "#30123b,#4686fb,#1ae4b6,#a2fc3c,#fabb39,#e4460a,#7a0403"
 
 
 def wxyz(R):
@@ -54,7 +56,7 @@ def stylus_tool() -> trimesh.Trimesh:
 
 class LayersPanel:
     def __init__(self, view):
-        self.view, self.app, self.cs = view, view.app, view.cs
+        self.view, self.app, self.core, self.cs = view, view.app, view.app.core, view.cs
         client = view.client
         self.s = client.scene
         g = client.gui
@@ -89,11 +91,12 @@ class LayersPanel:
         return node
 
     def _build_preop(self):
-        preop = self.app.preop
+        preop = self.core.preop
         s = self.s
         self._add("Preoperative liver", s.add_mesh_simple("/preop/liver", preop.liver.vertices, preop.liver.faces,
                                                           color=LIVER, opacity=0.3, side="double"))
-        for name, colour in (("portal", PORTAL), ("hepatic", HEPATIC)):
+        for name in VESSELS:
+            colour = VESSEL[name]
             m = preop.vessel(name)
             if m is not None:
                 self._add("Preoperative vessels", s.add_mesh_simple(f"/preop/{name}", m.vertices, m.faces,
@@ -109,7 +112,9 @@ class LayersPanel:
                                                        t.surface.faces, color=TARGET, opacity=0.5))
 
     def _build_scene(self):
-        sd = self.app.sd
+        sd = self.core.sd
+        if sd is None:
+            return
         s = self.s
         t = sd.truth.get("liver")
         if t is not None and not self.nodes["True deformed liver (ghost)"]:
@@ -120,7 +125,7 @@ class LayersPanel:
             self.tool.visible = False
             from scipy.spatial import cKDTree
 
-            ref = t if t is not None else self.app.preop.liver
+            ref = t if t is not None else self.core.preop.liver
             self._tree, self._normals = cKDTree(ref.vertices), ref.vertex_normals
         if not self.nodes["Ultrasound plane"]:
             probe = sd.probe
@@ -137,27 +142,27 @@ class LayersPanel:
 
     # ------------------------------------------------------------------ refresh
     def refresh(self, what):
-        app = self.app
-        if what == "scene" and app.sd is not None:
+        core, shown = self.core, self.app.shown
+        if what is Change.SCENE and core.sd is not None:
             self._build_scene()
-        if what in ("scene", "data") and app.sd is not None and app.session is not None:
+        if what in (Change.SCENE, Change.DATA) and core.sd is not None and core.session is not None:
             self._show_data()
-        if what == "plane":
+        if what is Change.PLANE:
             self.show_plane()
-        if what in ("result", "model"):
-            if what == "model" and app.model is not None and app.truth_nodes is None:
+        if what in (Change.RESULT, Change.MODEL):
+            if what is Change.MODEL and core.model is not None and core.truth_nodes is None:
                 self.source.value, self.source.disabled = PREDICTED, True  # no truth: only the prediction
                 self.cs.error_source = "predicted"
                 self._render_legend()
-            if app.result is not None and app.model is not None:
-                self.show_registered(app.geometry(), app.surface_error(self.cs))
-            elif app.result is None:
+            if core.result is not None and core.model is not None:
+                self.show_registered(shown.geometry(), shown.surface_error(self.cs))
+            elif core.result is None:
                 for n in self.reg.values():
                     n.visible = False
         self.apply_visibility()
 
     def _show_data(self):
-        data = self.app.data("all")
+        data = self.core.data()
         for name in list(self.data_nodes):
             if name not in data:
                 node = self.data_nodes.pop(name)
@@ -180,20 +185,20 @@ class LayersPanel:
 
     def show_plane(self, plane=None):
         """This browser's plane (or a preview plane) at its tracked pose with its image."""
-        app, cs = self.app, self.cs
-        if app.sd is None or not hasattr(self, "probe"):
+        core, cs = self.core, self.cs
+        sd = core.sd
+        if sd is None or not hasattr(self, "probe"):
             return
         live = plane is not None
         if plane is None:
-            if cs.plane is None or cs.plane not in app.planes:
+            if cs.plane is None or cs.plane not in core.planes:
                 self.probe.visible = False
                 return
-            plane = app.planes[cs.plane]
+            plane = core.planes[cs.plane]
         T = plane.probe_to_tracker
         self.probe.wxyz, self.probe.position = wxyz(T[:3, :3]), T[:3, 3]
         self.probe.visible = self.cb["Ultrasound plane"].value and (live or cs.plane is not None)
-        img = plane.image if plane.image is not None else np.zeros((app.sd.probe.height_px, app.sd.probe.width_px),
-                                                                   np.uint8)
+        img = plane.image if plane.image is not None else np.zeros((sd.probe.height_px, sd.probe.width_px), np.uint8)
         # viser draws an image's first row at the node's −y edge; flipped, row 0 sits at the probe face
         self.image.image = np.repeat(np.flipud(img)[..., None], 3, axis=2)
 
@@ -224,8 +229,8 @@ class LayersPanel:
                 node = s.add_mesh_simple("/registered/liver", v, f, color=REGISTERED, opacity=0.4, side="double")
                 self._add("Registered liver", node)
             else:
-                colour = REG_PORTAL if name == "portal" else REG_HEPATIC
-                self._add("Registered vessels", s.add_mesh_simple(f"/registered/{name}", v, f, color=colour))
+                self._add("Registered vessels", s.add_mesh_simple(f"/registered/{name}", v, f,
+                                                                  color=REG_VESSEL[name]))
             self.reg[name] = node if name == "liver" else self.nodes["Registered vessels"][-1]
         for t in geom.targets:
             if t.surface is None:
@@ -235,7 +240,7 @@ class LayersPanel:
                 self.reg[key].vertices = v
             else:
                 self.reg[key] = self._add("Targets", s.add_mesh_simple(f"/registered/targets/{t.name}", v,
-                                                                      t.surface.faces, color=(230, 0, 255)))
+                                                                      t.surface.faces, color=REG_TARGET))
         if "liver" in surfaces and (error is not None or "error" in self.reg):
             # no error for this state (a prediction comes with the result): grey dots, never stale colours
             self._last_error = (surfaces["liver"][0], error)
@@ -256,9 +261,9 @@ class LayersPanel:
 
     def _set_source(self):
         self.cs.error_source = "predicted" if self.source.value == PREDICTED else "true"
-        app = self.app
-        if app.result is not None and app.model is not None and app.run is None:
-            self.show_registered(app.geometry(), app.surface_error(self.cs))
+        core, shown = self.core, self.app.shown
+        if core.result is not None and core.model is not None and core.run is None:
+            self.show_registered(shown.geometry(), shown.surface_error(self.cs))
         self._render_legend()
 
     def _set_scale(self):
@@ -272,16 +277,15 @@ class LayersPanel:
             on = self.cb[layer].value
             for n in nodes:
                 if layer == "Stylus":
-                    n.visible = on and (self.app.stylus_tip is not None or
-                                        (self.app.live is not None and self.app.live.tip is not None))
+                    n.visible = on and (self.app.stylus.tip is not None or self.app.live.tip is not None)
                 elif layer == "Ultrasound plane":
-                    n.visible = on and (self.cs.plane is not None or self.app.live is not None)
+                    n.visible = on and (self.cs.plane is not None or self.app.live.link is not None)
                 else:
                     n.visible = on
 
     def look(self, name):
         cam = self.view.client.camera
-        c = self.app.centre
+        c = self.core.centre
         cam.up_direction = (0.0, 0.0, 1.0)
         cam.near, cam.far = 1.0, 5000.0
         if name == "Reset":
@@ -305,10 +309,7 @@ class LayersPanel:
         sw = "".join(
             f"<div><span style='display:inline-block;width:12px;height:12px;background:rgb{c};margin-right:5px;"
             f"opacity:{o}'></span>{t}</div>"
-            for t, c, o in (("preop liver", LIVER, 0.5), ("preop portal vein", PORTAL, 0.6),
-                            ("preop hepatic veins", HEPATIC, 0.6), ("registered liver", REGISTERED, 0.7),
-                            ("registered portal vein", REG_PORTAL, 1), ("registered hepatic veins", REG_HEPATIC, 1),
-                            ("targets (tumours)", TARGET, 1), ("true liver (ghost)", TRUTH, 0.5)))
+            for t, c, o in LEGEND)
         self.legend.content = (
             f"<div style='font-size:12px'>{sw}<div style='margin-top:6px'>{ERROR_SOURCES[self.source.value]} "
             f"(dots on the registered surface)</div>"

@@ -1,5 +1,7 @@
 """The Session panel: where the session is kept and Export."""
 
+from ..state import Change
+
 
 class SessionPanel:
     def __init__(self, view):
@@ -11,10 +13,10 @@ class SessionPanel:
         self.btn.on_click(lambda e: self.export())
 
     def refresh(self, what):
-        app = self.app
-        if app.session is not None and what in ("scene", "model"):
-            self.md.content = f"Everything you enter is saved at once in `{app.session.folder}`."
-        self.btn.disabled = app.last_reg is None
+        core = self.app.core
+        if core.session is not None and what in (Change.SCENE, Change.MODEL):
+            self.md.content = f"Everything you enter is saved at once in `{core.session.folder}`."
+        self.btn.disabled = core.last_reg is None
 
     def export(self):
         out, msg = self.app.export()

@@ -3,13 +3,14 @@ per-tool status (seen / stale / missing, as SlicerIGT's Watchdog), digitising wi
 tracked stylus while a switch is on, the live image, and freezing a frame to draw on."""
 
 from ...features import STYLUS as STYLUS_FEATURES
+from ..state import Change
 
 
 class TrackingPanel:
     def __init__(self, view):
         self.view, self.app, self.cs = view, view.app, view.cs
         g = view.client.gui
-        self.folder = g.add_folder("Live tracking (OpenIGTLink)", visible=self.app.tracking_config is not None)
+        self.folder = g.add_folder("Live tracking (OpenIGTLink)", visible=self.app.live.config is not None)
         with self.folder:
             self.status = g.add_markdown("Not connected.")
             self.label = g.add_dropdown("Digitise as", STYLUS_FEATURES)
@@ -27,33 +28,33 @@ class TrackingPanel:
         self.live_reg.on_update(lambda e: self._live_reg())
 
     def _record(self):
-        err = self.app.set_live_recording(bool(self.record.value), self.label.value)
+        err = self.app.live.set_recording(bool(self.record.value), self.label.value)
         if err:
             self.view.notify("Live tracking", err, error=True)
 
     def _live_reg(self):
         on = bool(self.live_reg.value)
-        live = self.app.live
-        if live is not None and live.follower.on == on:
+        if self.app.live.link is not None and self.app.live.following == on:
             return  # the echo of a refresh
-        err = self.app.set_live_follow(on)
+        err = self.app.live.set_follow(on)
         if err:
             self.live_reg.value = False
             self.view.notify("Live tracking", err, error=True)
 
     def _freeze(self):
-        err = self.app.freeze_frame(self.cs)
+        err = self.app.live.freeze_frame(self.cs)
         if err:
             self.view.notify("Live tracking", err, error=True)
 
     def refresh(self, what):
-        live = self.app.live
+        live = self.app.live.link
         if live is None:
             return
         self.folder.visible = True
-        if what in ("live", "data"):
+        if what in (Change.LIVE, Change.DATA):
             self.status.content = "  \n".join(live.status_lines())
-            n = len(self.app.session.live_points) if self.app.session else 0
+            session = self.app.core.session
+            n = len(session.live_points) if session else 0
             self.count.content = f"{n} points digitised with the tracked stylus" + \
                 (" — **recording**" if live.recording else "")
             if self.record.value != live.recording:
@@ -65,9 +66,9 @@ class TrackingPanel:
             self.live_summary.content = f.summary() + (
                 f"  \nContours of live frames: automatic (simulated segmentation, {seg:g} px error)"
                 if seg is not None else "  \nLive frames carry no contours until drawn on (no automatic segmentation)")
-            r = self.app.results
+            slicer = self.app.slicer
+            r = slicer.sender
             if r is not None:
                 state = "connected" if r.connected else "waiting for Slicer"
                 self.slicer.content = (f"3D Slicer (OpenIGTLink, port {r.port}): {state}, {r.sent} messages sent "
-                                       f"or queued"
-                                       + (f" — {self.app.results_error}" if self.app.results_error else ""))
+                                       f"or queued" + (f" — {slicer.error}" if slicer.error else ""))

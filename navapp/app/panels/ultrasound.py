@@ -7,7 +7,9 @@ import threading
 import numpy as np
 import viser.transforms as vtf
 
-from ..contours import DRAWABLE
+from ..drawing import Command
+from ..palette import DRAWABLE
+from ..state import Change
 from .layers import wxyz
 
 IFRAME_W, IFRAME_H = 590, 860
@@ -15,14 +17,14 @@ IFRAME_W, IFRAME_H = 590, 860
 
 class UltrasoundPanel:
     def __init__(self, view):
-        self.view, self.app, self.cs = view, view.app, view.cs
+        self.view, self.app, self.core, self.cs = view, view.app, view.app.core, view.cs
         g = view.client.gui
         with g.add_folder("Ultrasound"):
             self.plane_dd = g.add_dropdown("Plane", ("—",), disabled=True)
             self.btn_add = g.add_button("Add this plane's segmentation (simulated)", disabled=True)
             self.cb_2d = g.add_checkbox("2D view (draw here)", True)
             self.feature = g.add_dropdown("Draw", tuple(DRAWABLE))
-            self.cmds = g.add_button_group("Contour", ("Close", "Finish line", "Undo", "Clear plane"))
+            self.cmds = g.add_button_group("Contour", tuple(c.value for c in Command if c is not Command.FEATURE))
             self.btn_suggest = g.add_button("Suggest the next plane",
                                             hint="ranks probe poses on the registered anterior surface by how much "
                                                  "each plane is expected to lower the predicted error")
@@ -32,10 +34,10 @@ class UltrasoundPanel:
             self.info = g.add_markdown("")
             self.dist = g.add_markdown("")
         self.plane_dd.on_update(lambda e: self._choose())
-        self.btn_add.on_click(lambda e: self._msg(self.app.add_plane(self.cs)))
+        self.btn_add.on_click(lambda e: self._msg(self.app.imaging.add(self.cs)))
         self.cb_2d.on_update(lambda e: self._show_2d(self.cb_2d.value))
-        self.feature.on_update(lambda e: self.app.contour_command(self.cs, "Feature", self.feature.value))
-        self.cmds.on_click(lambda e: self._msg(self.app.contour_command(self.cs, e.target.value, self.feature.value)))
+        self.feature.on_update(lambda e: self.app.drawing.command(self.cs, Command.FEATURE.value, self.feature.value))
+        self.cmds.on_click(lambda e: self._msg(self.app.drawing.command(self.cs, e.target.value, self.feature.value)))
         self.cb_free.on_update(lambda e: self._free_probe(self.cb_free.value))
         self.btn_suggest.on_click(lambda e: self._suggest())
         self.panel = g.add_panel()
@@ -55,9 +57,9 @@ class UltrasoundPanel:
             self.view.notify("Ultrasound", err)
 
     def _choose(self):
-        i = self.app.plane_from_label(self.plane_dd.value)
+        i = self.app.imaging.from_label(self.plane_dd.value)
         if i is not None and i != self.cs.plane:
-            self.app.show_plane(self.cs, i)
+            self.app.imaging.show(self.cs, i)
 
     def _suggest(self):
         self.suggestion.content = "Ranking candidate planes…"
@@ -66,10 +68,11 @@ class UltrasoundPanel:
         def done(message):
             self.suggestion.content = message
             self.btn_suggest.disabled = False
-            if message.startswith("Suggested") and self.cs.plane in self.app.planes:
-                self.view.layers.look_at_plane(self.app.planes[self.cs.plane].probe_to_tracker)
+            planes = self.core.planes
+            if message.startswith("Suggested") and self.cs.plane in planes:
+                self.view.layers.look_at_plane(planes[self.cs.plane].probe_to_tracker)
 
-        err = self.app.suggest_plane(self.cs, done)
+        err = self.app.imaging.suggest(self.cs, done)
         if err:
             self.suggestion.content = ""
             self.btn_suggest.disabled = False
@@ -86,55 +89,58 @@ class UltrasoundPanel:
         self.panel.expand()
 
     def refresh(self, what):
-        app, cs = self.app, self.cs
-        if app.sd is None or app.session is None:
+        core, cs, imaging, shown = self.core, self.cs, self.app.imaging, self.app.shown
+        sd, session, planes = core.sd, core.session, core.planes
+        if sd is None or session is None:
             return
-        if what in ("result", "model", "run") and cs.plane is not None and cs.plane in app.planes:
-            self.dist.content = "  \n".join(app.target_plane_lines(cs.plane))
-        if what in ("scene", "data", "plane"):
-            labels = tuple(app.plane_label(i) for i in sorted(app.planes)) or ("—",)
+        if what in (Change.RESULT, Change.MODEL, Change.RUN) and cs.plane is not None and cs.plane in planes:
+            self.dist.content = "  \n".join(shown.target_plane_lines(cs.plane))
+        if what in (Change.SCENE, Change.DATA, Change.PLANE):
+            labels = tuple(imaging.label(i) for i in sorted(planes)) or ("—",)
             if tuple(self.plane_dd.options) != labels:
                 self.plane_dd.options = labels
-            self.plane_dd.disabled = not app.planes
+            self.plane_dd.disabled = not planes
             self.btn_add.disabled = cs.plane is None
             self.cb_free.disabled = False
-            if cs.plane is not None and cs.plane in app.planes:
-                label = app.plane_label(cs.plane)
+            if cs.plane is not None and cs.plane in planes:
+                label = imaging.label(cs.plane)
                 if self.plane_dd.value != label:
                     self.plane_dd.value = label
             if self.feature.value != cs.feature:
                 self.feature.value = cs.feature
-            with app.lock:
-                added = [app.plane_label(i) for i in app.session.planes_added]
-                drawn = [c for c in app.session.contours if c.vertices]
-                data = app.session.data(app.sd, app.planes)
+            with core.lock:
+                added = [imaging.label(i) for i in session.planes_added]
+                drawn = [c for c in session.contours if c.vertices]
+                data = session.data(sd, planes)
             counts = ", ".join(f"{k} {len(v)}" for k, v in sorted(data.items())) or "none yet"
             self.info.content = (f"Planes added as data: {', '.join(added) if added else 'none'}.  \n"
                                  f"Contours drawn: {len(drawn)} ({sum(c.closed for c in drawn)} closed).  \n"
                                  f"Data points: {counts}")
             if cs.plane is not None:
-                self.dist.content = "  \n".join(app.target_plane_lines(cs.plane))
-        if what == "plane" and cs.plane is not None:
+                self.dist.content = "  \n".join(shown.target_plane_lines(cs.plane))
+        if what is Change.PLANE and cs.plane is not None and cs.plane in planes:
             if not self.cb_2d.value:
                 self.cb_2d.value = True
             self.panel.expand()
             self.view.layers.show_plane()
+            T = planes[cs.plane].probe_to_tracker
             if self.gizmo is not None:
-                T = app.planes[cs.plane].probe_to_tracker
                 self.gizmo.wxyz, self.gizmo.position = wxyz(T[:3, :3]), T[:3, 3]
-            self._pose(app.planes[cs.plane].probe_to_tracker)
+            self._pose(T)
 
     # ------------------------------------------------------------------ free probe
     def _free_probe(self, on):
-        app, cs = self.app, self.cs
+        imaging, cs, planes = self.app.imaging, self.cs, self.core.planes
         if not on:
             if self.gizmo is not None:
                 self.gizmo.remove()
                 self.gizmo = None
             return
         if cs.plane is None:
-            app.show_plane(cs, min(app.planes))
-        T = app.planes[cs.plane].probe_to_tracker
+            imaging.show(cs, min(planes))
+        if cs.plane is None:
+            return
+        T = planes[cs.plane].probe_to_tracker
         # drawn over the liver (no depth test), so it can be grabbed where the probe is
         self.gizmo = self.view.client.scene.add_transform_controls("/gizmo", scale=40.0, depth_test=False,
                                                                    wxyz=wxyz(T[:3, :3]), position=T[:3, 3])
@@ -150,12 +156,14 @@ class UltrasoundPanel:
         @self.gizmo.on_drag_end
         def _(event):
             self._preview_T = None
-            app.place_probe(cs, self._gizmo_pose())
+            imaging.place_probe(cs, self._gizmo_pose())
 
     def _gizmo_pose(self):
+        gizmo = self.gizmo
+        assert gizmo is not None  # called from the gizmo's own callbacks
         T = np.eye(4)
-        T[:3, :3] = vtf.SO3(np.asarray(self.gizmo.wxyz)).as_matrix()
-        T[:3, 3] = self.gizmo.position
+        T[:3, :3] = vtf.SO3(np.asarray(gizmo.wxyz)).as_matrix()
+        T[:3, 3] = gizmo.position
         return T
 
     def _preview(self):
@@ -163,7 +171,7 @@ class UltrasoundPanel:
         try:
             while self._preview_T is not None:
                 T = self._preview_T
-                plane = self.app.acquire_at(T)
+                plane = self.app.imaging.acquire_at(T)
                 if self._preview_T is None:
                     break
                 self.view.layers.show_plane(plane)

@@ -2,7 +2,8 @@
 planes) plus the newest frame's contours, re-registered warm-started from the previous
 state (rigid pose and β kept, ICP skipped, LM from β) on every new frame.
 
-``navapp bench live`` measures it. Calls ``registration.pipeline.register`` unchanged.
+``navapp bench live`` (``evaluation.live_bench``) measures it; the viewer's "Re-register on
+every frame" runs it. Calls ``pipeline.register`` unchanged.
 """
 
 import time
@@ -11,8 +12,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..registration.pipeline import Registration
 from ..threads import limit_threads
+from .libr import LMOptions
+from .pipeline import Registration, register
 
 
 def merge(*datasets) -> dict:
@@ -39,8 +41,6 @@ class LiveRegistration:
 
     def __init__(self, model, base: dict | None = None, options=None, threads: int | None = 1,
                  iterations_per_frame: int | None = 1):
-        from ..registration.libr import LMOptions
-
         self.model, self.threads = model, threads
         self.options = options or LMOptions()
         self.frame_options = (replace(self.options, max_iterations=iterations_per_frame)
@@ -55,8 +55,6 @@ class LiveRegistration:
 
     def register(self, frame: dict | None = None):
         """Cold registration (multi-start rigid + LIBR) of base ∪ frame."""
-        from ..registration.pipeline import register
-
         self.frame = frame
         with self._limits():
             t = time.perf_counter()
@@ -69,8 +67,6 @@ class LiveRegistration:
         last = self.last
         if last is None or last.libr is None:
             return self.register(frame)
-        from ..registration.pipeline import register
-
         self.frame = frame
         with self._limits():
             t = time.perf_counter()

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..geometry.planes import plane_section
-from ..simulation.probe import Probe, tracker_to_pixels
+from ...geometry.planes import plane_section
+from ...simulation.probe import Probe, tracker_to_pixels
 
 
 @dataclass

@@ -3,7 +3,7 @@
 On the demo liver (phantom 0, 4 mm, k = 45) with the stylus data + 3 iUS planes kept, the
 probe glides through further plane poses; each frame's contours are designated by the
 scene's declared automatic segmentation (``simulation.scenedata.segment_frame``, as the
-viewer does) and the model is re-registered warm-started (``tracking.LiveRegistration``).
+viewer does) and the model is re-registered warm-started (``registration.live.LiveRegistration``).
 Three variants run on the same frames, interleaved frame by frame in one run (machines of
 this kind differ 2–3× in speed, and load moves absolute times: compare within a run):
 
@@ -26,10 +26,10 @@ import numpy as np
 from threadpoolctl import threadpool_info
 
 from ..defaults import EDGE_MM, K
-from .live import LiveRegistration
-from .replay import interpolate_pose
+from ..registration.live import LiveRegistration
+from ..tracking.replay import interpolate_pose
 
-VARIANTS = {"default": {"threads": 1, "iterations_per_frame": 1},
+VARIANTS: dict[str, dict] = {"default": {"threads": 1, "iterations_per_frame": 1},
             "converged_one_thread": {"threads": 1, "iterations_per_frame": None},
             "converged_as_installed": {"threads": None, "iterations_per_frame": None}}
 FRAME_MS = 1000.0 / 30  # one frame at 30 Hz
@@ -38,7 +38,8 @@ FRAME_MS = 1000.0 / 30  # one frame at 30 Hz
 def _poses(sd, first_plane, count, per_transit):
     """``count`` probe poses gliding from plane ``first_plane`` through the next ones."""
     poses = [p.probe_to_tracker for p in sd.planes]
-    out, i = [], first_plane
+    out: list[np.ndarray] = []
+    i = first_plane
     while len(out) < count:
         a, b = poses[i % len(poses)], poses[(i + 1) % len(poses)]
         out += [interpolate_pose(a, b, j / per_transit) for j in range(per_transit)]
@@ -48,6 +49,11 @@ def _poses(sd, first_plane, count, per_transit):
 
 def _pct(xs, q):
     return round(float(np.percentile(xs, q)), 1)
+
+
+def _last(live: LiveRegistration):
+    assert live.last is not None  # every variant started from the cold registration
+    return live.last
 
 
 def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8):
@@ -69,7 +75,7 @@ def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8):
     for name, kw in VARIANTS.items():
         live[name] = LiveRegistration(model, base, **kw)
         live[name].last = cold
-    rows = {name: [] for name in VARIANTS}
+    rows: dict[str, list[dict]] = {name: [] for name in VARIANTS}
     seg_ms, frame_pts = [], []
     for i, pose in enumerate(_poses(sd, planes, frames, per_transit)):
         t = time.perf_counter()
@@ -86,7 +92,9 @@ def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8):
             rows[name].append({"ms": wall, "iterations": reg.libr.iterations,
                                "stages_ms": {s: 1000 * v for s, v in reg.libr.timings.items()},
                                "outside_lm_ms": wall - 1000 * reg.seconds.get("deformable", wall / 1000)})
-    x0, x1 = sd.case.targets[:, :3], sd.case.targets[:, 3:]
+    targets = sd.case.targets
+    assert targets is not None  # the demo scene is simulated: its truth is known
+    x0, x1 = targets[:, :3], targets[:, 3:]
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
     out = {"liver": "demo (phantom 0)", "nodes": model.basis.M, "k": model.basis.k, "kept_planes": planes,
            "updates": len(rows["default"]), "frame_points_median": int(np.median(frame_pts)),
@@ -106,7 +114,8 @@ def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8):
                      "within_one_frame_at_30hz": round(float(np.mean(np.array(ms) <= FRAME_MS)), 2),
                      "iterations_median": statistics.median(its), "per_iteration_ms": pi,
                      "outside_lm_ms_median": round(statistics.median(r["outside_lm_ms"] for r in rs), 1),
-                     "tre_after_last_frame_mm": round(tre_stats(live[name].last.transform(x0, B=B), x1)["mean_mm"], 2)}
+                     "tre_after_last_frame_mm": round(tre_stats(_last(live[name]).transform(x0, B=B), x1)["mean_mm"],
+                                                      2)}
     a, b = rows["converged_one_thread"], rows["converged_as_installed"]
     ratios = [x["ms"] / y["ms"] for x, y in zip(a, b, strict=True)]
     out["one_thread_over_installed"] = {"median_of_ratios": round(statistics.median(ratios), 3)}

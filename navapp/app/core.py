@@ -1,0 +1,261 @@
+"""What every browser of one viewer shares, and the one lock around it: the scene data, the
+session (what the users entered), the planes, the registration model and its worker, the
+run in progress and the result on show; each browser's own ``ClientState``; the start-up
+that fills them in. No viser here.
+
+A change to shared data is announced with ``changed(Change.X)``: the version is bumped,
+the session saved at once (so nothing acknowledged can be lost), and every view refreshed
+from one refresher thread, so that a click is acknowledged without waiting for the GUIs of
+all browsers.
+"""
+
+from __future__ import annotations
+
+import secrets
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from .. import progress
+from ..errors import NavappError
+from ..registration.pipeline import Registration, prepare
+from ..simulation.scenedata import SceneData, load_scene_data
+from ..simulation.ultrasound import PlaneData
+from .session import Session, default_folder, open_session
+from .state import Change, ClientState, RegisteredState
+
+if TYPE_CHECKING:
+    from ..registration.model import RegistrationModel
+    from .runs import Run
+    from .worker import RegistrationWorker
+
+
+SAVED = (Change.DATA, Change.RESULT, Change.LOG)  # changes the session file must hold at once
+ON_CONNECT = (Change.STATUS, Change.SCENE, Change.MODEL, Change.DATA, Change.PLANE, Change.RESULT)
+
+
+class NotReady(RuntimeError):
+    """Shared state asked for before start-up has made it (a caller's missing check)."""
+
+
+@dataclass(frozen=True)
+class Loaded:
+    """Start-up's first stage: the scene data, its session and planes."""
+
+    sd: SceneData
+    session: Session
+    planes: dict[int, PlaneData]
+
+
+@dataclass(frozen=True)
+class Ready:
+    """Start-up's second stage: the registration model and, for simulated scenes whose true
+    displacement is known at the mesh nodes, the true deformed node positions."""
+
+    model: RegistrationModel
+    truth_nodes: np.ndarray | None
+
+
+class Core:
+    def __init__(self, scene, preop, edge: float, k: int, cache_root=None, session_dir=None):
+        self.scene, self.preop, self.edge, self.k = scene, preop, edge, k
+        self.cache_root, self.session_dir = cache_root, session_dir
+        self.centre = preop.liver.vertices.mean(0)
+        self.lock = threading.RLock()
+        self.version = 0  # bumped on every change to shared data
+        self.sd: SceneData | None = None
+        self.session: Session | None = None
+        self.planes: dict[int, PlaneData] = {}
+        self.model: RegistrationModel | None = None
+        self.worker: RegistrationWorker | None = None
+        self.truth_nodes: np.ndarray | None = None
+        self.run: Run | None = None  # the registration in progress
+        self.result: RegisteredState | None = None  # the registered model on show
+        self.last_reg: Registration | None = None  # what Export and a warm start use
+        self.stage = "Starting…"
+        self.stage_fraction: float | None = None
+        self.failed: str | None = None
+        self.ready = threading.Event()  # set when start-up has finished (or failed: see .failed)
+        self.states: dict[str, ClientState] = {}  # token → per-browser state
+        self.views: dict[int, Any] = {}  # client_id → panels.ClientView
+        self._pending: list[Change] = []  # view refreshes not yet done, coalesced
+        self._pending_cv = threading.Condition()
+        threading.Thread(target=self._refresher, daemon=True, name="navapp-refresh").start()
+
+    # ------------------------------------------------------------------ typed access
+    def need_scene(self) -> tuple[SceneData, Session]:
+        sd, session = self.sd, self.session
+        if sd is None or session is None:
+            raise NotReady("the scene is still being prepared")
+        return sd, session
+
+    def need_session(self) -> Session:
+        return self.need_scene()[1]
+
+    def need_model(self) -> tuple[RegistrationModel, RegistrationWorker]:
+        model, worker = self.model, self.worker
+        if model is None or worker is None:
+            raise NotReady("the registration model is still being prepared")
+        return model, worker
+
+    def data(self, surface_only: bool = False) -> dict[str, np.ndarray]:
+        """The registration data the session holds now: {feature: (N, 3) tracker mm}."""
+        with self.lock:
+            sd, session = self.need_scene()
+            return session.data(sd, self.planes, surface_only=surface_only)
+
+    # ------------------------------------------------------------------ browsers
+    def new_client_state(self, client_id: int = -1) -> ClientState:
+        """A browser's own state (also used headless, by tests and scripts)."""
+        cs = ClientState(client_id, secrets.token_urlsafe(8))
+        with self.lock:
+            self.states[cs.token] = cs
+        return cs
+
+    def state_for(self, token: str) -> ClientState | None:
+        with self.lock:
+            return self.states.get(token)
+
+    def each_view(self, fn: Callable[[Any], None]):
+        """Call ``fn(view)`` for every connected browser; one failing view does not stop the others."""
+        with self.lock:
+            views = list(self.views.values())
+        for v in views:
+            try:
+                fn(v)
+            except Exception:  # a tab closing mid-update
+                pass
+
+    def refresh_view(self, cs: ClientState, what: Change):
+        view = self.views.get(cs.client_id)
+        if view is not None:
+            view.refresh(what)
+
+    def changed(self, what: Change = Change.DATA):
+        with self.lock:
+            self.version += 1
+            if self.session is not None and self.sd is not None and what in SAVED:
+                self.session.save(self.sd, self.planes)
+        with self._pending_cv:
+            if what not in self._pending:
+                self._pending.append(what)
+            self._pending_cv.notify()
+
+    def _refresher(self):
+        while True:
+            with self._pending_cv:
+                while not self._pending:
+                    self._pending_cv.wait()
+                todo, self._pending = self._pending, []
+            for what in todo:
+                self.each_view(_refresh(what))
+            with self._pending_cv:
+                self._pending_cv.notify_all()
+
+    def settle(self, timeout: float = 10.0) -> bool:
+        """Wait until every change so far has reached the views (for tests and scripts)."""
+        t_end = time.monotonic() + timeout
+        with self._pending_cv:
+            while self._pending:
+                if not self._pending_cv.wait(max(0.0, t_end - time.monotonic())):
+                    return False
+        return True
+
+    def notify(self, title: str, body: str, error: bool = False):
+        self.each_view(lambda v: v.notify(title, body, error))
+
+    def set_stage(self, text: str, fraction: float | None = None):
+        self.stage, self.stage_fraction = text, fraction
+        self.each_view(lambda v: v.refresh(Change.STATUS))
+
+    # ------------------------------------------------------------------ start-up
+    def start(self, on_loaded: Callable[[Loaded], None], on_ready: Callable[[Ready], None]) -> threading.Event:
+        """Load the scene and session, then build the registration model, in a thread;
+        ``on_loaded`` / ``on_ready`` run in it after each stage. Returns ``ready``."""
+        threading.Thread(target=self._start_up, args=(on_loaded, on_ready), daemon=True,
+                         name="navapp-startup").start()
+        return self.ready
+
+    def _start_up(self, on_loaded, on_ready):
+        stage = _Stage()
+
+        def on_progress(desc, fraction):
+            if desc != stage.name:
+                stage.name, stage.t0 = desc, time.monotonic()
+            eta = ""
+            elapsed = time.monotonic() - stage.t0
+            if fraction is not None and 0.02 < fraction < 1 and elapsed > 1.0:
+                eta = f", about {_duration(elapsed * (1 - fraction) / fraction)} left"
+            pct = f" — {100 * fraction:.0f} %" if fraction is not None else ""
+            self.set_stage(f"{stage.what}: {desc}{pct}{eta}", fraction)
+
+        listener = progress.add_listener(on_progress)
+        try:
+            stage.what = "Simulating the intraoperative scene (true deformation, stylus sweep, ultrasound; " \
+                            "cached after the first start)"
+            self.set_stage(stage.what)
+            sd = load_scene_data(self.scene, self.cache_root, self.edge)
+            folder = Path(self.session_dir) if self.session_dir else default_folder(sd)
+            session, planes = open_session(folder, sd)
+            loaded = Loaded(sd, session, planes)
+            with self.lock:
+                self.sd, self.session, self.planes = sd, session, planes
+            self.changed(Change.SCENE)
+            on_loaded(loaded)
+            stage.what = (f"Building the registration model (mesh at {self.edge:g} mm, basis of k = {self.k} "
+                             f"control points; cached after the first start)")
+            self.set_stage(stage.what)
+            model, _ = prepare(sd.case, self.edge, self.k, self.cache_root)
+            ready = Ready(model, truth_at_nodes(sd, model))
+            on_ready(ready)
+            self.set_stage(f"Ready. {len(model.basis.nodes):,} nodes, k = {self.k}. Session: {session.folder}", 1.0)
+            self.changed(Change.MODEL)
+        except NavappError as exc:
+            self.failed = str(exc)
+            self.set_stage(f"Error: {exc}", 0.0)
+            self.notify("navapp", str(exc), error=True)
+        except Exception as exc:  # shown, not lost in a thread
+            self.failed = f"{exc.__class__.__name__}: {exc}"
+            self.set_stage(f"Error while starting: {self.failed}", 0.0)
+            self.notify("navapp", self.failed, error=True)
+            raise
+        finally:
+            progress.remove_listener(listener)
+            self.ready.set()
+
+
+@dataclass
+class _Stage:
+    """The start-up stage being reported: what it does, the progress step, when it began."""
+
+    what: str = ""
+    name: str = ""
+    t0: float = field(default_factory=time.monotonic)
+
+
+def truth_at_nodes(sd: SceneData, model) -> np.ndarray | None:
+    """The true deformed positions of the mesh nodes (M, 3), when the scene's truth targets
+    are those nodes (simulated scenes meshed as the registration model), else None: the
+    viewer's true error is measured at the nodes, so other truth points give none."""
+    t = sd.case.targets
+    if t is None:
+        return None
+    x0 = t[:, :3]
+    nodes = model.basis.nodes
+    return t[:, 3:] if x0.shape == nodes.shape and np.allclose(x0, nodes) else None
+
+
+def _refresh(what: Change):
+    return lambda v: v.refresh(what)
+
+
+def _duration(seconds: float) -> str:
+    seconds = max(0.0, seconds)
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    return f"{seconds / 60:.0f} min"

@@ -1,0 +1,134 @@
+"""The ultrasound planes of a session: the one each tab shows, adding a plane's simulated
+segmentation as data, placing the probe by hand (a new plane acquired at that pose), the
+suggested next plane, and the planes' names. No viser here.
+
+Plane indices: the scene's preset planes from 0, planes placed by hand from
+``FREE_PLANE_BASE``, frozen tracked frames from ``live.LIVE_PLANE_BASE``.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..simulation.scenedata import acquire_free_plane
+from ..simulation.ultrasound import PlaneData
+from .drawing import FreePlanePlaced, PlaneAdded
+from .palette import VESSEL_SHORT, feature_words
+from .state import Change, ClientState
+
+if TYPE_CHECKING:
+    from .server import App
+
+FREE_PLANE_BASE = 100  # indices of planes placed by hand start here
+LIVE_PLANE_BASE = 1000  # indices of frozen live frames start here
+
+
+class Imaging:
+    def __init__(self, app: App):
+        self.app, self.core = app, app.core
+
+    def label(self, i: int) -> str:
+        p = self.core.planes[i]
+        if p.orientation == "live":
+            return f"live {i - LIVE_PLANE_BASE + 1} (tracked frame)"
+        vessels = sorted({VESSEL_SHORT[f] for f in p.features if f in VESSEL_SHORT})
+        what = ", ".join(vessels) if vessels else "no vessel"
+        name = f"{i + 1} ({p.orientation})" if i < FREE_PLANE_BASE else f"free {i - FREE_PLANE_BASE + 1}"
+        return f"{name} — {what}"
+
+    def from_label(self, label: str) -> int | None:
+        return next((i for i in self.core.planes if self.label(i) == label), None)
+
+    def show(self, cs: ClientState, index: int | None) -> bool:
+        core = self.core
+        if index is None or index not in core.planes:
+            return False
+        with core.lock:
+            cs.plane = index
+            if cs.drawing is not None and cs.drawing.plane != index:
+                cs.drawing = None  # an unfinished contour stays as drawn (an open line) on its own plane
+            cs.touch()
+        core.refresh_view(cs, Change.PLANE)
+        return True
+
+    def add(self, cs: ClientState) -> str | None:
+        """The simulated segmentation of this browser's plane becomes data."""
+        core = self.core
+        session = core.need_session()
+        if cs.plane is None:
+            return "Choose a plane first."
+        with core.lock:
+            if cs.plane in session.planes_added:
+                return None
+            session.planes_added.append(cs.plane)
+            cs.undo.append(PlaneAdded(cs.plane))
+        core.changed(Change.DATA)
+        return None
+
+    def place_probe(self, cs: ClientState, T) -> int:
+        """Acquire a new plane at a hand-placed pose (kept in the session); returns its index."""
+        core = self.core
+        session = core.need_session()
+        plane = self.acquire_at(T)
+        with core.lock:
+            index = FREE_PLANE_BASE + len(session.free_planes)
+            while index in core.planes:
+                index += 1
+            plane.index = index
+            core.planes[index] = plane
+            session.free_planes.append({"index": index, "pose": np.asarray(T).tolist()})
+            cs.undo.append(FreePlanePlaced(index))
+        self.show(cs, index)
+        core.changed(Change.DATA)
+        return index
+
+    def acquire_at(self, T, index: int | None = None) -> PlaneData:
+        """A simulated plane at pose T (4×4), not kept: the free probe's preview."""
+        sd, session = self.core.need_scene()
+        i = index if index is not None else FREE_PLANE_BASE + len(session.free_planes)
+        return acquire_free_plane(sd, i, np.asarray(T, float))
+
+    def suggest(self, cs: ClientState, on_done) -> str | None:
+        """Rank candidate probe poses by the expected drop of the mean predicted error
+        (``registration.next_plane``) in the worker thread; the best is acquired as this
+        tab's plane and ``on_done(message)`` says what was suggested."""
+        from ..registration.next_plane import suggest_planes
+
+        core = self.core
+        reg = core.last_reg
+        if reg is None or reg.libr is None or not reg.data_model_frame:
+            return "Register deformably first: the suggestion ranks planes by what they would add to a fit."
+        if self.app.live.following:
+            return "Live re-registration is on: switch it off first."
+
+        def job(cancel):
+            try:
+                return suggest_planes(reg, preop=core.preop)
+            except Exception as exc:  # said in the panel; the button comes back
+                return f"No suggestion: {exc.__class__.__name__}: {exc}"
+
+        def done(sug):
+            if isinstance(sug, str) or not sug.candidates:
+                on_done(sug if isinstance(sug, str) else "No candidate pose on the anterior surface.")
+                return
+            best = sug.best
+            with core.lock:  # suggested again at the same pose (unchanged fit): show that plane, make no copy
+                same = [i for i, p in core.planes.items() if i >= FREE_PLANE_BASE and p.orientation == "free"
+                        and np.allclose(p.probe_to_tracker, best.pose, atol=1e-6)]
+            if same:
+                index = same[0]
+                self.show(cs, index)
+            else:
+                index = self.place_probe(cs, best.pose)
+            o = best.pose[:3, 3]
+            feats = ", ".join(feature_words(f) for f in sorted(best.features)) or "nothing"
+            on_done(f"Suggested: a {best.orientation} plane with its probe face at ({o[0]:.0f}, {o[1]:.0f}, "
+                    f"{o[2]:.0f}) mm (now {self.label(index)}), expected to show {feats}; mean predicted "
+                    f"error over the whole organ (sampled mesh nodes) {sug.current_mean_mm:.2f} → "
+                    f"{best.predicted_mean_mm:.2f} mm. "
+                    f"{len(sug.candidates)} poses ranked in {sug.seconds:.1f} s. Add its segmentation or draw on it.")
+
+        ok = core.worker is not None and core.worker.submit(job, done)
+        return None if ok else "A registration is running; try again when it has finished."

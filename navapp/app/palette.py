@@ -1,0 +1,57 @@
+"""Every colour and display word of the viewer, in one place: the 3D layers, the 2D view's
+overlays and drawn contours, the legend, the names of drawable features and the words a
+sentence uses for a data feature. Data colours and words come from ``features.TABLE``,
+so a data point, the contour it was drawn as and its legend entry share one colour.
+No viser here.
+"""
+
+from ..anatomy.model import VESSELS
+from ..features import BY_NAME, TABLE
+
+RGB = tuple[int, int, int]
+
+
+def hex_colour(rgb: RGB) -> str:
+    return "#{:02x}{:02x}{:02x}".format(*rgb)
+
+
+# ---------------------------------------------------------------- 3D scene
+LIVER: RGB = (205, 160, 140)
+VESSEL: dict[str, RGB] = {"portal": (220, 50, 50), "hepatic": (60, 90, 220)}
+TRUTH: RGB = (60, 200, 90)
+REGISTERED: RGB = (240, 190, 60)
+REG_VESSEL: dict[str, RGB] = {"portal": (200, 0, 0), "hepatic": (0, 60, 230)}
+TARGET: RGB = (170, 60, 230)
+REG_TARGET: RGB = (230, 0, 255)
+FEATURE_COLOURS: dict[str, RGB] = {f.name: f.colour for f in TABLE}  # data points, by feature
+TURBO_CSS = "#30123b,#4686fb,#1ae4b6,#a2fc3c,#fabb39,#e4460a,#7a0403"  # the error colour scale (matplotlib turbo)
+# the floating legend: (words, colour, opacity of the swatch)
+LEGEND: tuple[tuple[str, RGB, float], ...] = (
+    ("preop liver", LIVER, 0.5), ("preop portal vein", VESSEL["portal"], 0.6),
+    ("preop hepatic veins", VESSEL["hepatic"], 0.6), ("registered liver", REGISTERED, 0.7),
+    ("registered portal vein", REG_VESSEL["portal"], 1), ("registered hepatic veins", REG_VESSEL["hepatic"], 1),
+    ("targets (tumours)", TARGET, 1), ("true liver (ghost)", TRUTH, 0.5))
+
+# ---------------------------------------------------------------- 2D view
+# the model cut by the image: preoperative (rigidly placed) dashed in the first colour,
+# registered solid in the second
+OVERLAY_STYLE: dict[str, tuple[str, str]] = {
+    "liver": ("#e0b090", "#ffd040"), "portal": ("#ff8080", "#ff2020"), "hepatic": ("#80a0ff", "#2f6bff"),
+    "target": ("#c080ff", "#e000ff"),
+}
+IN_PROGRESS = "#ffe033"  # the contour being drawn (page.js draws it; kept here so the words stay together)
+
+# ---------------------------------------------------------------- drawing
+DRAWABLE: dict[str, str] = {  # what the user can designate on an image → the data feature it becomes
+    "PV contour": "portal_contour",
+    "HV contour": "hepatic_contour",
+    "Posterior surface": "posterior",
+}
+DRAWN_COLOURS: dict[str, str] = {f: hex_colour(BY_NAME[f].colour) for f in DRAWABLE.values()}
+VESSEL_SHORT: dict[str, str] = {f"{v}_contour": "PV" if v == "portal" else "HV" for v in VESSELS}
+
+
+def feature_words(name: str) -> str:
+    """A data feature as a sentence says it ("portal-vein contours")."""
+    f = BY_NAME.get(name)
+    return f.words if f is not None else name

@@ -1,0 +1,173 @@
+"""The registered model on show, and what is read off it: its geometry (surfaces and
+targets, once per state), its error against the truth at the mesh nodes (simulated scenes),
+the error predicted without the truth at the surface and at each target (tumour), the
+target lines of the ultrasound and stylus readouts, and the result a restarted session
+restores. No viser here.
+
+The "state on show" is the streaming state while a registration runs, else the result,
+else the preoperative model as-is.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from ..geometry.targets_distance import ImagePlane, plane_distances, tip_distances
+from ..registration.libr import LibrResult
+from ..registration.model import deform
+from ..registration.pipeline import Registration
+from ..registration.rigid import RigidResult
+from ..registration.targets import registered_targets, target_interpolation
+from .state import ClientState, RegisteredState, StateGeometry, TargetBand
+
+if TYPE_CHECKING:
+    from .server import App
+
+IN_IMAGE_MM = 0.05  # a target this close to the image plane is cut by it
+
+
+class Shown:
+    def __init__(self, app: App):
+        self.app, self.core = app, app.core
+        self._target_B = None  # interpolation matrix of the target points in the registration mesh
+        self._geometry: StateGeometry | None = None  # the last state's geometry (see geometry())
+
+    # ------------------------------------------------------------------ positions and errors
+    def node_positions(self, rigid: RigidResult, beta: np.ndarray | None) -> np.ndarray:
+        """All mesh nodes at state β in tracker space, (M, 3) mm (eq. 8, ``registration.model.deform``)."""
+        model, _ = self.core.need_model()
+        nodes = model.basis.nodes
+        if beta is None:
+            return rigid.apply(nodes)
+        n = len(beta) - 6
+        u = (model.basis.Ju @ beta[:n]).reshape(-1, 3)
+        return rigid.apply(deform(nodes, u, beta, model.centroid)[1])
+
+    def node_error(self, rigid: RigidResult, beta: np.ndarray | None) -> np.ndarray | None:
+        """(M,) true error at the mesh nodes, mm; None without the truth."""
+        truth = self.core.truth_nodes
+        if truth is None:
+            return None
+        return np.linalg.norm(self.node_positions(rigid, beta) - truth, axis=1)
+
+    def predict(self, reg: Registration) -> tuple[np.ndarray | None, list[TargetBand]]:
+        """The predicted error without the truth (``registration.uncertainty``): (S,) at the
+        surface nodes, and a ``TargetBand`` per target; (None, []) for a rigid result or
+        when it cannot be had (too few data)."""
+        from ..registration.uncertainty import estimate_error
+
+        model, _ = self.core.need_model()
+        if reg.libr is None or not reg.data_model_frame:
+            return None, []
+        preop = self.core.preop
+        try:
+            surface = estimate_error(reg, nodes=model.basis.surface).predicted_mm
+            bands = []
+            if preop.targets:
+                est = estimate_error(reg, points=np.array([t.centre for t in preop.targets]))
+                # per-target warnings of the registration result go into TargetBand.warning here
+                bands = [TargetBand(t.name, float(e), float(lo), float(hi)) for t, e, lo, hi in
+                         zip(preop.targets, est.predicted_mm, est.lower_mm, est.upper_mm, strict=True)]
+            return surface, bands
+        except (np.linalg.LinAlgError, ValueError):
+            return None, []
+
+    def surface_error(self, cs: ClientState, node_error: np.ndarray | None = None) -> np.ndarray | None:
+        """(S,) the error this tab colours the registered surface by: the predicted error
+        of the result on show, or the true error (``node_error`` (M,) of a streaming state,
+        else the result's) when the truth is known and the tab chose it."""
+        core = self.core
+        res = core.result
+        if cs.error_source == "predicted" or core.truth_nodes is None or core.model is None:
+            return None if res is None or node_error is not None else res.predicted_mm
+        e = node_error if node_error is not None else (res.node_error_mm if res is not None else None)
+        return None if e is None else e[core.model.basis.surface]
+
+    # ------------------------------------------------------------------ geometry
+    def geometry(self, rigid: RigidResult | None = None, beta: np.ndarray | None = None,
+                 surfaces: dict | None = None) -> StateGeometry:
+        """The model at a registered state, computed once per state (the last one is kept):
+        by default the state on show. ``surfaces``: the worker's vertices for this state
+        when it already has them (name → (V, 3))."""
+        core = self.core
+        if rigid is None:
+            run = core.run
+            if run is not None and run.state is not None:
+                rigid, beta = run.state
+            elif core.result is not None:
+                rigid, beta = core.result.rigid, core.result.beta
+        g = self._geometry
+        if g is not None and g.rigid is rigid and g.beta is beta:
+            return g
+        pre = core.preop.targets
+        if rigid is None or core.model is None or core.worker is None:
+            g = StateGeometry(None, None, {}, pre)
+        else:
+            model = core.model
+            if surfaces is None:
+                surfaces = core.worker.surfaces(rigid, beta)
+            cells = {name: model.features[name].cells for name in surfaces}
+            reg = Registration(model, rigid, None, {})  # transform: rigid ∘ eq. 8 at β
+            if pre and self._target_B is None:  # locating the target points in the mesh once
+                self._target_B = target_interpolation(reg, pre)
+            moved = registered_targets(reg, pre, beta, self._target_B) if pre else []
+            g = StateGeometry(rigid, beta, {n: (v, cells[n]) for n, v in surfaces.items()}, moved)
+        self._geometry = g
+        return g
+
+    # ------------------------------------------------------------------ target readouts
+    def _which(self) -> str:
+        return "registered" if (self.core.result is not None or self.core.run is not None) else "preoperative"
+
+    def target_plane_lines(self, index: int) -> list[str]:
+        """One line per target: its distance from this plane's image (0: the image cuts it)
+        and, for a result on show, its predicted error (and the result's warning for it)."""
+        core = self.core
+        targets = self.geometry().targets
+        if not targets or index not in core.planes or core.sd is None:
+            return []
+        p = core.sd.probe
+        plane = ImagePlane.from_pose(core.planes[index].probe_to_tracker, p.width_px * p.spacing_mm,
+                                     p.height_px * p.spacing_mm)
+        bands = {b.name: b for b in core.result.target_bands} if core.result is not None else {}
+        out = []
+        for t, d in zip(targets, plane_distances(plane, targets), strict=True):
+            band = bands.get(t.name) if core.run is None else None
+            out.append(f"**{t.name}** ({self._which()}): " +
+                       ("in this image" if d <= IN_IMAGE_MM else f"{d:.1f} mm from this image") +
+                       (f"; {band.text()}" if band is not None else ""))
+        return out
+
+    def target_distance_lines(self, tip) -> list[str]:
+        """One line per target: the stylus tip's distance to its surface."""
+        targets = self.geometry().targets
+        if not targets or tip is None:
+            return []
+        return [f"**{t.name}**: " + (f"tip inside, {-d:.1f} mm deep" if d < 0 else f"{d:.1f} mm from the stylus tip")
+                for t, d in zip(targets, tip_distances(tip, targets), strict=True)]
+
+    # ------------------------------------------------------------------ restart
+    def restore(self):
+        """The registered model stored in the session (rigid pose and β) after a restart."""
+        core = self.core
+        model, worker = core.need_model()
+        d = core.need_session().result
+        if not d:
+            return
+        rigid = RigidResult(np.array(d["R"]), np.array(d["t"]), 0, float(d.get("rms_mm", np.nan)))
+        beta = None if d.get("beta") is None else np.array(d["beta"], float)
+        if beta is not None and len(beta) != model.basis.Ju.shape[1] + 6:
+            return  # another basis size (different --k): nothing to restore
+        libr = None if beta is None else LibrResult(beta, float("nan"), 0, "restored", [], [], {}, 0.0, {})
+        # the data in the model frame (T⁻¹), for the predicted error: what the session holds now
+        inv = {k: (np.asarray(v, float) - rigid.t) @ rigid.R for k, v in core.data().items()}
+        reg = Registration(model, rigid, libr, inv)
+        core.last_reg = worker.last = reg
+        predicted = self.predict(reg)
+        saved = d.get("predicted_mm")
+        if saved is not None and len(saved) == len(model.basis.surface):
+            predicted = (np.array(saved, float), [TargetBand.from_json(b) for b in d.get("target_bands", [])])
+        core.result = RegisteredState(d.get("run", "restored"), rigid, beta, self.node_error(rigid, beta), *predicted)
+        self.app.slicer.send(reg)  # queued: a Slicer connecting later receives the result on show

@@ -1,0 +1,149 @@
+// the 2D ultrasound view (view2d/page.html): draws the frame, the model's sections and the
+// contours on a canvas, queues clicks and sends them one at a time (see view2d/__init__.py)
+const TOKEN = document.body.dataset.token;
+const POLL = Number(document.body.dataset.poll);
+const IN_PROGRESS = document.body.dataset.drawing;
+const RULER = 34, TOP = 22;
+let zoom = 2, state = null, etag = "", img = null, imgId = null;
+let pending = [], sending = false;
+window.navappLatencies = [];
+const cv = document.getElementById("cv"), g = cv.getContext("2d");
+const $ = id => document.getElementById(id);
+function url(p){ return p + (p.includes("?") ? "&" : "?") + "c=" + TOKEN; }
+function msg(t){ $("msg").textContent = t || ""; }
+
+function toPixel(e){
+  const r = cv.getBoundingClientRect();
+  const col = Math.floor((e.clientX - r.left - RULER) / zoom);
+  const row = Math.floor((e.clientY - r.top - TOP) / zoom);
+  if (!state || !state.plane || col < 0 || row < 0 || col >= state.width || row >= state.height) return null;
+  return [col, row];
+}
+const X = c => RULER + (c + 0.5) * zoom, Y = r => TOP + (r + 0.5) * zoom;
+
+function draw(){
+  if (!state || !state.plane){ cv.width = 10; cv.height = 10; return; }
+  const W = state.width, H = state.height, s = state.spacing;
+  cv.width = RULER + W * zoom + 4; cv.height = TOP + H * zoom + 4;
+  g.fillStyle = "#1b1b1b"; g.fillRect(0, 0, cv.width, cv.height);
+  g.imageSmoothingEnabled = false;
+  if (img && img.complete) g.drawImage(img, RULER, TOP, W * zoom, H * zoom);
+  // rulers: depth (mm below the probe face) on the left, lateral on top
+  g.strokeStyle = "#bbb"; g.fillStyle = "#bbb"; g.font = "10px sans-serif"; g.lineWidth = 1;
+  for (let mm = 0; mm <= H * s + 1e-6; mm += 5){
+    const y = TOP + mm / s * zoom, long = mm % 10 === 0;
+    g.beginPath(); g.moveTo(RULER - (long ? 8 : 4), y); g.lineTo(RULER, y); g.stroke();
+    if (long) g.fillText(mm + "", 2, y + 3);
+  }
+  const w2 = W * s / 2;
+  for (let mm = -Math.floor(w2 / 5) * 5; mm <= w2; mm += 5){
+    const x = RULER + (mm + w2) / s * zoom, long = mm % 10 === 0;
+    g.beginPath(); g.moveTo(x, TOP - (long ? 8 : 4)); g.lineTo(x, TOP); g.stroke();
+    if (long) g.fillText(mm + "", x - 6, 10);
+  }
+  g.fillText("mm", 2, 10);
+  g.save(); g.beginPath(); g.rect(RULER, TOP, W * zoom, H * zoom); g.clip();
+  for (const o of state.overlays){
+    if (!o.visible) continue;
+    g.strokeStyle = o.colour; g.lineWidth = o.dashed ? 1.5 : 2; g.setLineDash(o.dashed ? [5, 4] : []);
+    g.beginPath();
+    for (const q of o.segments){ g.moveTo(X(q[0]), Y(q[1])); g.lineTo(X(q[2]), Y(q[3])); }
+    g.stroke();
+  }
+  g.setLineDash([]);
+  const poly = (v, closed, colour, width, pend) => {
+    g.strokeStyle = colour; g.lineWidth = width; g.beginPath();
+    v.forEach((p, i) => i ? g.lineTo(X(p[0]), Y(p[1])) : g.moveTo(X(p[0]), Y(p[1])));
+    if (closed && v.length > 2) g.closePath();
+    g.stroke();
+    v.forEach((p, i) => { g.beginPath(); g.arc(X(p[0]), Y(p[1]), 3, 0, 7);
+      if (pend && i >= v.length - pend) { g.stroke(); } else { g.fillStyle = colour; g.fill(); } });
+  };
+  for (const c of state.contours){
+    poly(c.vertices, c.closed, c.colour, 2, 0);
+    if (c.centroid){ const x = X(c.centroid[0]), y = Y(c.centroid[1]);
+      g.strokeStyle = "#fff"; g.lineWidth = 1; g.beginPath(); g.moveTo(x - 4, y); g.lineTo(x + 4, y);
+      g.moveTo(x, y - 4); g.lineTo(x, y + 4); g.stroke(); }
+  }
+  const d = state.drawing ? state.drawing.vertices.slice() : [];
+  const v = d.concat(pending);
+  if (v.length) poly(v, false, IN_PROGRESS, 2, pending.length);
+  g.restore();
+}
+
+function apply(s){
+  state = s; etag = s.etag;
+  $("title").textContent = s.plane ? s.plane : "No plane shown yet: choose one in the Ultrasound panel.";
+  if (s.feature && document.activeElement !== $("feat")) $("feat").value = s.feature;
+  const sel = $("plane"), opts = (s.planes || []).map(p => p.index + ":" + p.label).join("|");
+  if (sel.dataset.opts !== opts){
+    sel.dataset.opts = opts;
+    sel.innerHTML = `<option value="">choose a plane…</option>` +
+      (s.planes || []).map(p => `<option value="${p.index}">${p.label}</option>`).join("");
+  }
+  const idx = s.plane_index === null || s.plane_index === undefined ? "" : String(s.plane_index);
+  if (document.activeElement !== sel) sel.value = idx;
+  if (s.plane && s.image_id !== imgId){
+    imgId = s.image_id; const im = new Image(); im.onload = () => { img = im; draw(); };
+    im.src = url("/us/image?id=" + encodeURIComponent(s.image_id));
+  }
+  $("legend").innerHTML = s.legend.map(o => `<span><i style="background:${o.colour}"></i>${o.name}</span>`).join("");
+  $("targets").innerHTML = s.targets.map(t => `<div>${t}</div>`).join("");
+  msg(s.message || "");
+  draw();
+}
+
+async function poll(){
+  try {
+    const r = await fetch(url("/us/state?v=" + encodeURIComponent(etag)));
+    $("gone").style.display = "none";
+    if (r.status === 200) apply(await r.json());
+  } catch (e) { $("gone").style.display = "block"; }
+  setTimeout(poll, POLL);
+}
+
+async function post(path, body){
+  const r = await fetch(url(path), {method: "POST", body: JSON.stringify(body)});
+  const t = await r.text();
+  if (!r.ok) return {error: t};
+  return JSON.parse(t);
+}
+
+async function pump(){
+  if (sending) return;
+  sending = true;
+  while (pending.length){
+    const p = pending[0];
+    try {
+      const s = await post("/us/click", {col: p[0], row: p[1], feature: $("feat").value});
+      $("gone").style.display = "none";
+      window.navappLatencies.push(performance.now() - p[2]);
+      pending.shift();
+      if (s.error) { msg(s.error); } else { msg(""); apply(s); }
+    } catch (e) { $("gone").style.display = "block"; await new Promise(r => setTimeout(r, 500)); }
+  }
+  sending = false; draw();
+}
+
+cv.addEventListener("mousedown", e => {
+  if (e.button !== 0) return;
+  const p = toPixel(e); if (!p) return;
+  pending.push([p[0], p[1], performance.now()]); draw(); pump();
+});
+async function command(cmd, extra){
+  while (sending || pending.length) await new Promise(r => setTimeout(r, 20));  // after the clicks before it
+  const s = await post("/us/command", Object.assign({cmd: cmd, feature: $("feat").value}, extra || {}));
+  if (s.error) msg(s.error); else { msg(s.message || ""); apply(s); }
+}
+$("close").onclick = () => command("Close");
+$("finish").onclick = () => command("Finish line");
+$("undo").onclick = () => command("Undo");
+$("feat").onchange = () => command("Feature");
+$("plane").onchange = () => { if ($("plane").value !== "") command("Plane", {plane: parseInt($("plane").value)}); };
+$("z1").onclick = () => { zoom = 1; draw(); };
+$("z2").onclick = () => { zoom = 2; draw(); };
+document.addEventListener("keydown", e => {
+  if (e.key === "Enter") command("Close");
+  if ((e.ctrlKey || e.metaKey) && e.key === "z") command("Undo");
+});
+poll();

@@ -1,0 +1,150 @@
+"""What the 2D view of one tab shows, as the page reads it: its plane, the model's sections
+(overlays, computed once per plane and state), the contours drawn on it, the legend and the
+targets' distances; and the page's clicks and commands passed on to the drawing. No viser.
+"""
+
+from __future__ import annotations
+
+import io
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from ..contours import CENTERLINE_OF, contour_pixels
+from ..palette import DRAWABLE, DRAWN_COLOURS, OVERLAY_STYLE
+from .overlays import Overlay, section_pixels
+
+if TYPE_CHECKING:
+    from ..server import App
+
+GONE = "This view is no longer connected: reload the page."
+
+
+class View2D:
+    """The ``view2d.http.Provider`` of the viewer."""
+
+    def __init__(self, app: App):
+        self.app, self.core = app, app.core
+        self._overlay_cache: dict = {}  # plane index → (plane, geometry, overlays)
+        self._image_cache: dict = {}  # (plane index, plane id) → PNG bytes
+
+    def _empty(self, message: str) -> dict:
+        return {"etag": "wait", "plane": None, "overlays": [], "contours": [], "drawing": None, "targets": [],
+                "legend": [], "message": message}
+
+    def view_state(self, token: str) -> dict | None:
+        core, imaging = self.core, self.app.imaging
+        cs = core.state_for(token)
+        if cs is None:
+            return None
+        if core.sd is None or core.session is None:
+            return self._empty("Preparing the scene…")
+        sd, session = core.sd, core.session
+        with core.lock:
+            out: dict[str, Any] = {"etag": self.view_etag(token), "plane": None, "width": sd.probe.width_px,
+                   "height": sd.probe.height_px, "spacing": sd.probe.spacing_mm, "overlays": [], "contours": [],
+                   "drawing": None, "targets": [], "legend": [], "message": cs.message, "feature": cs.feature,
+                   "planes": [{"index": i, "label": imaging.label(i)} for i in sorted(core.planes)],
+                   "plane_index": cs.plane}
+            index = cs.plane
+            if index is None or index not in core.planes:
+                return out
+            plane = core.planes[index]
+            out["plane"] = f"Plane {imaging.label(index)}" + \
+                (" · added as data" if index in session.planes_added else "")
+            out["image_id"] = f"{index}-{id(plane)}"
+            contours = [c for c in session.contours if c.plane == index]
+            drawing = cs.drawing if cs.drawing in contours else None
+        out["overlays"] = [ov.to_json() for ov in self.overlays(index)]
+        for c in contours:
+            if c is drawing:
+                continue
+            centroid = None
+            if c.closed and c.feature in CENTERLINE_OF:
+                cols, rows = contour_pixels(c)
+                centroid = [float(cols.mean()), float(rows.mean())]
+            out["contours"].append({"feature": c.feature, "colour": DRAWN_COLOURS.get(c.feature, "#fff"),
+                                    "vertices": [list(v) for v in c.vertices], "closed": c.closed,
+                                    "centroid": centroid})
+        if drawing is not None:
+            out["drawing"] = {"feature": drawing.feature, "vertices": [list(v) for v in drawing.vertices]}
+        out["legend"] = [{"name": o["name"], "colour": o["colour"]} for o in out["overlays"]] + \
+            [{"name": f"drawn {n}", "colour": DRAWN_COLOURS[f]} for n, f in DRAWABLE.items()]
+        out["targets"] = [line.replace("**", "") for line in self.app.shown.target_plane_lines(index)]
+        return out
+
+    def view_etag(self, token: str) -> str | None:
+        """What ``view_state`` would call its ETag, without building the state (a poll that
+        finds nothing changed costs this only)."""
+        core = self.core
+        cs = core.state_for(token)
+        if cs is None or core.sd is None:
+            return None
+        with core.lock:
+            run = core.run
+            return f"{core.version}-{cs.version}-{id(core.result)}-{run.streamed if run else 0}"
+
+    def view_image(self, token: str) -> bytes | None:
+        core = self.core
+        cs = core.state_for(token)
+        if cs is None or cs.plane is None or core.sd is None:
+            return None
+        plane = core.planes.get(cs.plane)
+        if plane is None:
+            return None
+        key = (cs.plane, id(plane))
+        png = self._image_cache.get(key)
+        if png is None:
+            from PIL import Image
+
+            probe = core.sd.probe
+            img = plane.image if plane.image is not None else np.zeros((probe.height_px, probe.width_px), np.uint8)
+            buf = io.BytesIO()
+            Image.fromarray(np.asarray(img, np.uint8)).save(buf, format="PNG")
+            png = self._image_cache[key] = buf.getvalue()
+        return png
+
+    def view_click(self, token: str, col: int, row: int, feature: str) -> str | None:
+        cs = self.core.state_for(token)
+        if cs is None:
+            return GONE
+        return self.app.drawing.click(cs, col, row, feature)
+
+    def view_command(self, token: str, cmd: str, feature: str, plane: int | None = None) -> str | None:
+        cs = self.core.state_for(token)
+        if cs is None:
+            return GONE
+        if cmd == "Plane":
+            return None if self.app.imaging.show(cs, plane) else f"there is no plane {plane}"
+        return self.app.drawing.command(cs, cmd, feature)
+
+    def overlays(self, index: int) -> list[Overlay]:
+        """The model's sections with plane ``index``: preoperative (rigidly placed by the
+        state on show, as-is before any registration) dashed, registered solid."""
+        core = self.core
+        sd, _ = core.need_scene()
+        geom = self.app.shown.geometry()
+        plane = core.planes[index]
+        cached = self._overlay_cache.get(index)
+        if cached is not None and cached[0] is plane and cached[1] is geom:  # same plane, same state
+            return cached[2]
+        T = plane.probe_to_tracker
+        probe = sd.probe
+        out = []
+        rigid = geom.rigid
+        place = rigid.apply if rigid is not None else (lambda x: np.asarray(x))
+        preop = core.preop
+        pre = {"liver": preop.liver, "portal": preop.portal, "hepatic": preop.hepatic}
+        for name, mesh in pre.items():
+            if mesh is not None:
+                seg = section_pixels(probe, T, place(mesh.vertices), mesh.faces)
+                out.append(Overlay(f"{name} (preop{', rigid' if rigid is not None else ''})",
+                                   OVERLAY_STYLE[name][0], True, seg))
+        for name, (v, f) in geom.surfaces.items():
+            out.append(Overlay(f"{name} (registered)", OVERLAY_STYLE[name][1], False, section_pixels(probe, T, v, f)))
+        for t in geom.targets:
+            if t.surface is not None:
+                out.append(Overlay(f"target {t.name}", OVERLAY_STYLE["target"][1], False,
+                                   section_pixels(probe, T, t.surface.vertices, t.surface.faces)))
+        self._overlay_cache[index] = (plane, geom, out)
+        return out
