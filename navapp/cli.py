@@ -9,22 +9,14 @@ import warnings
 from pathlib import Path
 
 from . import __version__, progress
+from .argtypes import positive
 from .defaults import EDGE_MM, K
 from .errors import InputError, NavappError
 
 DEFAULT_TABLE2_CSV = Path("results/table2.csv")
 
 
-def _positive(kind):
-    def parse(s):
-        try:
-            v = kind(s)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"not a number: {s!r}") from None
-        if v <= 0:
-            raise argparse.ArgumentTypeError(f"must be positive: {s!r}")
-        return v
-    return parse
+_positive = positive  # the name this module has always used
 
 
 def cmd_phantom(args):
@@ -40,7 +32,9 @@ def cmd_phantom(args):
         "liver_vertices": len(liver.vertices), "liver_faces": len(liver.faces),
         "extent_mm": [round(float(x), 1) for x in liver.extents], "volume_ml": round(float(liver.volume) / 1000, 1),
     }
-    for v in ("portal", "hepatic"):  # a phantom has both trees
+    from .anatomy.model import VESSELS
+
+    for v in VESSELS:  # a phantom has both trees
         cl = model.centerline(v)
         summary[f"{v}_branches"] = int(cl.branch.max() + 1) if cl is not None else 0
     print(json.dumps(summary))
@@ -122,9 +116,11 @@ def cmd_demo(args):
     d = report["displacement_mm"]
     print(f"navapp: demo case simulated into {args.out} (true displacement mean {d['mean']} mm, "
           f"max {d['max']} mm); registering it", file=sys.stderr)
+    from .defaults import LM_MAX_ITERATIONS
     from .registration.cli import cmd_register
 
-    ns = argparse.Namespace(case=args.out, out=None, k=K, edge=EDGE_MM, no_deform=False, max_iterations=100, json=True)
+    ns = argparse.Namespace(case=args.out, out=None, k=K, edge=EDGE_MM, no_deform=False,
+                            max_iterations=LM_MAX_ITERATIONS, json=True)
     return cmd_register(ns)
 
 
@@ -169,21 +165,30 @@ def cmd_study(args):
     if args.what == "hard":  # its own phantom model and data: no study cases
         from .evaluation.hard import study_command as hard_command
 
-        return hard_command(args)
+        return hard_command(args.report)
     cases = _study_cases(args)
     if args.what == "robustness":
-        from .evaluation.robustness import study_command
+        from .evaluation.robustness_report import run_study
 
-        return study_command(cases, args)
+        results = args.results if args.results != DEFAULT_TABLE2_CSV else args.report / "robustness.csv"
+        if (args.workers or 1) > 1:
+            print(f"navapp: {args.workers} robustness cases at once: the per-registration times compete for the "
+                  f"cores", file=sys.stderr)
+        print(json.dumps(run_study(cases, results, args.report, args.workers or 1, args.quick)))
+        return
     if args.what == "loads":
         from .evaluation.loads import study_command as loads_command
 
         results = args.results if args.results != DEFAULT_TABLE2_CSV else args.report / "loads.csv"
         return loads_command(cases, results, args.report, args.workers or 1)
-    if args.what in ("error-estimate", "next-plane"):
-        from .evaluation import error_estimate, next_plane_study
+    if args.what == "next-plane":
+        from .evaluation.next_plane_study import study_command as next_plane_command
 
-        return (error_estimate if args.what == "error-estimate" else next_plane_study).study_command(cases, args)
+        return next_plane_command(cases, args.results, args.report, args.with_cases, args.with_results)
+    if args.what == "error-estimate":
+        from .evaluation import error_estimate
+
+        return error_estimate.study_command(cases, args)
     if args.what == "cost":
         from .evaluation.cost import run_cost_study
         from .evaluation.cost_report import write_cost_report

@@ -9,3 +9,13 @@ EDGE_MM = 4.0
 """Target tet edge length of the registration mesh, mm."""
 K = 45
 """Number of control points k (the basis has 3k modes; β has 3k + 6 entries)."""
+
+LM_MAX_ITERATIONS = 100
+"""Levenberg–Marquardt iteration cap of a registration (``LMOptions.max_iterations``)."""
+
+PROBE_WIDTH_PX, PROBE_HEIGHT_PX, PROBE_SPACING_MM = 256, 320, 0.25
+"""The simulated linear probe's image: 256 × 320 pixels of 0.25 mm (64 mm wide, 80 mm deep)."""
+FAR_WALL_COS, FAR_WALL_MIN_DEPTH_MM = 0.2, 15.0
+"""The posterior (far) liver wall an iUS image shows: liver faces turned away from the probe
+(normal · depth axis > 0.2), more than 15 mm deep. The simulator segments it so, and the
+next-plane planner expects it so."""

@@ -62,7 +62,7 @@ def _trimesh_boundary(mesh):
 
 
 def test_simplex_keys_match_for_the_same_nodes_in_any_order_also_past_int64():
-    from navapp.anatomy.meshing import simplex_keys
+    from navapp.anatomy.tets import simplex_keys
 
     faces = np.array([[3, 1, 2], [2, 3, 1], [1, 2, 4], [4, 1, 2], [5, 6, 7]])
     k = simplex_keys(faces)

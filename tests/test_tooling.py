@@ -32,6 +32,14 @@ def test_ruff_is_clean():
     assert out.returncode == 0, out.stdout + out.stderr
 
 
+def test_import_contracts_are_kept():
+    """The layers, the I/O-only tracking, viser's two rooms and no import cycles
+    (``[tool.importlinter]`` in pyproject.toml): the architecture picture, in code."""
+    out = _run([sys.executable, "-c", "import sys; from importlinter.cli import lint_imports; "
+                                      "sys.exit(lint_imports(no_cache=True))"])
+    assert out.returncode == 0, out.stdout + out.stderr
+
+
 @pytest.mark.skipif(_missing("mypy"), reason="mypy is not installed (it is in the 'test' extra)")
 def test_mypy_is_clean():
     out = _run([sys.executable, "-m", "mypy", "navapp"])

@@ -32,83 +32,12 @@ from .labelmaps import (
     structure_mask,
 )
 from .model import REGION_NAMES, VESSELS, PreopModel
+from .surface_io import SURFACE_SUFFIXES, read_any_surface
 
 __all__ = ["LABELMAP_SUFFIXES", "SURFACE_SUFFIXES", "ImportReport", "LabelMap", "Source", "import_case",
            "mask_surface", "read_any_surface", "read_labelmap", "slicer_frame"]
 
-SURFACE_SUFFIXES = (".ply", ".stl", ".obj", ".vtk", ".vtp")
 OUTSIDE_WARN_FRACTION = 0.01  # warn when more than 1 % of a vessel's vertices lie outside the liver
-
-
-def _suffix(path: Path) -> str:
-    name = path.name.lower()
-    for s in (".seg.nrrd", ".nii.gz"):
-        if name.endswith(s):
-            return s
-    return path.suffix.lower()
-
-
-# ---------------------------------------------------------------- surfaces
-
-def read_any_surface(path) -> trimesh.Trimesh:
-    """A triangle surface from PLY, STL (binary or ASCII), OBJ, or VTK/VTP, unprocessed
-    (vertices exactly as stored; ``cleanup.clean_surface`` merges them).
-
-    Returns a ``trimesh.Trimesh`` with (V, 3) float vertices and (F, 3) int faces.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise InputError("no such file", path)
-    suffix = _suffix(path)
-    if suffix not in SURFACE_SUFFIXES:
-        raise InputError(f"not a surface format navapp reads ({', '.join(SURFACE_SUFFIXES)})", path)
-    if suffix == ".vtk":
-        return _read_vtk(path)
-    if suffix == ".vtp":
-        return _read_vtp(path)
-    try:
-        mesh = trimesh.load(path, file_type=suffix[1:], process=False, force="mesh")
-    except Exception as exc:  # trimesh raises many types for a bad file
-        raise InputError(f"not a readable {suffix[1:].upper()} triangle mesh ({_short(exc)})", path) from None
-    if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
-        raise InputError("holds no triangles", path)
-    return mesh
-
-
-def _read_vtk(path: Path) -> trimesh.Trimesh:
-    import meshio
-
-    try:
-        m = meshio.read(path)
-    except Exception as exc:  # meshio raises many types for a bad file
-        raise InputError(f"not a readable VTK file ({_short(exc)})", path) from None
-    tris = [c.data for c in m.cells if c.type == "triangle"]
-    if not tris:
-        kinds = sorted({c.type for c in m.cells})
-        raise InputError(f"holds no triangles (cells: {', '.join(kinds) or 'none'})", path)
-    return trimesh.Trimesh(np.asarray(m.points, float)[:, :3], np.concatenate(tris), process=False)
-
-
-def _read_vtp(path: Path) -> trimesh.Trimesh:
-    """VTK XML PolyData: meshio has no reader for it, VTK has (through pyvista, optional:
-    VTK is 0.6 GB, too much to require for one file format)."""
-    try:
-        import pyvista
-    except ImportError:
-        raise InputError("reading VTP needs pyvista (pip install pyvista); or export the model as VTK, STL or "
-                         "OBJ", path) from None
-    try:
-        poly = pyvista.read(path).triangulate()
-    except Exception as exc:  # VTK raises many types for a bad file
-        raise InputError(f"not a readable VTP file ({_short(exc)})", path) from None
-    faces = np.asarray(poly.faces).reshape(-1, 4)[:, 1:]
-    return trimesh.Trimesh(np.asarray(poly.points, float), faces, process=False)
-
-
-def _short(exc: Exception) -> str:
-    lines = str(exc).strip().splitlines()
-    text = lines[0] if lines else type(exc).__name__
-    return text if len(text) <= 80 else text[:79] + "…"
 
 
 def slicer_frame(path) -> str | None:

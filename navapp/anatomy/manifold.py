@@ -21,7 +21,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from .meshing import TetMesh, boundary_faces, simplex_keys, tet_volumes
+from .tets import TetMesh, boundary_faces, simplex_keys, tet_volumes
 
 _FACES = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]])
 

@@ -5,11 +5,10 @@ left, +y anterior, +z superior.
 """
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import trimesh
-
-from .targets import Target
 
 REGION_NAMES = ("anterior", "posterior", "falciform", "ridge_left", "ridge_right")
 """Liver-surface labels, in the order of their integer codes in ``PreopModel.regions``."""
@@ -55,6 +54,40 @@ def polyline_tangents(points: np.ndarray, branch: np.ndarray) -> np.ndarray:
     t[~bad] /= n[~bad, None]
     t[bad] = 0.0  # a single-point branch has no direction; such points are rejected on read
     return t
+
+
+@dataclass(eq=False)
+class Target:
+    """One tumour target (``anatomy.targets`` reads and writes them). ``surface`` a closed
+    outward triangle surface (mm) or None for a point target; ``centre`` (3,) mm — the
+    surface's volume centroid when read, and the mapped centre when carried through a
+    registration; ``source`` the file it came from."""
+
+    name: str
+    centre: np.ndarray
+    surface: trimesh.Trimesh | None = None
+    source: str | None = None
+
+    @cached_property
+    def diameter_mm(self) -> float:
+        """Largest distance between two points of the surface (0 for a point target)."""
+        if self.surface is None:
+            return 0.0
+        v = np.asarray(self.surface.vertices, float)
+        if len(v) > 2000:
+            v = np.asarray(self.surface.convex_hull.vertices)  # the farthest pair is on the hull
+        d2 = ((v[:, None] - v[None]) ** 2).sum(-1)
+        return float(np.sqrt(d2.max()))
+
+    @property
+    def volume_ml(self) -> float:
+        return 0.0 if self.surface is None else float(self.surface.volume) / 1000.0
+
+    def summary(self) -> dict:
+        """JSON-ready: name, centre (mm), diameter (mm), volume (ml), kind."""
+        return {"name": self.name, "kind": "point" if self.surface is None else "surface",
+                "centre_mm": [round(float(x), 3) for x in self.centre],
+                "diameter_mm": round(self.diameter_mm, 2), "volume_ml": round(self.volume_ml, 3)}
 
 
 @dataclass

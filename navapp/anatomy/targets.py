@@ -16,53 +16,20 @@ Targets are carried through a registration as points (``target_points`` /
 """
 
 import warnings
-from dataclasses import dataclass
-from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 import trimesh
 
 from ..errors import InputError
+from .model import Target
+from .surface_io import SURFACE_SUFFIXES, read_any_surface, suffix_of
 
 TARGETS_DIR = "targets"  # under preop/
 POINTS_FILE = "points.csv"  # what ``write_targets`` names the point targets' file
 CSV_COLUMNS = ("name", "x", "y", "z")
 SPHERE_SUBDIVISIONS = 3  # a CSV sphere becomes an icosphere of 642 vertices, 1,280 triangles
 OUTSIDE_WARN_FRACTION = 0.05  # warn when more of a target's surface than this lies outside the liver
-
-
-@dataclass(eq=False)
-class Target:
-    """One target. ``surface`` a closed outward triangle surface (mm) or None for a
-    point target; ``centre`` (3,) mm — the surface's volume centroid when read, and the
-    mapped centre when carried through a registration; ``source`` the file it came from."""
-
-    name: str
-    centre: np.ndarray
-    surface: trimesh.Trimesh | None = None
-    source: str | None = None
-
-    @cached_property
-    def diameter_mm(self) -> float:
-        """Largest distance between two points of the surface (0 for a point target)."""
-        if self.surface is None:
-            return 0.0
-        v = np.asarray(self.surface.vertices, float)
-        if len(v) > 2000:
-            v = np.asarray(self.surface.convex_hull.vertices)  # the farthest pair is on the hull
-        d2 = ((v[:, None] - v[None]) ** 2).sum(-1)
-        return float(np.sqrt(d2.max()))
-
-    @property
-    def volume_ml(self) -> float:
-        return 0.0 if self.surface is None else float(self.surface.volume) / 1000.0
-
-    def summary(self) -> dict:
-        """JSON-ready: name, centre (mm), diameter (mm), volume (ml), kind."""
-        return {"name": self.name, "kind": "point" if self.surface is None else "surface",
-                "centre_mm": [round(float(x), 3) for x in self.centre],
-                "diameter_mm": round(self.diameter_mm, 2), "volume_ml": round(self.volume_ml, 3)}
 
 
 def from_surface(name: str, mesh: trimesh.Trimesh, source=None) -> Target:
@@ -130,12 +97,11 @@ def read_target_file(path, to_case=None) -> list[Target]:
     """
     from . import frames
     from .cleanup import clean_surface
-    from .importer import SURFACE_SUFFIXES, _suffix, read_any_surface
 
     path = Path(path)
-    if _suffix(path) == ".csv":
+    if suffix_of(path) == ".csv":
         return read_points_csv(path, to_case)
-    if _suffix(path) not in SURFACE_SUFFIXES:
+    if suffix_of(path) not in SURFACE_SUFFIXES:
         raise InputError(f"not a target file navapp reads (a surface: {', '.join(SURFACE_SUFFIXES)}; "
                          "or points: .csv)", path)
     mesh = read_any_surface(path)
@@ -145,7 +111,7 @@ def read_target_file(path, to_case=None) -> list[Target]:
     clean, rep = clean_surface(mesh, path, closed=True, what="target surface")
     for line in rep.warnings:
         warnings.warn(f"{path}: {line}", stacklevel=3)
-    name = path.name[: -len(_suffix(path))]
+    name = path.name[: -len(suffix_of(path))]
     return [from_surface(name, clean, path)]
 
 
@@ -181,14 +147,13 @@ def read_targets(folder, liver: trimesh.Trimesh | None = None) -> list[Target]:
     """Every target under ``folder`` (a case's ``preop/targets/``), in file-name order;
     with ``liver``, checked against it (``check_targets``). Files of other kinds are
     warned about and skipped."""
-    from .importer import SURFACE_SUFFIXES, _suffix
 
     folder = Path(folder)
     targets = []
     for p in sorted(folder.iterdir()):
         if p.is_dir() or p.name.startswith("."):
             continue
-        if _suffix(p) not in SURFACE_SUFFIXES + (".csv",):
+        if suffix_of(p) not in SURFACE_SUFFIXES + (".csv",):
             warnings.warn(f"{p}: not a target file (surfaces: {', '.join(SURFACE_SUFFIXES)}; points: .csv): ignored",
                           stacklevel=2)
             continue

@@ -497,7 +497,7 @@ def markdown(results, setup: Setup, command: str) -> str:
     return "\n".join(lines) + "\n"
 
 
-def study_command(args) -> int:
+def study_command(report, edge: float = EDGE_MM, k: int = K) -> int:
     """``navapp study hard``: run every case at the given model, print the table, write
     ``<report>/hard_cases.md``. Exit status 1 when a case broke its bounds."""
     import sys
@@ -505,13 +505,12 @@ def study_command(args) -> int:
 
     from .. import progress
 
-    edge, k = getattr(args, "edge", None) or 4.0, getattr(args, "k", None) or 45
     with progress.stage(f"hard cases: model of phantom 0 ({edge:g} mm, k = {k})"):
         setup = make_setup(edge=edge, k=k)
     with progress.bar(len(CASES), "hard cases", "case") as pb:
         results = run_hard(setup, on_result=lambda r: pb.update(1))
     print(text_table(results))
-    out = Path(args.report) / "hard_cases.md"
+    out = Path(report) / "hard_cases.md"
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(markdown(results, setup, "navapp study hard"))
     print(f"navapp: wrote {out}", file=sys.stderr)

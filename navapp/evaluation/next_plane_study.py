@@ -319,23 +319,23 @@ def markdown(all_rows, sets, bench) -> str:
     return "".join(text)
 
 
-def study_command(case_dirs, args):
+def study_command(case_dirs, results, report, with_cases=None, with_results=None):
     """``navapp study next-plane``: writes <report>/next_plane.md and .csv; ranks from
-    ``--results`` (Table II CSV of ``--cases``) and ``--with-results`` for ``--with-cases``."""
-    sets = {"study cases": (list(case_dirs), Path(args.results))}
-    if getattr(args, "with_cases", None):
-        if not getattr(args, "with_results", None):
+    ``results`` (Table II CSV of ``case_dirs``) and ``with_results`` for ``with_cases``."""
+    sets = {"study cases": (list(case_dirs), Path(results))}
+    if with_cases:
+        if not with_results:
             from ..errors import NavappError
 
             raise NavappError("--with-cases needs --with-results (their Table II CSV) for the ranks")
-        sets["second set"] = (list(args.with_cases), Path(args.with_results))
+        sets["second set"] = (list(with_cases), Path(with_results))
     for _, csv_path in sets.values():
         if not csv_path.exists():
             from ..errors import InputError
 
             raise InputError("no Table II results to rank against (run `navapp study table2` first)", csv_path)
-    run_study(sets, args.report, bench_case=case_dirs[0])
-    print(json.dumps({"report": str(Path(args.report) / "next_plane.md")}))
+    run_study(sets, report, bench_case=case_dirs[0])
+    print(json.dumps({"report": str(Path(report) / "next_plane.md")}))
 
 
 

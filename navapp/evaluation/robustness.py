@@ -233,29 +233,3 @@ def run_robustness(case_dirs, results, methods=("before", "after"), draws=4, wor
                 f.flush()
                 pb.update(len(rows))
     return total
-
-
-def study_command(cases, args) -> None:
-    """``navapp study robustness``: run (or resume) the design, then write the report.
-
-    Defaults: ``<report>/robustness.csv``, methods "before" (the path before issue 14)
-    and "after" (today's default), 4 draws, one worker (the rows carry timings);
-    ``--quick``: one draw and the 0°, 15° and 20° offsets.
-    """
-    import json
-    import sys
-
-    from .robustness_report import write_robustness_report
-
-    results = Path(args.results)
-    if results.name == "table2.csv":  # the study command's shared default belongs to Table II
-        results = Path(args.report) / "robustness.csv"
-    if (args.workers or 1) > 1:
-        print(f"navapp: {args.workers} robustness cases at once: the per-registration times compete for the cores",
-              file=sys.stderr)
-    offsets = tuple(o for o in OFFSETS if o[0] in (0.0, 15.0, 20.0)) if args.quick else OFFSETS
-    t0 = time.perf_counter()
-    n = run_robustness(cases, results, draws=1 if args.quick else 4, workers=args.workers or 1, offsets=offsets)
-    md = write_robustness_report(results, args.report)
-    print(json.dumps({"registrations_run": n, "seconds": round(time.perf_counter() - t0, 1), "results": str(results),
-                      "report": str(md)}))

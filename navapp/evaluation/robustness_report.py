@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .robustness import CONDITIONS, OFFSETS, SUCCESS_RATIO, read_rows
+from .robustness import CONDITIONS, OFFSETS, SUCCESS_RATIO, read_rows, run_robustness
 
 
 def with_reference(rows: list[dict]) -> list[dict]:
@@ -192,3 +192,21 @@ def write_robustness_report(results, out_dir, preamble: str = DESIGN) -> Path:
     md.write_text("# Robustness to the starting pose and to imprecise labels\n\n" + preamble
                   + summary_tables(rows, methods) + f"\n\n![robustness]({png.name})\n")
     return md
+
+
+def run_study(cases, results: Path, report: Path, workers: int = 1, quick: bool = False) -> dict:
+    """``navapp study robustness``: run (or resume) the design into ``results`` (CSV), then
+    write the report into ``report``; returns what it did (printed as JSON by the CLI).
+
+    Methods "before" (the path before multi-start) and "after" (today's default), 4 draws,
+    one worker by default (the rows carry timings); ``quick``: one draw and the 0°, 15° and
+    20° offsets.
+    """
+    import time
+
+    offsets = tuple(o for o in OFFSETS if o[0] in (0.0, 15.0, 20.0)) if quick else OFFSETS
+    t0 = time.perf_counter()
+    n = run_robustness(cases, results, draws=1 if quick else 4, workers=workers, offsets=offsets)
+    md = write_robustness_report(results, report)
+    return {"registrations_run": n, "seconds": round(time.perf_counter() - t0, 1), "results": str(results),
+            "report": str(md)}

@@ -6,19 +6,19 @@ import time
 from pathlib import Path
 
 from .. import progress
-from ..defaults import EDGE_MM, K
+from ..argtypes import positive
+from ..defaults import EDGE_MM, LM_MAX_ITERATIONS, K
 
 
 def add_register_parser(sub):
-    from ..cli import _positive
-
     s = sub.add_parser("register", help="register a case folder (rigid ICP + LIBR) and write the results")
     s.add_argument("case", type=Path, help="case folder (docs/design.md §3)")
     s.add_argument("--out", type=Path, help="output folder (default CASE/registration)")
-    s.add_argument("--k", type=_positive(int), default=K, help=f"control points (default {K})")
-    s.add_argument("--edge", type=_positive(float), default=EDGE_MM, help=f"tet element size, mm (default {EDGE_MM:g})")
+    s.add_argument("--k", type=positive(int), default=K, help=f"control points (default {K})")
+    s.add_argument("--edge", type=positive(float), default=EDGE_MM, help=f"tet element size, mm (default {EDGE_MM:g})")
     s.add_argument("--no-deform", action="store_true", help="rigid registration only")
-    s.add_argument("--max-iterations", type=_positive(int), default=100, help="LM iteration cap (default 100)")
+    cap = LM_MAX_ITERATIONS
+    s.add_argument("--max-iterations", type=positive(int), default=cap, help=f"LM iteration cap (default {cap})")
     s.add_argument("--json", action="store_true", help="print a one-line JSON summary on stdout")
     s.set_defaults(func=cmd_register)
 
