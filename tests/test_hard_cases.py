@@ -154,7 +154,8 @@ def test_hard_case_within_its_bounds(hard_results, name):
     assert r.outcome in case.allowed, r.message
     assert r.identical  # bit-identical β, pose and TRE from the same input
     assert "\n" not in r.message
-    if r.outcome == "refused":
+    if r.outcome == "refused":  # said, and nothing registered: no pose, no deformation, no error claimed
+        assert r.message and r.iterations is None and r.raw_mm is None and r.tre_mm is None, r
         return
     assert r.raw_mm <= r.energy_bound_mm  # the guarantee: Ω never ends above its start
     if name in EXCEEDS_STATED_BOUND:
@@ -195,7 +196,7 @@ def test_condition_number_reported_only_when_asked(small_model):
     assert register(small_model, {"anterior": p}).libr.condition is None
     a = register(small_model, {"anterior": p}, options=LMOptions(condition=True)).libr
     b = register(small_model, {"anterior": p}).libr
-    assert 1 <= a.condition < np.inf
+    assert 1 < a.condition < 1e5  # well posed here; the undetermined poses above report > 1e5
     assert np.array_equal(a.beta, b.beta)  # asking for it changes nothing else
 
 

@@ -44,7 +44,6 @@ def test_surface_formats_round_trip(phantoms, tmp_path, fmt):
 
 
 def test_vtp_without_pyvista_is_one_line(tmp_path):
-    pytest.importorskip("meshio")
     try:
         import pyvista  # noqa: F401
         pytest.skip("pyvista is installed: VTP is read through it")
