@@ -19,7 +19,7 @@ import trimesh
 
 from ..anatomy.caseio import write_csv, write_preop, write_settings
 from ..errors import InputError
-from ..features import NAMES as FEATURES
+from ..features import NAMES as FEATURE_NAMES
 from ..features import STYLUS as STYLUS_FEATURES
 from ..simulation.scenedata import SceneData, acquire_free_plane, scene_key
 from ..simulation.ultrasound import PlaneData
@@ -86,7 +86,7 @@ class Session:
         idir = self.folder / "intraop"
         idir.mkdir(exist_ok=True)
         data = self.data(sd, planes)
-        for name in FEATURES:
+        for name in FEATURE_NAMES:
             path = idir / f"{name}.csv"
             if name in data:
                 tmp = path.with_suffix(".csv.tmp")

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..anatomy.model import VESSELS
 from ..registration.libr import LMOptions
 from ..registration.pipeline import Registration, register
 from ..registration.rigid import RigidResult
@@ -78,7 +79,7 @@ class RegistrationWorker:
         """"liver" (the tet boundary) / "portal" / "hepatic" → (V, 3) vertices of the
         registration model's surfaces at state β (None: rigid only), tracker space, mm."""
         out = {}
-        for name in ("liver", "portal", "hepatic"):
+        for name in ("liver", *VESSELS):
             f = self.model.features.get(name)
             if f is not None:
                 out[name] = rigid.apply(f.rest if beta is None else self.model.positions(f, beta)[1])

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..defaults import FAR_WALL_COS, FAR_WALL_MIN_DEPTH_MM, PROBE_HEIGHT_PX, PROBE_SPACING_MM, PROBE_WIDTH_PX
 from ..geometry.planes import plane_section
 from ..threads import limit_threads
 from .objective import evaluate
@@ -40,14 +41,10 @@ from .uncertainty import (
     point_sigma,
 )
 
-# The simulator's probe: 256 × 320 pixels of 0.25 mm (simulation.probe.Probe), and its
-# far-wall rule (simulation.ultrasound.acquire_plane): liver faces turned away from the
-# probe (normal · depth > 0.2) more than 15 mm deep.
-IMAGE_WIDTH_MM = 64.0
-IMAGE_DEPTH_MM = 80.0
-PIXEL_MM = 0.25
-FAR_WALL_COS = 0.2
-FAR_WALL_MIN_DEPTH_MM = 15.0
+# the simulator's probe and far-wall rule (``navapp.defaults``: one home for both sides)
+IMAGE_WIDTH_MM = PROBE_WIDTH_PX * PROBE_SPACING_MM
+IMAGE_DEPTH_MM = PROBE_HEIGHT_PX * PROBE_SPACING_MM
+PIXEL_MM = PROBE_SPACING_MM
 SAMPLE_MM = 1.0  # Jacobian rows taken every 1 mm along a section, weighted as the pixels they stand for
 EVAL_NODES = 1500  # mesh nodes (a fixed random sample) on which the mean predicted error is compared
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..anatomy.caseio import read_csv, read_surface
+from ..anatomy.model import VESSELS
 from ..errors import InputError
 from ..features import STYLUS
 from .stylus import thin
@@ -43,7 +44,7 @@ def data_level(case_dir, level: str, planes=(), spacing=3.0, case=None) -> dict:
         out = {"anterior": thin(np.asarray(liver.vertices)[ant], spacing),
                "posterior": thin(np.asarray(liver.vertices)[~ant], spacing)}
         if level == "iCT":
-            for v in ("portal", "hepatic"):
+            for v in VESSELS:
                 p = tdir / f"{v}.ply"
                 if p.exists():
                     out[f"{v}_contour"] = thin(np.asarray(read_surface(p, closed=False)[0].vertices), spacing)

@@ -10,12 +10,14 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..defaults import PROBE_HEIGHT_PX, PROBE_SPACING_MM, PROBE_WIDTH_PX
+
 
 @dataclass(frozen=True)
 class Probe:
-    width_px: int = 256
-    height_px: int = 320
-    spacing_mm: float = 0.25
+    width_px: int = PROBE_WIDTH_PX
+    height_px: int = PROBE_HEIGHT_PX
+    spacing_mm: float = PROBE_SPACING_MM
 
     def image_to_probe(self) -> np.ndarray:
         s = self.spacing_mm

@@ -18,6 +18,7 @@ import numpy as np
 import trimesh
 
 from ..anatomy.caseio import Case, read_case
+from ..anatomy.model import VESSELS
 from ..cache import cache_dir, content_key
 from ..features import STYLUS
 from .probe import Probe
@@ -113,7 +114,7 @@ def load_scene_data(scene: Scene, cache_root=None, edge=REGISTRATION_EDGE_MM) ->
     order = sweep_order(allpts)
     planes, probe = read_planes(case_dir)
     truth = {}
-    for name in ("liver", "portal", "hepatic"):
+    for name in ("liver", *VESSELS):
         p = case_dir / "truth" / f"{name}.ply"
         if p.exists():
             truth[name] = trimesh.load(p, process=False)

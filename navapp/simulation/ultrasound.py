@@ -9,6 +9,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from sklearn.cluster import KMeans
 
+from ..anatomy.model import VESSELS
+from ..defaults import FAR_WALL_COS, FAR_WALL_MIN_DEPTH_MM
 from ..geometry.bresenham import line
 from ..geometry.planes import plane_section
 from . import effects as fx
@@ -95,14 +97,14 @@ def acquire_plane(index, orientation, T, probe, liver, portal, hepatic, scene_ef
         measured = fx.calibration_error(T, rng, ledger, **eff["calibration_error"])
     feats = {}
     sections = {}
-    for name in ("portal", "hepatic", "liver"):
+    for name in (*VESSELS, "liver"):
         m = meshes[name]
         if m is None:
             continue
         seg, faces = plane_section(m.vertices, m.faces, origin, normal, return_faces=True)
         if name == "liver":  # the posterior wall: faces turned away from the probe
-            keep = m.face_normals[faces] @ depth_axis > 0.2
-            far = np.einsum("sij,j->si", seg - origin, depth_axis).min(1) > 15.0
+            keep = m.face_normals[faces] @ depth_axis > FAR_WALL_COS
+            far = np.einsum("sij,j->si", seg - origin, depth_axis).min(1) > FAR_WALL_MIN_DEPTH_MM
             sections["liver_all"] = _to_px(probe, T, seg)
             seg = seg[keep & far]
         sections[name] = _to_px(probe, T, seg)
@@ -117,7 +119,7 @@ def acquire_plane(index, orientation, T, probe, liver, portal, hepatic, scene_ef
         cols, rows = _rasterise(seg_px, probe)
         if len(cols):
             feats[feat] = pixels_to_tracker(probe, measured, cols, rows)
-        if name in ("portal", "hepatic"):
+        if name in VESSELS:
             lab, closed = _components(sections[name])
             cents = []
             for c in np.flatnonzero(closed):
@@ -173,7 +175,7 @@ def bmode_image(probe, sections, rng, ledger) -> np.ndarray:
     ledger.mark("bmode_image")
     H, W = probe.height_px, probe.width_px
     echo = np.where(_inside(sections.get("liver_all", np.zeros((0, 2, 2))), probe), 0.55, 0.12)
-    for v in ("portal", "hepatic"):
+    for v in VESSELS:
         if v in sections:
             echo[_inside(sections[v], probe)] = 0.04
     img = echo * rng.rayleigh(scale=0.8, size=(H, W))
