@@ -83,7 +83,10 @@ def registered_liver_updates(frame: bytes) -> int:
 
 def wait_text(page, pattern, deadline: Deadline):
     while time.monotonic() < deadline.end:
-        body = page.inner_text("body", timeout=deadline.ms())
+        try:
+            body = page.inner_text("body", timeout=deadline.ms())
+        except (playwright.TimeoutError, AssertionError):  # the budget ran out inside the call
+            break
         m = re.search(pattern, body)
         if m:
             return m
@@ -91,7 +94,7 @@ def wait_text(page, pattern, deadline: Deadline):
         # websocket frames) only while it is called
         page.wait_for_timeout(100)
     raise AssertionError(f"{pattern!r} did not appear within the test's budget; page says:\n"
-                         f"{page.inner_text('body')[:3000]}")
+                         f"{page.inner_text('body', timeout=10_000)[:3000]}")
 
 
 def click_button(page, name, deadline: Deadline):
