@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from conftest import free_port
 
-from navapp.app.runs import RunKind
+from navapp.app.state import RunKind
 from navapp.simulation.scene import parse_scene
 
 SCENE = {"name": "apptest", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},

@@ -27,11 +27,10 @@ from ..registration.pipeline import Registration, prepare
 from ..simulation.scenedata import SceneData, load_scene_data
 from ..simulation.ultrasound import PlaneData
 from .session import Session, default_folder, open_session
-from .state import Change, ClientState, RegisteredState
+from .state import Change, ClientState, RegisteredState, Run
 
 if TYPE_CHECKING:
     from ..registration.model import RegistrationModel
-    from .runs import Run
     from .worker import RegistrationWorker
 
 

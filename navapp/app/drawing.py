@@ -1,6 +1,6 @@
 """Drawing on an ultrasound image, and undo: a click adds a vertex to the contour this tab is
 drawing, Close / Finish line / Clear plane end or remove contours, and every change a tab
-makes to the shared data is an ``Action`` that knows how to undo itself. Undo is per tab:
+makes to the shared data is a ``state.Action`` that knows how to undo itself. Undo is per tab:
 it walks back that tab's own actions, skipping those whose work is gone meanwhile, and
 never touches another tab's. No viser here.
 """
@@ -9,35 +9,21 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import Enum
-from typing import TYPE_CHECKING
 
 from .contours import Contour
+from .core import Core
 from .palette import DRAWABLE
-from .state import Change, ClientState
-
-if TYPE_CHECKING:
-    from .server import App
-
-
-class Undone(Enum):
-    DONE = "done"
-    GONE = "gone"  # nothing of the action is left (removed meanwhile): undo the one before
-
-
-class Action:
-    """One undoable change a tab made to the shared data. ``undo`` runs under the shared
-    lock and returns DONE, GONE, or why it cannot be undone now (the action is kept)."""
-
-    def undo(self, app: App, cs: ClientState) -> Undone | str:
-        raise NotImplementedError
+from .session import Session
+from .state import Action, Change, ClientState, Undone
 
 
 @dataclass
 class VertexAdded(Action):
+    session: Session
     contour: Contour
 
-    def undo(self, app, cs):
-        c, session = self.contour, app.core.need_session()
+    def undo(self, cs):
+        c, session = self.contour, self.session
         if c not in session.contours or not c.vertices:
             return Undone.GONE
         c.vertices.pop()
@@ -52,10 +38,11 @@ class VertexAdded(Action):
 
 @dataclass
 class Closed(Action):
+    session: Session
     contour: Contour
 
-    def undo(self, app, cs):
-        if self.contour not in app.core.need_session().contours:
+    def undo(self, cs):
+        if self.contour not in self.session.contours:
             return Undone.GONE
         self.contour.closed = False
         cs.drawing, cs.plane = self.contour, self.contour.plane
@@ -64,66 +51,16 @@ class Closed(Action):
 
 @dataclass
 class Cleared(Action):
+    session: Session
     plane: int
     removed: list[Contour]
     was_added: bool  # the plane's segmentation was data
 
-    def undo(self, app, cs):
-        session = app.core.need_session()
+    def undo(self, cs):
+        session = self.session
         session.contours.extend(self.removed)
         if self.was_added and self.plane not in session.planes_added:
             session.planes_added.append(self.plane)
-        return Undone.DONE
-
-
-@dataclass
-class PlaneAdded(Action):
-    plane: int
-
-    def undo(self, app, cs):
-        session = app.core.need_session()
-        if self.plane not in session.planes_added:
-            return Undone.GONE
-        session.planes_added.remove(self.plane)
-        return Undone.DONE
-
-
-@dataclass
-class FreePlanePlaced(Action):
-    plane: int
-
-    def undo(self, app, cs):
-        core = app.core
-        session = core.need_session()
-        if any(c.plane == self.plane for c in session.contours) or self.plane in session.planes_added:
-            return "That free plane has contours or data on it now; clear it first."
-        session.free_planes = [f for f in session.free_planes if f["index"] != self.plane]
-        core.planes.pop(self.plane, None)
-        if cs.plane == self.plane:
-            cs.plane = None
-        return Undone.DONE
-
-
-@dataclass
-class StylusBatch(Action):
-    before: int  # points digitised before the sweep
-
-    def undo(self, app, cs):
-        if app.stylus.sweeping:
-            return "Stop the stylus sweep first."
-        session = app.core.need_session()
-        session.stylus_count = min(session.stylus_count, self.before)
-        return Undone.DONE
-
-
-@dataclass
-class LivePoints(Action):
-    before: int  # live points before the recording
-
-    def undo(self, app, cs):
-        if app.live.recording:
-            return "Stop digitising first."
-        del app.core.need_session().live_points[self.before:]
         return Undone.DONE
 
 
@@ -138,8 +75,8 @@ class Command(Enum):
 
 
 class Drawing:
-    def __init__(self, app: App):
-        self.app, self.core = app, app.core
+    def __init__(self, core: Core):
+        self.core = core
 
     def click(self, cs: ClientState, col: int, row: int, feature: str | None = None) -> str | None:
         """A vertex at image pixel (col, row) of this browser's plane; returns an error or None."""
@@ -158,7 +95,7 @@ class Drawing:
                 c = cs.drawing = Contour(cs.plane, DRAWABLE[name])
                 session.contours.append(c)
             c.vertices.append((int(col), int(row)))
-            cs.undo.append(VertexAdded(c))
+            cs.undo.append(VertexAdded(session, c))
             cs.touch()
         core.changed(Change.DATA)
         return None
@@ -190,7 +127,7 @@ class Drawing:
                 else:
                     c.closed = True
                     cs.drawing = None
-                    cs.undo.append(Closed(c))
+                    cs.undo.append(Closed(session, c))
             elif command is Command.FINISH:
                 cs.drawing = None
             elif command is Command.UNDO:
@@ -202,7 +139,7 @@ class Drawing:
                 was_added = plane in session.planes_added
                 if was_added:
                     session.planes_added.remove(plane)
-                cs.undo.append(Cleared(plane, removed, was_added))
+                cs.undo.append(Cleared(session, plane, removed, was_added))
                 cs.drawing = None
             cs.message = msg or ""
             cs.touch()
@@ -214,7 +151,7 @@ class Drawing:
         with self.core.lock:
             while cs.undo:
                 a = cs.undo.pop()
-                out = a.undo(self.app, cs)
+                out = a.undo(cs)
                 if out is Undone.DONE:
                     return None
                 if isinstance(out, str):

@@ -9,7 +9,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from .imaging import FREE_PLANE_BASE
-from .runs import RunKind
+from .state import RunKind
 
 
 @dataclass(frozen=True)

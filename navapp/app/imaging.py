@@ -8,26 +8,54 @@ Plane indices: the scene's preset planes from 0, planes placed by hand from
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..simulation.scenedata import acquire_free_plane
 from ..simulation.ultrasound import PlaneData
-from .drawing import FreePlanePlaced, PlaneAdded
+from .core import Core
 from .palette import VESSEL_SHORT, feature_words
-from .state import Change, ClientState
-
-if TYPE_CHECKING:
-    from .server import App
+from .session import Session
+from .state import Action, Change, ClientState, Undone
 
 FREE_PLANE_BASE = 100  # indices of planes placed by hand start here
 LIVE_PLANE_BASE = 1000  # indices of frozen live frames start here
 
 
+@dataclass
+class PlaneAdded(Action):
+    session: Session
+    plane: int
+
+    def undo(self, cs):
+        if self.plane not in self.session.planes_added:
+            return Undone.GONE
+        self.session.planes_added.remove(self.plane)
+        return Undone.DONE
+
+
+@dataclass
+class FreePlanePlaced(Action):
+    core: Core
+    plane: int
+
+    def undo(self, cs):
+        session = self.core.need_session()
+        if any(c.plane == self.plane for c in session.contours) or self.plane in session.planes_added:
+            return "That free plane has contours or data on it now; clear it first."
+        session.free_planes = [f for f in session.free_planes if f["index"] != self.plane]
+        self.core.planes.pop(self.plane, None)
+        if cs.plane == self.plane:
+            cs.plane = None
+        return Undone.DONE
+
+
 class Imaging:
-    def __init__(self, app: App):
-        self.app, self.core = app, app.core
+    def __init__(self, core: Core, following: Callable[[], bool]):
+        self.core = core
+        self.following = following  # live re-registration is on (``live.Live.following``)
 
     def label(self, i: int) -> str:
         p = self.core.planes[i]
@@ -63,7 +91,7 @@ class Imaging:
             if cs.plane in session.planes_added:
                 return None
             session.planes_added.append(cs.plane)
-            cs.undo.append(PlaneAdded(cs.plane))
+            cs.undo.append(PlaneAdded(session, cs.plane))
         core.changed(Change.DATA)
         return None
 
@@ -79,7 +107,7 @@ class Imaging:
             plane.index = index
             core.planes[index] = plane
             session.free_planes.append({"index": index, "pose": np.asarray(T).tolist()})
-            cs.undo.append(FreePlanePlaced(index))
+            cs.undo.append(FreePlanePlaced(core, index))
         self.show(cs, index)
         core.changed(Change.DATA)
         return index
@@ -100,7 +128,7 @@ class Imaging:
         reg = core.last_reg
         if reg is None or reg.libr is None or not reg.data_model_frame:
             return "Register deformably first: the suggestion ranks planes by what they would add to a fit."
-        if self.app.live.following:
+        if self.following():
             return "Live re-registration is on: switch it off first."
 
         def job(cancel):

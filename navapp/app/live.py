@@ -27,7 +27,7 @@ import statistics
 import threading
 import time
 from collections import deque
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -38,13 +38,11 @@ from ..simulation.ultrasound import PlaneData
 from ..tracking.client import TrackingClient
 from ..tracking.config import TrackingConfig
 from ..tracking.events import ProbeSample, StylusSample
-from .drawing import LivePoints
-from .imaging import LIVE_PLANE_BASE
-from .runs import RunEntry, RunKind
-from .state import Change, ClientState, RegisteredState
-
-if TYPE_CHECKING:
-    from .server import App
+from .core import Core
+from .imaging import LIVE_PLANE_BASE, Imaging
+from .shown import Shown
+from .slicer import Slicer
+from .state import Action, Change, ClientState, RegisteredState, RunEntry, RunKind, Undone
 
 PUMP_HZ = 20.0  # status refresh and digitiser collection; tip and frames go out as they arrive
 TIP_MIN_S = 1.0 / 60  # at most this often per browser: a 100 Hz tracker would flood the websockets
@@ -297,12 +295,24 @@ class LiveFollower:
         live_reg.frame = None
 
 
+@dataclass
+class LivePoints(Action):
+    live: Live
+    before: int  # live points before the recording
+
+    def undo(self, cs):
+        if self.live.recording:
+            return "Stop digitising first."
+        del self.live.core.need_session().live_points[self.before:]
+        return Undone.DONE
+
+
 class Live:
     """The tracker side of the viewer: digitising with the tracked stylus, freezing frames,
     live re-registration. Without a tracker (``link`` None) every action says so."""
 
-    def __init__(self, app: App, config: TrackingConfig | None):
-        self.app, self.core = app, app.core
+    def __init__(self, core: Core, shown: Shown, slicer: Slicer, imaging: Imaging, config: TrackingConfig | None):
+        self.core, self.shown, self.slicer, self.imaging = core, shown, slicer, imaging
         self.config = config  # connect once the scene is ready (``connect``)
         self.link: LiveLink | None = None
         self._record_start: int | None = None  # live points before the recording in progress (its undo point)
@@ -353,7 +363,7 @@ class Live:
                 start, self._record_start = self._record_start, None
                 if start is not None and len(session.live_points) > start:
                     for cs in core.states.values():
-                        cs.undo.append(LivePoints(start))
+                        cs.undo.append(LivePoints(self, start))
         core.changed(Change.LIVE)
         return None
 
@@ -372,10 +382,10 @@ class Live:
     def show_registration(self, reg: Registration, final: bool, summary: str = ""):
         """A live re-registration (``LiveFollower``): shown at most ``VIEW_MIN_S`` apart
         while the probe moves, sent to Slicer, and kept as the result when ``final``."""
-        core, shown = self.core, self.app.shown
+        core, shown = self.core, self.shown
         beta = reg.libr.beta if reg.libr is not None else None
         now = time.monotonic()
-        self.app.slicer.send(reg, throttle=not final)
+        self.slicer.send(reg, throttle=not final)
         if not final and now - self._shown < VIEW_MIN_S:
             return
         self._shown = now
@@ -424,6 +434,6 @@ class Live:
             Image.fromarray(plane.image).save(session.folder / rel)
             core.planes[index] = plane
             session.live_planes.append({"index": index, "pose": plane.probe_to_tracker.tolist(), "png": rel})
-        self.app.imaging.show(cs, index)
+        self.imaging.show(cs, index)
         core.changed(Change.DATA)
         return None

@@ -1,140 +1,34 @@
-"""Registration runs in the viewer: what kind of run, the run in progress, the row it
-leaves in the session's log, and starting, streaming, cancelling and finishing one (and
+"""Registration runs in the viewer: starting, streaming, cancelling and finishing one (and
 the cost sweep, which uses the same worker). No viser here.
 
-A run's kind is a ``RunKind``; its ``label`` is only what the run table shows and the
-session file stores. The worker thread streams states into ``Run`` under the shared lock;
-every view reads the run through ``Core.run``.
+What a run is (``state.RunKind``), the run in progress (``state.Run``) and the row it leaves
+in the session's log (``state.RunEntry``) are typed state. The worker thread streams states
+into ``Run`` under the shared lock; every view reads the run through ``Core.run``.
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
-from enum import Enum
-from typing import TYPE_CHECKING
-
-import numpy as np
+from collections.abc import Callable
 
 from ..errors import NavappError
 from ..evaluation.cost import lm_sweep
 from ..registration.pipeline import Registration
-from ..registration.rigid import RigidResult
-from .state import Change, RegisteredState
+from .core import Core
+from .shown import Shown
+from .slicer import Slicer
+from .state import Change, RegisteredState, Run, RunEntry, RunKind
 from .worker import Update, cancelled
 
-if TYPE_CHECKING:
-    from .server import App
-
 MIN_POINTS = 3  # fewer data points than this fix nothing
-
-
-class RunKind(Enum):
-    """What a run fits with what; the value is the button's key, ``label`` the words shown."""
-
-    RIGID = "rigid"
-    SURFACE = "surface"
-    ALL = "all"
-    WARM = "warm"
-    LIVE = "live"
-    RESTORED = "restored"
-
-    @property
-    def label(self) -> str:
-        return _LABELS[self]
-
-    @property
-    def deformable(self) -> bool:
-        return self is not RunKind.RIGID
-
-    @staticmethod
-    def from_label(label: str) -> RunKind:
-        """The kind a stored label names (session files store labels); unknown: RESTORED."""
-        return next((k for k, v in _LABELS.items() if v == label), RunKind.RESTORED)
-
-
-_LABELS = {RunKind.RIGID: "rigid", RunKind.SURFACE: "deformable, surface", RunKind.ALL: "deformable, all data",
-           RunKind.WARM: "deformable, all data (warm)", RunKind.LIVE: "live (every frame)",
-           RunKind.RESTORED: "restored"}
-
-
-@dataclass
-class Run:
-    """The registration in progress (written by the worker thread under ``Core.lock``)."""
-
-    kind: RunKind
-    points: int
-    t0: float
-    trace: list[tuple[float, float]] = field(default_factory=list)  # (seconds, mean true error mm) per state
-    streamed: int = 0  # states received from the worker
-    iteration: int = 0
-    omega: float = float("nan")
-    error: np.ndarray | None = None  # (M,) true error at the mesh nodes of the latest state
-    state: tuple[RigidResult, np.ndarray | None] | None = None  # the latest state (rigid pose, β)
-
-
-@dataclass
-class RunEntry:
-    """One row of the run table (the session's log)."""
-
-    run: str  # RunKind.label
-    points: int
-    seconds: float
-    iterations: int
-    stop: str  # the LM stop reason, "rigid" for a rigid-only run
-    updates_streamed: int = 0
-    cancelled: bool = False
-    trace: list[list[float]] = field(default_factory=list)  # [[seconds, mean error mm]]
-    warning: str | None = None  # the fit-quality check's warning
-    error_mean_mm: float | None = None  # against the truth, simulated scenes only
-    error_max_mm: float | None = None
-    live: str | None = None  # a live re-registration's summary
-    note: str = ""
-
-    @property
-    def kind(self) -> RunKind:
-        return RunKind.from_label(self.run)
-
-    @staticmethod
-    def of(kind: RunKind, reg: Registration, points: int, seconds: float, error: np.ndarray | None = None,
-           streamed: int = 0, trace=(), live: str | None = None) -> RunEntry:
-        """The row of a finished (or cancelled) registration; ``error`` (M,) its true error."""
-        lm = reg.libr
-        stopped = cancelled(reg)
-        e = RunEntry(kind.label, int(points), round(float(seconds), 3), lm.iterations if lm else 0,
-                     lm.stop_reason if lm else "rigid", streamed, stopped,
-                     [[round(t, 3), round(v, 3)] for t, v in trace],
-                     reg.quality.warning if reg.quality is not None and reg.quality.warning else None)
-        if error is not None and not stopped:
-            e.error_mean_mm, e.error_max_mm = round(float(error.mean()), 3), round(float(error.max()), 3)
-        if live is not None:
-            e.live, e.note = live, live.split(",")[0]
-        return e
-
-    def to_json(self) -> dict:
-        d = {"run": self.run, "points": self.points, "seconds": self.seconds, "iterations": self.iterations,
-             "stop": self.stop, "updates_streamed": self.updates_streamed, "cancelled": self.cancelled,
-             "trace": self.trace}
-        for k in ("warning", "error_mean_mm", "error_max_mm", "live"):
-            if getattr(self, k) is not None:
-                d[k] = getattr(self, k)
-        if self.note:
-            d["note"] = self.note
-        return d
-
-    @staticmethod
-    def from_json(d: dict) -> RunEntry:
-        return RunEntry(str(d["run"]), int(d["points"]), float(d["seconds"]), int(d["iterations"]), str(d["stop"]),
-                        int(d.get("updates_streamed", 0)), bool(d.get("cancelled", False)),
-                        [list(map(float, x)) for x in d.get("trace", [])], d.get("warning"),
-                        d.get("error_mean_mm"), d.get("error_max_mm"), d.get("live"), str(d.get("note", "")))
 
 
 class Runs:
     """Starting, streaming, cancelling and finishing registrations; the cost sweep."""
 
-    def __init__(self, app: App):
-        self.app, self.core = app, app.core
+    def __init__(self, core: Core, shown: Shown, slicer: Slicer, following: Callable[[], bool]):
+        self.core, self.shown, self.slicer = core, shown, slicer
+        self.following = following  # live re-registration is on (``live.Live.following``)
 
     def start(self, kind: RunKind) -> str | None:
         """Start a registration; returns why it could not start, or None."""
@@ -148,7 +42,7 @@ class Runs:
             return "Collect data first (stylus sweep or an ultrasound plane)."
         if worker.busy:
             return "A registration is already running; wait for it or cancel it."
-        if self.app.live.following:
+        if self.following():
             return "Live re-registration is on (Live tracking panel): switch it off first."
         if kind is RunKind.WARM and worker.last is None:
             kind = RunKind.ALL
@@ -165,7 +59,7 @@ class Runs:
 
     # ------------------------------------------------------------------ from the worker thread
     def on_update(self, u: Update):
-        core, shown = self.core, self.app.shown
+        core, shown = self.core, self.shown
         rigid = u.rigid
         assert rigid is not None  # every streamed state has its rigid pose
         err = shown.node_error(rigid, u.beta)
@@ -183,7 +77,7 @@ class Runs:
         core.each_view(lambda v: v.show_update(u, geom))
 
     def on_done(self, reg: Registration):
-        core, shown = self.core, self.app.shown
+        core, shown = self.core, self.shown
         with core.lock:
             run = core.run
         assert run is not None  # set before the worker started
@@ -201,7 +95,7 @@ class Runs:
             core.run = None
         core.changed(Change.RESULT)
         if not stopped:
-            self.app.slicer.send(reg)
+            self.slicer.send(reg)
         if stopped:
             core.notify("Registration", "Cancelled: the previous result is kept.")
         elif entry.warning:

@@ -27,6 +27,7 @@ from .core import Core, Loaded, Ready
 from .drawing import Drawing
 from .imaging import Imaging
 from .live import Live
+from .panels import ClientView
 from .runs import Runs
 from .session import export
 from .shown import Shown
@@ -46,15 +47,19 @@ class App:
     def __init__(self, scene, host="127.0.0.1", port=8080, session_dir=None, edge=EDGE_MM, k=K, cache_root=None,
                  view2d_port=0, tracking=None, results=None):
         preop = make_phantom(scene.phantom) if scene.phantom is not None else _read_case_preop(scene)
-        self.core = Core(scene, preop, edge, k, cache_root, session_dir)
-        self.shown = Shown(self)
-        self.runs = Runs(self)
-        self.drawing = Drawing(self)
-        self.imaging = Imaging(self)
-        self.stylus = Stylus(self)
-        self.live = Live(self, tracking)
-        self.slicer = Slicer(self, results)
-        self.view2d_state = View2D(self)
+        core = self.core = Core(scene, preop, edge, k, cache_root, session_dir)
+        # the rooms, each given what it uses; none knows the App
+        def following():
+            return self.live.following
+
+        self.slicer = Slicer(preop, results)
+        self.shown = Shown(core, self.slicer)
+        self.drawing = Drawing(core)
+        self.imaging = Imaging(core, following)
+        self.stylus = Stylus(core)
+        self.live = Live(core, self.shown, self.slicer, self.imaging, tracking)
+        self.runs = Runs(core, self.shown, self.slicer, following)
+        self.view2d_state = View2D(core, self.imaging, self.shown, self.drawing)
         self.server = viser.ViserServer(host=host, port=port, label="navapp", verbose=False)
         self.url = f"http://{self.server.get_host()}:{self.server.get_port()}"
         self.view2d = View2DServer(self.view2d_state, host=host if host not in ("", "::") else "0.0.0.0",
@@ -95,8 +100,6 @@ class App:
         return out, f"{len(files)} files written to {out}"
 
     def _connect(self, client):
-        from .panels import ClientView
-
         core = self.core
         cs = core.new_client_state(client.client_id)
         view = ClientView(self, client, cs)

@@ -24,7 +24,7 @@ from ..features import STYLUS as STYLUS_FEATURES
 from ..simulation.scenedata import SceneData, acquire_free_plane, scene_key
 from ..simulation.ultrasound import PlaneData
 from .contours import Contour, contour_points
-from .runs import RunEntry
+from .state import RunEntry
 
 SESSION_VERSION = 1
 

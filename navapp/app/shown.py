@@ -10,8 +10,6 @@ else the preoperative model as-is.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 
 from ..geometry.targets_distance import ImagePlane, plane_distances, tip_distances
@@ -20,17 +18,16 @@ from ..registration.model import deform
 from ..registration.pipeline import Registration
 from ..registration.rigid import RigidResult
 from ..registration.targets import registered_targets, target_interpolation
+from .core import Core
+from .slicer import Slicer
 from .state import ClientState, RegisteredState, StateGeometry, TargetBand
-
-if TYPE_CHECKING:
-    from .server import App
 
 IN_IMAGE_MM = 0.05  # a target this close to the image plane is cut by it
 
 
 class Shown:
-    def __init__(self, app: App):
-        self.app, self.core = app, app.core
+    def __init__(self, core: Core, slicer: Slicer):
+        self.core, self.slicer = core, slicer
         self._target_B = None  # interpolation matrix of the target points in the registration mesh
         self._geometry: StateGeometry | None = None  # the last state's geometry (see geometry())
 
@@ -170,4 +167,4 @@ class Shown:
         if saved is not None and len(saved) == len(model.basis.surface):
             predicted = (np.array(saved, float), [TargetBand.from_json(b) for b in d.get("target_bands", [])])
         core.result = RegisteredState(d.get("run", "restored"), rigid, beta, self.node_error(rigid, beta), *predicted)
-        self.app.slicer.send(reg)  # queued: a Slicer connecting later receives the result on show
+        self.slicer.send(reg)  # queued: a Slicer connecting later receives the result on show

@@ -13,16 +13,16 @@ import numpy as np
 from ..anatomy.model import VESSELS
 
 if TYPE_CHECKING:
+    from ..anatomy.model import PreopModel
     from ..registration.pipeline import Registration
     from ..tracking.results import ResultsSender
-    from .server import App
 
 MAX_HZ = 10.0
 
 
 class Slicer:
-    def __init__(self, app: App, sender: ResultsSender | None):
-        self.app = app
+    def __init__(self, preop: PreopModel, sender: ResultsSender | None):
+        self.preop = preop
         self.sender = sender  # None: not sending
         self.error: str | None = None  # the last send's failure
         self._sent = 0.0
@@ -37,7 +37,7 @@ class Slicer:
         self._sent = now
         from ..tracking.results import status_line
 
-        pre = self.app.core.preop
+        pre = self.preop
         centres = np.array([t.centre for t in pre.targets]) if pre.targets else None
         lines = {}
         for n in VESSELS:

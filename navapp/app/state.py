@@ -13,15 +13,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from enum import Enum
-from typing import TYPE_CHECKING
 
 import numpy as np
 
+from ..registration.pipeline import Registration
 from ..registration.rigid import RigidResult
 from .contours import Contour
-
-if TYPE_CHECKING:
-    from .drawing import Action
+from .worker import cancelled
 
 ERROR_SCALE_MM = 15.0  # default top of the error colour scale: the same colour means the same error in every run
 
@@ -38,6 +36,21 @@ class Change(Enum):
     RESULT = "result"  # a registration finished: the result on show, the log
     LOG = "log"
     LIVE = "live"  # tracker status, recording, live re-registration
+
+
+class Undone(Enum):
+    DONE = "done"
+    GONE = "gone"  # nothing of the action is left (removed meanwhile): undo the one before
+
+
+class Action:
+    """One undoable change a tab made to the shared data; each kind carries its own undo
+    (``drawing``: vertices, Close, Clear; ``imaging``: planes; ``stylus``; ``live``). ``undo``
+    runs under the shared lock and returns DONE, GONE, or why it cannot be undone now (the
+    action is then kept)."""
+
+    def undo(self, cs: ClientState) -> Undone | str:
+        raise NotImplementedError
 
 
 @dataclass
@@ -114,3 +127,104 @@ class TargetBand:
     @staticmethod
     def from_json(b: list) -> TargetBand:
         return TargetBand(str(b[0]), float(b[1]), float(b[2]), float(b[3]), str(b[4]) if len(b) > 4 else None)
+
+
+class RunKind(Enum):
+    """What a run fits with what; the value is the button's key, ``label`` the words shown."""
+
+    RIGID = "rigid"
+    SURFACE = "surface"
+    ALL = "all"
+    WARM = "warm"
+    LIVE = "live"
+    RESTORED = "restored"
+
+    @property
+    def label(self) -> str:
+        return _LABELS[self]
+
+    @property
+    def deformable(self) -> bool:
+        return self is not RunKind.RIGID
+
+    @staticmethod
+    def from_label(label: str) -> RunKind:
+        """The kind a stored label names (session files store labels); unknown: RESTORED."""
+        return next((k for k, v in _LABELS.items() if v == label), RunKind.RESTORED)
+
+
+_LABELS = {RunKind.RIGID: "rigid", RunKind.SURFACE: "deformable, surface", RunKind.ALL: "deformable, all data",
+           RunKind.WARM: "deformable, all data (warm)", RunKind.LIVE: "live (every frame)",
+           RunKind.RESTORED: "restored"}
+
+
+@dataclass
+class Run:
+    """The registration in progress (written by the worker thread under ``Core.lock``)."""
+
+    kind: RunKind
+    points: int
+    t0: float
+    trace: list[tuple[float, float]] = field(default_factory=list)  # (seconds, mean true error mm) per state
+    streamed: int = 0  # states received from the worker
+    iteration: int = 0
+    omega: float = float("nan")
+    error: np.ndarray | None = None  # (M,) true error at the mesh nodes of the latest state
+    state: tuple[RigidResult, np.ndarray | None] | None = None  # the latest state (rigid pose, β)
+
+
+@dataclass
+class RunEntry:
+    """One row of the run table (the session's log)."""
+
+    run: str  # RunKind.label
+    points: int
+    seconds: float
+    iterations: int
+    stop: str  # the LM stop reason, "rigid" for a rigid-only run
+    updates_streamed: int = 0
+    cancelled: bool = False
+    trace: list[list[float]] = field(default_factory=list)  # [[seconds, mean error mm]]
+    warning: str | None = None  # the fit-quality check's warning
+    error_mean_mm: float | None = None  # against the truth, simulated scenes only
+    error_max_mm: float | None = None
+    live: str | None = None  # a live re-registration's summary
+    note: str = ""
+
+    @property
+    def kind(self) -> RunKind:
+        return RunKind.from_label(self.run)
+
+    @staticmethod
+    def of(kind: RunKind, reg: Registration, points: int, seconds: float, error: np.ndarray | None = None,
+           streamed: int = 0, trace=(), live: str | None = None) -> RunEntry:
+        """The row of a finished (or cancelled) registration; ``error`` (M,) its true error."""
+        lm = reg.libr
+        stopped = cancelled(reg)
+        e = RunEntry(kind.label, int(points), round(float(seconds), 3), lm.iterations if lm else 0,
+                     lm.stop_reason if lm else "rigid", streamed, stopped,
+                     [[round(t, 3), round(v, 3)] for t, v in trace],
+                     reg.quality.warning if reg.quality is not None and reg.quality.warning else None)
+        if error is not None and not stopped:
+            e.error_mean_mm, e.error_max_mm = round(float(error.mean()), 3), round(float(error.max()), 3)
+        if live is not None:
+            e.live, e.note = live, live.split(",")[0]
+        return e
+
+    def to_json(self) -> dict:
+        d = {"run": self.run, "points": self.points, "seconds": self.seconds, "iterations": self.iterations,
+             "stop": self.stop, "updates_streamed": self.updates_streamed, "cancelled": self.cancelled,
+             "trace": self.trace}
+        for k in ("warning", "error_mean_mm", "error_max_mm", "live"):
+            if getattr(self, k) is not None:
+                d[k] = getattr(self, k)
+        if self.note:
+            d["note"] = self.note
+        return d
+
+    @staticmethod
+    def from_json(d: dict) -> RunEntry:
+        return RunEntry(str(d["run"]), int(d["points"]), float(d["seconds"]), int(d["iterations"]), str(d["stop"]),
+                        int(d.get("updates_streamed", 0)), bool(d.get("cancelled", False)),
+                        [list(map(float, x)) for x in d.get("trace", [])], d.get("warning"),
+                        d.get("error_mean_mm"), d.get("error_max_mm"), d.get("live"), str(d.get("note", "")))

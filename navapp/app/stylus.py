@@ -8,24 +8,34 @@ from __future__ import annotations
 import threading
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from dataclasses import dataclass
 
 import numpy as np
 
-from .drawing import StylusBatch
-from .state import Change
-
-if TYPE_CHECKING:
-    from .server import App
+from .core import Core
+from .state import Action, Change, Undone
 
 STYLUS_MM_PER_S = 40.0  # a steady sweep of the tip, at "1×"
 FRAME_S = 0.05
 SAVE_EVERY_S = 0.5  # the session is saved this often while the tip moves
 
 
+@dataclass
+class StylusBatch(Action):
+    stylus: Stylus
+    before: int  # points digitised before the sweep
+
+    def undo(self, cs):
+        if self.stylus.sweeping:
+            return "Stop the stylus sweep first."
+        session = self.stylus.core.need_session()
+        session.stylus_count = min(session.stylus_count, self.before)
+        return Undone.DONE
+
+
 class Stylus:
-    def __init__(self, app: App):
-        self.app, self.core = app, app.core
+    def __init__(self, core: Core):
+        self.core = core
         self.tip: np.ndarray | None = None  # where the simulated tip is while it sweeps
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -85,7 +95,7 @@ class Stylus:
         with core.lock:
             if core.need_session().stylus_count > start:
                 for cs in core.states.values():
-                    cs.undo.append(StylusBatch(start))
+                    cs.undo.append(StylusBatch(self, start))
 
     def collect_now(self):
         """The whole sweep at once."""

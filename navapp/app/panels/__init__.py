@@ -5,7 +5,6 @@ module of its own."""
 from __future__ import annotations
 
 import time
-from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -20,17 +19,13 @@ from .stylus import StylusPanel
 from .tracking import TrackingPanel
 from .ultrasound import UltrasoundPanel
 
-if TYPE_CHECKING:
-    from ..server import App
-    from ..worker import Update
-
 DISTANCE_TEXT_S = 0.2  # tumour-distance text refreshed at most this often while a tracked tip moves
 
 
 class ClientView:
     """Everything one browser sees. ``refresh(what)`` is called after shared changes (``Change``)."""
 
-    def __init__(self, app: App, client, cs: ClientState):
+    def __init__(self, app, client, cs: ClientState):  # app: server.App, the rooms
         self.app, self.core, self.client, self.cs = app, app.core, client, cs
         self._dist_shown = 0.0
         g = client.gui
@@ -96,7 +91,7 @@ class ClientView:
         self.layers.show_registered(geom, error=self.app.shown.surface_error(self.cs, error)
                                     if error is not None else None)
 
-    def show_update(self, u: Update, geom):
+    def show_update(self, u, geom):  # u: worker.Update
         run = self.core.run
         err = run.error if run is not None else None
         self.layers.show_registered(geom, error=self.app.shown.surface_error(self.cs, err) if err is not None else None)

@@ -4,8 +4,7 @@ predicted error at each target."""
 
 import numpy as np
 
-from ..runs import RunKind
-from ..state import Change
+from ..state import Change, RunKind
 from ..worker import Update
 
 NOTE = ("The solver minimises the misfit to the data, which it can see, not the error, which it "

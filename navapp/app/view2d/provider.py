@@ -6,16 +6,17 @@ targets' distances; and the page's clicks and commands passed on to the drawing.
 from __future__ import annotations
 
 import io
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from ..contours import CENTERLINE_OF, contour_pixels
+from ..core import Core
+from ..drawing import Drawing
+from ..imaging import Imaging
 from ..palette import DRAWABLE, DRAWN_COLOURS, OVERLAY_STYLE
+from ..shown import Shown
 from .overlays import Overlay, section_pixels
-
-if TYPE_CHECKING:
-    from ..server import App
 
 GONE = "This view is no longer connected: reload the page."
 
@@ -23,8 +24,8 @@ GONE = "This view is no longer connected: reload the page."
 class View2D:
     """The ``view2d.http.Provider`` of the viewer."""
 
-    def __init__(self, app: App):
-        self.app, self.core = app, app.core
+    def __init__(self, core: Core, imaging: Imaging, shown: Shown, drawing: Drawing):
+        self.core, self.imaging, self.shown, self.drawing = core, imaging, shown, drawing
         self._overlay_cache: dict = {}  # plane index → (plane, geometry, overlays)
         self._image_cache: dict = {}  # (plane index, plane id) → PNG bytes
 
@@ -33,7 +34,7 @@ class View2D:
                 "legend": [], "message": message}
 
     def view_state(self, token: str) -> dict | None:
-        core, imaging = self.core, self.app.imaging
+        core, imaging = self.core, self.imaging
         cs = core.state_for(token)
         if cs is None:
             return None
@@ -70,7 +71,7 @@ class View2D:
             out["drawing"] = {"feature": drawing.feature, "vertices": [list(v) for v in drawing.vertices]}
         out["legend"] = [{"name": o["name"], "colour": o["colour"]} for o in out["overlays"]] + \
             [{"name": f"drawn {n}", "colour": DRAWN_COLOURS[f]} for n, f in DRAWABLE.items()]
-        out["targets"] = [line.replace("**", "") for line in self.app.shown.target_plane_lines(index)]
+        out["targets"] = [line.replace("**", "") for line in self.shown.target_plane_lines(index)]
         return out
 
     def view_etag(self, token: str) -> str | None:
@@ -108,22 +109,22 @@ class View2D:
         cs = self.core.state_for(token)
         if cs is None:
             return GONE
-        return self.app.drawing.click(cs, col, row, feature)
+        return self.drawing.click(cs, col, row, feature)
 
     def view_command(self, token: str, cmd: str, feature: str, plane: int | None = None) -> str | None:
         cs = self.core.state_for(token)
         if cs is None:
             return GONE
         if cmd == "Plane":
-            return None if self.app.imaging.show(cs, plane) else f"there is no plane {plane}"
-        return self.app.drawing.command(cs, cmd, feature)
+            return None if self.imaging.show(cs, plane) else f"there is no plane {plane}"
+        return self.drawing.command(cs, cmd, feature)
 
     def overlays(self, index: int) -> list[Overlay]:
         """The model's sections with plane ``index``: preoperative (rigidly placed by the
         state on show, as-is before any registration) dashed, registered solid."""
         core = self.core
         sd, _ = core.need_scene()
-        geom = self.app.shown.geometry()
+        geom = self.shown.geometry()
         plane = core.planes[index]
         cached = self._overlay_cache.get(index)
         if cached is not None and cached[0] is plane and cached[1] is geom:  # same plane, same state
