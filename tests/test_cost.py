@@ -63,10 +63,10 @@ def test_cost_study_rows_resume_and_report(tmp_path, cache_root, monkeypatch):
         prepared.append((float(edge), int(k), cache_root is not None and not any(cache_root.iterdir())))
         return real_prepare(case_, edge, k, cache_root=cache_root, **kw)
 
-    real_prepare = cost.prepare
-    monkeypatch.setattr(cost, "prepare", spy)
+    real_prepare = pipeline.prepare  # cost imports it from pipeline when it runs
+    monkeypatch.setattr(pipeline, "prepare", spy)
     n = run_cost_study([case], csv, **small)
-    monkeypatch.setattr(cost, "prepare", real_prepare)
+    monkeypatch.setattr(pipeline, "prepare", real_prepare)
 
     rows = list(csvmod.DictReader(csv.open()))
     assert n == len(rows) > 0
