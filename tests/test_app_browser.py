@@ -40,7 +40,7 @@ from playwright import sync_api as playwright  # noqa: E402  (the test extra)
 
 GUIDED_BUDGET_S = 1800  # the guided demo, cold start (simulation, mesh, basis) included
 BUDGET_S = 900  # each of the other tests
-CANCEL_TRIES = 5
+CANCEL_TRIES = 8  # runs of 2–4 s; under load 18 on 2 cores five ended before the browser saw Cancel enabled
 
 
 class Deadline:
