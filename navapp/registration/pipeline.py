@@ -364,7 +364,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,
                           start=rigid, features=features, robust=init.rigid_robust)
     choice = None
-    if not warm and init.keep_given_pose and "fiducials" not in data:
+    if not warm and init.keep_given_pose and "fiducials" not in data and not notes:
         given = RigidResult(np.eye(3), np.zeros(3), 0, 0.0, kept=True)
         choice = choose_pose(model, data, given)
         if choice.kept:

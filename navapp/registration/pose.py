@@ -84,15 +84,19 @@ def trimmed_pose(model: RegistrationModel, data: dict, start: RigidResult, keep:
         c = P[best].mean(0)
         a = np.hstack([np.cross(P[best] - c, N[best]), N[best]])
         x = np.linalg.lstsq(a, -r[best], rcond=None)[0]
+        if not np.isfinite(x).all():
+            return start, float("inf")
         w, v = x[:3], x[3:] - np.cross(x[:3], c)  # rotation about c → about the origin
         Rd = _rodrigues(w[None])[0]
         R = R @ Rd.T
         t = t - R @ v
         if np.linalg.norm(w) * np.linalg.norm(P - c, axis=1).max() + np.linalg.norm(x[3:]) < tol_mm:
             break
-    moved = RigidResult(R, t, 0, 0.0).inverse(start.apply(Y0)) if Y0 is not None else None
-    shift = float(np.sqrt(np.mean(np.sum((moved - Y0) ** 2, axis=1)))) if Y0 is not None else 0.0
-    return RigidResult(R, t, 0, 0.0), shift
+    if Y0 is None:
+        return start, 0.0
+    moved = RigidResult(R, t, 0, 0.0).inverse(start.apply(Y0))
+    shift = float(np.sqrt(np.mean(np.sum((moved - Y0) ** 2, axis=1))))
+    return RigidResult(R, t, 0, 0.0), shift if np.isfinite(shift) else float("inf")
 
 
 @dataclass

@@ -5,9 +5,10 @@ data bend the organ to share out a local misfit, and no residual shows it. What 
 *can* tell is whether the deformation they imply carries over to where there are no data.
 The data points are cut into ``blocks`` spatial blocks (k-means of their positions in
 the model frame); for each block the deformable model is fitted to the other blocks and
-predicts the held-out one. The rigid answer predicts it too (the pose, no deformation). A
-deformation is *supported* where it predicts held-out data better than the rigid answer
-by ``margin`` (relative). Where it does not, or where a target is farther than
+predicts the held-out one. The rigid answer is fitted to the same blocks (τ, θ alone, or the
+kept given pose) and predicts it too. A deformation is *supported* where it predicts
+held-out data better than the rigid answer by ``margin`` (relative; ``margin_interior`` when
+vessel data inside the organ take part). Where it does not, or where a target is farther than
 ``far_mm`` from every data point, the target's correction is not determined by the data.
 
 ``register`` (pipeline) returns the rigid answer when the deformation is not supported
@@ -22,9 +23,10 @@ import numpy as np
 from scipy.spatial import cKDTree
 from sklearn.cluster import KMeans
 
+from ..features import SALIENT
 from ..threads import limit_threads
 from .libr import LMOptions, register_libr
-from .model import RegistrationModel
+from .model import DATA_TO_MODEL, RegistrationModel
 from .objective import evaluate
 
 
@@ -33,10 +35,13 @@ class SupportOptions:
     """The spatial cross-validation of ``check_support`` (module doc)."""
 
     blocks: int = 5
-    # the deformable prediction must be this much (relative) better than rigid: on the tool cases
-    # whose deformable answer was worse than none the deformation predicted the held-out data
-    # 14–15 % better, on those it improved 46–75 % (docs/decisions.md, "Local loads")
+    # the deformable prediction must be this much (relative) better than rigid from surface data
+    # alone: on the tool cases whose surface-only deformable answer was worse than none it
+    # predicted the held-out data 14–15 % better, where it helped 46–75 % (docs/decisions.md,
+    # "Local loads"); with vessel data inside the organ, which rule out a wrong interior
+    # behind a good surface fit, ``margin_interior``
     margin: float = 0.3
+    margin_interior: float = 0.1
     far_mm: float = 40.0  # a target farther than this from every data point is extrapolated
     min_points: int = 30  # fewer data points: no cross-validation (too few to split)
     iterations: int = 30  # LM cap per fold (the fold fits start from β = 0)
@@ -134,7 +139,8 @@ def check_support(model: RegistrationModel, data: dict, options: LMOptions,
     w = np.array([b.points for b in out], float)
     r = float(np.average([b.rigid_mm for b in out], weights=w))
     d = float(np.average([b.deformable_mm for b in out], weights=w))
-    return Support(r, d, out, support.margin, time.perf_counter() - t0)
+    inside = any(DATA_TO_MODEL[k] not in ("liver", "fiducials", *SALIENT) for k in data)
+    return Support(r, d, out, support.margin_interior if inside else support.margin, time.perf_counter() - t0)
 
 
 @dataclass
