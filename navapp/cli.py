@@ -401,7 +401,7 @@ def main(argv=None):
     progress.QUIET = args.quiet
     with warnings.catch_warnings():
         warnings.simplefilter("default")
-        warnings.showwarning = lambda msg, *a, **k: print(f"navapp: warning: {msg}", file=sys.stderr)
+        warnings.showwarning = lambda msg, *a, **k: progress.echo(f"navapp: warning: {msg}")
         try:
             return args.func(args) or 0
         except NavappError as exc:

@@ -67,12 +67,35 @@ class _Bar(tqdm):
             _notify(self.label, min(1.0, self.done / self.total))
         return out
 
+    def to(self, n):
+        """Move the bar to ``n`` done (the meshing bar follows a child's CPU seconds)."""
+        if n > self.done:
+            self.update(n - self.done)
+
 
 def bar(total, desc, unit="it"):
     """A tqdm bar on stderr (hidden when ``is_quiet()``), also reported to the listeners."""
     _notify(desc, 0.0)
     return _Bar(total=total, desc=desc, unit=unit, file=sys.stderr, disable=is_quiet(), leave=False,
                 dynamic_ncols=True, mininterval=0.2)
+
+
+def work(desc, total):
+    """A bar for work measured in seconds of CPU (e.g. a mesher in a child process against
+    its expected CPU time): percentage, elapsed and ETA, no rate."""
+    _notify(desc, 0.0)
+    return _Bar(total=total, desc=desc, file=sys.stderr, disable=is_quiet(), leave=False, dynamic_ncols=True,
+                mininterval=0.5, bar_format="{desc}: {percentage:3.0f}% [{elapsed}<{remaining}]")
+
+
+_write_lock = threading.Lock()
+
+
+def echo(line: str):
+    """Print ``line`` on stderr on a line of its own: an active bar is cleared first and
+    redrawn after it (a bare print would be glued onto the bar's line)."""
+    with _write_lock:
+        tqdm.write(line, file=sys.stderr)
 
 
 @contextmanager

@@ -144,3 +144,168 @@ def test_no_mesher_outlives_its_caller(tmp_path):
         assert not alive
     finally:
         caller.kill()
+
+
+# ---------------------------------------------------------------- the same mesh on a busy machine
+
+def _ball():
+    return trimesh.creation.icosphere(3, radius=45.0)
+
+
+def _paused_worker(seconds):
+    """A thread that finds this process's mesh worker and stops it (SIGSTOP) for
+    ``seconds``, as a machine too busy to schedule it would; then lets it go on."""
+    import os
+    import signal
+    import threading
+    import time
+
+    import psutil
+
+    def pause():
+        me = psutil.Process()
+        for _ in range(600):
+            workers = [p for p in me.children() if "mesh_worker" in " ".join(p.cmdline())]
+            if workers:
+                try:
+                    os.kill(workers[0].pid, signal.SIGSTOP)
+                    time.sleep(seconds)
+                    os.kill(workers[0].pid, signal.SIGCONT)
+                except ProcessLookupError:  # stopped by the caller meanwhile
+                    pass
+                return
+            time.sleep(0.05)
+
+    th = threading.Thread(target=pause, daemon=True)
+    th.start()
+    return th
+
+
+def test_a_busy_machine_does_not_change_the_mesher():
+    """A Gmsh worker left unscheduled for longer than its budget (a busy machine) still
+    gives Gmsh's mesh: the budget counts CPU seconds, so waiting costs nothing. (With the
+    earlier wall-clock limit per attempt, Gmsh was stopped and fTetWild's mesh returned.)"""
+    from navapp.anatomy.meshing import _mesh_with_log
+
+    attempts = (MeshAttempt("gmsh", 40.0, limit=6.0), MeshAttempt("ftetwild"))
+    th = _paused_worker(9.0)
+    mesh, log = _mesh_with_log(_ball(), 10.0, 0, None, attempts)
+    th.join()
+    assert [e["method"] for e in log] == ["gmsh 40°"] and log[0]["outcome"] == "ok"
+    assert log[0]["seconds"] > 6.0 > log[0]["cpu_seconds"]  # it waited longer than its budget, and used less
+    quiet, _ = _mesh_with_log(_ball(), 10.0, 0, None, attempts)
+    assert np.array_equal(mesh.nodes, quiet.nodes) and np.array_equal(mesh.tets, quiet.tets)
+
+
+def test_a_wall_clock_limit_only_ends_in_an_error():
+    """NAVAPP_MESH_TIMEOUT reached during Gmsh: an error, never fTetWild's mesh instead."""
+    from navapp.anatomy.meshing import _mesh_with_log
+
+    th = _paused_worker(8.0)
+    with pytest.raises(NavappError, match="did not finish within 4 s of wall clock") as err:
+        _mesh_with_log(_ball(), 10.0, 0, 4.0, (MeshAttempt("gmsh", 40.0), MeshAttempt("ftetwild")))
+    th.join()
+    assert "\n" not in str(err.value) and "ftetwild" not in str(err.value)
+
+
+def test_the_same_mesh_under_a_cpu_hog(tmp_path):
+    """Meshing with two CPU-bound processes running beside it (a load of 2 on top of the
+    machine's) gives the same nodes and tets, bit for bit, and the same method."""
+    import multiprocessing as mp
+
+    from navapp.anatomy.meshing import mesh_liver
+
+    quiet, q_report = mesh_liver(_ball(), 10.0)
+    hogs = [mp.get_context("spawn").Process(target=_spin, daemon=True) for _ in range(2)]
+    for h in hogs:
+        h.start()
+    try:
+        busy, b_report = mesh_liver(_ball(), 10.0)
+    finally:
+        for h in hogs:
+            h.kill()
+    assert q_report["method"] == b_report["method"] and q_report["mesher"]["why"] == b_report["mesher"]["why"]
+    assert np.array_equal(quiet.nodes, busy.nodes) and np.array_equal(quiet.tets, busy.tets)
+
+
+def _spin():
+    while True:
+        pass
+
+
+def test_the_mesher_and_why_are_in_the_output_and_the_cache_key(tmp_path, monkeypatch):
+    from navapp.anatomy.meshing import cached_tetmesh
+
+    _, auto = cached_tetmesh(_ball(), 10.0, tmp_path)
+    assert auto["method"] == "gmsh 40°" and auto["mesher"]["choice"] == "auto"
+    assert auto["mesher"]["why"].startswith("gmsh 40°: first in the chain")
+    monkeypatch.setenv("NAVAPP_MESHER", "ftetwild")
+    _, forced = cached_tetmesh(_ball(), 10.0, tmp_path)
+    assert not forced["cached"] and forced["method"] == "ftetwild"  # another key: not the Gmsh mesh
+    assert forced["mesher"]["why"] == "ftetwild: NAVAPP_MESHER=ftetwild"
+    assert len(list(tmp_path.glob("mesh-*.npz"))) == 2
+    monkeypatch.setenv("NAVAPP_MESHER", "netgen")
+    with pytest.raises(NavappError, match="NAVAPP_MESHER='netgen': expected one of auto, gmsh, ftetwild"):
+        cached_tetmesh(_ball(), 10.0, tmp_path)
+
+
+def test_meshing_reports_its_progress(tmp_path):
+    """The meshing bar follows the worker's CPU seconds against the expected: listeners
+    (the viewer's status line) get fractions in (0, 1) while it runs."""
+    from navapp import progress
+    from navapp.anatomy.meshing import cached_tetmesh
+
+    seen = []
+    fn = progress.add_listener(lambda desc, fraction: seen.append((desc, fraction)))
+    try:
+        cached_tetmesh(trimesh.creation.icosphere(4, radius=60.0), 6.0, tmp_path)
+    finally:
+        progress.remove_listener(fn)
+    meshing = [(d, f) for d, f in seen if d.startswith("meshing the liver at 6 mm")]
+    assert meshing and "(gmsh 40°)" in meshing[0][0] and "nodes" in meshing[0][0]
+    assert any(f is not None and 0 < f < 1 for _, f in meshing)
+
+
+def test_a_mesh_too_large_for_memory_is_refused_up_front(tmp_path, monkeypatch):
+    """`--edge 0.5` on a liver: one line with the size estimate and the edge that fits,
+    before any mesher starts (it ran for 20 min before)."""
+    from navapp.anatomy import meshing
+
+    def no_mesher(*a, **k):
+        raise AssertionError("a mesher was started")
+
+    monkeypatch.setattr(meshing, "_run_attempt", no_mesher)
+    monkeypatch.setenv("NAVAPP_MEMORY_MB", "2000")
+    surface = trimesh.creation.icosphere(3, radius=70.0)  # 1.44 l, a liver's volume
+    with pytest.raises(NavappError) as err:
+        meshing.cached_tetmesh(surface, 0.5, tmp_path)
+    msg = str(err.value)
+    assert "\n" not in msg and "about 9,1" in msg and "nodes" in msg and "use --edge" in msg
+    finest = float(msg.split("use --edge ")[1].split()[0])
+    # the suggested edge fits the budget
+    monkeypatch.setattr(meshing, "_run_attempt", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("ran")))
+    with pytest.raises(RuntimeError, match="ran"):
+        meshing.cached_tetmesh(surface, finest, tmp_path)
+
+
+def test_a_killed_callers_temporary_folder_is_removed(tmp_path):
+    """The temporary folder of a caller killed by SIGKILL (which cannot clean up) is
+    removed by the next meshing run."""
+    import os
+    import subprocess
+    import sys
+    import tempfile
+    from pathlib import Path
+
+    from navapp.anatomy.meshing import _sweep_stale_folders
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    stale = Path(tempfile.gettempdir()) / f"navapp-mesh-{int(dead.stdout)}-abc"
+    mine = Path(tempfile.mkdtemp(prefix=f"navapp-mesh-{os.getpid()}-"))
+    stale.mkdir()
+    (stale / "in.npz").write_bytes(b"x")
+    try:
+        _sweep_stale_folders()
+        assert not stale.exists() and mine.exists()  # a live process's folder stays
+    finally:
+        mine.rmdir()

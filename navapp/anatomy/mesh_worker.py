@@ -1,33 +1,19 @@
-"""Child process of ``meshing.tetrahedralise``: ``python -m navapp.anatomy.mesh_worker IN OUT``.
+"""Child process of ``meshing.tetrahedralise``: ``python -m navapp.anatomy.mesh_worker IN OUT PARENT``.
 
 Reads the surface and the attempt from IN (.npz), meshes, and writes ``nodes`` and
-``tets`` (or ``error``, one line) to OUT. Runs apart so that the parent can kill a mesher
-that hangs.
+``tets`` (or ``error``, one line) to OUT. Runs apart so that the parent can stop a mesher
+that overruns its work budget; dies with its parent.
 """
 
 import os
 import sys
-import threading
-import time
-
-import numpy as np
-
-from ..errors import NavappError
-from .meshing import ftetwild_mesh, gmsh_mesh
-
-
-def _exit_with_parent(parent: int):
-    """Gmsh and fTetWild run in C with the GIL released; this thread ends the process
-    when its parent is gone (killed, or interrupted), so no mesher outlives the caller."""
-    while True:
-        time.sleep(1.0)
-        if os.getppid() != parent:
-            os._exit(3)
 
 
 def _die_with_parent(parent: int):
-    """On Linux, ask the kernel to kill this process when its parent dies: fTetWild holds
-    the GIL, so the watchdog thread cannot run while it works."""
+    """On Linux, ask the kernel to kill this process when its parent dies (fTetWild holds
+    the GIL, so no Python thread could act while it works). Done before numpy, Gmsh or
+    navapp's meshing module are imported: that import takes seconds on a busy machine, and
+    a mesher killed with its caller must not live on through it."""
     try:
         import ctypes
         import signal
@@ -39,10 +25,28 @@ def _die_with_parent(parent: int):
         os._exit(3)
 
 
+def _exit_with_parent(parent: int):
+    """Where PR_SET_PDEATHSIG does not exist: end the process once its parent is gone
+    (Gmsh runs in C with the GIL released, so this thread runs while it works)."""
+    import time
+
+    while True:
+        time.sleep(1.0)
+        if os.getppid() != parent:
+            os._exit(3)
+
+
 def main(src: str, dst: str, parent: int | None = None) -> int:
     if parent is not None:
         _die_with_parent(parent)
+        import threading
+
         threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
+    import numpy as np
+
+    from ..errors import NavappError
+    from .meshing import ftetwild_mesh, gmsh_mesh
+
     with np.load(src) as a:
         v, f, edge, seed = a["vertices"], a["faces"], float(a["edge"]), int(a["seed"])
         method, angle = str(a["method"]), float(a["feature_angle"])

@@ -3,8 +3,9 @@
 Gmsh (GPL-2.0-or-later, pip wheel) re-parametrises and remeshes the input surface at the
 requested edge length before filling the volume, so tet quality does not depend on the
 triangles the user supplied; re-parametrisation can fail or hang on sharp or unevenly
-triangulated surfaces, so every attempt runs in a child process under a wall-clock limit
-and fTetWild (pytetwild wheel), which needs no parametrisation, is the last resort. Every
+triangulated surfaces, so every attempt runs in a child process under a CPU work budget
+(the same on a busy machine as on a quiet one, so the mesh never depends on the load) and
+fTetWild (pytetwild wheel), which needs no parametrisation, is the last resort. Every
 mesh returned meets the quality floor: no inverted tet, no dihedral angle under 5°.
 """
 
@@ -85,11 +86,11 @@ def quality_report(mesh: TetMesh) -> dict:
 class MeshAttempt:
     """One way of meshing: ``method`` "gmsh" (remesh the surface on re-parametrised patches
     split at ``feature_angle`` degrees, then Delaunay + Netgen optimisation) or "ftetwild"
-    (envelope-based: never needs a parametrisation); ``limit`` s of wall clock at most."""
+    (envelope-based: never needs a parametrisation); ``limit`` CPU seconds at most."""
 
     method: str
     feature_angle: float = 40.0
-    limit: float | None = None  # None: scaled to the expected mesh (``attempt_limit``)
+    limit: float | None = None  # CPU s; None: scaled to the expected mesh (``work_budget``)
     edge_scale: float = 1.0  # the attempt meshes at edge × edge_scale
 
 
@@ -107,80 +108,150 @@ fallback that cannot fail on a valid closed surface, tried a second time on a sl
 finer edge because its boundary can come out pinched beyond mending (choices and timings:
 docs/decisions.md, "Meshing any liver" and "Pinched boundaries")."""
 
-def attempt_limit(attempt: MeshAttempt, surface: trimesh.Trimesh, edge: float) -> float:
-    """Seconds one attempt may take: its own ``limit``, else 30 s plus 3 ms per expected
-    node (Gmsh) or 300 s plus 20 ms per expected node (fTetWild) (volume / (1.24 edge³) nodes, measured on the
-    phantoms), so that a large liver at a fine edge is not cut short."""
-    if attempt.limit is not None:
-        return attempt.limit
-    expected = abs(float(surface.volume)) / (1.24 * edge ** 3)
-    if attempt.method == "gmsh":
-        return 30.0 + 0.003 * expected
-    return 300.0 + 0.02 * expected  # fTetWild's time grows with the input surface too
+MESHERS = ("auto", "gmsh", "ftetwild")
+"""``$NAVAPP_MESHER``: "auto" (the chain above), or only the attempts of one method."""
+
+NODES_PER_EDGE3 = 1.24
+"""Expected nodes = volume / (1.24 edge³): fitted on the phantoms (Gmsh; fTetWild's edge is
+scaled by ``FTETWILD_EDGE_FACTOR`` to give the same count)."""
+
+CPU_SECONDS = {"gmsh": (6.0, 0.0006), "ftetwild": (20.0, 0.006)}
+"""Expected CPU seconds of one attempt, a + b × expected nodes (interpreter start-up and
+imports included; measured, docs/decisions.md "Deterministic meshing")."""
+
+WORK_FACTOR = 4.0
+"""An attempt may use this many times its expected CPU seconds. CPU time, unlike wall
+time, does not grow when the machine is busy, so whether an attempt is stopped depends on
+the surface, not on the load; a Gmsh hang (a property of the surface) ends there."""
+
+
+def expected_nodes(surface: trimesh.Trimesh, edge: float) -> int:
+    """Nodes a mesh of ``surface`` at ``edge`` mm will have, from its volume (up front)."""
+    return int(round(abs(float(surface.volume)) / (NODES_PER_EDGE3 * edge ** 3)))
+
+
+def expected_cpu(attempt: MeshAttempt, nodes: int) -> float:
+    """Expected CPU seconds of ``attempt`` for a mesh of ``nodes`` nodes."""
+    a, b = CPU_SECONDS[attempt.method]
+    return a + b * nodes / attempt.edge_scale ** 3
+
+
+def work_budget(attempt: MeshAttempt, nodes: int) -> float:
+    """CPU seconds ``attempt`` may use: its own ``limit``, else ``WORK_FACTOR`` × expected."""
+    return attempt.limit if attempt.limit is not None else WORK_FACTOR * expected_cpu(attempt, nodes)
 
 
 MIN_DIHEDRAL_DEG = 5.0  # the quality floor: no tet with a dihedral angle below this
-MESH_TIME_LIMIT = 1200.0  # s of wall clock for all attempts together ($NAVAPP_MESH_TIMEOUT)
 
 
-def time_limit() -> float:
-    """The meshing wall-clock limit in seconds: ``$NAVAPP_MESH_TIMEOUT`` or the default."""
+def time_limit() -> float | None:
+    """The meshing wall-clock limit in seconds (``$NAVAPP_MESH_TIMEOUT``), or None: by
+    default meshing has none, each attempt being bounded by its CPU work budget; a wall-clock
+    limit, when set, only ever stops meshing with an error."""
+    value = os.environ.get("NAVAPP_MESH_TIMEOUT")
+    if not value:
+        return None
     try:
-        return float(os.environ.get("NAVAPP_MESH_TIMEOUT", MESH_TIME_LIMIT))
+        seconds = float(value)
     except ValueError:
-        value = os.environ["NAVAPP_MESH_TIMEOUT"]
         raise NavappError(f"NAVAPP_MESH_TIMEOUT={value!r} is not a number of seconds") from None
+    if not seconds > 0:
+        raise NavappError(f"NAVAPP_MESH_TIMEOUT={value!r} must be a positive number of seconds")
+    return seconds
+
+
+def mesher_choice() -> str:
+    """``$NAVAPP_MESHER`` (default "auto"), checked against ``MESHERS``."""
+    choice = os.environ.get("NAVAPP_MESHER", "auto").strip().lower() or "auto"
+    if choice not in MESHERS:
+        raise NavappError(f"NAVAPP_MESHER={choice!r}: expected one of {', '.join(MESHERS)}")
+    return choice
+
+
+@dataclass(frozen=True)
+class MeshPlan:
+    """What meshing a surface will do, fixed before it starts: the attempts (in order),
+    the expected node count and each attempt's CPU work budget. Everything the result
+    depends on besides the surface and the edge: it goes into the cache key."""
+
+    choice: str
+    attempts: tuple[MeshAttempt, ...]
+    nodes: int
+    budgets: tuple[float, ...]
+
+    def key(self) -> list:
+        return [self.choice, [[_label(a), round(b, 1)] for a, b in zip(self.attempts, self.budgets, strict=True)]]
+
+
+def plan_mesh(surface: trimesh.Trimesh, edge: float, attempts=ATTEMPTS, choice: str | None = None) -> MeshPlan:
+    """The plan for ``surface`` at ``edge`` mm: ``attempts`` filtered by ``choice``
+    (default ``$NAVAPP_MESHER``), budgets from the expected node count."""
+    choice = mesher_choice() if choice is None else choice
+    chosen = tuple(a for a in attempts if choice == "auto" or a.method == choice)
+    if not chosen:
+        raise NavappError(f"mesher {choice!r}: none of the attempts uses it")
+    nodes = expected_nodes(surface, edge)
+    return MeshPlan(choice, chosen, nodes, tuple(work_budget(a, nodes) for a in chosen))
 
 
 def tetrahedralise(surface: trimesh.Trimesh, edge: float = EDGE_MM, seed: int = 0, limit: float | None = None,
                    attempts=ATTEMPTS) -> TetMesh:
     """Tet mesh of the solid bounded by ``surface`` with target edge length ``edge`` mm.
 
-    ``attempts`` are tried in order, each in a child process that is killed when it
-    overruns its share of ``limit`` seconds (Gmsh cannot be interrupted from Python and
-    has been seen to hang on sharp surfaces). The first mesh with no inverted tet and no
-    dihedral angle under ``MIN_DIHEDRAL_DEG`` is returned, its nodes (M, 3) mm and tets
-    (E, 4) positively oriented (``mesh_liver`` also reports what was tried). Raises ``NavappError``
-    in one line when every attempt failed or the time ran out.
+    ``attempts`` are tried in order, each in a child process stopped when it overruns its
+    CPU work budget (Gmsh cannot be interrupted from Python and has been seen to hang on
+    sharp surfaces): an overrun is a property of the surface, so the next attempt runs. The
+    first mesh with no inverted tet and no dihedral angle under ``MIN_DIHEDRAL_DEG`` is
+    returned, its nodes (M, 3) mm and tets (E, 4) positively oriented (``mesh_liver`` also
+    reports what was tried). ``limit`` (default ``$NAVAPP_MESH_TIMEOUT``, none) is wall
+    clock: reaching it raises, it never changes the mesh. Raises ``NavappError`` in one line
+    when every attempt failed or the time ran out.
     """
     mesh, _ = _mesh_with_log(surface, edge, seed, limit, attempts)
     return mesh
 
 
-def _mesh_with_log(surface, edge, seed, limit, attempts):
+def _mesh_with_log(surface, edge, seed, limit, attempts, plan: MeshPlan | None = None, on_work=None):
     if edge <= 0:
         raise NavappError("edge length must be positive")
     if not surface.is_watertight:
         raise NavappError("liver surface is not watertight: cannot mesh its volume")
+    plan = plan_mesh(surface, edge, attempts) if plan is None else plan
     limit = time_limit() if limit is None else float(limit)
-    deadline = time.monotonic() + limit
-    log = []
+    deadline = None if limit is None else time.monotonic() + limit
+    log: list[dict] = []
     v = np.asarray(surface.vertices, float)
     f = np.asarray(surface.faces, np.int64)
     gmsh_hung = False
-    for attempt in attempts:
-        remaining = deadline - time.monotonic()
-        if remaining <= 1.0:
-            break
+    for attempt, budget in zip(plan.attempts, plan.budgets, strict=True):
         if gmsh_hung and attempt.method == "gmsh":
             continue  # a Gmsh hang is a property of the surface, not of the angle
+        if on_work is not None:
+            on_work(_label(attempt), expected_cpu(attempt, plan.nodes), None)
         t0 = time.perf_counter()
+        usage = {"cpu": 0.0}
         try:
-            nodes, tets = _run_attempt(v, f, edge * attempt.edge_scale, seed, attempt,
-                                       min(attempt_limit(attempt, surface, edge), remaining))
+            nodes, tets = _run_attempt(v, f, edge * attempt.edge_scale, seed, attempt, budget, deadline, on_work,
+                                       usage)
         except _AttemptFailed as exc:
-            log.append({"method": _label(attempt), "outcome": str(exc), "seconds": round(time.perf_counter() - t0, 1)})
-            gmsh_hung |= exc.timed_out and attempt.method == "gmsh"
+            log.append({"method": _label(attempt), "outcome": str(exc), "cpu_seconds": round(exc.cpu, 1),
+                        "seconds": round(time.perf_counter() - t0, 1)})
+            gmsh_hung |= exc.over_budget and attempt.method == "gmsh"
             continue
+        except _OutOfTime:
+            log.append({"method": _label(attempt), "outcome": f"stopped at the {limit:g} s wall-clock limit"})
+            raise NavappError(f"meshing did not finish within {limit:g} s of wall clock (tried: "
+                              f"{'; '.join(e['method'] + ': ' + e['outcome'] for e in log)}); "
+                              "raise or unset NAVAPP_MESH_TIMEOUT") from None
+        entry = {"method": _label(attempt), "seconds": round(time.perf_counter() - t0, 1),
+                 "cpu_seconds": round(usage["cpu"], 1)}
         mesh = _tidy(nodes, tets)
         mesh, mended = _closed_manifold(mesh)
         if mesh is None:
-            log.append({"method": _label(attempt), "seconds": round(time.perf_counter() - t0, 1),
-                        "outcome": f"boundary not a closed manifold ({mended})"})
+            log.append({**entry, "outcome": f"boundary not a closed manifold ({mended})"})
             continue
         q = quality_report(mesh)
-        entry = {"method": _label(attempt), "seconds": round(time.perf_counter() - t0, 1), "nodes": q["nodes"],
-                 "min_dihedral_deg": round(q["min_dihedral_deg"], 2)}
+        entry.update(nodes=q["nodes"], min_dihedral_deg=round(q["min_dihedral_deg"], 2))
         if mended:
             entry["mended"] = mended
         if q["inverted"] or q["tets_below_5deg"] or q["min_dihedral_deg"] < MIN_DIHEDRAL_DEG:
@@ -191,15 +262,17 @@ def _mesh_with_log(surface, edge, seed, limit, attempts):
         entry["outcome"] = "ok"
         log.append(entry)
         return mesh, log
-    return _give_up(log, limit, deadline)
-
-
-def _give_up(log, limit, deadline):
-    if time.monotonic() >= deadline - 1.0:
-        raise NavappError(f"meshing did not finish within {limit:g} s (tried: "
-                          f"{'; '.join(e['method'] + ': ' + e['outcome'] for e in log) or 'nothing'}); "
-                          "raise NAVAPP_MESH_TIMEOUT or simplify the surface")
     raise NavappError("could not mesh the liver: " + "; ".join(f"{e['method']}: {e['outcome']}" for e in log))
+
+
+def why(log: list[dict], plan: MeshPlan) -> str:
+    """One line: which mesher made the mesh and why that one."""
+    ran = log[-1]["method"]
+    if plan.choice != "auto":
+        return f"{ran}: NAVAPP_MESHER={plan.choice}"
+    if len(log) == 1:
+        return f"{ran}: first in the chain, meshed above the quality floor"
+    return f"{ran}: " + "; ".join(f"{e['method']} {e['outcome']}" for e in log[:-1])
 
 
 def _label(attempt: MeshAttempt) -> str:
@@ -223,17 +296,48 @@ def _closed_manifold(mesh: TetMesh):
 
 
 class _AttemptFailed(Exception):
-    def __init__(self, message, timed_out=False):
+    def __init__(self, message, cpu=0.0, over_budget=False):
         super().__init__(message)
-        self.timed_out = timed_out
+        self.cpu, self.over_budget = cpu, over_budget
 
 
-def _run_attempt(v, f, edge, seed, attempt: MeshAttempt, limit: float):
+class _OutOfTime(Exception):
+    """The wall-clock limit passed: an error for the whole run, never a reason to try the next attempt."""
+
+
+TEMP_PREFIX = "navapp-mesh-"
+
+
+def _sweep_stale_folders():
+    """Remove ``navapp-mesh-<pid>-*`` folders whose process is gone (a caller killed by
+    SIGKILL cannot clean up after itself; its worker dies with it)."""
+    import shutil
+
+    import psutil
+
+    for folder in Path(tempfile.gettempdir()).glob(f"{TEMP_PREFIX}*-*"):
+        pid = folder.name[len(TEMP_PREFIX):].split("-", 1)[0]
+        if pid.isdigit() and not psutil.pid_exists(int(pid)):
+            shutil.rmtree(folder, ignore_errors=True)
+
+
+def _cpu_seconds(ps) -> float:
+    t = ps.cpu_times()
+    return float(t.user + t.system)
+
+
+def _run_attempt(v, f, edge, seed, attempt: MeshAttempt, budget: float, deadline: float | None = None, on_work=None,
+                 usage: dict | None = None):
     """Run one attempt in ``python -m navapp.anatomy.mesh_worker`` (a fresh interpreter:
     forking a process with viser's threads is unsafe, and spawn would re-run the caller's
-    script) and kill it if it overruns ``limit`` seconds."""
-    with tempfile.TemporaryDirectory(prefix="navapp-mesh-") as tmp:
-        src, dst = Path(tmp, "in.npz"), Path(tmp, "out.npz")
+    script); stop it when it has used ``budget`` CPU seconds (``_AttemptFailed``) or when
+    the wall clock passes ``deadline`` (``_OutOfTime``). Returns (nodes, tets); the CPU
+    seconds used go to ``usage["cpu"]``."""
+    import psutil
+
+    _sweep_stale_folders()
+    with tempfile.TemporaryDirectory(prefix=f"{TEMP_PREFIX}{os.getpid()}-") as tmp:
+        src, dst, log = Path(tmp, "in.npz"), Path(tmp, "out.npz"), Path(tmp, "stderr.txt")
         np.savez(src, vertices=v, faces=f, edge=edge, seed=seed, method=attempt.method,
                  feature_angle=attempt.feature_angle)
         # fTetWild writes a debug file (__tracked_surface.stl) into its working directory:
@@ -242,19 +346,39 @@ def _run_attempt(v, f, edge, seed, attempt: MeshAttempt, limit: float):
         env = dict(os.environ, OMP_NUM_THREADS="1",
                    PYTHONPATH=os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")])))
         command = [sys.executable, "-m", "navapp.anatomy.mesh_worker", str(src), str(dst), str(os.getpid())]
-        proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, env=env, cwd=tmp)
+        with log.open("wb") as err:  # a file, not a pipe: a chatty mesher cannot fill it and block
+            proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err, env=env, cwd=tmp)
+        cpu = 0.0
         try:
-            _, err = proc.communicate(timeout=limit)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.communicate()
-            raise _AttemptFailed(f"stopped after {limit:.0f} s", timed_out=True) from None
+            ps = psutil.Process(proc.pid)
+            while True:
+                try:
+                    proc.wait(timeout=0.25)
+                    break
+                except subprocess.TimeoutExpired:
+                    pass
+                try:
+                    cpu = _cpu_seconds(ps)
+                except psutil.Error:  # exited between the wait and the reading
+                    continue
+                if on_work is not None:
+                    on_work(None, None, cpu)
+                if cpu > budget:
+                    raise _AttemptFailed(f"no mesh within its work budget of {budget:.0f} CPU s", cpu, True)
+                if deadline is not None and time.monotonic() > deadline:
+                    raise _OutOfTime()
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+            if usage is not None:
+                usage["cpu"] = cpu
         if not dst.exists():
-            tail = err.decode(errors="replace").strip().splitlines()
-            raise _AttemptFailed(tail[-1] if tail else f"the mesher exited with status {proc.returncode}")
+            tail = log.read_text(errors="replace").strip().splitlines()
+            raise _AttemptFailed(tail[-1] if tail else f"the mesher exited with status {proc.returncode}", cpu)
         with np.load(dst) as out:
             if "error" in out:
-                raise _AttemptFailed(str(out["error"]))
+                raise _AttemptFailed(str(out["error"]), cpu)
             return out["nodes"], out["tets"]
 
 
@@ -366,29 +490,66 @@ def _tidy(nodes, tets) -> TetMesh:
     return TetMesh(nodes=np.ascontiguousarray(nodes, float), tets=np.ascontiguousarray(tets))
 
 
-def mesh_liver(surface: trimesh.Trimesh, edge: float = EDGE_MM, limit: float | None = None) -> tuple[TetMesh, dict]:
+class _MeshProgress:
+    """The meshing bar: the running attempt's CPU seconds against what it is expected to
+    take, so its percentage and ETA follow the work done (slower on a busy machine, as
+    they should), never the wall clock alone."""
+
+    def __init__(self, desc: str):
+        from .. import progress
+
+        self.desc, self.bar, self._progress = desc, None, progress
+
+    def __call__(self, label, expected, cpu):
+        if label is not None:  # an attempt starts
+            if self.bar is not None:
+                self.bar.close()
+            self.bar = self._progress.work(f"{self.desc} ({label})", expected)
+            return
+        if self.bar is not None:
+            self.bar.to(min(cpu, 0.99 * self.bar.total))
+
+    def close(self):
+        if self.bar is not None:
+            self.bar.close()
+
+
+def mesh_liver(surface: trimesh.Trimesh, edge: float = EDGE_MM, limit: float | None = None,
+               plan: MeshPlan | None = None, show: str | None = None) -> tuple[TetMesh, dict]:
     """Mesh and report: returns the mesh and its quality report with ``seconds``,
-    ``method`` (the attempt that succeeded) and ``attempts`` (what was tried)."""
+    ``method`` (the attempt that succeeded), ``mesher`` (the plan and why this method) and
+    ``attempts`` (what was tried). ``show``: a progress-bar label."""
     t0 = time.perf_counter()
-    mesh, log = _mesh_with_log(surface, edge, 0, limit, ATTEMPTS)
+    plan = plan_mesh(surface, edge) if plan is None else plan
+    bar = _MeshProgress(show) if show else None
+    try:
+        mesh, log = _mesh_with_log(surface, edge, 0, limit, plan.attempts, plan, bar)
+    finally:
+        if bar is not None:
+            bar.close()
     report = quality_report(mesh)
     report["edge_mm"] = edge
     report["method"] = log[-1]["method"]
+    report["mesher"] = {"choice": plan.choice, "expected_nodes": plan.nodes, "why": why(log, plan)}
     report["attempts"] = log
     report["seconds"] = round(time.perf_counter() - t0, 3)
     return mesh, report
 
 
-# gmsh 40/60/90° then fTetWild twice, each with pinches mended, checked against the floor
-MESHER_VERSION = "mesh-chain-4"
+# gmsh 40/60/90° then fTetWild twice, each with pinches mended, checked against the floor,
+# each attempt bounded by CPU work (not wall clock)
+MESHER_VERSION = "mesh-chain-5"
 
 
 def cached_tetmesh(surface: trimesh.Trimesh, edge: float = EDGE_MM, cache_root=None) -> tuple[TetMesh, dict]:
-    """``mesh_liver`` through the content-addressed cache (key: surface, edge, mesher)."""
-    from .. import cache, progress
+    """``mesh_liver`` through the content-addressed cache (key: surface, edge, the mesher
+    and its plan). Before meshing, the expected size is checked against the memory budget."""
+    from .. import budget, cache
 
     root = cache.cache_dir() if cache_root is None else cache_root
-    key = cache.content_key(MESHER_VERSION, np.asarray(surface.vertices, float), np.asarray(surface.faces), float(edge))
+    plan = plan_mesh(surface, edge)
+    key = cache.content_key(MESHER_VERSION, np.asarray(surface.vertices, float), np.asarray(surface.faces),
+                            float(edge), plan.key())
     path = root / f"mesh-{key}.npz"
     hit = cache.load(path)
     if hit is not None:
@@ -397,12 +558,13 @@ def cached_tetmesh(surface: trimesh.Trimesh, edge: float = EDGE_MM, cache_root=N
         report = json.loads(str(hit["report"])) if "report" in hit else quality_report(mesh)
         report.update(edge_mm=edge, seconds=0.0, cached=True)
         return mesh, report
-    with progress.stage(f"meshing the liver at {edge:g} mm"):
-        try:
-            mesh, report = mesh_liver(surface, edge)
-        except NavappError as exc:
-            source = surface.metadata.get("file_path")
-            raise NavappError(f"{source}: {exc}" if source else str(exc)) from None
+    source = surface.metadata.get("file_path")
+    try:
+        budget.check_mesh(plan.nodes, edge, abs(float(surface.volume)))
+        mesh, report = mesh_liver(surface, edge, plan=plan,
+                                  show=f"meshing the liver at {edge:g} mm, ~{plan.nodes:,} nodes")
+    except NavappError as exc:
+        raise NavappError(f"{source}: {exc}" if source else str(exc)) from None
     report["cached"] = False
     cache.save(path, {"nodes": mesh.nodes, "tets": mesh.tets, "report": np.array(json.dumps(report))})
     return mesh, report

@@ -1,0 +1,93 @@
+"""Memory budget: inputs are sized up before any work starts, and what would not fit in
+this machine's memory is refused in one line saying what to do.
+
+The budget is the memory available now (``psutil``), or ``$NAVAPP_MEMORY_MB``. The costs
+are measured (docs/decisions.md, "Bounded resources"): a mesh node costs its share of the
+deformation basis, a data point its share of a registration, a surface triangle its share
+of the clean-up checks.
+"""
+
+import os
+
+from .errors import InputError, NavappError
+
+BASE_MB = 400.0
+"""The interpreter with navapp's libraries loaded, before any case data."""
+
+MB_PER_NODE = 0.045
+"""Peak memory per mesh node of mesh + basis at k = 45 (precompute benchmark: 830 MB at
+18,563 nodes, 1,157 MB at 26,390)."""
+
+MB_PER_POINT = 0.01
+"""Peak memory per intraoperative data point during a registration."""
+
+MB_PER_TRIANGLE = 0.004
+"""Peak memory per input surface triangle while reading and cleaning it up."""
+
+FRACTION = 0.8  # of the available memory navapp plans to use: the rest is for the system and the viewer
+
+
+def available_mb() -> float:
+    """Memory navapp may plan with, MB: ``$NAVAPP_MEMORY_MB`` or 80 % of what is available now."""
+    value = os.environ.get("NAVAPP_MEMORY_MB")
+    if value:
+        try:
+            mb = float(value)
+        except ValueError:
+            raise NavappError(f"NAVAPP_MEMORY_MB={value!r} is not a number of megabytes") from None
+        if not mb > 0:
+            raise NavappError(f"NAVAPP_MEMORY_MB={value!r} must be positive")
+        return mb
+    import psutil
+
+    return FRACTION * psutil.virtual_memory().available / 2 ** 20
+
+
+def _gb(mb: float) -> str:
+    return f"{mb / 1024:.1f} GB"
+
+
+def check_mesh(nodes: int, edge: float, volume_mm3: float):
+    """Refuse a mesh of about ``nodes`` nodes (from the liver's volume and ``edge``) whose
+    basis would not fit, naming the finest edge that would."""
+    budget = available_mb()
+    need = BASE_MB + MB_PER_NODE * nodes
+    if need <= budget:
+        return
+    fits = max(1.0, (budget - BASE_MB) / MB_PER_NODE)
+    from .anatomy.meshing import NODES_PER_EDGE3
+
+    finest = (volume_mm3 / (NODES_PER_EDGE3 * fits)) ** (1 / 3)
+    raise NavappError(f"a mesh at {edge:g} mm would have about {nodes:,} nodes and need about {_gb(need)}, "
+                      f"more than the {_gb(budget)} this machine has free: use --edge {_ceil(finest)} or coarser")
+
+
+def check_points(n: int, path):
+    """Refuse ``n`` data points in one file beyond what a registration can hold."""
+    budget = available_mb()
+    need = BASE_MB + MB_PER_POINT * n
+    if need <= budget:
+        return
+    fits = int((budget - BASE_MB) / MB_PER_POINT)
+    raise InputError(f"{n:,} points would need about {_gb(need)} to register, more than the {_gb(budget)} "
+                     f"this machine has free: subsample to at most {fits:,} points (e.g. every "
+                     f"{-(-n // max(fits, 1))}th row)", path)
+
+
+def check_triangles(n: int, path):
+    """Refuse a surface of ``n`` triangles beyond what reading and cleaning it can hold."""
+    budget = available_mb()
+    need = BASE_MB + MB_PER_TRIANGLE * n
+    if need <= budget:
+        return
+    fits = int((budget - BASE_MB) / MB_PER_TRIANGLE)
+    raise InputError(f"{n:,} triangles would need about {_gb(need)}, more than the {_gb(budget)} this machine "
+                     f"has free: decimate it to at most {fits:,} triangles (the mesher remeshes the surface at "
+                     "the edge length anyway)", path)
+
+
+def _ceil(x: float) -> str:
+    """``x`` rounded up to one decimal, as a CLI value."""
+    import math
+
+    return f"{math.ceil(x * 10) / 10:g}"
