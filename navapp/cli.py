@@ -3,20 +3,26 @@
 
 import argparse
 import json
+import math
 import sys
 import time
 import warnings
 from pathlib import Path
 
 from . import __version__, progress
-from .argtypes import positive
+from .argtypes import k_count, positive
 from .defaults import EDGE_MM, K
 from .errors import InputError, NavappError
 
 DEFAULT_TABLE2_CSV = Path("results/table2.csv")
+DASK_STUDIES = ("table2", "cost", "robustness")  # the studies that run on a Dask cluster with --scheduler
 
 
 _positive = positive  # the name this module has always used
+_port = positive(int, most=65535)
+_k = k_count
+
+
 
 
 def cmd_phantom(args):
@@ -97,10 +103,15 @@ def cmd_precompute(args):
     t0 = time.perf_counter()
     case = read_case(args.case)
     mesh, report = cached_tetmesh(case.preop.liver, args.edge)
+    surface = len(mesh.surface_nodes())
+    if args.k > surface:
+        raise NavappError(f"--k {args.k}: more control points than the {surface} surface nodes of the "
+                          f"{args.edge:g} mm mesh; use a smaller --k or a finer --edge")
     basis, cached = load_or_compute_basis(mesh, BasisSettings(k=args.k))
     seconds = {"mesh": report["seconds"], **{k: round(v, 3) for k, v in basis.timings.items()}}
     out = {
         "nodes": basis.M, "surface_nodes": len(basis.surface), "k": basis.k, "edge_mm": args.edge,
+        "mesher": report["mesher"]["why"] if "mesher" in report else report.get("method"),
         "from_cache": cached, "solver": backend(), "seconds": seconds,
         "total_seconds": round(time.perf_counter() - t0, 3),
         "peak_memory_mb": round(peak_memory_mb(), 1),
@@ -162,6 +173,13 @@ def cmd_study(args):
     from .evaluation.report import write_report
     from .evaluation.table2 import run_table2
 
+    if args.scheduler:  # before any work: refused by the studies that run locally, checked by the others
+        if args.what not in DASK_STUDIES:
+            raise NavappError(f"--scheduler: study {args.what} runs on this machine only; --scheduler is for "
+                              f"{', '.join(DASK_STUDIES)}")
+        from .evaluation.distribute import check_scheduler
+
+        check_scheduler(args.scheduler)
     if args.what == "hard":  # its own phantom model and data: no study cases
         from .evaluation.hard import study_command as hard_command
 
@@ -174,7 +192,7 @@ def cmd_study(args):
         if (args.workers or 1) > 1:
             print(f"navapp: {args.workers} robustness cases at once: the per-registration times compete for the "
                   f"cores", file=sys.stderr)
-        print(json.dumps(run_study(cases, results, args.report, args.workers or 1, args.quick)))
+        print(json.dumps(run_study(cases, results, args.report, args.workers or 1, args.quick, args.scheduler)))
         return
     if args.what == "loads":
         from .evaluation.loads import study_command as loads_command
@@ -200,7 +218,7 @@ def cmd_study(args):
         if (args.workers or 1) > 1:
             print(f"navapp: {args.workers} cost-study cases at once: their timings compete for the cores",
                   file=sys.stderr)
-        n = run_cost_study(cases, results, workers=args.workers or 1, quick=args.quick)
+        n = run_cost_study(cases, results, workers=args.workers or 1, quick=args.quick, scheduler=args.scheduler)
         md = write_cost_report(results, args.report)
         print(json.dumps({"rows_added": n, "seconds": round(time.perf_counter() - t0, 1), "results": str(results),
                           "report": str(md)}))
@@ -267,14 +285,21 @@ def cmd_replay(args):
     print(json.dumps(out))
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse, with a bad argument reported in one line (no usage block), exit 2."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
 def build_parser():
-    p = argparse.ArgumentParser(prog="navapp", description="Liver deformation correction (LIBR) from sparse data.")
+    p = _Parser(prog="navapp", description="Liver deformation correction (LIBR) from sparse data.")
     p.add_argument("--version", action="version", version=f"navapp {__version__}")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser("phantom", help="write the preop/ part of a case folder for a built-in liver phantom")
-    s.add_argument("--liver", type=int, default=0, help="phantom index (0, 1, 2, …; default 0)")
+    s.add_argument("--liver", type=_positive(int, least=0), default=0, help="phantom index (0, 1, 2, …; default 0)")
     s.add_argument("--out", type=Path, required=True, help="case folder to write")
     s.set_defaults(func=cmd_phantom)
 
@@ -313,7 +338,7 @@ def build_parser():
     s.add_argument("case", type=Path, help="case folder")
     s.add_argument("--edge", type=_positive(float), default=EDGE_MM,
                    help=f"target element size in mm (default {EDGE_MM:g})")
-    s.add_argument("--k", type=_positive(int), default=K, help=f"number of control points (default {K})")
+    s.add_argument("--k", type=_k, default=K, help=f"number of control points (default {K})")
     s.set_defaults(func=cmd_precompute)
 
     from .registration.cli import add_register_parser
@@ -337,7 +362,8 @@ def build_parser():
     s.add_argument("--workers", type=_positive(int),
                    help="local worker processes (default: all cores for table2, 1 for cost, "
                         "whose timings would compete)")
-    s.add_argument("--scheduler", help="Dask distributed scheduler address (e.g. tcp://host:8786)")
+    s.add_argument("--scheduler", help="Dask distributed scheduler address (e.g. tcp://host:8786): table2, cost "
+                                       "and robustness run there")
     s.add_argument("--quick", action="store_true", help="one case, two scenarios per plane level")
     s.add_argument("--results", type=Path, default=DEFAULT_TABLE2_CSV,
                    help="results CSV, appended (default results/table2.csv; for cost: <report>/cost.csv)")
@@ -347,7 +373,7 @@ def build_parser():
     s = sub.add_parser("bench", help="benchmarks that print timings and memory as JSON lines")
     s.add_argument("what", choices=("precompute", "register", "live", "import"))
     s.add_argument("--edges", type=_positive(float), nargs="+", default=[EDGE_MM], help="element sizes, mm")
-    s.add_argument("--ks", type=_positive(int), nargs="+", default=[K], help="numbers of control points")
+    s.add_argument("--ks", type=_k, nargs="+", default=[K], help="numbers of control points")
     s.add_argument("--volume-ml", type=_positive(float), help="precompute: phantom 0 scaled to this volume, ml")
     s.add_argument("--relax", choices=("local", "exact", "both"), default="local",
                    help="precompute: relaxation subdomain (both: exact and local, with the local one's error)")
@@ -359,9 +385,9 @@ def build_parser():
     s = sub.add_parser("replay", help="OpenIGTLink server playing a simulated scene as PLUS would (stylus, probe, "
                                       "B-mode frames): the demo without hardware")
     s.add_argument("scene", type=Path, nargs="?", help="scene TOML file (default: the built-in demo scene)")
-    s.add_argument("--port", type=_positive(int), default=18944, help="port on 127.0.0.1 (default 18944)")
+    s.add_argument("--port", type=_port, default=18944, help="port on 127.0.0.1 (default 18944)")
     s.add_argument("--rate", type=_positive(float), default=25.0, help="messages per second per device (default 25)")
-    s.add_argument("--latency-ms", type=float, default=None,
+    s.add_argument("--latency-ms", type=_positive(float, least=0), default=None,
                    help="send each message this long after its timestamp (default: the scene's declared latency, or 0)")
     s.add_argument("--seconds", type=_positive(float), help="stop after this long (default: until Ctrl-C)")
     s.set_defaults(func=cmd_replay)
@@ -374,13 +400,13 @@ def build_parser():
     s = sub.add_parser("serve", help="open the navigation viewer in the browser (built-in demo scene by default)")
     s.add_argument("scene", type=Path, nargs="?", help="scene TOML file (default: the built-in demo scene)")
     s.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1)")
-    s.add_argument("--port", type=_positive(int), default=8080,
+    s.add_argument("--port", type=_port, default=8080,
                    help="port (default 8080; if busy the next free one is used and printed)")
     s.add_argument("--session", type=Path,
                    help="session folder (default ~/navapp-sessions/<scene>-<key>, or under $NAVAPP_SESSIONS)")
     s.add_argument("--edge", type=_positive(float), default=EDGE_MM, help="registration mesh element size, mm")
-    s.add_argument("--k", type=_positive(int), default=K, help="number of control points")
-    s.add_argument("--view2d-port", type=int, default=0,
+    s.add_argument("--k", type=_k, default=K, help="number of control points")
+    s.add_argument("--view2d-port", type=_positive(int, most=65535, least=0), default=0,
                    help="port of the 2D ultrasound view's pages (default: any free port)")
     s.add_argument("--igtl", metavar="HOST:PORT",
                    help="connect to an OpenIGTLink server (PLUS, 3D Slicer, navapp replay) for the tracked "
@@ -395,6 +421,20 @@ def build_parser():
     return p
 
 
+def _output_lock(args):
+    """The lock on the folder a command writes (``navapp.outputs``): two runs writing one
+    folder at once mixed their files; the second now stops at once, in one line."""
+    from contextlib import nullcontext
+
+    from .outputs import folder_lock
+
+    if args.command == "register":
+        return folder_lock(args.out or Path(args.case) / "registration")
+    if args.command in ("demo", "simulate"):
+        return folder_lock(args.out)
+    return nullcontext()
+
+
 def main(argv=None):
     parser = build_parser()
     args = parser.parse_args(argv)
@@ -403,7 +443,8 @@ def main(argv=None):
         warnings.simplefilter("default")
         warnings.showwarning = lambda msg, *a, **k: progress.echo(f"navapp: warning: {msg}")
         try:
-            return args.func(args) or 0
+            with _output_lock(args):
+                return args.func(args) or 0
         except NavappError as exc:
             print(f"navapp: error: {exc}", file=sys.stderr)
             return 2

@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from conftest import free_port
 from test_app_browser import ARGS, BUDGET_S, CHROMIUM, VIEW, Deadline, playwright, us_frame, wait_text, wait_until
 
@@ -58,6 +59,7 @@ def toggle(page, label, on, deadline: Deadline):
     assert box.is_checked() == on, f"{label!r} did not turn {'on' if on else 'off'}"
 
 
+@pytest.mark.integration  # 650 s on a loaded machine: CI runs it, `-m "not integration"` skips it
 def test_a_live_session_from_the_replay_server(tmp_path):
     deadline = Deadline(2 * BUDGET_S)  # a cold start of the demo scene included
 

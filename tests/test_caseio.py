@@ -15,7 +15,7 @@ def case_dir(phantoms, tmp_path_factory):
     intraop = {"anterior": rng.normal(size=(20, 3)) * 30, "portal_contour": rng.normal(size=(7, 3)) * 10}
     targets = rng.normal(size=(15, 6)) * 40
     d = tmp_path_factory.mktemp("case")
-    write_case(Case(m, intraop, targets, {"name": "t", "solver": {"k": 45}}), d)
+    write_case(Case(m, intraop, targets, {"name": "t", "scene": "s.toml"}), d)
     return d, m, intraop, targets
 
 
@@ -34,7 +34,7 @@ def test_round_trip_is_exact(case_dir):
     for k in intraop:
         assert np.array_equal(c.intraop[k], intraop[k])
     assert np.array_equal(c.targets, targets)
-    assert c.settings["solver"]["k"] == 45 and c.name == "t"
+    assert c.settings["scene"] == "s.toml" and c.name == "t"
 
 
 def _copy(src, dst):
@@ -59,6 +59,12 @@ def _copy(src, dst):
     ("preop/regions.csv", "label\nanterior\n", "labels but liver.ply has"),
     ("case.toml", 'units = "m"\n', "millimetres"),
     ("case.toml", "units = [\n", "invalid TOML"),
+    ("case.toml", 'name = "t"\nk = 0\n', "unknown key 'k' .*the command's --k"),
+    ("case.toml", 'name = "t"\n[solver]\nk = 100000\n', "unknown key 'solver' .*the command's --k"),
+    ("case.toml", 'name = "t"\nedge = -1\n', "unknown key 'edge' .*--edge"),
+    ("case.toml", 'name = "t"\ncolour = "red"\n', "unknown key 'colour' \\(known: frame, name, scene, units\\)"),
+    ("case.toml", 'name = 3\n', "name must be a str"),
+    ("case.toml", 'name = "t"\n[frame]\nsauce = "x"\n', "unknown key 'frame.sauce'"),
 ])
 def test_bad_files_give_one_clear_error(case_dir, tmp_path, name, text, message):
     d = _copy(case_dir[0], tmp_path / "c")

@@ -68,14 +68,14 @@ def test_an_unreachable_dask_scheduler_is_one_line(monkeypatch):
     import socket
 
     from navapp.errors import NavappError
-    from navapp.evaluation import table2
+    from navapp.evaluation import distribute, table2
 
     with socket.socket() as s:  # a port where nothing listens
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     from distributed import Client
 
-    monkeypatch.setattr(table2, "DASK_CONNECT_S", 2)
+    monkeypatch.setattr(distribute, "DASK_CONNECT_S", 2)
     timeouts = []
 
     def client(address, timeout=None):  # distributed's Client, its connect timeout recorded
@@ -119,6 +119,7 @@ def _study_cli(monkeypatch, case, tmp, *extra):
     return code, csv
 
 
+@pytest.mark.integration  # a two-worker Dask cluster: 861 s on a loaded machine; CI runs it
 def test_dask_scheduler_matches_the_local_run(quick_case, local_rows, tmp_path, monkeypatch):
     """`navapp study table2 --quick --scheduler ADDRESS` against a real Dask cluster (two
     worker processes): it finishes and every row equals the local run's (TRE, iterations,
@@ -139,12 +140,12 @@ def test_an_unreachable_scheduler_from_the_command_line_is_one_line(quick_case, 
     pytest.importorskip("distributed", reason=NO_DASK)
     import socket
 
-    from navapp.evaluation import table2
+    from navapp.evaluation import distribute
 
     with socket.socket() as s:  # a port where nothing listens
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
-    monkeypatch.setattr(table2, "DASK_CONNECT_S", 2)
+    monkeypatch.setattr(distribute, "DASK_CONNECT_S", 2)
     code, _ = _study_cli(monkeypatch, quick_case, tmp_path, "--scheduler", f"tcp://127.0.0.1:{port}")
     err = capsys.readouterr().err.strip()
     assert code == 2

@@ -115,7 +115,7 @@ NODES_PER_EDGE3 = 1.24
 """Expected nodes = volume / (1.24 edge³): fitted on the phantoms (Gmsh; fTetWild's edge is
 scaled by ``FTETWILD_EDGE_FACTOR`` to give the same count)."""
 
-CPU_SECONDS = {"gmsh": (6.0, 0.0006), "ftetwild": (20.0, 0.006)}
+CPU_SECONDS = {"gmsh": (6.0, 0.0006), "ftetwild": (15.0, 0.0035)}
 """Expected CPU seconds of one attempt, a + b × expected nodes (interpreter start-up and
 imports included; measured, docs/decisions.md "Deterministic meshing")."""
 

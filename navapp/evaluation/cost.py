@@ -216,18 +216,19 @@ def _row_key(r) -> tuple:
     return (r["case"], r["sweep"], r["level"], r["method"], float(r["edge_mm"]), int(r["k"]), r["setting"])
 
 
-def run_cost_study(case_dirs, results_csv, workers=1, quick=False, **settings) -> int:
+def run_cost_study(case_dirs, results_csv, workers=1, quick=False, scheduler=None, **settings) -> int:
     """Run (or resume) the cost study over ``case_dirs``, one process per case; appends
     rows to ``results_csv``. Returns the number of new rows. ``quick``: k ∈ {15, 45},
-    edges {6, 4}, fewer LM settings, no CPD; ``settings`` override ``cost_case``'s."""
+    edges {6, 4}, fewer LM settings, no CPD; ``settings`` override ``cost_case``'s.
+    ``scheduler``: a Dask scheduler's address (checked before any work); each case runs on
+    one of its workers (their timings are then that worker's)."""
     import csv
-    from concurrent.futures import ProcessPoolExecutor, as_completed
     from pathlib import Path
 
     from .. import progress
+    from .distribute import ResultsCSV, check_scheduler, run_tasks
 
     results_csv = Path(results_csv)
-    results_csv.parent.mkdir(parents=True, exist_ok=True)
     done = set()
     if results_csv.exists():
         with results_csv.open() as f:
@@ -236,25 +237,17 @@ def run_cost_study(case_dirs, results_csv, workers=1, quick=False, **settings) -
     if quick:
         kw.update(ks=(15, 45), edges=(6.0, 4.0), caps=(0, 2, 100), rtols=(1e-1,), plane_counts=(0, 2), peers=False)
     kw.update(settings)
+    if scheduler:
+        check_scheduler(scheduler)
     new = 0
-    write_header = not results_csv.exists()
-    with results_csv.open("a", newline="") as f, progress.bar(len(case_dirs), "cost study", "case") as pb:
-        out = csv.DictWriter(f, COST_COLUMNS)
-        if write_header:
-            out.writeheader()
-
-        def take(rows):
-            nonlocal new
-            out.writerows(rows)
-            f.flush()
+    with ResultsCSV(results_csv, COST_COLUMNS) as out, progress.bar(len(case_dirs), "cost study", "case") as pb:
+        for rows in run_tasks(_cost_case, [(c, kw) for c in case_dirs], scheduler, workers):
+            out.write(rows)
             new += len(rows)
             pb.update(1)
-
-        if workers <= 1 or len(case_dirs) == 1:
-            for c in case_dirs:
-                take(cost_case(c, **kw))
-        else:
-            with ProcessPoolExecutor(workers) as ex:
-                for fut in as_completed([ex.submit(cost_case, c, **kw) for c in case_dirs]):
-                    take(fut.result())
     return new
+
+
+def _cost_case(case_dir, kw):
+    """``cost_case`` with its settings as one argument (``run_tasks`` passes positions)."""
+    return cost_case(case_dir, **kw)

@@ -23,7 +23,6 @@ plane triple (so label noise that hurts counts as a failure too).
 import csv
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,6 +31,7 @@ import numpy as np
 from .. import progress
 from ..defaults import EDGE_MM, K
 from ..features import SALIENT
+from .distribute import ResultsCSV, check_scheduler, run_tasks
 
 OFFSETS = ((0.0, 0.0), (5.0, 10.0), (10.0, 20.0), (15.0, 30.0), (20.0, 40.0))  # (degrees, mm)
 CONDITIONS = ("clean", "shifted", "mislabelled")
@@ -199,11 +199,12 @@ def read_rows(path) -> list[dict]:
 
 
 def run_robustness(case_dirs, results, methods=("before", "after"), draws=4, workers=1, edge=EDGE_MM, k=K,
-                   offsets=OFFSETS, conditions=CONDITIONS) -> int:
+                   offsets=OFFSETS, conditions=CONDITIONS, scheduler=None) -> int:
     """Run (or resume) the design; rows are appended to ``results`` (CSV) one case at a time.
 
     Returns the number of registrations run. One process per case: a case's basis is
-    loaded once, and two processes never compute the same cache entry.
+    loaded once, and two processes never compute the same cache entry. ``scheduler``: a
+    Dask scheduler's address (checked before any work); the cases run on its workers.
     """
     results = Path(results)
     done = {tuple(r[c] for c in ("case", "method", "condition", "draw")) + (f"{float(r['angle_deg']):g}",)
@@ -217,19 +218,13 @@ def run_robustness(case_dirs, results, methods=("before", "after"), draws=4, wor
     total = sum(len(t) for _, t in work) * len(methods)
     if not total:
         return 0
-    new_file = not results.exists()
-    results.parent.mkdir(parents=True, exist_ok=True)
-    with results.open("a", newline="") as f, progress.bar(total, "robustness registrations", "reg") as pb:
-        w = csv.DictWriter(f, COLUMNS)
-        if new_file:
-            w.writeheader()
-        with ProcessPoolExecutor(max_workers=workers or os.cpu_count()) as pool:
-            futures = [pool.submit(run_case, d, todo, methods, edge, k) for d, todo in work]
-            for fut in as_completed(futures):
-                rows = fut.result()
-                rows = [r for r in rows if Trial(r["case"], r["condition"], r["draw"], r["angle_deg"],
-                                                 r["shift_mm"]).key(r["method"]) not in done]
-                w.writerows(rows)
-                f.flush()
-                pb.update(len(rows))
+    if scheduler:
+        check_scheduler(scheduler)
+    with ResultsCSV(results, COLUMNS) as out, progress.bar(total, "robustness registrations", "reg") as pb:
+        tasks = [(d, todo, methods, edge, k) for d, todo in work]
+        for rows in run_tasks(run_case, tasks, scheduler, workers or os.cpu_count()):
+            rows = [r for r in rows if Trial(r["case"], r["condition"], r["draw"], r["angle_deg"],
+                                             r["shift_mm"]).key(r["method"]) not in done]
+            out.write(rows)
+            pb.update(len(rows))
     return total

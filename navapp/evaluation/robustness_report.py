@@ -194,19 +194,19 @@ def write_robustness_report(results, out_dir, preamble: str = DESIGN) -> Path:
     return md
 
 
-def run_study(cases, results: Path, report: Path, workers: int = 1, quick: bool = False) -> dict:
+def run_study(cases, results: Path, report: Path, workers: int = 1, quick: bool = False, scheduler=None) -> dict:
     """``navapp study robustness``: run (or resume) the design into ``results`` (CSV), then
     write the report into ``report``; returns what it did (printed as JSON by the CLI).
 
     Methods "before" (the path before multi-start) and "after" (today's default), 4 draws,
     one worker by default (the rows carry timings); ``quick``: one draw and the 0°, 15° and
-    20° offsets.
+    20° offsets; ``scheduler``: a Dask scheduler's address (``run_robustness``).
     """
     import time
 
     offsets = tuple(o for o in OFFSETS if o[0] in (0.0, 15.0, 20.0)) if quick else OFFSETS
     t0 = time.perf_counter()
-    n = run_robustness(cases, results, draws=1 if quick else 4, workers=workers, offsets=offsets)
+    n = run_robustness(cases, results, draws=1 if quick else 4, workers=workers, offsets=offsets, scheduler=scheduler)
     md = write_robustness_report(results, report)
     return {"registrations_run": n, "seconds": round(time.perf_counter() - t0, 1), "results": str(results),
             "report": str(md)}

@@ -12,13 +12,13 @@ import csv
 import itertools
 import os
 import time
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import numpy as np
 
 from .. import progress
 from ..defaults import EDGE_MM, K
+from .distribute import DASK_CONNECT_S, ResultsCSV, check_scheduler, dask_client, run_tasks  # noqa: F401
 
 LEVELS = ("rigid", "S", "S+1", "S+2", "S+3", "S+all", "CBCT", "iCT")
 PAPER = {"rigid": (13.8, None), "S": (11.4, None), "S+1": (9.0, None), "S+2": (7.4, None), "S+3": (6.4, None),
@@ -94,68 +94,26 @@ def read_results(path):
         return list(csv.DictReader(f))
 
 
-DASK_CONNECT_S = 10  # how long to wait for a scheduler before saying it does not answer
-
-
-def dask_client(address, client_class=None):
-    """A Dask ``Client`` on ``address``; an address where no scheduler answers (or a
-    malformed one) raises ``NavappError`` in one line instead of distributed's traceback."""
-    from ..errors import NavappError
-
-    if client_class is None:
-        from distributed import Client
-
-        client_class = Client
-    try:
-        return client_class(address, timeout=f"{DASK_CONNECT_S}s")
-    except (OSError, TimeoutError, ValueError) as exc:
-        raise NavappError(f"--scheduler {address}: no Dask scheduler answers there within {DASK_CONNECT_S} s "
-                          f"({exc.__class__.__name__}); start one with `dask scheduler` or drop --scheduler") from None
-
-
 def run_table2(case_dirs, results, workers=None, scheduler=None, quick=False, chunk=40, edge=EDGE_MM, k=K):
-    """Run (or resume) the design over ``case_dirs``; appends rows to ``results`` (CSV)."""
+    """Run (or resume) the design over ``case_dirs``; appends rows to ``results`` (CSV).
+    ``scheduler``: a Dask scheduler's address, checked before any work."""
     results = Path(results)
     done = {_key(r["case"], r["level"], tuple(int(p) for p in r["planes"].split("-") if p))
             for r in read_results(results)}
     todo = []
     for d in case_dirs:
         items = [s for s in scenarios(quick=quick) if _key(Path(d).name, *s) not in done]
-        todo += [(str(d), items[i:i + chunk]) for i in range(0, len(items), chunk)]
-    total = sum(len(items) for _, items in todo)
+        todo += [(str(d), items[i:i + chunk], edge, k) for i in range(0, len(items), chunk)]
+    total = sum(len(t[1]) for t in todo)
     if not total:
         return 0
+    if scheduler:
+        check_scheduler(scheduler)
     # warm every case's cache once, serially, so parallel workers never race to compute it
     for d in case_dirs:
         run_chunk(d, [], edge, k)
-    new_file = not results.exists()
-    results.parent.mkdir(parents=True, exist_ok=True)
-    with results.open("a", newline="") as f, progress.bar(total, "Table II registrations", "reg") as pb:
-        w = csv.DictWriter(f, COLUMNS)
-        if new_file:
-            w.writeheader()
-
-        def take(rows):
-            w.writerows(rows)
-            f.flush()
+    with ResultsCSV(results, COLUMNS) as out, progress.bar(total, "Table II registrations", "reg") as pb:
+        for rows in run_tasks(run_chunk, todo, scheduler, workers or os.cpu_count()):
+            out.write(rows)
             pb.update(len(rows))
-
-        if scheduler:
-            try:
-                from distributed import Client
-                from distributed import as_completed as dask_completed
-            except ImportError:
-                from ..errors import NavappError
-
-                raise NavappError("--scheduler needs Dask distributed: pip install -e '.[study]'") from None
-
-            with dask_client(scheduler, Client) as client:
-                futures = [client.submit(run_chunk, d, items, edge, k, pure=False) for d, items in todo]
-                for fut in dask_completed(futures):
-                    take(fut.result())
-        else:
-            with ProcessPoolExecutor(max_workers=workers or os.cpu_count()) as pool:
-                futures = [pool.submit(run_chunk, d, items, edge, k) for d, items in todo]
-                for fut in as_completed(futures):
-                    take(fut.result())
     return total

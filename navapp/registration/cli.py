@@ -6,7 +6,7 @@ import time
 from pathlib import Path
 
 from .. import progress
-from ..argtypes import positive
+from ..argtypes import k_count, positive
 from ..defaults import EDGE_MM, LM_MAX_ITERATIONS, K
 
 
@@ -14,7 +14,7 @@ def add_register_parser(sub):
     s = sub.add_parser("register", help="register a case folder (rigid ICP + LIBR) and write the results")
     s.add_argument("case", type=Path, help="case folder (docs/design.md §3)")
     s.add_argument("--out", type=Path, help="output folder (default CASE/registration)")
-    s.add_argument("--k", type=positive(int), default=K, help=f"control points (default {K})")
+    s.add_argument("--k", type=k_count, default=K, help=f"control points (default {K})")
     s.add_argument("--edge", type=positive(float), default=EDGE_MM, help=f"tet element size, mm (default {EDGE_MM:g})")
     s.add_argument("--no-deform", action="store_true", help="rigid registration only")
     cap = LM_MAX_ITERATIONS

@@ -408,9 +408,17 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
 
 
 def write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dict:
-    """Registered liver/vessels (PLY), displaced targets (CSV) and result.json."""
+    """Registered liver/vessels (PLY), displaced targets (CSV) and result.json, written to
+    a temporary folder that replaces ``out`` whole, under ``out``'s lock (``navapp.outputs``;
+    ``targets/``, written into ``out`` earlier in the run, is carried across)."""
+    from ..outputs import folder_lock, staged
+
+    with folder_lock(out), staged(out, carry=("targets",)) as tmp:
+        return _write_outputs(case, reg, tmp, extra)
+
+
+def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dict:
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     for name in ("liver", "portal", "hepatic"):
         mesh = getattr(case.preop, name)
         if mesh is not None:

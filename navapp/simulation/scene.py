@@ -259,6 +259,9 @@ def parse_scene(data: dict, path=None) -> Scene:
         if missing:
             raise InputError(f"effects[{i}] ({kind}) needs {', '.join(sorted(missing))}", path)
         scene.effects.append(Effect(kind, params))
+    from ..schema import check_tables  # ranges by key name: effect keys added later are covered too
+
+    check_tables(data, path)
     return scene
 
 

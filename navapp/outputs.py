@@ -1,0 +1,111 @@
+"""Output folders: one run writes a folder at a time, and a folder appears whole or not at all.
+
+``folder_lock(out)`` holds an exclusive ``flock`` on a lock file named by the folder's path
+for the whole run: a second run on the same folder stops at once with one line naming the
+first (pid, command, start time). The kernel drops the lock when its process ends, even by
+``kill -9``, so a lock is never stale. Held locks are counted per process, so code under
+a lock may take it again.
+
+``staged(out)`` yields a temporary folder beside ``out``; when the block ends without an
+error the old folder is renamed away, the new one renamed into place, and the old one
+deleted. A run killed while writing leaves ``out`` as it was (its leftovers are removed
+by the next run on that folder).
+"""
+
+import fcntl
+import os
+import shutil
+import sys
+import tempfile
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+from .errors import NavappError
+
+_held: dict[Path, list] = {}  # lock path → [open file, depth], this process's locks
+
+
+LOCK_DIR = Path(tempfile.gettempdir()) / "navapp-locks"
+
+
+def lock_path(out) -> Path:
+    """The lock file of output folder ``out``: named by its resolved path, kept in the
+    temporary folder so that locking creates nothing in the user's folders (a mistyped
+    case path must still read as missing)."""
+    import hashlib
+
+    key = hashlib.sha256(str(Path(out).resolve()).encode()).hexdigest()[:32]
+    return LOCK_DIR / f"{key}.lock"
+
+
+@contextmanager
+def folder_lock(out):
+    """Hold the lock on output folder ``out`` for the block; raise ``NavappError`` in one
+    line when another process holds it."""
+    path = lock_path(out)
+    if path in _held:
+        _held[path][1] += 1
+        try:
+            yield
+        finally:
+            _held[path][1] -= 1
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    f = open(path, "a+")
+    try:
+        fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        f.seek(0)
+        holder = f.read().strip() or "another process"
+        f.close()
+        raise NavappError(f"{Path(out)}: another navapp run is writing this folder ({holder}); wait for it to "
+                          "finish or write elsewhere (--out)") from None
+    f.seek(0)
+    f.truncate()
+    command = " ".join(["navapp", *sys.argv[1:]]) if sys.argv and sys.argv[0] else "navapp"
+    f.write(f"pid {os.getpid()}, `{command[:120]}`, since {time.strftime('%H:%M:%S')}")
+    f.flush()
+    _held[path] = [f, 1]
+    try:
+        yield
+    finally:
+        del _held[path]
+        f.seek(0)
+        f.truncate()
+        fcntl.flock(f, fcntl.LOCK_UN)
+        f.close()
+
+
+def _leftovers(out: Path):
+    return [p for p in out.parent.glob(f".{out.name}.*-*") if p.is_dir()]
+
+
+@contextmanager
+def staged(out, carry: tuple[str, ...] = ()):
+    """Yield a temporary folder to write ``out``'s new content into; on success it
+    replaces ``out`` (entries named in ``carry`` that the caller already wrote into ``out``
+    during this run are moved across first). Call under ``folder_lock(out)``."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    for old in _leftovers(out):  # a run killed while writing: its half-written folder
+        shutil.rmtree(old, ignore_errors=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.new-", dir=out.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    tmp.chmod(0o777 & ~umask)  # mkdtemp's 0700 would become the output folder's mode
+    try:
+        yield tmp
+        for name in carry:
+            if (out / name).exists() and not (tmp / name).exists():
+                os.replace(out / name, tmp / name)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if out.exists():
+        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+        os.replace(out, old / "content")
+        os.replace(tmp, out)
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        os.replace(tmp, out)
