@@ -19,10 +19,14 @@ MB_PER_NODE = 0.045
 18,563 nodes, 1,157 MB at 26,390)."""
 
 MB_PER_POINT = 0.01
-"""Peak memory per intraoperative data point during a registration."""
+"""Peak memory per intraoperative data point during a registration: a registration of 10
+million points was killed at 21.7 GB (so > 2.2 KB a point); 10 KB leaves room for the
+per-point model rows (3 × 3k modes) and correspondences."""
 
-MB_PER_TRIANGLE = 0.004
-"""Peak memory per input surface triangle while reading and cleaning it up."""
+MB_PER_TRIANGLE = 0.009
+"""Peak memory per input surface triangle while reading and cleaning it up. It grows with
+the count (self-intersection and manifold checks): 1.6 KB a triangle at 81,920 and 2.8 KB
+at 327,680 (measured), 8.8 KB at 2 million (17.6 GB, not finished): the largest is used."""
 
 FRACTION = 0.8  # of the available memory navapp plans to use: the rest is for the system and the viewer
 

@@ -241,13 +241,13 @@ def run_cost_study(case_dirs, results_csv, workers=1, quick=False, scheduler=Non
         check_scheduler(scheduler)
     new = 0
     with ResultsCSV(results_csv, COST_COLUMNS) as out, progress.bar(len(case_dirs), "cost study", "case") as pb:
-        for rows in run_tasks(_cost_case, [(c, kw) for c in case_dirs], scheduler, workers):
+        for rows in run_tasks(_cost_task, [(c, kw) for c in case_dirs], scheduler, workers):
             out.write(rows)
             new += len(rows)
             pb.update(1)
     return new
 
 
-def _cost_case(case_dir, kw):
+def _cost_task(case_dir, kw):
     """``cost_case`` with its settings as one argument (``run_tasks`` passes positions)."""
     return cost_case(case_dir, **kw)

@@ -74,7 +74,7 @@ class ResultsCSV:
         rows = list(rows)
         if not rows:
             return
-        if self._writer is None:
+        if self._file is None or self._writer is None:
             new = not self.path.exists() or self.path.stat().st_size == 0
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._file = self.path.open("a", newline="")
@@ -87,7 +87,7 @@ class ResultsCSV:
     def close(self):
         if self._file is not None:
             self._file.close()
-            self._file = None
+            self._file, self._writer = None, None
 
     def __enter__(self):
         return self
