@@ -44,7 +44,7 @@ NAMED = {
     "fraction": Range(0.0, 1.0, open_hi=True),  # dropout: all data dropped leaves a case with no data
     "coverage": Range(0.0, 1.0, open_lo=True),
     "planes": Range(0, 16),  # the scene's 8 vertical + 8 lateral planes
-    "gravity_tilt_deg": Range(-90.0, 90.0),  # from posterior toward the released side; beyond 90° it points anterior
+    "gravity_tilt_deg": Range(0.0, 90.0),  # from posterior toward the released side (as scene.py checks it)
     "head_up_deg": Range(-90.0, 90.0, open_lo=True, open_hi=True),
     "rotation_deg": Range(0.0, 180.0),
     "mesh_edge_mm": POSITIVE,
