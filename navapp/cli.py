@@ -3,7 +3,6 @@
 
 import argparse
 import json
-import math
 import sys
 import time
 import warnings
