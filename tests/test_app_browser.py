@@ -361,7 +361,8 @@ def test_two_browsers_draw_on_different_planes_at_once(server, tmp_path):
         for f, n in zip(frames, (1, 2), strict=True):
             wait_until(f.page, lambda f=f, n=n: f"Plane {n} (" in f.inner_text("#title"), deadline,
                        f"tab {n}'s plane")
-        before = len(json.loads((session / "session.json").read_text())["contours"])
+        saved = session / "session.json"  # none yet when this test runs first (the session is new)
+        before = len(json.loads(saved.read_text())["contours"]) if saved.exists() else 0
         for k in range(4):  # interleaved clicks, as two people at once
             for f, row in zip(frames, (40, 60), strict=True):
                 f.locator("#cv").click(position=dict(zip("xy", canvas_xy(40 + 12 * k, row), strict=True)),
