@@ -391,7 +391,8 @@ class Live:
         self._shown = now
         err = shown.node_error(reg.rigid, beta)
         predicted = shown.predict(reg) if final else (None, [])  # ~0.1 s: not on every frame
-        state = RegisteredState(RunKind.LIVE.label, reg.rigid, beta, err, *predicted)
+        state = RegisteredState(RunKind.LIVE.label, reg.rigid, beta, err, *predicted,
+                                data_model_frame=reg.data_model_frame)
         with core.lock:
             core.result, core.last_reg = state, reg
             if core.worker is not None:

@@ -82,11 +82,13 @@ class Runs:
             run = core.run
         assert run is not None  # set before the worker started
         stopped = cancelled(reg)
-        beta = reg.libr.beta if reg.libr is not None else None
+        # the answer: the rigid pose alone where the data do not support the deformation
+        beta = reg.libr.beta if reg.libr is not None and reg.deformed else None
         err = None if stopped else shown.node_error(reg.rigid, beta)
         entry = RunEntry.of(run.kind, reg, run.points, time.monotonic() - run.t0, err, run.streamed, run.trace)
         if not stopped:
-            result = RegisteredState(run.kind.label, reg.rigid, beta, err, *shown.predict(reg))
+            result = RegisteredState(run.kind.label, reg.rigid, beta, err, *shown.predict(reg),
+                                     data_model_frame=reg.data_model_frame)
             with core.lock:
                 core.result, core.last_reg = result, reg
                 core.need_session().result = result.to_json()

@@ -53,20 +53,28 @@ class Shown:
         """The predicted error without the truth (``registration.uncertainty``): (S,) at the
         surface nodes, and a ``TargetBand`` per target; (None, []) for a rigid result or
         when it cannot be had (too few data)."""
+        from ..registration.support import target_support
         from ..registration.uncertainty import estimate_error
 
         model, _ = self.core.need_model()
         if reg.libr is None or not reg.data_model_frame:
             return None, []
         preop = self.core.preop
+        centres = {t.name: t.centre for t in preop.targets}
+        # the data and the targets' preoperative centres are both in the model frame
+        support = {s.name: s for s in target_support(reg.support, centres, reg.data_model_frame)}
+        if not reg.deformed:  # the rigid answer: no prediction, the reason beside each target
+            why = reg.support.warning if reg.support is not None else None
+            short = why.split(":")[0] if why else None
+            return None, [TargetBand(t.name, float("nan"), float("nan"), float("nan"), short) for t in preop.targets]
         try:
             surface = estimate_error(reg, nodes=model.basis.surface).predicted_mm
             bands = []
             if preop.targets:
                 est = estimate_error(reg, points=np.array([t.centre for t in preop.targets]))
-                # per-target warnings of the registration result go into TargetBand.warning here
-                bands = [TargetBand(t.name, float(e), float(lo), float(hi)) for t, e, lo, hi in
-                         zip(preop.targets, est.predicted_mm, est.lower_mm, est.upper_mm, strict=True)]
+                bands = [TargetBand(t.name, float(e), float(lo), float(hi), support[t.name].warning)
+                         for t, e, lo, hi in zip(preop.targets, est.predicted_mm, est.lower_mm, est.upper_mm,
+                                                 strict=True)]
             return surface, bands
         except (np.linalg.LinAlgError, ValueError):
             return None, []
@@ -153,18 +161,24 @@ class Shown:
         d = core.need_session().result
         if not d:
             return
-        rigid = RigidResult(np.array(d["R"]), np.array(d["t"]), 0, float(d.get("rms_mm", np.nan)))
+        rigid = RigidResult(np.array(d["R"]), np.array(d["t"]), 0, float(d.get("rms_mm", np.nan)),
+                            kept=bool(d.get("kept", False)))
         beta = None if d.get("beta") is None else np.array(d["beta"], float)
         if beta is not None and len(beta) != model.basis.Ju.shape[1] + 6:
             return  # another basis size (different --k): nothing to restore
         libr = None if beta is None else LibrResult(beta, float("nan"), 0, "restored", [], [], {}, 0.0, {})
-        # the data in the model frame (T⁻¹), for the predicted error: what the session holds now
-        inv = {k: (np.asarray(v, float) - rigid.t) @ rigid.R for k, v in core.data().items()}
+        # the data the fit was made from (model frame): the predicted error and the next-plane
+        # suggestion are only meaningful on them (the LM covariance is scaled by the fit's own
+        # residuals; data added since inflated a restored demo's organ mean to 113.63 mm beside
+        # targets at 2.8 and 5.2 mm). A session saved before they were kept has none: its saved
+        # prediction is shown, and a suggestion asks for a new registration
+        inv = {k: np.asarray(v, float).reshape(-1, 3) for k, v in (d.get("data_model_frame") or {}).items()}
         reg = Registration(model, rigid, libr, inv)
         core.last_reg = worker.last = reg
         predicted = self.predict(reg)
         saved = d.get("predicted_mm")
         if saved is not None and len(saved) == len(model.basis.surface):
             predicted = (np.array(saved, float), [TargetBand.from_json(b) for b in d.get("target_bands", [])])
-        core.result = RegisteredState(d.get("run", "restored"), rigid, beta, self.node_error(rigid, beta), *predicted)
+        core.result = RegisteredState(d.get("run", "restored"), rigid, beta, self.node_error(rigid, beta), *predicted,
+                                      data_model_frame=inv)
         self.slicer.send(reg)  # queued: a Slicer connecting later receives the result on show

@@ -95,15 +95,22 @@ class RegisteredState:
     node_error_mm: np.ndarray | None = None  # (M,) over the mesh nodes, when the truth is known
     predicted_mm: np.ndarray | None = None  # (S,) predicted error at the surface nodes (no truth needed)
     target_bands: list[TargetBand] = field(default_factory=list)  # predicted error at each target
+    # feature → (N, 3) mm, the data the fit was made from, model frame (Registration.data_model_frame):
+    # after a restart the predicted error and the next-plane suggestion need them, and the
+    # session's data may have changed since (a plane added, not yet registered; a live fit's
+    # frames): the LM covariance is scaled by the fit's own residuals
+    data_model_frame: dict | None = field(default=None, kw_only=True)
 
     def to_json(self) -> dict:
         # the prediction is kept too: it was made from the data of the fit, which for a live
         # result include frames' contours the session does not hold
         return {"run": self.run, "R": np.asarray(self.rigid.R).tolist(), "t": np.asarray(self.rigid.t).tolist(),
-                "rms_mm": float(self.rigid.rms_mm),
+                "rms_mm": float(self.rigid.rms_mm), "kept": bool(self.rigid.kept),
                 "beta": None if self.beta is None else np.asarray(self.beta).tolist(),
                 "predicted_mm": None if self.predicted_mm is None else np.round(self.predicted_mm, 3).tolist(),
-                "target_bands": [b.to_json() for b in self.target_bands]}
+                "target_bands": [b.to_json() for b in self.target_bands],
+                "data_model_frame": None if self.data_model_frame is None else
+                {k: np.round(np.asarray(v, float), 4).tolist() for k, v in self.data_model_frame.items()}}
 
 
 @dataclass(frozen=True)
@@ -118,6 +125,8 @@ class TargetBand:
     warning: str | None = None  # what the registration result warns about this target, shown after the band
 
     def text(self) -> str:
+        if not np.isfinite(self.predicted_mm):  # a rigid answer: no prediction, only its warning
+            return f"⚠ {self.warning}" if self.warning else ""
         band = f"predicted error {self.predicted_mm:.1f} mm ({self.lower_mm:.1f}–{self.upper_mm:.1f})"
         return band if not self.warning else f"{band} ⚠ {self.warning}"
 
@@ -204,7 +213,7 @@ class RunEntry:
         e = RunEntry(kind.label, int(points), round(float(seconds), 3), lm.iterations if lm else 0,
                      lm.stop_reason if lm else "rigid", streamed, stopped,
                      [[round(t, 3), round(v, 3)] for t, v in trace],
-                     reg.quality.warning if reg.quality is not None and reg.quality.warning else None)
+                     "; ".join(reg.warnings) or None)
         if error is not None and not stopped:
             e.error_mean_mm, e.error_max_mm = round(float(error.mean()), 3), round(float(error.max()), 3)
         if live is not None:
