@@ -177,11 +177,20 @@ def test_cli_prints_one_warning_line_and_result_json_keeps_it(tmp_path, capsys, 
     assert main(["--quiet", "register", str(tmp_path / "c"), "--edge", "15", "--k", "10", "--json"]) in (0, None)
     captured = capsys.readouterr()
     result = json.loads((tmp_path / "c/registration/result.json").read_text())
-    warnings = [ln for ln in captured.err.splitlines() if "warning" in ln]
+    # the ellipsoid's smooth cap also leaves rotations weakly determined: that is its own
+    # line (pose_determinacy), counted apart from the fit-quality warning under test
+    lines = [ln for ln in captured.err.splitlines() if "warning" in ln]
+    pose = [ln for ln in lines if "the pose is not determined" in ln]
+    warnings = [ln for ln in lines if ln not in pose]
+    assert len(pose) <= 1 and (not pose or result["pose_determinacy"]["warning"] in pose[0])
     assert result["fit_quality"]["ok"] is (not flag)
     if flag:
-        assert len(warnings) == 1 and "poor fit" in warnings[0] and "anterior" in warnings[0]
-        assert json.loads(captured.out.strip().splitlines()[-1])["warning"] == result["fit_quality"]["warning"]
+        # the fit-quality line once; data of another organ are not predicted by the
+        # deformation either, which is its own line (support)
+        poor = [ln for ln in warnings if "poor fit" in ln]
+        assert len(poor) == 1 and "anterior" in poor[0]
+        assert all("poor fit" in ln or "deformation not supported by the data" in ln for ln in warnings)
+        assert result["fit_quality"]["warning"] in json.loads(captured.out.strip().splitlines()[-1])["warning"]
     else:
         assert warnings == [] and result["fit_quality"]["warning"] is None
 

@@ -7,7 +7,7 @@ import trimesh
 from navapp.errors import InputError
 from navapp.simulation import effects as fx
 from navapp.simulation.levels import data_level
-from navapp.simulation.scene import load_scene, parse_scene, scene_dir
+from navapp.simulation.scene import load_scene, parse_scene, scene_dir, study_scenes
 from navapp.simulation.simulate import simulate
 
 SCENES = scene_dir()
@@ -35,7 +35,9 @@ def test_builtin_demo_scene_equals_the_shipped_file():
 
 def test_shipped_scenes_parse():
     names = sorted(p.stem for p in SCENES.glob("*.toml"))
-    assert "demo" in names and len(names) == 19  # demo, nine direct-gravity and nine transposed (lap) scenes
+    # demo, nine direct-gravity, nine transposed (lap) and 24 local-load (tool) scenes
+    assert "demo" in names and len(names) == 1 + 9 + 9 + 24
+    assert [len(study_scenes(s)) for s in ("direct", "lap", "tool")] == [9, 9, 24]
     for p in SCENES.glob("*.toml"):
         s = load_scene(p)
         assert s.planes == 16 and s.release in "LNR"

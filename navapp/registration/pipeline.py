@@ -134,16 +134,21 @@ class Registration:
 
     @property
     def deformed(self) -> bool:
-        """True when the answer is the deformable fit; False when it is the rigid pose alone
-        (no LIBR, or a deformation the data do not support)."""
-        return self.libr is not None and (self.support is None or self.support.supported)
+        """True when the answer is the deformable fit; False when it is the rigid pose alone:
+        no LIBR, or a deformation the data do not support *and* a given pose that was kept
+        (the data lay on the undeformed model there, so no correction is a known-good
+        answer). A fitted pose is no such baseline: an unsupported deformation from it
+        stays the answer, with its warning (on the study cases it was the better one)."""
+        if self.libr is None:
+            return False
+        return self.support is None or self.support.supported or not self.rigid.kept
 
     @property
     def warnings(self) -> list[str]:
         """Every warning about this answer, one line each (the CLI, result.json and the viewer show them)."""
         lines = list(self.notes)
         for w in (self.determinacy.warning if self.determinacy else None,
-                  self.support.warning if self.support else None,
+                  self.support.warning_for(shown_rigid=not self.deformed) if self.support else None,
                   self.quality.warning if self.quality else None):
             if w:
                 lines.append(w)

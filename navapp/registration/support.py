@@ -11,9 +11,10 @@ held-out data better than the rigid answer by ``margin`` (relative; ``margin_int
 vessel data inside the organ take part). Where it does not, or where a target is farther than
 ``far_mm`` from every data point, the target's correction is not determined by the data.
 
-``register`` (pipeline) returns the rigid answer when the deformation is not supported
-anywhere — never worse than no correction on what the data can show — and says so in one
-line; per target, ``target_support`` names the targets whose neighbourhood is unsupported.
+``register`` (pipeline) returns the given pose without deformation when the deformation is
+not supported and the given pose was kept (the data lay on the undeformed model: never
+worse than no correction on what the data can show), and says so in one line either way;
+per target, ``target_support`` names the targets whose neighbourhood is unsupported.
 """
 
 import math
@@ -75,11 +76,17 @@ class Support:
 
     @property
     def warning(self) -> str | None:
+        return self.warning_for(shown_rigid=True)
+
+    def warning_for(self, shown_rigid: bool) -> str | None:
+        """One line when the deformation is not supported, saying which answer is shown."""
         if self.supported:
             return None
+        shown = ("the given pose without deformation is shown" if shown_rigid else
+                 "the deformable answer is shown: do not rely on it")
         return (f"deformation not supported by the data: fitted to part of the data it predicts the rest "
                 f"{self.deformable_mm:.2f} mm RMS against {self.rigid_mm:.2f} mm without deformation — "
-                "the rigid answer is shown; add data where the organ moved")
+                f"{shown}; add data where the organ moved")
 
     def as_dict(self) -> dict:
         return {"supported": self.supported, "heldout_rigid_mm": round(self.rigid_mm, 3),
