@@ -8,22 +8,9 @@ import json
 
 import numpy as np
 import pytest
-from conftest import free_port
 
 from navapp.app.state import RunKind
-from navapp.simulation.scene import parse_scene
-
-SCENE = {"name": "apptest", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
-         "stylus": {"coverage": 0.2}, "ius": {"planes": 2}}
-
-
-def start_app(cache_root, folder):
-    from navapp.app.server import App
-
-    a = App(parse_scene(SCENE), port=free_port(), session_dir=folder, edge=12.0, k=12, cache_root=cache_root)
-    assert a.start().wait(600), "start-up did not finish"
-    assert a.core.failed is None, a.core.failed
-    return a
+from tests.test_app_server import start_app
 
 
 def stop(a):

@@ -33,14 +33,19 @@ def calibration_error(probe_to_tracker, rng, ledger: Ledger, rotation_deg: float
     rigid transform of the given magnitudes (rotation about a random axis, shift along a
     random direction), in the probe's own frame."""
     ledger.mark("calibration_error")
+    delta = np.eye(4)
+    delta[:3, :3], delta[:3, 3] = _random_rigid(rng, rotation_deg, translation_mm)
+    return probe_to_tracker @ delta
+
+
+def _random_rigid(rng, rotation_deg: float, translation_mm: float) -> tuple[np.ndarray, np.ndarray]:
+    """A rotation of ``rotation_deg`` about a random axis (3, 3) and a shift of
+    ``translation_mm`` along a random direction (3,), drawn in that order."""
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)
     shift = rng.normal(size=3)
     shift *= translation_mm / np.linalg.norm(shift)
-    delta = np.eye(4)
-    delta[:3, :3] = _axis_angle(axis, np.radians(rotation_deg))
-    delta[:3, 3] = shift
-    return probe_to_tracker @ delta
+    return _axis_angle(axis, np.radians(rotation_deg)), shift
 
 
 def tracker_offset(pivot, rng, ledger: Ledger, rotation_deg: float, translation_mm: float) -> np.ndarray:
@@ -48,12 +53,8 @@ def tracker_offset(pivot, rng, ledger: Ledger, rotation_deg: float, translation_
     of ``rotation_deg`` about a random axis through ``pivot`` (3,) mm, then a shift of
     ``translation_mm`` along a random direction."""
     ledger.mark("tracker_offset")
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    shift = rng.normal(size=3)
-    shift *= translation_mm / np.linalg.norm(shift)
+    R, shift = _random_rigid(rng, rotation_deg, translation_mm)
     T = np.eye(4)
-    R = _axis_angle(axis, np.radians(rotation_deg))
     T[:3, :3] = R
     T[:3, 3] = np.asarray(pivot) - R @ np.asarray(pivot) + shift
     return T
