@@ -222,10 +222,11 @@ def write_report(results: Path, out_dir: Path) -> Path:
             ax.bar(x + (i - 1.5) * 0.2, vals, 0.2, label=m, color=colours[m])
         for j, c in enumerate(cases):
             if (c, level, "libr") in by and by[(c, level, "libr")]["warned"]:
-                ax.text(x[j] + 0.3, 0.1, "!", color="crimson", fontsize=9, ha="center")
+                ax.text(x[j] + 0.3, 0.92, "!", color="crimson", fontsize=9, ha="center",
+                        transform=ax.get_xaxis_transform())  # x in data, y in axes units
         ax.set_ylabel(f"{level}: mean TRE (mm)")
         ax.set_yscale("log")
-    axes[0].legend(ncol=4, fontsize=8)
+    axes[0].legend(ncol=4, fontsize=8, loc="upper left")
     axes[0].set_title("Local loads: identity, rigid, LIBR unguarded and guarded ('!': guarded LIBR warned)")
     axes[-1].set_xticks(x, cases, rotation=60, fontsize=7)
     fig.tight_layout()
