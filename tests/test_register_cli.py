@@ -54,3 +54,10 @@ def test_register_without_data_is_a_clear_error(tmp_path, capsys):
     assert main(["--quiet", "register", str(tmp_path / "c")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no intraoperative data" in err[0]
+
+
+def test_more_control_points_than_surface_nodes_is_one_line(tmp_path, capsys):
+    make_case(tmp_path / "c")
+    assert main(["--quiet", "register", str(tmp_path / "c"), "--edge", "15", "--k", "900"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "more control points than the mesh has surface nodes" in err[0], err

@@ -228,6 +228,9 @@ def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None) -> tuple[Registratio
     mesh, _ = cached_tetmesh(case.preop.liver, edge, cache_root)
     sec["mesh"] = time.perf_counter() - t
     t = time.perf_counter()
+    if k > len(np.unique(mesh.boundary_faces())):
+        raise InputError(f"--k {k} is more control points than the mesh has surface nodes "
+                         f"({len(np.unique(mesh.boundary_faces()))} at {edge:g} mm): use a smaller k or a finer edge")
     basis, _ = load_or_compute_basis(mesh, BasisSettings(k=k), cache_root=cache_root)
     sec["basis"] = time.perf_counter() - t
     t = time.perf_counter()
