@@ -52,7 +52,7 @@ CASE_SETTINGS: dict = {
     "name": str,  # the case's name (default: the folder's)
     "units": str,  # "mm", the only unit
     "scene": str,  # the scene a simulated case came from
-    "frame": {"case": str, "source": str, "source_to_case": list, "files": dict},  # written by navapp import
+    "frame": {"case": str, "source": str, "source_to_case": list, "files": dict, "file_frames": dict},  # navapp import
 }
 """Every key case.toml may hold, with its type; a table's keys are listed in a dict. Keys
 navapp does not read are refused: a setting that is silently ignored looks honoured."""
