@@ -136,12 +136,12 @@ def test_the_mesh_chain_mends_a_pinched_mesh(monkeypatch):
 
 
 def test_the_mesh_chain_moves_on_when_a_pinch_cannot_be_mended(monkeypatch):
-    from navapp.anatomy import manifold
 
     pinched, clean = edge_pinched_ring(), voxel_mesh(np.ones((2, 2, 2), bool))
     calls = iter([(pinched.nodes, pinched.tets), (clean.nodes, clean.tets)])
     monkeypatch.setattr(meshing, "_run_attempt", lambda *a: next(calls))
-    monkeypatch.setattr(manifold, "mend_pinches", lambda mesh, max_rounds=20: (mesh, 0))  # mending fails
+    # mending fails (patched where the chain looks it up: meshing imports it by name)
+    monkeypatch.setattr(meshing, "mend_pinches", lambda mesh, max_rounds=20: (mesh, 0))
     surface = trimesh.creation.box((10.0, 10.0, 10.0))
     attempts = (MeshAttempt("ftetwild"), MeshAttempt("ftetwild", edge_scale=0.85))
     mesh, log = meshing._mesh_with_log(surface, 5.0, 0, 60.0, attempts)
