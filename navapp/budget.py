@@ -11,6 +11,10 @@ import os
 
 from .errors import InputError, NavappError
 
+# expected tet-mesh nodes = volume / (NODES_PER_EDGE3 · edge³), fitted on the phantoms; its
+# reasoning is with the mesher (anatomy/meshing.py), which reads it from here
+NODES_PER_EDGE3 = 1.24
+
 BASE_MB = 400.0
 """The interpreter with navapp's libraries loaded, before any case data."""
 
@@ -59,8 +63,6 @@ def check_mesh(nodes: int, edge: float, volume_mm3: float):
     if need <= budget:
         return
     fits = max(1.0, (budget - BASE_MB) / MB_PER_NODE)
-    from .anatomy.meshing import NODES_PER_EDGE3
-
     finest = (volume_mm3 / (NODES_PER_EDGE3 * fits)) ** (1 / 3)
     raise NavappError(f"a mesh at {edge:g} mm would have about {nodes:,} nodes and need about {_gb(need)}, "
                       f"more than the {_gb(budget)} this machine has free: use --edge {_ceil(finest)} or coarser")

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
+from ..budget import NODES_PER_EDGE3 as _NODES_PER_EDGE3
 from ..defaults import EDGE_MM
 from ..errors import NavappError
 from .manifold import boundary_defects, mend_pinches
@@ -111,7 +112,7 @@ docs/decisions.md, "Meshing any liver" and "Pinched boundaries")."""
 MESHERS = ("auto", "gmsh", "ftetwild")
 """``$NAVAPP_MESHER``: "auto" (the chain above), or only the attempts of one method."""
 
-NODES_PER_EDGE3 = 1.24
+NODES_PER_EDGE3 = _NODES_PER_EDGE3
 """Expected nodes = volume / (1.24 edge³): fitted on the phantoms (Gmsh; fTetWild's edge is
 scaled by ``FTETWILD_EDGE_FACTOR`` to give the same count)."""
 
