@@ -68,13 +68,21 @@ def check_mesh(nodes: int, edge: float, volume_mm3: float):
                       f"more than the {_gb(budget)} this machine has free: use --edge {_ceil(finest)} or coarser")
 
 
+def _over(n: int, mb_each: float) -> tuple[float, float, int] | None:
+    """(MB needed, MB free, how many would fit) when ``n`` items of ``mb_each`` exceed the budget; else None."""
+    budget = available_mb()
+    need = BASE_MB + mb_each * n
+    if need <= budget:
+        return None
+    return need, budget, int((budget - BASE_MB) / mb_each)
+
+
 def check_points(n: int, path):
     """Refuse ``n`` data points in one file beyond what a registration can hold."""
-    budget = available_mb()
-    need = BASE_MB + MB_PER_POINT * n
-    if need <= budget:
+    over = _over(n, MB_PER_POINT)
+    if over is None:
         return
-    fits = int((budget - BASE_MB) / MB_PER_POINT)
+    need, budget, fits = over
     raise InputError(f"{n:,} points would need about {_gb(need)} to register, more than the {_gb(budget)} "
                      f"this machine has free: subsample to at most {fits:,} points (e.g. every "
                      f"{-(-n // max(fits, 1))}th row)", path)
@@ -82,11 +90,10 @@ def check_points(n: int, path):
 
 def check_triangles(n: int, path):
     """Refuse a surface of ``n`` triangles beyond what reading and cleaning it can hold."""
-    budget = available_mb()
-    need = BASE_MB + MB_PER_TRIANGLE * n
-    if need <= budget:
+    over = _over(n, MB_PER_TRIANGLE)
+    if over is None:
         return
-    fits = int((budget - BASE_MB) / MB_PER_TRIANGLE)
+    need, budget, fits = over
     raise InputError(f"{n:,} triangles would need about {_gb(need)}, more than the {_gb(budget)} this machine "
                      f"has free: decimate it to at most {fits:,} triangles (the mesher remeshes the surface at "
                      "the edge length anyway)", path)
