@@ -13,6 +13,8 @@ served comes from a ``Provider`` (``view2d.provider.View2D`` in the viewer).
 """
 
 import json
+import logging
+import re
 import threading
 from functools import cache
 from html import escape
@@ -24,12 +26,57 @@ from urllib.parse import parse_qs, urlparse
 from ..palette import DRAWABLE, IN_PROGRESS
 
 POLL_MS = 250  # how often a page asks whether anything changed
+# a tab's token as ``core.new_client_state`` makes it; anything else is refused unread, so no
+# request value ever reaches the page (with --host 0.0.0.0 a crafted link must not run script)
+TOKEN = re.compile(r"[A-Za-z0-9_-]{1,64}")
+BODY_TIMEOUT_S = 10.0  # a body shorter than its Content-Length must not hold a handler thread for ever
+MAX_BODY = 64 * 1024  # a click or a command is a few dozen bytes
+UNKNOWN_VIEW = b"This view is not connected (the viewer restarted?): reload the viewer page."
+
+log = logging.getLogger(__name__)
+
+
+class BadRequest(ValueError):
+    """A request the page would never send; its message is the whole 400 answer."""
+
+
+def _no_constant(name):
+    raise BadRequest(f"{name} is not a number")
+
+
+def _body(raw: bytes) -> dict:
+    try:
+        body = json.loads(raw or b"{}", parse_constant=_no_constant)
+    except RecursionError:
+        raise BadRequest("the body is nested too deeply") from None
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise BadRequest("the body is not JSON") from None
+    if not isinstance(body, dict):
+        raise BadRequest("the body is not a JSON object")
+    return body
+
+
+def _int(body: dict, key: str, required: bool = True) -> int | None:
+    v = body.get(key)
+    if v is None and not required:
+        return None
+    if isinstance(v, bool) or not isinstance(v, int) or abs(v) > 1_000_000:
+        raise BadRequest(f"{key} must be a whole number")
+    return v
+
+
+def _str(body: dict, key: str, required: bool = False) -> str:
+    v = body.get(key, None if required else "")
+    if not isinstance(v, str) or len(v) > 200:
+        raise BadRequest(f"{key} must be a short string")
+    return v
 
 
 class Provider(Protocol):
     def view_etag(self, token: str) -> str | None: ...
     def view_state(self, token: str) -> dict | None: ...
     def view_image(self, token: str) -> bytes | None: ...
+    def view_known(self, token: str) -> bool: ...
     def view_click(self, token: str, col: int, row: int, feature: str) -> str | None: ...
     def view_command(self, token: str, cmd: str, feature: str, plane: int | None = None) -> str | None: ...
 
@@ -48,6 +95,7 @@ def page(token: str) -> str:
 
 class _Handler(BaseHTTPRequestHandler):
     provider: Any = None  # a Provider, set per server class
+    timeout = BODY_TIMEOUT_S  # socketserver sets it on the connection: every read is bounded
 
     def log_message(self, *args):  # the app's console is for the user, not for every poll
         pass
@@ -64,14 +112,22 @@ class _Handler(BaseHTTPRequestHandler):
         u = urlparse(self.path)
         return u.path, {k: v[0] for k, v in parse_qs(u.query).items()}
 
+    def _token(self, q) -> str | None:
+        token = q.get("c", "")
+        return token if TOKEN.fullmatch(token) else None
+
     def do_GET(self):
         path, q = self._query()
-        token = q.get("c", "")
+        token = self._token(q)
         try:
-            if path == "/us":
-                return self._send(200, page(token).encode(), "text/html; charset=utf-8")
             if path == "/us/page.js":
                 return self._send(200, _asset("page.js").encode(), "text/javascript; charset=utf-8")
+            if token is None or not self.provider.view_known(token):
+                if path.startswith("/us"):
+                    return self._send(404, UNKNOWN_VIEW, "text/plain; charset=utf-8")
+                return self._send(404, b"not found", "text/plain")
+            if path == "/us":
+                return self._send(200, page(token).encode(), "text/html; charset=utf-8")
             if path == "/us/state":
                 if q.get("v") and self.provider.view_etag(token) == q.get("v"):
                     return self._send(204, b"")
@@ -86,28 +142,46 @@ class _Handler(BaseHTTPRequestHandler):
                 if png is None:
                     return self._send(404, b"no image")
                 return self._send(200, png, "image/png")
-        except Exception as exc:  # a failed request must not take the server down
-            return self._send(500, f"{exc.__class__.__name__}: {exc}".encode(), "text/plain")
+        except Exception:  # a failed request must not take the server down; the details go to the log
+            log.exception("2D view: GET %s failed", path)
+            return self._send(500, b"internal error (see the server's log)", "text/plain")
         return self._send(404, b"not found", "text/plain")
+
+    def _read_body(self) -> bytes:
+        try:
+            n = int(self.headers.get("Content-Length") or 0)
+        except ValueError:
+            raise BadRequest("bad Content-Length") from None
+        if not 0 <= n <= MAX_BODY:
+            raise BadRequest("the body is too long")
+        try:
+            raw = self.rfile.read(n)
+        except TimeoutError:
+            raw = b""
+        if len(raw) != n:
+            self.close_connection = True  # what is left of the body would be read as the next request
+            raise BadRequest("the body is shorter than its Content-Length")
+        return raw
 
     def do_POST(self):
         path, q = self._query()
-        token = q.get("c", "")
+        token = self._token(q)
         try:
-            n = int(self.headers.get("Content-Length") or 0)
-            body = json.loads(self.rfile.read(n) or b"{}")
+            body = _body(self._read_body())
+            if token is None:
+                return self._send(404, UNKNOWN_VIEW, "text/plain; charset=utf-8")
             if path == "/us/click":
-                err = self.provider.view_click(token, int(body["col"]), int(body["row"]), str(body.get("feature", "")))
+                err = self.provider.view_click(token, _int(body, "col"), _int(body, "row"), _str(body, "feature"))
             elif path == "/us/command":
-                plane = body.get("plane")
-                err = self.provider.view_command(token, str(body["cmd"]), str(body.get("feature", "")),
-                                                 None if plane is None else int(plane))
+                err = self.provider.view_command(token, _str(body, "cmd", required=True), _str(body, "feature"),
+                                                 _int(body, "plane", required=False))
             else:
                 return self._send(404, b"not found", "text/plain")
-        except (ValueError, KeyError, TypeError) as exc:
-            return self._send(400, f"bad request: {exc}".encode(), "text/plain")
-        except Exception as exc:
-            return self._send(500, f"{exc.__class__.__name__}: {exc}".encode(), "text/plain")
+        except BadRequest as exc:
+            return self._send(400, f"bad request: {exc}".encode(), "text/plain; charset=utf-8")
+        except Exception:
+            log.exception("2D view: POST %s failed", path)
+            return self._send(500, b"internal error (see the server's log)", "text/plain")
         if err:
             return self._send(409, err.encode(), "text/plain")
         return self._send(200, json.dumps(self.provider.view_state(token) or {}).encode())

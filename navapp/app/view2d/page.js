@@ -9,7 +9,7 @@ let pending = [], sending = false;
 window.navappLatencies = [];
 const cv = document.getElementById("cv"), g = cv.getContext("2d");
 const $ = id => document.getElementById(id);
-function url(p){ return p + (p.includes("?") ? "&" : "?") + "c=" + TOKEN; }
+function url(p){ return p + (p.includes("?") ? "&" : "?") + "c=" + encodeURIComponent(TOKEN); }
 function msg(t){ $("msg").textContent = t || ""; }
 
 function toPixel(e){

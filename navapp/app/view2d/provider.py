@@ -74,6 +74,9 @@ class View2D:
         out["targets"] = [line.replace("**", "") for line in self.shown.target_plane_lines(index)]
         return out
 
+    def view_known(self, token: str) -> bool:
+        return self.core.state_for(token) is not None
+
     def view_etag(self, token: str) -> str | None:
         """What ``view_state`` would call its ETag, without building the state (a poll that
         finds nothing changed costs this only)."""
