@@ -189,3 +189,33 @@ def test_the_warning_fires_where_the_data_cannot_determine_the_answer(small_mode
     good = register(small_model, {"anterior": moved})
     assert good.support is not None and good.support.supported and good.deformed
     assert not any(w.startswith("deformation not supported") for w in good.warnings)
+
+
+def test_the_pose_most_of_a_dented_scan_agrees_on_is_taken_not_icps_compromise(small_model):
+    """A partial scan most of which moved rigidly (the lobe swung by a few mm) while a deep
+    dent pressed the rest in: the trimmed fit from the given pose finds the motion most of
+    the points share, ICP fitted to every point shares the dent's misfit out instead."""
+    from navapp.registration.pipeline import RobustOptions, register
+    from navapp.registration.pose import PoseSource
+    from navapp.registration.rotation import rotation
+
+    rest = small_model.features["liver"].rest
+    c0 = rest[np.argmax(rest[:, 1])]
+    scan = rest[np.linalg.norm(rest - c0, axis=1) < 60.0]
+    R, pivot, shift = rotation(np.radians([3.0, -2.0, 2.0])), scan.mean(0), np.array([3.0, -4.0, 2.0])
+    swung = (scan - pivot) @ R.T + pivot + shift
+    tip = scan[np.argmax(scan[:, 0])]
+    r = np.linalg.norm(scan - tip, axis=1)
+    dent = (25.0 * np.clip(1 - (r / 35.0) ** 2, 0, None) ** 2)[:, None] * [0.0, -1.0, 0.0]
+    data = {"anterior": swung + dent}
+    assert 0.15 < np.mean(np.linalg.norm(dent, axis=1) > 1.0) < 0.45  # the dent moves a minority
+
+    def pose_error(reg):
+        truth = (rest - pivot) @ R.T + pivot + shift
+        return np.linalg.norm(reg.rigid.apply(rest) - truth, axis=1).mean()
+
+    icp = register(small_model, data, deform=False, init=RobustOptions.unguarded())
+    reg = register(small_model, data, deform=False)
+    assert reg.pose_choice.source is PoseSource.LOCAL and reg.rigid.kept
+    assert reg.pose_choice.on_model[PoseSource.LOCAL] > reg.pose_choice.on_model[PoseSource.FITTED]
+    assert pose_error(reg) < 0.3 < 2.0 < pose_error(icp)

@@ -27,7 +27,7 @@ from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from ..mechanics.interpolation import interpolation_matrix
 from .libr import LibrResult, LMOptions, register_libr
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
-from .pose import Determinacy, PoseChoice, choose_pose, pose_determinacy
+from .pose import Determinacy, PoseChoice, PoseSource, choose_pose, pose_determinacy
 from .quality import FitQuality, assess_fit
 from .rigid import (
     RIGID_ROBUST,
@@ -61,8 +61,9 @@ class RobustOptions:
     # continuation: first fit with the strain-energy weight × this (a stiffer organ that
     # can only move rigidly and smoothly), then relax to the true weight from there; None: off
     stiff_first: float | None = 3.0
-    # the given (tracker) pose is kept when a trimmed fit from it hardly moves the data
-    # (``pose.choose_pose``); a kept pose is kept by LIBR too (τ, θ fixed): docs/decisions.md, "Local loads"
+    # the given (tracker) pose is kept when a trimmed fit from it hardly moves the data, the
+    # trimmed fit's pose when most data lie on the model there (``pose.choose_pose``); a kept
+    # pose is kept by LIBR too (τ, θ fixed): docs/decisions.md, "Local loads"
     keep_given_pose: bool = True
     # spatial cross-validation of the deformation against the rigid answer; None: off
     support: SupportOptions | None = field(default_factory=SupportOptions)
@@ -127,7 +128,7 @@ class Registration:
     seconds: dict = field(default_factory=dict)
     starts: list[Start] = field(default_factory=list)  # the multi-start ICP's starts (empty: single ICP)
     quality: FitQuality | None = None  # residuals against expected noise (deformable fits); .warning for the user
-    pose_choice: PoseChoice | None = None  # given pose kept or replaced by ICP's (``pose.choose_pose``)
+    pose_choice: PoseChoice | None = None  # given, trimmed-fit or ICP's pose (``pose.choose_pose``)
     determinacy: Determinacy | None = None  # the pose's sliding directions (``pose.pose_determinacy``)
     support: Support | None = None  # the deformation's held-out prediction against rigid (``support``)
     notes: list[str] = field(default_factory=list)  # warnings raised before the fit (e.g. too few points)
@@ -135,9 +136,9 @@ class Registration:
     @property
     def deformed(self) -> bool:
         """True when the answer is the deformable fit; False when it is the rigid pose alone:
-        no LIBR, or a deformation the data do not support *and* a given pose that was kept
-        (the data lay on the undeformed model there, so no correction is a known-good
-        answer). A fitted pose is no such baseline: an unsupported deformation from it
+        no LIBR, or a deformation the data do not support *and* a kept pose (given, or the
+        trimmed fit's: most data lay on the undeformed model there, so it is a known-good
+        answer). ICP's fitted pose is no such baseline: an unsupported deformation from it
         stays the answer, with its warning (on the study cases it was the better one)."""
         if self.libr is None:
             return False
@@ -148,7 +149,8 @@ class Registration:
         """Every warning about this answer, one line each (the CLI, result.json and the viewer show them)."""
         lines = list(self.notes)
         for w in (self.determinacy.warning if self.determinacy else None,
-                  self.support.warning_for(shown_rigid=not self.deformed) if self.support else None,
+                  self.support.warning_for(shown_rigid=not self.deformed, given=self.pose_choice is None
+                                          or self.pose_choice.source is PoseSource.GIVEN) if self.support else None,
                   self.quality.warning if self.quality else None):
             if w:
                 lines.append(w)
@@ -374,9 +376,9 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     choice = None
     if not warm and init.keep_given_pose and "fiducials" not in data and not notes:
         given = RigidResult(np.eye(3), np.zeros(3), 0, 0.0, kept=True)
-        choice = choose_pose(model, data, given)
+        choice = choose_pose(model, data, given, rigid)
         if choice.kept:
-            rigid = given
+            rigid = given if choice.source is PoseSource.GIVEN else choice.local
             for s in starts:
                 s.chosen = False
     if rigid.kept:

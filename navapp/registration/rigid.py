@@ -36,8 +36,9 @@ class RigidResult:
     t: np.ndarray  # (3,)
     iterations: int
     rms_mm: float
-    # the given (tracker) pose, kept because no fitted pose was better (``pose.choose_pose``):
-    # the deformable fit then keeps it too (τ, θ fixed), warm re-registrations included
+    # a pose the data fix without ICP — the given (tracker) pose, or the trimmed fit from it
+    # (``pose.choose_pose``): the deformable fit then keeps it (τ, θ fixed), warm
+    # re-registrations included, and falls back to it when the deformation is not supported
     kept: bool = False
 
     def apply(self, x):

@@ -78,11 +78,13 @@ class Support:
     def warning(self) -> str | None:
         return self.warning_for(shown_rigid=True)
 
-    def warning_for(self, shown_rigid: bool) -> str | None:
-        """One line when the deformation is not supported, saying which answer is shown."""
+    def warning_for(self, shown_rigid: bool, given: bool = True) -> str | None:
+        """One line when the deformation is not supported, saying which answer is shown
+        (``given``: the rigid answer is the given pose, not the trimmed fit's)."""
         if self.supported:
             return None
-        shown = ("the given pose without deformation is shown" if shown_rigid else
+        pose = "the given pose" if given else "the pose most of the data lie on"
+        shown = (f"{pose} without deformation is shown" if shown_rigid else
                  "the deformable answer is shown: do not rely on it")
         return (f"deformation not supported by the data: fitted to part of the data it predicts the rest "
                 f"{self.deformable_mm:.2f} mm RMS against {self.rigid_mm:.2f} mm without deformation — "
