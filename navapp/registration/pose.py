@@ -164,8 +164,9 @@ def choose_pose(model: RegistrationModel, data: dict, given: RigidResult, fitted
                 rule: PoseRule = POSE_RULE) -> PoseChoice:
     """The given pose when the best-fitting part of the surface data already lies on the
     undeformed model there (the trimmed fit, ``trimmed_pose``, moves them less than
-    ``rule.moved_mm`` and leaves a fraction ``rule.aligned`` on the model); else the trimmed fit's own pose when most data are on the model
-    there and clearly more than at ``fitted`` (ICP's); else ``fitted`` (module doc).
+    ``rule.moved_mm`` and leaves a fraction ``rule.aligned`` on the model); else the
+    trimmed fit's own pose when most data are on the model there and clearly more than at
+    ``fitted`` (ICP's); else ``fitted`` (module doc).
     The pose returned as ``local`` is marked ``kept``."""
     P, _, _ = _surface_points(model, data, given)
     if len(P) < 6:
