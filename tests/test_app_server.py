@@ -110,6 +110,26 @@ def test_two_browsers_draw_at_once_without_interfering(app):
     assert a.plane == 0 and b.plane == 0
 
 
+def test_a_click_lands_on_the_plane_it_was_aimed_at(app):
+    """Issue 26, item 1: clicks queued in the page while the plane changed elsewhere (3D
+    panel, guide, a suggestion) are stored on the plane they were aimed at, continuing the
+    contour left unfinished there; the tab's next click on its new plane starts its own."""
+    cs = app.core.new_client_state()
+    app.imaging.show(cs, 0)
+    assert app.drawing.click(cs, 50, 60, "PV contour", plane=0) is None
+    first = cs.drawing
+    app.imaging.show(cs, 1)  # the plane changes while two more clicks aimed at plane 0 wait
+    assert app.drawing.click(cs, 55, 60, "PV contour", plane=0) is None
+    assert app.drawing.click(cs, 60, 60, "PV contour", plane=0) is None
+    assert first.plane == 0 and first.vertices == [(50, 60), (55, 60), (60, 60)]
+    assert app.drawing.click(cs, 70, 80, "PV contour", plane=1) is None
+    assert cs.drawing is not first and cs.drawing.plane == 1 and cs.drawing.vertices == [(70, 80)]
+    assert app.drawing.click(cs, 1, 1, "PV contour", plane=987) == "That click was aimed at a plane that is gone."
+    for _ in range(4):
+        assert app.drawing.command(cs, "Undo") is None
+    assert first not in app.core.session.contours and cs.drawing is None
+
+
 def test_undo_covers_planes_and_stylus_batches(app):
     cs = app.core.new_client_state()
     app.imaging.show(cs, 1)
@@ -153,7 +173,7 @@ def test_view2d_serves_state_overlays_and_clicks(app):
     assert r.status == 204
     png = urllib.request.urlopen(f"{base}/us/image?c={cs.token}").read()
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
-    req = urllib.request.Request(f"{base}/us/click?c={cs.token}", data=json.dumps({"col": 30, "row": 40,
+    req = urllib.request.Request(f"{base}/us/click?c={cs.token}", data=json.dumps({"col": 30, "row": 40, "plane": 0,
                                                                                   "feature": "PV contour"}).encode())
     st2 = json.loads(urllib.request.urlopen(req).read())
     assert st2["drawing"]["vertices"] == [[30, 40]] and st2["etag"] != st["etag"]

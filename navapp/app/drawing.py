@@ -78,22 +78,42 @@ class Drawing:
     def __init__(self, core: Core):
         self.core = core
 
-    def click(self, cs: ClientState, col: int, row: int, feature: str | None = None) -> str | None:
-        """A vertex at image pixel (col, row) of this browser's plane; returns an error or None."""
+    def click(self, cs: ClientState, col: int, row: int, feature: str | None = None,
+              plane: int | None = None) -> str | None:
+        """A vertex at image pixel (col, row) of ``plane``, the plane the click was aimed at
+        (None: this browser's plane now); returns an error or None. A click queued in the
+        page while the plane was changed elsewhere (the 3D panel, the guide, a suggestion)
+        still lands where it was aimed, continuing the contour left unfinished there."""
         core = self.core
         sd, session = core.need_scene()
-        if cs.plane is None:
+        target = cs.plane if plane is None else plane
+        if target is None:
             return "Choose a plane first."
+        if target not in core.planes:
+            return "That click was aimed at a plane that is gone."
         if not (0 <= col < sd.probe.width_px and 0 <= row < sd.probe.height_px):
             return "That click is outside the image."
         name = feature if feature in DRAWABLE else cs.feature
+        kind = DRAWABLE[name]
+
+        def open_here(c: Contour | None) -> bool:
+            return c is not None and c.plane == target and c.feature == kind and not c.closed \
+                and c in session.contours
+
         with core.lock:
-            cs.feature = name
-            c = cs.drawing
-            if c is None or c.plane != cs.plane or c.feature != DRAWABLE[name] or c.closed \
-                    or c not in session.contours:
-                c = cs.drawing = Contour(cs.plane, DRAWABLE[name])
+            here = target == cs.plane
+            if here:
+                cs.feature = name
+                cs.left.pop(target, None)  # back on this plane: its next click starts a new contour
+            c = cs.drawing if here else cs.left.get(target)
+            if not open_here(c):
+                c = Contour(target, kind)
                 session.contours.append(c)
+            assert c is not None
+            if here:
+                cs.drawing = c
+            else:
+                cs.left[target] = c
             c.vertices.append((int(col), int(row)))
             cs.undo.append(VertexAdded(session, c))
             cs.touch()

@@ -76,6 +76,7 @@ class Imaging:
         with core.lock:
             cs.plane = index
             if cs.drawing is not None and cs.drawing.plane != index:
+                cs.left[cs.drawing.plane] = cs.drawing
                 cs.drawing = None  # an unfinished contour stays as drawn (an open line) on its own plane
             cs.touch()
         core.refresh_view(cs, Change.PLANE)

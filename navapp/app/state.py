@@ -61,6 +61,9 @@ class ClientState:
     token: str  # identifies this tab's 2D view page
     plane: int | None = None  # index of the plane shown (presets 0…, free planes from 100)
     drawing: Contour | None = None  # the contour being drawn (it is already in the session)
+    # the unfinished contour on each plane this tab switched away from: clicks aimed at that plane
+    # before the switch, still queued in the page, continue it there
+    left: dict[int, Contour] = field(default_factory=dict)
     feature: str = "PV contour"  # a key of palette.DRAWABLE
     undo: list[Action] = field(default_factory=list)  # drawing.Action, newest last
     version: int = 0  # bumped when anything this tab shows of its own changes

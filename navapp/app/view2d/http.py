@@ -77,7 +77,7 @@ class Provider(Protocol):
     def view_state(self, token: str) -> dict | None: ...
     def view_image(self, token: str) -> bytes | None: ...
     def view_known(self, token: str) -> bool: ...
-    def view_click(self, token: str, col: int, row: int, feature: str) -> str | None: ...
+    def view_click(self, token: str, col: int, row: int, feature: str, plane: int) -> str | None: ...
     def view_command(self, token: str, cmd: str, feature: str, plane: int | None = None) -> str | None: ...
 
 
@@ -171,7 +171,9 @@ class _Handler(BaseHTTPRequestHandler):
             if token is None:
                 return self._send(404, UNKNOWN_VIEW, "text/plain; charset=utf-8")
             if path == "/us/click":
-                err = self.provider.view_click(token, _int(body, "col"), _int(body, "row"), _str(body, "feature"))
+                # the plane is the one the click was aimed at: the tab's plane may have changed since
+                err = self.provider.view_click(token, _int(body, "col"), _int(body, "row"), _str(body, "feature"),
+                                               _int(body, "plane"))
             elif path == "/us/command":
                 err = self.provider.view_command(token, _str(body, "cmd", required=True), _str(body, "feature"),
                                                  _int(body, "plane", required=False))

@@ -66,8 +66,9 @@ function draw(){
       g.moveTo(x, y - 4); g.lineTo(x, y + 4); g.stroke(); }
   }
   const d = state.drawing ? state.drawing.vertices.slice() : [];
-  const v = d.concat(pending);
-  if (v.length) poly(v, false, IN_PROGRESS, 2, pending.length);
+  const mine = pending.filter(p => p.plane === state.plane_index);  // a click aimed at another plane stays there
+  const v = d.concat(mine.map(p => [p.col, p.row]));
+  if (v.length) poly(v, false, IN_PROGRESS, 2, mine.length);
   g.restore();
 }
 
@@ -115,9 +116,9 @@ async function pump(){
   while (pending.length){
     const p = pending[0];
     try {
-      const s = await post("/us/click", {col: p[0], row: p[1], feature: $("feat").value});
+      const s = await post("/us/click", {col: p.col, row: p.row, plane: p.plane, feature: p.feature});
       $("gone").style.display = "none";
-      window.navappLatencies.push(performance.now() - p[2]);
+      window.navappLatencies.push(performance.now() - p.t);
       pending.shift();
       if (s.error) { msg(s.error); } else { msg(""); apply(s); }
     } catch (e) { $("gone").style.display = "block"; await new Promise(r => setTimeout(r, 500)); }
@@ -128,7 +129,9 @@ async function pump(){
 cv.addEventListener("mousedown", e => {
   if (e.button !== 0) return;
   const p = toPixel(e); if (!p) return;
-  pending.push([p[0], p[1], performance.now()]); draw(); pump();
+  // what the click was aimed at, fixed now: the plane may change (3D panel, guide) while it waits
+  pending.push({col: p[0], row: p[1], plane: state.plane_index, feature: $("feat").value, t: performance.now()});
+  draw(); pump();
 });
 async function command(cmd, extra){
   while (sending || pending.length) await new Promise(r => setTimeout(r, 20));  // after the clicks before it

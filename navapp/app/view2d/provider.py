@@ -108,11 +108,11 @@ class View2D:
             png = self._image_cache[key] = buf.getvalue()
         return png
 
-    def view_click(self, token: str, col: int, row: int, feature: str) -> str | None:
+    def view_click(self, token: str, col: int, row: int, feature: str, plane: int) -> str | None:
         cs = self.core.state_for(token)
         if cs is None:
             return GONE
-        return self.drawing.click(cs, col, row, feature)
+        return self.drawing.click(cs, col, row, feature, plane)
 
     def view_command(self, token: str, cmd: str, feature: str, plane: int | None = None) -> str | None:
         cs = self.core.state_for(token)

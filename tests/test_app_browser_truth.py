@@ -1,0 +1,103 @@
+"""Issue 26 in Chromium: what the surgeon sees must be true. Clicks queued in the 2D view
+while the plane is changed elsewhere land on the plane they were aimed at; Undo stays in
+its tab and survives a reload; Cancel is reachable while a run or the accuracy sweep runs,
+and nothing else can be started meanwhile.
+
+One ``navapp serve`` for the module (the demo scene at 6 mm, k = 20, as the other browser
+tests); every wait bounded by the test's ``Deadline``. Screenshots go to
+$NAVAPP_SCREENSHOTS (default: the test's temporary folder).
+"""
+
+import json
+import os
+import re
+import urllib.request
+from pathlib import Path
+
+import pytest
+from conftest import free_port
+from test_app_browser import (ARGS, BUDGET_S, CHROMIUM, VIEW, Deadline, canvas_xy, click_button, playwright,
+                              start_server, us_frame, wait_text, wait_until)
+
+COLD_S = 1200  # the first test starts the server cold (simulation, mesh, basis)
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    port = free_port()
+    session = tmp_path_factory.mktemp("session")
+    proc, url = start_server(port, session)
+    yield {"proc": proc, "url": url, "session": session}
+    proc.terminate()
+    proc.wait(20)
+
+
+def shots(tmp_path) -> Path:
+    out = Path(os.environ.get("NAVAPP_SCREENSHOTS", tmp_path))
+    out.mkdir(parents=True, exist_ok=True)
+    return out
+
+
+def saved(session) -> dict:
+    return json.loads((session / "session.json").read_text())
+
+
+def token_of(frame) -> str:
+    return re.search(r"[?&]c=([^&]+)", frame.url).group(1)
+
+
+def command(frame, body: dict):
+    """A command to a tab's 2D view from outside its page: what the 3D panel's Plane list,
+    the guide's "Show plane" and "Suggest the next plane" do to the tab's plane."""
+    base = re.match(r"(https?://[^/]+)", frame.url).group(1)
+    req = urllib.request.Request(f"{base}/us/command?c={token_of(frame)}", data=json.dumps(body).encode())
+    return json.loads(urllib.request.urlopen(req, timeout=60).read())
+
+
+def choose_plane(frame, index: int, deadline: Deadline):
+    frame.wait_for_selector(f"#plane option[value='{index}']", state="attached", timeout=deadline.ms())
+    frame.select_option("#plane", value=str(index), timeout=deadline.ms())
+    wait_until(frame.page, lambda: f"Plane {index + 1} (" in frame.inner_text("#title"), deadline,
+               f"plane {index + 1} shown")
+
+
+def test_queued_clicks_land_on_the_plane_they_were_aimed_at(server, tmp_path):
+    deadline = Deadline(COLD_S)
+    out = shots(tmp_path)
+    with playwright.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
+        page = deadline.open(browser.new_page(viewport=VIEW))
+        page.goto(server["url"])
+        us = us_frame(page, deadline)
+        choose_plane(us, 0, deadline)
+        before = len(saved(server["session"])["contours"]) if (server["session"] / "session.json").exists() else 0
+        # the server is slow to answer (a loaded machine): the first click's request is held,
+        # the others wait in the page's queue
+        held, hold = [], [True]
+        page.route(re.compile(r"/us/click\?"), lambda route: held.append(route) if hold[0] else route.continue_())
+        aimed = [(60 + 8 * k, 90 + 3 * k) for k in range(6)]
+        canvas = us.locator("#cv")
+        for c, r in aimed:
+            x, y = canvas_xy(c, r)
+            canvas.click(position={"x": x, "y": y}, timeout=deadline.ms())
+            page.wait_for_timeout(100)
+        wait_until(page, lambda: held, deadline, "the first click sent")
+        command(us, {"cmd": "Plane", "plane": 1})  # the plane changes while the clicks wait
+        wait_until(page, lambda: "Plane 2 (" in us.inner_text("#title"), deadline, "plane 2 shown")
+        page.wait_for_timeout(500)
+        canvas.screenshot(path=out / "truth_queued_on_other_plane.png")  # plane 2: none of plane 1's markers
+        hold[0] = False
+        for route in held:
+            route.continue_()
+        wait_until(page, lambda: us.evaluate("window.navappLatencies.length") >= len(aimed), deadline,
+                   "every click acknowledged")
+        new = saved(server["session"])["contours"][before:]
+        assert [(c["plane"], [tuple(v) for v in c["vertices"]]) for c in new] == [(0, aimed)], new
+        choose_plane(us, 0, deadline)
+        page.wait_for_timeout(500)
+        canvas.screenshot(path=out / "truth_queued_landed.png")  # back on plane 1: all six, one open line
+        for _ in aimed:  # leave the session as it was
+            us.get_by_role("button", name="Undo", exact=True).click(timeout=deadline.ms())
+            page.wait_for_timeout(150)
+        wait_until(page, lambda: len(saved(server["session"])["contours"]) == before, deadline, "undone")
+        browser.close()
