@@ -1,5 +1,5 @@
-"""Issue 14: registration robust to the starting pose and to imprecise labels, and a
-warning when the fit is poor. Everything runs on the 12 mm phantom-0 model (k = 12);
+"""Registration robust to the starting pose and to imprecise labels, and a warning when
+the fit is poor. Everything runs on the 12 mm phantom-0 model (k = 12);
 the study itself (``navapp study robustness``) runs on the nine simulated cases."""
 
 import json
@@ -134,14 +134,14 @@ def test_fit_quality_thresholds():
     assert assess_fit({"anterior": {"n": 100, "rms_mm": 2.6}}, noise_mm={"anterior": 1.0}).ok
 
 
-def test_legacy_options_are_the_single_icp_path(small_model):
-    """``RobustOptions.legacy()`` reproduces the registration before issue 14 (no starts,
-    point-to-point ICP), which the study's "before" rows use."""
+def test_single_icp_options_are_one_plain_icp_then_libr(small_model):
+    """``RobustOptions.single_icp()`` (the study's "single-icp" rows) is one exact
+    point-to-point ICP from the given pose, then plain LIBR: no starts, no guards."""
     from navapp.registration.libr import register_libr
     from navapp.registration.rigid import TOL_BEFORE_LIBR, rigid_icp
 
     data, _ = phantom_case(small_model, seed=4)
-    reg = register(small_model, data, init=RobustOptions.legacy())
+    reg = register(small_model, data, init=RobustOptions.single_icp())
     rigid = rigid_icp(small_model, data, tol_mm=TOL_BEFORE_LIBR, multi_start=False, robust=None)
     libr = register_libr(small_model, {k: rigid.inverse(v) for k, v in data.items()})
     assert not reg.starts and np.array_equal(reg.rigid.R, rigid.R) and np.array_equal(reg.libr.beta, libr.beta)
@@ -247,3 +247,17 @@ def test_default_fit_is_a_continuation_from_a_stiffer_organ(small_model, monkeyp
     calls.clear()
     register(small_model, data, init=RobustOptions(retry_poor_fit=False, stiff_first=None))
     assert len([c for c in calls if c[1] > RobustOptions().screen_iterations]) == 1
+
+
+def test_the_committed_rows_name_methods_that_exist():
+    """The committed study rows are reported under today's method names: a method renamed
+    in ``METHODS`` without rewriting the rows (scripts/rename_robustness_methods.py) would
+    drop them from the regenerated report's comparisons."""
+    from pathlib import Path
+
+    from navapp.evaluation.robustness import BASELINE, DEFAULT, read_rows
+    from navapp.registration.pipeline import METHODS
+
+    names = {r["method"] for r in read_rows(Path(__file__).parents[1] / "results" / "robustness.csv")}
+    assert {BASELINE, DEFAULT} <= names <= set(METHODS)
+    assert all(isinstance(make(), RobustOptions) for make in METHODS.values())

@@ -1,4 +1,4 @@
-"""Robustness study (issue 14): how registration copes with a bad starting pose and with
+"""Robustness study: how registration copes with a bad starting pose and with
 imprecise salient-feature labels.
 
 Every trial takes one simulated study case at data level S + 3 planes (a seeded random
@@ -36,6 +36,7 @@ from .distribute import ResultsCSV, check_scheduler, run_tasks
 OFFSETS = ((0.0, 0.0), (5.0, 10.0), (10.0, 20.0), (15.0, 30.0), (20.0, 40.0))  # (degrees, mm)
 CONDITIONS = ("clean", "shifted", "mislabelled")
 SUCCESS_RATIO = 1.2
+BASELINE, DEFAULT = "single-icp", "default"  # what ``navapp study robustness`` and its figure compare
 COLUMNS = ("case", "method", "condition", "draw", "angle_deg", "shift_mm", "planes", "tre_mm", "tre_rigid_mm",
            "seconds", "rigid_seconds", "iterations", "stop_reason", "starts", "flagged")
 
@@ -145,13 +146,15 @@ def trial_data(case_dir, case, trial: Trial, truth_surface=None, n_planes=16):
 
 
 def register_with(method: str, model, data):
-    """Register ``data`` with one of the study's methods (``registration.pipeline.METHODS``);
-    "before" on a tree older than issue 14 is that tree's default path."""
+    """Register ``data`` with one of the study's methods (``registration.pipeline.METHODS``).
+    Copied into a tree whose pipeline has no ``METHODS`` (before multi-start ICP), the only
+    method is "single-icp", that tree's default path: how the baseline was checked against
+    the old code."""
     from ..registration import pipeline
 
     if not hasattr(pipeline, "METHODS"):
-        if method != "before":
-            raise ValueError(f"method {method!r} needs issue 14's registration code")
+        if method != BASELINE:
+            raise ValueError(f"method {method!r} needs a registration with multi-start ICP (pipeline.METHODS)")
         return pipeline.register(model, data)
     return pipeline.register(model, data, init=pipeline.METHODS[method]())
 
@@ -198,7 +201,7 @@ def read_rows(path) -> list[dict]:
         return list(csv.DictReader(f))
 
 
-def run_robustness(case_dirs, results, methods=("before", "after"), draws=4, workers=1, edge=EDGE_MM, k=K,
+def run_robustness(case_dirs, results, methods=(BASELINE, DEFAULT), draws=4, workers=1, edge=EDGE_MM, k=K,
                    offsets=OFFSETS, conditions=CONDITIONS, scheduler=None) -> int:
     """Run (or resume) the design; rows are appended to ``results`` (CSV) one case at a time.
 

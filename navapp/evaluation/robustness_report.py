@@ -5,7 +5,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .robustness import CONDITIONS, OFFSETS, SUCCESS_RATIO, read_rows, run_robustness
+from .robustness import BASELINE, CONDITIONS, DEFAULT, OFFSETS, SUCCESS_RATIO, read_rows, run_robustness
 
 
 def with_reference(rows: list[dict]) -> list[dict]:
@@ -81,13 +81,13 @@ def summary_tables(rows: list[dict], methods: list[str]) -> str:
         basins = [float(r["starts"] or 1) for r in mr]
         lines.append(f"| {m} | {np.median(sec):.3f} | {np.percentile(sec, 90):.3f} | {np.median(rig):.3f} | "
                      f"{np.median(basins):.0f} | {len(mr)} |")
-    # variants run on fewer draws: compared with "after" on exactly the same rows
-    base = {(r["case"], r["condition"], r["draw"], r["angle_deg"]): r for r in rows if r["method"] == "after"}
-    paired = [m for m in methods if m not in ("after", "before")]
+    # variants run on fewer draws: compared with the default on exactly the same rows
+    base = {(r["case"], r["condition"], r["draw"], r["angle_deg"]): r for r in rows if r["method"] == DEFAULT}
+    paired = [m for m in methods if m not in (DEFAULT, BASELINE)]
     if paired and base:
-        lines += ["", "### Variants against after, paired on the same rows (case, labels, draw, offset)", "",
-                  "| variant | rows | success, variant | success, after | median TRE − after (mm) | "
-                  "90th pct of the difference | worst | median s, variant / after |",
+        lines += ["", f"### Variants against {DEFAULT}, paired on the same rows (case, labels, draw, offset)", "",
+                  f"| variant | rows | success, variant | success, {DEFAULT} | median TRE − {DEFAULT} (mm) | "
+                  f"90th pct of the difference | worst | median s, variant / {DEFAULT} |",
                   "|---|---|---|---|---|---|---|---|"]
         for m in paired:
             pairs = [(r, base[k]) for r in rows if r["method"] == m
@@ -154,28 +154,29 @@ ridges) slid as a whole 5–10 mm along the true surface; **mislabelled** — 10
 salient feature's points swapped with the nearest anterior points. A registration
 *succeeds* when its TRE is at most 1.2 × the same method's zero-offset, clean-label TRE on
 the same case and plane triple, so label noise that hurts counts as a failure. Methods:
-**before** — the path before issue 14 (one exact point-to-point ICP from the tracker pose,
-least squares); **after** — today's default: multi-start point-to-plane ICP (tracker pose,
-±15° about each axis, principal axes), distinct poses screened by two LIBR iterations and
-chosen by Ω, finished by the exact ICP; in both ICPs the falciform and ridge points carry
-Huber factors with δ = 2 × their feature's median residual; Huber δ = 1 mm on the salient
-features in LIBR; a first LIBR fit at 3 × the strain-energy weight, then the true weight
-from there (continuation); a flagged fit retried from the other poses; **first-after** —
-the first default of issue 14 (the same without the robust ICP and the continuation);
-**after-no-continuation** and **after-plain-icp** — the default without one of the two,
-at zero offset only (the rigid stage makes the result offset-independent), compared with
-"after" on the same rows. Times are wall-clock on a shared 2-core machine with two
-registrations running at once and other users' jobs alongside (load average 2–6 during
-the run): compare methods within this table, not with the benchmarks.
+**single-icp** — one exact point-to-point ICP from the tracker pose, least squares (the
+path before multi-start ICP); **default** — today's default: multi-start point-to-plane
+ICP (tracker pose, ±15° about each axis, principal axes), distinct poses screened by two
+LIBR iterations and chosen by Ω, finished by the exact ICP; in both ICPs the falciform and
+ridge points carry Huber factors with δ = 2 × their feature's median residual; Huber δ = 1
+mm on the salient features in LIBR; a first LIBR fit at 3 × the strain-energy weight, then
+the true weight from there (continuation); a flagged fit retried from the other poses;
+**multistart** — the first multi-start default (the same without the robust ICP and the
+continuation); **default-no-continuation** and **default-plain-icp** — the default without
+one of the two, at zero offset only (the rigid stage makes the result offset-independent),
+compared with "default" on the same rows. Times are wall-clock on a shared 2-core machine
+with two registrations running at once and other users' jobs alongside (load average 2–6
+during the run): compare methods within this table, not with the benchmarks.
 
 The committed rows: `run_robustness(cases, "results/robustness.csv", methods=M, draws=D,
-workers=2, offsets=O)` (what `navapp study robustness` calls with before and after, 4
-draws, all offsets) for M = (before, after), D = 4 (`navapp study robustness --cases
-study-cases/* --workers 2`); M = (first-after,), D = 4; M = (after-no-continuation,
-after-plain-icp), D = 4, O = 0° only. Cases from `scripts/simulate_study.py` on the
-meshes of commit 7703fca. Variants of the first default measured earlier on older meshes
-(point-to-point starts, iUS posterior points in ICP, no Huber, continuation at 10 ×) are
-in the history of this file (commit 8a12042) and in docs/decisions.md.
+workers=2, offsets=O)` (what `navapp study robustness` calls with single-icp and default,
+4 draws, all offsets) for M = (single-icp, default), D = 4 (`navapp study robustness
+--cases study-cases/* --workers 2`); M = (multistart,), D = 4; M =
+(default-no-continuation, default-plain-icp), D = 4, O = 0° only. Cases from
+`scripts/simulate_study.py` on the meshes of commit 7703fca. Variants of the first default
+measured earlier on older meshes (point-to-point starts, iUS posterior points in ICP, no
+Huber, continuation at 10 ×) are in the history of this file (commit 8a12042) and in
+docs/decisions.md.
 
 """
 
@@ -186,8 +187,8 @@ def write_robustness_report(results, out_dir, preamble: str = DESIGN) -> Path:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     methods = list(dict.fromkeys(r["method"] for r in rows))
-    # the figure compares the path before with the default; the variants are in the tables
-    png = plot(rows, [m for m in ("before", "after") if m in methods] or methods, out_dir / "robustness.png")
+    # the figure compares the baseline with the default; the variants are in the tables
+    png = plot(rows, [m for m in (BASELINE, DEFAULT) if m in methods] or methods, out_dir / "robustness.png")
     md = out_dir / "robustness.md"
     md.write_text("# Robustness to the starting pose and to imprecise labels\n\n" + preamble
                   + summary_tables(rows, methods) + f"\n\n![robustness]({png.name})\n")
@@ -198,7 +199,7 @@ def run_study(cases, results: Path, report: Path, workers: int = 1, quick: bool 
     """``navapp study robustness``: run (or resume) the design into ``results`` (CSV), then
     write the report into ``report``; returns what it did (printed as JSON by the CLI).
 
-    Methods "before" (the path before multi-start) and "after" (today's default), 4 draws,
+    Methods "single-icp" (one ICP from the tracker pose) and "default", 4 draws,
     one worker by default (the rows carry timings); ``quick``: one draw and the 0°, 15° and
     20° offsets; ``scheduler``: a Dask scheduler's address (``run_robustness``).
     """

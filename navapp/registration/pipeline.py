@@ -4,7 +4,7 @@ Frames: the model lives in the preoperative frame; data arrive in tracker space.
 ICP gives T (model → tracker); LIBR then runs on the data brought into the model frame
 by T⁻¹, and every output point is mapped back to tracker space by T.
 
-Initialisation (issue 14, ``RobustOptions``): ICP from several starting poses, the
+Initialisation (``RobustOptions``): ICP from several starting poses, the
 distinct poses it reaches screened by a few LIBR iterations each, the lowest Ω
 continued; afterwards every feature's residual is checked against its expected noise
 (``quality.assess_fit``), and a poor fit first tries the other poses, then says so.
@@ -46,9 +46,10 @@ from .support import Support, SupportOptions, check_support
 
 @dataclass
 class RobustOptions:
-    """How registration starts and guards itself (issue 14); the defaults are what the
-    robustness study chose (``results/robustness.md``)."""
-    multi_start: bool = True  # False: one exact point-to-point ICP from the tracker pose (the path before issue 14)
+    """How registration starts and guards itself; the defaults are what the robustness
+    study chose (``results/robustness.md``; docs/decisions.md, "Registration: robust
+    initialisation and fit quality")."""
+    multi_start: bool = True  # False: one exact point-to-point ICP from the tracker pose
     start_angle_deg: float = 15.0  # starts at ± this about each axis through the data centroid
     principal_axes: bool = True  # add a principal-axes start
     icp: str = "plane"  # "plane" | "point" (multi-start ICP)
@@ -69,15 +70,17 @@ class RobustOptions:
     support: SupportOptions | None = field(default_factory=SupportOptions)
 
     @classmethod
-    def legacy(cls) -> "RobustOptions":
-        """Today's path before issue 14, bit for bit: single exact point-to-point ICP."""
+    def single_icp(cls) -> "RobustOptions":
+        """One exact point-to-point ICP from the tracker pose, least squares, no guards: the
+        baseline the robustness study measures the rest against (bit for bit the
+        registration of commit 33e84cd)."""
         return cls(multi_start=False, icp="point", screen_iterations=0, huber_salient_mm=None, retry_poor_fit=False,
                    rigid_robust=None, stiff_first=None, keep_given_pose=False, support=None)
 
     @classmethod
-    def first(cls) -> "RobustOptions":
-        """The first default of issue 14 (multi-start, Ω screen, Huber on the salient
-        features), before the robust ICP and the continuation joined it."""
+    def multistart_only(cls) -> "RobustOptions":
+        """Multi-start ICP, the Ω screen and Huber on the salient features in LIBR, without
+        the robust ICP, the continuation or the guards against local loads."""
         return cls(rigid_robust=None, stiff_first=None, keep_given_pose=False, support=None)
 
     @classmethod
@@ -86,19 +89,22 @@ class RobustOptions:
         return cls(keep_given_pose=False, support=None)
 
 
-# the registration variants the robustness study compares ("after" is the default)
+# the registration variants the robustness study compares; the rows of
+# results/robustness.csv were written under older names ("before", "after", "first-after",
+# "after-no-continuation", "after-plain-icp"), rewritten by scripts/rename_robustness_methods.py
 METHODS = {
-    "before": RobustOptions.legacy,
-    "after": RobustOptions,
+    "single-icp": RobustOptions.single_icp,
+    "default": RobustOptions,
     "unguarded": RobustOptions.unguarded,
-    "first-after": RobustOptions.first,
-    "after-no-continuation": lambda: RobustOptions(stiff_first=None),
-    "after-plain-icp": lambda: RobustOptions(rigid_robust=None),
-    # the variants of the first default (measured before the robust ICP and the continuation)
+    "multistart": RobustOptions.multistart_only,
+    "default-no-continuation": lambda: RobustOptions(stiff_first=None),
+    "default-plain-icp": lambda: RobustOptions(rigid_robust=None),
+    # variants measured on older meshes before the robust ICP and the continuation joined the
+    # default (docs/decisions.md); they keep the guards against local loads, "multistart" does not
     "multistart-LS": lambda: RobustOptions(huber_salient_mm=None, rigid_robust=None, stiff_first=None),
     "multistart-point": lambda: RobustOptions(icp="point", rigid_robust=None, stiff_first=None),
     "multistart-posterior": lambda: RobustOptions(rigid_posterior=True, rigid_robust=None, stiff_first=None),
-    "after-continuation": lambda: RobustOptions(stiff_first=10.0, rigid_robust=None),  # first default + 10 ×
+    "multistart-continuation-10x": lambda: RobustOptions(stiff_first=10.0, rigid_robust=None),
 }
 
 
