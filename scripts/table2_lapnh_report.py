@@ -42,7 +42,7 @@ side += ("| linear reference (results/table2_lap.csv) | "
 side += ("| **neo-Hookean reference** (results/table2_lapnh.csv) | "
          + " | ".join(f"**{nh[lv][0]:.1f} ± {nh[lv][1]:.1f}**" for lv in levels) + " |\n")
 
-text = f"""## Transposed cases, neo-Hookean reference (issue 12, remaining gap 1)
+text = f"""## Transposed cases, neo-Hookean reference
 
 The nine transposed cases again, their reference deformation now large (compressible
 neo-Hookean, total Lagrangian, Newton; `large = true` in navapp/scenes/lap*.toml) instead

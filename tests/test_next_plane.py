@@ -1,4 +1,4 @@
-"""The next best ultrasound plane (issue 12, part 4)."""
+"""The next best ultrasound plane."""
 
 import numpy as np
 import pytest

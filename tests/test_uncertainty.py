@@ -1,4 +1,4 @@
-"""The truth-free error estimate (issue 12, part 3): its Jacobian against finite
+"""The truth-free error estimate: its Jacobian against finite
 differences, its behaviour away from the data, and the calibration of its band."""
 
 import numpy as np

@@ -1,4 +1,5 @@
-"""Validation of the truth-free error estimate (issue 12, part 3): ``navapp study error-estimate``.
+"""Validation of the truth-free error estimate (``registration.uncertainty``) against the
+simulated truth: ``navapp study error-estimate``.
 
 Every study case is registered at the levels S, S + 1, S + 2, S + 3 (``combos`` seeded
 random plane choices each), S + all and CBCT, the way Table II registers them; at every
@@ -235,7 +236,7 @@ def _cases(samples) -> str:
 
 def markdown(tables, cal, calib, held, secs, sets) -> str:
     cases = _cases
-    text = ["# A registration-error estimate without the truth (issue 12, part 3)\n\n",
+    text = ["# A registration-error estimate without the truth\n\n",
             "Per mesh node, from what the registration knows: d = distance from the node's registered position to the "
             "nearest data point, and σ = the LM covariance at the solution, s·H⁻¹ (H the LM normal matrix with the "
             "strain-energy curvature, s = Ω/(R − p)), propagated through the closed-form ∂x/∂β of eq. 8. Predicted "

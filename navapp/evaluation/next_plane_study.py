@@ -1,4 +1,5 @@
-"""The next best plane in the study (issue 12, part 4): ``navapp study next-plane``.
+"""The suggested next plane (``registration.next_plane``) against the simulated truth on the
+study cases: ``navapp study next-plane``.
 
 Per case, starting from S, the best of the case's remaining recorded probe poses
 (``intraop/us/planes.json``: the poses, never the images' truth) is suggested from the
@@ -262,7 +263,7 @@ def _fmt(x, f="{:.2f}"):
 
 
 def markdown(all_rows, sets, bench) -> str:
-    text = ["# The next best ultrasound plane (issue 12, part 4)\n\n",
+    text = ["# The next best ultrasound plane\n\n",
             "Greedy: from S, the best of the case's remaining 16 recorded probe poses by the expected drop of the mean "
             "predicted error (the registered model cut by the candidate's plane gives the expected contours and far "
             "wall; their Jacobian rows join the LM normal matrix; ê = a + b·d + c·σ + e·d·m, "
@@ -340,7 +341,8 @@ def study_command(case_dirs, results, report, with_cases=None, with_results=None
 
 
 def table2_section(results_dir="results") -> str:
-    """The short section on parts 3–4 of issue 12 for the end of results/table2.md, from
+    """The short section on the error estimate and the suggested planes for the end of
+results/table2.md, from
     error_estimate.csv, next_plane.csv and (when present) next_plane_lap.csv in
     ``results_dir``. Append it after ``report.write_report`` has (re)written table2.md."""
     from .error_estimate import table2_part
@@ -353,7 +355,7 @@ def table2_section(results_dir="results") -> str:
     if (res / "next_plane_lap.csv").exists():
         with (res / "next_plane_lap.csv").open() as f:
             npl += [dict(r, set="laparoscopic cases") for r in csv.DictReader(f)]
-    out = ["\n\n## Error estimate without the truth, and suggested planes (issue 12, parts 3–4)\n\n",
+    out = ["\n\n## Error estimate without the truth, and suggested planes\n\n",
            "Details: [error_estimate.md](error_estimate.md), [next_plane.md](next_plane.md) "
            "(`navapp study error-estimate`, `navapp study next-plane`).\n\n", table2_part(ee)]
     levels = ("S+1", "S+2", "S+3")

@@ -1,4 +1,5 @@
-"""The next best ultrasound plane (issue 12, part 4; the paper's "future work").
+"""The next best ultrasound plane: the candidate probe pose whose plane would most lower the
+predicted error (the paper's "future work").
 
 Given a registration and its data, each candidate probe pose is scored by the drop in the
 mean predicted error over the organ (``uncertainty``) that its plane would bring:

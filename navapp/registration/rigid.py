@@ -11,7 +11,7 @@ w_F / N_F, so a salient feature with few points still steers the fit. Without an
 data, every feature takes part. The update is the
 weighted Kabsch solution. Fiducials, when present, first give a closed-form start.
 
-``multi_start_icp`` (issue 14) runs ICP from several starting poses at once — the tracker
+``multi_start_icp`` runs ICP from several starting poses at once — the tracker
 pose, ±15° about each axis through the data centroid, and a principal-axes alignment —
 point-to-plane or point-to-point on the model's vertices, and returns the distinct poses
 it converged to; the pipeline picks among them by the LIBR objective.
@@ -90,8 +90,8 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights | None = No
     to begin from; without one, ``multi_start`` begins from the lowest-RMS pose the
     multi-start ICP reaches (``multi_start_icp``; the registration pipeline instead picks
     among those poses by the LIBR objective and passes its choice as ``start``), and
-    ``multi_start=False`` from the identity, i.e. the tracker's pose (the path before
-    issue 14). Fiducials (≥ 3) give a closed-form start instead. ``features``: the data
+    ``multi_start=False`` from the identity, i.e. the tracker's pose (one ICP, as
+    ``RobustOptions.single_icp``). Fiducials (≥ 3) give a closed-form start instead. ``features``: the data
     features that take part when present (``posterior`` can be added).
     """
     weights = weights or Weights()

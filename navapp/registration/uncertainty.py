@@ -1,4 +1,4 @@
-"""A registration-error estimate that needs no truth (issue 12, part 3).
+"""A registration-error estimate that needs no truth.
 
 Two things the registration knows about a point of the organ:
 
