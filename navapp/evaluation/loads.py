@@ -167,10 +167,12 @@ def write_report(results: Path, out_dir: Path) -> Path:
     by = {(r["case"], r["level"], r["method"]): r for r in rows}
     lines = ["# Local loads: a tool pressing into a liver held at its supports", "",
              f"{len(cases)} cases (`navapp/scenes/tool*.toml`, `scripts/make_tool_scenes.py`), registered by "
-             "`navapp study loads`. TRE over the truth targets (every node of the registration mesh), mm. "
+             "`navapp study loads`. TRE over the truth targets (the nodes of a 4 mm mesh of the preoperative "
+             "liver, made when the case was simulated), mm. "
              "*unguarded*: the default before local loads were handled (multi-start ICP, then LIBR); "
-             "*guarded*: today's default (a good given pose kept, the deformation cross-validated against the "
-             "rigid answer and dropped with a warning where the data do not support it).", ""]
+             "*guarded*: today's default (a good given pose, or the pose most of the data lie on near it, kept; "
+             "the deformation cross-validated against the rigid answer and dropped with a warning where the data "
+             "do not support it).", ""]
     for level in LEVELS:
         lv = [r for r in rows if r["level"] == level]
         lines += [f"## {level}", "", "| method | mean TRE | median over cases | max TRE (mean over cases) | "

@@ -1,0 +1,46 @@
+"""The predicted-error band on the local-load cases: the default calibration (fitted on
+phantom 0 and lap 0) judged at every truth target of each tool case, at S and S + all,
+with today's default registration. One JSON line per registration: the fraction of
+targets whose true error lies in the band (``coverage``), under its upper edge for the
+deformable answer (``below_upper``) and for the answer shown (``below_upper_shown``: the
+rigid pose where the deformation was not supported), and the mean predicted, deformable
+and shown errors (mm).
+
+    python scripts/loads_coverage.py CASE [CASE ...] > results/loads_coverage.jsonl
+"""
+
+import json
+import sys
+import warnings
+
+import numpy as np
+
+from navapp import progress
+from navapp.anatomy.caseio import read_case
+from navapp.evaluation.error_estimate import band_coverage
+from navapp.mechanics.interpolation import interpolation_matrix
+from navapp.registration.pipeline import prepare, register
+from navapp.registration.uncertainty import DEFAULT_CALIBRATION as CAL
+from navapp.registration.uncertainty import estimate_error
+from navapp.simulation.levels import data_level
+
+progress.QUIET = True
+warnings.simplefilter("ignore")
+for case_dir in sys.argv[1:]:
+    case = read_case(case_dir)
+    model, _ = prepare(case)
+    x0, x1 = case.truth_pairs()
+    B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
+    for level in ("S", "S+all"):
+        data = data_level(case_dir, "S", case=case) if level == "S" else case.intraop
+        reg = register(model, data)
+        est = estimate_error(reg, points=x0, B=B)
+        err = np.linalg.norm(est.positions - x1, axis=1)
+        shown = np.linalg.norm(reg.transform(x0, B=B) - x1, axis=1)
+        print(json.dumps({"case": case_dir.rstrip("/").split("/")[-1], "level": level, "deformed": reg.deformed,
+                          "coverage": round(band_coverage(err, est.predicted_mm, CAL.lower, CAL.upper), 3),
+                          "below_upper": round(float((err <= est.upper_mm).mean()), 3),
+                          "below_upper_shown": round(float((shown <= est.upper_mm).mean()), 3),
+                          "mean_pred": round(float(est.predicted_mm.mean()), 2),
+                          "mean_true": round(float(err.mean()), 2),
+                          "mean_shown": round(float(shown.mean()), 2)}), flush=True)
