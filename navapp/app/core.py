@@ -14,6 +14,7 @@ from __future__ import annotations
 import secrets
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -79,6 +80,10 @@ class Core:
         self.stage = "Starting…"
         self.stage_fraction: float | None = None
         self.failed: str | None = None
+        self.failed_traceback: str | None = None  # when start-up failed on a bug rather than on its input
+        # where start-up's stages, failures and "Ready." also go, one line each (``navapp serve``:
+        # the terminal, as the viewer may have no browser open yet); None for headless use
+        self.log: Callable[[str], None] | None = None
         self.ready = threading.Event()  # set when start-up has finished (or failed: see .failed)
         self.states: dict[str, ClientState] = {}  # token → per-browser state
         self.views: dict[int, Any] = {}  # client_id → panels.ClientView
@@ -180,12 +185,17 @@ class Core:
                          name="navapp-startup").start()
         return self.ready
 
+    def _say(self, line: str):
+        if self.log is not None:
+            self.log(line)
+
     def _start_up(self, on_loaded, on_ready):
         stage = _Stage()
 
         def on_progress(desc, fraction):
             if desc != stage.name:
                 stage.name, stage.t0 = desc, time.monotonic()
+                self._say(f"  {desc}")  # a step's percentage stays on its bar: the terminal gets its name once
             eta = ""
             elapsed = time.monotonic() - stage.t0
             if fraction is not None and 0.02 < fraction < 1 and elapsed > 1.0:
@@ -193,11 +203,16 @@ class Core:
             pct = f" — {100 * fraction:.0f} %" if fraction is not None else ""
             self.set_stage(f"{stage.what}: {desc}{pct}{eta}", fraction)
 
+        def begin(what):
+            stage.what = what
+            self._say(what)
+            self.set_stage(what)
+
+        t0 = time.monotonic()
         listener = progress.add_listener(on_progress)
         try:
-            stage.what = "Simulating the intraoperative scene (true deformation, stylus sweep, ultrasound; " \
-                            "cached after the first start)"
-            self.set_stage(stage.what)
+            begin("Simulating the intraoperative scene (true deformation, stylus sweep, ultrasound; "
+                  "cached after the first start)")
             sd = load_scene_data(self.scene, self.cache_root, self.edge)
             folder = Path(self.session_dir) if self.session_dir else default_folder(sd)
             session, planes = open_session(folder, sd)
@@ -206,26 +221,28 @@ class Core:
                 self.sd, self.session, self.planes = sd, session, planes
             self.changed(Change.SCENE)
             on_loaded(loaded)
-            stage.what = (f"Building the registration model (mesh at {self.edge:g} mm, basis of k = {self.k} "
-                             f"control points; cached after the first start)")
-            self.set_stage(stage.what)
+            begin(f"Building the registration model (mesh at {self.edge:g} mm, basis of k = {self.k} "
+                  f"control points; cached after the first start)")
             model, _ = prepare(sd.case, self.edge, self.k, self.cache_root)
             ready = Ready(model, truth_at_nodes(sd, model))
             on_ready(ready)
-            self.set_stage(f"Ready. {len(model.basis.nodes):,} nodes, k = {self.k}. Session: {session.folder}", 1.0)
+            ready_line = f"Ready. {len(model.basis.nodes):,} nodes, k = {self.k}. Session: {session.folder}"
+            self.set_stage(ready_line, 1.0)
+            self._say(f"{ready_line} ({_duration(time.monotonic() - t0)} after start)")
             self.changed(Change.MODEL)
         except NavappError as exc:
-            self.failed = str(exc)
-            self.set_stage(f"Error: {exc}", 0.0)
-            self.notify("navapp", str(exc), error=True)
-        except Exception as exc:  # shown, not lost in a thread
-            self.failed = f"{exc.__class__.__name__}: {exc}"
-            self.set_stage(f"Error while starting: {self.failed}", 0.0)
-            self.notify("navapp", self.failed, error=True)
-            raise
+            self._fail(str(exc))
+        except Exception as exc:  # a bug: one line here, the traceback kept for the report (serve writes it)
+            self.failed_traceback = traceback.format_exc()
+            self._fail(f"{exc.__class__.__name__}: {exc}")
         finally:
             progress.remove_listener(listener)
             self.ready.set()
+
+    def _fail(self, message: str):
+        self.failed = message
+        self.set_stage(f"Error: {message}", 0.0)
+        self.notify("navapp", message, error=True)
 
 
 @dataclass

@@ -17,12 +17,16 @@ methods, which take ``Core.lock`` around shared data and never call viser while 
 for long.
 """
 
+import os
+import tempfile
 import time
 
 import viser
 
+from .. import progress
 from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
+from ..errors import NavappError
 from .core import Core, Loaded, Ready
 from .drawing import Drawing
 from .imaging import Imaging
@@ -151,12 +155,17 @@ def serve(scene, host="127.0.0.1", port=8080, session_dir=None, edge=EDGE_MM, k=
         host_s, port_s = slicer
         results = ResultsSender.connect(host_s, port_s) if host_s else ResultsSender.serve(port_s)
     app = App(scene, host, port, session_dir, edge, k, cache_root, view2d_port, tracking, results)
-    app.start()
+    app.core.log = lambda line: progress.echo(f"navapp: {line}")
     print(f"navapp: viewer at {app.url}  (Ctrl+C to stop)", flush=True)
     if results is not None:
         where = f"to {slicer[0]}:{slicer[1]}" if slicer[0] else f"on 127.0.0.1:{results.port} (Slicer connects)"
         print(f"navapp: registrations go to 3D Slicer over OpenIGTLink {where}", flush=True)
     try:
+        ready = app.start()
+        while not ready.wait(3600):
+            pass
+        if app.core.failed is not None:
+            _stop_on_failure(app)
         while True:
             time.sleep(3600)
     except KeyboardInterrupt:
@@ -167,3 +176,23 @@ def serve(scene, host="127.0.0.1", port=8080, session_dir=None, edge=EDGE_MM, k=
         if results is not None:
             results.close()
     return app
+
+
+def _stop_on_failure(app: App):
+    """End ``navapp serve`` after a failed start-up, saying why in the browsers and (through
+    the CLI, exit 2) on the terminal. Stopping rather than offering a retry: what fails at
+    start-up is decided by the command's input (the scene, the case folder, --edge, --k,
+    the memory budget; meshing no longer depends on how busy the machine is), so a retry
+    would fail the same way, and a process left up with a dead viewer is what issue 25 found."""
+    message = app.core.failed
+    if app.core.failed_traceback is not None:  # a bug: the one line names where its traceback is
+        fd, path = tempfile.mkstemp(prefix="navapp-serve-", suffix=".traceback.txt")
+        with os.fdopen(fd, "w") as f:
+            f.write(app.core.failed_traceback)
+        message = f"{message} (a bug in navapp: the traceback is in {path})"
+    app.core.set_stage(f"Error: {message}. The viewer has stopped (its terminal says the same): "
+                       f"run navapp serve again once this is fixed.", 0.0)
+    app.server.flush()
+    time.sleep(0.5)  # let the browsers receive it before the server closes
+    app.server.stop()
+    raise NavappError(f"the viewer could not start: {message}")

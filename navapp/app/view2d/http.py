@@ -15,6 +15,7 @@ served comes from a ``Provider`` (``view2d.provider.View2D`` in the viewer).
 import json
 import logging
 import re
+import sys
 import threading
 from functools import cache
 from html import escape
@@ -189,13 +190,23 @@ class _Handler(BaseHTTPRequestHandler):
         return self._send(200, json.dumps(self.provider.view_state(token) or {}).encode())
 
 
+class _Server(ThreadingHTTPServer):
+    daemon_threads = True
+
+    def handle_error(self, request, client_address):
+        # a tab closed while its response was on the way: the browser wanted nothing more, and a
+        # traceback on the viewer's terminal for it would hide the lines that matter (issue 25)
+        if isinstance(sys.exc_info()[1], ConnectionError):
+            return
+        super().handle_error(request, client_address)
+
+
 class View2DServer:
     """Serves the 2D view pages on ``host:port`` (port 0: any free port) in a thread."""
 
     def __init__(self, provider: Provider, host: str = "127.0.0.1", port: int = 0):
         handler = type("Handler", (_Handler,), {"provider": provider})
-        self.httpd = ThreadingHTTPServer((host, port), handler)
-        self.httpd.daemon_threads = True
+        self.httpd = _Server((host, port), handler)
         self.port = self.httpd.server_address[1]
         self.host = host
         self._thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)

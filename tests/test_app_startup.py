@@ -1,0 +1,141 @@
+"""``navapp serve``'s terminal (issue 25, item 6): every start-up stage on a line of its
+own, "Ready." when ready, a failed start-up ending the process with exit 2 and one line
+(the viewer does not stay up with a dead app), and no traceback when a tab closes."""
+
+import os
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import threading
+import urllib.request
+
+import tomli_w
+from conftest import free_port
+
+SCENE = {"name": "apptest", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
+         "stylus": {"coverage": 0.2}, "ius": {"planes": 2}}
+BUDGET_S = 600  # a cold start of the small scene on a busy 2-core machine; never reached when it works
+
+
+def serve(tmp_path, *args, env=None, code=None):
+    """``navapp serve`` on the small scene in a subprocess, stdout and stderr in one pipe
+    (what a terminal shows); with ``code``, run that Python first (fault injection)."""
+    scene = tmp_path / "scene.toml"
+    scene.write_text(tomli_w.dumps(SCENE))
+    argv = ["serve", "--port", str(free_port()), "--session", str(tmp_path / "session"), "--edge", "12",
+            "--k", "12", str(scene), *args]
+    prog = f"import sys\n{code or ''}\nfrom navapp.cli import main\nsys.exit(main({argv!r}))"
+    return subprocess.Popen([sys.executable, "-c", prog], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})})
+
+
+def shown(raw: bytes) -> list[str]:
+    """The terminal's lines as a person reads them: a progress bar redraws its line after a
+    carriage return, so each line is what follows its last one."""
+    return [line.rsplit("\r", 1)[-1].rstrip() for line in raw.decode(errors="replace").split("\n")]
+
+
+def finished(proc) -> tuple[int, list[str]]:
+    try:
+        out, _ = proc.communicate(timeout=BUDGET_S)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, _ = proc.communicate()
+        raise AssertionError("navapp serve was still running after its start-up failed:\n"
+                             + "\n".join(shown(out)[-20:])) from None
+    return proc.returncode, shown(out)
+
+
+def test_each_stage_and_ready_reach_the_terminal_on_lines_of_their_own(tmp_path, cache_root):
+    # the cache the viewer tests fill, so that a full run of the suite pays for one cold start
+    proc = serve(tmp_path, env={"NAVAPP_CACHE": str(cache_root)})
+    lines = []
+    budget = threading.Timer(BUDGET_S, proc.kill)  # ends the read below if "Ready." never comes
+    budget.start()
+    try:
+        for raw in iter(proc.stdout.readline, b""):  # the bars are drawn: no --quiet
+            lines += shown(raw)
+            if any(line.startswith("navapp: Ready.") for line in lines):
+                break
+    finally:
+        budget.cancel()
+        proc.send_signal(signal.SIGINT)
+        out, _ = proc.communicate(timeout=60)
+    lines += shown(out)
+    said = [line for line in lines if line.startswith("navapp: ")]
+    assert any(line.startswith("navapp: Simulating the intraoperative scene") for line in said), lines
+    assert any(line.startswith("navapp: Building the registration model") for line in said), lines
+    ready = [line for line in said if line.startswith("navapp: Ready.")]
+    assert len(ready) == 1 and "nodes, k = 12" in ready[0] and str(tmp_path / "session") in ready[0], lines
+    assert not any("Traceback" in line for line in lines), lines
+
+
+def test_a_scene_that_cannot_load_ends_serve_with_exit_2_and_one_line(tmp_path):
+    # the scene's simulation needs a truth mesh that this (pretended) memory cannot hold: refused before work
+    proc = serve(tmp_path, env={"NAVAPP_CACHE": str(tmp_path / "cache"), "NAVAPP_MEMORY_MB": "420"})
+    code, lines = finished(proc)
+    errors = [line for line in lines if "error" in line.lower()]
+    assert code == 2, lines
+    assert len(errors) == 1 and errors[0].startswith("navapp: error: the viewer could not start: a mesh at"), lines
+    assert not any("Traceback" in line for line in lines), lines
+
+
+def test_a_failing_start_up_step_ends_serve_with_one_line_naming_its_traceback(tmp_path):
+    # a bug (not an input error) in a start-up step, here the scene's loading: one line, the traceback kept in a file
+    boom = ("import navapp.app.core as core\n"
+            "def boom(*a, **k):\n"
+            "    raise RuntimeError('the mesher crashed')\n"
+            "core.load_scene_data = boom")
+    code, lines = finished(serve(tmp_path, env={"NAVAPP_CACHE": str(tmp_path / "cache")}, code=boom))
+    assert code == 2, lines
+    errors = [line for line in lines if "error" in line.lower()]
+    assert len(errors) == 1, lines
+    assert errors[0].startswith("navapp: error: the viewer could not start: RuntimeError: the mesher crashed"), lines
+    assert not any("Traceback" in line for line in lines), lines
+    path = errors[0].rsplit("the traceback is in ", 1)[1].rstrip(")")
+    try:
+        assert "RuntimeError: the mesher crashed" in open(path).read()
+    finally:
+        os.unlink(path)
+
+
+class SlowImage:
+    """A 2D view provider whose frame is sent only once the test's client has gone (a tab
+    closed while its image was on the way)."""
+
+    def __init__(self):
+        self.asked, self.gone = threading.Event(), threading.Event()
+
+    def view_known(self, token):
+        return True
+
+    def view_image(self, token):
+        self.asked.set()
+        self.gone.wait(60)
+        return b"\x89PNG" + bytes(8 << 20)  # larger than any socket buffer: the write meets the reset
+
+
+def test_a_tab_closing_mid_response_leaves_no_traceback(capfd):
+    from navapp.app.view2d.http import View2DServer
+
+    provider = SlowImage()
+    server = View2DServer(provider)
+    before = set(threading.enumerate())
+    try:
+        client = socket.create_connection(("127.0.0.1", server.port))
+        client.sendall(b"GET /us/image?c=tab HTTP/1.1\r\nHost: x\r\n\r\n")
+        assert provider.asked.wait(60)
+        # closed with a reset, as a browser drops a closed tab's connections
+        client.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        client.close()
+        provider.gone.set()
+        for t in set(threading.enumerate()) - before:  # the request's handler thread
+            t.join(60)
+        ok = urllib.request.urlopen(f"http://127.0.0.1:{server.port}/us/page.js", timeout=60)
+        assert ok.status == 200  # still serving
+    finally:
+        server.stop()
+    err = capfd.readouterr().err
+    assert "Traceback" not in err and "Error" not in err, err
