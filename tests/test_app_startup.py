@@ -117,7 +117,7 @@ class SlowImage:
         return b"\x89PNG" + bytes(8 << 20)  # larger than any socket buffer: the write meets the reset
 
 
-def test_a_tab_closing_mid_response_leaves_no_traceback(capfd):
+def test_a_tab_closing_mid_response_leaves_no_traceback(capfd, caplog):
     from navapp.app.view2d.http import View2DServer
 
     provider = SlowImage()
@@ -139,3 +139,5 @@ def test_a_tab_closing_mid_response_leaves_no_traceback(capfd):
         server.stop()
     err = capfd.readouterr().err
     assert "Traceback" not in err and "Error" not in err, err
+    # nor through the log (its last-resort handler prints to the terminal when nothing is configured)
+    assert not [r for r in caplog.records if r.exc_info], caplog.text

@@ -143,6 +143,8 @@ class _Handler(BaseHTTPRequestHandler):
                 if png is None:
                     return self._send(404, b"no image")
                 return self._send(200, png, "image/png")
+        except ConnectionError:  # the tab went: nobody to answer, nothing to log (_Server.handle_error)
+            raise
         except Exception:  # a failed request must not take the server down; the details go to the log
             log.exception("2D view: GET %s failed", path)
             return self._send(500, b"internal error (see the server's log)", "text/plain")
@@ -182,6 +184,8 @@ class _Handler(BaseHTTPRequestHandler):
                 return self._send(404, b"not found", "text/plain")
         except BadRequest as exc:
             return self._send(400, f"bad request: {exc}".encode(), "text/plain; charset=utf-8")
+        except ConnectionError:
+            raise
         except Exception:
             log.exception("2D view: POST %s failed", path)
             return self._send(500, b"internal error (see the server's log)", "text/plain")
