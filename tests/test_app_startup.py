@@ -49,6 +49,9 @@ def finished(proc) -> tuple[int, list[str]]:
 
 
 def test_each_stage_and_ready_reach_the_terminal_on_lines_of_their_own(tmp_path, cache_root):
+    # a session whose first save an earlier navapp had cut short: its repair is one of the lines
+    (tmp_path / "session").mkdir()
+    (tmp_path / "session" / "case.toml").write_text('name = "session-apptest"\n')
     # the cache the viewer tests fill, so that a full run of the suite pays for one cold start
     proc = serve(tmp_path, env={"NAVAPP_CACHE": str(cache_root)})
     lines = []
@@ -67,6 +70,7 @@ def test_each_stage_and_ready_reach_the_terminal_on_lines_of_their_own(tmp_path,
     said = [line for line in lines if line.startswith("navapp: ")]
     assert any(line.startswith("navapp: Simulating the intraoperative scene") for line in said), lines
     assert any(line.startswith("navapp: Building the registration model") for line in said), lines
+    assert f"navapp: {tmp_path / 'session'}: its first save had been cut short" in "\n".join(said), lines
     ready = [line for line in said if line.startswith("navapp: Ready.")]
     assert len(ready) == 1 and "nodes, k = 12" in ready[0] and str(tmp_path / "session") in ready[0], lines
     assert not any("Traceback" in line for line in lines), lines

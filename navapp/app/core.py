@@ -216,6 +216,9 @@ class Core:
             sd = load_scene_data(self.scene, self.cache_root, self.edge)
             folder = Path(self.session_dir) if self.session_dir else default_folder(sd)
             session, planes = open_session(folder, sd)
+            if session.note:
+                self._say(session.note)
+                self.notify("Session", session.note)
             loaded = Loaded(sd, session, planes)
             with self.lock:
                 self.sd, self.session, self.planes = sd, session, planes

@@ -5,12 +5,17 @@ The session folder is a complete case folder (docs/design.md §3: case.toml, pre
 truth/targets.csv), so ``navapp register SESSION`` reproduces a registration from it, plus
 ``session.json`` holding what the case format has no place for (contours in image pixels,
 which planes were added, free probe poses, the log of registrations). Every change is
-written at once, atomically; a browser reload or a server restart restores it. No viser here.
+written at once, atomically, the first one as a whole folder renamed into place; a browser
+reload or a server restart restores it, and a folder found incomplete at start (a kill
+during an earlier navapp's first save) is completed and said so. No viser here.
 """
 
+import glob
 import json
 import os
+import shutil
 import time
+import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -41,6 +46,8 @@ class Session:
     result: dict | None = None  # the registered model on show (RegisteredState.to_json), restored on restart
     live_points: list = field(default_factory=list)  # [[x, y, z, feature]] digitised with a tracked stylus
     live_planes: list = field(default_factory=list)  # [{"index", "pose", "png"}] frozen tracked frames
+    written: bool = False  # the folder holds the whole case (after the first save, or when opened)
+    note: str | None = None  # one line on what opening the folder found and did, for the user
 
     # ------------------------------------------------------------ data
     def data(self, sd: SceneData, planes: dict, surface_only=False) -> dict:
@@ -75,28 +82,126 @@ class Session:
                 "live_points": self.live_points, "live_planes": self.live_planes}
 
     def save(self, sd: SceneData, planes: dict):
-        """Write session.json and the case folder's intraop/ (atomically, file by file)."""
-        self.folder.mkdir(parents=True, exist_ok=True)
-        if not (self.folder / "preop" / "liver.ply").exists():
-            write_settings(self.folder, {"name": f"session-{sd.scene.name}", "units": "mm"})
-            write_preop(sd.case.preop, self.folder)
-            if sd.case.targets is not None:
-                (self.folder / "truth").mkdir(exist_ok=True)
-                write_csv(self.folder / "truth" / "targets.csv", sd.case.targets, ("x0", "y0", "z0", "x1", "y1", "z1"))
-        idir = self.folder / "intraop"
-        idir.mkdir(exist_ok=True)
-        data = self.data(sd, planes)
-        for name in FEATURE_NAMES:
-            path = idir / f"{name}.csv"
-            if name in data:
-                tmp = path.with_suffix(".csv.tmp")
-                write_csv(tmp, data[name], ("x", "y", "z"))
-                os.replace(tmp, path)
-            elif path.exists():
-                path.unlink()
-        tmp = self.folder / "session.json.tmp"
-        tmp.write_text(json.dumps(self.to_json(), indent=1))
-        os.replace(tmp, self.folder / "session.json")
+        """Write session.json and the case folder's intraop/. The first save writes the whole
+        case into a folder beside this one and renames it into place, so that a session folder
+        is never half a case (a kill during it leaves the temporary folder, which the next
+        start removes); later ones write file by file, each atomically, session.json last."""
+        if self.written:
+            _write_data(self, self.folder, sd, planes)
+            return
+        tmp = _sibling(self.folder, "new")
+        shutil.rmtree(tmp, ignore_errors=True)
+        tmp.mkdir(parents=True)
+        try:
+            _write_case(tmp, sd)
+            _write_data(self, tmp, sd, planes)
+            _into_place(tmp, self.folder)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            raise
+        self.written = True
+
+
+def _write_case(folder: Path, sd: SceneData):
+    """The case part of a session folder, all from the scene: case.toml, preop/, truth/."""
+    write_settings(folder, {"name": _case_name(sd), "units": "mm"})
+    write_preop(sd.case.preop, folder)
+    if sd.case.targets is not None:
+        (folder / "truth").mkdir(exist_ok=True)
+        write_csv(folder / "truth" / "targets.csv", sd.case.targets, ("x0", "y0", "z0", "x1", "y1", "z1"))
+
+
+def _write_data(s: Session, folder: Path, sd: SceneData, planes: dict):
+    """intraop/ (the registration data the session holds) and session.json, each file atomically."""
+    idir = folder / "intraop"
+    idir.mkdir(exist_ok=True)
+    data = s.data(sd, planes)
+    for name in FEATURE_NAMES:
+        path = idir / f"{name}.csv"
+        if name in data:
+            tmp = path.with_suffix(".csv.tmp")
+            write_csv(tmp, data[name], ("x", "y", "z"))
+            os.replace(tmp, path)
+        elif path.exists():
+            path.unlink()
+    tmp = folder / "session.json.tmp"
+    tmp.write_text(json.dumps(s.to_json(), indent=1))
+    os.replace(tmp, folder / "session.json")
+
+
+def _case_name(sd: SceneData) -> str:
+    return f"session-{sd.scene.name}"
+
+
+def _sibling(folder: Path, what: str) -> Path:
+    """A temporary folder beside ``folder`` (same file system: renames are atomic), named by
+    this process so that the next start can tell a dead one's."""
+    return folder.parent / f".{folder.name}.{what}-{os.getpid()}"
+
+
+def _into_place(tmp: Path, folder: Path):
+    if not folder.exists() or not any(folder.iterdir()):
+        os.replace(tmp, folder)  # rename(2) also replaces an empty folder
+        return
+    # an interrupted first save found at start (open_session): it held nothing session.json
+    # recorded, so it is set aside, the new folder renamed in, and the old one removed
+    old = _sibling(folder, "old")
+    shutil.rmtree(old, ignore_errors=True)
+    os.replace(folder, old)
+    os.replace(tmp, folder)
+    shutil.rmtree(old, ignore_errors=True)
+
+
+def _remove_dead_siblings(folder: Path):
+    """Temporary folders beside ``folder`` left by a process that died mid-save."""
+    if not folder.parent.is_dir():
+        return
+    for p in folder.parent.glob(f".{glob.escape(folder.name)}.*-*"):
+        what, _, pid = p.name[len(folder.name) + 2:].rpartition("-")
+        if what in ("new", "old") and pid.isdigit() and not _alive(int(pid)):
+            shutil.rmtree(p, ignore_errors=True)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _complete(s: Session, sd: SceneData, planes: dict) -> list[str]:
+    """Make ``s.folder`` hold what its session.json says: the case from the scene and the
+    intraop data from the session (a kill could leave preop/ half written by an earlier
+    navapp, or intraop/ a save ahead of session.json). Returns the files that were missing
+    or different, now replaced, each atomically; anything else in the folder is kept."""
+    tmp = _sibling(s.folder, "new")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    fixed = []
+    try:
+        _write_case(tmp, sd)
+        _write_data(s, tmp, sd, planes)
+        (tmp / "session.json").unlink()  # the record itself was read: it is what the rest must match
+        held = {p.name for p in (tmp / "intraop").iterdir()}
+        for new in sorted(p for p in tmp.rglob("*") if p.is_file()):
+            rel = new.relative_to(tmp)
+            old = s.folder / rel
+            if not old.is_file() or old.read_bytes() != new.read_bytes():
+                fixed.append(str(rel))
+                old.parent.mkdir(parents=True, exist_ok=True)
+                os.replace(new, old)
+        idir = s.folder / "intraop"
+        for stale in sorted(idir.iterdir()) if idir.is_dir() else []:  # data the session no longer holds
+            if stale.suffix == ".tmp" or (stale.suffix == ".csv" and stale.name not in held):
+                stale.unlink()
+                if stale.suffix == ".csv":
+                    fixed.append(f"intraop/{stale.name} (not in session.json)")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return fixed
 
 
 def default_folder(sd: SceneData) -> Path:
@@ -113,9 +218,18 @@ def open_session(folder: Path, sd: SceneData) -> tuple[Session, dict]:
     folder = Path(folder)
     key = scene_key(sd.scene, sd.edge)
     planes = {p.index: p for p in sd.planes}
+    _remove_dead_siblings(folder)
     path = folder / "session.json"
     if not path.exists():
-        return Session(folder, key), planes
+        s = Session(folder, key)
+        if folder.is_dir() and any(folder.iterdir()):
+            if not _cut_short(folder, sd):
+                raise InputError("this folder holds files but no session.json, so it is not a navapp session: "
+                                 "pass a new or empty folder with --session", folder)
+            s.save(sd, planes)
+            s.note = (f"{folder}: its first save had been cut short (no session.json, so nothing entered was "
+                      f"recorded in it): written again as a new session")
+        return s, planes
     try:
         d = json.loads(path.read_text())
         if d.get("scene_key") != key:
@@ -141,7 +255,30 @@ def open_session(folder: Path, sd: SceneData) -> tuple[Session, dict]:
     bad = [i for i in s.planes_added if i not in planes] + [c.plane for c in s.contours if c.plane not in planes]
     if bad:
         raise InputError(f"session.json refers to planes {sorted(set(bad))} that this scene does not have", path)
+    s.written = True
+    fixed = _complete(s, sd, planes)
+    if fixed:
+        listed = ", ".join(fixed[:4]) + (f" and {len(fixed) - 4} more" if len(fixed) > 4 else "")
+        s.note = (f"{folder}: the session folder was incomplete ({listed} missing or cut short): completed from "
+                  f"the scene and session.json")
     return s, planes
+
+
+SESSION_ENTRIES = {"case.toml", "preop", "truth", "intraop", "session.json.tmp"}  # what a save writes
+
+
+def _cut_short(folder: Path, sd: SceneData) -> bool:
+    """Whether ``folder`` (no session.json) is this scene's session whose first save was cut
+    short (an earlier navapp wrote the case in place): only what a save writes, and a
+    case.toml, if readable, naming this scene's session. A case folder of the user's (navapp
+    import) has another name, so it is refused, never overwritten."""
+    if not {p.name for p in folder.iterdir()} <= SESSION_ENTRIES:
+        return False
+    try:
+        name = tomllib.loads((folder / "case.toml").read_text()).get("name")
+    except (OSError, ValueError):  # absent, or cut short itself
+        return True
+    return name == _case_name(sd)
 
 
 def export(folder: Path, reg, sd: SceneData, data: dict) -> list[Path]:
