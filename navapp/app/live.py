@@ -74,6 +74,7 @@ class LiveLink:
         self.client = TrackingClient(config, on_event=self._on_event)
         self.follower = LiveFollower(self)
         self.tip: np.ndarray | None = None
+        self.lost: str | None = None  # why the stylus, once seen, is not shown now (the viewer's red banner)
         self.frame: ProbeSample | None = None  # latest ProbeSample
         self.recorded = 0  # digitiser points already moved into the session
         self._stop = threading.Event()
@@ -135,11 +136,23 @@ class LiveLink:
             self._wake.clear()
             now = time.monotonic()
             s = self.client.latest_stylus
+            # the latest sample stays there after the tracker stops: only a tool the watchdog
+            # calls seen is drawn or measured from, so a stale pose never comes back
+            st = self.client.status().get(self.config.stylus)
+            fresh = st is not None and st.state == "seen"
             moved = s is not None and (self.tip is None or not np.array_equal(s.tip, self.tip))
-            if s is not None and moved and now - last_tip >= TIP_MIN_S:
+            if s is not None and fresh and moved and now - last_tip >= TIP_MIN_S:
                 last_tip = now
                 self.tip = np.array(s.tip, float)
+                if self.lost is not None:
+                    self.lost = None
+                    self.core.each_view(lambda v: v.refresh(Change.LIVE))
                 self.core.each_view(_shows("show_live_tip", self.tip))
+            elif not fresh and self.tip is not None:
+                self.tip = None  # a lost tool is not shown where it was last seen, nor measured from
+                self.lost = _lost(self.config.stylus, st)
+                self.core.each_view(lambda v: v.show_live_tip(None))
+                self.core.each_view(lambda v: v.refresh(Change.LIVE))
             f = self.client.latest_frame
             if f is not None and f is not self.frame:
                 self.frame = f
@@ -150,10 +163,8 @@ class LiveLink:
                 self._collect()
             if now - last_status > 0.5:
                 last_status = now
-                st = self.client.status().get(self.config.stylus)
-                if self.tip is not None and (st is None or st.state == "missing"):
-                    self.tip = None  # a lost tool is not shown where it was last seen, nor measured from
-                    self.core.each_view(lambda v: v.show_live_tip(None))
+                if self.lost is not None:
+                    self.lost = _lost(self.config.stylus, st)  # stale becomes missing; the age grows
                 self.core.each_view(lambda v: v.refresh(Change.LIVE))
 
     def frozen_plane(self, index) -> PlaneData | None:
@@ -164,6 +175,14 @@ class LiveLink:
         img = np.asarray(f.image)
         T, _ = probe_pose_from_image(f.image_to_reference, img.shape[1], img.shape[0])
         return PlaneData(index, "live", T, {}, img.astype(np.uint8))
+
+
+def _lost(device: str, st) -> str:
+    """The banner's words for a stylus not seen now (``st``: its ToolStatus, or None)."""
+    state = st.state if st is not None else "missing"
+    age = "" if st is None or st.age_s is None else f", last seen {st.age_s:.1f} s ago"
+    return f"Stylus {'lost' if state == 'missing' else 'not tracked'} ({device}: {state}{age}): not shown, " \
+           f"no tumour distances."
 
 
 def _shows(method: str, arg):

@@ -5,6 +5,7 @@ module of its own."""
 from __future__ import annotations
 
 import time
+from html import escape
 
 import numpy as np
 
@@ -31,6 +32,7 @@ class ClientView:
         g = client.gui
         self.status = g.add_markdown("")
         self.bar = g.add_progress_bar(0.0, animated=True)
+        self.alert = g.add_html("", visible=False)  # a lost tool: above every panel, not in a folder
         self.layers = LayersPanel(self)  # first: the others show their nodes through it
         self.guide = GuidePanel(self)
         self.stylus = StylusPanel(self)
@@ -60,6 +62,20 @@ class ClientView:
             return
         for p in self.panels:
             p.refresh(what)
+        if what is Change.LIVE:
+            self._alert()
+
+    def _alert(self):
+        link = self.app.live.link
+        lost = link.lost if link is not None else None
+        if lost is None:
+            self.alert.visible = False
+            return
+        html = (f"<div style='background:#c00;color:#fff;font-weight:600;padding:8px;border-radius:4px'>"
+                f"⚠ {escape(lost)}</div>")
+        if self.alert.content != html:
+            self.alert.content = html
+        self.alert.visible = True
 
     def notify(self, title, body, error=False):
         self.client.add_notification(title, body, color="red" if error else None,
