@@ -19,3 +19,6 @@ FAR_WALL_COS, FAR_WALL_MIN_DEPTH_MM = 0.2, 15.0
 """The posterior (far) liver wall an iUS image shows: liver faces turned away from the probe
 (normal · depth axis > 0.2), more than 15 mm deep. The simulator segments it so, and the
 next-plane planner expects it so."""
+N_PLANES = 16
+"""iUS planes a simulated scene records: 8 vertical + 8 lateral (``ius.planes``' default and
+maximum); a study's "S+all" registers all of them."""

@@ -11,3 +11,11 @@ class InputError(NavappError):
     def __init__(self, message: str, path=None):
         self.path = None if path is None else str(path)
         super().__init__(f"{self.path}: {message}" if self.path else message)
+
+
+def short_error(exc: Exception) -> str:
+    """A reader's exception as a short phrase for a one-line error (its first line, at most
+    80 characters)."""
+    lines = str(exc).strip().splitlines()
+    text = lines[0] if lines else type(exc).__name__
+    return text if len(text) <= 80 else text[:79] + "…"

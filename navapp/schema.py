@@ -10,6 +10,7 @@ A name's rule is its exact entry in ``NAMED``, else the first matching entry of
 import math
 from dataclasses import dataclass
 
+from .defaults import N_PLANES
 from .errors import InputError
 
 
@@ -43,7 +44,7 @@ NAMED = {
     "seed": NON_NEGATIVE,  # numpy's generators take no negative seed
     "fraction": Range(0.0, 1.0, open_hi=True),  # dropout: all data dropped leaves a case with no data
     "coverage": Range(0.0, 1.0, open_lo=True),
-    "planes": Range(0, 16),  # the scene's 8 vertical + 8 lateral planes
+    "planes": Range(0, N_PLANES),
     "gravity_tilt_deg": Range(0.0, 90.0),  # from posterior toward the released side (as scene.py checks it)
     "head_up_deg": Range(-90.0, 90.0, open_lo=True, open_hi=True),
     "rotation_deg": Range(0.0, 180.0),

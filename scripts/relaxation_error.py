@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from navapp import progress
-from navapp.defaults import EDGE_MM, K
+from navapp.defaults import EDGE_MM, N_PLANES, K
 
 
 def modes_table(layers, volume_ml=None, edge=EDGE_MM, k=K):
@@ -72,7 +72,7 @@ def tre_table(case_dirs, layers, combos, edge=EDGE_MM, k=K, seed=0):
     from navapp.registration.rigid import TOL_BEFORE_LIBR, rigid_icp
     from navapp.simulation.levels import data_level
 
-    triples = list(itertools.combinations(range(16), 3))
+    triples = list(itertools.combinations(range(N_PLANES), 3))
     if combos:
         pick = np.random.default_rng(seed).choice(len(triples), combos, replace=False)
         triples = [triples[i] for i in sorted(pick)]
@@ -85,7 +85,7 @@ def tre_table(case_dirs, layers, combos, edge=EDGE_MM, k=K, seed=0):
         B = interpolation_matrix(mesh.nodes, mesh.tets, x0)
         stylus = data_level(d, "S", case=case)
         scenarios = [("S", stylus)] + [("S+3", data_level(d, "S+planes", planes=p, case=case)) for p in triples]
-        scenarios.append(("S+all", data_level(d, "S+planes", planes=range(16), case=case)))
+        scenarios.append(("S+all", data_level(d, "S+planes", planes=range(N_PLANES), case=case)))
         rigid = None
         for name, n in variants.items():
             basis, _ = load_or_compute_basis(mesh, BasisSettings(k=k, relax_layers=n), label=f"{d.name} {name}")

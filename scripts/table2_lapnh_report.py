@@ -14,7 +14,8 @@ import sys
 from pathlib import Path
 
 from navapp.evaluation.report import markdown, plot_levels, summarise
-from navapp.evaluation.table2 import LEVELS, PAPER, read_results
+from navapp.evaluation.table2 import PAPER, read_results
+from navapp.simulation.levels import LEVELS
 
 args = sys.argv[1:] + [None] * 4
 cases = Path(args[0] or "/work/study-cases-lapnh")

@@ -5,8 +5,7 @@ import threading
 import numpy as np
 import pytest
 
-from navapp.evaluation.cost import LEVELS as LEVELS_
-from navapp.evaluation.cost import lm_sweep, pareto_front
+from navapp.evaluation.cost import SWEEP_LEVELS, lm_sweep, pareto_front
 
 
 def test_pareto_front_against_brute_force():
@@ -96,7 +95,7 @@ def test_cost_study_rows_resume_and_report(tmp_path, cache_root, monkeypatch):
     # rows lost from one whole model (edge 14) and one LM setting: exactly that work is redone
     lost = [r for r in rows if r["edge_mm"] == "14.0" or (r["sweep"] == "lm" and r["setting"] == "2 it"
                                                           and r["level"] == "S")]
-    assert len(lost) == len(LEVELS_) + 1
+    assert len(lost) == len(SWEEP_LEVELS) + 1
     with csv.open("w", newline="") as f:
         w = csvmod.DictWriter(f, cost.COST_COLUMNS)
         w.writeheader()

@@ -19,8 +19,6 @@ from ..features import NAMES
 from .model import REGION_NAMES, VESSELS, Centerline, PreopModel, polyline_tangents
 from .targets import TARGETS_DIR, read_targets, write_targets
 
-FEATURES = NAMES  # the allowed ``intraop/<feature>.csv`` stems (``navapp.features``)
-
 LIVER_SIZE_MM = (40.0, 400.0)  # plausible range of a liver's largest extent, for the units check
 
 
@@ -316,8 +314,8 @@ def read_case(folder) -> Case:
         for p in sorted(idir.iterdir()):
             if p.suffix != ".csv":
                 continue
-            if p.stem not in FEATURES:
-                warnings.warn(f"{p}: unknown feature {p.stem!r} ignored (known: {', '.join(FEATURES)})", stacklevel=2)
+            if p.stem not in NAMES:  # the allowed ``intraop/<feature>.csv`` stems
+                warnings.warn(f"{p}: unknown feature {p.stem!r} ignored (known: {', '.join(NAMES)})", stacklevel=2)
                 continue
             intraop[p.stem] = read_csv(p, ("x", "y", "z"), points=True)
     targets = None
@@ -384,7 +382,7 @@ def write_case(case: Case, folder):
         idir = folder / "intraop"
         idir.mkdir(exist_ok=True)
         for name, pts in case.intraop.items():
-            if name not in FEATURES:
+            if name not in NAMES:
                 raise InputError(f"unknown feature {name!r}")
             write_csv(idir / f"{name}.csv", pts, ("x", "y", "z"))
     if case.targets is not None:

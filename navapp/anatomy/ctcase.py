@@ -15,12 +15,13 @@ import numpy as np
 import trimesh
 
 from . import frames
+from .model import VESSELS
 from .skeleton import inside_grid
 
 CT_SPACING = (0.7, 0.7, 2.5)  # mm: a typical abdominal portal-venous CT
 CT_SHAPE = (512, 512, 200)
 CT_TILT_DEG = (8.0, 5.0, 3.0)  # rotations about z, x, y of the grid's axes against the patient's
-STRUCTURES = ("liver", "portal", "hepatic")
+STRUCTURES = ("liver", *VESSELS)
 
 
 @dataclass

@@ -26,7 +26,7 @@ def write_routes(folder: Path) -> dict[str, list[str]]:
 
     model = make_phantom(0)
     vc = ctcase.ct_case(model)
-    names = {1: "liver", 2: "portal", 3: "hepatic"}
+    names = dict(enumerate(ctcase.STRUCTURES, start=1))  # the label values ``ct_case`` writes
     masks = folder / "masks"
     masks.mkdir()
     for s, m in vc.masks.items():
@@ -38,7 +38,7 @@ def write_routes(folder: Path) -> dict[str, list[str]]:
     labels = vc.labels()
     ctcase.write_nrrd(labels, vc.affine, folder / "segmentation.seg.nrrd", names)
     ctcase.write_dicom_seg(labels, vc.affine, folder / "seg.dcm", names)
-    for s in ("liver", "portal", "hepatic"):
+    for s in ctcase.STRUCTURES:
         ctcase.write_stl(getattr(model, s), folder / f"{s}.stl")
     return {
         "nifti masks": ["--liver", str(masks / "liver.nii.gz"), "--portal", str(masks / "portal.nii.gz"),

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, short_error
 from . import frames
 
 LABELMAP_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".seg.nrrd", ".nhdr", ".dcm")
@@ -138,12 +138,6 @@ def _check_affine(affine: np.ndarray, path: Path):
                          "mm, axes not independent): the file's geometry header is broken", path)
 
 
-def _short(exc: Exception) -> str:
-    lines = str(exc).strip().splitlines()
-    text = lines[0] if lines else type(exc).__name__
-    return text if len(text) <= 80 else text[:79] + "…"
-
-
 def _read_nifti(path: Path) -> LabelMap:
     import nibabel
 
@@ -155,7 +149,7 @@ def _read_nifti(path: Path) -> LabelMap:
         raw = np.asarray(proxy.get_unscaled()) if hasattr(proxy, "get_unscaled") else np.asarray(proxy)
         slope, inter = float(getattr(proxy, "slope", 1.0)), float(getattr(proxy, "inter", 0.0))
     except Exception as exc:  # nibabel raises many types for a bad file
-        raise InputError(f"not a readable NIfTI image ({_short(exc)})", path) from None
+        raise InputError(f"not a readable NIfTI image ({short_error(exc)})", path) from None
     if raw.ndim == 4 and raw.shape[3] == 1:
         raw = raw[..., 0]
     if raw.ndim != 3:
@@ -180,7 +174,7 @@ def _read_nrrd(path: Path) -> LabelMap:
     try:
         data, header = nrrd.read(str(path))
     except Exception as exc:  # pynrrd raises many types for a bad file
-        raise InputError(f"not a readable NRRD file ({_short(exc)})", path) from None
+        raise InputError(f"not a readable NRRD file ({short_error(exc)})", path) from None
     space = header.get("space")
     if space not in _NRRD_SPACES:
         raise InputError(f"NRRD space {space!r} is not one navapp knows (LPS or RAS)", path)
@@ -222,14 +216,14 @@ def _read_dicom_seg(path: Path) -> LabelMap:
     try:
         seg = hd.seg.segread(str(path))
     except Exception as exc:  # pydicom/highdicom raise many types for a bad or non-SEG file
-        raise InputError(f"not a readable DICOM SEG ({_short(exc)})", path) from None
+        raise InputError(f"not a readable DICOM SEG ({short_error(exc)})", path) from None
     numbers = list(seg.get_segment_numbers())
     if not numbers:
         raise InputError("DICOM SEG holds no segments", path)
     try:
         vol = seg.get_volume(segment_numbers=numbers, dtype=np.uint8)
     except Exception as exc:  # frames that are not one regular 3-D grid
-        raise InputError(f"DICOM SEG frames do not form one regular volume ({_short(exc)})", path) from None
+        raise InputError(f"DICOM SEG frames do not form one regular volume ({short_error(exc)})", path) from None
     names = {n: str(seg.get_segment_description(n).segment_label) for n in numbers}
     arr = np.asarray(vol.array)
     if arr.ndim == 3:

@@ -6,7 +6,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from ..errors import InputError
+from ..errors import InputError, short_error
 
 SURFACE_SUFFIXES = (".ply", ".stl", ".obj", ".vtk", ".vtp")
 
@@ -73,10 +73,3 @@ def _read_vtp(path: Path) -> trimesh.Trimesh:
         raise InputError(f"not a readable VTP file ({short_error(exc)})", path) from None
     faces = np.asarray(poly.faces).reshape(-1, 4)[:, 1:]
     return trimesh.Trimesh(np.asarray(poly.points, float), faces, process=False)
-
-
-def short_error(exc: Exception) -> str:
-    """A reader's exception as a short phrase for a one-line error."""
-    lines = str(exc).strip().splitlines()
-    text = lines[0] if lines else type(exc).__name__
-    return text if len(text) <= 80 else text[:79] + "…"

@@ -12,10 +12,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..defaults import EDGE_MM, K
+from ..defaults import EDGE_MM, N_PLANES, K
 from ..mechanics.interpolation import interpolation_matrix
 from ..registration.libr import LMOptions
 from ..registration.pipeline import register, tre_stats
+from ..simulation.levels import plus_planes
 
 LM_CAPS = (0, 1, 2, 4, 8, 16, 100)  # 0 = rigid only
 LM_RTOLS = (1e-1, 1e-2, 1e-3)
@@ -84,8 +85,8 @@ COST_COLUMNS = ("case", "sweep", "level", "method", "edge_mm", "k", "setting", "
                 "precompute_s", "register_s", "tre_mean_mm", "iterations")
 KS = (15, 30, 45, 60, 90)
 EDGES = (6.0, 4.0, 3.0)
-PLANE_COUNTS = (0, 1, 2, 4, 8, 16)
-LEVELS = {"S": (), "S+3": (0, 5, 10), "S+all": tuple(range(16))}  # data levels of the k and edge sweeps
+PLANE_COUNTS = (0, 1, 2, 4, 8, N_PLANES)
+SWEEP_LEVELS = {"S": (), "S+3": (0, 5, 10), "S+all": tuple(range(N_PLANES))}  # data levels of the k and edge sweeps
 DEFAULT_EDGE, DEFAULT_K = EDGE_MM, K
 
 
@@ -106,15 +107,15 @@ def _planned_keys(case, ks, edges, caps, rtols, plane_counts, peers, edge0, k0) 
 
     out = {}
     for sweep, edge, k in _plan(ks, edges, edge0, k0):
-        keys = {key("k" if sweep == "default" else sweep, lv, "LIBR", edge, k, "default") for lv in LEVELS}
+        keys = {key("k" if sweep == "default" else sweep, lv, "LIBR", edge, k, "default") for lv in SWEEP_LEVELS}
         if sweep == "default":
-            keys |= {key("edge", lv, "LIBR", edge, k, "default") for lv in LEVELS}
+            keys |= {key("edge", lv, "LIBR", edge, k, "default") for lv in SWEEP_LEVELS}
             for lv in ("S", "S+3"):
                 keys |= {key("lm", lv, "LIBR" if c else "rigid ICP", edge, k, _cap_label(c)) for c in caps}
                 keys |= {key("lm", lv, "LIBR", edge, k, _rtol_label(r)) for r in rtols}
-            keys |= {key("planes", f"S+{m}", "LIBR", edge, k, "default") for m in plane_counts}
+            keys |= {key("planes", plus_planes(m), "LIBR", edge, k, "default") for m in plane_counts}
             if peers:
-                keys |= {key("peers", lv, m, edge, k, "default") for lv in LEVELS for m in ("rigid ICP", "CPD")}
+                keys |= {key("peers", lv, m, edge, k, "default") for lv in SWEEP_LEVELS for m in ("rigid ICP", "CPD")}
         out[(sweep, edge, k)] = keys
     return out
 
@@ -150,7 +151,7 @@ def _cost_case(case_dir, todo, caps, rtols, plane_counts, peers, tempfile, Path)
 
     case = read_case(case_dir)
     x0, x1 = case.truth_pairs()
-    levels = {name: data_level(case_dir, "S+planes", planes=pl, case=case) for name, pl in LEVELS.items()}
+    levels = {name: data_level(case_dir, "S+planes", planes=pl, case=case) for name, pl in SWEEP_LEVELS.items()}
     rows: list[dict] = []
 
     def row(sweep, level, method, edge, k, setting, planes, nodes, pre, reg_s, tre, its):
@@ -178,10 +179,10 @@ def _cost_case(case_dir, todo, caps, rtols, plane_counts, peers, tempfile, Path)
                                                                                                  edge, k))):
                 continue
             r = run_setting(model, data, x0, x1, "default", B=B)
-            row(first, level, "LIBR", edge, k, "default", len(LEVELS[level]), nodes, pre, r.seconds, r.tre_mean_mm,
-                r.iterations)
+            row(first, level, "LIBR", edge, k, "default", len(SWEEP_LEVELS[level]), nodes, pre, r.seconds,
+                r.tre_mean_mm, r.iterations)
             if sweep == "default":
-                row("edge", level, "LIBR", edge, k, "default", len(LEVELS[level]), nodes, pre, r.seconds,
+                row("edge", level, "LIBR", edge, k, "default", len(SWEEP_LEVELS[level]), nodes, pre, r.seconds,
                     r.tre_mean_mm, r.iterations)
         if sweep != "default":
             continue
@@ -192,14 +193,15 @@ def _cost_case(case_dir, todo, caps, rtols, plane_counts, peers, tempfile, Path)
                 continue
             for r in lm_sweep(model, levels[level], x0, x1, lm_caps, lm_rtols, B=B):
                 row("lm", level, "LIBR" if r.iterations or r.label != "rigid" else "rigid ICP", edge, k, r.label,
-                    len(LEVELS[level]), nodes, pre, r.seconds, r.tre_mean_mm, r.iterations)
+                    len(SWEEP_LEVELS[level]), nodes, pre, r.seconds, r.tre_mean_mm, r.iterations)
         for m in plane_counts:
-            if not missing("planes", f"S+{m}", "LIBR", edge, k):
+            if not missing("planes", plus_planes(m), "LIBR", edge, k):
                 continue
-            planes = tuple(np.linspace(0, 15, m).round().astype(int)) if m else ()
+            planes = tuple(np.linspace(0, N_PLANES - 1, m).round().astype(int)) if m else ()
             data = data_level(case_dir, "S+planes", planes=planes, case=case)
             r = run_setting(model, data, x0, x1, "default", B=B)
-            row("planes", f"S+{m}", "LIBR", edge, k, "default", m, nodes, pre, r.seconds, r.tre_mean_mm, r.iterations)
+            row("planes", plus_planes(m), "LIBR", edge, k, "default", m, nodes, pre, r.seconds, r.tre_mean_mm,
+                r.iterations)
         if peers:
             for level, data in levels.items():
                 for method, peer in (("rigid ICP", icp_register), ("CPD", cpd_register)):
@@ -207,8 +209,8 @@ def _cost_case(case_dir, todo, caps, rtols, plane_counts, peers, tempfile, Path)
                         continue
                     res = peer(model, data, x0)
                     tre = float(np.linalg.norm(res.moved - x1, axis=1).mean())
-                    row("peers", level, res.method, edge, k, "default", len(LEVELS[level]), nodes, 0.0, res.seconds,
-                        tre, 0)
+                    row("peers", level, res.method, edge, k, "default", len(SWEEP_LEVELS[level]), nodes, 0.0,
+                        res.seconds, tre, 0)
     return rows
 
 

@@ -26,8 +26,10 @@ from scipy.optimize import nnls
 from .. import progress
 from ..defaults import EDGE_MM, K
 from ..registration.uncertainty import Calibration
+from ..simulation.levels import has_planes, plane_count, study_data, stylus_only_pose
 
-LEVELS = ("S", "S+1", "S+2", "S+3", "S+all", "CBCT")
+# the levels the estimate is calibrated and validated at (module doc), of ``simulation.levels.LEVELS``
+ESTIMATE_LEVELS = ("S", "S+1", "S+2", "S+3", "S+all", "CBCT")
 NOMINAL = 0.9  # band coverage asked of the calibration
 FIT_NODES = 2000  # nodes per registration in the fit (every registration counts the same)
 
@@ -60,14 +62,14 @@ def liver_id(case_dir) -> str:
 def plane_choices(level, n_planes, combos, rng):
     if level == "S+all":
         return [tuple(range(n_planes))]
-    if not level.startswith("S+"):
+    if not has_planes(level):
         return [()]
-    m = int(level[2:])
+    m = plane_count(level)
     allc = list(itertools.combinations(range(n_planes), m))
     return [allc[i] for i in sorted(rng.choice(len(allc), min(combos, len(allc)), replace=False))]
 
 
-def collect_case(case_dir, levels=LEVELS, combos=3, seed=0, edge=EDGE_MM, k=K) -> list[Sample]:
+def collect_case(case_dir, levels=ESTIMATE_LEVELS, combos=3, seed=0, edge=EDGE_MM, k=K) -> list[Sample]:
     """Register one case at every level and record d, σ and the true error per mesh node."""
     import time
 
@@ -76,7 +78,6 @@ def collect_case(case_dir, levels=LEVELS, combos=3, seed=0, edge=EDGE_MM, k=K) -
     from ..registration.pipeline import prepare, register
     from ..registration.rigid import TOL_BEFORE_LIBR, rigid_icp
     from ..registration.uncertainty import estimate_error
-    from ..simulation.levels import data_level
 
     case_dir = Path(case_dir)
     case = read_case(case_dir)
@@ -87,19 +88,14 @@ def collect_case(case_dir, levels=LEVELS, combos=3, seed=0, edge=EDGE_MM, k=K) -
 
         raise InputError("the case's targets are not the mesh nodes (regenerate the case)", case_dir)
     n_planes = len([p for p in (case_dir / "intraop" / "us").glob("plane_??") if p.is_dir()])
-    stylus = data_level(case_dir, "S", case=case)
+    stylus = study_data(case_dir, "S", case=case)
     rigid_s = rigid_icp(model, usable_data(model, stylus), tol_mm=TOL_BEFORE_LIBR)
     rng = np.random.default_rng(seed + sum(map(ord, case_dir.name)))
     out = []
     for level in levels:
         for planes in plane_choices(level, n_planes, combos, rng):
-            if level == "S":
-                data = stylus
-            elif level.startswith("S+"):
-                data = data_level(case_dir, "S+planes", planes=planes, case=case)
-            else:
-                data = data_level(case_dir, level, case=case)
-            reg = register(model, data, rigid=rigid_s if level.startswith("S") else None)
+            data = study_data(case_dir, level, planes, case=case, stylus=stylus)
+            reg = register(model, data, rigid=rigid_s if stylus_only_pose(level) else None)
             t = time.perf_counter()
             est = estimate_error(reg)
             sec = time.perf_counter() - t
@@ -149,7 +145,7 @@ def _r(x, y):
 def validate(samples: list[Sample], cal: Calibration) -> list[dict]:
     """Per level: r of ê (pooled, median per registration), of d and σ alone, band coverage."""
     rows = []
-    for level in LEVELS + ("all",):
+    for level in ESTIMATE_LEVELS + ("all",):
         ss = [s for s in samples if s.level == level or level == "all"]
         if not ss:
             continue

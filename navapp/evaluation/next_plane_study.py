@@ -22,6 +22,7 @@ import numpy as np
 
 from .. import progress
 from ..defaults import EDGE_MM, K
+from ..simulation.levels import plus_planes
 from .table2 import read_results
 
 COLUMNS = ("case", "level", "planes", "tre_mean_mm", "tre_table2_mm", "rank", "combinations", "percentile",
@@ -139,7 +140,7 @@ def run_case(case_dir, table, steps=3, edge=EDGE_MM, k=K, calibration=None, fres
         sugg = suggest_planes(reg, poses=[poses[i] for i in remaining], calibration=calibration)
         best = sugg.best
         chosen.append(remaining[best.index])
-        level = f"S+{m}"
+        level = plus_planes(m)
         # how well the one-step score ranks the candidates (Spearman ρ of score against
         # −TRE of S + chosen-so-far + candidate, from the Table II CSV)
         cand_tre = [known.get(level, {}).get(tuple(sorted(chosen[:-1] + [remaining[c.index]])))

@@ -6,8 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..defaults import EDGE_MM, K
-from .table2 import LEVELS, PAPER, read_results
+from ..defaults import EDGE_MM, N_PLANES, K
+from ..simulation.levels import LEVELS, study_data
+from .table2 import PAPER, read_results
 
 
 def summarise(rows):
@@ -86,14 +87,13 @@ def distance_plot(case_dirs, path, level="S+all", edge=EDGE_MM, k=K) -> float:
 
     from ..anatomy.caseio import read_case
     from ..registration.pipeline import prepare, register
-    from ..simulation.levels import data_level
 
     dist, err = [], []
     for d in case_dirs:
         case = read_case(d)
         model, _ = prepare(case, edge, k)
-        planes = range(16) if level == "S+all" else ()
-        data = data_level(d, "S+planes" if level.startswith("S+") else level, planes=planes, case=case)
+        planes = range(N_PLANES) if level == "S+all" else ()
+        data = study_data(d, level, planes, case=case)
         reg = register(model, data)
         x0, x1 = case.truth_pairs()
         pts = np.vstack(list(data.values()))

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import progress
-from ..defaults import EDGE_MM, K
+from ..defaults import EDGE_MM, N_PLANES, K
 from ..features import SALIENT
 from .distribute import ResultsCSV, check_scheduler, run_tasks
 
@@ -127,7 +127,7 @@ def mislabel(data: dict, rng, fraction=0.1) -> dict:
     return out
 
 
-def trial_data(case_dir, case, trial: Trial, truth_surface=None, n_planes=16):
+def trial_data(case_dir, case, trial: Trial, truth_surface=None, n_planes=N_PLANES):
     """(data, offset function, planes) of a trial: S + 3 planes, label noise, then offset."""
     from ..simulation.levels import data_level
 

@@ -17,16 +17,16 @@ from pathlib import Path
 import numpy as np
 
 from .. import progress
-from ..defaults import EDGE_MM, K
+from ..defaults import EDGE_MM, N_PLANES, K
+from ..simulation.levels import LEVELS, plus_planes, study_data, stylus_only_pose  # noqa: F401 (LEVELS: Table II's rows)
 from .distribute import DASK_CONNECT_S, ResultsCSV, check_scheduler, dask_client, run_tasks  # noqa: F401
 
-LEVELS = ("rigid", "S", "S+1", "S+2", "S+3", "S+all", "CBCT", "iCT")
 PAPER = {"rigid": (13.8, None), "S": (11.4, None), "S+1": (9.0, None), "S+2": (7.4, None), "S+3": (6.4, None),
          "S+all": (3.9, None), "CBCT": (4.5, None), "iCT": (2.8, None)}  # mean TRE (mm) over the paper's 9 cases
 COLUMNS = ("case", "level", "planes", "tre_mean_mm", "tre_sd_mm", "tre_max_mm", "iterations", "stop_reason", "seconds")
 
 
-def scenarios(n_planes=16, quick=False, rng_seed=0):
+def scenarios(n_planes=N_PLANES, quick=False, rng_seed=0):
     """(level, planes) pairs of the design; ``quick`` keeps two choices per plane level."""
     out: list[tuple[str, tuple[int, ...]]] = [("rigid", ()), ("S", ())]
     for m in (1, 2, 3):
@@ -34,7 +34,7 @@ def scenarios(n_planes=16, quick=False, rng_seed=0):
         if quick:
             rng = np.random.default_rng(rng_seed + m)
             combos = [combos[i] for i in sorted(rng.choice(len(combos), 2, replace=False))]
-        out += [(f"S+{m}", c) for c in combos]
+        out += [(plus_planes(m), c) for c in combos]
     out += [("S+all", tuple(range(n_planes))), ("CBCT", ()), ("iCT", ())]
     return out
 
@@ -52,7 +52,6 @@ def run_chunk(case_dir, items, edge=EDGE_MM, k=K, init=None):
     from ..registration.model import usable_data
     from ..registration.pipeline import prepare, register, tre_stats
     from ..registration.rigid import TOL_BEFORE_LIBR, rigid_icp
-    from ..simulation.levels import data_level
 
     case_dir = Path(case_dir)
     case = read_case(case_dir)
@@ -63,18 +62,13 @@ def run_chunk(case_dir, items, edge=EDGE_MM, k=K, init=None):
     # are the same for S and every S + planes scenario of a case: ICP runs once per chunk
     # and its time is added to each of those rows, so "seconds" stays a whole registration.
     t = time.perf_counter()
-    stylus = data_level(case_dir, "S", case=case)
+    stylus = study_data(case_dir, "S", case=case)
     rigid_s = rigid_icp(model, usable_data(model, stylus), tol_mm=TOL_BEFORE_LIBR)
     icp_sec = time.perf_counter() - t
     rows = []
     for level, planes in items:
-        if level in ("rigid", "S"):
-            data = stylus
-        elif level.startswith("S+"):
-            data = data_level(case_dir, "S+planes", planes=planes, case=case)
-        else:
-            data = data_level(case_dir, level, case=case)
-        shared = level == "S" or level.startswith("S+")
+        data = study_data(case_dir, level, planes, case=case, stylus=stylus)
+        shared = stylus_only_pose(level)
         t = time.perf_counter()
         reg = register(model, data, deform=level != "rigid", rigid=rigid_s if shared else None, init=init)
         sec = time.perf_counter() - t + (icp_sec if shared else 0.0)

@@ -28,6 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg as sla
 
+from ..defaults import LM_MAX_ITERATIONS
 from ..threads import limit_threads
 from .model import RegistrationModel
 from .objective import Weights, add_jacobian, evaluate
@@ -45,7 +46,7 @@ class LMOptions:
     # on |ΔΩ| / Ω, twice in a row: correspondence switching keeps Ω jittering far above tol.
     # 0.1, not 0.01: a few hundredths of a mm of TRE for fewer iterations (docs/decisions.md)
     rtol: float = 1e-1
-    max_iterations: int = 100
+    max_iterations: int = LM_MAX_ITERATIONS
     lam0: float = 1e-2
     weights: Weights = field(default_factory=Weights)
     deform: bool = True  # False: only τ, θ move (a rigid fit through the same machinery)

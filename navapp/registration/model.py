@@ -19,7 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-from ..anatomy.model import REGION_NAMES, PreopModel
+from ..anatomy.model import REGION_NAMES, VESSELS, PreopModel
 from ..errors import InputError
 from ..features import SALIENT, data_to_model, weights_si
 from ..geometry.closest import incidence
@@ -137,7 +137,7 @@ def build_model(basis: Basis, preop: PreopModel, fiducials: np.ndarray | None = 
                 remap = np.full(len(surf), -1)
                 remap[verts] = np.arange(len(verts))
                 feats[name] = _feature("surface", sel[verts], remap[faces[keep]], basis, feats["liver"].BJ[verts])
-    for v in ("portal", "hepatic"):
+    for v in VESSELS:
         mesh = preop.vessel(v)
         if mesh is not None:
             if len(mesh.faces) > VESSEL_FACES:

@@ -5,6 +5,10 @@
 - "CBCT": the full true anterior and posterior liver surface;
 - "iCT": CBCT plus the full true vessel surfaces and centerlines.
 Full surfaces are thinned to one point per ``spacing`` mm voxel.
+
+The studies name their rows by ``LEVELS`` ("S+2": S and two planes, the planes given
+apart); ``study_data`` reads the data of such a name, and the helpers below are the one
+place that parses it.
 """
 
 from pathlib import Path
@@ -16,6 +20,45 @@ from ..anatomy.model import VESSELS
 from ..errors import InputError
 from ..features import STYLUS
 from .stylus import thin
+
+LEVELS = ("rigid", "S", "S+1", "S+2", "S+3", "S+all", "CBCT", "iCT")
+"""The studies' data levels in the paper's Table II order: "rigid" (the stylus data, rigid
+registration only), "S", "S+n" (S and n iUS planes), "S+all" (S and every plane), "CBCT", "iCT"."""
+
+
+def plus_planes(n: int) -> str:
+    """The level name of S and ``n`` iUS planes."""
+    return f"S+{n}"
+
+
+def has_planes(level: str) -> bool:
+    """True for "S+n" and "S+all": S and iUS planes."""
+    return level.startswith("S+")
+
+
+def plane_count(level: str) -> int:
+    """n of "S+n"."""
+    if not has_planes(level) or level == "S+all":
+        raise ValueError(f"{level!r} is not S + a number of planes")
+    return int(level[2:])
+
+
+def stylus_only_pose(level: str) -> bool:
+    """True for the levels whose rigid stage sees only the stylus data (``registration.rigid``
+    fits the surface features, which are the stylus's for S and every S + planes), so one
+    rigid ICP serves all of a case's S and S + planes rows."""
+    return level == "S" or has_planes(level)
+
+
+def study_data(case_dir, level: str, planes=(), case=None, stylus=None) -> dict:
+    """The data of a study level (``LEVELS``): "rigid" and "S" the stylus data (``stylus``
+    when given, for a caller that reads it once per case), "S+n" and "S+all" S and
+    ``planes``, "CBCT" and "iCT" the full surfaces."""
+    if level in ("rigid", "S"):
+        return data_level(case_dir, "S", case=case) if stylus is None else stylus
+    if has_planes(level):
+        return data_level(case_dir, "S+planes", planes=planes, case=case)
+    return data_level(case_dir, level, case=case)
 
 
 def data_level(case_dir, level: str, planes=(), spacing=3.0, case=None) -> dict:

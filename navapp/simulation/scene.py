@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
+from ..defaults import N_PLANES
 from ..errors import InputError
 
 EFFECT_PARAMS = {
@@ -111,7 +112,7 @@ class Scene:
     pattern: str = "swaths"
     points: int = 500
     patch_at: tuple | None = None
-    planes: int = 16
+    planes: int = N_PLANES
     effects: list = field(default_factory=list)
     seed: int = 0
     source: Path | None = None
@@ -229,8 +230,8 @@ def parse_scene(data: dict, path=None) -> Scene:
         raise InputError(f"deformation.release must be \"L\", \"N\" or \"R\", got {scene.release!r}", path)
     if not 0.0 < scene.coverage <= 1.0:
         raise InputError("stylus.coverage must be in (0, 1]", path)
-    if not 0 <= scene.planes <= 16:
-        raise InputError("ius.planes must be between 0 and 16", path)
+    if not 0 <= scene.planes <= N_PLANES:
+        raise InputError(f"ius.planes must be between 0 and {N_PLANES}", path)
     if scene.mesh_edge_mm <= 0 or scene.truth_E_pa <= 0:
         raise InputError("deformation.mesh_edge_mm and deformation.truth_E_pa must be positive", path)
     if not 0.0 <= scene.gravity_tilt_deg <= 90.0:
@@ -271,7 +272,7 @@ DEMO_SCENE = {  # the built-in demo scene; navapp/scenes/demo.toml says the same
     "deformation": {"release": "L", "gravity_tilt_deg": 25.0, "large": False, "mesh_edge_mm": 3.5,
                     "truth_E_pa": 5000.0},
     "stylus": {"coverage": 0.2},
-    "ius": {"planes": 16},
+    "ius": {"planes": N_PLANES},
     "effects": [{"kind": "tracking_noise", "sd_mm": 0.3}, {"kind": "auto_segmentation", "sd_px": 1.0}],
 }
 

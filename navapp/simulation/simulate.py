@@ -27,7 +27,7 @@ from ..anatomy.targets import TARGETS_DIR, map_targets, write_targets
 from ..defaults import EDGE_MM
 from ..features import STYLUS
 from ..mechanics.controlpoints import nodal_areas
-from ..mechanics.fem import Material
+from ..mechanics.fem import NU_LIVER, Material
 from ..mechanics.interpolation import interpolation_matrix
 from . import effects as fx
 from .probe import Probe
@@ -194,7 +194,7 @@ def scene_loading(scene: Scene, mesh=None) -> tuple[Loading, Material]:
     loading = Loading(gravity=9.81 if scene.gravity else 0.0,
                       gravity_dir=gravity_direction(scene.release, scene.gravity_tilt_deg, scene.head_up_deg),
                       pressure=scene.pressure_pa, release=scene.release, supports=Supports(scene.supports), tool=tool)
-    return loading, Material(E=scene.truth_E_pa, nu=0.45)
+    return loading, Material(E=scene.truth_E_pa, nu=NU_LIVER)
 
 
 def transposed_truth(scene: Scene, preop, truth_mesh, ledger=None, cache_root=None) -> tuple[np.ndarray, dict]:

@@ -10,7 +10,7 @@ from scipy.sparse.csgraph import connected_components
 from sklearn.cluster import KMeans
 
 from ..anatomy.model import VESSELS
-from ..defaults import FAR_WALL_COS, FAR_WALL_MIN_DEPTH_MM
+from ..defaults import FAR_WALL_COS, FAR_WALL_MIN_DEPTH_MM, N_PLANES
 from ..geometry.bresenham import line
 from ..geometry.planes import plane_section
 from . import effects as fx
@@ -26,7 +26,7 @@ class PlaneData:
     image: np.ndarray | None = None  # (H, W) uint8 B-mode
 
 
-def plane_poses(liver_vertices, liver_normals, anterior_mask, count=16, seed=0):
+def plane_poses(liver_vertices, liver_normals, anterior_mask, count=N_PLANES, seed=0):
     """``count`` probe poses (half vertical, half lateral) on the deformed anterior surface,
     pointing into the liver: contacts are k-means centres of the anterior vertices."""
     half = count // 2 + count % 2
