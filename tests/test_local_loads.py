@@ -141,6 +141,9 @@ def test_a_partial_sphere_keeps_its_given_pose_and_names_its_sliding_motions(sph
     reg = register(sphere_model, data, deform=False)
     assert reg.pose_choice is not None and reg.pose_choice.kept
     assert np.array_equal(reg.rigid.apply(probe), probe)
+    # the kept pose reports its own residual (the dent's), not the 0 of a pose nobody fitted
+    dent = np.linalg.norm(data["anterior"] - _dented_cap(sphere_model, depth=0.0)["anterior"], axis=1)
+    assert 0.3 * np.sqrt(np.mean(dent ** 2)) < reg.rigid.rms_mm <= np.sqrt(np.mean(dent ** 2)) + 0.5
     assert reg.determinacy is not None
     rotations = [r for r, _, _ in reg.determinacy.weak if r is not None]
     assert len(rotations) == 3  # a ball turns freely about its centre

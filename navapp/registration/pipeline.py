@@ -27,7 +27,7 @@ from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from ..mechanics.interpolation import interpolation_matrix
 from .libr import LibrResult, LMOptions, register_libr
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
-from .pose import Determinacy, PoseChoice, PoseSource, choose_pose, pose_determinacy
+from .pose import Determinacy, PoseChoice, PoseSource, choose_pose, pose_determinacy, rms_on_model
 from .quality import FitQuality, assess_fit
 from .rigid import (
     RIGID_ROBUST,
@@ -384,7 +384,8 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         given = RigidResult(np.eye(3), np.zeros(3), 0, 0.0, kept=True)
         choice = choose_pose(model, data, given, rigid)
         if choice.kept:
-            rigid = given if choice.source is PoseSource.GIVEN else choice.local
+            rigid = (replace(given, rms_mm=rms_on_model(model, data, given)) if choice.source is PoseSource.GIVEN
+                     else choice.local)
             for s in starts:
                 s.chosen = False
     if rigid.kept:

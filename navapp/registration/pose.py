@@ -160,6 +160,13 @@ def on_model_fraction(model: RegistrationModel, data: dict, pose: RigidResult, o
     return float(np.mean(d < on_mm)) if len(d) else 0.0
 
 
+def rms_on_model(model: RegistrationModel, data: dict, pose: RigidResult) -> float:
+    """RMS distance (mm) of the surface data to the model at ``pose``: a kept pose's
+    ``rms_mm`` (what the viewer and Slicer report as the rigid fit's residual)."""
+    d = _distances(model, data, pose)
+    return float(np.sqrt(np.mean(d ** 2))) if len(d) else 0.0
+
+
 def choose_pose(model: RegistrationModel, data: dict, given: RigidResult, fitted: RigidResult | None = None,
                 rule: PoseRule = POSE_RULE) -> PoseChoice:
     """The given pose when the best-fitting part of the surface data already lies on the
