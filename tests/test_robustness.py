@@ -225,28 +225,35 @@ def test_rigid_icp_discounts_a_mislabelled_stretch(small_model):
         assert off(rigid_icp(small_model, data, robust=2.0)) < 0.2
 
 
-def test_default_fit_is_a_continuation_from_a_stiffer_organ(small_model, monkeypatch):
-    """The default deformable stage first fits with 3 × the strain-energy weight, then
-    fits with the true weight starting from that state; ``stiff_first=None`` fits once."""
-    from navapp.registration import pipeline
+def test_default_fit_is_a_continuation_from_a_stiffer_organ(small_model):
+    """The default deformable stage fits a stiffer organ (3 × the strain-energy weight)
+    first and relaxes to the true weight from there: its answer is another than a fit from
+    rest (``stiff_first=None``) after the same rigid stage, with a smoother deformation
+    than that fit's or than a continuation from a softer organ (a lower strain energy f_E;
+    on seeds 0–4 and 7 it is 1–23 % below the fit from rest's, and on seeds 0, 1 and 7 it
+    falls as the first stage gets stiffer, 1/3 → 3 → 10 ×), and its Ω is the true weight's.
+    A warm start (β0 given: the last state, e.g. after adding a plane) continues from β0
+    without the stiff stage."""
+    from navapp.registration.libr import LMOptions
+    from navapp.registration.model import REGION_FEATURES
+    from navapp.registration.objective import Weights, evaluate
 
-    calls = []
-    real = pipeline.register_libr
-
-    def spy(model, data, beta0=None, options=None, *args):
-        res = real(model, data, beta0, options, *args)
-        calls.append((options.weights.energy, options.max_iterations, beta0, res.beta))
-        return res
-
-    monkeypatch.setattr(pipeline, "register_libr", spy)
     data, _ = phantom_case(small_model, seed=7)
-    reg = register(small_model, data, init=RobustOptions(retry_poor_fit=False))
-    full = [c for c in calls if c[1] > RobustOptions().screen_iterations]  # not the Ω screen
-    assert len(full) == 2 and np.isclose(full[0][0], 3 * full[1][0])
-    assert np.array_equal(full[1][2], full[0][3]) and np.array_equal(reg.libr.beta, full[1][3])
-    calls.clear()
-    register(small_model, data, init=RobustOptions(retry_poor_fit=False, stiff_first=None))
-    assert len([c for c in calls if c[1] > RobustOptions().screen_iterations]) == 1
+    weights = Weights(huber_mm=dict.fromkeys(REGION_FEATURES, RobustOptions().huber_salient_mm))  # as the default
+    options = LMOptions(weights=weights)
+    cont = register(small_model, data, options=options, init=RobustOptions(retry_poor_fit=False))
+    plain = register(small_model, data, options=options, init=RobustOptions(retry_poor_fit=False, stiff_first=None))
+    assert np.array_equal(cont.rigid.R, plain.rigid.R) and np.array_equal(cont.rigid.t, plain.rigid.t)
+    assert np.abs(cont.libr.beta - plain.libr.beta).max() > 0.1
+    softer = register(small_model, data, options=options, init=RobustOptions(retry_poor_fit=False, stiff_first=1 / 3))
+    energy = {name: reg.libr.features["strain_energy"]["f_E_pa"]
+              for name, reg in (("cont", cont), ("plain", plain), ("softer", softer))}
+    assert energy["cont"] < 0.9 * min(energy["plain"], energy["softer"]), energy
+    true_omega = evaluate(small_model, cont.data_model_frame, cont.libr.beta, weights, jacobian=False).omega
+    assert np.isclose(cont.libr.omega, true_omega, rtol=1e-9, atol=0)
+    warm = [register(small_model, data, options=options, rigid=cont.rigid, beta0=plain.libr.beta,
+                     init=RobustOptions(retry_poor_fit=False, stiff_first=s)).libr.beta for s in (3.0, None)]
+    assert np.array_equal(warm[0], warm[1])
 
 
 def test_the_committed_rows_name_methods_that_exist():
