@@ -149,6 +149,12 @@ def test_a_partial_sphere_keeps_its_given_pose_and_names_its_sliding_motions(sph
     assert len(rotations) == 3  # a ball turns freely about its centre
     assert "rotation about" in reg.determinacy.warning
     assert reg.determinacy.warning in reg.warnings
+    # Slicer hears it too: the status line carries every warning, and no "fit ok"
+    from navapp.tracking.results import ascii_text, status_line
+
+    line = status_line(reg)
+    assert ascii_text(reg.determinacy.warning) in line and "fit ok" not in line
+    assert f"{reg.rigid.rms_mm:.2f} mm" in line
 
 
 def test_a_distinctive_surface_has_no_sliding_motion_and_moved_data_are_refitted(small_model):

@@ -384,8 +384,9 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         given = RigidResult(np.eye(3), np.zeros(3), 0, 0.0, kept=True)
         choice = choose_pose(model, data, given, rigid)
         if choice.kept:
-            rigid = (replace(given, rms_mm=rms_on_model(model, data, given)) if choice.source is PoseSource.GIVEN
-                     else choice.local)
+            trimmed = choice.local
+            rigid = trimmed if choice.source is PoseSource.LOCAL and trimmed is not None else \
+                replace(given, rms_mm=rms_on_model(model, data, given))
             for s in starts:
                 s.chosen = False
     if rigid.kept:

@@ -50,15 +50,21 @@ def ascii_text(text: str) -> str:
 
 
 def status_line(reg) -> str:
-    """One line about a ``Registration``."""
+    """One line about a ``Registration``: which answer it is, and every warning it carries
+    (an undetermined pose, a deformation the data do not support, a poor fit) — "fit ok"
+    only when there is none, so Slicer is never told a doubtful answer is fine."""
     parts = []
-    if getattr(reg, "libr", None) is not None:
-        parts.append(f"deformable: {reg.libr.iterations} iterations, {reg.libr.stop_reason}, Ω {reg.libr.omega:.3g}")
+    libr = getattr(reg, "libr", None)
+    if libr is not None and getattr(reg, "deformed", True):
+        parts.append(f"deformable: {libr.iterations} iterations, {libr.stop_reason}, Ω {libr.omega:.3g}")
+    elif libr is not None:
+        parts.append(f"rigid pose shown (deformation not used): residual RMS {reg.rigid.rms_mm:.2f} mm")
     else:
-        parts.append(f"rigid: ICP RMS {reg.rigid.rms_mm:.2f} mm")
-    q = getattr(reg, "quality", None)
-    if q is not None:
-        parts.append("fit ok" if q.ok else f"poor fit: {q.warning}")
+        parts.append(f"rigid: residual RMS {reg.rigid.rms_mm:.2f} mm")
+    warnings = list(getattr(reg, "warnings", None) or [])
+    if not warnings and (q := getattr(reg, "quality", None)) is not None and not q.ok:
+        warnings = [f"poor fit: {q.warning}"]
+    parts.append("WARNING: " + " | ".join(warnings) if warnings else "fit ok")
     return ascii_text("; ".join(parts))
 
 
