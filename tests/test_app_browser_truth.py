@@ -16,8 +16,19 @@ from pathlib import Path
 
 import pytest
 from conftest import free_port
-from test_app_browser import (ARGS, BUDGET_S, CHROMIUM, VIEW, Deadline, canvas_xy, click_button, playwright,
-                              start_server, us_frame, wait_text, wait_until)
+from test_app_browser import (
+    ARGS,
+    CHROMIUM,
+    VIEW,
+    Deadline,
+    canvas_xy,
+    click_button,
+    playwright,
+    start_server,
+    us_frame,
+    wait_text,
+    wait_until,
+)
 
 COLD_S = 1200  # the first test starts the server cold (simulation, mesh, basis)
 
@@ -100,4 +111,58 @@ def test_queued_clicks_land_on_the_plane_they_were_aimed_at(server, tmp_path):
             us.get_by_role("button", name="Undo", exact=True).click(timeout=deadline.ms())
             page.wait_for_timeout(150)
         wait_until(page, lambda: len(saved(server["session"])["contours"]) == before, deadline, "undone")
+        browser.close()
+
+
+def test_undo_stays_in_its_tab_and_survives_a_reload(server, tmp_path):
+    deadline = Deadline(COLD_S)
+    out, session = shots(tmp_path), server["session"]
+    with playwright.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
+        a, b = (deadline.open(browser.new_context(viewport=VIEW).new_page()) for _ in range(2))
+        for page in (a, b):
+            page.goto(server["url"])
+            wait_text(page, r"sweep points digitised", deadline)
+        # tab A collects the stylus sweep; tab B, which did nothing, presses Undo
+        click_button(a, "Collect the whole sweep now", deadline)
+        total = int(wait_text(a, r"of (\d+) sweep points digitised", deadline).group(1))
+        wait_text(a, rf"{total} of {total} sweep points digitised", deadline)
+        wait_until(a, lambda: saved(session)["stylus_count"] == total, deadline, "the sweep saved")
+        ub = us_frame(b, deadline)
+        ub.get_by_role("button", name="Undo", exact=True).click(timeout=deadline.ms())
+        wait_until(b, lambda: "Nothing of yours to undo." in ub.inner_text("#msg"), deadline, "tab B's answer")
+        b.wait_for_timeout(500)
+        ub.locator("body").screenshot(path=out / "truth_undo_other_tab.png")
+        assert saved(session)["stylus_count"] == total, "tab B's Undo took away tab A's sweep"
+
+        # tab A draws two vertices of a contour, reloads, and can still undo them
+        ua = us_frame(a, deadline)
+        old = token_of(ua)
+        choose_plane(ua, 0, deadline)
+        n0 = len(saved(session)["contours"])
+        for c, r in ((70, 100), (90, 110)):
+            x, y = canvas_xy(c, r)
+            ua.locator("#cv").click(position={"x": x, "y": y}, timeout=deadline.ms())
+            a.wait_for_timeout(150)
+        wait_until(a, lambda: ua.evaluate("window.navappLatencies.length") >= 2, deadline, "the clicks stored")
+        a.reload()
+        deadline = Deadline(min(420, deadline.left()))  # what follows fails in minutes, not the cold budget
+        wait_text(a, r"sweep points digitised", deadline)
+
+        def reloaded():
+            return next((f for f in a.frames if "/us?c=" in f.url and token_of(f) != old), None)
+
+        wait_until(a, lambda: reloaded() is not None, deadline, "the reloaded 2D view")
+        ua = reloaded()
+        # the reloaded tab took its work back: its plane, and the contour in progress
+        wait_until(a, lambda: "Plane 1 (" in ua.inner_text("#title"), deadline, "the plane back after the reload")
+        a.wait_for_timeout(500)
+        ua.locator("#cv").screenshot(path=out / "truth_reloaded_contour.png")
+        ua.get_by_role("button", name="Undo", exact=True).click(timeout=deadline.ms())
+        wait_until(a, lambda: [len(c["vertices"]) for c in saved(session)["contours"][n0:]] == [1], deadline,
+                   f"one vertex undone after the reload: {saved(session)['contours'][n0:]}")
+        ua.get_by_role("button", name="Undo", exact=True).click(timeout=deadline.ms())
+        wait_until(a, lambda: len(saved(session)["contours"]) == n0, deadline, "the contour undone")
+        ua.get_by_role("button", name="Undo", exact=True).click(timeout=deadline.ms())  # then tab A's sweep
+        wait_until(a, lambda: saved(session)["stylus_count"] < total, deadline, "tab A's sweep undone")
         browser.close()

@@ -6,7 +6,6 @@ tracker said they were, that it survives a restart, that Undo removes a recordin
 re-registering on every frame follows the frames and reaches a pyigtl client standing in
 for 3D Slicer."""
 
-import re
 
 import numpy as np
 import pytest
@@ -103,11 +102,13 @@ def test_a_frozen_frame_is_a_plane_at_the_tracked_pose(live_app):
 
 def test_undo_removes_a_live_recording(live_app):
     app, server, sd = live_app
-    cs = app.core.new_client_state()
+    cs, other = app.core.new_client_state(), app.core.new_client_state()
     before = len(app.core.session.live_points)
-    app.live.set_recording(True)
+    app.live.set_recording(True, cs=cs)
     assert wait_until(lambda: len(app.core.session.live_points) >= before + 5, 15)
-    app.live.set_recording(False)
+    app.live.set_recording(False, cs=other)  # switched off by another tab: still the first tab's recording
+    assert len(app.core.session.live_points) > before
+    assert app.drawing.command(other, "Undo") == "Nothing of yours to undo."  # issue 26, item 6
     assert len(app.core.session.live_points) > before
     assert app.drawing.command(cs, "Undo") is None
     assert len(app.core.session.live_points) == before

@@ -138,11 +138,55 @@ def test_undo_covers_planes_and_stylus_batches(app):
     app.drawing.command(cs, "Undo")
     assert 1 not in app.core.session.planes_added
     app.core.session.stylus_count = 10
-    app.stylus.collect_now()
+    app.stylus.collect_now(cs)
     assert app.core.session.stylus_count == len(app.core.sd.stylus_path)
     app.drawing.command(cs, "Undo")
     assert app.core.session.stylus_count == 10
     app.stylus.collect_now()
+
+
+def test_undo_stays_in_its_tab_and_comes_back_after_a_reload(app):
+    """Issue 26, item 6: a tab that did nothing cannot undo another tab's stylus sweep; a
+    reloaded tab (a new connection whose page names the tab it was) takes its undo history,
+    its plane and its contour in progress back, and a tab still connected keeps its own."""
+    a, b = app.core.new_client_state(), app.core.new_client_state()
+    app.core.session.stylus_count = 10
+    app.stylus.collect_now(a)
+    full = app.core.session.stylus_count
+    assert app.drawing.command(b, "Undo") == "Nothing of yours to undo."
+    assert app.core.session.stylus_count == full
+    app.imaging.show(a, 1)
+    for c, r in ((40, 50), (60, 50)):
+        assert app.drawing.click(a, c, r, "PV contour", plane=1) is None
+    drawn = a.drawing
+    again = app.core.new_client_state()  # the reload's new connection, before the old one closed
+    assert app.core.resume(again, a.token).startswith("wait")
+    app.core.park(a.token)  # the old connection closes
+    assert app.core.state_for(a.token) is None
+    assert app.core.resume(again, a.token) is None
+    assert again.plane == 1 and again.drawing is drawn and a.current() is again
+    assert app.core.resume(b, a.token) is None and not b.undo  # taken once, by the reload only
+    assert app.drawing.click(again, 80, 50, "PV contour", plane=1) is None  # the contour goes on
+    assert drawn.vertices == [(40, 50), (60, 50), (80, 50)]
+    for _ in range(3):
+        assert app.drawing.command(again, "Undo") is None
+    assert drawn not in app.core.session.contours
+    assert app.drawing.command(again, "Undo") is None  # then the sweep, the reloaded tab's own
+    assert app.core.session.stylus_count == 10
+    app.stylus.collect_now()
+    # a page that cannot name the tab it was (storage refused to the frame): the one tab gone
+    # within RELOAD_S is taken; two gone at once are nobody's to guess
+    c = app.core.new_client_state()
+    app.imaging.show(c, 0)
+    fresh = app.core.new_client_state()
+    assert app.core.resume(fresh, None).startswith("wait")  # nothing gone yet: its old page may still close
+    app.core.park(c.token)
+    assert app.core.resume(fresh, None) is None and fresh.plane == 0 and c.current() is fresh
+    d, e = app.core.new_client_state(), app.core.new_client_state()
+    app.core.park(d.token)
+    app.core.park(e.token)
+    late = app.core.new_client_state()
+    assert app.core.resume(late, None) is None and d.current() is d and e.current() is e
 
 
 def test_cancel_keeps_the_previous_result(app):

@@ -128,7 +128,6 @@ CHROMIUM = Path("/usr/bin/chromium")
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="Chromium not installed")
 def test_the_injection_url_runs_no_script_in_chromium(served, tmp_path):
     from playwright import sync_api as playwright
-
     from test_app_browser import ARGS, Deadline
 
     provider, base, _ = served

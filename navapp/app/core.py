@@ -35,6 +35,9 @@ if TYPE_CHECKING:
     from .worker import RegistrationWorker
 
 
+PARKED = 32  # disconnected tabs kept for their reload
+RELOAD_S = 60.0  # a tab whose connection closed this recently may be coming back as a reload (slow on a loaded machine)
+WAIT = "wait: the tab before the reload is still connected"
 SAVED = (Change.DATA, Change.RESULT, Change.LOG)  # changes the session file must hold at once
 ON_CONNECT = (Change.STATUS, Change.SCENE, Change.MODEL, Change.DATA, Change.PLANE, Change.RESULT)
 
@@ -86,6 +89,8 @@ class Core:
         self.log: Callable[[str], None] | None = None
         self.ready = threading.Event()  # set when start-up has finished (or failed: see .failed)
         self.states: dict[str, ClientState] = {}  # token → per-browser state
+        # tabs gone (closed or reloading), kept so that a reload can take its work back (``resume``)
+        self.parked: dict[str, ClientState] = {}
         self.views: dict[int, Any] = {}  # client_id → panels.ClientView
         self._pending: list[Change] = []  # view refreshes not yet done, coalesced
         self._pending_cv = threading.Condition()
@@ -120,6 +125,41 @@ class Core:
         with self.lock:
             self.states[cs.token] = cs
         return cs
+
+    def park(self, token: str):
+        """A tab disconnected: its state is kept aside (the newest ``PARKED`` tabs) for its reload."""
+        with self.lock:
+            cs = self.states.pop(token, None)
+            if cs is not None:
+                cs.parked = time.monotonic()
+                self.parked[token] = cs
+                while len(self.parked) > PARKED:
+                    self.parked.pop(next(iter(self.parked)))
+
+    def resume(self, cs: ClientState, previous: str | None) -> str | None:
+        """The tab ``cs`` may be a reload: it takes the work of the tab it was back. Its page
+        names that tab (``previous``) from the browser's per-tab session storage where the
+        browser lets the 2D view's frame keep one (Chromium refuses it to a frame of another
+        site when third-party storage is blocked); else (None) the one tab whose connection
+        closed within ``RELOAD_S`` is taken, and none when there are several. ``WAIT`` while
+        the old connection may not have closed yet."""
+        with self.lock:
+            if previous is not None:
+                old = self.parked.pop(previous, None)
+                if old is None:
+                    return WAIT if previous in self.states else None
+            else:
+                now = time.monotonic()
+                if cs.resume_asked is None:
+                    cs.resume_asked = now
+                recent = [t for t, p in self.parked.items() if p.parked is not None and now - p.parked < RELOAD_S]
+                if len(recent) != 1:
+                    # a loaded server may close the old connection seconds after the new one opened
+                    return WAIT if not recent and now - cs.resume_asked < RELOAD_S else None
+                old = self.parked.pop(recent[0])
+            cs.take_over(old)
+        self.refresh_view(cs, Change.PLANE)
+        return None
 
     def state_for(self, token: str) -> ClientState | None:
         with self.lock:

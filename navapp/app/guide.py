@@ -80,7 +80,7 @@ def _stylus(app, cs):
         v.layers.apply_visibility()
     speed = (lambda: float(v.stylus.speed.value)) if v is not None else (lambda: 1.0)
     if not app.stylus.sweeping:
-        app.stylus.start(speed)
+        app.stylus.start(speed, cs)
 
 
 def _sweep_done(app, cs):

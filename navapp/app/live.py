@@ -335,6 +335,7 @@ class Live:
         self.config = config  # connect once the scene is ready (``connect``)
         self.link: LiveLink | None = None
         self._record_start: int | None = None  # live points before the recording in progress (its undo point)
+        self._record_owner: ClientState | None = None  # the tab that switched it on: the recording is its action
         self._shown = 0.0  # when a live registration was last drawn
 
     def connect(self):
@@ -368,21 +369,23 @@ class Live:
                 live_points.append([float(p[0]), float(p[1]), float(p[2]), str(lab)])
         core.changed(Change.DATA)
 
-    def set_recording(self, on: bool, label: str = "anterior") -> str | None:
+    def set_recording(self, on: bool, label: str = "anterior", cs: ClientState | None = None) -> str | None:
+        """Digitise with the tracked stylus while on; the recording is an undoable action of
+        ``cs``, the tab that switched it on (None: of nobody's)."""
         link, core = self.link, self.core
         if link is None:
             return NO_TRACKER
         session = core.need_session()
         with core.lock:
             if on and not link.recording:
-                self._record_start = len(session.live_points)
+                self._record_start, self._record_owner = len(session.live_points), cs
         link.set_recording(on, label)
         if not on:
             with core.lock:
                 start, self._record_start = self._record_start, None
-                if start is not None and len(session.live_points) > start:
-                    for cs in core.states.values():
-                        cs.undo.append(LivePoints(self, start))
+                owner, self._record_owner = self._record_owner, None
+                if owner is not None and start is not None and len(session.live_points) > start:
+                    owner.current().undo.append(LivePoints(self, start))
         core.changed(Change.LIVE)
         return None
 

@@ -116,7 +116,7 @@ class App:
         with core.lock:
             view = core.views.pop(client.client_id, None)
             if view is not None:
-                core.states.pop(view.cs.token, None)
+                core.park(view.cs.token)
 
 
 def _read_case_preop(scene):

@@ -71,9 +71,33 @@ class ClientState:
     error_scale_mm: float = ERROR_SCALE_MM
     error_source: str = "true"  # colour the registered surface by the "true" or the "predicted" error
     message: str = ""  # last message for the 2D view
+    successor: ClientState | None = None  # the same tab after a reload, which took over this state's work
+    resume_asked: float | None = None  # when its page first asked to take a reloaded tab's work back
+    parked: float | None = None  # when its connection closed (``Core.park``)
 
     def touch(self):
         self.version += 1
+
+    def current(self) -> ClientState:
+        """This tab as it is now (itself, or what a reload made of it)."""
+        cs = self
+        while cs.successor is not None:
+            cs = cs.successor
+        return cs
+
+    def take_over(self, old: ClientState):
+        """A reloaded tab continues the work of ``old``, the same tab before the reload: its
+        undo history, its contour in progress, its plane and drawing tool."""
+        self.undo[:0] = old.undo
+        old.undo = []
+        if self.drawing is None:
+            self.drawing = old.drawing
+        self.left = {**old.left, **self.left}
+        if old.plane is not None:  # the plane the tab showed, not the one a panel chose as it reconnected
+            self.plane = old.plane
+        self.feature = old.feature
+        old.successor = self
+        self.touch()
 
 
 @dataclass

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .core import Core
-from .state import Action, Change, Undone
+from .state import Action, Change, ClientState, Undone
 
 STYLUS_MM_PER_S = 40.0  # a steady sweep of the tip, at "1×"
 FRAME_S = 0.05
@@ -40,19 +40,22 @@ class Stylus:
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._sweeping = False
+        self._owner: ClientState | None = None  # the tab that started the sweep: its undo
 
     @property
     def sweeping(self) -> bool:
         return self._sweeping
 
-    def start(self, speed: Callable[[], float] = lambda: 1.0) -> bool:
-        """Start (or stop, if running) the stylus sweep; ``speed()`` is read every frame."""
+    def start(self, speed: Callable[[], float] = lambda: 1.0, cs: ClientState | None = None) -> bool:
+        """Start (or stop, if running) the stylus sweep; ``speed()`` is read every frame.
+        The sweep is an action of ``cs``, the tab that started it (None: of nobody's)."""
         if self.core.sd is None:
             return False
         if self._sweeping:
             self._stop.set()
             return True
         self._stop.clear()
+        self._owner = cs
         self._sweeping = True
         self._thread = threading.Thread(target=self._sweep, args=(speed,), daemon=True, name="navapp-stylus")
         self._thread.start()
@@ -85,20 +88,20 @@ class Stylus:
             time.sleep(FRAME_S)
         self.tip = None
         self._sweeping = False  # before the last refresh, so the views see the sweep as over
-        self._record_batch(start)
+        self._record_batch(start, self._owner)
         core.each_view(lambda v: v.show_stylus(None))
         core.changed(Change.DATA)
 
-    def _record_batch(self, start: int):
-        """One undoable action per sweep (per browser that sees it: the stylus is shared)."""
+    def _record_batch(self, start: int, owner: ClientState | None):
+        """One undoable action per sweep, in the undo of the tab that made it only: another
+        tab's Undo must never take away data it did not collect."""
         core = self.core
         with core.lock:
-            if core.need_session().stylus_count > start:
-                for cs in core.states.values():
-                    cs.undo.append(StylusBatch(self, start))
+            if owner is not None and core.need_session().stylus_count > start:
+                owner.current().undo.append(StylusBatch(self, start))
 
-    def collect_now(self):
-        """The whole sweep at once."""
+    def collect_now(self, cs: ClientState | None = None):
+        """The whole sweep at once, an action of ``cs``."""
         self._stop.set()
         if self._thread is not None:
             self._thread.join()
@@ -107,7 +110,7 @@ class Stylus:
         with core.lock:
             start = session.stylus_count
             session.stylus_count = len(sd.stylus_path)
-        self._record_batch(start)
+        self._record_batch(start, cs)
         core.changed(Change.DATA)
 
 

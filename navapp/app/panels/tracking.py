@@ -28,7 +28,7 @@ class TrackingPanel:
         self.live_reg.on_update(lambda e: self._live_reg())
 
     def _record(self):
-        err = self.app.live.set_recording(bool(self.record.value), self.label.value)
+        err = self.app.live.set_recording(bool(self.record.value), self.label.value, self.cs)
         if err:
             self.view.notify("Live tracking", err, error=True)
 

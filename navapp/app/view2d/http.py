@@ -80,6 +80,7 @@ class Provider(Protocol):
     def view_known(self, token: str) -> bool: ...
     def view_click(self, token: str, col: int, row: int, feature: str, plane: int) -> str | None: ...
     def view_command(self, token: str, cmd: str, feature: str, plane: int | None = None) -> str | None: ...
+    def view_resume(self, token: str, previous: str | None) -> str | None: ...
 
 
 @cache
@@ -180,6 +181,9 @@ class _Handler(BaseHTTPRequestHandler):
             elif path == "/us/command":
                 err = self.provider.view_command(token, _str(body, "cmd", required=True), _str(body, "feature"),
                                                  _int(body, "plane", required=False))
+            elif path == "/us/resume":
+                previous = _str(body, "previous")
+                err = self.provider.view_resume(token, previous if TOKEN.fullmatch(previous) else None)
             else:
                 return self._send(404, b"not found", "text/plain")
         except BadRequest as exc:

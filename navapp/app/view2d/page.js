@@ -143,6 +143,23 @@ $("finish").onclick = () => command("Finish line");
 $("undo").onclick = () => command("Undo");
 $("feat").onchange = () => command("Feature");
 $("plane").onchange = () => { if ($("plane").value !== "") command("Plane", {plane: parseInt($("plane").value)}); };
+// a reload is the same tab: its page takes back the work of the page before (undo history,
+// contour in progress, plane). sessionStorage is per tab, so it names that page exactly; a
+// browser that refuses storage to this frame (another site than the viewer) names none, and
+// the server takes the one tab that has just gone, if there is exactly one
+async function resume(){
+  let prev = null;
+  try { prev = sessionStorage.getItem("navapp-view"); sessionStorage.setItem("navapp-view", TOKEN); } catch (e) {}
+  if (prev === TOKEN) return;
+  for (let i = 0; i < 60; i++){  // the old page's connection may close a little after this one opened
+    try {
+      const s = await post("/us/resume", {previous: prev || ""});
+      if (!s.error) { apply(s); return; }
+      if (!s.error.startsWith("wait")) return;
+    } catch (e) {}
+    await new Promise(r => setTimeout(r, 500));
+  }
+}
 $("z1").onclick = () => { zoom = 1; draw(); };
 $("z2").onclick = () => { zoom = 2; draw(); };
 document.addEventListener("keydown", e => {
@@ -150,3 +167,4 @@ document.addEventListener("keydown", e => {
   if ((e.ctrlKey || e.metaKey) && e.key === "z") command("Undo");
 });
 poll();
+resume();

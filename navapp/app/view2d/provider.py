@@ -122,6 +122,12 @@ class View2D:
             return None if self.imaging.show(cs, plane) else f"there is no plane {plane}"
         return self.drawing.command(cs, cmd, feature)
 
+    def view_resume(self, token: str, previous: str | None) -> str | None:
+        cs = self.core.state_for(token)
+        if cs is None:
+            return GONE
+        return self.core.resume(cs, previous)
+
     def overlays(self, index: int) -> list[Overlay]:
         """The model's sections with plane ``index``: preoperative (rigidly placed by the
         state on show, as-is before any registration) dashed, registered solid."""
