@@ -65,7 +65,7 @@ def test_each_stage_and_ready_reach_the_terminal_on_lines_of_their_own(tmp_path,
     finally:
         budget.cancel()
         proc.send_signal(signal.SIGINT)
-        out, _ = proc.communicate(timeout=60)
+        out, _ = proc.communicate(timeout=600)  # a budget: stopping waits for the running step
     lines += shown(out)
     said = [line for line in lines if line.startswith("navapp: ")]
     assert any(line.startswith("navapp: Simulating the intraoperative scene") for line in said), lines
