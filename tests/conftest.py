@@ -59,3 +59,15 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
+
+
+def viser_messages(frame) -> list:
+    """The messages of one viser websocket frame (8-byte msgpack size, 8-byte compressed
+    size, zstd msgpack, binary buffers); [] for anything else."""
+    import msgspec
+    import zstandard
+
+    if not isinstance(frame, bytes) or len(frame) < 16:
+        return []
+    n = int.from_bytes(frame[8:16], "little")
+    return list(msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(frame[16:16 + n])).get("messages", ()))

@@ -32,15 +32,10 @@ EDGE, K = 6.0, 20  # as the other browser tests: a short cold start on 2 cores
 def stylus_positions(frame: bytes) -> list:
     """Positions (3,) of the stylus node in one viser websocket frame (see
     test_app_browser.registered_liver_updates for the frame layout)."""
-    import msgspec
-    import zstandard
+    from conftest import viser_messages
 
-    if not isinstance(frame, bytes) or len(frame) < 16:
-        return []
-    n = int.from_bytes(frame[8:16], "little")
-    inner = msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(frame[16:16 + n]))
     out = []
-    for m in inner.get("messages", ()):
+    for m in viser_messages(frame):
         if m.get("name") == "/stylus/tool":
             pos = m.get("updates", {}).get("position", m.get("position"))
             if pos is not None and len(pos) == 3:

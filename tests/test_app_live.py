@@ -193,15 +193,10 @@ CHROMIUM = "/usr/bin/chromium"
 def stylus_updates(frame) -> list:
     """("position", xyz) / ("visible", bool) for the stylus node, in the order one viser
     websocket frame carries them (layout: test_app_browser.registered_liver_updates)."""
-    import msgspec
-    import zstandard
+    from conftest import viser_messages
 
-    if not isinstance(frame, bytes) or len(frame) < 16:
-        return []
-    n = int.from_bytes(frame[8:16], "little")
-    inner = msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(frame[16:16 + n]))
     out = []
-    for m in inner.get("messages", ()):
+    for m in viser_messages(frame):
         if m.get("name") == "/stylus/tool":
             if m.get("type") == "SetPositionMessage":
                 out.append(("position", tuple(m["position"])))
