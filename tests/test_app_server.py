@@ -200,6 +200,30 @@ def test_cancel_keeps_the_previous_result(app):
     assert last.cancelled and last.stop == "cancelled"
     assert app.core.result is before  # the model on show is still the previous run's
     assert app.core.worker.last.libr.stop_reason != "cancelled"  # a warm start continues from the good run
+    assert last.seconds < 60  # stopped, not run to the end with its cross-validation
+
+
+def test_cancel_is_always_answered_and_stops_the_sweep(app):
+    """Cancel is clickable whenever the model is ready (its enabled state reached the browser
+    after a seconds-long run had ended): idle, it says there is nothing to cancel; the accuracy
+    sweep holds the run buttons while it runs, and Cancel stops it between settings."""
+    wait_idle(app)
+    n_log = len(app.core.session.log)
+    assert app.runs.cancel().startswith("Nothing to cancel")
+    assert len(app.core.session.log) == n_log
+    rows, done = [], []
+    assert app.runs.sweep(rows.append, done.append) is None
+    assert app.core.sweeping
+    assert app.runs.start(RunKind.RIGID) == "A registration is already running; wait for it or cancel it."
+    assert app.runs.sweep(rows.append) is not None  # one sweep at a time
+    assert app.runs.cancel().startswith("Cancelling")
+    wait_idle(app)
+    assert done and not app.core.sweeping
+    from navapp.evaluation.cost import LM_CAPS, LM_RTOLS
+
+    assert len(rows) < len(LM_CAPS) + len(LM_RTOLS)  # stopped between settings
+    assert app.runs.start(RunKind.RIGID) is None  # the worker is free again
+    wait_idle(app)
 
 
 def test_view2d_serves_state_overlays_and_clicks(app):

@@ -78,6 +78,7 @@ class Core:
         self.worker: RegistrationWorker | None = None
         self.truth_nodes: np.ndarray | None = None
         self.run: Run | None = None  # the registration in progress
+        self.sweeping = False  # the accuracy sweep holds the worker (``runs.Runs.sweep``)
         self.result: RegisteredState | None = None  # the registered model on show
         self.last_reg: Registration | None = None  # what Export and a warm start use
         self.stage = "Starting…"

@@ -8,6 +8,7 @@ into ``Run`` under the shared lock; every view reads the run through ``Core.run`
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable
 
@@ -21,6 +22,7 @@ from .state import Change, RegisteredState, Run, RunEntry, RunKind
 from .worker import Update, cancelled
 
 MIN_POINTS = 3  # fewer data points than this fix nothing
+BUSY = "A registration is already running; wait for it or cancel it."
 
 
 class Runs:
@@ -29,6 +31,7 @@ class Runs:
     def __init__(self, core: Core, shown: Shown, slicer: Slicer, following: Callable[[], bool]):
         self.core, self.shown, self.slicer = core, shown, slicer
         self.following = following  # live re-registration is on (``live.Live.following``)
+        self._starting = threading.Lock()  # a start and a cancel click are handled one after the other
 
     def start(self, kind: RunKind) -> str | None:
         """Start a registration; returns why it could not start, or None."""
@@ -41,21 +44,38 @@ class Runs:
         if npts < MIN_POINTS:
             return "Collect data first (stylus sweep or an ultrasound plane)."
         if worker.busy:
-            return "A registration is already running; wait for it or cancel it."
+            return BUSY
         if self.following():
             return "Live re-registration is on (Live tracking panel): switch it off first."
         if kind is RunKind.WARM and worker.last is None:
             kind = RunKind.ALL
-        with core.lock:
-            core.run = Run(kind, npts, time.monotonic())
-        if not worker.start(data, deform=kind.deformable, warm=kind is RunKind.WARM):
-            return "A registration is already running; wait for it or cancel it."
+        with self._starting:
+            with core.lock:
+                core.run = Run(kind, npts, time.monotonic())
+            if not worker.start(data, deform=kind.deformable, warm=kind is RunKind.WARM):
+                with core.lock:
+                    core.run = None
+                return BUSY
         core.changed(Change.RUN)
         return None
 
-    def cancel(self):
-        if self.core.worker is not None:
-            self.core.worker.cancel()
+    def cancel(self) -> str:
+        """Stop the registration or the sweep in progress at its next iteration (or setting);
+        returns what happened, in words for the surgeon.
+
+        Cancel is never disabled while the model is ready: its enabled state would reach the
+        browser a server round trip after the run started, which under load was after a
+        seconds-long run had ended (it could not be clicked at all). A click that finds
+        nothing running says so instead."""
+        core = self.core
+        worker = core.worker
+        if worker is None:
+            return "Nothing to cancel: the registration model is still being prepared."
+        with self._starting:  # a click handled before the start it followed has run (callbacks run in a pool)
+            if not worker.busy:
+                return "Nothing to cancel: no registration is running."
+            worker.cancel()
+        return "Cancelling: the run stops at its next iteration; the previous result is kept."
 
     # ------------------------------------------------------------------ from the worker thread
     def on_update(self, u: Update):
@@ -125,6 +145,27 @@ class Runs:
 
         x0 = model.basis.nodes
         B = sp.identity(len(x0), format="csr")  # the truth is known at the mesh nodes themselves
-        ok = worker.submit(lambda cancel: lm_sweep(model, data, x0, truth, cancel=cancel, on_row=on_row, B=B),
-                           on_done)
-        return None if ok else "A registration is running; try again when it has finished."
+        if core.run is not None or worker.busy:
+            return BUSY
+
+        def over():
+            with core.lock:
+                core.sweeping = False
+            core.changed(Change.RUN)
+
+        def finished(rows):
+            over()
+            if on_done is not None:
+                on_done(rows)
+
+        with self._starting:
+            with core.lock:
+                core.sweeping = True
+            ok = worker.submit(lambda cancel: lm_sweep(model, data, x0, truth, cancel=cancel, on_row=on_row, B=B),
+                               finished, on_error=lambda exc: over())
+            if not ok:
+                with core.lock:
+                    core.sweeping = False
+                return BUSY
+        core.changed(Change.RUN)
+        return None

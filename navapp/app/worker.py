@@ -71,6 +71,11 @@ class RegistrationWorker:
         """Ask the running fit to stop at its next iteration boundary."""
         self._cancel.set()
 
+    @property
+    def cancel_requested(self) -> bool:
+        """Whether the latest run or job was asked to stop (until the next one starts)."""
+        return self._cancel.is_set()
+
     def join(self, timeout=None):
         if self._thread is not None:
             self._thread.join(timeout)
@@ -90,9 +95,10 @@ class RegistrationWorker:
         return Update(iteration, omega, time.monotonic() - t0, s.pop("liver"), final, s,
                       None if beta is None else np.array(beta), rigid)
 
-    def submit(self, job, on_done=None) -> bool:
+    def submit(self, job, on_done=None, on_error=None) -> bool:
         """Run ``job(cancel_event)`` (e.g. a settings sweep) in the worker thread, under the
-        same one-at-a-time rule as registrations; its return value goes to ``on_done``."""
+        same one-at-a-time rule as registrations; its return value goes to ``on_done``, an
+        exception to the worker's ``on_error`` and then to this job's own ``on_error``."""
         with self._lock:
             if self.busy:
                 return False
@@ -104,6 +110,8 @@ class RegistrationWorker:
                     (on_done or (lambda r: None))(out)
                 except Exception as exc:
                     self.on_error(exc)
+                    if on_error is not None:
+                        on_error(exc)
 
             self._thread = threading.Thread(target=run, daemon=True)
             self._thread.start()

@@ -404,7 +404,8 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
             beta0 = register_libr(model, local, beta0, stiff, None, cancel).beta
         result = register_libr(model, local, beta0, options, callback, cancel)
         quality = assess_fit(result.features)
-        if not quality.ok and init.retry_poor_fit and len(screened) > 1:
+        stopped = result.stop_reason == "cancelled"
+        if not quality.ok and init.retry_poor_fit and len(screened) > 1 and not stopped:
             # the fit stayed far off: the other basins get a full fit before anyone is told,
             # and one replaces it only if its fit is plausible (a lower Ω that is still
             # flagged is no reason to prefer it)
@@ -418,7 +419,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
                     rigid, local, result, quality = cand, other_local, other, other_quality
         sec["deformable"] = time.perf_counter() - t
     support = None
-    if deform and fresh and init.support is not None and result is not None:
+    if deform and fresh and init.support is not None and result is not None and result.stop_reason != "cancelled":
         t = time.perf_counter()
         support = check_support(model, local, options, init.support, cancel)
         sec["support"] = time.perf_counter() - t

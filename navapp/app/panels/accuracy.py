@@ -25,7 +25,7 @@ class AccuracyPanel:
 
     def refresh(self, what):
         core = self.app.core
-        self.btn.disabled = core.worker is None or core.run is not None
+        self.btn.disabled = core.worker is None or core.run is not None or core.sweeping
 
     def sweep(self):
         rows = []
@@ -43,6 +43,12 @@ class AccuracyPanel:
                              f"{rows[j].tre_mean_mm:.2f} mm | {rows[j].iterations} |")
             self.md.content = "\n".join(lines)
 
-        err = self.app.runs.sweep(on_row, lambda out: self.view.notify("Cost", f"{len(out)} settings run."))
+        def done(out):
+            worker = self.app.core.worker
+            cancelled = worker is not None and worker.cancel_requested
+            self.view.notify("Cost", f"Cancelled after {len(out)} settings." if cancelled
+                             else f"{len(out)} settings run.")
+
+        err = self.app.runs.sweep(on_row, done)
         if err:
             self.view.notify("Cost", err)

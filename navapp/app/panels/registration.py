@@ -20,6 +20,7 @@ class RegistrationPanel:
         g = view.client.gui
         with g.add_folder("Registration"):
             self.btn = {kind: g.add_button(words, disabled=True) for kind, words in BUTTONS.items()}
+            # never disabled once the model is ready: see ``runs.Runs.cancel``
             self.btn_cancel = g.add_button("Cancel", color="red", disabled=True)
             self.md = g.add_markdown("")
             self.plot = g.add_uplot((np.zeros(1), np.zeros(1)),
@@ -31,20 +32,24 @@ class RegistrationPanel:
             self.table = g.add_markdown("")
         for kind, b in self.btn.items():
             b.on_click(lambda e, kind=kind: self.start(kind))
-        self.btn_cancel.on_click(lambda e: self.app.runs.cancel())
+        self.btn_cancel.on_click(lambda e: self.cancel())
 
     def start(self, kind: RunKind):
         err = self.app.runs.start(kind)
         if err:
             self.view.notify("Registration", err, error="Collect" in err)
 
+    def cancel(self):
+        self.view.notify("Cancel", self.app.runs.cancel())
+
     def refresh(self, what: Change):
         core, live = self.core, self.app.live
         worker = core.worker
         run = core.run
         for kind, b in self.btn.items():
-            b.disabled = worker is None or run is not None or (kind is RunKind.WARM and worker.last is None)
-        self.btn_cancel.disabled = run is None
+            b.disabled = (worker is None or run is not None or core.sweeping
+                          or (kind is RunKind.WARM and worker.last is None))
+        self.btn_cancel.disabled = worker is None
         if what is Change.LIVE and live.link is not None and live.following:
             self.md.content = (f"**Live re-registration on**: {live.link.follower.summary()}. The result is kept "
                                f"when it is switched off.")
