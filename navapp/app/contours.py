@@ -8,6 +8,7 @@ calibration and the plane's tracked pose. No viser here.
 """
 
 from dataclasses import dataclass, field
+from enum import Enum
 
 import numpy as np
 
@@ -35,6 +36,36 @@ class Contour:
                        bool(d["closed"]))
 
 
+class OriginKind(Enum):
+    """Where a registration data point came from."""
+
+    STYLUS = "stylus"  # the simulated stylus sweep
+    LIVE = "live"  # digitised with a tracked stylus
+    PLANE = "plane"  # an added plane's segmentation
+    CONTOUR = "contour"  # a contour drawn by hand
+
+
+@dataclass(frozen=True, eq=False)
+class Origin:
+    """One data point's origin, so that a point the fit leaves far off can be named and
+    removed: for a drawn contour the contour and the rasterised pixel (col, row) it came
+    from (None: the contour's centerline point), else the plane index (PLANE) or nothing."""
+
+    kind: OriginKind
+    contour: "Contour | None" = None
+    pixel: tuple[int, int] | None = None
+    plane: int | None = None
+
+    def nearest_vertex(self) -> int | None:
+        """Index of the drawn vertex closest to this point's pixel (a contour's point)."""
+        if self.contour is None or not self.contour.vertices:
+            return None
+        if self.pixel is None:
+            return None
+        v = np.array(self.contour.vertices, float)
+        return int(np.argmin(np.hypot(v[:, 0] - self.pixel[0], v[:, 1] - self.pixel[1])))
+
+
 def click_to_pixel(probe: Probe, probe_to_tracker, origin, direction):
     """Integer pixel (col, row) where a click ray meets the image, or None if it misses
     the image (parallel, behind the camera, or outside its W × H pixels)."""
@@ -58,10 +89,11 @@ def contour_pixels(contour: Contour) -> tuple[np.ndarray, np.ndarray]:
     return px[:, 0], px[:, 1]
 
 
-def contour_points(probe: Probe, probe_to_tracker, contour: Contour) -> dict:
+def contour_points(probe: Probe, probe_to_tracker, contour: Contour, origins: dict | None = None) -> dict:
     """Registration data from one contour: {feature: (N, 3) mm tracker points}, plus one
     centerline point (the in-plane centroid of the rasterised pixels, as the simulator
-    does) for a closed vessel contour of at least ``MIN_CENTROID_PIXELS`` pixels."""
+    does) for a closed vessel contour of at least ``MIN_CENTROID_PIXELS`` pixels.
+    ``origins``: filled with {feature: [Origin] per point}."""
     cols, rows = contour_pixels(contour)
     if len(cols) == 0:
         return {}
@@ -69,4 +101,9 @@ def contour_points(probe: Probe, probe_to_tracker, contour: Contour) -> dict:
     cl = CENTERLINE_OF.get(contour.feature)
     if cl is not None and contour.closed and len(cols) >= MIN_CENTROID_PIXELS:
         out[cl] = pixels_to_tracker(probe, probe_to_tracker, [cols.mean()], [rows.mean()])
+    if origins is not None:
+        origins[contour.feature] = [Origin(OriginKind.CONTOUR, contour, (int(c), int(r)), contour.plane)
+                                    for c, r in zip(cols, rows, strict=True)]
+        if cl in out:
+            origins[cl] = [Origin(OriginKind.CONTOUR, contour, None, contour.plane)]
     return out

@@ -28,7 +28,7 @@ from ..registration.pipeline import Registration, prepare
 from ..simulation.scenedata import SceneData, load_scene_data
 from ..simulation.ultrasound import PlaneData
 from .session import Session, default_folder, open_session
-from .state import Change, ClientState, RegisteredState, Run
+from .state import Change, ClientState, RegisteredState, Run, WorstPoint
 
 if TYPE_CHECKING:
     from ..registration.model import RegistrationModel
@@ -81,6 +81,7 @@ class Core:
         self.sweeping = False  # the accuracy sweep holds the worker (``runs.Runs.sweep``)
         self.result: RegisteredState | None = None  # the registered model on show
         self.last_reg: Registration | None = None  # what Export and a warm start use
+        self.worst: list[WorstPoint] = []  # the last finished run's data points furthest from its model
         self.stage = "Starting…"
         self.stage_fraction: float | None = None
         self.failed: str | None = None
@@ -118,6 +119,12 @@ class Core:
         with self.lock:
             sd, session = self.need_scene()
             return session.data(sd, self.planes, surface_only=surface_only)
+
+    def data_with_origins(self, surface_only: bool = False) -> tuple[dict, dict]:
+        """``data`` and each point's ``contours.Origin`` per feature."""
+        with self.lock:
+            sd, session = self.need_scene()
+            return session.data_with_origins(sd, self.planes, surface_only=surface_only)
 
     # ------------------------------------------------------------------ browsers
     def new_client_state(self, client_id: int = -1) -> ClientState:

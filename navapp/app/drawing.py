@@ -14,7 +14,7 @@ from .contours import Contour
 from .core import Core
 from .palette import DRAWABLE
 from .session import Session
-from .state import Action, Change, ClientState, Undone
+from .state import Action, Change, ClientState, Undone, WorstPoint
 
 
 @dataclass
@@ -61,6 +61,42 @@ class Cleared(Action):
         session.contours.extend(self.removed)
         if self.was_added and self.plane not in session.planes_added:
             session.planes_added.append(self.plane)
+        return Undone.DONE
+
+
+@dataclass
+class VertexRemoved(Action):
+    """A drawn vertex removed from the worst-points list (a wrong click)."""
+
+    session: Session
+    contour: Contour
+    index: int
+    vertex: tuple[int, int]
+    was_closed: bool
+    dropped: bool  # the contour had no vertex left and left the session
+
+    def undo(self, cs):
+        c, session = self.contour, self.session
+        if self.dropped:
+            session.contours.append(c)
+        elif c not in session.contours:
+            return Undone.GONE
+        c.vertices.insert(min(self.index, len(c.vertices)), self.vertex)
+        c.closed = self.was_closed
+        return Undone.DONE
+
+
+@dataclass
+class PointExcluded(Action):
+    """A data point (stylus, segmentation, contour centre) removed from the worst-points list."""
+
+    session: Session
+    entry: list
+
+    def undo(self, cs):
+        if self.entry not in self.session.excluded:
+            return Undone.GONE
+        self.session.excluded.remove(self.entry)
         return Undone.DONE
 
 
@@ -165,6 +201,37 @@ class Drawing:
             cs.touch()
         core.changed(Change.DATA)
         return msg
+
+    def remove(self, cs: ClientState, wp: WorstPoint) -> str:
+        """Remove one of the worst points (``Core.worst``) from the data, as this tab's undoable
+        action: a drawn contour's point as the vertex it came from, any other point itself.
+        Returns what happened, in words."""
+        core = self.core
+        session = core.need_session()
+        with core.lock:
+            c, v = wp.origin.contour, wp.vertex
+            if c is not None and v is not None:
+                if c not in session.contours or v >= len(c.vertices):
+                    return "That vertex is gone already."
+                vertex = c.vertices.pop(v)
+                was_closed = c.closed
+                c.closed = c.closed and len(c.vertices) >= 3
+                dropped = not c.vertices
+                if dropped:
+                    session.contours.remove(c)
+                    if cs.drawing is c:
+                        cs.drawing = None
+                cs.undo.append(VertexRemoved(session, c, v, vertex, was_closed, dropped))
+                msg = f"Removed the drawn vertex at pixel {vertex}."
+            else:
+                entry = [*wp.point, wp.feature]
+                session.excluded.append(entry)
+                cs.undo.append(PointExcluded(session, entry))
+                msg = "Removed the point."
+            core.worst = [w for w in core.worst if w is not wp]
+            cs.touch()
+        core.changed(Change.DATA)
+        return f"{msg} Register again to see the fit without it (Undo brings it back)."
 
     def undo(self, cs: ClientState) -> str | None:
         """Undo this browser's last action of any kind; others' work is left alone."""

@@ -43,6 +43,7 @@ from .imaging import LIVE_PLANE_BASE, Imaging
 from .shown import Shown
 from .slicer import Slicer
 from .state import Action, Change, ClientState, RegisteredState, RunEntry, RunKind, Undone
+from .worker import viewer_options
 
 PUMP_HZ = 20.0  # status refresh and digitiser collection; tip and frames go out as they arrive
 TIP_MIN_S = 1.0 / 60  # at most this often per browser: a 100 Hz tracker would flood the websockets
@@ -257,7 +258,7 @@ class LiveFollower:
             data = core.data()
             if self.reg is None:
                 model, _ = core.need_model()
-                self.reg = LiveRegistration(model, data)
+                self.reg = LiveRegistration(model, data, options=viewer_options())
                 if core.last_reg is not None and core.last_reg.libr is not None:
                     self.reg.last = core.last_reg  # continue from the result on show
             else:

@@ -14,14 +14,21 @@ from collections.abc import Callable
 
 from ..errors import NavappError
 from ..evaluation.cost import lm_sweep
+from ..registration.objective import Weights
 from ..registration.pipeline import Registration
+from ..registration.quality import EXPECTED_NOISE_MM, MARGIN_MM
+from ..registration.residuals import point_residuals
+from .contours import OriginKind
 from .core import Core
+from .imaging import FREE_PLANE_BASE, LIVE_PLANE_BASE
+from .palette import feature_words
 from .shown import Shown
 from .slicer import Slicer
-from .state import Change, RegisteredState, Run, RunEntry, RunKind
-from .worker import Update, cancelled
+from .state import Change, RegisteredState, Run, RunEntry, RunKind, WorstPoint
+from .worker import Update, cancelled, viewer_options
 
 MIN_POINTS = 3  # fewer data points than this fix nothing
+WORST_SHOWN = 5  # data points furthest from the registered model, listed for removal
 BUSY = "A registration is already running; wait for it or cancel it."
 
 
@@ -39,7 +46,7 @@ class Runs:
         worker = core.worker
         if worker is None:
             return "Still preparing the registration model."
-        data = core.data(surface_only=kind is RunKind.SURFACE)
+        data, origins = core.data_with_origins(surface_only=kind is RunKind.SURFACE)
         npts = sum(len(v) for v in data.values())
         if npts < MIN_POINTS:
             return "Collect data first (stylus sweep or an ultrasound plane)."
@@ -51,7 +58,7 @@ class Runs:
             kind = RunKind.ALL
         with self._starting:
             with core.lock:
-                core.run = Run(kind, npts, time.monotonic())
+                core.run = Run(kind, npts, time.monotonic(), data=data, origins=origins)
             if not worker.start(data, deform=kind.deformable, warm=kind is RunKind.WARM):
                 with core.lock:
                     core.run = None
@@ -109,8 +116,9 @@ class Runs:
         if not stopped:
             result = RegisteredState(run.kind.label, reg.rigid, beta, err, *shown.predict(reg),
                                      data_model_frame=reg.data_model_frame)
+            worst = worst_points(reg, run.data, run.origins, viewer_options().weights)
             with core.lock:
-                core.result, core.last_reg = result, reg
+                core.result, core.last_reg, core.worst = result, reg, worst
                 core.need_session().result = result.to_json()
         with core.lock:
             core.need_session().log.append(entry)
@@ -169,3 +177,45 @@ class Runs:
                 return BUSY
         core.changed(Change.RUN)
         return None
+
+
+def plane_name(i: int | None) -> str:
+    """A plane as the Plane list numbers it."""
+    if i is None:
+        return "?"
+    if i >= LIVE_PLANE_BASE:
+        return f"live {i - LIVE_PLANE_BASE + 1}"
+    return f"free {i - FREE_PLANE_BASE + 1}" if i >= FREE_PLANE_BASE else str(i + 1)
+
+
+def worst_points(reg: Registration, data: dict, origins: dict, weights: Weights, n: int = WORST_SHOWN
+                 ) -> list[WorstPoint]:
+    """The ``n`` data points furthest from ``reg``'s answer beyond what their noise allows
+    (``quality``: the feature's expected noise + the fit-quality margin), worst first; a drawn
+    contour's points count once per drawn vertex (the vertex nearest the point), so that one
+    wrong click, rasterised into a spike of points, is one entry."""
+    out: list[WorstPoint] = []
+    seen = set()
+    for p in point_residuals(reg, weights):
+        if p.residual_mm <= EXPECTED_NOISE_MM.get(p.feature, 1.0) + MARGIN_MM or p.feature not in origins:
+            continue
+        o = origins[p.feature][p.index]
+        v = o.nearest_vertex() if o.kind is OriginKind.CONTOUR else None
+        key = (id(o.contour), v) if v is not None else (p.feature, p.index)
+        if key in seen:
+            continue
+        seen.add(key)
+        if v is not None and o.contour is not None:
+            c, r = o.contour.vertices[v]
+            where = f"plane {plane_name(o.plane)}, drawn vertex {v + 1} at pixel ({c}, {r})"
+        elif o.kind is OriginKind.PLANE:
+            where = f"segmentation of plane {plane_name(o.plane)}"
+        else:
+            where = {OriginKind.STYLUS: "stylus sweep", OriginKind.LIVE: "tracked stylus",
+                     OriginKind.CONTOUR: f"centre of a contour on plane {plane_name(o.plane)}"}[o.kind]
+        x, y, z = (float(t) for t in data[p.feature][p.index])
+        out.append(WorstPoint(p.feature, p.residual_mm, p.rejected, o, (x, y, z),
+                              f"{feature_words(p.feature)}, {where}", v))
+        if len(out) == n:
+            break
+    return out

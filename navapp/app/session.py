@@ -28,7 +28,7 @@ from ..features import NAMES as FEATURE_NAMES
 from ..features import STYLUS as STYLUS_FEATURES
 from ..simulation.scenedata import SceneData, acquire_free_plane, scene_key
 from ..simulation.ultrasound import PlaneData
-from .contours import Contour, contour_points
+from .contours import Contour, Origin, OriginKind, contour_points
 from .state import RunEntry
 
 SESSION_VERSION = 1
@@ -46,40 +46,54 @@ class Session:
     result: dict | None = None  # the registered model on show (RegisteredState.to_json), restored on restart
     live_points: list = field(default_factory=list)  # [[x, y, z, feature]] digitised with a tracked stylus
     live_planes: list = field(default_factory=list)  # [{"index", "pose", "png"}] frozen tracked frames
+    # [[x, y, z, feature]] data points the user removed (a stylus or segmentation point the fit
+    # left far off); a drawn contour's point is removed as its vertex instead
+    excluded: list = field(default_factory=list)
     written: bool = False  # the folder holds the whole case (after the first save, or when opened)
     note: str | None = None  # one line on what opening the folder found and did, for the user
 
     # ------------------------------------------------------------ data
     def data(self, sd: SceneData, planes: dict, surface_only=False) -> dict:
         """Registration data {feature: (N, 3) mm}: digitised stylus points, then (unless
-        ``surface_only``) every added plane's segmentation and every drawn contour.
-        ``planes``: plane index → PlaneData (presets and free planes)."""
-        parts: dict[str, list] = {}
+        ``surface_only``) every added plane's segmentation and every drawn contour, less the
+        points the user removed. ``planes``: plane index → PlaneData (presets and free planes)."""
+        return self.data_with_origins(sd, planes, surface_only)[0]
 
-        def add(name, pts):
-            if len(pts):
-                parts.setdefault(name, []).append(np.asarray(pts, float).reshape(-1, 3))
+    def data_with_origins(self, sd: SceneData, planes: dict, surface_only=False) -> tuple[dict, dict]:
+        """``data`` and, per feature, each point's ``contours.Origin`` (same order)."""
+        parts: dict[str, list] = {}
+        whence: dict[str, list] = {}
+        gone = {(str(f), *np.round([x, y, z], 6)) for x, y, z, f in self.excluded}
+
+        def add(name, pts, origins):
+            pts = np.asarray(pts, float).reshape(-1, 3)
+            keep = [i for i, p in enumerate(pts) if not gone or (name, *np.round(p, 6)) not in gone]
+            if keep:
+                parts.setdefault(name, []).append(pts[keep])
+                whence.setdefault(name, []).extend(origins[i] for i in keep)
 
         n = min(self.stylus_count, len(sd.stylus_path))
         for name in STYLUS_FEATURES:
-            add(name, sd.stylus_path[:n][sd.stylus_labels[:n] == name])
+            pts = sd.stylus_path[:n][sd.stylus_labels[:n] == name]
+            add(name, pts, [Origin(OriginKind.STYLUS)] * len(pts))
         for x, y, z, name in self.live_points:
-            add(name, [x, y, z])
+            add(name, [x, y, z], [Origin(OriginKind.LIVE)])
         if not surface_only:
             for i in self.planes_added:
                 for name, pts in planes[i].features.items():
-                    add(name, pts)
+                    add(name, pts, [Origin(OriginKind.PLANE, plane=i)] * len(pts))
             for c in self.contours:
-                for name, pts in contour_points(sd.probe, planes[c.plane].probe_to_tracker, c).items():
-                    add(name, pts)
-        return {k: np.vstack(v) for k, v in parts.items()}
+                origins: dict = {}
+                for name, pts in contour_points(sd.probe, planes[c.plane].probe_to_tracker, c, origins).items():
+                    add(name, pts, origins[name])
+        return {k: np.vstack(v) for k, v in parts.items()}, whence
 
     # ------------------------------------------------------------ persistence
     def to_json(self) -> dict:
         return {"version": SESSION_VERSION, "scene_key": self.key, "stylus_count": self.stylus_count,
                 "planes_added": self.planes_added, "contours": [c.to_json() for c in self.contours],
                 "free_planes": self.free_planes, "log": [e.to_json() for e in self.log], "result": self.result,
-                "live_points": self.live_points, "live_planes": self.live_planes}
+                "live_points": self.live_points, "live_planes": self.live_planes, "excluded": self.excluded}
 
     def save(self, sd: SceneData, planes: dict):
         """Write session.json and the case folder's intraop/. The first save writes the whole
@@ -239,7 +253,8 @@ def open_session(folder: Path, sd: SceneData) -> tuple[Session, dict]:
                     [RunEntry.from_json(e) for e in d["log"]],
                     d.get("result"),
                     [[float(a), float(b), float(c), str(f)] for a, b, c, f in d.get("live_points", [])],
-                    list(d.get("live_planes", [])))
+                    list(d.get("live_planes", [])),
+                    [[float(a), float(b), float(c), str(f)] for a, b, c, f in d.get("excluded", [])])
     except (ValueError, KeyError, TypeError) as exc:
         raise InputError(f"damaged session.json ({exc.__class__.__name__}: {exc}); move it away to start afresh",
                          path) from None

@@ -18,7 +18,7 @@ import numpy as np
 
 from ..registration.pipeline import Registration
 from ..registration.rigid import RigidResult
-from .contours import Contour
+from .contours import Contour, Origin
 from .worker import cancelled
 
 ERROR_SCALE_MM = 15.0  # default top of the error colour scale: the same colour means the same error in every run
@@ -194,6 +194,25 @@ _LABELS = {RunKind.RIGID: "rigid", RunKind.SURFACE: "deformable, surface", RunKi
            RunKind.RESTORED: "restored"}
 
 
+@dataclass(frozen=True, eq=False)
+class WorstPoint:
+    """A data point the registration left far from the model (``registration.residuals``),
+    with where it came from, so that the surgeon can see it and remove it. A drawn
+    contour's points are listed once per drawn vertex (the vertex nearest the point)."""
+
+    feature: str
+    residual_mm: float
+    rejected: bool  # beyond the outlier cut: the fit gave it no weight
+    origin: Origin
+    point: tuple[float, float, float]  # tracker mm, as the session's data hold it
+    where: str  # in words: the feature and its origin ("the posterior liver wall, plane 8, vertex 2 (40, 250)")
+    vertex: int | None = None  # the drawn vertex it belongs to (contours)
+
+    def text(self) -> str:
+        used = " — not used by the fit" if self.rejected else ""
+        return f"{self.residual_mm:.1f} mm: {self.where}{used}"
+
+
 @dataclass
 class Run:
     """The registration in progress (written by the worker thread under ``Core.lock``)."""
@@ -201,6 +220,10 @@ class Run:
     kind: RunKind
     points: int
     t0: float
+    # the run's data (tracker mm) and each point's Origin, per feature: its worst points are
+    # named from these (the session may change while it runs)
+    data: dict = field(default_factory=dict)
+    origins: dict = field(default_factory=dict)
     trace: list[tuple[float, float]] = field(default_factory=list)  # (seconds, mean true error mm) per state
     streamed: int = 0  # states received from the worker
     iteration: int = 0

@@ -15,7 +15,8 @@ import numpy as np
 
 from ..anatomy.model import VESSELS
 from ..registration.libr import LMOptions
-from ..registration.pipeline import Registration, register
+from ..registration.objective import robust_weights
+from ..registration.pipeline import Registration, RobustOptions, register
 from ..registration.rigid import RigidResult
 
 
@@ -29,6 +30,13 @@ class Update:
     vessels: dict | None = None  # "portal" / "hepatic" → (V, 3) deformed vessel-surface vertices, mm
     beta: np.ndarray | None = None  # the state β (None for a rigid-only result)
     rigid: RigidResult | None = None  # the rigid pose of this state
+
+
+def viewer_options() -> LMOptions:
+    """The viewer's fits: robust on every feature (``objective.robust_weights``: Huber and
+    outlier rejection), as one wrong click on an image is one slip of the hand away; the
+    salient features keep the pipeline's Huber δ (``RobustOptions.huber_salient_mm``)."""
+    return LMOptions(weights=robust_weights(RobustOptions().huber_salient_mm or 1.0))
 
 
 def cancelled(reg: Registration) -> bool:
@@ -62,7 +70,7 @@ class RegistrationWorker:
                 return False
             self._cancel.clear()
             prev = self.last if warm else None
-            self._thread = threading.Thread(target=self._run, args=(data, deform, prev, options or LMOptions()),
+            self._thread = threading.Thread(target=self._run, args=(data, deform, prev, options or viewer_options()),
                                             daemon=True)
             self._thread.start()
             return True

@@ -17,14 +17,39 @@ import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
 from ..geometry.closest import closest_on_polyline, closest_on_surface, nearest_vertices
-from .model import W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform
+from .model import REGION_FEATURES, W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform
 from .rotation import rotation, rotation_derivatives
+
+
+@dataclass(frozen=True)
+class Rejection:
+    """Outlier rejection on every data feature, by the same reweighting as the Huber
+    thresholds: at each evaluation a point whose residual f exceeds
+
+        cut = max(floor_mm, k × the median f of all data points)
+
+    gets weight 0 (its feature keeps w_F / N_F per remaining point). One wrong click on an
+    image (a posterior vertex 40 mm below the wall) rasterises into a spike of hundreds of
+    points, more than half of its feature: a cut from the feature's own residuals, or a
+    Huber weight, still lets it pull; the median over all data is set by the many good
+    points. ``k`` keeps the cut loose while the fit is far off (after the rigid pose of a
+    large deformation the good points too are several mm off), ``floor_mm`` once it has
+    converged; below the cut a Huber δ (``robust_weights``) bounds the pull of the spike's
+    foot. Measured: docs/decisions.md, "Outliers"."""
+
+    floor_mm: float = 10.0
+    k: float = 5.0
+
+    def cut_mm(self, residuals: np.ndarray) -> float:
+        """The cut for these per-point residuals f (all data points), mm."""
+        return max(self.floor_mm, self.k * float(np.median(residuals))) if len(residuals) else float("inf")
 
 
 @dataclass
 class Weights:
     """The weights of Ω (eq. 7): w_F per data feature (m⁻², ``navapp.features``), w_E on the
-    strain energy (Pa⁻²), and optional Huber thresholds (mm) per feature."""
+    strain energy (Pa⁻²), optional Huber thresholds (mm) per feature and an optional
+    outlier rejection on every feature."""
 
     features: dict = field(default_factory=lambda: dict(WEIGHTS_SI))  # m⁻²
     energy: float = W_ENERGY_SI  # Pa⁻²
@@ -33,10 +58,44 @@ class Weights:
     # scaled by δ / f (iteratively reweighted least squares), so a salient feature whose
     # labels are approximate pulls linearly rather than quadratically. Empty: plain Ω.
     huber_mm: dict = field(default_factory=dict)
+    # outlier rejection on every feature (``Rejection``), in the same weight factors; None: off
+    reject: Rejection | None = None
 
     def scaled(self, factor: float) -> "Weights":
         return Weights({k: v * factor for k, v in self.features.items()}, self.energy * factor, self.unit_m,
-                       dict(self.huber_mm))
+                       dict(self.huber_mm), self.reject)
+
+    def robust_factors(self, distances: dict, rows: dict) -> dict:
+        """Feature → (R,) weight factors of its residual rows from its per-point residuals f
+        (``distances``: feature → (N,) mm; ``rows``: feature → (R,) the point of each row):
+        δ / max(f, δ) on a feature with a Huber δ, times 0 beyond the rejection cut. Only
+        features with a factor other than 1 possible are listed (none: plain Ω)."""
+        out = {}
+        cut = self.reject.cut_mm(np.concatenate(list(distances.values()))) if self.reject and distances else None
+        for name, dist in distances.items():
+            factor = None
+            if name in self.huber_mm:
+                delta = self.huber_mm[name]
+                factor = delta / np.maximum(dist, delta)
+            if cut is not None:
+                factor = (np.ones(len(dist)) if factor is None else factor) * (dist <= cut)
+            if factor is not None:
+                out[name] = factor[rows[name]]
+        return out
+
+
+HUBER_MM = 2.0  # Huber δ (mm) on the features without their own, in ``robust_weights``
+
+
+def robust_weights(salient_mm: float) -> Weights:
+    """Weights robust on every feature: Huber δ ``salient_mm`` on the salient features (the
+    pipeline's ``RobustOptions.huber_salient_mm``), ``HUBER_MM`` on every other, and outlier
+    rejection (``Rejection``). The viewer fits with these (a click can go wrong);
+    ``pipeline.register``'s default is the salient Huber alone (docs/decisions.md, "Outliers")."""
+    from ..features import NAMES
+
+    return Weights(huber_mm={n: salient_mm if n in REGION_FEATURES else HUBER_MM for n in NAMES},
+                   reject=Rejection())
 
 
 @dataclass
@@ -50,7 +109,7 @@ class Evaluation:
     correspondence: dict  # name → Correspondence: reuse with ``frozen=`` to hold them fixed
     beta: np.ndarray  # (3k + 6,) the state evaluated
     terms: list  # per data feature (name, feature, S, q, rows, local): what ``add_jacobian`` needs
-    scales: dict | None = None  # feature → (R,) Huber weight factors of its rows (features with a δ only)
+    scales: dict | None = None  # feature → (R,) robust weight factors of its rows (``Weights.robust_factors``)
 
     @property
     def jacobian(self) -> np.ndarray:
@@ -193,15 +252,17 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     which makes Ω a smooth function of β within an LM iteration. Without the Jacobian,
     ``add_jacobian`` can add it later at the same correspondences (LM decides whether to
     go on only once it knows Ω, and the Jacobian of the last state is never needed).
-    ``scales``: Huber weight factors to hold (a previous evaluation's ``scales``), so that
+    ``scales``: robust weight factors to hold (a previous evaluation's ``scales``), so that
     with held correspondences Ω is one fixed weighted least-squares problem; otherwise
-    they are computed here from the residuals (``Weights.huber_mm``).
+    they are computed here from the residuals (``Weights.robust_factors``: Huber δ,
+    outlier rejection).
     """
     basis = model.basis
     n = basis.Ju.shape[1]
     alpha = beta[:n]
     tim = {"deform": 0.0, "kdtree": 0.0, "closest": 0.0, "jacobian": 0.0}
-    fs, ws, stats, corr, terms, robust = [], [], {}, {}, [], {}
+    fs, ws, stats, corr, terms = [], [], {}, {}, []
+    dists, row_of = {}, {}  # feature → per-point residual f (N,), the point of each row (R,)
     geometry = {}  # model feature → (local, X, KD-tree): anterior and posterior share the liver
     for name, Y in data.items():
         feat = model.feature_for(name)
@@ -239,18 +300,17 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
         wF = weights.features[name] * weights.unit_m ** 2 / len(Y)
         dist = point_distances(r, rows, len(Y))
         fs.append(r)
-        if name in weights.huber_mm:
-            if scales is not None and name in scales:
-                robust[name] = scales[name]
-            else:
-                delta = weights.huber_mm[name]
-                robust[name] = (delta / np.maximum(dist, delta))[rows]
-            ws.append(wF * robust[name])
-        else:
-            ws.append(np.full(len(r), wF))
+        ws.append(np.full(len(r), wF))
+        dists[name], row_of[name] = dist, rows
         stats[name] = _stats(dist, wF)
         terms.append((name, feat, S, q, rows, local))
         tim["jacobian"] += time.perf_counter() - t0
+    # robust weight factors (Huber, outlier rejection): held when given, so that with held
+    # correspondences Ω is one fixed weighted least-squares problem
+    robust = dict(scales) if scales is not None else weights.robust_factors(dists, row_of)
+    for i, name in enumerate(data):
+        if name in robust:
+            ws[i] = ws[i] * robust[name]
     fE = basis.strain_energy_density(alpha)
     fs.append(np.array([fE]))
     ws.append(np.array([weights.energy]))

@@ -4,6 +4,7 @@ predicted error at each target."""
 
 import numpy as np
 
+from ..runs import WORST_SHOWN
 from ..state import Change, RunKind
 from ..worker import Update
 
@@ -30,6 +31,11 @@ class RegistrationPanel:
                                     axes=({"label": "time since start (s)"}, {"label": "mean error (mm)"}))
             self.note = g.add_markdown(f"<small>{NOTE}</small>")
             self.table = g.add_markdown("")
+            # the data points the last fit left furthest from the model: a wrong click is found here
+            self.worst_md = g.add_markdown("")
+            self.btn_worst = [g.add_button("Remove", visible=False) for _ in range(WORST_SHOWN)]
+        for i, b in enumerate(self.btn_worst):
+            b.on_click(lambda e, i=i: self.remove(i))
         for kind, b in self.btn.items():
             b.on_click(lambda e, kind=kind: self.start(kind))
         self.btn_cancel.on_click(lambda e: self.cancel())
@@ -42,6 +48,27 @@ class RegistrationPanel:
     def cancel(self):
         self.view.notify("Cancel", self.app.runs.cancel())
 
+    def remove(self, i: int):
+        worst = self.core.worst
+        if i >= len(worst):
+            return
+        self.view.notify("Removed", self.app.drawing.remove(self.view.cs, worst[i]))
+
+    def _worst(self):
+        worst = list(self.core.worst)
+        if self.core.result is None:
+            self.worst_md.content = ""
+        elif not worst:
+            self.worst_md.content = "**Worst data points**: none beyond its noise — every point lies on the model."
+        else:
+            lines = [f"{i + 1}. {w.text()}" for i, w in enumerate(worst)]
+            self.worst_md.content = ("**Worst data points** (distance to the registered model; remove a wrong one, "
+                                     "then register again):  \n" + "  \n".join(lines))
+        for i, b in enumerate(self.btn_worst):
+            b.visible = i < len(worst)
+            if i < len(worst):
+                b.label = f"Remove {i + 1} ({worst[i].residual_mm:.1f} mm)"
+
     def refresh(self, what: Change):
         core, live = self.core, self.app.live
         worker = core.worker
@@ -53,6 +80,8 @@ class RegistrationPanel:
         if what is Change.LIVE and live.link is not None and live.following:
             self.md.content = (f"**Live re-registration on**: {live.link.follower.summary()}. The result is kept "
                                f"when it is switched off.")
+        if what in (Change.RESULT, Change.DATA, Change.SCENE):
+            self._worst()
         if what in (Change.MODEL, Change.RESULT, Change.RUN, Change.LOG, Change.SCENE):
             self._table()
             if run is not None:
