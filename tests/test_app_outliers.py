@@ -84,6 +84,10 @@ def test_a_stray_vertex_is_rejected_listed_first_and_removable(app):
     assert top.origin.contour is contour and top.vertex == 1 and top.feature == "posterior"
     assert top.residual_mm > 15 and top.rejected
     assert f"({stray[0]}, {stray[1]})" in top.text()
+    assert not any(w.origin.contour is contour and w.vertex != 1 for w in worst)  # the wall's clicks are fine
+    # the 2D view rings the stray vertex with its distance
+    shown = [c for c in app.view2d_state.view_state(cs.token)["contours"] if c["vertices"][0] == list(verts[0])]
+    assert [f["v"] for f in shown[0]["flags"]] == [1] and "mm (not used)" in shown[0]["flags"][0]["text"]
 
     msg = app.drawing.remove(cs, top)
     assert "Removed the drawn vertex" in msg

@@ -56,14 +56,12 @@ class Origin:
     pixel: tuple[int, int] | None = None
     plane: int | None = None
 
-    def nearest_vertex(self) -> int | None:
-        """Index of the drawn vertex closest to this point's pixel (a contour's point)."""
-        if self.contour is None or not self.contour.vertices:
+    def vertex(self) -> int | None:
+        """Index of the drawn vertex this point is the pixel of (a contour's point), or None
+        for a point between vertices (the line joining two clicks) or another origin."""
+        if self.contour is None or self.pixel is None:
             return None
-        if self.pixel is None:
-            return None
-        v = np.array(self.contour.vertices, float)
-        return int(np.argmin(np.hypot(v[:, 0] - self.pixel[0], v[:, 1] - self.pixel[1])))
+        return next((i for i, v in enumerate(self.contour.vertices) if tuple(v) == self.pixel), None)
 
 
 def click_to_pixel(probe: Probe, probe_to_tracker, origin, direction):

@@ -39,6 +39,7 @@ OVERLAY_STYLE: dict[str, tuple[str, str]] = {
     "liver": ("#e0b090", "#ffd040"), "portal": ("#ff8080", "#ff2020"), "hepatic": ("#80a0ff", "#2f6bff"),
     "target": ("#c080ff", "#e000ff"),
 }
+WORST_POINT = "#ff2a2a"  # a drawn vertex in the worst-points list: ring and residual beside it
 IN_PROGRESS = "#ffe033"  # the contour being drawn (page.js draws it; kept here so the words stay together)
 
 # ---------------------------------------------------------------- drawing

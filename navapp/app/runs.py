@@ -191,16 +191,18 @@ def plane_name(i: int | None) -> str:
 def worst_points(reg: Registration, data: dict, origins: dict, weights: Weights, n: int = WORST_SHOWN
                  ) -> list[WorstPoint]:
     """The ``n`` data points furthest from ``reg``'s answer beyond what their noise allows
-    (``quality``: the feature's expected noise + the fit-quality margin), worst first; a drawn
-    contour's points count once per drawn vertex (the vertex nearest the point), so that one
-    wrong click, rasterised into a spike of points, is one entry."""
+    (``quality``: the feature's expected noise + the fit-quality margin), worst first; of a drawn
+    contour only its vertices, the clicks (a wrong click rasterises into a spike of points
+    whose every pixel is off, but the click is the one thing to remove)."""
     out: list[WorstPoint] = []
     seen = set()
     for p in point_residuals(reg, weights):
         if p.residual_mm <= EXPECTED_NOISE_MM.get(p.feature, 1.0) + MARGIN_MM or p.feature not in origins:
             continue
         o = origins[p.feature][p.index]
-        v = o.nearest_vertex() if o.kind is OriginKind.CONTOUR else None
+        v = o.vertex() if o.kind is OriginKind.CONTOUR else None
+        if o.kind is OriginKind.CONTOUR and o.pixel is not None and v is None:
+            continue  # a pixel of the line between two clicks: the clicks are what can be wrong
         key = (id(o.contour), v) if v is not None else (p.feature, p.index)
         if key in seen:
             continue

@@ -197,8 +197,8 @@ _LABELS = {RunKind.RIGID: "rigid", RunKind.SURFACE: "deformable, surface", RunKi
 @dataclass(frozen=True, eq=False)
 class WorstPoint:
     """A data point the registration left far from the model (``registration.residuals``),
-    with where it came from, so that the surgeon can see it and remove it. A drawn
-    contour's points are listed once per drawn vertex (the vertex nearest the point)."""
+    with where it came from, so that the surgeon can see it and remove it. Of a drawn
+    contour only its vertices (the clicks) are listed."""
 
     feature: str
     residual_mm: float
@@ -206,7 +206,7 @@ class WorstPoint:
     origin: Origin
     point: tuple[float, float, float]  # tracker mm, as the session's data hold it
     where: str  # in words: the feature and its origin ("the posterior liver wall, plane 8, vertex 2 (40, 250)")
-    vertex: int | None = None  # the drawn vertex it belongs to (contours)
+    vertex: int | None = None  # the drawn vertex it is (contours)
 
     def text(self) -> str:
         used = " — not used by the fit" if self.rejected else ""

@@ -61,6 +61,10 @@ function draw(){
   };
   for (const c of state.contours){
     poly(c.vertices, c.closed, c.colour, 2, 0);
+    for (const f of (c.flags || [])){  // a worst point of the last fit: ring + residual
+      const p = c.vertices[f.v]; if (!p) continue; const x = X(p[0]), y = Y(p[1]);
+      g.strokeStyle = f.colour; g.lineWidth = 2; g.beginPath(); g.arc(x, y, 8, 0, 7); g.stroke();
+      g.fillStyle = f.colour; g.font = "bold 12px sans-serif"; g.fillText(f.text, x + 10, y + 4); }
     if (c.centroid){ const x = X(c.centroid[0]), y = Y(c.centroid[1]);
       g.strokeStyle = "#fff"; g.lineWidth = 1; g.beginPath(); g.moveTo(x - 4, y); g.lineTo(x + 4, y);
       g.moveTo(x, y - 4); g.lineTo(x, y + 4); g.stroke(); }

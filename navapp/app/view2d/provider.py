@@ -14,7 +14,7 @@ from ..contours import CENTERLINE_OF, contour_pixels
 from ..core import Core
 from ..drawing import Drawing
 from ..imaging import Imaging
-from ..palette import DRAWABLE, DRAWN_COLOURS, OVERLAY_STYLE
+from ..palette import DRAWABLE, DRAWN_COLOURS, OVERLAY_STYLE, WORST_POINT
 from ..shown import Shown
 from .overlays import Overlay, section_pixels
 
@@ -56,6 +56,7 @@ class View2D:
             out["image_id"] = f"{index}-{id(plane)}"
             contours = [c for c in session.contours if c.plane == index]
             drawing = cs.drawing if cs.drawing in contours else None
+            worst = list(core.worst)
         out["overlays"] = [ov.to_json() for ov in self.overlays(index)]
         for c in contours:
             if c is drawing:
@@ -64,9 +65,14 @@ class View2D:
             if c.closed and c.feature in CENTERLINE_OF:
                 cols, rows = contour_pixels(c)
                 centroid = [float(cols.mean()), float(rows.mean())]
+            # the last fit's worst points drawn on this contour: a ring and the residual at the vertex
+            n = len(c.vertices)
+            flags = [{"v": w.vertex, "text": f"{w.residual_mm:.1f} mm" + (" (not used)" if w.rejected else ""),
+                      "colour": WORST_POINT} for w in worst
+                     if w.origin.contour is c and w.vertex is not None and w.vertex < n]
             out["contours"].append({"feature": c.feature, "colour": DRAWN_COLOURS.get(c.feature, "#fff"),
                                     "vertices": [list(v) for v in c.vertices], "closed": c.closed,
-                                    "centroid": centroid})
+                                    "centroid": centroid, "flags": flags})
         if drawing is not None:
             out["drawing"] = {"feature": drawing.feature, "vertices": [list(v) for v in drawing.vertices]}
         out["legend"] = [{"name": o["name"], "colour": o["colour"]} for o in out["overlays"]] + \
