@@ -31,6 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..registration.coverage import note_coverage, pose_warning
 from ..registration.live import LiveRegistration, merge
 from ..registration.pipeline import Registration
 from ..simulation.scenedata import auto_segmentation, segment_frame
@@ -259,7 +260,11 @@ class LiveFollower:
             if self.reg is None:
                 model, _ = core.need_model()
                 self.reg = LiveRegistration(model, data, options=viewer_options())
-                if core.last_reg is not None and core.last_reg.libr is not None:
+                doubt = core.result.pose_warning if core.result is not None else None
+                if doubt:  # never continued from a pose nobody should believe: a fresh fit, and said so
+                    core.notify("Live re-registration", "Starts afresh, not from the result on show: " + doubt,
+                                error=True)
+                elif core.last_reg is not None and core.last_reg.libr is not None:
                     self.reg.last = core.last_reg  # continue from the result on show
             else:
                 self.reg.base = merge(data)
@@ -408,6 +413,7 @@ class Live:
         core, shown = self.core, self.shown
         beta = reg.libr.beta if reg.libr is not None else None
         now = time.monotonic()
+        note_coverage(reg)  # before Slicer: NavappStatus carries it
         self.slicer.send(reg, throttle=not final)
         if not final and now - self._shown < VIEW_MIN_S:
             return
@@ -415,7 +421,8 @@ class Live:
         err = shown.node_error(reg.rigid, beta)
         predicted = shown.predict(reg) if final else (None, [])  # ~0.1 s: not on every frame
         state = RegisteredState(RunKind.LIVE.label, reg.rigid, beta, err, *predicted,
-                                data_model_frame=reg.data_model_frame)
+                                data_model_frame=reg.data_model_frame, pose_warning=pose_warning(reg))
+        flipped = (core.result.pose_warning if core.result is not None else None) != state.pose_warning
         with core.lock:
             core.result, core.last_reg = state, reg
             if core.worker is not None:
@@ -429,6 +436,8 @@ class Live:
         if final:
             core.changed(Change.RESULT)
             return
+        if flipped:  # the red pose warning comes and goes with the live result
+            core.changed(Change.LIVE)
         geom = shown.geometry(reg.rigid, beta)
         core.each_view(lambda v: v.show_live_registration(geom, err))
 

@@ -14,6 +14,7 @@ from collections.abc import Callable
 
 from ..errors import NavappError
 from ..evaluation.cost import lm_sweep
+from ..registration.coverage import pose_warning
 from ..registration.objective import Weights
 from ..registration.pipeline import Registration
 from ..registration.quality import EXPECTED_NOISE_MM, MARGIN_MM
@@ -56,6 +57,12 @@ class Runs:
             return "Live re-registration is on (Live tracking panel): switch it off first."
         if kind is RunKind.WARM and worker.last is None:
             kind = RunKind.ALL
+        doubt = core.result.pose_warning if core.result is not None else None
+        if kind is RunKind.WARM and doubt:
+            # never continue from a pose nobody should believe: a fresh fit chooses its own
+            kind = RunKind.ALL
+            core.notify("Registration", "Not continued from the result on show (its pose is not to be believed): "
+                        "a fresh registration on all data instead.", error=True)
         with self._starting:
             with core.lock:
                 core.run = Run(kind, npts, time.monotonic(), data=data, origins=origins)
@@ -115,7 +122,7 @@ class Runs:
         entry = RunEntry.of(run.kind, reg, run.points, time.monotonic() - run.t0, err, run.streamed, run.trace)
         if not stopped:
             result = RegisteredState(run.kind.label, reg.rigid, beta, err, *shown.predict(reg),
-                                     data_model_frame=reg.data_model_frame)
+                                     data_model_frame=reg.data_model_frame, pose_warning=pose_warning(reg))
             worst = worst_points(reg, run.data, run.origins, viewer_options().weights)
             with core.lock:
                 core.result, core.last_reg, core.worst = result, reg, worst

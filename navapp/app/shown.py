@@ -173,12 +173,13 @@ class Shown:
         # targets at 2.8 and 5.2 mm). A session saved before they were kept has none: its saved
         # prediction is shown, and a suggestion asks for a new registration
         inv = {k: np.asarray(v, float).reshape(-1, 3) for k, v in (d.get("data_model_frame") or {}).items()}
-        reg = Registration(model, rigid, libr, inv)
+        doubt = d.get("pose_warning")
+        reg = Registration(model, rigid, libr, inv, notes=[doubt] if doubt else [])
         core.last_reg = worker.last = reg
         predicted = self.predict(reg)
         saved = d.get("predicted_mm")
         if saved is not None and len(saved) == len(model.basis.surface):
             predicted = (np.array(saved, float), [TargetBand.from_json(b) for b in d.get("target_bands", [])])
         core.result = RegisteredState(d.get("run", "restored"), rigid, beta, self.node_error(rigid, beta), *predicted,
-                                      data_model_frame=inv)
+                                      data_model_frame=inv, pose_warning=doubt)
         self.slicer.send(reg)  # queued: a Slicer connecting later receives the result on show

@@ -127,6 +127,9 @@ class RegisteredState:
     # session's data may have changed since (a plane added, not yet registered; a live fit's
     # frames): the LM covariance is scaled by the fit's own residuals
     data_model_frame: dict | None = field(default=None, kw_only=True)
+    # why its pose is not to be believed (``coverage.pose_warning``: undetermined, too little of
+    # the liver covered), shown in red; a warm start or live re-registration never continues from it
+    pose_warning: str | None = field(default=None, kw_only=True)
 
     def to_json(self) -> dict:
         # the prediction is kept too: it was made from the data of the fit, which for a live
@@ -135,7 +138,7 @@ class RegisteredState:
                 "rms_mm": float(self.rigid.rms_mm), "kept": bool(self.rigid.kept),
                 "beta": None if self.beta is None else np.asarray(self.beta).tolist(),
                 "predicted_mm": None if self.predicted_mm is None else np.round(self.predicted_mm, 3).tolist(),
-                "target_bands": [b.to_json() for b in self.target_bands],
+                "target_bands": [b.to_json() for b in self.target_bands], "pose_warning": self.pose_warning,
                 "data_model_frame": None if self.data_model_frame is None else
                 {k: np.round(np.asarray(v, float), 4).tolist() for k, v in self.data_model_frame.items()}}
 

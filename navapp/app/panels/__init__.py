@@ -33,6 +33,7 @@ class ClientView:
         self.status = g.add_markdown("")
         self.bar = g.add_progress_bar(0.0, animated=True)
         self.alert = g.add_html("", visible=False)  # a lost tool: above every panel, not in a folder
+        self.pose_alert = g.add_html("", visible=False)  # the registered pose is not to be believed
         self.layers = LayersPanel(self)  # first: the others show their nodes through it
         self.guide = GuidePanel(self)
         self.stylus = StylusPanel(self)
@@ -64,6 +65,8 @@ class ClientView:
             p.refresh(what)
         if what is Change.LIVE:
             self._alert()
+        if what in (Change.LIVE, Change.RESULT):
+            self._pose_alert()
 
     def _alert(self):
         link = self.app.live.link
@@ -76,6 +79,18 @@ class ClientView:
         if self.alert.content != html:
             self.alert.content = html
         self.alert.visible = True
+
+    def _pose_alert(self):
+        res = self.core.result
+        if res is None or not res.pose_warning:
+            self.pose_alert.visible = False
+            return
+        html = (f"<div style='background:#c00;color:#fff;padding:8px;border-radius:4px'><b>⚠ Registered pose not "
+                f"to be believed</b> ({escape(res.run)}): {escape(res.pose_warning)}. Re-register and live "
+                f"re-registration will not continue from it.</div>")
+        if self.pose_alert.content != html:
+            self.pose_alert.content = html
+        self.pose_alert.visible = True
 
     def notify(self, title, body, error=False):
         self.client.add_notification(title, body, color="red" if error else None,

@@ -1,0 +1,71 @@
+"""Does a registration's data cover enough of the liver for its pose to be believed?
+
+A rigid pose from a small patch can be grossly wrong while fitting its data to a few tenths
+of a millimetre: live 'Digitise as: anterior' for 15 s, then Rigid, gave a mean error of 48 mm
+reported as "ICP RMS 3.69 mm"; one plane's posterior wall alone, 33–127 mm. The pose's
+determinacy (``pose.pose_determinacy``) names the motions a patch leaves free, but only for the
+stylus surface data, and a curved patch can fix every motion and still sit in the wrong place.
+Coverage is the second check: the share of the liver's surface nodes within ``COVER_MM`` of a
+data point (in the model frame). Measured on the demo liver (docs/decisions.md, "Gross poses"):
+the whole stylus sweep 21.8 %, its anterior 853 points 19.0 % (rigid error 8.9 mm mean), a
+400-point patch 9.2 % (12.9 mm), 200 points 4.9 % (15.9 mm), one plane's wall ≤ 1.9 % (33–127 mm).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .model import RegistrationModel
+from .pipeline import Registration
+
+COVER_MM = 10.0  # a surface node this close to a data point counts as covered
+MIN_COVERAGE = 0.10  # below this share of the liver surface the pose is not to be believed
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """The share of the liver surface the data cover (``fraction``, 0–1)."""
+
+    fraction: float
+
+    @property
+    def warning(self) -> str | None:
+        if self.fraction >= MIN_COVERAGE:
+            return None
+        return (f"the data cover {100 * self.fraction:.0f} % of the liver surface (within {COVER_MM:.0f} mm), less "
+                f"than the {100 * MIN_COVERAGE:.0f} % a pose needs: the pose may be grossly wrong — do not rely "
+                f"on it; digitise more of the surface")
+
+
+def data_coverage(model: RegistrationModel, data_model_frame: dict) -> Coverage:
+    """Coverage of the model's liver surface by data points in the model frame (feature → (N, 3) mm)."""
+    pts = [np.asarray(p, float).reshape(-1, 3) for p in data_model_frame.values() if len(p)]
+    if not pts or "liver" not in model.features:
+        return Coverage(0.0)
+    d, _ = cKDTree(np.vstack(pts)).query(model.features["liver"].rest, distance_upper_bound=COVER_MM)
+    return Coverage(float(np.mean(d < COVER_MM)))
+
+
+def note_coverage(reg: Registration) -> Coverage:
+    """Check ``reg``'s coverage and add its warning to the registration's notes (so that every
+    reader of ``Registration.warnings`` — the run table, Slicer's NavappStatus — carries it);
+    idempotent."""
+    cov = data_coverage(reg.model, reg.data_model_frame)
+    w = cov.warning
+    if w is not None and w not in reg.notes:
+        reg.notes.append(w)
+    return cov
+
+
+def pose_warning(reg: Registration) -> str | None:
+    """Everything that says ``reg``'s pose is not to be believed, one line (None: nothing):
+    the notes raised before the fit (too few or collinear points: ``pipeline.undetermined_pose``),
+    an undetermined pose, too little coverage."""
+    lines = list(reg.notes)
+    if reg.determinacy is not None and reg.determinacy.warning:
+        lines.append(reg.determinacy.warning)
+    cov = data_coverage(reg.model, reg.data_model_frame).warning
+    if cov:
+        lines.append(cov)
+    return "; ".join(dict.fromkeys(lines)) or None

@@ -1,0 +1,88 @@
+"""A gross rigid pose is never accepted silently: data from a small patch (live 'Digitise as:
+anterior' for a few seconds) or one plane's wall alone give a pose nobody should believe; the
+result on show carries a red pose warning (panel banner), Slicer's NavappStatus carries it, and
+neither Re-register nor live re-registration continues from it. Headless, small scene."""
+
+import types
+
+import numpy as np
+import pytest
+from conftest import free_port
+
+from navapp.app.state import RunKind
+from navapp.simulation.scene import parse_scene
+
+SCENE = {"name": "grosspose", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
+         "stylus": {"coverage": 0.2}, "ius": {"planes": 4}}
+
+
+@pytest.fixture(scope="module")
+def app(cache_root, tmp_path_factory):
+    from navapp.app.server import App
+
+    a = App(parse_scene(SCENE), port=free_port(), session_dir=tmp_path_factory.mktemp("sess"), edge=12.0, k=12,
+            cache_root=cache_root)
+    assert a.start().wait(600), "start-up did not finish"
+    assert a.core.failed is None, a.core.failed
+    yield a
+    a.server.stop()
+    a.view2d.stop()
+
+
+def run(app, kind):
+    assert app.runs.start(kind) is None
+    app.core.worker.join(300)
+    assert not app.core.worker.busy
+    return app.core.session.log[-1]
+
+
+def only(app, live_points=(), planes=()):
+    session = app.core.session
+    session.stylus_count, session.contours = 0, []
+    session.live_points = [[*map(float, p), "anterior"] for p in live_points]
+    session.planes_added = list(planes)
+    app.core.changed()
+
+
+def test_a_patch_or_one_wall_gives_a_red_pose_warning_and_is_not_continued(app):
+    from navapp.tracking.results import status_line
+
+    sd = app.core.sd
+    ant = sd.stylus_path[sd.stylus_labels == "anterior"]
+    patch = ant[np.argsort(np.linalg.norm(ant - ant[0], axis=1))[:40]]  # a few seconds of digitising
+    only(app, live_points=patch)
+    entry = run(app, RunKind.RIGID)
+    res = app.core.result
+    assert res.pose_warning and "cover" in res.pose_warning, res.pose_warning
+    assert "cover" in entry.warning and "cover" in status_line(app.core.last_reg)
+    assert "pose not" in status_line(app.core.last_reg) or "cover" in status_line(app.core.last_reg)
+
+    # one plane's posterior wall alone: the determinacy check sees no stylus data, coverage does
+    wall = next(i for i, p in sorted(app.core.planes.items()) if len(p.features.get("posterior", ())) > 20)
+    only(app, planes=[wall])
+    run(app, RunKind.RIGID)
+    assert app.core.result.pose_warning and "cover" in app.core.result.pose_warning
+    saved = app.core.session.result
+    assert saved["pose_warning"] == app.core.result.pose_warning  # a restart shows it again
+
+    # Re-register does not continue from it: a fresh fit on all data
+    entry = run(app, RunKind.WARM)
+    assert entry.run == RunKind.ALL.label
+
+    # live re-registration starts afresh too
+    from navapp.app.live import LiveFollower
+
+    link = types.SimpleNamespace(live=app.live, core=app.core)
+    follower = LiveFollower(link)
+    follower._base()
+    assert follower.reg is not None and follower.reg.last is None
+
+    # with the whole sweep the pose is believed again, and a warm start continues
+    only(app)
+    app.stylus.collect_now()
+    run(app, RunKind.ALL)
+    assert app.core.result.pose_warning is None
+    follower = LiveFollower(link)
+    follower._base()
+    assert follower.reg.last is app.core.last_reg
+    assert run(app, RunKind.WARM).run == RunKind.WARM.label
