@@ -49,10 +49,10 @@ def _need_sweep(app, cs):
     return None
 
 
-def _ran(kind: RunKind):
+def _ran(*kinds: RunKind):
     def done(app, cs):
         log = app.core.session.log if app.core.session else []
-        return app.core.run is None and any(e.kind is kind and not e.cancelled for e in log)
+        return app.core.run is None and any(e.kind in kinds and not e.cancelled for e in log)
     return done
 
 
@@ -173,8 +173,22 @@ STEPS = (
     Step("Register with ultrasound",
          "Deformable registration with everything: stylus surface, the drawn vessel contours, their "
          "centerline points and the posterior wall. It warm-starts from the last result.",
-         "Register deformably (all data)", _all, _need_model, _ran(RunKind.WARM)),
+         # done by either kind: with the earlier steps skipped there is no result to warm-start from
+         # and the step runs a fresh fit (waiting for a warm one kept the guide at this step for good)
+         "Register deformably (all data)", _all, _need_model, _ran(RunKind.WARM, RunKind.ALL)),
     Step("Compare errors",
          "Each registration's mean and maximum error against the true deformation, and its time.",
          "Show the comparison", _compare, _need_model),
 )
+
+
+def first_open_step(app, cs) -> int:
+    """Where a new tab's guide starts: after the last step whose work is already done (a
+    session restored with its sweep and runs starts past them), else at the first step."""
+    if app.core.session is None:
+        return 0
+    last = -1
+    for i, st in enumerate(STEPS):
+        if st.done is not None and st.done(app, cs):
+            last = i
+    return min(last + 1, len(STEPS) - 1)

@@ -431,8 +431,10 @@ class Live:
                 session = core.need_session()
                 session.result = state.to_json()
                 points = int(sum(len(v) for v in core.data().values()))
-                session.log.append(RunEntry.of(RunKind.LIVE, reg, points, sum(reg.seconds.values()), err,
-                                               live=summary))
+                entry = RunEntry.of(RunKind.LIVE, reg, points, sum(reg.seconds.values()), err, live=summary)
+                entry.targets_mm = shown.target_errors(reg.rigid, beta)
+                session.log.append(entry)
+                core.shown_runs[len(session.log) - 1] = (state, reg, [])
         if final:
             core.changed(Change.RESULT)
             return

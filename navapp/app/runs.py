@@ -121,6 +121,7 @@ class Runs:
         err = None if stopped else shown.node_error(reg.rigid, beta)
         entry = RunEntry.of(run.kind, reg, run.points, time.monotonic() - run.t0, err, run.streamed, run.trace)
         if not stopped:
+            entry.targets_mm = shown.target_errors(reg.rigid, beta)
             result = RegisteredState(run.kind.label, reg.rigid, beta, err, *shown.predict(reg),
                                      data_model_frame=reg.data_model_frame, pose_warning=pose_warning(reg))
             worst = worst_points(reg, run.data, run.origins, viewer_options().weights)
@@ -128,7 +129,10 @@ class Runs:
                 core.result, core.last_reg, core.worst = result, reg, worst
                 core.need_session().result = result.to_json()
         with core.lock:
-            core.need_session().log.append(entry)
+            log = core.need_session().log
+            log.append(entry)
+            if not stopped:
+                core.shown_runs[len(log) - 1] = (result, reg, worst)
             core.run = None
         core.changed(Change.RESULT)
         if not stopped:
@@ -137,6 +141,25 @@ class Runs:
             core.notify("Registration", "Cancelled: the previous result is kept.")
         elif entry.warning:
             core.notify("Registration: check the fit", entry.warning, error=True)
+
+    def show(self, row: int) -> str | None:
+        """Put the result of run ``row`` (its index in the session's log) back on show — after a
+        Rigid press replaced a good deformable result, say; Export, Slicer, a warm start and the
+        error colours then use it. Returns why it cannot, or None."""
+        core, worker = self.core, self.core.worker
+        if core.run is not None or worker is None or worker.busy:
+            return BUSY
+        with core.lock:
+            kept = core.shown_runs.get(row)
+            if kept is None:
+                return "That run's result is not kept (cancelled, or from before a restart)."
+            result, reg, worst = kept
+            core.result, core.last_reg, core.worst = result, reg, worst
+            worker.last = reg
+            core.need_session().result = result.to_json()
+        core.changed(Change.RESULT)
+        self.slicer.send(reg)
+        return None
 
     def on_error(self, exc: BaseException):
         msg = str(exc) if isinstance(exc, NavappError) else f"{exc.__class__.__name__}: {exc}"

@@ -29,6 +29,7 @@ class Shown:
     def __init__(self, core: Core, slicer: Slicer):
         self.core, self.slicer = core, slicer
         self._target_B = None  # interpolation matrix of the target points in the registration mesh
+        self._centre_B = None  # the same for the targets' centres (their true error)
         self._geometry: StateGeometry | None = None  # the last state's geometry (see geometry())
 
     # ------------------------------------------------------------------ positions and errors
@@ -48,6 +49,22 @@ class Shown:
         if truth is None:
             return None
         return np.linalg.norm(self.node_positions(rigid, beta) - truth, axis=1)
+
+    def target_errors(self, rigid: RigidResult, beta: np.ndarray | None) -> dict[str, float] | None:
+        """Each target's (tumour's) true error at its centre, mm: the mesh nodes' error vector
+        interpolated there (the truth is known at the nodes); None without the truth."""
+        core = self.core
+        truth, targets = core.truth_nodes, core.preop.targets
+        if truth is None or not targets:
+            return None
+        if self._centre_B is None:
+            from ..mechanics.interpolation import interpolation_matrix
+
+            model, _ = core.need_model()
+            self._centre_B = interpolation_matrix(model.basis.nodes, model.basis.tets,
+                                                  np.array([t.centre for t in targets]))
+        d = np.linalg.norm(self._centre_B @ (self.node_positions(rigid, beta) - truth), axis=1)
+        return {t.name: round(float(e), 3) for t, e in zip(targets, d, strict=True)}
 
     def predict(self, reg: Registration) -> tuple[np.ndarray | None, list[TargetBand]]:
         """The predicted error without the truth (``registration.uncertainty``): (S,) at the

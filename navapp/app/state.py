@@ -87,7 +87,7 @@ class ClientState:
 
     def take_over(self, old: ClientState):
         """A reloaded tab continues the work of ``old``, the same tab before the reload: its
-        undo history, its contour in progress, its plane and drawing tool."""
+        undo history, its contour in progress, its plane and drawing tool, its guide step."""
         self.undo[:0] = old.undo
         old.undo = []
         if self.drawing is None:
@@ -96,6 +96,7 @@ class ClientState:
         if old.plane is not None:  # the plane the tab showed, not the one a panel chose as it reconnected
             self.plane = old.plane
         self.feature = old.feature
+        self.guide_step = old.guide_step  # the guide goes on where the tab was, not at step 1
         old.successor = self
         self.touch()
 
@@ -252,6 +253,7 @@ class RunEntry:
     error_max_mm: float | None = None
     live: str | None = None  # a live re-registration's summary
     note: str = ""
+    targets_mm: dict[str, float] | None = None  # each tumour's true error at its centre, simulated scenes only
 
     @property
     def kind(self) -> RunKind:
@@ -277,7 +279,7 @@ class RunEntry:
         d = {"run": self.run, "points": self.points, "seconds": self.seconds, "iterations": self.iterations,
              "stop": self.stop, "updates_streamed": self.updates_streamed, "cancelled": self.cancelled,
              "trace": self.trace}
-        for k in ("warning", "error_mean_mm", "error_max_mm", "live"):
+        for k in ("warning", "error_mean_mm", "error_max_mm", "live", "targets_mm"):
             if getattr(self, k) is not None:
                 d[k] = getattr(self, k)
         if self.note:
@@ -289,4 +291,5 @@ class RunEntry:
         return RunEntry(str(d["run"]), int(d["points"]), float(d["seconds"]), int(d["iterations"]), str(d["stop"]),
                         int(d.get("updates_streamed", 0)), bool(d.get("cancelled", False)),
                         [list(map(float, x)) for x in d.get("trace", [])], d.get("warning"),
-                        d.get("error_mean_mm"), d.get("error_max_mm"), d.get("live"), str(d.get("note", "")))
+                        d.get("error_mean_mm"), d.get("error_max_mm"), d.get("live"), str(d.get("note", "")),
+                        {str(k): float(v) for k, v in d["targets_mm"].items()} if d.get("targets_mm") else None)

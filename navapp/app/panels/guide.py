@@ -2,7 +2,7 @@
 reason while its precondition does not hold), Back / Skip, and moving on only when a
 step's work is done."""
 
-from ..guide import STEPS
+from ..guide import STEPS, first_open_step
 
 
 class GuidePanel:
@@ -17,6 +17,8 @@ class GuidePanel:
             self.extra = g.add_markdown("")
         self.btn.on_click(lambda e: self.press())
         self.nav.on_click(lambda e: self.move(-1 if e.target.value.startswith("◀") else 1))
+        if self.cs.guide_step == 0:  # a new tab: past the work the session already holds (a reload takes its own)
+            self.cs.guide_step = first_open_step(self.app, self.cs)
         self.show()
 
     @property

@@ -13,6 +13,7 @@ NOTE = ("The solver minimises the misfit to the data, which it can see, not the 
 BUTTONS = {RunKind.RIGID: "Rigid", RunKind.SURFACE: "Deformable (surface only)", RunKind.ALL: "Deformable (all data)",
            RunKind.WARM: "Re-register (warm start)"}
 TABLE_ROWS = 8  # the newest runs shown
+NOTHING = "—"
 
 
 class RegistrationPanel:
@@ -24,6 +25,8 @@ class RegistrationPanel:
             # never disabled once the model is ready: see ``runs.Runs.cancel``
             self.btn_cancel = g.add_button("Cancel", color="red", disabled=True)
             self.md = g.add_markdown("")
+            # which finished run's result is on show: a Rigid press never loses a good deformable result
+            self.on_show = g.add_dropdown("On show", options=(NOTHING,), initial_value=NOTHING, disabled=True)
             self.plot = g.add_uplot((np.zeros(1), np.zeros(1)),
                                     ({"label": "time (s)"}, {"label": "mean error (mm)", "stroke": "#d33", "width": 2,
                                                              "points": {"show": True, "size": 4}}),
@@ -39,6 +42,8 @@ class RegistrationPanel:
         for kind, b in self.btn.items():
             b.on_click(lambda e, kind=kind: self.start(kind))
         self.btn_cancel.on_click(lambda e: self.cancel())
+        self.on_show.on_update(lambda e: self.show())
+        self._choices: dict[str, int] = {}  # dropdown words → row of the log
 
     def start(self, kind: RunKind):
         err = self.app.runs.start(kind)
@@ -47,6 +52,34 @@ class RegistrationPanel:
 
     def cancel(self):
         self.view.notify("Cancel", self.app.runs.cancel())
+
+    def show(self):
+        row = self._choices.get(self.on_show.value)
+        core = self.core
+        if row is None or core.result is (core.shown_runs.get(row) or (None,))[0]:
+            return  # our own refresh, or already on show
+        err = self.app.runs.show(row)
+        if err:
+            self.view.notify("On show", err, error=True)
+
+    def _on_show(self):
+        core = self.core
+        log = core.session.log if core.session else []
+        kept = sorted(core.shown_runs)
+        choices = {}
+        for row in kept:
+            e = log[row] if row < len(log) else None
+            err = f", mean error {e.error_mean_mm:.2f} mm" if e is not None and e.error_mean_mm is not None else ""
+            choices[f"{row + 1}. {e.run if e else 'run'}{err}"] = row
+        self._choices = choices
+        shown = next((w for w, r in choices.items() if core.shown_runs[r][0] is core.result), None)
+        options = tuple(choices) if shown is not None else (NOTHING, *choices)
+        if tuple(self.on_show.options) != options:
+            self.on_show.options = options
+        value = shown or NOTHING
+        if self.on_show.value != value:
+            self.on_show.value = value
+        self.on_show.disabled = len(choices) < 2 and shown is not None or not choices
 
     def remove(self, i: int):
         worst = self.core.worst
@@ -82,6 +115,8 @@ class RegistrationPanel:
                                f"when it is switched off.")
         if what in (Change.RESULT, Change.DATA, Change.SCENE):
             self._worst()
+        if what in (Change.RESULT, Change.SCENE, Change.MODEL):
+            self._on_show()
         if what in (Change.MODEL, Change.RESULT, Change.RUN, Change.LOG, Change.SCENE):
             self._table()
             if run is not None:
@@ -140,11 +175,18 @@ class RegistrationPanel:
         if not log:
             self.table.content = ""
             return
-        rows = ["| run | points | time | iterations | mean err | max err | |", "|---|---|---|---|---|---|---|"]
-        for e in log[-TABLE_ROWS:]:
+        names = [t.name for t in core.preop.targets]
+        tum = " / ".join(n.replace("tumour", "") for n in names)
+        rows = [f"| # | run | points | time | iterations | mean err | max err | tumour err ({tum}) | |",
+                "|---|---|---|---|---|---|---|---|---|"]
+        first = max(len(log) - TABLE_ROWS, 0)
+        for i, e in enumerate(log[first:], start=first + 1):
             its = "ICP" if e.stop == "rigid" else f"{e.iterations} it"
             mean = f"{e.error_mean_mm:.2f} mm" if e.error_mean_mm is not None else "–"
             mx = f"{e.error_max_mm:.2f} mm" if e.error_max_mm is not None else "–"
-            note = "cancelled" if e.cancelled else ("⚠ poor fit" if e.warning else e.note)
-            rows.append(f"| {e.run} | {e.points} | {e.seconds:.2f} s | {its} | {mean} | {mx} | {note} |")
+            tumours = (" / ".join(f"{e.targets_mm[n]:.1f}" for n in names if n in e.targets_mm) + " mm"
+                       if e.targets_mm else "–")
+            note = "cancelled" if e.cancelled else ("⚠ check the fit" if e.warning else e.note)
+            rows.append(f"| {i} | {e.run} | {e.points} | {e.seconds:.2f} s | {its} | {mean} | {mx} | {tumours} "
+                        f"| {note} |")
         self.table.content = "\n".join(rows)
