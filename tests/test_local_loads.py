@@ -249,3 +249,40 @@ def test_data_off_the_model_everywhere_do_not_keep_the_given_pose(small_model, p
     assert reg.pose_choice.moved_mm < 4.0  # the trimmed fit alone would have kept the given pose
     assert reg.pose_choice.on_model[PoseSource.LOCAL] < POSE_RULE.aligned
     assert reg.pose_choice.source is PoseSource.FITTED and not reg.rigid.kept
+
+
+def test_a_pose_the_fit_does_not_pay_for_is_not_taken_over_the_given_one(small_model, phantoms, monkeypatch):
+    """A partial scan over a deep dent, already aligned, most of it pressed in by several mm:
+    no pose puts most of it on the model, so the given pose is not kept as aligned, and the
+    multi-start ICP ends tens of millimetres away, where the deformable model fits the dented
+    patch about as well as at the given pose. The move is not earned by a better fit: the
+    given pose is held (``pose.prefer_given``) and one line says the pose is not determined.
+    Without the rule the organ far from the dent, which did not move, is moved tens of mm."""
+    import navapp.registration.pipeline as pipeline
+    from navapp.registration.pose import POSE_RULE, PoseSource
+
+    liver = phantoms[0].liver.vertices
+    front = liver[liver[:, 1] > np.percentile(liver[:, 1], 40)]
+    c0 = front[np.argmax(front[:, 0])]
+    scan = front[np.linalg.norm(front - c0, axis=1) < 40.0]
+    tip = scan.mean(0)
+    r = np.linalg.norm(scan - tip, axis=1)
+    data = {"anterior": scan + (45.0 * np.clip(1 - (r / 35.0) ** 2, 0, None) ** 2)[:, None] * [0.0, -1.0, 0.0]}
+    nodes = small_model.basis.nodes
+    far = nodes[np.linalg.norm(nodes - tip, axis=1) > 80.0]  # away from the dent: truly at rest
+
+    def far_motion(reg):
+        return float(np.linalg.norm(reg.transform(far) - far, axis=1).mean())
+
+    reg = pipeline.register(small_model, data)
+    choice = reg.pose_choice
+    assert choice.source is PoseSource.GIVEN_FITS and reg.rigid.kept
+    assert choice.given_rms_mm <= POSE_RULE.given_ratio * choice.fitted_rms_mm
+    assert np.allclose(reg.rigid.apply(nodes), nodes)
+    assert any(w.startswith("the pose is not determined by the data: ICP moved") for w in reg.warnings)
+    assert far_motion(reg) < 2.0
+
+    monkeypatch.setattr(pipeline, "prefer_given", lambda *a, **k: None)
+    before = pipeline.register(small_model, data)
+    assert before.pose_choice.source is PoseSource.FITTED
+    assert far_motion(before) > 15.0

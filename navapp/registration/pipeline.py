@@ -27,7 +27,7 @@ from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from ..mechanics.interpolation import interpolation_matrix
 from .libr import LibrResult, LMOptions, register_libr
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
-from .pose import Determinacy, PoseChoice, PoseSource, choose_pose, pose_determinacy, rms_on_model
+from .pose import Determinacy, PoseChoice, PoseSource, choose_pose, pose_determinacy, prefer_given, rms_on_model
 from .quality import FitQuality, assess_fit
 from .rigid import (
     RIGID_ROBUST,
@@ -41,7 +41,7 @@ from .rigid import (
     rigid_icp,
     start_poses,
 )
-from .support import Support, SupportOptions, check_support
+from .support import Support, SupportOptions, check_support, pooled_rms
 
 
 @dataclass
@@ -154,9 +154,10 @@ class Registration:
     def warnings(self) -> list[str]:
         """Every warning about this answer, one line each (the CLI, result.json and the viewer show them)."""
         lines = list(self.notes)
-        for w in (self.determinacy.warning if self.determinacy else None,
+        for w in (self.pose_choice.warning if self.pose_choice else None,
+                  self.determinacy.warning if self.determinacy else None,
                   self.support.warning_for(shown_rigid=not self.deformed, given=self.pose_choice is None
-                                          or self.pose_choice.source is PoseSource.GIVEN) if self.support else None,
+                                          or self.pose_choice.given) if self.support else None,
                   self.quality.warning if self.quality else None):
             if w:
                 lines.append(w)
@@ -293,6 +294,17 @@ def check_units(model: RegistrationModel, data: dict) -> None:
                          "navapp reads coordinates in millimetres")
 
 
+def _given(rms_mm: float = 0.0) -> RigidResult:
+    """The tracker's own pose (identity: the data taken as already in the model frame), kept."""
+    return RigidResult(np.eye(3), np.zeros(3), 0, rms_mm, kept=True)
+
+
+def _shift(pose: RigidResult, data: dict) -> float:
+    """How far ``pose`` moves the data from where they are given (RMS, mm)."""
+    pts = np.vstack([p for p in data.values() if len(p)]) if data else np.zeros((0, 3))
+    return float(np.sqrt(np.mean(np.sum((pose.inverse(pts) - pts) ** 2, axis=1)))) if len(pts) else 0.0
+
+
 def register(model: RegistrationModel, data: dict, deform=True, options: LMOptions | None = None,
              callback=None, cancel=None, beta0=None, rigid: RigidResult | None = None,
              init: RobustOptions | None = None) -> Registration:
@@ -381,12 +393,11 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
                           start=rigid, features=features, robust=init.rigid_robust)
     choice = None
     if not warm and init.keep_given_pose and "fiducials" not in data and not notes:
-        given = RigidResult(np.eye(3), np.zeros(3), 0, 0.0, kept=True)
-        choice = choose_pose(model, data, given, rigid)
+        choice = choose_pose(model, data, _given(), rigid)
         if choice.kept:
             trimmed = choice.local
             rigid = trimmed if choice.source is PoseSource.LOCAL and trimmed is not None else \
-                replace(given, rms_mm=rms_on_model(model, data, given))
+                _given(rms_on_model(model, data, _given()))
             for s in starts:
                 s.chosen = False
     if rigid.kept:
@@ -395,14 +406,20 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     sec["rigid"] = time.perf_counter() - t
     local = {name: rigid.inverse(p) for name, p in data.items()}
     result, quality = None, None
-    if deform:
-        t = time.perf_counter()
-        if init.stiff_first and beta0 is None:
+
+    def fit(local, options, callback=None):
+        b0 = beta0
+        if init.stiff_first and b0 is None:
             # continuation is for leaving a wrong basin from the rigid pose; a warm start
             # (β0 given: the last state, e.g. after adding a plane) continues from there
             stiff = replace(options, weights=replace(options.weights, energy=options.weights.energy * init.stiff_first))
-            beta0 = register_libr(model, local, beta0, stiff, None, cancel).beta
-        result = register_libr(model, local, beta0, options, callback, cancel)
+            b0 = register_libr(model, local, b0, stiff, None, cancel).beta
+        return register_libr(model, local, b0, options, callback, cancel)
+
+    if deform:
+        t = time.perf_counter()
+
+        result = fit(local, options, callback)
         quality = assess_fit(result.features)
         stopped = result.stop_reason == "cancelled"
         if not quality.ok and init.retry_poor_fit and len(screened) > 1 and not stopped:
@@ -423,6 +440,24 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         t = time.perf_counter()
         support = check_support(model, local, options, init.support, cancel)
         sec["support"] = time.perf_counter() - t
+    if fresh and result is not None and quality is not None and choice is not None and \
+            choice.source is PoseSource.FITTED and result.stop_reason != "cancelled" and \
+            (not quality.ok or (support is not None and not support.supported)):
+        # ICP's pose, and the answer from it is in doubt: does the given pose, held, fit as well?
+        t = time.perf_counter()
+        held = replace(options, pose=False)
+        at_given = fit(data, held)
+        given = prefer_given(choice, pooled_rms(result.features), pooled_rms(at_given.features), _shift(rigid, data))
+        if given is not None and at_given.stop_reason != "cancelled":
+            choice, options = given, held
+            rigid = _given(rms_on_model(model, data, _given()))
+            local, result, quality = dict(data), at_given, assess_fit(at_given.features)
+            determinacy = pose_determinacy(model, data, rigid)
+            for s in starts:
+                s.chosen = False
+            if init.support is not None:
+                support = check_support(model, local, options, init.support, cancel)
+        sec["given_pose"] = time.perf_counter() - t
     return Registration(model, rigid, result, local, sec, starts, quality, choice, determinacy, support, notes)
 
 

@@ -64,6 +64,12 @@ class PoseRule:
     # the trimmed fit ended 11.7 mm away with 68 % of the points on the model, at a worse pose
     # than ICP's; on the deep-dent tool cases it moved 4.2–7.0 mm
     local_mm: float = 8.0
+    # when the answer from ICP's pose is in doubt (a poor fit, or a deformation the data do not
+    # support), the given pose (held, with LIBR) is the answer if its data residual is within this
+    # factor of ICP's: the move was not earned by a better fit (``prefer_given``). Measured (pooled
+    # RMS, given ÷ ICP, docs/decisions.md "Local loads"): at most 1.09 where the given pose was right,
+    # at least 1.23 where ICP's was
+    given_ratio: float = 1.15
 
 
 POSE_RULE = PoseRule()
@@ -133,6 +139,8 @@ class PoseSource(Enum):
     GIVEN = "given"  # the tracker's pose: the data lie on the undeformed model
     LOCAL = "local"  # the trimmed fit from the given pose: most data lie on the model there
     FITTED = "fitted"  # the multi-start ICP's pose
+    # the tracker's pose, held: ICP's pose, with deformation, fitted the data no better (``prefer_given``)
+    GIVEN_FITS = "given-fits"
 
 
 @dataclass
@@ -143,17 +151,41 @@ class PoseChoice:
     # fraction of the surface points on the model (within ``PoseRule.on_mm``) at each pose looked at
     on_model: dict = field(default_factory=dict)
     local: RigidResult | None = None  # the trimmed fit's pose (model → data)
+    # ``GIVEN_FITS``: the deformable fits' data residuals (pooled RMS, mm) at ICP's pose and at the
+    # given one, and how far ICP's pose moved the data from the given one (RMS, mm)
+    fitted_rms_mm: float | None = None
+    given_rms_mm: float | None = None
+    fitted_shift_mm: float | None = None
 
     @property
     def kept(self) -> bool:
         """The pose is one the data fix without ICP (given or local): LIBR keeps it (τ, θ fixed)."""
         return self.source is not PoseSource.FITTED
 
+    @property
+    def given(self) -> bool:
+        """The answer's pose is the tracker's own (kept as aligned, or as fitting no worse)."""
+        return self.source in (PoseSource.GIVEN, PoseSource.GIVEN_FITS)
+
+    @property
+    def warning(self) -> str | None:
+        if self.source is not PoseSource.GIVEN_FITS:
+            return None
+        return (f"the pose is not determined by the data: ICP moved the organ {self.fitted_shift_mm:.0f} mm from the "
+                f"given pose, but the deformable fit there leaves the data {self.fitted_rms_mm:.2f} mm RMS off against "
+                f"{self.given_rms_mm:.2f} mm at the given pose — the given pose is kept; add data away from where "
+                "the organ moved")
+
     def as_dict(self) -> dict:
-        return {"source": self.source.value,
-                "trimmed_fit_moved_mm": None if self.moved_mm is None else round(self.moved_mm, 3),
-                "kept_given": self.source is PoseSource.GIVEN,
-                "on_model_fraction": {k.value: round(v, 3) for k, v in self.on_model.items()}}
+        out = {"source": self.source.value,
+               "trimmed_fit_moved_mm": None if self.moved_mm is None else round(self.moved_mm, 3),
+               "kept_given": self.given,
+               "on_model_fraction": {k.value: round(v, 3) for k, v in self.on_model.items()}}
+        if self.source is PoseSource.GIVEN_FITS:
+            out.update(fitted_rms_mm=round(self.fitted_rms_mm or 0.0, 3),
+                       given_rms_mm=round(self.given_rms_mm or 0.0, 3),
+                       fitted_shift_mm=round(self.fitted_shift_mm or 0.0, 3), warning=self.warning)
+        return out
 
 
 def _distances(model: RegistrationModel, data: dict, pose: RigidResult) -> np.ndarray:
@@ -200,6 +232,21 @@ def choose_pose(model: RegistrationModel, data: dict, given: RigidResult, fitted
             on[PoseSource.LOCAL] >= on.get(PoseSource.FITTED, 0.0) + rule.consensus_margin:
         return PoseChoice(PoseSource.LOCAL, moved, on, local)
     return PoseChoice(PoseSource.FITTED, moved, on, local)
+
+
+def prefer_given(choice: PoseChoice, fitted_rms_mm: float, given_rms_mm: float, fitted_shift_mm: float,
+                 rule: PoseRule = POSE_RULE) -> PoseChoice | None:
+    """ICP's pose was chosen (``choice.source`` FITTED) and the answer from it is in doubt (the
+    caller's test: a poor fit, or a deformation the data do not support): the given pose
+    replaces it when the deformable fit with the given pose held leaves the data within
+    ``rule.given_ratio`` of the residual at ICP's pose (pooled RMS, mm). On a partial scan of a
+    dented surface the deformable model fits the data about as well tens of millimetres away as
+    where they are: a move the fit does not pay for is a guess of the multi-start search, not a
+    measurement. Returns the new choice, or None to keep ICP's."""
+    if choice.source is not PoseSource.FITTED or not given_rms_mm <= rule.given_ratio * fitted_rms_mm:
+        return None
+    return replace(choice, source=PoseSource.GIVEN_FITS, fitted_rms_mm=fitted_rms_mm, given_rms_mm=given_rms_mm,
+                   fitted_shift_mm=fitted_shift_mm)
 
 
 @dataclass

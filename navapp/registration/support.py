@@ -98,7 +98,10 @@ class Support:
                            for b in self.blocks], "seconds": round(self.seconds, 3)}
 
 
-def _pooled_rms(features: dict, names) -> float:
+def pooled_rms(features: dict, names=None) -> float:
+    """RMS residual (mm) over the points of the features ``names`` (default: every data
+    feature) of an ``objective.evaluate`` / ``LibrResult`` feature table."""
+    names = [k for k in features if "rms_mm" in features[k]] if names is None else names
     n = sum(features[k]["n"] for k in names)
     return math.sqrt(sum(features[k]["n"] * features[k]["rms_mm"] ** 2 for k in names) / n) if n else 0.0
 
@@ -142,7 +145,7 @@ def check_support(model: RegistrationModel, data: dict, options: LMOptions,
         rigid = evaluate(model, held, pose, options.weights, jacobian=False).features
         deformed = evaluate(model, held, fit.beta, options.weights, jacobian=False).features
         pts = np.vstack(list(held.values()))
-        out.append(Block(pts.mean(0), len(pts), _pooled_rms(rigid, held), _pooled_rms(deformed, held)))
+        out.append(Block(pts.mean(0), len(pts), pooled_rms(rigid, held), pooled_rms(deformed, held)))
     if not out:
         return None
     w = np.array([b.points for b in out], float)
