@@ -60,7 +60,8 @@ REGION_TARGETS = ("falciform", "ridge_left", "ridge_right")  # labelled liver-su
 
 TABLE: tuple[Feature, ...] = (
     Feature("anterior", "surface", "liver", 1.0, "stylus", (255, 255, 255), 0.5, "the anterior surface"),
-    Feature("posterior", "surface", "liver", 1.0, "ius", (255, 200, 0), 0.5, "the posterior liver wall"),
+    # lime, not yellow: the registered liver is drawn yellow (app.palette.REGISTERED, OVERLAY_STYLE)
+    Feature("posterior", "surface", "liver", 1.0, "ius", (140, 255, 70), 0.5, "the posterior liver wall"),
     Feature("falciform", "surface", "falciform", 0.3, "stylus", (255, 0, 255), 1.5, "the falciform ligament"),
     Feature("ridge_left", "surface", "ridge_left", 0.3, "stylus", (0, 255, 255), 1.5, "the left inferior ridge"),
     Feature("ridge_right", "surface", "ridge_right", 0.3, "stylus", (0, 200, 200), 1.5, "the right inferior ridge"),

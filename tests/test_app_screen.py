@@ -3,6 +3,7 @@ ultrasound' when the earlier steps were skipped, and a reloaded or new tab does 
 at step 1; every run's tumour errors are kept for the run table; a Rigid press does not lose a
 good deformable result (any finished run can be put back on show)."""
 
+import numpy as np
 import pytest
 from conftest import free_port
 
@@ -74,3 +75,43 @@ def test_rigid_keeps_the_deformable_result_within_reach_and_tumour_errors_are_lo
     assert "not kept" in app.runs.show(10_000)
     saved = app.core.session.log[row].to_json()
     assert saved["targets_mm"] == deformable.targets_mm  # the column survives a restart
+
+
+def _rgb(c) -> np.ndarray:
+    if isinstance(c, str):
+        return np.array([int(c[i:i + 2], 16) for i in (1, 3, 5)], float)
+    return np.array(c, float)
+
+
+def test_drawn_contours_are_not_the_registered_livers_yellow():
+
+    import colorsys
+
+    from navapp.app.palette import DRAWN_COLOURS, FEATURE_COLOURS, IN_PROGRESS, OVERLAY_STYLE, REGISTERED
+
+    def hs(c):
+        h, _, s = colorsys.rgb_to_hls(*(_rgb(c) / 255))
+        return 360 * h, s
+
+    registered = [hs(REGISTERED), hs(OVERLAY_STYLE["liver"][1])]  # 3D and 2D
+    for c in [*DRAWN_COLOURS.values(), IN_PROGRESS, FEATURE_COLOURS["posterior"]]:
+        h, s = hs(c)
+        for rh, rs in registered:  # another hue, or no hue (white) beside a saturated yellow
+            assert abs(h - rh) >= 10 or abs(s - rs) > 0.5, (c, h, rh)
+
+
+@pytest.mark.parametrize("size", [(1366, 768), (1600, 1000)])
+def test_the_home_view_shows_the_whole_liver_between_the_panels(size, phantoms):
+    from navapp.app.framing import Screen, dock_width, frame, project
+    from navapp.app.panels.layers import HOME_VIEW_MM
+
+    w, h = size
+    screen = Screen(w - dock_width(w), h)  # the canvas: the window less the docked 2D view
+    liver = phantoms[0].liver.vertices
+    fov = np.deg2rad(75.0)  # viser's default camera
+    position, target = frame(liver[::5], HOME_VIEW_MM, (0.0, 0.0, 1.0), fov, screen)
+    x, y = project(liver, position, target, np.array([0.0, 0.0, 1.0]), fov, screen)
+    assert x.min() >= screen.left_px and x.max() <= w - screen.right_px, (x.min(), x.max())
+    assert y.min() >= 0 and y.max() <= h
+    assert x.max() - x.min() > 0.6 * screen.free_px  # and not a speck
+    assert screen.free_px > 500  # the 2D view docks at 1× on a narrow window: the 3D view is no strip

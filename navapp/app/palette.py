@@ -40,7 +40,9 @@ OVERLAY_STYLE: dict[str, tuple[str, str]] = {
     "target": ("#c080ff", "#e000ff"),
 }
 WORST_POINT = "#ff2a2a"  # a drawn vertex in the worst-points list: ring and residual beside it
-IN_PROGRESS = "#ffe033"  # the contour being drawn (page.js draws it; kept here so the words stay together)
+# the contour being drawn (page.js draws it; kept here so the words stay together): white, as
+# yellow is the registered liver's colour
+IN_PROGRESS = "#ffffff"
 
 # ---------------------------------------------------------------- drawing
 DRAWABLE: dict[str, str] = {  # what the user can designate on an image → the data feature it becomes

@@ -10,6 +10,7 @@ from html import escape
 import numpy as np
 
 from ..core import ON_CONNECT
+from ..framing import Screen, dock_width
 from ..state import Change, ClientState
 from .accuracy import AccuracyPanel
 from .guide import GuidePanel
@@ -44,6 +45,28 @@ class ClientView:
         self.session = SessionPanel(self)
         self.panels = (self.layers, self.guide, self.stylus, self.tracking, self.ultrasound, self.registration,
                        self.accuracy, self.session)
+        self.screen: Screen | None = None  # the 3D canvas, once the browser has reported its size
+        self._framed: np.ndarray | None = None  # where the camera was put to frame the liver
+        client.camera.on_update(lambda cam: self._camera())
+
+    # ------------------------------------------------------------------ the window
+    def _camera(self):
+        """The browser reported its camera. The 3D canvas is the window less the docked 2D view
+        (viser lays the dock beside it; the control panel floats over it). The first report,
+        before the dock is laid out, gives the window's width: the dock is set for it. Each new
+        canvas size frames the liver between the panels again, unless the surgeon has moved the
+        camera since it was last framed."""
+        cam = self.client.camera
+        w, h = int(cam.image_width or 0), int(cam.image_height or 0)
+        if w <= 0 or h <= 0 or (self.screen is not None and (w, h) == (self.screen.width_px, self.screen.height_px)):
+            return
+        if self.screen is None:
+            self.ultrasound.dock(dock_width(w))
+        moved = self._framed is not None and np.linalg.norm(np.asarray(cam.position) - self._framed) > 1.0
+        self.screen = Screen(w, h)
+        if not moved:
+            self.layers.look("Reset")
+            self._framed = np.asarray(cam.position, float)
 
     # ------------------------------------------------------------------ from the App
     def refresh_all(self):

@@ -7,6 +7,7 @@ import trimesh
 import viser.transforms as vtf
 
 from ...anatomy.model import VESSELS
+from ..framing import frame
 from ..palette import (
     FEATURE_COLOURS,
     LEGEND,
@@ -284,17 +285,21 @@ class LayersPanel:
                     n.visible = on
 
     def look(self, name):
+        """A standard view ("Reset": the home view), framed for this tab's window when it is
+        known (``framing``: the liver whole, centred between the panels)."""
         cam = self.view.client.camera
         c = self.core.centre
         cam.up_direction = (0.0, 0.0, 1.0)
         cam.near, cam.far = 1.0, 5000.0
-        if name == "Reset":
-            offset = HOME_VIEW_MM
+        d = HOME_VIEW_MM if name == "Reset" else np.asarray(STANDARD_VIEWS[name], float)
+        screen = self.view.screen
+        if screen is not None:
+            position, target = frame(self.core.preop.liver.vertices[::5], d, (0.0, 0.0, 1.0), float(cam.fov), screen)
         else:
-            d = np.asarray(STANDARD_VIEWS[name], float)
-            offset = d / np.linalg.norm(d) * VIEW_DISTANCE_MM
-        cam.position = c + offset  # viser moves look_at with position, so the target is set second
-        cam.look_at = c
+            position = c + (HOME_VIEW_MM if name == "Reset" else d / np.linalg.norm(d) * VIEW_DISTANCE_MM)
+            target = c
+        cam.position = position  # viser moves look_at with position, so the target is set second
+        cam.look_at = target
 
     def look_at_plane(self, T):
         """An oblique view onto a plane: from its front, a little above."""

@@ -8,11 +8,12 @@ import numpy as np
 import viser.transforms as vtf
 
 from ..drawing import Command
+from ..framing import DOCK_2D_PX
 from ..palette import DRAWABLE
 from ..state import Change
 from .layers import wxyz
 
-IFRAME_W, IFRAME_H = 590, 860
+IFRAME_H = 860
 
 
 class UltrasoundPanel:
@@ -45,9 +46,9 @@ class UltrasoundPanel:
         url = view.app.view2d.page_url(self.cs.token, view.app.view2d_host)
         with tab:
             self.frame = g.add_html(f"<iframe src='{url}' title='ultrasound 2D view' "
-                                    f"style='width:{IFRAME_W}px;height:{IFRAME_H}px;border:0'></iframe>")
+                                    f"style='width:100%;height:{IFRAME_H}px;border:0'></iframe>")
         self.panel.dock_left()
-        self.panel.set_width(IFRAME_W + 20)
+        self.panel.set_width(DOCK_2D_PX[0])  # narrower once the window's width is known (``ClientView``)
         self.gizmo = None
         self._preview_T = None
         self._preview_busy = threading.Lock()
@@ -83,6 +84,9 @@ class UltrasoundPanel:
             self.panel.expand()
         else:
             self.panel.minimize()
+
+    def dock(self, width_px: int):
+        self.panel.set_width(width_px)
 
     def open_2d(self):
         self.cb_2d.value = True

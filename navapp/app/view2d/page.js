@@ -4,7 +4,7 @@ const TOKEN = document.body.dataset.token;
 const POLL = Number(document.body.dataset.poll);
 const IN_PROGRESS = document.body.dataset.drawing;
 const RULER = 34, TOP = 22;
-let zoom = 2, state = null, etag = "", img = null, imgId = null;
+let zoom = 2, userZoom = false, state = null, etag = "", img = null, imgId = null;
 let pending = [], sending = false;
 window.navappLatencies = [];
 const cv = document.getElementById("cv"), g = cv.getContext("2d");
@@ -78,6 +78,7 @@ function draw(){
 
 function apply(s){
   state = s; etag = s.etag;
+  if (!userZoom && s.width) zoom = window.innerWidth >= RULER + 2 * s.width + 8 ? 2 : 1;
   $("title").textContent = s.plane ? s.plane : "No plane shown yet: choose one in the Ultrasound panel.";
   if (s.feature && document.activeElement !== $("feat")) $("feat").value = s.feature;
   const sel = $("plane"), opts = (s.planes || []).map(p => p.index + ":" + p.label).join("|");
@@ -164,8 +165,15 @@ async function resume(){
     await new Promise(r => setTimeout(r, 500));
   }
 }
-$("z1").onclick = () => { zoom = 1; draw(); };
-$("z2").onclick = () => { zoom = 2; draw(); };
+$("z1").onclick = () => { zoom = 1; userZoom = true; draw(); };
+$("z2").onclick = () => { zoom = 2; userZoom = true; draw(); };
+// 2× where the frame is wide enough: the viewer docks it narrower on a narrow window, after the page loaded
+function fitZoom(){
+  if (userZoom || !state || !state.width) return;
+  const z = window.innerWidth >= RULER + 2 * state.width + 8 ? 2 : 1;
+  if (z !== zoom){ zoom = z; draw(); }
+}
+window.addEventListener("resize", fitZoom);
 document.addEventListener("keydown", e => {
   if (e.key === "Enter") command("Close");
   if ((e.ctrlKey || e.metaKey) && e.key === "z") command("Undo");
