@@ -65,6 +65,7 @@ def test_a_stray_vertex_is_rejected_listed_first_and_removable(app):
         assert app.drawing.click(cs, c, r, "Posterior surface") is None
     assert app.drawing.command(cs, "Finish line") is None
     clean = register(app)
+    clean_bands = {b.name: b.predicted_mm for b in app.core.result.target_bands}
     assert not any(w.feature == "posterior" and w.residual_mm > 10 for w in app.core.worst)  # the wall is on it
 
     # the wrong click: between the first two wall vertices, STRAY_MM deeper than the wall there
@@ -77,6 +78,9 @@ def test_a_stray_vertex_is_rejected_listed_first_and_removable(app):
     # measured: +0.7 mm mean with rejection, +4.4 mm without (5.1 -> 9.5 mm)
     assert with_stray.error_mean_mm <= clean.error_mean_mm + 1.0, (clean, with_stray)
     assert with_stray.error_max_mm <= clean.error_max_mm + 3.0, (clean, with_stray)
+    # the predicted error is made with the fit's weights: the rejected spike does not inflate it
+    bands = {b.name: b.predicted_mm for b in app.core.result.target_bands}
+    assert bands and all(bands[n] <= 1.5 * clean_bands[n] for n in bands), (clean_bands, bands)
 
     worst = app.core.worst
     assert worst, "the stray vertex is not listed"
