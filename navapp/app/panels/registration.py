@@ -177,16 +177,16 @@ class RegistrationPanel:
             return
         names = [t.name for t in core.preop.targets]
         tum = " / ".join(n.replace("tumour", "") for n in names)
-        rows = [f"| # | run | points | time | iterations | mean err | max err | tumour err ({tum}) | |",
-                "|---|---|---|---|---|---|---|---|---|"]
+        # units in the header, not in every cell: nine columns in the panel's 384 px
+        rows = [f"| # | run | points | s | iterations | mean mm | max mm | tumour{'s' if len(names) > 1 else ''} "
+                f"{tum} mm | |", "|---|---|---|---|---|---|---|---|---|"]
         first = max(len(log) - TABLE_ROWS, 0)
         for i, e in enumerate(log[first:], start=first + 1):
-            its = "ICP" if e.stop == "rigid" else f"{e.iterations} it"
-            mean = f"{e.error_mean_mm:.2f} mm" if e.error_mean_mm is not None else "–"
-            mx = f"{e.error_max_mm:.2f} mm" if e.error_max_mm is not None else "–"
-            tumours = (" / ".join(f"{e.targets_mm[n]:.1f}" for n in names if n in e.targets_mm) + " mm"
-                       if e.targets_mm else "–")
-            note = "cancelled" if e.cancelled else ("⚠ check the fit" if e.warning else e.note)
-            rows.append(f"| {i} | {e.run} | {e.points} | {e.seconds:.2f} s | {its} | {mean} | {mx} | {tumours} "
+            its = "ICP" if e.stop == "rigid" else f"{e.iterations}"
+            mean = f"{e.error_mean_mm:.2f}" if e.error_mean_mm is not None else "–"
+            mx = f"{e.error_max_mm:.2f}" if e.error_max_mm is not None else "–"
+            tumours = " / ".join(f"{e.targets_mm[n]:.1f}" for n in names if n in e.targets_mm) if e.targets_mm else "–"
+            note = "cancelled" if e.cancelled else ("⚠" if e.warning else e.note)
+            rows.append(f"| {i} | {e.run} | {e.points} | {e.seconds:.1f} | {its} | {mean} | {mx} | {tumours} "
                         f"| {note} |")
         self.table.content = "\n".join(rows)

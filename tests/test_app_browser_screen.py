@@ -1,0 +1,68 @@
+"""The screen at 1366 × 768 in Chromium: the 2D view docks at 1× so that the 3D view is no
+strip, and a gross rigid pose (one plane's wall alone) gets the red banner. Same server and
+helpers as ``test_app_browser``; every wait bounded by the test's budget."""
+
+import os
+from pathlib import Path
+
+import pytest
+from conftest import free_port
+from test_app_browser import (
+    ARGS,
+    BUDGET_S,
+    CHROMIUM,
+    Deadline,
+    click_button,
+    playwright,
+    start_server,
+    us_frame,
+    wait_text,
+    wait_until,
+)
+
+SMALL = {"width": 1366, "height": 768}
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    proc, url = start_server(free_port(), tmp_path_factory.mktemp("session"))
+    yield {"url": url}
+    proc.terminate()
+    proc.wait(20)
+
+
+def test_a_small_window_keeps_the_3d_view_and_a_gross_pose_is_red(server, tmp_path):
+    deadline = Deadline(BUDGET_S + 600)  # this module's server starts cold
+    shots = Path(os.environ.get("NAVAPP_SCREENSHOTS", tmp_path))
+    shots.mkdir(parents=True, exist_ok=True)
+    with playwright.sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
+        page = deadline.open(browser.new_page(viewport=SMALL))
+        page.goto(server["url"])
+        wait_text(page, r"Ready\.", deadline)
+
+        def widths():
+            return page.evaluate("""() => ({
+                dock: document.querySelector('iframe').getBoundingClientRect().width,
+                canvas: Math.max(...[...document.querySelectorAll('canvas')]
+                                 .map(c => c.getBoundingClientRect().width))})""")
+
+        wait_until(page, lambda: widths()["dock"] <= 360, deadline, "the 2D view docked at 1×")
+        w = widths()
+        assert w["canvas"] >= 1366 - 360, w  # the 3D canvas: the window less the narrow dock
+        us = us_frame(page, deadline)
+        wait_until(page, lambda: us.evaluate("document.getElementById('cv').width") <= 300, deadline,
+                   "the 2D image at 1× (34 px ruler + 256 px + 4)")
+        page.wait_for_timeout(1500)
+        page.screenshot(path=shots / "app_1366.png")
+
+        # one plane's posterior wall as the only data, then Rigid: a pose nobody should believe
+        click_button(page, "Add this plane's segmentation (simulated)", deadline)
+        click_button(page, "Rigid", deadline)
+        wait_text(page, r"Registered pose not to be believed", deadline)
+        banner = page.get_by_text("Registered pose not to be believed").first
+        colour = banner.evaluate("e => getComputedStyle(e.closest('div')).backgroundColor")
+        assert colour == "rgb(204, 0, 0)", colour
+        assert "cover" in page.inner_text("body")
+        page.screenshot(path=shots / "app_gross_pose.png")
+        browser.close()
