@@ -172,7 +172,8 @@ def write_report(results: Path, out_dir: Path) -> Path:
              "*unguarded*: the default before local loads were handled (multi-start ICP, then LIBR); "
              "*guarded*: today's default (a good given pose, or the pose most of the data lie on near it, kept; "
              "the deformation cross-validated against the rigid answer and dropped with a warning where the data "
-             "do not support it).", ""]
+             "do not support it; where the answer from ICP's pose is in doubt, the given pose held when the "
+             "deformable fit there is within 15 % of ICP's).", ""]
     for level in LEVELS:
         lv = [r for r in rows if r["level"] == level]
         lines += [f"## {level}", "", "| method | mean TRE | median over cases | max TRE (mean over cases) | "
@@ -228,7 +229,8 @@ def write_report(results: Path, out_dir: Path) -> Path:
                         transform=ax.get_xaxis_transform())  # x in data, y in axes units
         ax.set_ylabel(f"{level}: mean TRE (mm)")
         ax.set_yscale("log")
-    axes[0].legend(ncol=4, fontsize=8, loc="upper left")
+    # above the panels: inside, the legend hid the first cases' warning marks
+    axes[0].legend(ncol=4, fontsize=8, loc="lower right", bbox_to_anchor=(1.0, 1.08), frameon=False)
     axes[0].set_title("Local loads: identity, rigid, LIBR unguarded and guarded ('!': guarded LIBR warned)")
     axes[-1].set_xticks(x, cases, rotation=60, fontsize=7)
     fig.tight_layout()
