@@ -120,6 +120,7 @@ class Runs:
         beta = reg.libr.beta if reg.libr is not None and reg.deformed else None
         err = None if stopped else shown.node_error(reg.rigid, beta)
         entry = RunEntry.of(run.kind, reg, run.points, time.monotonic() - run.t0, err, run.streamed, run.trace)
+        worst: list[WorstPoint] = []
         if not stopped:
             entry.targets_mm = shown.target_errors(reg.rigid, beta)
             result = RegisteredState(run.kind.label, reg.rigid, beta, err, *shown.predict(reg),
@@ -140,7 +141,9 @@ class Runs:
         if stopped:
             core.notify("Registration", "Cancelled: the previous result is kept.")
         elif entry.warning:
-            core.notify("Registration: check the fit", entry.warning, error=True)
+            core.notify("Registration: check the fit", entry.warning + _left_out(worst), error=True)
+        elif any(w.rejected for w in worst):
+            core.notify("Registration", _left_out(worst).strip())
 
     def show(self, row: int) -> str | None:
         """Put the result of run ``row`` (its index in the session's log) back on show — after a
@@ -207,6 +210,16 @@ class Runs:
                 return BUSY
         core.changed(Change.RUN)
         return None
+
+
+def _left_out(worst: list[WorstPoint]) -> str:
+    """A sentence on data points the fit gave no weight (outliers), or ""."""
+    n = sum(w.rejected for w in worst)
+    if not n:
+        return ""
+    what = "a data point lies" if n == 1 else f"{n} of the worst data points lie"
+    return (f" — {what} too far from the model to be trusted and {'was' if n == 1 else 'were'} left out of the fit "
+            "(Worst data points, Registration panel; a poor-fit figure still counts them)")
 
 
 def plane_name(i: int | None) -> str:
