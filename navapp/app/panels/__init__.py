@@ -10,7 +10,7 @@ from html import escape
 import numpy as np
 
 from ..core import ON_CONNECT
-from ..framing import Screen, dock_width
+from ..framing import DOCK_2D_PX, Screen, dock_width
 from ..state import Change, ClientState
 from .accuracy import AccuracyPanel
 from .guide import GuidePanel
@@ -47,21 +47,26 @@ class ClientView:
                        self.accuracy, self.session)
         self.screen: Screen | None = None  # the 3D canvas, once the browser has reported its size
         self._framed: np.ndarray | None = None  # where the camera was put to frame the liver
+        self._dock = DOCK_2D_PX[0]  # the 2D view's dock width as last set
         client.camera.on_update(lambda cam: self._camera())
 
     # ------------------------------------------------------------------ the window
     def _camera(self):
         """The browser reported its camera. The 3D canvas is the window less the docked 2D view
-        (viser lays the dock beside it; the control panel floats over it). The first report,
-        before the dock is laid out, gives the window's width: the dock is set for it. Each new
-        canvas size frames the liver between the panels again, unless the surgeon has moved the
-        camera since it was last framed."""
+        (viser lays the dock beside it; the control panel floats over it), so the window is the
+        canvas plus the dock — once the dock is laid out, which may be before or after the first
+        report: each new canvas size docks the 2D view for the window it implies (a report
+        before the layout overestimates it for a moment; the layout's own report corrects it).
+        Each new canvas size also frames the liver between the panels again, unless the surgeon
+        has moved the camera since it was last framed."""
         cam = self.client.camera
         w, h = int(cam.image_width or 0), int(cam.image_height or 0)
         if w <= 0 or h <= 0 or (self.screen is not None and (w, h) == (self.screen.width_px, self.screen.height_px)):
             return
-        if self.screen is None:
-            self.ultrasound.dock(dock_width(w))
+        dock = dock_width(w + self._dock) if self.ultrasound.cb_2d.value else self._dock
+        if dock != self._dock:
+            self._dock = dock
+            self.ultrasound.dock(dock)
         moved = self._framed is not None and np.linalg.norm(np.asarray(cam.position) - self._framed) > 1.0
         self.screen = Screen(w, h)
         if not moved:
