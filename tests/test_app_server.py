@@ -3,6 +3,7 @@ scene (coarse mesh, k = 12), with headless per-browser states, checking what rea
 session, what each browser keeps to itself, and what the 2D view serves over HTTP."""
 
 import json
+import time
 import urllib.error
 import urllib.request
 
@@ -201,6 +202,25 @@ def test_cancel_keeps_the_previous_result(app):
     assert app.core.result is before  # the model on show is still the previous run's
     assert app.core.worker.last.libr.stop_reason != "cancelled"  # a warm start continues from the good run
     assert last.seconds < 60  # stopped, not run to the end with its cross-validation
+
+
+def test_a_cancel_ordered_after_a_start_cancels_it(app):
+    """The panels hand start and Cancel to ``Runs.order`` as the clicks arrive; a Cancel
+    clicked right after a start is handled after it (in viser's pool of callback threads
+    it was handled first, found nothing running, and the run went on)."""
+    wait_idle(app)
+    n_log = len(app.core.session.log)
+    said = []
+    app.runs.order(lambda: said.append(app.runs.start(RunKind.ALL)))
+    app.runs.order(lambda: said.append(app.runs.cancel()))
+    app.runs.order(lambda: said.append("done"))
+    for _ in range(600):  # the order thread, then the worker: a loaded machine makes this slower, not red
+        if len(said) == 3 and not app.core.worker.busy and len(app.core.session.log) > n_log:
+            break
+        time.sleep(0.5)
+    assert said[0] is None and said[1].startswith("Cancelling"), said
+    last = app.core.session.log[-1]
+    assert last.cancelled and last.stop == "cancelled"
 
 
 def test_cancel_is_always_answered_and_stops_the_sweep(app):
