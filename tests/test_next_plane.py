@@ -134,3 +134,24 @@ def test_table2_section_summarises_the_two_studies(tmp_path):
     text = table2_section(tmp_path)
     assert "| r | 0.60 | 0.20 |" in text and "| coverage | 90% | 90% |" in text
     assert "| S + 1 suggested | 3.50 | 3.50 | 4 of 16 | 1 of 2 cases |" in text
+
+
+def test_planes_are_ranked_by_the_targets_when_given(small_model, phantoms):
+    """With target points (the viewer passes the tumours' centres) the predicted error is
+    compared there, not over the organ: a target inside one candidate's image makes that plane
+    (or one through the same spot) the best, where the organ-wide ranking put it last."""
+    rng = np.random.default_rng(11)
+    data, _ = _anterior_data(small_model, rng, lambda X: X[:, 0] < 0)
+    reg = _registration(small_model, data)
+    organ = suggest_planes(reg, preop=phantoms[0], count=6)
+    last = [c for c in organ.candidates if c.features][-1]
+    target = np.vstack(list(last.features.values())).mean(0)  # the middle of what its image shows
+
+    def plane_distance(c):
+        return abs(float(c.pose[:3, 1] @ (target - c.pose[:3, 3])))
+
+    by_target = suggest_planes(reg, preop=phantoms[0], count=6, points=target[None], points_name="tumour 1")
+    assert by_target.over == "tumour 1" and organ.over.startswith("the whole organ")
+    assert by_target.best.index != organ.best.index
+    assert plane_distance(by_target.best) < 5.0 < plane_distance(organ.best)
+    assert by_target.best.score_mm > 0

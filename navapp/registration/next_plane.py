@@ -28,6 +28,7 @@ from scipy.spatial import cKDTree
 
 from ..defaults import FAR_WALL_COS, FAR_WALL_MIN_DEPTH_MM, PROBE_HEIGHT_PX, PROBE_SPACING_MM, PROBE_WIDTH_PX
 from ..geometry.planes import plane_section
+from ..mechanics.interpolation import interpolation_matrix
 from ..threads import limit_threads
 from .objective import evaluate
 from .uncertainty import (
@@ -55,7 +56,8 @@ class PlaneCandidate:
     """One candidate probe pose and what it is expected to show.
 
     pose: (4, 4) ProbeToTracker, tracker frame, mm (columns: lateral, normal, depth, origin);
-    score_mm: expected drop of the mean predicted error over the organ (mm; larger is better);
+    score_mm: expected drop of the mean predicted error where it is compared (``Suggestion.over``;
+    mm, larger is better);
     features: data feature → (N, 3) expected points, tracker frame (sampled every 1 mm);
     pixels: data feature → expected number of image pixels (the weight the plane carries);
     predicted_mean_mm: mean predicted error with this plane added.
@@ -74,6 +76,7 @@ class Suggestion:
     candidates: list  # PlaneCandidate, best first
     current_mean_mm: float  # mean predicted error now
     seconds: float
+    over: str = "the whole organ (sampled mesh nodes)"  # where the predicted error is compared
 
     @property
     def best(self) -> PlaneCandidate:
@@ -226,7 +229,8 @@ def _extra_blocks(model, beta, feats, pixels, weights) -> dict:
 
 
 def suggest_planes(reg, anterior=None, preop=None, poses=None, calibration: Calibration | None = None,
-                   count=8, seed=0, eval_nodes=EVAL_NODES, weights=None) -> Suggestion:
+                   count=8, seed=0, eval_nodes=EVAL_NODES, weights=None, points=None,
+                   points_name: str = "the targets") -> Suggestion:
     """Rank candidate probe poses by the expected drop of the mean predicted error.
 
     Parameters
@@ -241,6 +245,11 @@ def suggest_planes(reg, anterior=None, preop=None, poses=None, calibration: Cali
     calibration : the error model (default ``uncertainty.DEFAULT_CALIBRATION``).
     eval_nodes, seed : the mean predicted error is taken over ``eval_nodes`` mesh nodes
         drawn with ``seed`` (all nodes when fewer).
+    points : (P, 3) mm, optional
+        preoperative (model-frame) points where the surgeon needs the error low, e.g. the
+        tumours' centres: the mean predicted error is compared there instead of over the
+        organ (a plane that helps the organ on average may pass 50 mm from every tumour).
+        ``points_name`` says what they are, in ``Suggestion.over``.
 
     Returns
     -------
@@ -258,9 +267,16 @@ def suggest_planes(reg, anterior=None, preop=None, poses=None, calibration: Cali
         poses = candidate_poses(reg, anterior, count)
     with limit_threads(1):  # small matrices: threaded BLAS only synchronises (see libr.py)
         info: Information = information(model, data, beta, weights)
-        rng = np.random.default_rng(seed)
-        sample = np.sort(rng.choice(model.basis.M, min(eval_nodes, model.basis.M), replace=False))
-        x, G = point_jacobian(model, beta, nodes=sample)
+        if points is not None and len(points):
+            basis = model.basis
+            x, G = point_jacobian(model, beta, B=interpolation_matrix(basis.nodes, basis.tets,
+                                                                      np.asarray(points, float)))
+            over = points_name
+        else:
+            rng = np.random.default_rng(seed)
+            sample = np.sort(rng.choice(model.basis.M, min(eval_nodes, model.basis.M), replace=False))
+            x, G = point_jacobian(model, beta, nodes=sample)
+            over = Suggestion.over
         deformed = deformed_surfaces(model, beta)
         d0 = nearest_data_distance(x, data)
         e0 = calibration.predict(d0, point_sigma(G, factor=covariance_factor(info)), np.median(d0))
@@ -281,4 +297,4 @@ def suggest_planes(reg, anterior=None, preop=None, poses=None, calibration: Cali
             out.append(PlaneCandidate(i, orientation, np.asarray(pose, float), float(e0.mean() - e1.mean()),
                                       {k: reg.rigid.apply(v) for k, v in feats.items()}, pixels, float(e1.mean())))
     out.sort(key=lambda c: -c.score_mm)
-    return Suggestion(out, float(e0.mean()), time.perf_counter() - t0)
+    return Suggestion(out, float(e0.mean()), time.perf_counter() - t0, over)
