@@ -71,3 +71,28 @@ def viser_messages(frame) -> list:
         return []
     n = int.from_bytes(frame[8:16], "little")
     return list(msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(frame[16:16 + n])).get("messages", ()))
+
+
+def start_app(scene: dict, cache_root, folder):
+    """The viewer's App on a small scene (``scene``: a scene TOML as a dict), registration mesh
+    12 mm and k = 12, started headless; the test fixtures' one way to make one."""
+    from navapp.app.server import App
+    from navapp.simulation.scene import parse_scene
+
+    a = App(parse_scene(scene), port=free_port(), session_dir=folder, edge=12.0, k=12, cache_root=cache_root)
+    assert a.start().wait(600), "start-up did not finish"
+    assert a.core.failed is None, a.core.failed
+    return a
+
+
+def stop_app(a):
+    a.server.stop()
+    a.view2d.stop()
+
+
+def run_to_end(app, kind):
+    """Start a registration of ``kind`` and wait for its row in the run table."""
+    assert app.runs.start(kind) is None
+    app.core.worker.join(300)
+    assert not app.core.worker.busy
+    return app.core.session.log[-1]

@@ -7,10 +7,9 @@ import types
 
 import numpy as np
 import pytest
-from conftest import free_port
+from conftest import run_to_end, start_app, stop_app
 
 from navapp.app.state import RunKind
-from navapp.simulation.scene import parse_scene
 
 SCENE = {"name": "grosspose", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
          "stylus": {"coverage": 0.2}, "ius": {"planes": 4}}
@@ -18,22 +17,9 @@ SCENE = {"name": "grosspose", "anatomy": {"phantom": 0}, "deformation": {"releas
 
 @pytest.fixture(scope="module")
 def app(cache_root, tmp_path_factory):
-    from navapp.app.server import App
-
-    a = App(parse_scene(SCENE), port=free_port(), session_dir=tmp_path_factory.mktemp("sess"), edge=12.0, k=12,
-            cache_root=cache_root)
-    assert a.start().wait(600), "start-up did not finish"
-    assert a.core.failed is None, a.core.failed
+    a = start_app(SCENE, cache_root, tmp_path_factory.mktemp("sess"))
     yield a
-    a.server.stop()
-    a.view2d.stop()
-
-
-def run(app, kind):
-    assert app.runs.start(kind) is None
-    app.core.worker.join(300)
-    assert not app.core.worker.busy
-    return app.core.session.log[-1]
+    stop_app(a)
 
 
 def only(app, live_points=(), planes=()):
@@ -51,7 +37,7 @@ def test_a_patch_or_one_wall_gives_a_red_pose_warning_and_is_not_continued(app):
     ant = sd.stylus_path[sd.stylus_labels == "anterior"]
     patch = ant[np.argsort(np.linalg.norm(ant - ant[0], axis=1))[:40]]  # a few seconds of digitising
     only(app, live_points=patch)
-    entry = run(app, RunKind.RIGID)
+    entry = run_to_end(app, RunKind.RIGID)
     res = app.core.result
     assert res.pose_warning and "cover" in res.pose_warning, res.pose_warning
     assert "cover" in entry.warning and "cover" in status_line(app.core.last_reg)
@@ -60,13 +46,13 @@ def test_a_patch_or_one_wall_gives_a_red_pose_warning_and_is_not_continued(app):
     # one plane's posterior wall alone: the determinacy check sees no stylus data, coverage does
     wall = next(i for i, p in sorted(app.core.planes.items()) if len(p.features.get("posterior", ())) > 20)
     only(app, planes=[wall])
-    run(app, RunKind.RIGID)
+    run_to_end(app, RunKind.RIGID)
     assert app.core.result.pose_warning and "cover" in app.core.result.pose_warning
     saved = app.core.session.result
     assert saved["pose_warning"] == app.core.result.pose_warning  # a restart shows it again
 
     # Re-register does not continue from it: a fresh fit on all data
-    entry = run(app, RunKind.WARM)
+    entry = run_to_end(app, RunKind.WARM)
     assert entry.run == RunKind.ALL.label
 
     # live re-registration starts afresh too
@@ -80,9 +66,9 @@ def test_a_patch_or_one_wall_gives_a_red_pose_warning_and_is_not_continued(app):
     # with the whole sweep the pose is believed again, and a warm start continues
     only(app)
     app.stylus.collect_now()
-    run(app, RunKind.ALL)
+    run_to_end(app, RunKind.ALL)
     assert app.core.result.pose_warning is None
     follower = LiveFollower(link)
     follower._base()
     assert follower.reg.last is app.core.last_reg
-    assert run(app, RunKind.WARM).run == RunKind.WARM.label
+    assert run_to_end(app, RunKind.WARM).run == RunKind.WARM.label

@@ -5,11 +5,10 @@ back. Headless: the App driven through its rooms on a small scene."""
 
 import numpy as np
 import pytest
-from conftest import free_port
+from conftest import start_app, stop_app
 
 from navapp.app.state import RunKind
 from navapp.simulation.probe import tracker_to_pixels
-from navapp.simulation.scene import parse_scene
 
 SCENE = {"name": "outliers", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
          "stylus": {"coverage": 0.2}, "ius": {"planes": 16}}
@@ -18,15 +17,9 @@ STRAY_MM = 35.0  # the wrong vertex lies this far below the posterior wall, alon
 
 @pytest.fixture(scope="module")
 def app(cache_root, tmp_path_factory):
-    from navapp.app.server import App
-
-    a = App(parse_scene(SCENE), port=free_port(), session_dir=tmp_path_factory.mktemp("sess"), edge=12.0, k=12,
-            cache_root=cache_root)
-    assert a.start().wait(600), "start-up did not finish"
-    assert a.core.failed is None, a.core.failed
+    a = start_app(SCENE, cache_root, tmp_path_factory.mktemp("sess"))
     yield a
-    a.server.stop()
-    a.view2d.stop()
+    stop_app(a)
 
 
 def register(app, kind=RunKind.ALL):

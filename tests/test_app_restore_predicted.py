@@ -8,21 +8,18 @@ import json
 
 import numpy as np
 import pytest
+from conftest import start_app, stop_app
 
 from navapp.app.state import RunKind
-from tests.test_app_server import start_app
-
-
-def stop(a):
-    a.server.stop()
-    a.view2d.stop()
+from tests.test_app_server import SCENE
 
 
 def test_restored_fit_keeps_its_own_data_for_the_predicted_error(cache_root, tmp_path):
+    from navapp.app.worker import viewer_options
     from navapp.registration.next_plane import suggest_planes
     from navapp.registration.uncertainty import estimate_error
 
-    app = start_app(cache_root, tmp_path / "session")
+    app = start_app(SCENE, cache_root, tmp_path / "session")
     try:
         app.stylus.collect_now()
         assert app.runs.start(RunKind.SURFACE) is None
@@ -37,9 +34,9 @@ def test_restored_fit_keeps_its_own_data_for_the_predicted_error(cache_root, tmp
         assert app.imaging.add(cs) is None  # data the surface fit never saw, not registered yet
         assert set(app.core.data()) > set(fitted)
     finally:
-        stop(app)
+        stop_app(app)
 
-    again = start_app(cache_root, tmp_path / "session")
+    again = start_app(SCENE, cache_root, tmp_path / "session")
     try:
         reg = again.core.last_reg
         assert reg is not None and reg.libr is not None
@@ -48,12 +45,13 @@ def test_restored_fit_keeps_its_own_data_for_the_predicted_error(cache_root, tmp
         assert set(reg.data_model_frame) == set(fitted)
         for name, pts in fitted.items():
             assert np.allclose(reg.data_model_frame[name], pts, atol=1e-3)
-        # and the targets' bands on show are what the restored fit predicts
-        est = estimate_error(reg, points=np.array([t.centre for t in again.core.preop.targets]))
+        # and the targets' bands on show are what the restored fit predicts (with the viewer's weights)
+        est = estimate_error(reg, points=np.array([t.centre for t in again.core.preop.targets]),
+                             weights=viewer_options().weights)
         shown = [b.predicted_mm for b in again.core.result.target_bands]
         assert np.allclose(est.predicted_mm, shown, atol=0.01)
     finally:
-        stop(again)
+        stop_app(again)
 
     # a session saved before the fit's data were kept: its prediction is shown as saved, and
     # the suggestion asks for a registration instead of ranking planes on other data
@@ -61,9 +59,9 @@ def test_restored_fit_keeps_its_own_data_for_the_predicted_error(cache_root, tmp
     saved = json.loads(path.read_text())
     del saved["result"]["data_model_frame"]
     path.write_text(json.dumps(saved))
-    old = start_app(cache_root, tmp_path / "session")
+    old = start_app(SCENE, cache_root, tmp_path / "session")
     try:
         assert [b.predicted_mm for b in old.core.result.target_bands] == pytest.approx(shown)
         assert "Register deformably first" in old.imaging.suggest(old.core.new_client_state(), print)
     finally:
-        stop(old)
+        stop_app(old)

@@ -5,11 +5,10 @@ good deformable result (any finished run can be put back on show)."""
 
 import numpy as np
 import pytest
-from conftest import free_port
+from conftest import run_to_end, start_app, stop_app
 
 from navapp.app.guide import STEPS, first_open_step
 from navapp.app.state import RunKind
-from navapp.simulation.scene import parse_scene
 
 SCENE = {"name": "screen", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
          "stylus": {"coverage": 0.2}, "ius": {"planes": 2}}
@@ -18,22 +17,9 @@ REGISTER_ALL = next(i for i, s in enumerate(STEPS) if s.title == "Register with 
 
 @pytest.fixture(scope="module")
 def app(cache_root, tmp_path_factory):
-    from navapp.app.server import App
-
-    a = App(parse_scene(SCENE), port=free_port(), session_dir=tmp_path_factory.mktemp("sess"), edge=12.0, k=12,
-            cache_root=cache_root)
-    assert a.start().wait(600), "start-up did not finish"
-    assert a.core.failed is None, a.core.failed
+    a = start_app(SCENE, cache_root, tmp_path_factory.mktemp("sess"))
     yield a
-    a.server.stop()
-    a.view2d.stop()
-
-
-def run(app, kind):
-    assert app.runs.start(kind) is None
-    app.core.worker.join(300)
-    assert not app.core.worker.busy
-    return app.core.session.log[-1]
+    stop_app(a)
 
 
 def test_the_guide_goes_on_after_skipped_steps_and_survives_a_reload(app):
@@ -60,18 +46,18 @@ def test_the_guide_goes_on_after_skipped_steps_and_survives_a_reload(app):
 
 def test_rigid_keeps_the_deformable_result_within_reach_and_tumour_errors_are_logged(app):
     app.stylus.collect_now()
-    deformable = run(app, RunKind.ALL)
+    deformable = run_to_end(app, RunKind.ALL)
     good, good_reg = app.core.result, app.core.last_reg
     names = {t.name for t in app.core.preop.targets}
     assert deformable.targets_mm is not None and set(deformable.targets_mm) == names
     assert all(v >= 0 for v in deformable.targets_mm.values())
     row = len(app.core.session.log) - 1
-    rigid = run(app, RunKind.RIGID)
+    rigid = run_to_end(app, RunKind.RIGID)
     assert rigid.targets_mm is not None and app.core.result is not good  # the rigid pose is on show
     assert app.runs.show(row) is None  # and the deformable result can be put back
     assert app.core.result is good and app.core.last_reg is good_reg and app.core.worker.last is good_reg
     assert app.core.session.result["run"] == good.run and app.core.session.result["beta"] is not None
-    assert run(app, RunKind.WARM).run == RunKind.WARM.label  # a warm start continues from it
+    assert run_to_end(app, RunKind.WARM).run == RunKind.WARM.label  # a warm start continues from it
     assert "not kept" in app.runs.show(10_000)
     saved = app.core.session.log[row].to_json()
     assert saved["targets_mm"] == deformable.targets_mm  # the column survives a restart

@@ -9,30 +9,19 @@ import urllib.request
 
 import numpy as np
 import pytest
-from conftest import free_port
+from conftest import start_app, stop_app
 
 from navapp.app.state import RunKind
-from navapp.simulation.scene import parse_scene
 
 SCENE = {"name": "apptest", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
          "stylus": {"coverage": 0.2}, "ius": {"planes": 2}}
 
 
-def start_app(cache_root, folder):
-    from navapp.app.server import App
-
-    a = App(parse_scene(SCENE), port=free_port(), session_dir=folder, edge=12.0, k=12, cache_root=cache_root)
-    assert a.start().wait(600), "start-up did not finish"
-    assert a.core.failed is None, a.core.failed
-    return a
-
-
 @pytest.fixture(scope="module")
 def app(cache_root, tmp_path_factory):
-    a = start_app(cache_root, tmp_path_factory.mktemp("sess"))
+    a = start_app(SCENE, cache_root, tmp_path_factory.mktemp("sess"))
     yield a
-    a.server.stop()
-    a.view2d.stop()
+    stop_app(a)
 
 
 def wait_idle(app):
@@ -324,7 +313,7 @@ def test_predicted_error_and_the_suggested_next_plane(app):
 
 def test_a_restarted_server_restores_the_session_and_the_registered_model(app, cache_root):
     wait_idle(app)
-    again = start_app(cache_root, app.core.session.folder)
+    again = start_app(SCENE, cache_root, app.core.session.folder)
     try:
         assert again.core.session.to_json() == app.core.session.to_json()
         assert set(again.core.planes) == set(app.core.planes)  # free planes re-simulated from their poses

@@ -124,6 +124,7 @@ class Imaging:
         (``registration.next_plane``) in the worker thread; the best is acquired as this
         tab's plane and ``on_done(message)`` says what was suggested."""
         from ..registration.next_plane import suggest_planes
+        from .worker import viewer_options
 
         core = self.core
         reg = core.last_reg
@@ -138,7 +139,8 @@ class Imaging:
 
         def job(cancel):
             try:
-                return suggest_planes(reg, preop=core.preop, points=centres, points_name="the tumours (centres)")
+                return suggest_planes(reg, preop=core.preop, points=centres, points_name="the tumours (centres)",
+                                      weights=viewer_options().weights)  # the fit's own weighting
             except Exception as exc:  # said in the panel; the button comes back
                 return f"No suggestion: {exc.__class__.__name__}: {exc}"
 
