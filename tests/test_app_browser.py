@@ -98,7 +98,10 @@ def wait_text(page, pattern, deadline: Deadline):
 
 
 def click_button(page, name, deadline: Deadline):
-    page.get_by_role("button", name=name, exact=True).first.click(timeout=deadline.ms())
+    # no_wait_after: the click is not followed by a wait for navigations it might have scheduled
+    # (the docked 2D view's frame can reload as the panels refresh); what the click does is
+    # waited for by the caller's own wait on the page
+    page.get_by_role("button", name=name, exact=True).first.click(timeout=deadline.ms(), no_wait_after=True)
 
 
 def start_server(port, session):
