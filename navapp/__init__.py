@@ -43,6 +43,7 @@ _EXPORTS = {
     # registration
     "prepare": "navapp.registration.pipeline",
     "register": "navapp.registration.pipeline",
+    "rigid_starts": "navapp.registration.pipeline",
     "deform_points": "navapp.registration.pipeline",
     "write_outputs": "navapp.registration.pipeline",
     "tre_stats": "navapp.registration.pipeline",
@@ -72,7 +73,7 @@ __all__ = [
     "Basis", "BasisSettings", "Case", "Correspondence", "EDGE_MM", "FEATURES", "Feature", "FitQuality",
     "InputError", "K", "LMOptions", "LibrResult", "NavappError", "PreopModel", "Registration", "RegistrationModel",
     "RigidResult", "RobustOptions", "Scene", "Weights", "data_level", "deform_points", "demo_scene", "load_scene",
-    "make_phantom", "prepare", "read_case", "register", "scene_dir", "simulate", "study_scenes", "tre_stats",
+    "make_phantom", "prepare", "read_case", "register", "rigid_starts", "scene_dir", "simulate", "study_scenes", "tre_stats",
     "write_case", "write_outputs",
 ]  # the keys of _EXPORTS (a test checks)
 
@@ -94,6 +95,7 @@ if TYPE_CHECKING:  # what type checkers and editors see; at run time ``__getattr
         deform_points,
         prepare,
         register,
+        rigid_starts,
         tre_stats,
         write_outputs,
     )

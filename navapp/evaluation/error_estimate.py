@@ -74,9 +74,7 @@ def collect_case(case_dir, levels=ESTIMATE_LEVELS, combos=3, seed=0, edge=EDGE_M
     import time
 
     from ..anatomy.caseio import read_case
-    from ..registration.model import usable_data
-    from ..registration.pipeline import prepare, register
-    from ..registration.rigid import TOL_BEFORE_LIBR, rigid_icp
+    from ..registration.pipeline import prepare, register, rigid_starts
     from ..registration.uncertainty import estimate_error
 
     case_dir = Path(case_dir)
@@ -89,13 +87,13 @@ def collect_case(case_dir, levels=ESTIMATE_LEVELS, combos=3, seed=0, edge=EDGE_M
         raise InputError("the case's targets are not the mesh nodes (regenerate the case)", case_dir)
     n_planes = len([p for p in (case_dir / "intraop" / "us").glob("plane_??") if p.is_dir()])
     stylus = study_data(case_dir, "S", case=case)
-    rigid_s = rigid_icp(model, usable_data(model, stylus), tol_mm=TOL_BEFORE_LIBR)
+    starts = rigid_starts(model, stylus)  # shared by S and S + planes (``register``'s ``starts``)
     rng = np.random.default_rng(seed + sum(map(ord, case_dir.name)))
     out = []
     for level in levels:
         for planes in plane_choices(level, n_planes, combos, rng):
             data = study_data(case_dir, level, planes, case=case, stylus=stylus)
-            reg = register(model, data, rigid=rigid_s if stylus_only_pose(level) else None)
+            reg = register(model, data, starts=starts if stylus_only_pose(level) else None)
             t = time.perf_counter()
             est = estimate_error(reg)
             sec = time.perf_counter() - t

@@ -98,19 +98,17 @@ def fresh_single_planes(case_dir, edge=EDGE_MM, k=K) -> dict:
     """Mean TRE of S + each single plane registered now (as Table II registers), so that
     the S + 1 rank does not depend on a CSV made by an older registration: {plane: TRE}."""
     from ..anatomy.caseio import read_case
-    from ..registration.model import usable_data
-    from ..registration.pipeline import prepare, register, tre_stats
-    from ..registration.rigid import TOL_BEFORE_LIBR, rigid_icp
+    from ..registration.pipeline import prepare, register, rigid_starts, tre_stats
     from ..simulation.levels import data_level
 
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
     x0, x1 = case.truth_pairs()
-    rigid_s = rigid_icp(model, usable_data(model, data_level(case_dir, "S", case=case)), tol_mm=TOL_BEFORE_LIBR)
+    starts = rigid_starts(model, data_level(case_dir, "S", case=case))  # shared: the stylus's
     out = {}
     for i in range(len(recorded_poses(case_dir))):
-        reg = register(model, data_level(case_dir, "S+planes", planes=(i,), case=case), rigid=rigid_s)
+        reg = register(model, data_level(case_dir, "S+planes", planes=(i,), case=case), starts=starts)
         out[i] = tre_stats(reg.transform(x0), x1)["mean_mm"]
     return out
 
@@ -119,10 +117,8 @@ def run_case(case_dir, table, steps=3, edge=EDGE_MM, k=K, calibration=None, fres
     """Greedy suggestions from S on one case; ``fresh``: ``fresh_single_planes`` of the case
     (adds the S + 1 rank among this run's own single-plane registrations)."""
     from ..anatomy.caseio import read_case
-    from ..registration.model import usable_data
     from ..registration.next_plane import suggest_planes
-    from ..registration.pipeline import prepare, register, tre_stats
-    from ..registration.rigid import TOL_BEFORE_LIBR, rigid_icp
+    from ..registration.pipeline import prepare, register, rigid_starts, tre_stats
     from ..simulation.levels import data_level
 
     case_dir = Path(case_dir)
@@ -131,8 +127,8 @@ def run_case(case_dir, table, steps=3, edge=EDGE_MM, k=K, calibration=None, fres
     x0, x1 = case.truth_pairs()
     poses = recorded_poses(case_dir)
     stylus = data_level(case_dir, "S", case=case)
-    rigid_s = rigid_icp(model, usable_data(model, stylus), tol_mm=TOL_BEFORE_LIBR)
-    reg = register(model, stylus, rigid=rigid_s)
+    starts = rigid_starts(model, stylus)  # shared: every registration here has the stylus's
+    reg = register(model, stylus, starts=starts)
     chosen, rows = [], []
     known = table.get(case_dir.name, {})
     for m in range(1, steps + 1):
@@ -149,7 +145,7 @@ def run_case(case_dir, table, steps=3, edge=EDGE_MM, k=K, calibration=None, fres
         rho = _spearman([c.score_mm for c, o in zip(sugg.candidates, ok, strict=True) if o],
                         [t for t in cand_tre if t is not None]) if all(ok) else float("nan")
         data = data_level(case_dir, "S+planes", planes=tuple(sorted(chosen)), case=case)
-        reg = register(model, data, rigid=rigid_s)
+        reg = register(model, data, starts=starts)
         tre = tre_stats(reg.transform(x0), x1)["mean_mm"]
         combo = tuple(sorted(chosen))
         level_tres = known.get(level, {})

@@ -49,28 +49,27 @@ def run_chunk(case_dir, items, edge=EDGE_MM, k=K, init=None):
     ``init``: the registration's ``RobustOptions`` (default: the pipeline's)."""
     from ..anatomy.caseio import read_case
     from ..mechanics.interpolation import interpolation_matrix
-    from ..registration.model import usable_data
-    from ..registration.pipeline import prepare, register, tre_stats
-    from ..registration.rigid import TOL_BEFORE_LIBR, rigid_icp
+    from ..registration.pipeline import prepare, register, rigid_starts, tre_stats
 
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
     x0, x1 = case.truth_pairs()
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)  # once: it costs as much as a registration
-    # The rigid initialisation sees only the stylus features (registration/rigid.py), which
-    # are the same for S and every S + planes scenario of a case: ICP runs once per chunk
-    # and its time is added to each of those rows, so "seconds" stays a whole registration.
+    # The multi-start ICP sees only the stylus features (registration/rigid.py), which are
+    # the same for S and every S + planes scenario of a case: it runs once per chunk and its
+    # time is added to each of those rows, so "seconds" stays a whole registration. The rest
+    # of the rigid stage (screening, pose rules) runs per row: a row equals ``register``'s.
     t = time.perf_counter()
     stylus = study_data(case_dir, "S", case=case)
-    rigid_s = rigid_icp(model, usable_data(model, stylus), tol_mm=TOL_BEFORE_LIBR)
+    starts = rigid_starts(model, stylus, init=init)
     icp_sec = time.perf_counter() - t
     rows = []
     for level, planes in items:
         data = study_data(case_dir, level, planes, case=case, stylus=stylus)
         shared = stylus_only_pose(level)
         t = time.perf_counter()
-        reg = register(model, data, deform=level != "rigid", rigid=rigid_s if shared else None, init=init)
+        reg = register(model, data, deform=level != "rigid", init=init, starts=starts if shared else None)
         sec = time.perf_counter() - t + (icp_sec if shared else 0.0)
         tre = tre_stats(reg.transform(x0, B=B), x1)
         rows.append({"case": case_dir.name, "level": level, "planes": "-".join(map(str, planes)),

@@ -305,9 +305,53 @@ def _shift(pose: RigidResult, data: dict) -> float:
     return float(np.sqrt(np.mean(np.sum((pose.inverse(pts) - pts) ** 2, axis=1)))) if len(pts) else 0.0
 
 
+def _settings(options: LMOptions | None, init: RobustOptions | None) -> tuple[LMOptions, RobustOptions]:
+    options = options or LMOptions()
+    init = init or RobustOptions()
+    if init.huber_salient_mm and not options.weights.huber_mm:
+        options = replace(options, weights=replace(options.weights, huber_mm={
+            n: init.huber_salient_mm for n in REGION_FEATURES}))
+    return options, init
+
+
+def _rigid_features(init: RobustOptions) -> tuple[str, ...]:
+    return RIGID_WITH_POSTERIOR if init.rigid_posterior else SURFACE_FEATURES
+
+
+def _multi_start(model: RegistrationModel, data: dict, options: LMOptions, init: RobustOptions) -> list[Start]:
+    features = _rigid_features(init)
+    poses = start_poses(model, {k: v for k, v in data.items() if k in features} or data,
+                        init.start_angle_deg, init.principal_axes)
+    return multi_start_icp(model, data, poses, options.weights, mode=init.icp, features=features,
+                           robust=init.rigid_robust)
+
+
+def rigid_starts(model: RegistrationModel, data: dict, options: LMOptions | None = None,
+                 init: RobustOptions | None = None) -> list[Start]:
+    """The multi-start ICP of ``register``'s rigid stage, to share between registrations
+    whose rigid features (``RobustOptions.rigid_posterior``: the stylus's, or also the iUS
+    posterior wall) are the same; pass it as ``register(..., starts=...)``.
+
+    Parameters
+    ----------
+    model : RegistrationModel
+    data : dict
+        feature → (N, 3) points, mm, tracker space; only the rigid features are used.
+    options, init :
+        as for ``register``.
+
+    Returns
+    -------
+    list of Start
+        every starting pose and where its ICP ended.
+    """
+    options, init = _settings(options, init)
+    return _multi_start(model, usable_data(model, data), options, init)
+
+
 def register(model: RegistrationModel, data: dict, deform=True, options: LMOptions | None = None,
              callback=None, cancel=None, beta0=None, rigid: RigidResult | None = None,
-             init: RobustOptions | None = None) -> Registration:
+             init: RobustOptions | None = None, starts: list[Start] | None = None) -> Registration:
     """Rigid initialisation then (unless ``deform`` is False) LIBR: β minimising Ω of eq. 7
     (data terms of Table I plus the strain-energy term) by Levenberg–Marquardt.
 
@@ -329,6 +373,12 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         ``beta0`` = the previous β (3k + 6,); ICP is then skipped and LM starts from β0.
     init : RobustOptions
         the initialisation and fit guards (default ``RobustOptions()``).
+    starts : list of Start, optional
+        the multi-start ICP of these data's rigid features (``rigid_starts``), computed once
+        for registrations whose rigid features are the same (a study's S and S + planes
+        rows share the stylus's). Everything after it — the basin screening on all the
+        data, the pose rules, the cross-validation — runs here, so the answer equals one
+        without ``starts``; the list is not changed.
 
     Returns
     -------
@@ -348,21 +398,19 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         notes.append(why)
     warm = rigid is not None  # the pose is given: no choice of pose
     fresh = beta0 is None  # a deformable fit from β = 0 (not a warm re-registration): cross-validated
-    options = options or LMOptions()
-    init = init or RobustOptions()
-    if init.huber_salient_mm and not options.weights.huber_mm:
-        options = replace(options, weights=replace(options.weights, huber_mm={
-            n: init.huber_salient_mm for n in REGION_FEATURES}))
-    features = RIGID_WITH_POSTERIOR if init.rigid_posterior else SURFACE_FEATURES
+    options, init = _settings(options, init)
+    features = _rigid_features(init)
     sec = {}
     t = time.perf_counter()
-    starts: list[Start] = []
     candidates: list[RigidResult] = []
+    if rigid is not None or not init.multi_start:
+        starts = []
+    elif starts is None:
+        starts = _multi_start(model, data, options, init)
+    else:
+        starts = [replace(s) for s in starts]  # this registration marks its own (omega, chosen)
     if rigid is None:
         if init.multi_start:
-            starts = multi_start_icp(model, data, start_poses(model, {k: v for k, v in data.items() if k in features}
-                                                              or data, init.start_angle_deg, init.principal_axes),
-                                     options.weights, mode=init.icp, features=features, robust=init.rigid_robust)
             candidates = [s.fitted for s in basin_representatives(starts)[:init.max_candidates]]
             rigid = candidates[0]
         else:
