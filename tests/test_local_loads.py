@@ -256,7 +256,7 @@ def test_a_pose_the_fit_does_not_pay_for_is_not_taken_over_the_given_one(small_m
     no pose puts most of it on the model, so the given pose is not kept as aligned, and the
     multi-start ICP ends tens of millimetres away, where the deformable model fits the dented
     patch about as well as at the given pose. The move is not earned by a better fit: the
-    given pose is held (``pose.prefer_given``) and one line says the pose is not determined.
+    given pose is held (``pose.prefer_given``) and one line says ICP's pose is not earned by the fit.
     Without the rule the organ far from the dent, which did not move, is moved tens of mm."""
     import navapp.registration.pipeline as pipeline
     from navapp.registration.pose import POSE_RULE, PoseSource
@@ -279,7 +279,7 @@ def test_a_pose_the_fit_does_not_pay_for_is_not_taken_over_the_given_one(small_m
     assert choice.source is PoseSource.GIVEN_FITS and reg.rigid.kept
     assert choice.given_rms_mm <= POSE_RULE.given_ratio * choice.fitted_rms_mm
     assert np.allclose(reg.rigid.apply(nodes), nodes)
-    assert any(w.startswith("the pose is not determined by the data: ICP moved") for w in reg.warnings)
+    assert any(w.startswith("ICP's pose is not earned by the fit: it moved") for w in reg.warnings)
     assert far_motion(reg) < 2.0
 
     monkeypatch.setattr(pipeline, "prefer_given", lambda *a, **k: None)

@@ -171,7 +171,7 @@ class PoseChoice:
     def warning(self) -> str | None:
         if self.source is not PoseSource.GIVEN_FITS:
             return None
-        return (f"the pose is not determined by the data: ICP moved the organ {self.fitted_shift_mm:.0f} mm from the "
+        return (f"ICP's pose is not earned by the fit: it moved the organ {self.fitted_shift_mm:.0f} mm from the "
                 f"given pose, but the deformable fit there leaves the data {self.fitted_rms_mm:.2f} mm RMS off against "
                 f"{self.given_rms_mm:.2f} mm at the given pose — the given pose is kept; add data away from where "
                 "the organ moved")
