@@ -49,4 +49,8 @@ def test_03_sweep_k(case_dir):
     assert tre[6] == pytest.approx(PIN["k6"], abs=0.05)
 
 
-PIN = {"S": 5.61, "S+2": 4.31, "all": 3.30, "k6": 5.55}
+# moved by the given-pose rule (``pose.prefer_given``): at 12 mm and k = 12 the fits from ICP's pose
+# (12-14 mm from the given one, which is the true pose in this scene) were in doubt and fitted the
+# data only 6-12 % better than the given pose held, which is now kept: S 5.61 -> 4.37, S + 2
+# 4.31 -> 4.10, all data 3.30 -> 4.04 (k = 6: 5.55 -> 5.48)
+PIN = {"S": 4.37, "S+2": 4.10, "all": 4.04, "k6": 5.48}
