@@ -134,6 +134,36 @@ def test_progress_callback_and_cancel(small_model):
     assert warm.history[0] == pytest.approx(res.history[-1], rel=1e-9) and warm.history[0] < res.history[0]
 
 
+def test_a_cancel_after_the_fit_during_its_cross_validation_cancels_the_registration(small_model, monkeypatch):
+    """A Cancel that arrives after LM has converged, while the deformation is cross-validated
+    (in the viewer: a click a second after the start), stops the registration: the answer is
+    reported cancelled (the viewer keeps the previous result, as it tells the surgeon) and no
+    verdict is drawn from folds stopped before they were fitted. Before, the run was reported
+    finished and replaced the previous result, and the cut-short folds (β = 0) made a verdict."""
+    import threading
+
+    import navapp.registration.pipeline as pipeline
+    from navapp.registration.support import check_support
+
+    rng = np.random.default_rng(8)
+    n = small_model.basis.Ju.shape[1]
+    data, _ = synthetic_data(small_model, rng.normal(size=n), rng)
+    cancel = threading.Event()
+    verdicts = []
+
+    def clicked_during_the_check(*args, **kwargs):
+        cancel.set()
+        verdicts.append(check_support(*args, **kwargs))
+        return verdicts[-1]
+
+    monkeypatch.setattr(pipeline, "check_support", clicked_during_the_check)
+    reg = register(small_model, data, cancel=cancel)
+    assert verdicts == [None] and reg.support is None
+    assert reg.libr.stop_reason == "cancelled" and reg.libr.iterations > 0  # LM itself had finished
+    monkeypatch.undo()
+    assert register(small_model, data).support is not None  # the same data, not cancelled: a verdict
+
+
 def test_held_correspondences_fast_path_equals_full_deformation(small_model):
     """Ω with correspondences held fixed, from S·B·J_u (fast path) and from deforming
     every model point and applying S (reference), at a state far from the one that

@@ -506,6 +506,12 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
             if init.support is not None:
                 support = check_support(model, local, options, init.support, cancel)
         sec["given_pose"] = time.perf_counter() - t
+    if cancel is not None and cancel.is_set() and result is not None and result.stop_reason != "cancelled":
+        # asked to stop after LM had converged, during the cross-validation or the given-pose fit: the
+        # checks were cut short, so the answer is unfinished — cancelled, as one stopped mid-fit (the
+        # viewer had told the surgeon the previous result is kept, and then showed this one)
+        result = replace(result, stop_reason="cancelled")
+        support = None
     return Registration(model, rigid, result, local, sec, starts, quality, choice, determinacy, support, notes)
 
 

@@ -146,8 +146,8 @@ def check_support(model: RegistrationModel, data: dict, options: LMOptions,
         deformed = evaluate(model, held, fit.beta, options.weights, jacobian=False).features
         pts = np.vstack(list(held.values()))
         out.append(Block(pts.mean(0), len(pts), pooled_rms(rigid, held), pooled_rms(deformed, held)))
-    if not out:
-        return None
+    if not out or (cancel is not None and cancel.is_set()):
+        return None  # cut short: folds stopped before they were fitted say nothing about the data
     w = np.array([b.points for b in out], float)
     r = float(np.average([b.rigid_mm for b in out], weights=w))
     d = float(np.average([b.deformable_mm for b in out], weights=w))
