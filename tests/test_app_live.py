@@ -178,7 +178,10 @@ class TipRecorder:
     """A stand-in browser view: what the pump told it to show."""
 
     def __init__(self):
+        import threading
+
         self.tips = []
+        self.lock = threading.RLock()  # as a view's (``ClientView.lock``)
 
     def show_live_tip(self, tip):
         self.tips.append(None if tip is None else np.array(tip))

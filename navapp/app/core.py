@@ -182,14 +182,15 @@ class Core:
             views = list(self.views.values())
         for v in views:
             try:
-                fn(v)
+                with v.lock:  # one thread at a time per tab (``ClientView.lock``)
+                    fn(v)
             except Exception:  # a tab closing mid-update
                 pass
 
     def refresh_view(self, cs: ClientState, what: Change):
         view = self.views.get(cs.client_id)
         if view is not None:
-            view.refresh(what)
+            view.refresh(what)  # under the view's lock
 
     def changed(self, what: Change = Change.DATA):
         with self.lock:

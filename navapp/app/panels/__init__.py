@@ -4,6 +4,7 @@ module of its own."""
 
 from __future__ import annotations
 
+import threading
 import time
 from html import escape
 
@@ -29,6 +30,12 @@ class ClientView:
 
     def __init__(self, app, client, cs: ClientState):  # app: server.App, the rooms
         self.app, self.core, self.client, self.cs = app, app.core, client, cs
+        # one thread at a time changes this tab's panels and nodes (``Core.each_view`` and
+        # ``refresh_view`` take it): after a reload the connect, the refresher and the 2D view's
+        # resume refreshed one view at once, a node re-added by one was removed under the other
+        # ("Cannot assign to 'visible' on a removed PointCloudHandle"), and every later refresh
+        # of the tab failed at the first panel, so the run table never showed another run
+        self.lock = threading.RLock()
         self._dist_shown = 0.0
         g = client.gui
         self.status = g.add_markdown("")
@@ -59,6 +66,10 @@ class ClientView:
         before the layout overestimates it for a moment; the layout's own report corrects it).
         Each new canvas size also frames the liver between the panels again, unless the surgeon
         has moved the camera since it was last framed."""
+        with self.lock:
+            self._camera_moved()
+
+    def _camera_moved(self):
         cam = self.client.camera
         w, h = int(cam.image_width or 0), int(cam.image_height or 0)
         if w <= 0 or h <= 0 or (self.screen is not None and (w, h) == (self.screen.width_px, self.screen.height_px)):
@@ -75,10 +86,15 @@ class ClientView:
 
     # ------------------------------------------------------------------ from the App
     def refresh_all(self):
-        for what in ON_CONNECT:
-            self.refresh(what)
+        with self.lock:
+            for what in ON_CONNECT:
+                self.refresh(what)
 
     def refresh(self, what: Change):
+        with self.lock:
+            self._refresh(what)
+
+    def _refresh(self, what: Change):
         if what is Change.STATUS:
             core = self.core
             self.status.content = f"**{core.stage}**"
@@ -89,12 +105,18 @@ class ClientView:
             else:
                 self.bar.animated, self.bar.value = False, 100.0 * core.stage_fraction
             return
+        failed = None
         for p in self.panels:
-            p.refresh(what)
+            try:
+                p.refresh(what)
+            except Exception as exc:  # one panel's failure does not leave the others stale
+                failed = failed or exc
         if what is Change.LIVE:
             self._alert()
         if what in (Change.LIVE, Change.RESULT):
             self._pose_alert()
+        if failed is not None:
+            raise failed
 
     def _alert(self):
         link = self.app.live.link
