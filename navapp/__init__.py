@@ -73,8 +73,8 @@ __all__ = [
     "Basis", "BasisSettings", "Case", "Correspondence", "EDGE_MM", "FEATURES", "Feature", "FitQuality",
     "InputError", "K", "LMOptions", "LibrResult", "NavappError", "PreopModel", "Registration", "RegistrationModel",
     "RigidResult", "RobustOptions", "Scene", "Weights", "data_level", "deform_points", "demo_scene", "load_scene",
-    "make_phantom", "prepare", "read_case", "register", "rigid_starts", "scene_dir", "simulate", "study_scenes", "tre_stats",
-    "write_case", "write_outputs",
+    "make_phantom", "prepare", "read_case", "register", "rigid_starts", "scene_dir", "simulate", "study_scenes",
+    "tre_stats", "write_case", "write_outputs",
 ]  # the keys of _EXPORTS (a test checks)
 
 if TYPE_CHECKING:  # what type checkers and editors see; at run time ``__getattr__`` imports on first use
