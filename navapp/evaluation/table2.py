@@ -67,7 +67,8 @@ def run_chunk(case_dir, items, edge=EDGE_MM, k=K, init=None):
     rows = []
     for level, planes in items:
         data = study_data(case_dir, level, planes, case=case, stylus=stylus)
-        shared = stylus_only_pose(level)
+        # with the iUS posterior wall in the rigid fit, the planes change the rigid features too
+        shared = stylus_only_pose(level) and not (init is not None and init.rigid_posterior)
         t = time.perf_counter()
         reg = register(model, data, deform=level != "rigid", init=init, starts=starts if shared else None)
         sec = time.perf_counter() - t + (icp_sec if shared else 0.0)
