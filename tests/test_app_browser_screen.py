@@ -3,6 +3,7 @@ strip, and a gross rigid pose (one plane's wall alone) gets the red banner. Same
 helpers as ``test_app_browser``; every wait bounded by the test's budget."""
 
 import os
+import time
 from pathlib import Path
 
 import pytest
@@ -65,4 +66,31 @@ def test_a_small_window_keeps_the_3d_view_and_a_gross_pose_is_red(server, tmp_pa
         assert colour == "rgb(204, 0, 0)", colour
         assert "cover" in page.inner_text("body")
         page.screenshot(path=shots / "app_gross_pose.png")
+        browser.close()
+
+
+def test_a_hidpi_laptop_is_framed_for_its_css_window(server, tmp_path):
+    """A 1366 × 768 window at two device pixels per CSS pixel (a HiDPI laptop): viser reports
+    the 3D canvas in device pixels (``canvas.width``), which the app took for CSS pixels: the
+    window looked 2732 px wide and the 2D view docked 610 px wide over the 3D view. The 2D view's
+    page reports the tab's pixel ratio, and the dock is the narrow one, as at 1×."""
+    deadline = Deadline(BUDGET_S + 600)
+    with playwright.sync_playwright() as p:
+        # the whole device at 2, as a HiDPI screen: Playwright's own emulation alone leaves the
+        # cross-origin 2D view's frame at 1
+        browser = p.chromium.launch(executable_path=str(CHROMIUM), args=ARGS + ["--force-device-scale-factor=2"])
+        page = deadline.open(browser.new_page(viewport=SMALL, device_scale_factor=2))
+        page.goto(server["url"])
+        wait_text(page, r"Ready\.", deadline)
+        us_frame(page, deadline)
+        page.wait_for_timeout(3000)  # a few of the 2D page's polls: its ratio has reached the server
+
+        def dock():
+            return page.evaluate("() => document.querySelector('iframe').getBoundingClientRect().width")
+
+        t_end = time.monotonic() + 120  # the dock follows within a poll or two; not the whole budget
+        while dock() > 360 and time.monotonic() < t_end:
+            page.wait_for_timeout(500)
+        assert dock() <= 360, f"the 2D view docked {dock():.0f} px wide in a 1366 px window"
+        page.screenshot(path=Path(os.environ.get("NAVAPP_SCREENSHOTS", tmp_path)) / "app_1366_dpr2.png")
         browser.close()

@@ -24,6 +24,7 @@ INJECTION = "%22;window.__xss=1;//"
 class FakeProvider:
     def __init__(self):
         self.clicks = []
+        self.ratios = []
 
     def view_known(self, token):
         return token == TOKEN
@@ -47,6 +48,9 @@ class FakeProvider:
     def view_command(self, token, cmd, feature, plane=None):
         return None
 
+    def view_pixel_ratio(self, token, ratio):
+        self.ratios.append(ratio)
+
 
 @pytest.fixture
 def served():
@@ -69,6 +73,14 @@ def short_and_plain(body: bytes):
     assert len(text) < 120, text
     for word in ("Error", "Traceback", "Exception", "float", "int("):
         assert word not in text, text
+
+
+def test_the_pages_pixel_ratio_reaches_the_provider_and_junk_is_ignored(served):
+    provider, base, _ = served
+    for dpr in ("2", "1.5", "abc", ""):
+        r = urllib.request.urlopen(f"{base}/us/state?c={TOKEN}&dpr={dpr}", timeout=30)
+        assert r.status == 200
+    assert provider.ratios == [2.0, 1.5]
 
 
 def test_a_crafted_token_is_never_copied_into_the_page(served):

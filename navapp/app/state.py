@@ -71,6 +71,9 @@ class ClientState:
     error_scale_mm: float = ERROR_SCALE_MM
     error_source: str = "true"  # colour the registered surface by the "true" or the "predicted" error
     message: str = ""  # last message for the 2D view
+    # device pixels per CSS pixel in this tab (its 2D view's page reports it): viser reports the 3D
+    # canvas in device pixels, and the dock and the framing are laid out in CSS pixels
+    pixel_ratio: float = 1.0
     successor: ClientState | None = None  # the same tab after a reload, which took over this state's work
     resume_asked: float | None = None  # when its page first asked to take a reloaded tab's work back
     parked: float | None = None  # when its connection closed (``Core.park``)

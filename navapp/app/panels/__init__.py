@@ -55,10 +55,10 @@ class ClientView:
         self.screen: Screen | None = None  # the 3D canvas, once the browser has reported its size
         self._framed: np.ndarray | None = None  # where the camera was put to frame the liver
         self._dock = DOCK_2D_PX[0]  # the 2D view's dock width as last set
-        client.camera.on_update(lambda cam: self._camera())
+        client.camera.on_update(lambda cam: self.camera_changed())
 
     # ------------------------------------------------------------------ the window
-    def _camera(self):
+    def camera_changed(self):
         """The browser reported its camera. The 3D canvas is the window less the docked 2D view
         (viser lays the dock beside it; the control panel floats over it), so the window is the
         canvas plus the dock — once the dock is laid out, which may be before or after the first
@@ -71,7 +71,8 @@ class ClientView:
 
     def _camera_moved(self):
         cam = self.client.camera
-        w, h = int(cam.image_width or 0), int(cam.image_height or 0)
+        ratio = self.cs.pixel_ratio  # viser reports the canvas in device pixels (``ClientState.pixel_ratio``)
+        w, h = int(round((cam.image_width or 0) / ratio)), int(round((cam.image_height or 0) / ratio))
         if w <= 0 or h <= 0 or (self.screen is not None and (w, h) == (self.screen.width_px, self.screen.height_px)):
             return
         dock = dock_width(w + self._dock) if self.ultrasound.cb_2d.value else self._dock

@@ -80,6 +80,7 @@ class Provider(Protocol):
     def view_known(self, token: str) -> bool: ...
     def view_click(self, token: str, col: int, row: int, feature: str, plane: int) -> str | None: ...
     def view_command(self, token: str, cmd: str, feature: str, plane: int | None = None) -> str | None: ...
+    def view_pixel_ratio(self, token: str, ratio: float) -> None: ...
     def view_resume(self, token: str, previous: str | None) -> str | None: ...
 
 
@@ -131,6 +132,10 @@ class _Handler(BaseHTTPRequestHandler):
             if path == "/us":
                 return self._send(200, page(token).encode(), "text/html; charset=utf-8")
             if path == "/us/state":
+                try:
+                    self.provider.view_pixel_ratio(token, float(q.get("dpr", "")))
+                except ValueError:  # none or not a number: an older page, nothing to lay out again
+                    pass
                 if q.get("v") and self.provider.view_etag(token) == q.get("v"):
                     return self._send(204, b"")
                 out = self.provider.view_state(token)

@@ -101,7 +101,8 @@ function apply(s){
 
 async function poll(){
   try {
-    const r = await fetch(url("/us/state?v=" + encodeURIComponent(etag)));
+    // the tab's pixel ratio: viser reports the 3D canvas in device pixels, the layout is in CSS pixels
+    const r = await fetch(url("/us/state?v=" + encodeURIComponent(etag) + "&dpr=" + window.devicePixelRatio));
     $("gone").style.display = "none";
     if (r.status === 200) apply(await r.json());
   } catch (e) { $("gone").style.display = "block"; }

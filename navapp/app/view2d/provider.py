@@ -128,6 +128,17 @@ class View2D:
             return None if self.imaging.show(cs, plane) else f"there is no plane {plane}"
         return self.drawing.command(cs, cmd, feature)
 
+    def view_pixel_ratio(self, token: str, ratio: float) -> None:
+        """The tab's device pixel ratio as its 2D view's page reports it; a new one lays the
+        dock and the framing out again (``ClientView.camera_changed``)."""
+        cs = self.core.state_for(token)
+        if cs is None or not 0.25 <= ratio <= 8.0 or ratio == cs.pixel_ratio:
+            return
+        cs.pixel_ratio = ratio
+        view = self.core.views.get(cs.client_id)
+        if view is not None:
+            view.camera_changed()
+
     def view_resume(self, token: str, previous: str | None) -> str | None:
         cs = self.core.state_for(token)
         if cs is None:
