@@ -391,7 +391,9 @@ def test_guided_demo_in_chromium(server, tmp_path):
           f"max {max(latencies):.0f} ms over {len(latencies)} clicks 0.2 s apart")
     assert surface < rigid and final < rigid, (rigid, surface, final)
     n_updates = sum(n for _, n in updates)
-    assert n_updates >= 1, "no deformed vertices reached the browser"
+    # the liver moves between the run's states in frames (``app.motion``), not in 2–3 jumps:
+    # the browser received 3 updates per run when each state was drawn as it came
+    assert n_updates >= 6, f"{n_updates} liver updates: the model jumped between the run's states"
     # the run streamed its states (the start, iterations, the final one); the browser may see
     # fewer: viser replaces a node's update still waiting in its send buffer by a newer one
     # (latest wins), so a warm-started run that converges within one flush arrives as one state

@@ -117,6 +117,8 @@ class App:
             view = core.views.pop(client.client_id, None)
             if view is not None:
                 core.park(view.cs.token)
+        if view is not None:
+            view.layers.tween.close()  # no frames to a closed tab
 
 
 def _read_case_preop(scene):

@@ -9,6 +9,7 @@ import time
 from html import escape
 
 import numpy as np
+from viser import NotificationHandle
 
 from ..core import ON_CONNECT
 from ..framing import DOCK_2D_PX, Screen, dock_width
@@ -42,6 +43,9 @@ class ClientView:
         self.bar = g.add_progress_bar(0.0, animated=True)
         self.alert = g.add_html("", visible=False)  # a lost tool: above every panel, not in a folder
         self.pose_alert = g.add_html("", visible=False)  # the registered pose is not to be believed
+        # the same two warnings pinned over the 3D view: the panel's banner scrolls away with the
+        # panel, and a surgeon working at the bottom of it (the run table) would not see it
+        self._pinned: dict[str, NotificationHandle] = {}  # "lost" / "pose" -> viser NotificationHandle
         self.layers = LayersPanel(self)  # first: the others show their nodes through it
         self.guide = GuidePanel(self)
         self.stylus = StylusPanel(self)
@@ -124,17 +128,20 @@ class ClientView:
         lost = link.lost if link is not None else None
         if lost is None:
             self.alert.visible = False
+            self._pin("lost", None)
             return
         html = (f"<div style='background:#c00;color:#fff;font-weight:600;padding:8px;border-radius:4px'>"
                 f"⚠ {escape(lost)}</div>")
         if self.alert.content != html:
             self.alert.content = html
         self.alert.visible = True
+        self._pin("lost", ("⚠ Tracking lost", lost))
 
     def _pose_alert(self):
         res = self.core.result
         if res is None or not res.pose_warning:
             self.pose_alert.visible = False
+            self._pin("pose", None)
             return
         html = (f"<div style='background:#c00;color:#fff;padding:8px;border-radius:4px'><b>⚠ Registered pose not "
                 f"to be believed</b> ({escape(res.run)}): {escape(res.pose_warning)}. Re-register and live "
@@ -142,6 +149,24 @@ class ClientView:
         if self.pose_alert.content != html:
             self.pose_alert.content = html
         self.pose_alert.visible = True
+        self._pin("pose", (f"⚠ Registered pose not to be believed ({res.run})",
+                           f"{res.pose_warning}. Re-register and live re-registration will not continue from it."))
+
+    def _pin(self, key: str, text: tuple[str, str] | None):
+        """A red notification over the 3D view while ``text`` (title, body) holds; removed
+        when it is None. It has no close button: it goes when the condition goes."""
+        note = self._pinned.get(key)
+        if text is None:
+            if note is not None:
+                self._pinned.pop(key)
+                note.remove()
+            return
+        title, body = text
+        if note is None:
+            self._pinned[key] = self.client.add_notification(title, body, with_close_button=False,
+                                                             auto_close_seconds=None, color="red")
+        elif (note.title, note.body) != (title, body):
+            note.title, note.body = title, body
 
     def notify(self, title, body, error=False):
         self.client.add_notification(title, body, color="red" if error else None,
@@ -176,7 +201,8 @@ class ClientView:
     def show_update(self, u, geom):  # u: worker.Update
         run = self.core.run
         err = run.error if run is not None else None
-        self.layers.show_registered(geom, error=self.app.shown.surface_error(self.cs, err) if err is not None else None)
+        self.layers.show_registered(geom, error=self.app.shown.surface_error(self.cs, err) if err is not None else None,
+                                    animate=True)
         self.registration.show_update(u)
 
 

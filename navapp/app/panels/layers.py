@@ -8,6 +8,7 @@ import viser.transforms as vtf
 
 from ...anatomy.model import VESSELS
 from ..framing import frame
+from ..motion import Tween
 from ..palette import (
     FEATURE_COLOURS,
     LEGEND,
@@ -63,6 +64,8 @@ class LayersPanel:
         g = client.gui
         self.nodes: dict[str, list] = {name: [] for name in LAYERS}
         self.reg: dict = {}
+        # the registered nodes move between a run's states rather than jump (``motion``)
+        self.tween = Tween(self._draw, view.lock)
         self.data_nodes: dict = {}
         self._data_shown: dict = {}  # what each data node last showed
         with g.add_folder("Layers and views", expand_by_default=False):
@@ -156,7 +159,7 @@ class LayersPanel:
                 self.cs.error_source = "predicted"
                 self._render_legend()
             if core.result is not None and core.model is not None:
-                self.show_registered(shown.geometry(), shown.surface_error(self.cs))
+                self.show_registered(shown.geometry(), shown.surface_error(self.cs), animate=True)
             elif core.result is None:
                 for n in self.reg.values():
                     n.visible = False
@@ -216,15 +219,18 @@ class LayersPanel:
         self.tool.position = pos
         self.tool.visible = self.cb["Stylus"].value
 
-    def show_registered(self, geom, error=None):
+    def show_registered(self, geom, error=None, animate=False):
         """The registered liver, vessels, targets and error dots of one state (``StateGeometry``);
-        ``error`` (S,) mm at the surface nodes, or None (grey dots)."""
+        ``error`` (S,) mm at the surface nodes, or None (grey dots). ``animate``: move there
+        from what is on screen over ``motion.TWEEN_S`` (a run's states, its answer) rather than
+        at once (live re-registration, which follows the tracker)."""
         s = self.s
         surfaces = geom.surfaces
+        arrays: dict[str, np.ndarray] = {}  # the new positions of nodes already on screen
         for name, (v, f) in surfaces.items():
-            v = v.astype(np.float32)
+            v = np.asarray(v, np.float32)
             if name in self.reg:
-                self.reg[name].vertices = v
+                arrays[name] = v
                 continue
             if name == "liver":
                 node = s.add_mesh_simple("/registered/liver", v, f, color=REGISTERED, opacity=0.4, side="double")
@@ -233,32 +239,59 @@ class LayersPanel:
                 self._add("Registered vessels", s.add_mesh_simple(f"/registered/{name}", v, f,
                                                                   color=REG_VESSEL[name]))
             self.reg[name] = node if name == "liver" else self.nodes["Registered vessels"][-1]
+            self.tween.note(name, v)
         for t in geom.targets:
             if t.surface is None:
                 continue
             key, v = f"target:{t.name}", np.asarray(t.surface.vertices, np.float32)
             if key in self.reg:
-                self.reg[key].vertices = v
+                arrays[key] = v
             else:
                 self.reg[key] = self._add("Targets", s.add_mesh_simple(f"/registered/targets/{t.name}", v,
                                                                       t.surface.faces, color=REG_TARGET))
+                self.tween.note(key, v)
         if "liver" in surfaces and (error is not None or "error" in self.reg):
             # no error for this state (a prediction comes with the result): grey dots, never stale colours
-            self._last_error = (surfaces["liver"][0], error)
+            pts = np.asarray(surfaces["liver"][0], np.float32)
+            self._last_error = (pts, error)
+            if "error" in self.reg:
+                arrays["error"] = pts
             self._show_error()
+        moving = self.tween.to(arrays) if animate else self.tween.stop()
+        for name, a in arrays.items():
+            if name not in moving:
+                self._put(name, a)
         self.apply_visibility()
 
+    def _put(self, name: str, a: np.ndarray):
+        """Positions of one registered node on screen now (not sent again when unchanged)."""
+        if self.tween.shows(name, a):
+            return
+        self._draw({name: a})
+        self.tween.note(name, a)
+
+    def _draw(self, frame: dict[str, np.ndarray]):
+        for name, a in frame.items():
+            node = self.reg.get(name)
+            if node is None:
+                continue
+            if name == "error":
+                node.points = a
+            else:
+                node.vertices = a
+
     def _show_error(self):
+        """The error dots' colours (their positions move with the liver)."""
         pts, err = self._last_error
         colours = error_colours(err, self.cs.error_scale_mm) if err is not None else \
             np.full((len(pts), 3), 170, np.uint8)
         if "error" in self.reg:
-            self.reg["error"].points = pts.astype(np.float32)
             self.reg["error"].colors = colours
         else:
             self.reg["error"] = self._add("Error colours", self.s.add_point_cloud(
-                "/registered/error", pts.astype(np.float32), colours, point_size=1.0, precision="float32",
+                "/registered/error", pts, colours, point_size=1.0, precision="float32",
                 point_shape="circle"))
+            self.tween.note("error", pts)
 
     def _set_source(self):
         self.cs.error_source = "predicted" if self.source.value == PREDICTED else "true"
