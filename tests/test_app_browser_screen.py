@@ -61,11 +61,28 @@ def test_a_small_window_keeps_the_3d_view_and_a_gross_pose_is_red(server, tmp_pa
         click_button(page, "Add this plane's segmentation (simulated)", deadline)
         click_button(page, "Rigid", deadline)
         wait_text(page, r"Registered pose not to be believed", deadline)
-        banner = page.get_by_text("Registered pose not to be believed").first
-        colour = banner.evaluate("e => getComputedStyle(e.closest('div')).backgroundColor")
-        assert colour == "rgb(204, 0, 0)", colour
+        colours = page.get_by_text("Registered pose not to be believed").evaluate_all(
+            "es => es.map(e => getComputedStyle(e.closest('div')).backgroundColor)")
+        assert "rgb(204, 0, 0)" in colours, colours  # the panel's banner is red
         assert "cover" in page.inner_text("body")
         page.screenshot(path=shots / "app_gross_pose.png")
+
+        # the surgeon scrolls the control panel down to the run table: the warning stays in sight
+        # (the panel's banner scrolls away with the panel; the pinned one over the 3D view does not)
+        page.evaluate("""() => { for (const e of document.querySelectorAll('*')) {
+            const s = getComputedStyle(e);
+            if ((s.overflowY === 'auto' || s.overflowY === 'scroll') && e.scrollHeight > e.clientHeight + 20)
+                e.scrollTop = e.scrollHeight; } }""")
+        page.wait_for_timeout(1000)
+        seen = page.evaluate("""() => [...document.querySelectorAll('body *')]
+            .filter(e => e.children.length === 0 && /Registered pose not to be believed/.test(e.textContent))
+            .map(e => { const r = e.getBoundingClientRect(); const x = r.left + r.width / 2, y = r.top + r.height / 2;
+                        const hit = document.elementFromPoint(x, y);
+                        return {top: r.top, bottom: r.bottom, on_top: !!hit && (hit === e || e.contains(hit))}; })""")
+        assert len(seen) >= 2, seen  # the panel's banner and the pinned one
+        assert any(s["on_top"] and 0 <= s["top"] and s["bottom"] <= SMALL["height"] for s in seen), seen
+        assert not all(s["on_top"] for s in seen), f"the panel did not scroll: {seen}"
+        page.screenshot(path=shots / "app_gross_pose_scrolled.png")
         browser.close()
 
 

@@ -250,6 +250,7 @@ def test_a_lost_stylus_is_hidden_blanked_and_bannered(live_app, tmp_path):
         assert any("StylusTipToReference: **missing**" in x and "/s" not in x for x in lines), lines
         if page is not None:
             wait_text(page, r"Stylus lost \(StylusTipToReference: missing", deadline)
+            wait_text(page, r"Tracking lost", deadline)  # pinned over the 3D view too: no scrolling it away
             page.wait_for_timeout(2000)
             body = page.inner_text("body")
             assert "from the stylus tip" not in body and "Stylus not tracked: no distances." in body, body[:2000]
