@@ -134,6 +134,8 @@ def check_support(model: RegistrationModel, data: dict, options: LMOptions,
     zero = np.zeros(n + 6)
     out = []
     for b in range(support.blocks):
+        if cancel is not None and cancel.is_set():
+            return None  # cut short: folds stopped before they were fitted say nothing about the data
         train = {k: p[labels[k] != b] for k, p in data.items() if (labels[k] != b).any()}
         held = {k: p[labels[k] == b] for k, p in data.items() if (labels[k] == b).any()}
         if not held or not train:
