@@ -14,6 +14,20 @@ from navapp import progress  # noqa: E402
 progress.QUIET = True
 
 
+# The suite runs on two workers (pytest-xdist, ``--dist loadgroup`` in pyproject.toml): a 2-core
+# CI machine sat half idle through the single-threaded tests. A module's tests stay on one
+# worker (its module fixtures are built once); the modules that drive Chromium share one
+# worker, so that two software-drawn browsers never compete for the two cores.
+BROWSER_MODULES = {"test_app_browser", "test_app_browser_live", "test_app_browser_screen",
+                   "test_app_browser_truth", "test_app_live"}
+
+
+def pytest_collection_modifyitems(config, items):
+    for item in items:
+        name = item.module.__name__ if item.module is not None else item.nodeid
+        item.add_marker(pytest.mark.xdist_group("browser" if name in BROWSER_MODULES else name))
+
+
 @pytest.fixture(scope="session")
 def phantoms():
     from navapp.anatomy.phantom import make_phantom
