@@ -22,6 +22,7 @@ BROWSER_MODULES = {"test_app_browser", "test_app_browser_live", "test_app_browse
                    "test_app_browser_truth", "test_app_live"}
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist's own, which reads the group into the test's id
 def pytest_collection_modifyitems(config, items):
     for item in items:
         name = item.module.__name__ if item.module is not None else item.nodeid
