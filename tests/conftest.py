@@ -2,6 +2,7 @@
 
 import os
 import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,19 +15,26 @@ from navapp import progress  # noqa: E402
 progress.QUIET = True
 
 
-# The suite runs on two workers (pytest-xdist, ``--dist loadgroup`` in pyproject.toml): a 2-core
-# CI machine sat half idle through the single-threaded tests. A module's tests stay on one
-# worker (its module fixtures are built once); the modules that drive Chromium share one
-# worker, so that two software-drawn browsers never compete for the two cores.
+# The suite runs on two workers (pytest-xdist, ``-n 2`` in pyproject.toml): a 2-core CI machine
+# sat about half idle through the single-threaded tests. A module's tests stay on one worker
+# (its module fixtures are built once); the modules that drive Chromium share one worker, so
+# that two software-drawn browsers never compete for the two cores. (xdist's own
+# ``--dist loadgroup`` does not group under pytest 9: it renames the test ids, which pytest 9
+# no longer reads back; the scheduler below groups by module name instead.)
 BROWSER_MODULES = {"test_app_browser", "test_app_browser_live", "test_app_browser_screen",
                    "test_app_browser_truth", "test_app_live"}
 
 
-@pytest.hookimpl(tryfirst=True)  # before xdist's own, which reads the group into the test's id
-def pytest_collection_modifyitems(config, items):
-    for item in items:
-        name = item.module.__name__ if item.module is not None else item.nodeid
-        item.add_marker(pytest.mark.xdist_group("browser" if name in BROWSER_MODULES else name))
+@pytest.hookimpl(optionalhook=True)  # an xdist hook: absent without it
+def pytest_xdist_make_scheduler(config, log):
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ByModule(LoadScopeScheduling):
+        def _split_scope(self, nodeid):
+            module = nodeid.split("::", 1)[0]
+            return "browser" if Path(module).stem in BROWSER_MODULES else module
+
+    return ByModule(config, log)
 
 
 @pytest.fixture(scope="session")
