@@ -48,9 +48,10 @@ def test_a_small_window_keeps_the_3d_view_and_a_gross_pose_is_red(server, tmp_pa
                 canvas: Math.max(...[...document.querySelectorAll('canvas')]
                                  .map(c => c.getBoundingClientRect().width))})""")
 
-        wait_until(page, lambda: widths()["dock"] <= 360, deadline, "the 2D view docked at 1×")
-        w = widths()
-        assert w["canvas"] >= 1366 - 360, w  # the 3D canvas: the window less the narrow dock
+        # the 3D canvas: the window less the narrow dock (it is laid out a moment after the dock:
+        # the two-worker suite measured 752 px once, right after the dock was narrowed)
+        wait_until(page, lambda: widths()["dock"] <= 360 and widths()["canvas"] >= 1366 - 360, deadline,
+                   "the 2D view docked at 1× and the 3D canvas beside it")
         us = us_frame(page, deadline)
         wait_until(page, lambda: us.evaluate("document.getElementById('cv').width") <= 300, deadline,
                    "the 2D image at 1× (34 px ruler + 256 px + 4)")

@@ -21,3 +21,24 @@ def test_limit_threads_holds_one_thread_inside_and_restores_after():
         assert pools() == inside
     assert all(n == 1 for n in inside.values()), inside
     assert pools() == before
+
+
+def test_a_thread_pool_loaded_after_the_first_limit_is_held_too():
+    """The controller was made once: a library imported after the first limit (here
+    scikit-learn's OpenMP and SciPy's second OpenBLAS) kept its threads inside the limit (the
+    two-worker suite found it). In a fresh process, where nothing else has loaded them yet."""
+    import json
+    import subprocess
+    import sys
+
+    code = ("import json, numpy as np\n"
+            "from navapp.threads import limit_threads\n"
+            "with limit_threads(1): pass\n"
+            "import sklearn.linear_model\n"
+            "from threadpoolctl import threadpool_info\n"
+            "with limit_threads(1):\n"
+            "    print(json.dumps([p['num_threads'] for p in threadpool_info()]))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600,
+                         env={**__import__("os").environ, "OMP_NUM_THREADS": "2", "OPENBLAS_NUM_THREADS": "2"})
+    assert out.returncode == 0, out.stderr
+    assert all(n == 1 for n in json.loads(out.stdout.strip().splitlines()[-1])), out.stdout
