@@ -2,11 +2,14 @@
 strip, and a gross rigid pose (one plane's wall alone) gets the red banner. Same server and
 helpers as ``test_app_browser``; every wait bounded by the test's budget."""
 
+import io
 import os
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
+from PIL import Image
 from conftest import free_port
 from test_app_browser import (
     ARGS,
@@ -83,7 +86,31 @@ def test_a_small_window_keeps_the_3d_view_and_a_gross_pose_is_red(server, tmp_pa
         assert len(seen) >= 2, seen  # the panel's banner and the pinned one
         assert any(s["on_top"] and 0 <= s["top"] and s["bottom"] <= SMALL["height"] for s in seen), seen
         assert not all(s["on_top"] for s in seen), f"the panel did not scroll: {seen}"
+        # said once over the 3D view, not also in a second red box with the same words
+        assert page.get_by_text("Registration: check the fit").count() == 0
         page.screenshot(path=shots / "app_gross_pose_scrolled.png")
+
+        # the error dots leave the registered vessels in sight: the vessels' pixels (with and without
+        # them) against those the dots change, the rest of the scene hidden, from the front
+        def shot():
+            page.wait_for_timeout(2500)
+            return np.asarray(Image.open(io.BytesIO(page.screenshot())).convert("RGB"), int)
+
+        page.get_by_text("Layers and views").first.click(timeout=deadline.ms())
+        for layer in ("Preoperative liver", "Preoperative vessels", "Collected data", "Targets", "Ultrasound plane"):
+            page.get_by_label(layer, exact=True).first.uncheck(force=True, timeout=deadline.ms())
+        click_button(page, "Anterior", deadline)
+        with_dots = shot()
+        page.get_by_label("Error colours", exact=True).first.uncheck(force=True, timeout=deadline.ms())
+        without = shot()
+        page.get_by_label("Registered vessels", exact=True).first.uncheck(force=True, timeout=deadline.ms())
+        no_vessels = shot()
+        vessel = np.abs(without - no_vessels).sum(2) > 40
+        covered = (vessel & (np.abs(with_dots - without).sum(2) > 40)).sum() / max(vessel.sum(), 1)
+        Image.fromarray(with_dots.astype(np.uint8)).save(shots / "app_error_dots.png")
+        print(f"error dots cover {covered:.3f} of {vessel.sum()} vessel pixels")
+        assert vessel.sum() > 1000, vessel.sum()  # the vessels were in the picture
+        assert covered < 0.15, f"the error dots cover {covered:.0%} of the registered vessels' pixels"
         browser.close()
 
 

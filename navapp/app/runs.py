@@ -156,6 +156,11 @@ class Runs:
             self.slicer.send(reg)
         if stopped:
             core.notify("Registration", "Cancelled: the previous result is kept.")
+        elif entry.warning and entry.warning.strip() == (result.pose_warning or "").strip():
+            # said already, pinned over the 3D view while the pose is on show (``ClientView._pose_alert``):
+            # a second red box with the same words covered more of the liver at 1366 × 768
+            if any(w.rejected for w in worst):
+                core.notify("Registration", _left_out(worst).strip())
         elif entry.warning:
             core.notify("Registration: check the fit", entry.warning + _left_out(worst), error=True)
         elif any(w.rejected for w in worst):

@@ -31,6 +31,7 @@ STANDARD_VIEWS = {  # camera direction from the liver centroid (navapp frame: +x
 }
 LAYERS = ("Preoperative liver", "Preoperative vessels", "Targets", "Collected data", "Registered liver",
           "Registered vessels", "Error colours", "True deformed liver (ghost)", "Ultrasound plane", "Stylus")
+ERROR_DOT_MM = 0.5  # the error dots' point_size: viser draws a point of size s about 2 s wide (mm); 1.0 hid a third of the vessels (docs/decisions.md, "Error dots")
 TRUE, PREDICTED = "true error", "predicted error"
 ERROR_SOURCES = {TRUE: "true error", PREDICTED: "predicted error, no truth needed"}  # choice → legend label
 
@@ -289,7 +290,7 @@ class LayersPanel:
             self.reg["error"].colors = colours
         else:
             self.reg["error"] = self._add("Error colours", self.s.add_point_cloud(
-                "/registered/error", pts, colours, point_size=1.0, precision="float32",
+                "/registered/error", pts, colours, point_size=ERROR_DOT_MM, precision="float32",
                 point_shape="circle"))
             self.tween.note("error", pts)
 
