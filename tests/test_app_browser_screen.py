@@ -9,8 +9,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
 from conftest import free_port
+from PIL import Image
 from test_app_browser import (
     ARGS,
     BUDGET_S,

@@ -31,7 +31,9 @@ STANDARD_VIEWS = {  # camera direction from the liver centroid (navapp frame: +x
 }
 LAYERS = ("Preoperative liver", "Preoperative vessels", "Targets", "Collected data", "Registered liver",
           "Registered vessels", "Error colours", "True deformed liver (ghost)", "Ultrasound plane", "Stylus")
-ERROR_DOT_MM = 0.5  # the error dots' point_size: viser draws a point of size s about 2 s wide (mm); 1.0 hid a third of the vessels (docs/decisions.md, "Error dots")
+# the error dots' point_size: viser draws a point of size s about 2 s wide (mm); at 1.0 they hid
+# a third of the registered vessels' pixels (docs/decisions.md, "Error dots")
+ERROR_DOT_MM = 0.5
 TRUE, PREDICTED = "true error", "predicted error"
 ERROR_SOURCES = {TRUE: "true error", PREDICTED: "predicted error, no truth needed"}  # choice → legend label
 
