@@ -177,6 +177,22 @@ def test_undo_stays_in_its_tab_and_comes_back_after_a_reload(app):
     app.core.park(e.token)
     late = app.core.new_client_state()
     assert app.core.resume(late, None) is None and d.current() is d and e.current() is e
+    # a tab opened beside another (not a reload) stops asking, and never takes the work of the
+    # other tab when that one reloads later: it took it while it asked for a whole minute
+    # (seen in Chromium: the reloaded tab came back on the wrong plane, its contour not undoable)
+    from navapp.app.core import CLOSE_LAG_S, RELOAD_S
+
+    for gone in (d, e):  # the two above closed long ago
+        app.core.parked[gone.token].parked -= RELOAD_S
+    opened = app.core.new_client_state()
+    assert app.core.resume(opened, None).startswith("wait")
+    opened.resume_asked -= CLOSE_LAG_S + 1.0  # it asked that long ago
+    worker = app.core.new_client_state()
+    app.imaging.show(worker, 1)
+    app.core.park(worker.token)  # the other tab reloads now
+    assert app.core.resume(opened, None) is None and opened.plane != 1 and worker.current() is worker
+    back = app.core.new_client_state()  # its reload's new connection
+    assert app.core.resume(back, None) is None and back.plane == 1 and worker.current() is back
 
 
 def test_cancel_keeps_the_previous_result(app):

@@ -37,6 +37,11 @@ if TYPE_CHECKING:
 
 PARKED = 32  # disconnected tabs kept for their reload
 RELOAD_S = 60.0  # a tab whose connection closed this recently may be coming back as a reload (slow on a loaded machine)
+# a reload's old connection closes about when its new one asks (before it, or after it by as
+# long as a loaded server lags): a tab parked later than this after a new tab asked is not
+# that tab's old self. Without the bound a tab opened beside another waited RELOAD_S and took
+# the work of the next tab to reload within that minute (its plane, contour and undo)
+CLOSE_LAG_S = 5.0
 WAIT = "wait: the tab before the reload is still connected"
 SAVED = (Change.DATA, Change.RESULT, Change.LOG)  # changes the session file must hold at once
 ON_CONNECT = (Change.STATUS, Change.SCENE, Change.MODEL, Change.DATA, Change.PLANE, Change.RESULT)
@@ -152,8 +157,9 @@ class Core:
         names that tab (``previous``) from the browser's per-tab session storage where the
         browser lets the 2D view's frame keep one (Chromium refuses it to a frame of another
         site when third-party storage is blocked); else (None) the one tab whose connection
-        closed within ``RELOAD_S`` is taken, and none when there are several. ``WAIT`` while
-        the old connection may not have closed yet."""
+        closed within ``RELOAD_S`` (and no later than ``CLOSE_LAG_S`` after this tab first
+        asked) is taken, and none when there are several. ``WAIT`` while the old connection
+        may not have closed yet (``CLOSE_LAG_S``)."""
         with self.lock:
             if previous is not None:
                 old = self.parked.pop(previous, None)
@@ -163,10 +169,12 @@ class Core:
                 now = time.monotonic()
                 if cs.resume_asked is None:
                     cs.resume_asked = now
-                recent = [t for t, p in self.parked.items() if p.parked is not None and now - p.parked < RELOAD_S]
+                asked = cs.resume_asked
+                recent = [t for t, p in self.parked.items() if p.parked is not None and now - p.parked < RELOAD_S
+                          and p.parked - asked < CLOSE_LAG_S]
                 if len(recent) != 1:
                     # a loaded server may close the old connection seconds after the new one opened
-                    return WAIT if not recent and now - cs.resume_asked < RELOAD_S else None
+                    return WAIT if not recent and now - asked < CLOSE_LAG_S else None
                 old = self.parked.pop(recent[0])
             cs.take_over(old)
         self.refresh_view(cs, Change.PLANE)
