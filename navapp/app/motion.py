@@ -38,7 +38,7 @@ class Tween:
                  duration_s: float = TWEEN_S, frame_s: float = FRAME_S, clock: Callable[[], float] = time.monotonic):
         self.draw, self.lock = draw, lock
         self.duration_s, self.frame_s, self.clock = duration_s, frame_s, clock
-        self._cv = threading.Condition()
+        self._mutex = threading.Lock()  # guards the move; the tab's lock is taken first
         self._start: dict[str, np.ndarray] = {}
         self._target: dict[str, np.ndarray] = {}
         self._drawn: dict[str, np.ndarray] = {}  # what is on screen, per name
@@ -48,25 +48,25 @@ class Tween:
 
     def note(self, name: str, a: np.ndarray):
         """The caller put ``a`` on screen itself."""
-        with self._cv:
+        with self._mutex:
             self._drawn[name] = a
 
     def shows(self, name: str, a: np.ndarray) -> bool:
         """``a`` is on screen for ``name`` and no move is under way for it."""
-        with self._cv:
+        with self._mutex:
             d = self._drawn.get(name)
             return name not in self._target and d is not None and d.shape == a.shape and np.array_equal(d, a)
 
     def stop(self) -> set[str]:
         """No move (the caller shows the next state at once); returns the empty set of names moved."""
-        with self._cv:
+        with self._mutex:
             self._start, self._target = {}, {}
         return set()
 
     def to(self, target: dict[str, np.ndarray], run: bool = True) -> set[str]:
         """Move to ``target``; returns the names it moves (the others are the caller's to show
         now). ``run=False`` sets the move up without its thread (``frame`` draws it)."""
-        with self._cv:
+        with self._mutex:
             start = {}
             for name, t in target.items():
                 s = self._drawn.get(name)
@@ -82,7 +82,7 @@ class Tween:
 
     def frame(self) -> tuple[dict[str, np.ndarray], bool]:
         """The frame for now (name → array), and whether it is the move's last."""
-        with self._cv:
+        with self._mutex:
             if not self._target:
                 return {}, True
             f = (self.clock() - self._t0) / self.duration_s if self.duration_s > 0 else 1.0
@@ -111,7 +111,7 @@ class Tween:
                     self.closed = True
                     return
             if done:
-                with self._cv:
+                with self._mutex:
                     if not self._target:  # no new move began meanwhile
                         self._thread = None
                         return
