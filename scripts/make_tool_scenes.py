@@ -1,6 +1,8 @@
 """Write the local-load study scenes ``navapp/scenes/tool<p>-<x>.toml`` (3 livers × 8).
 
     python scripts/make_tool_scenes.py
+    python scripts/make_tool_scenes.py --held-out DIR   # a second draw, never used to set a margin
+
 
 Each liver gets the same eight kinds of case; only where the tool presses and where the
 data lie are drawn (seeded) from that liver's own surface, so the scenes are reproducible
@@ -11,6 +13,7 @@ kinds of support, partial surface data that
 cover the indentation or miss it, and data pre-aligned or in an offset tracker frame.
 """
 
+import argparse
 from pathlib import Path
 
 import numpy as np
@@ -40,10 +43,14 @@ def site_points(liver, site):
     return liver.vertices[on]
 
 
-def main():
+def main(out=OUT, prefix="tool", draw=100, seed=0):
+    """``draw`` seeds where the tools and data lie, ``seed`` each scene's own noise; the
+    study's scenes are (100, 0). A held-out set draws again with other seeds and another
+    name, so its cases cannot be mistaken for the ones the guards' margins were set on."""
+    out.mkdir(parents=True, exist_ok=True)
     for p in range(3):
         liver = make_phantom(p).liver
-        rng = np.random.default_rng(100 + p)
+        rng = np.random.default_rng(draw + p)
         front = site_points(liver, "anterior")
         for x, (site, load, large, radius, depth, supports, data, offset, E) in KINDS.items():
             pts = site_points(liver, site)
@@ -64,7 +71,7 @@ def main():
                         f"one partial surface scan of 500 points that {data} the indentation") +
                 (f", in a tracker frame offset by {offset[0]:g} deg / {offset[1]:g} mm." if offset else
                  ", already in the preoperative frame."),
-                f'name = "tool{p}-{x}"', f"seed = {10 * p + ord(x) - ord('a')}", "",
+                f'name = "{prefix}{p}-{x}"', f"seed = {seed + 10 * p + ord(x) - ord('a')}", "",
                 "[anatomy]", f"phantom = {p}", "",
                 "[deformation]", "gravity = false", f'supports = "{supports}"', 'release = "N"',
                 f"large = {'true' if large else 'false'}", "mesh_edge_mm = 3.5", f"truth_E_pa = {E:g}", "",
@@ -81,9 +88,16 @@ def main():
             if offset:
                 lines += ["", "[[effects]]", 'kind = "tracker_offset"', f"rotation_deg = {offset[0]:g}",
                           f"translation_mm = {offset[1]:g}"]
-            (OUT / f"tool{p}-{x}.toml").write_text("\n".join(lines) + "\n")
-            print(OUT / f"tool{p}-{x}.toml")
+            (out / f"{prefix}{p}-{x}.toml").write_text("\n".join(lines) + "\n")
+            print(out / f"{prefix}{p}-{x}.toml")
 
 
 if __name__ == "__main__":
-    main()
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--held-out", type=Path, metavar="DIR",
+                    help="write a held-out set (tooltest<p>-<x>.toml, other draw and noise seeds) into DIR")
+    args = ap.parse_args()
+    if args.held_out:
+        main(args.held_out, "tooltest", draw=500, seed=1000)
+    else:
+        main()
