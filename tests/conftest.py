@@ -96,6 +96,11 @@ def viser_messages(frame) -> list:
     return list(msgspec.msgpack.decode(zstandard.ZstdDecompressor().decompress(frame[16:16 + n])).get("messages", ()))
 
 
+# The longest any test waits for work that takes seconds on a quiet machine: a bound, not a
+# time target (issue 25: the suite must pass beside a CPU hog; a 120 s join failed at load 14)
+BUSY_WAIT_S = 900.0
+
+
 def start_app(scene: dict, cache_root, folder):
     """The viewer's App on a small scene (``scene``: a scene TOML as a dict), registration mesh
     12 mm and k = 12, started headless; the test fixtures' one way to make one."""
@@ -116,6 +121,6 @@ def stop_app(a):
 def run_to_end(app, kind):
     """Start a registration of ``kind`` and wait for its row in the run table."""
     assert app.runs.start(kind) is None
-    app.core.worker.join(300)
+    app.core.worker.join(BUSY_WAIT_S)
     assert not app.core.worker.busy
     return app.core.session.log[-1]

@@ -9,7 +9,7 @@ for 3D Slicer."""
 
 import numpy as np
 import pytest
-from conftest import free_port
+from conftest import BUSY_WAIT_S, free_port
 
 from navapp.app.state import RunKind
 from navapp.simulation.scene import parse_scene
@@ -18,7 +18,7 @@ SCENE = {"name": "apptest", "anatomy": {"phantom": 0}, "deformation": {"release"
          "stylus": {"coverage": 0.2}, "ius": {"planes": 2}, "effects": [{"kind": "auto_segmentation", "sd_px": 1.0}]}
 
 
-def wait_until(cond, timeout=10.0):
+def wait_until(cond, timeout=BUSY_WAIT_S):
     import time
 
     end = time.monotonic() + timeout
@@ -58,7 +58,7 @@ def test_live_tip_and_digitised_points_are_exactly_what_was_sent(live_app):
     app, server, sd = live_app
     assert wait_until(lambda: app.live.tip is not None)
     assert app.live.set_recording(True) is None
-    assert wait_until(lambda: len(app.core.session.live_points) >= 20, 15)
+    assert wait_until(lambda: len(app.core.session.live_points) >= 20)
     app.live.set_recording(False)
     pts = np.array([p[:3] for p in app.core.session.live_points])
     sent = np.array([m[:3, 3] for _, name, m in list(server.sent) if name == "StylusTipToReference"], float)
@@ -105,7 +105,7 @@ def test_undo_removes_a_live_recording(live_app):
     cs, other = app.core.new_client_state(), app.core.new_client_state()
     before = len(app.core.session.live_points)
     app.live.set_recording(True, cs=cs)
-    assert wait_until(lambda: len(app.core.session.live_points) >= before + 5, 15)
+    assert wait_until(lambda: len(app.core.session.live_points) >= before + 5)
     app.live.set_recording(False, cs=other)  # switched off by another tab: still the first tab's recording
     assert len(app.core.session.live_points) > before
     assert app.drawing.command(other, "Undo") == "Nothing of yours to undo."  # issue 26, item 6
@@ -125,14 +125,14 @@ def test_live_re_registration_follows_the_frames_and_reaches_slicer(live_app):
     app, server, sd = live_app
     if len(app.core.session.live_points) < 20:
         app.live.set_recording(True)
-        assert wait_until(lambda: len(app.core.session.live_points) >= 20, 15)
+        assert wait_until(lambda: len(app.core.session.live_points) >= 20)
         app.live.set_recording(False)
     app.slicer.sender = ResultsSender.serve(0)
     slicer = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=app.slicer.sender.port)
     try:
         follower = app.live.link.follower
         assert app.live.set_follow(True) is None
-        assert wait_until(lambda: follower.frames >= 6, 120), follower.summary()
+        assert wait_until(lambda: follower.frames >= 6), follower.summary()
         assert app.core.result.run.startswith("live")
         assert "Live re-registration is on" in app.runs.start(RunKind.ALL)  # one registration at a time
         # each update registered the kept data plus its frame's automatic contours
@@ -141,7 +141,7 @@ def test_live_re_registration_follows_the_frames_and_reaches_slicer(live_app):
         n_kept = sum(len(v) for v in app.core.data().values())
         assert sum(len(v) for v in follower.reg.base.values()) == n_kept
         assert app.live.set_follow(False) is None
-        assert wait_until(lambda: app.core.session.log and app.core.session.log[-1].live is not None, 60)
+        assert wait_until(lambda: app.core.session.log and app.core.session.log[-1].live is not None)
         last = app.core.session.log[-1]
         assert last.seconds > 0 and last.stop and last.points > 0  # what the run table shows
         final = app.core.last_reg
@@ -239,7 +239,7 @@ def test_a_lost_stylus_is_hidden_blanked_and_bannered(live_app, tmp_path):
             wait_text(page, r"mm from the stylus tip", deadline)
             page.screenshot(path=shots / "truth_stylus_tracked.png")
         server.stop()
-        assert wait_until(lambda: app.live.tip is None, 10 + app.live.config.missing_s)
+        assert wait_until(lambda: app.live.tip is None)
         n_hidden = len(rec.tips)
         time.sleep(2.0)  # 40 pump ticks
         assert app.live.tip is None

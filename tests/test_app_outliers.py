@@ -5,7 +5,7 @@ back. Headless: the App driven through its rooms on a small scene."""
 
 import numpy as np
 import pytest
-from conftest import start_app, stop_app
+from conftest import BUSY_WAIT_S, start_app, stop_app
 
 from navapp.app.state import RunKind
 from navapp.simulation.probe import tracker_to_pixels
@@ -24,7 +24,7 @@ def app(cache_root, tmp_path_factory):
 
 def register(app, kind=RunKind.ALL):
     assert app.runs.start(kind) is None
-    app.core.worker.join(300)
+    app.core.worker.join(BUSY_WAIT_S)
     assert not app.core.worker.busy
     e = app.core.session.log[-1]
     assert not e.cancelled

@@ -8,7 +8,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import start_app, stop_app
+from conftest import BUSY_WAIT_S, start_app, stop_app
 
 from navapp.app.state import RunKind
 from tests.test_app_server import SCENE
@@ -23,7 +23,7 @@ def test_restored_fit_keeps_its_own_data_for_the_predicted_error(cache_root, tmp
     try:
         app.stylus.collect_now()
         assert app.runs.start(RunKind.SURFACE) is None
-        app.core.worker.join(300)
+        app.core.worker.join(BUSY_WAIT_S)
         reg = app.core.last_reg
         assert reg is not None and reg.deformed
         fitted = {k: v.copy() for k, v in reg.data_model_frame.items()}

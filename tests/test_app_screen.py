@@ -5,7 +5,7 @@ good deformable result (any finished run can be put back on show)."""
 
 import numpy as np
 import pytest
-from conftest import run_to_end, start_app, stop_app
+from conftest import BUSY_WAIT_S, run_to_end, start_app, stop_app
 
 from navapp.app.guide import STEPS, first_open_step
 from navapp.app.state import RunKind
@@ -30,7 +30,7 @@ def test_the_guide_goes_on_after_skipped_steps_and_survives_a_reload(app):
     step = STEPS[REGISTER_ALL]
     assert step.blocked(app, cs) is None
     assert step.action(app, cs) is None  # a fresh fit on all data
-    app.core.worker.join(300)
+    app.core.worker.join(BUSY_WAIT_S)
     app.core.settle()
     assert app.core.session.log[-1].kind is RunKind.ALL
     assert step.done(app, cs)  # the guide moves on (it waited for a warm run before)

@@ -9,7 +9,7 @@ import urllib.request
 
 import numpy as np
 import pytest
-from conftest import start_app, stop_app
+from conftest import BUSY_WAIT_S, start_app, stop_app
 
 from navapp.app.state import RunKind
 
@@ -25,7 +25,7 @@ def app(cache_root, tmp_path_factory):
 
 
 def wait_idle(app):
-    app.core.worker.join(120)
+    app.core.worker.join(BUSY_WAIT_S)
     assert not app.core.worker.busy
 
 
@@ -342,7 +342,7 @@ def test_a_restarted_server_restores_the_session_and_the_registered_model(app, c
         out, _ = again.export()  # Export works without registering again
         assert out is not None and (out / "registered_liver.ply").exists()
         assert again.runs.start(RunKind.WARM) is None  # and a warm start continues from it
-        again.core.worker.join(120)
+        again.core.worker.join(BUSY_WAIT_S)
         assert again.core.session.log[-1].run.endswith("(warm)") and not again.core.session.log[-1].cancelled
     finally:
         again.server.stop()

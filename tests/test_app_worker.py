@@ -6,6 +6,7 @@ import time
 
 import numpy as np
 import pytest
+from conftest import BUSY_WAIT_S
 
 from navapp.app.worker import RegistrationWorker
 from navapp.registration.libr import LMOptions
@@ -23,7 +24,7 @@ def test_streams_in_order_and_ends_with_the_final_state(small_model):
     updates, done, errors = [], [], []
     w = RegistrationWorker(small_model, updates.append, done.append, errors.append, max_rate_hz=1e6)
     assert w.start(data_for(small_model, np.random.default_rng(0)))
-    w.join(60)
+    w.join(BUSY_WAIT_S)
     assert not errors and len(done) == 1
     its = [u.iteration for u in updates]
     assert its == sorted(its) and updates[-1].final and sum(u.final for u in updates) == 1
@@ -66,24 +67,24 @@ def test_cancel_stops_within_an_iteration(small_model):
     done = []
     w = RegistrationWorker(small_model, on_update, done.append, max_rate_hz=1e6)
     w.start(data_for(small_model, np.random.default_rng(2)), options=LMOptions(max_iterations=500, rtol=0.0, tol=0.0))
-    assert first.wait(30)
+    assert first.wait(BUSY_WAIT_S)
     w.cancel()
-    w.join(30)
+    w.join(BUSY_WAIT_S)
     assert not w.busy and done and done[0].libr.stop_reason == "cancelled"
     assert done[0].libr.iterations < 500
 
 
 def test_second_request_is_refused_while_running(small_model):
     gate = threading.Event()
-    w = RegistrationWorker(small_model, on_update=lambda u: gate.wait(5), max_rate_hz=1e6)
+    w = RegistrationWorker(small_model, on_update=lambda u: gate.wait(BUSY_WAIT_S), max_rate_hz=1e6)
     data = data_for(small_model, np.random.default_rng(3))
     assert w.start(data)
     time.sleep(0.05)
     assert w.busy and not w.start(data)
     gate.set()
-    w.join(60)
+    w.join(BUSY_WAIT_S)
     assert w.start(data)  # free again afterwards
-    w.join(60)
+    w.join(BUSY_WAIT_S)
 
 
 def test_errors_are_reported_and_the_worker_survives(small_model):
@@ -91,12 +92,12 @@ def test_errors_are_reported_and_the_worker_survives(small_model):
     w = RegistrationWorker(small_model, on_error=errors.append)
     bad = {"anterior": np.array([[0.0, np.nan, 0.0]])}
     assert w.start(bad)
-    w.join(30)
+    w.join(BUSY_WAIT_S)
     assert len(errors) == 1 and "NaN" in str(errors[0]) and not w.busy
     done = []
     w.on_done = done.append
     assert w.start(data_for(small_model, np.random.default_rng(4)))
-    w.join(60)
+    w.join(BUSY_WAIT_S)
     assert done
 
 
@@ -105,9 +106,9 @@ def test_warm_start_continues_from_the_last_state(small_model):
     w = RegistrationWorker(small_model, on_done=done.append, max_rate_hz=1e6)
     data = data_for(small_model, np.random.default_rng(5))
     w.start(data)
-    w.join(60)
+    w.join(BUSY_WAIT_S)
     w.start(data, warm=True)
-    w.join(60)
+    w.join(BUSY_WAIT_S)
     assert done[1].rigid is done[0].rigid
     # the warm run starts where the first ended (Ω at its final β), not from the rigid pose
     assert done[1].libr.history[0] == pytest.approx(done[0].libr.omega, rel=1e-6)
@@ -118,7 +119,7 @@ def test_rigid_only_run(small_model):
     updates, done = [], []
     w = RegistrationWorker(small_model, updates.append, done.append)
     w.start(data_for(small_model, np.random.default_rng(6)), deform=False)
-    w.join(30)
+    w.join(BUSY_WAIT_S)
     assert len(updates) == 1 and updates[0].final and done[0].libr is None
     assert np.allclose(updates[0].liver, done[0].rigid.apply(small_model.features["liver"].rest))
 
@@ -127,12 +128,12 @@ def test_jobs_share_the_one_at_a_time_rule_and_report_errors(small_model):
     errors, done = [], []
     w = RegistrationWorker(small_model, on_error=errors.append)
     gate = threading.Event()
-    assert w.submit(lambda cancel: gate.wait(30) and "swept", done.append)
+    assert w.submit(lambda cancel: gate.wait(BUSY_WAIT_S) and "swept", done.append)
     assert not w.start(data_for(small_model, np.random.default_rng(4)))  # refused while the job runs
     assert not w.submit(lambda cancel: None)
     gate.set()
-    w.join(30)
+    w.join(BUSY_WAIT_S)
     assert done == ["swept"] and not errors
     assert w.submit(lambda cancel: 1 / 0)
-    w.join(30)
+    w.join(BUSY_WAIT_S)
     assert len(errors) == 1 and isinstance(errors[0], ZeroDivisionError) and not w.busy

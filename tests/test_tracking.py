@@ -11,6 +11,7 @@ import time
 import numpy as np
 import pyigtl
 import pytest
+from conftest import BUSY_WAIT_S
 
 from navapp.errors import InputError
 from navapp.tracking.client import TrackingClient
@@ -38,7 +39,7 @@ exec(SCRIPT_CODE)  # defines synthetic_script (the subprocess server below runs 
 synthetic_script = globals()["synthetic_script"]  # named for linters: exec defined it
 
 
-def wait_until(cond, timeout=5.0, step=0.01):
+def wait_until(cond, timeout=BUSY_WAIT_S, step=0.01):
     end = time.monotonic() + timeout
     while time.monotonic() < end:
         if cond():
@@ -118,9 +119,9 @@ def test_digitiser_keeps_its_rate_only_while_recording():
 def test_recorded_stylus_points_equal_the_replayed_tips(replay):
     client = TrackingClient(TrackingConfig(port=replay.port, rate_hz=1000.0)).start()
     try:
-        assert wait_until(lambda: client.latest_stylus is not None, 5)
+        assert wait_until(lambda: client.latest_stylus is not None)
         client.digitiser.start()
-        assert wait_until(lambda: len(client.digitiser) >= 25, 10)
+        assert wait_until(lambda: len(client.digitiser) >= 25)
         client.digitiser.stop()
     finally:
         client.stop()
@@ -139,9 +140,9 @@ def test_frames_arrive_with_their_pose_at_frame_rate(replay):
     client = TrackingClient(TrackingConfig(port=replay.port),
                             on_event=lambda e: frames.append(e) if isinstance(e, ProbeSample) else None).start()
     try:
-        assert wait_until(lambda: len(frames) >= 1, 60)
+        assert wait_until(lambda: len(frames) >= 1)
         t0, n0 = time.monotonic(), len(frames)
-        assert wait_until(lambda: len(frames) >= n0 + 5, 60)  # they keep coming
+        assert wait_until(lambda: len(frames) >= n0 + 5)  # they keep coming
         rate = (len(frames) - n0) / (time.monotonic() - t0)
         status = client.status()
     finally:
@@ -177,14 +178,14 @@ def test_killed_and_restarted_server_is_reconnected_and_nothing_recorded_is_lost
     client = TrackingClient(TrackingConfig(port=port, rate_hz=1000.0, reconnect_s=0.1)).start()
     try:
         client.digitiser.start()
-        assert wait_until(lambda: len(client.digitiser) >= 10, 10)
+        assert wait_until(lambda: len(client.digitiser) >= 10)
         server.kill()  # SIGKILL: no goodbye
         server.wait()
-        assert wait_until(lambda: not client.connected, 5)
+        assert wait_until(lambda: not client.connected)
         before = client.digitiser.points()
         time.sleep(0.3)  # reconnection attempts against a closed port
         server = _start_server(port)
-        assert wait_until(lambda: client.connects >= 2 and len(client.digitiser) >= len(before) + 10, 15), \
+        assert wait_until(lambda: client.connects >= 2 and len(client.digitiser) >= len(before) + 10), \
             (client.connects, client.connection, len(before), len(client.digitiser))
         after = client.digitiser.points()
         assert client.digitiser.recording
@@ -217,12 +218,12 @@ def test_garbage_and_malformed_messages_are_skipped_without_crashing():
         conn.sendall(_transform("StylusTipToReference", [1, 2, 3], stamp) + bytes(bad_crc) + bytes(unknown)
                      + _transform("StylusTipToReference", [4, 5, 6], stamp - 5)  # out of order
                      + _transform("StylusTipToReference", [7, 8, 9], stamp + 2))
-        assert wait_until(lambda: sum(isinstance(e, StylusSample) for e in events) == 2, 5)
+        assert wait_until(lambda: sum(isinstance(e, StylusSample) for e in events) == 2)
         assert client.connects == 1  # a malformed message does not cost the connection
         conn.sendall(np.random.default_rng(0).integers(0, 256, 300, dtype=np.uint8).tobytes())  # garbage
         conn2, _ = listener.accept()  # the client dropped the desynchronised stream and came back
         conn2.sendall(_transform("StylusTipToReference", [10, 11, 12], stamp + 3))
-        assert wait_until(lambda: sum(isinstance(e, StylusSample) for e in events) == 3, 5)
+        assert wait_until(lambda: sum(isinstance(e, StylusSample) for e in events) == 3)
         assert client._link._client_thread.is_alive()
     finally:
         client.stop()
@@ -266,7 +267,7 @@ def test_a_pyigtl_client_receives_the_registration_as_slicer_would():
     sender = ResultsSender.serve(0)
     slicer = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=sender.port)
     try:
-        assert wait_until(lambda: slicer.is_connected() and sender.connected, 5)
+        assert wait_until(lambda: slicer.is_connected() and sender.connected)
         sender.send_registration(reg, targets, {"portal": portal}, status="deformable: 2 iterations")
         names = (RIGID, PREOP_RAS, TARGETS, "PortalCenterline", STATUS)
         got = {n: slicer.wait_for_message(n, timeout=5) for n in names}
@@ -294,7 +295,7 @@ def test_status_text_that_pyigtl_cannot_encode_is_spelled_out_and_never_kills_th
     sender = ResultsSender.serve(0)
     slicer = pyigtl.OpenIGTLinkClient(host="127.0.0.1", port=sender.port)
     try:
-        assert wait_until(lambda: slicer.is_connected() and sender.connected, 5)
+        assert wait_until(lambda: slicer.is_connected() and sender.connected)
         sender.send_status(text)
         sender.send_registration(_Registration(), status=text)
         sender.send_status("still here")
