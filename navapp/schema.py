@@ -41,7 +41,8 @@ POSITIVE = Range(0.0, open_lo=True)
 
 NAMED = {
     "phantom": NON_NEGATIVE,  # a phantom index
-    "seed": NON_NEGATIVE,  # numpy's generators take no negative seed
+    # numpy's generators take no negative seed; the control-point k-means (scikit-learn) none above 2³² − 1
+    "seed": Range(0.0, 2.0**32 - 1),
     "fraction": Range(0.0, 1.0, open_hi=True),  # dropout: all data dropped leaves a case with no data
     "coverage": Range(0.0, 1.0, open_lo=True),
     "planes": Range(0, N_PLANES),

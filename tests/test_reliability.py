@@ -127,6 +127,7 @@ def _scene(tmp_path, text):
      "effects[0].fraction = 2.0 is out of range: must be in [0, 1)"),
     ("[deformation]\ngravity_tilt_deg = 720.0\n", "deformation.gravity_tilt_deg"),
     ("seed = -1\n", "seed = -1 is out of range"),
+    ("seed = 4294967296\n", "seed = 4294967296 is out of range: must be in [0, 4.29497e+09]"),  # a traceback after 13 s
     ("[[effects]]\nkind = \"latency\"\nms = nan\n", "effects[0].ms = nan must be a finite number"),
 ])
 def test_scene_values_out_of_range_are_one_line(tmp_path, capsys, text, message):
