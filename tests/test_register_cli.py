@@ -61,3 +61,24 @@ def test_more_control_points_than_surface_nodes_is_one_line(tmp_path, capsys):
     assert main(["--quiet", "register", str(tmp_path / "c"), "--edge", "15", "--k", "900"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "more control points than the mesh has surface nodes" in err[0], err
+
+
+def test_a_patch_too_small_for_the_pose_is_said_by_the_command_as_by_the_viewer(tmp_path, capsys):
+    """One rule for "the pose may be grossly wrong": the viewer warned below 10 % of the liver
+    surface covered, ``navapp register`` said nothing on the same data (a 300-point patch of
+    the demo's sweep, 6.8 %: only a tumour line). The registration now carries the line itself."""
+    make_case(tmp_path / "c")
+    v = trimesh.load(tmp_path / "c/preop/liver.ply").vertices
+    top = v[np.argmax(v[:, 1])]
+    patch = v[np.linalg.norm(v - top, axis=1) < 25.0]  # a small cap of the anterior surface
+    rows = "\n".join(",".join(repr(float(x)) for x in r) for r in patch)
+    (tmp_path / "c/intraop/anterior.csv").write_text("x,y,z\n" + rows + "\n")
+    code = main(["--quiet", "register", str(tmp_path / "c"), "--edge", "15", "--k", "10", "--json"])
+    assert code == 0
+    io = capsys.readouterr()
+    brief = json.loads(io.out.strip().splitlines()[-1])
+    result = json.loads((tmp_path / "c/registration/result.json").read_text())
+    said = [w for w in result["warnings"] if "of the liver surface" in w]
+    assert len(said) == 1 and "less than the 10 %" in said[0], result["warnings"]
+    assert said[0] in brief["warnings"] and said[0] in result["warning"]
+    assert any(line.startswith("navapp: warning: ") and line.endswith(said[0]) for line in io.err.splitlines())

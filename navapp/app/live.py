@@ -31,7 +31,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..registration.coverage import note_coverage, pose_warning
+from ..registration.coverage import pose_warning
 from ..registration.live import LiveRegistration, merge
 from ..registration.pipeline import Registration
 from ..simulation.scenedata import auto_segmentation, segment_frame
@@ -413,7 +413,6 @@ class Live:
         core, shown = self.core, self.shown
         beta = reg.libr.beta if reg.libr is not None else None
         now = time.monotonic()
-        note_coverage(reg)  # before Slicer: NavappStatus carries it
         self.slicer.send(reg, throttle=not final)
         if not final and now - self._shown < VIEW_MIN_S:
             return

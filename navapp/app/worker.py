@@ -14,7 +14,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..anatomy.model import VESSELS
-from ..registration.coverage import note_coverage
 from ..registration.libr import LMOptions
 from ..registration.objective import robust_weights
 from ..registration.pipeline import Registration, RobustOptions, register
@@ -155,7 +154,6 @@ class RegistrationWorker:
                 lm = reg.libr
                 assert lm is not None  # a deformable run has an LM result
                 final = self._state(lm.iterations, lm.omega, t0, rigid, lm.beta, True)
-            note_coverage(reg)  # too little of the liver covered: a warning like the pipeline's own
             if not cancelled(reg):  # a cancelled run is reported but never becomes the state to continue from
                 self.last = reg
                 self.on_update(final)

@@ -12,12 +12,15 @@ the whole stylus sweep 21.8 %, its anterior 853 points 19.0 % (rigid error 8.9 m
 """
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from .model import RegistrationModel
-from .pipeline import Registration
+
+if TYPE_CHECKING:  # the pipeline applies this check to every registration: it imports this module
+    from .pipeline import Registration
 
 COVER_MM = 10.0  # a surface node this close to a data point counts as covered
 MIN_COVERAGE = 0.10  # below this share of the liver surface the pose is not to be believed
@@ -47,10 +50,11 @@ def data_coverage(model: RegistrationModel, data_model_frame: dict) -> Coverage:
     return Coverage(float(np.mean(d < COVER_MM)))
 
 
-def note_coverage(reg: Registration) -> Coverage:
+def note_coverage(reg: "Registration") -> Coverage:
     """Check ``reg``'s coverage and add its warning to the registration's notes (so that every
-    reader of ``Registration.warnings`` — the run table, Slicer's NavappStatus — carries it);
-    idempotent."""
+    reader of ``Registration.warnings`` — ``navapp register``, result.json, the run table,
+    Slicer's NavappStatus — carries it); idempotent. ``pipeline.register`` calls it on every
+    registration it returns."""
     cov = data_coverage(reg.model, reg.data_model_frame)
     w = cov.warning
     if w is not None and w not in reg.notes:
@@ -58,7 +62,7 @@ def note_coverage(reg: Registration) -> Coverage:
     return cov
 
 
-def pose_warning(reg: Registration) -> str | None:
+def pose_warning(reg: "Registration") -> str | None:
     """Everything that says ``reg``'s pose is not to be believed, one line (None: nothing):
     the notes raised before the fit (too few or collinear points: ``pipeline.undetermined_pose``),
     an undetermined pose, too little coverage."""

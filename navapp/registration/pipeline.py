@@ -25,6 +25,7 @@ from ..defaults import EDGE_MM, K
 from ..errors import InputError
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from ..mechanics.interpolation import interpolation_matrix
+from .coverage import note_coverage
 from .libr import LibrResult, LMOptions, register_libr
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
 from .pose import Determinacy, PoseChoice, PoseSource, choose_pose, pose_determinacy, prefer_given, rms_on_model
@@ -512,7 +513,11 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         # viewer had told the surgeon the previous result is kept, and then showed this one)
         result = replace(result, stop_reason="cancelled")
         support = None
-    return Registration(model, rigid, result, local, sec, starts, quality, choice, determinacy, support, notes)
+    reg = Registration(model, rigid, result, local, sec, starts, quality, choice, determinacy, support, notes)
+    # last, so that it steers nothing above (a note before the pose choice would skip it): too
+    # little of the liver covered is said by every caller — the CLI and result.json as the viewer
+    note_coverage(reg)
+    return reg
 
 
 def write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dict:
