@@ -82,10 +82,9 @@ def _leftovers(out: Path):
 
 
 @contextmanager
-def staged(out, carry: tuple[str, ...] = ()):
+def staged(out):
     """Yield a temporary folder to write ``out``'s new content into; on success it
-    replaces ``out`` (entries named in ``carry`` that the caller already wrote into ``out``
-    during this run are moved across first). Call under ``folder_lock(out)``."""
+    replaces ``out`` whole. Call under ``folder_lock(out)``."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     for old in _leftovers(out):  # a run killed while writing: its half-written folder
@@ -96,9 +95,6 @@ def staged(out, carry: tuple[str, ...] = ()):
     tmp.chmod(0o777 & ~umask)  # mkdtemp's 0700 would become the output folder's mode
     try:
         yield tmp
-        for name in carry:
-            if (out / name).exists() and not (tmp / name).exists():
-                os.replace(out / name, tmp / name)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise

@@ -76,12 +76,9 @@ def test_outputs_appear_whole_or_not_at_all(tmp_path):
         (tmp / "result.json").write_text("second")
         raise RuntimeError("killed while writing")
     assert (out / "result.json").read_text() == "first" and (out / "portal.ply").exists()
-    (out / "targets").mkdir()
-    (out / "targets" / "t.ply").write_text("written earlier in this run")
-    with staged(out, carry=("targets",)) as tmp:
+    with staged(out) as tmp:
         (tmp / "result.json").write_text("third")
     assert (out / "result.json").read_text() == "third" and not (out / "portal.ply").exists()
-    assert (out / "targets" / "t.ply").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["registration"]  # no staging folder left
 
 
@@ -105,11 +102,17 @@ def test_write_outputs_stages_and_locks(tmp_path, monkeypatch):
             raise OSError("disk full")
         open(path, "w").write("ply")
 
+    def tumours(folder):  # the command's registered tumours, written before the surfaces
+        (folder / "targets").mkdir()
+        (folder / "targets" / "tumour1.ply").write_text("run 2")
+
     monkeypatch.setattr(trimesh.Trimesh, "export", export)
     with pytest.raises(OSError):
-        pipeline.write_outputs(case, reg, out, {"run": 2})
+        pipeline.write_outputs(case, reg, out, {"run": 2}, tumours)
     assert (out / "result.json").read_text() == '{"run": 1}' and not (out / "liver.ply").exists()
     assert exports[0].parent != out  # written into the staging folder, not into out
+    # run 2's tumours were written into out/targets/ in place, beside run 1's result (3-7 mm apart)
+    assert not (out / "targets").exists()
 
 
 # ---------------------------------------------------------------- settings

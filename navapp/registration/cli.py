@@ -3,6 +3,7 @@
 import json
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 from .. import progress
@@ -54,9 +55,10 @@ def cmd_register(args):
     sec["total"] = time.perf_counter() - t0
     summary["seconds"] = {k: round(v, 4) for k, v in sec.items()}
     out = args.out or Path(args.case) / "registration"
+    write_more = None
     if case.preop.targets:
-        summary["targets"] = _targets(args.case, case, reg, model, out)
-    summary = write_outputs(case, reg, out, summary)
+        summary["targets"], write_more = _targets(args.case, case, reg, model)
+    summary = write_outputs(case, reg, out, summary, write_more)
     for line in summary["warnings"]:
         # one line each, on stderr whatever the output format: a wrong answer must not pass silently
         print(f"navapp: warning: {case.name}: {line}", file=sys.stderr)
@@ -80,9 +82,10 @@ def cmd_register(args):
         print(json.dumps(summary, indent=2))
 
 
-def _targets(case_dir, case, reg, model, out) -> list[dict]:
-    """Registered targets: surfaces written to ``out/targets/`` (PLY, tracker space), and
-    per target its centres (preoperative, registered) and, where truth is known, errors."""
+def _targets(case_dir, case, reg, model) -> tuple[list[dict], Callable[[Path], None]]:
+    """Registered targets: per target its centres (preoperative, registered) and, where
+    truth is known, errors; and the writer of their surfaces (PLY, tracker space) into an
+    output folder's ``targets/``, which ``write_outputs`` calls inside its staging folder."""
     from ..anatomy.targets import TARGETS_DIR, write_targets
     from .support import target_support
     from .targets import registered_targets, target_errors, truth_targets
@@ -93,7 +96,6 @@ def _targets(case_dir, case, reg, model, out) -> list[dict]:
     # (deformation is small against the distances that matter here)
     supports = target_support(reg.support, {t.name: t.centre for t in targets}, reg.data_model_frame) \
         if reg.libr is not None else []
-    write_targets(moved, Path(out) / TARGETS_DIR)
     truth, source = truth_targets(case_dir, targets, case, model.basis)
     rigid = registered_targets(reg, targets, rigid=True) if truth is not None else []
     rows = []
@@ -114,4 +116,4 @@ def _targets(case_dir, case, reg, model, out) -> list[dict]:
             if reg.libr is not None:
                 row["tre"]["deformable"] = target_errors(m, truth[i])
         rows.append(row)
-    return rows
+    return rows, lambda folder: write_targets(moved, Path(folder) / TARGETS_DIR)

@@ -13,6 +13,7 @@ continued; afterwards every feature's residual is checked against its expected n
 import json
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -520,13 +521,18 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     return reg
 
 
-def write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dict:
+def write_outputs(case: Case, reg: Registration, out: Path, extra: dict,
+                  write_more: Callable[[Path], None] | None = None) -> dict:
     """Registered liver/vessels (PLY), displaced targets (CSV) and result.json, written to
-    a temporary folder that replaces ``out`` whole, under ``out``'s lock (``navapp.outputs``;
-    ``targets/``, written into ``out`` earlier in the run, is carried across)."""
+    a temporary folder that replaces ``out`` whole, under ``out``'s lock (``navapp.outputs``).
+    ``write_more(folder)`` writes the caller's own files (the registered tumours) into the
+    same folder first: a run that stops half way leaves none of its files beside the last
+    run's result."""
     from ..outputs import folder_lock, staged
 
-    with folder_lock(out), staged(out, carry=("targets",)) as tmp:
+    with folder_lock(out), staged(out) as tmp:
+        if write_more is not None:
+            write_more(tmp)
         return _write_outputs(case, reg, tmp, extra)
 
 
