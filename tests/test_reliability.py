@@ -284,6 +284,50 @@ def test_an_unreachable_scheduler_is_found_before_any_work(tmp_path, capsys, mon
     assert not csv.exists() and not (tmp_path / "r").exists()
 
 
+@pytest.mark.parametrize("reply, message", [
+    (None, "something accepts connections there but no Dask scheduler answered within 3 s"),
+    (b"HTTP/1.1 400 Bad Request\r\nContent-Length: 0\r\n\r\n", "what answers there is not a Dask scheduler"),
+])
+def test_a_listener_that_is_not_a_scheduler_is_one_line_in_bounded_time(tmp_path, capsys, monkeypatch, reply,
+                                                                         message):
+    """A port that accepts and stays silent held table2 for minutes (distributed bounds the TCP
+    connect, not the handshake); one that answers HTTP made distributed allocate a length read
+    from the reply, reported as "out of memory"."""
+    pytest.importorskip("distributed", reason="Dask distributed is not installed (pip install -e '.[test]')")
+    import socket
+    import threading
+
+    from navapp.evaluation import distribute
+
+    server = socket.socket()
+    server.bind(("127.0.0.1", 0))
+    server.listen(5)
+    held = []
+
+    def serve():
+        while True:
+            try:
+                conn, _ = server.accept()
+            except OSError:
+                return
+            held.append(conn)
+            if reply:
+                conn.sendall(reply)
+
+    threading.Thread(target=serve, daemon=True).start()
+    monkeypatch.setattr(distribute, "DASK_CONNECT_S", 1)
+    monkeypatch.setattr(distribute, "DASK_HANDSHAKE_S", 2)
+    try:
+        err = _one_line_error(capsys, main(["study", "table2", "--scheduler",
+                                            f"tcp://127.0.0.1:{server.getsockname()[1]}",
+                                            "--results", str(tmp_path / "r.csv")]))
+    finally:
+        server.close()
+        for c in held:
+            c.close()
+    assert message in err and not (tmp_path / "r.csv").exists()
+
+
 def test_results_csv_is_created_with_its_first_rows(tmp_path):
     from navapp.evaluation.distribute import ResultsCSV
 

@@ -8,12 +8,14 @@ was found only after the local cache warm-up, 42 s in, and after the CSV was cre
 
 import csv
 import os
+import threading
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 from ..errors import NavappError
 
 DASK_CONNECT_S = 10  # how long to wait for a scheduler before saying it does not answer
+DASK_HANDSHAKE_S = 10  # beyond that, for a listener to prove it is one
 
 
 def dask_client(address, client_class=None):
@@ -25,11 +27,34 @@ def dask_client(address, client_class=None):
         except ImportError:
             raise NavappError("--scheduler needs Dask distributed: pip install -e '.[study]'") from None
         client_class = Client
-    try:
-        return client_class(address, timeout=f"{DASK_CONNECT_S}s")
-    except (OSError, TimeoutError, ValueError) as exc:
+    # distributed's own timeout covers the TCP connect, not the handshake after it: a port that
+    # accepts and stays silent held the study for minutes, and one that answers with something
+    # else made distributed read a length out of the reply and fail allocating it (reported as
+    # "out of memory"). So the whole connect runs under one bound of ours, and anything it
+    # raises means "not a Dask scheduler".
+    box: dict = {}
+
+    def connect():
+        try:
+            box["client"] = client_class(address, timeout=f"{DASK_CONNECT_S}s")
+        except BaseException as exc:  # noqa: BLE001 — carried to the caller's thread and said in one line
+            box["error"] = exc
+
+    t = threading.Thread(target=connect, name="navapp-dask-connect", daemon=True)
+    t.start()
+    t.join(DASK_CONNECT_S + DASK_HANDSHAKE_S)
+    if "client" in box:
+        return box["client"]
+    exc = box.get("error")
+    if exc is None:
+        raise NavappError(f"--scheduler {address}: something accepts connections there but no Dask scheduler "
+                          f"answered within {DASK_CONNECT_S + DASK_HANDSHAKE_S} s; check the address or drop "
+                          f"--scheduler")
+    if isinstance(exc, (OSError, TimeoutError, ValueError)):
         raise NavappError(f"--scheduler {address}: no Dask scheduler answers there within {DASK_CONNECT_S} s "
                           f"({exc.__class__.__name__}); start one with `dask scheduler` or drop --scheduler") from None
+    raise NavappError(f"--scheduler {address}: what answers there is not a Dask scheduler "
+                      f"({exc.__class__.__name__}); check the address or drop --scheduler") from None
 
 
 def check_scheduler(address):
