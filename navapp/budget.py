@@ -22,10 +22,15 @@ MB_PER_NODE = 0.045
 """Peak memory per mesh node of mesh + basis at k = 45 (precompute benchmark: 830 MB at
 18,563 nodes, 1,157 MB at 26,390)."""
 
-MB_PER_POINT = 0.01
-"""Peak memory per intraoperative data point during a registration: a registration of 10
-million points was killed at 21.7 GB (so > 2.2 KB a point); 10 KB leaves room for the
-per-point model rows (3 × 3k modes) and correspondences."""
+MB_PER_NODE_PER_K = 0.00035
+"""How the peak per mesh node grows with each control point beyond k = 45: ``precompute --k 500``
+on the 18,563-node demo mesh peaked at 4.2 GB against 830 MB at k = 45, (0.204 − 0.045) / 455."""
+
+MB_PER_POINT = 0.016
+"""Peak memory per intraoperative data point during a registration, k = 45: 500,000 points
+were past 5.95 GB and still growing (> 11.1 KB a point) when stopped after 15 min, 1,000,000
+reached an 8 GB limit in 85 s; 16 KB is that lower bound with a margin (10 KB before, under
+which the advice "subsample to N points" named a count that would not fit)."""
 
 MB_PER_TRIANGLE = 0.009
 """Peak memory per input surface triangle while reading and cleaning it up. It grows with
@@ -68,6 +73,21 @@ def check_mesh(nodes: int, edge: float, volume_mm3: float):
                       f"more than the {_gb(budget)} this machine has free: use --edge {_ceil(finest)} or coarser")
 
 
+def check_basis(nodes: int, k: int):
+    """Refuse a deformation basis of ``k`` control points on ``nodes`` mesh nodes that would
+    not fit, naming the largest k that would (``check_mesh`` sizes the mesh at the default k)."""
+    from .defaults import K
+
+    budget = available_mb()
+    need = BASE_MB + nodes * (MB_PER_NODE + MB_PER_NODE_PER_K * (k - K))
+    if need <= budget:
+        return
+    fits = K + ((budget - BASE_MB) / max(nodes, 1) - MB_PER_NODE) / MB_PER_NODE_PER_K
+    advice = f"use --k {int(fits)} or fewer, or a coarser --edge" if fits >= 1 else "use a coarser --edge"
+    raise NavappError(f"a deformation basis of k = {k} on {nodes:,} mesh nodes would need about {_gb(need)}, more "
+                      f"than the {_gb(budget)} this machine has free: {advice}")
+
+
 def _over(n: int, mb_each: float) -> tuple[float, float, int] | None:
     """(MB needed, MB free, how many would fit) when ``n`` items of ``mb_each`` exceed the budget; else None."""
     budget = available_mb()
@@ -85,7 +105,7 @@ def check_points(n: int, path):
     need, budget, fits = over
     raise InputError(f"{n:,} points would need about {_gb(need)} to register, more than the {_gb(budget)} "
                      f"this machine has free: subsample to at most {fits:,} points (e.g. every "
-                     f"{-(-n // max(fits, 1))}th row)", path)
+                     f"{_ordinal(-(-n // max(fits, 1)))} row)", path)
 
 
 def check_triangles(n: int, path):
@@ -97,6 +117,12 @@ def check_triangles(n: int, path):
     raise InputError(f"{n:,} triangles would need about {_gb(need)}, more than the {_gb(budget)} this machine "
                      f"has free: decimate it to at most {fits:,} triangles (the mesher remeshes the surface at "
                      "the edge length anyway)", path)
+
+
+def _ordinal(n: int) -> str:
+    """2 → "2nd", 11 → "11th", 23 → "23rd"."""
+    suffix = "th" if n % 100 in (11, 12, 13) else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{suffix}"
 
 
 def _ceil(x: float) -> str:

@@ -200,14 +200,14 @@ def test_a_big_csv_is_read_in_about_its_own_size(tmp_path):
 def test_too_many_points_are_refused_before_parsing(tmp_path, monkeypatch):
     from navapp.anatomy.caseio import read_csv
 
-    monkeypatch.setenv("NAVAPP_MEMORY_MB", "450")  # 50 MB over the base: 5,000 points
+    monkeypatch.setenv("NAVAPP_MEMORY_MB", "450")  # 50 MB over the base: 3,125 points at 16 KB
     path = tmp_path / "anterior.csv"
     path.write_text("x,y,z\n" + "1,2,3\n" * 6000)
     monkeypatch.setattr(np, "loadtxt", lambda *a, **k: pytest.fail("parsed before the budget check"))
     with pytest.raises(InputError) as err:
         read_csv(path, ("x", "y", "z"), points=True)
     msg = str(err.value)
-    assert "\n" not in msg and "6,000 points" in msg and "subsample to at most 5,000 points" in msg
+    assert "\n" not in msg and "6,000 points" in msg and "subsample to at most 3,125 points (e.g. every 2nd row)" in msg
 
 
 def test_too_many_triangles_are_refused_before_cleanup(tmp_path, monkeypatch):
@@ -341,3 +341,43 @@ def test_results_csv_is_created_with_its_first_rows(tmp_path):
     with ResultsCSV(path, ("a", "b")) as out:
         out.write([{"a": 3, "b": 4}])
     assert path.read_text().splitlines() == ["a,b", "1,2", "3,4"]
+
+
+def test_a_basis_too_large_for_memory_is_refused_before_it_is_computed(monkeypatch, tmp_path):
+    """The budget sized the mesh at k = 45 only: ``precompute --k 500`` on the demo mesh
+    peaked at 4.2 GB against 1.2 GB budgeted, and --k 1000 died in PARDISO with a traceback."""
+    from navapp import budget
+    from navapp.mechanics import basis as basis_mod
+
+    monkeypatch.setenv("NAVAPP_MEMORY_MB", "3000")
+    with pytest.raises(NavappError, match=r"k = 500 on 18,563 mesh nodes would need about 4\.\d GB") as info:
+        budget.check_basis(18_563, 500)
+    fits = int(str(info.value).split("--k ")[1].split()[0])
+    budget.check_basis(18_563, fits)  # the k it names does fit
+    with pytest.raises(NavappError):
+        budget.check_basis(18_563, fits + 2)
+    budget.check_basis(18_563, 45)  # the default on the demo mesh: 1.2 GB
+    mesh = type("M", (), {"nodes": np.zeros((18_563, 3)), "tets": np.zeros((1, 4), int)})()
+    monkeypatch.setattr(basis_mod, "compute_basis", lambda *a, **k: pytest.fail("computed before the check"))
+    with pytest.raises(NavappError, match="k = 500"):
+        basis_mod.load_or_compute_basis(mesh, basis_mod.BasisSettings(k=500), cache_root=tmp_path)
+
+
+def test_pardiso_out_of_memory_is_a_memory_error():
+    """PARDISO's "error code -2" (not enough memory) reached the user as a traceback."""
+    pypardiso = pytest.importorskip("pypardiso", reason="PARDISO is not available on this platform")
+    from navapp.mechanics import sparse
+
+    class Solver:
+        def _call_pardiso(self, A, B):
+            raise pypardiso.pardiso_wrapper.PyPardisoError(-2)
+
+    with pytest.raises(MemoryError, match="code -2"):
+        sparse._pardiso(Solver(), None, None)
+
+    class Other(Solver):
+        def _call_pardiso(self, A, B):
+            raise pypardiso.pardiso_wrapper.PyPardisoError(-4)
+
+    with pytest.raises(pypardiso.pardiso_wrapper.PyPardisoError):  # other failures stay what they are
+        sparse._pardiso(Other(), None, None)

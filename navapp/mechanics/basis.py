@@ -33,6 +33,7 @@ import scipy.sparse as sp
 
 from .. import cache, progress
 from ..anatomy.meshing import TetMesh
+from ..budget import check_basis
 from ..defaults import K
 from .controlpoints import geodesic_tiles, nodal_areas, place_control_points
 from .fem import Material, nodal_strain_operator, stiffness
@@ -254,6 +255,7 @@ def load_or_compute_basis(mesh: TetMesh, settings: BasisSettings = BasisSettings
                   surface=hit["surface"], tiles=hit["tiles"], Ju=hit["Ju"], energy=hit["energy"],
                   settings=settings, material=material, timings={"load": time.perf_counter() - t})
         return b, True
+    check_basis(len(mesh.nodes), settings.k)  # before the work: a basis too large for memory ends in one line
     b = compute_basis(mesh, settings, material, label)
     cache.save(path, {name: getattr(b, name) for name in
                       ("nodes", "tets", "surface_faces", "control", "surface", "tiles", "Ju", "energy")})

@@ -41,6 +41,22 @@ def _pardiso_solver():
     return s
 
 
+PARDISO_OUT_OF_MEMORY = (-2, -9)  # MKL PARDISO's codes: not enough memory; not enough for out-of-core
+
+
+def _pardiso(solver, A, B):
+    """One PARDISO call; its out-of-memory codes become ``MemoryError``, which the command
+    line says in one line (a basis at k = 1000 on a 4 mm liver ended in "error code -2")."""
+    from pypardiso.pardiso_wrapper import PyPardisoError
+
+    try:
+        return solver._call_pardiso(A, B)
+    except PyPardisoError as exc:
+        if exc.value in PARDISO_OUT_OF_MEMORY:
+            raise MemoryError(f"PARDISO ran out of memory (code {exc.value})") from None
+        raise
+
+
 class Factorisation:
     """A factorised SPD matrix A; ``solve(B)`` takes (n,) or (n, r) right-hand sides."""
 
@@ -62,7 +78,7 @@ class Factorisation:
             p[9] = 8  # pivot perturbation 1e-8
             p[36] = -80  # VBSR: merge supernode columns whose patterns agree to 80 %
             self._s.set_phase(12)
-            self._s._call_pardiso(self._A, np.zeros((self.n, 1)))
+            _pardiso(self._s, self._A, np.zeros((self.n, 1)))
             self._s.factorized_A = self._A
         else:
             self._lu = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
@@ -71,7 +87,7 @@ class Factorisation:
         B = np.asarray(B, float)
         if self.kind == "pardiso":
             self._s.set_phase(33)
-            X = self._s._call_pardiso(self._A, np.asfortranarray(B.reshape(self.n, -1)))
+            X = _pardiso(self._s, self._A, np.asfortranarray(B.reshape(self.n, -1)))
             return X.reshape(B.shape)
         return self._lu.solve(B)
 
