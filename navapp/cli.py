@@ -11,7 +11,7 @@ from pathlib import Path
 from . import __version__, progress
 from .argtypes import k_count, positive
 from .defaults import EDGE_MM, K
-from .errors import InputError, NavappError
+from .errors import CarriedWarning, InputError, NavappError
 
 DEFAULT_TABLE2_CSV = Path("results/table2.csv")
 DASK_STUDIES = ("table2", "cost", "robustness")  # the studies that run on a Dask cluster with --scheduler
@@ -440,6 +440,7 @@ def main(argv=None):
     progress.QUIET = args.quiet
     with warnings.catch_warnings():
         warnings.simplefilter("default")
+        warnings.simplefilter("ignore", CarriedWarning)  # printed once, with the case, from the registration's own
         warnings.showwarning = lambda msg, *a, **k: progress.echo(f"navapp: warning: {msg}")
         try:
             with _output_lock(args):

@@ -13,6 +13,12 @@ class InputError(NavappError):
         super().__init__(f"{self.path}: {message}" if self.path else message)
 
 
+class CarriedWarning(UserWarning):
+    """A warning that the registration also carries among its own warnings
+    (``Registration.warnings``): the command line prints those once, with the case's name,
+    and so ignores this Python warning, which a library caller still sees."""
+
+
 def short_error(exc: Exception) -> str:
     """A reader's exception as a short phrase for a one-line error (its first line, at most
     80 characters)."""

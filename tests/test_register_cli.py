@@ -82,3 +82,13 @@ def test_a_patch_too_small_for_the_pose_is_said_by_the_command_as_by_the_viewer(
     assert len(said) == 1 and "less than the 10 %" in said[0], result["warnings"]
     assert said[0] in brief["warnings"] and said[0] in result["warning"]
     assert any(line.startswith("navapp: warning: ") and line.endswith(said[0]) for line in io.err.splitlines())
+
+
+def test_each_warning_is_one_line_once(tmp_path, capsys):
+    """The undetermined-pose line came twice on stderr: as a Python warning and again from the
+    registration's own warnings, with the case's name."""
+    make_case(tmp_path / "c")
+    (tmp_path / "c/intraop/anterior.csv").write_text("x,y,z\n0.0,60.0,0.0\n")
+    assert main(["--quiet", "register", str(tmp_path / "c"), "--edge", "15", "--k", "10"]) == 0
+    err = [line for line in capsys.readouterr().err.splitlines() if "data points" in line]
+    assert len(err) == 1 and err[0].startswith("navapp: warning: ellipsoid: only 1 data points"), err

@@ -23,7 +23,7 @@ import trimesh
 from ..anatomy.caseio import Case, write_csv
 from ..anatomy.meshing import cached_tetmesh
 from ..defaults import EDGE_MM, K
-from ..errors import InputError
+from ..errors import CarriedWarning, InputError
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from ..mechanics.interpolation import interpolation_matrix
 from .coverage import note_coverage
@@ -396,7 +396,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     check_units(model, data)
     notes = []
     if rigid is None and (why := undetermined_pose(data)):
-        warnings.warn(why, stacklevel=2)
+        warnings.warn(why, CarriedWarning, stacklevel=2)
         notes.append(why)
     warm = rigid is not None  # the pose is given: no choice of pose
     fresh = beta0 is None  # a deformable fit from β = 0 (not a warm re-registration): cross-validated
