@@ -26,3 +26,10 @@ def positive(kind, most=None, least=None):
 
 
 k_count = positive(int, most=K_MAX)
+
+
+def address(s: str) -> str:
+    """A scheduler address: not empty (``--scheduler ""`` was taken as no scheduler, silently)."""
+    if not s.strip():
+        raise argparse.ArgumentTypeError("an empty address; give host:port, or leave --scheduler out")
+    return s.strip()

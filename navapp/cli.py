@@ -9,7 +9,7 @@ import warnings
 from pathlib import Path
 
 from . import __version__, progress
-from .argtypes import k_count, positive
+from .argtypes import address, k_count, positive
 from .defaults import EDGE_MM, K
 from .errors import CarriedWarning, InputError, NavappError
 
@@ -361,8 +361,9 @@ def build_parser():
     s.add_argument("--workers", type=_positive(int),
                    help="local worker processes (default: all cores for table2, 1 for cost, "
                         "whose timings would compete)")
-    s.add_argument("--scheduler", help="Dask distributed scheduler address (e.g. tcp://host:8786): table2, cost "
-                                       "and robustness run there")
+    s.add_argument("--scheduler", type=address,
+                   help="Dask distributed scheduler address (e.g. tcp://host:8786): table2, cost and robustness "
+                        "run there")
     s.add_argument("--quick", action="store_true", help="one case, two scenarios per plane level")
     s.add_argument("--results", type=Path, default=DEFAULT_TABLE2_CSV,
                    help="results CSV, appended (default results/table2.csv; for cost: <report>/cost.csv)")

@@ -165,6 +165,7 @@ def test_every_shipped_scene_is_in_range():
     (["phantom", "--liver", "-1", "--out", "X"], "argument --liver: must be >= 0"),
     (["mesh", "CASE", "--edge", "nan"], "argument --edge: must be a finite number"),
     (["serve", "--port", "70000"], "argument --port: must be at most 65535"),
+    (["study", "table2", "--scheduler", ""], "argument --scheduler: an empty address"),  # was taken as none
 ])
 def test_command_line_values_are_one_line(tmp_path, capsys, argv, message):
     argv = [a.replace("CASE", str(tmp_path)).replace("X", str(tmp_path / "x")) for a in argv]
