@@ -17,7 +17,7 @@ import numpy as np
 from navapp import progress
 from navapp.anatomy.caseio import read_case, read_surface
 from navapp.evaluation.robustness import design, trial_data
-from navapp.mechanics.interpolation import interpolation_matrix
+from navapp.geometry.interpolation import interpolation_matrix
 from navapp.registration import pipeline
 from navapp.simulation.levels import study_data
 

@@ -18,7 +18,7 @@ import numpy as np
 from navapp import progress
 from navapp.anatomy.caseio import read_case
 from navapp.evaluation.error_estimate import band_coverage
-from navapp.mechanics.interpolation import interpolation_matrix
+from navapp.geometry.interpolation import interpolation_matrix
 from navapp.registration.pipeline import prepare, register
 from navapp.registration.uncertainty import DEFAULT_CALIBRATION as CAL
 from navapp.registration.uncertainty import estimate_error

@@ -17,7 +17,7 @@ import numpy as np
 
 from navapp import progress
 from navapp.anatomy.caseio import read_case
-from navapp.mechanics.interpolation import interpolation_matrix
+from navapp.geometry.interpolation import interpolation_matrix
 from navapp.registration.pipeline import RobustOptions, prepare, register, tre_stats
 from navapp.registration.pose import _distances, trimmed_pose
 from navapp.registration.rigid import RigidResult

@@ -65,8 +65,8 @@ def modes_table(layers, volume_ml=None, edge=EDGE_MM, k=K):
 def tre_table(case_dirs, layers, combos, edge=EDGE_MM, k=K, seed=0):
     from navapp.anatomy.caseio import read_case
     from navapp.anatomy.meshing import cached_tetmesh
+    from navapp.geometry.interpolation import interpolation_matrix
     from navapp.mechanics.basis import BasisSettings, load_or_compute_basis
-    from navapp.mechanics.interpolation import interpolation_matrix
     from navapp.registration.model import build_model, usable_data
     from navapp.registration.pipeline import register, tre_stats
     from navapp.registration.rigid import TOL_BEFORE_LIBR, rigid_icp

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..defaults import EDGE_MM, N_PLANES, K
-from ..mechanics.interpolation import interpolation_matrix
+from ..geometry.interpolation import interpolation_matrix
 from ..registration.libr import LMOptions
 from ..registration.pipeline import register, tre_stats
 from ..simulation.levels import plus_planes

@@ -57,7 +57,7 @@ def _last(live: LiveRegistration):
 
 
 def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8):
-    from ..mechanics.interpolation import interpolation_matrix
+    from ..geometry.interpolation import interpolation_matrix
     from ..registration.pipeline import prepare, register, tre_stats
     from ..simulation.levels import data_level
     from ..simulation.scene import demo_scene

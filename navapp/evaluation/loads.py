@@ -56,7 +56,7 @@ def _old_warnings(reg) -> list[str]:
 def run_case(case_dir) -> list[dict]:
     """All rows of one case (module doc)."""
     from ..anatomy.caseio import read_case
-    from ..mechanics.interpolation import interpolation_matrix
+    from ..geometry.interpolation import interpolation_matrix
     from ..registration.pipeline import RobustOptions, prepare, register, tre_stats
     from ..simulation.levels import data_level
 

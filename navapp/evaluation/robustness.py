@@ -163,7 +163,7 @@ def register_with(method: str, model, data):
 def run_case(case_dir, trials, methods, edge=EDGE_MM, k=K) -> list[dict]:
     """Every (trial, method) of one case; returns CSV rows."""
     from ..anatomy.caseio import read_case, read_surface
-    from ..mechanics.interpolation import interpolation_matrix
+    from ..geometry.interpolation import interpolation_matrix
     from ..registration.pipeline import prepare, tre_stats
 
     case_dir = Path(case_dir)

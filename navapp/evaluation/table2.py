@@ -48,7 +48,7 @@ def run_chunk(case_dir, items, edge=EDGE_MM, k=K, init=None):
     """Register one case at the given (level, planes) items; returns CSV rows (dicts).
     ``init``: the registration's ``RobustOptions`` (default: the pipeline's)."""
     from ..anatomy.caseio import read_case
-    from ..mechanics.interpolation import interpolation_matrix
+    from ..geometry.interpolation import interpolation_matrix
     from ..registration.pipeline import prepare, register, rigid_starts, tre_stats
 
     case_dir = Path(case_dir)

@@ -23,8 +23,8 @@ from ..anatomy.caseio import Case, write_csv
 from ..anatomy.meshing import cached_tetmesh
 from ..defaults import EDGE_MM, K
 from ..errors import InputError
+from ..geometry.interpolation import interpolation_matrix
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
-from ..mechanics.interpolation import interpolation_matrix
 from .libr import LibrResult, LMOptions, register_libr
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
 from .pose import Determinacy, PoseChoice, PoseSource, choose_pose, pose_determinacy, prefer_given, rms_on_model

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from ..anatomy.targets import TARGETS_DIR, Target, map_targets, read_targets, target_points, with_points
+from ..geometry.interpolation import interpolation_matrix
 from ..geometry.targets_distance import unsigned_distance
-from ..mechanics.interpolation import interpolation_matrix
 
 
 def target_interpolation(reg, targets: list[Target]):

@@ -26,9 +26,9 @@ from ..anatomy.phantom import make_phantom
 from ..anatomy.targets import TARGETS_DIR, map_targets, write_targets
 from ..defaults import EDGE_MM
 from ..features import STYLUS
+from ..geometry.interpolation import interpolation_matrix
 from ..mechanics.controlpoints import nodal_areas
 from ..mechanics.fem import NU_LIVER, Material
-from ..mechanics.interpolation import interpolation_matrix
 from . import effects as fx
 from .probe import Probe
 from .scene import Scene

@@ -38,7 +38,7 @@ import numpy as np
 from scipy.interpolate import RBFInterpolator
 
 from ..anatomy.meshing import TetMesh
-from ..mechanics.interpolation import barycentric
+from ..geometry.interpolation import barycentric
 
 CPD_POINTS = 700  # surface samples per liver for CPD (O(N²) per iteration)
 CPD_BETA_MM = 40.0  # width of CPD's Gaussian motion-coherence kernel
