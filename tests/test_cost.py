@@ -52,7 +52,7 @@ def test_cost_study_rows_resume_and_report(tmp_path, cache_root, monkeypatch):
 
     case = tmp_path / "c"
     simulate(parse_scene({"name": "c", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
-                          "ius": {"planes": 16}}), case, cache_root, registration_edge=12.0)
+                          "ius": {"planes": 16}}), case, cache_root)
     csv = tmp_path / "cost.csv"
     small = dict(ks=(8, 12), edges=(14.0, 12.0), caps=(0, 2), rtols=(1e-1,), plane_counts=(0, 2), peers=True,
                  edge0=12.0, k0=12)

@@ -124,12 +124,12 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM):
     from ..simulation.simulate import simulate
 
     folder = Path(tempfile.mkdtemp(prefix="navapp-bench-")) / "demo"
-    simulate(demo_scene(), folder, registration_edge=edge)
+    simulate(demo_scene(), folder)
     case = read_case(folder)
     data = data_level(folder, "S+planes", planes=range(planes), case=case)
     more = data_level(folder, "S+planes", planes=range(planes + 1), case=case)
     model, _ = prepare(case, edge, k)
-    x0, x1 = case.truth_pairs()
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     times, rigid_s, support_s, iters = [], [], [], []
     for _ in range(repeats):
         reg = register(model, data)

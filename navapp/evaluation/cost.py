@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..anatomy.meshing import cached_tetmesh
 from ..defaults import EDGE_MM, N_PLANES, K
 from ..geometry.interpolation import interpolation_matrix
 from ..registration.libr import LMOptions
@@ -150,7 +151,8 @@ def _cost_case(case_dir, todo, caps, rtols, plane_counts, peers, tempfile, Path)
     from .peers import cpd_register, icp_register
 
     case = read_case(case_dir)
-    x0, x1 = case.truth_pairs()
+    # every configuration's TRE at the same points: the default registration mesh's nodes
+    x0, x1 = case.need_truth().tre_points(cached_tetmesh(case.preop.liver, EDGE_MM)[0].nodes)
     levels = {name: data_level(case_dir, "S+planes", planes=pl, case=case) for name, pl in SWEEP_LEVELS.items()}
     rows: list[dict] = []
 

@@ -80,11 +80,7 @@ def collect_case(case_dir, levels=ESTIMATE_LEVELS, combos=3, seed=0, edge=EDGE_M
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
-    x0, x1 = case.truth_pairs()
-    if x0.shape != model.basis.nodes.shape or not np.allclose(x0, model.basis.nodes):
-        from ..errors import InputError
-
-        raise InputError("the case's targets are not the mesh nodes (regenerate the case)", case_dir)
+    x1 = case.need_truth().at(model.basis.nodes)  # the truth at every node (measured points: InputError)
     n_planes = len([p for p in (case_dir / "intraop" / "us").glob("plane_??") if p.is_dir()])
     stylus = study_data(case_dir, "S", case=case)
     starts = rigid_starts(model, stylus)  # shared by S and S + planes (``register``'s ``starts``)

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from .. import progress
+from ..anatomy.truth import TruthField
 
 LEVELS = ("S", "S+all")
 METHODS = ("identity", "rigid-unguarded", "rigid", "libr-unguarded", "libr")
@@ -31,9 +32,11 @@ COLUMNS = ("case", "level", "method", "pre_aligned", "covers", "displacement_mm"
            "answer", "warned", "warning", "seconds")
 
 
-def _case_facts(case_dir: Path, case) -> dict:
+def _case_facts(case_dir: Path, case, nodes: np.ndarray) -> dict:
     """From the simulator's report: pre-aligned or offset, and whether any surface data lie
-    on the tool's footprint (within its radius + 10 mm of its centre)."""
+    on the tool's footprint (within its radius + 10 mm of its centre); the mean true
+    displacement (mm) at the registration model's ``nodes`` (M, 3) mm (a case simulated
+    before the truth field: its report's, which is at the same nodes)."""
     rep = json.loads((case_dir / "truth" / "report.json").read_text())
     T = np.array(rep.get("tracker_offset", np.eye(4)))
     tool = rep.get("tool")
@@ -43,8 +46,10 @@ def _case_facts(case_dir: Path, case) -> dict:
                                                                          "ridge_left", "ridge_right")])
         pre = (pts - T[:3, 3]) @ T[:3, :3]  # back to the preoperative frame
         covers = bool(np.linalg.norm(pre - np.array(tool["centre_mm"]), axis=1).min() < tool["radius_mm"] + 10.0)
-    return {"pre_aligned": "tracker_offset" not in rep, "covers": covers,
-            "displacement_mm": rep["displacement_mm"]["mean"]}
+    truth = case.need_truth()
+    shown = round(float(np.linalg.norm(truth.displacement(nodes), axis=1).mean()), 2) \
+        if isinstance(truth, TruthField) else rep["displacement_mm"]["mean"]
+    return {"pre_aligned": "tracker_offset" not in rep, "covers": covers, "displacement_mm": shown}
 
 
 def _old_warnings(reg) -> list[str]:
@@ -63,9 +68,9 @@ def run_case(case_dir) -> list[dict]:
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case)
-    x0, x1 = case.truth_pairs()
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
-    facts = _case_facts(case_dir, case)
+    facts = _case_facts(case_dir, case, model.basis.nodes)
     rows = []
     for level in LEVELS:
         data = data_level(case_dir, "S", case=case) if level == "S" else case.intraop

@@ -104,7 +104,7 @@ def fresh_single_planes(case_dir, edge=EDGE_MM, k=K) -> dict:
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
-    x0, x1 = case.truth_pairs()
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     starts = rigid_starts(model, data_level(case_dir, "S", case=case))  # shared: the stylus's
     out = {}
     for i in range(len(recorded_poses(case_dir))):
@@ -124,7 +124,7 @@ def run_case(case_dir, table, steps=3, edge=EDGE_MM, k=K, calibration=None, fres
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
-    x0, x1 = case.truth_pairs()
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     poses = recorded_poses(case_dir)
     stylus = data_level(case_dir, "S", case=case)
     starts = rigid_starts(model, stylus)  # shared: every registration here has the stylus's

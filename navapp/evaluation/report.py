@@ -95,7 +95,7 @@ def distance_plot(case_dirs, path, level="S+all", edge=EDGE_MM, k=K) -> float:
         planes = range(N_PLANES) if level == "S+all" else ()
         data = study_data(d, level, planes, case=case)
         reg = register(model, data)
-        x0, x1 = case.truth_pairs()
+        x0, x1 = case.need_truth().tre_points(model.basis.nodes)
         pts = np.vstack(list(data.values()))
         dist.append(cKDTree(pts).query(x1)[0])
         err.append(np.linalg.norm(reg.transform(x0) - x1, axis=1))

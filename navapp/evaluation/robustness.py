@@ -169,7 +169,7 @@ def run_case(case_dir, trials, methods, edge=EDGE_MM, k=K) -> list[dict]:
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
-    x0, x1 = case.truth_pairs()
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
     surface, _ = read_surface(case_dir / "truth" / "liver.ply", closed=False)
     surface = surface[0] if isinstance(surface, tuple) else surface  # (mesh, clean-up report) since 31bc815

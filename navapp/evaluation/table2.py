@@ -54,7 +54,7 @@ def run_chunk(case_dir, items, edge=EDGE_MM, k=K, init=None):
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
-    x0, x1 = case.truth_pairs()
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)  # once: it costs as much as a registration
     # The multi-start ICP sees only the stylus features (registration/rigid.py), which are
     # the same for S and every S + planes scenario of a case: it runs once per chunk and its

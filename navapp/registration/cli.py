@@ -84,8 +84,9 @@ def _targets(case_dir, case, reg, model, out) -> list[dict]:
     """Registered targets: surfaces written to ``out/targets/`` (PLY, tracker space), and
     per target its centres (preoperative, registered) and, where truth is known, errors."""
     from ..anatomy.targets import TARGETS_DIR, write_targets
+    from ..anatomy.truth import true_targets
     from .support import target_support
-    from .targets import registered_targets, target_errors, truth_targets
+    from .targets import registered_targets, target_errors
 
     targets = case.preop.targets
     moved = registered_targets(reg, targets)
@@ -94,7 +95,7 @@ def _targets(case_dir, case, reg, model, out) -> list[dict]:
     supports = target_support(reg.support, {t.name: t.centre for t in targets}, reg.data_model_frame) \
         if reg.libr is not None else []
     write_targets(moved, Path(out) / TARGETS_DIR)
-    truth, source = truth_targets(case_dir, targets, case, model.basis)
+    truth, source = true_targets(case_dir, targets, case.truth)
     rigid = registered_targets(reg, targets, rigid=True) if truth is not None else []
     rows = []
     for i, (t, m) in enumerate(zip(targets, moved, strict=True)):

@@ -541,8 +541,8 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
     lines = reg.warnings + [w for t in summary.get("targets", []) if (w := t.get("warning"))]
     summary["warnings"] = lines
     summary["warning"] = "; ".join(lines) if lines else None
-    if case.targets is not None:
-        x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+    if case.truth is not None:  # reported, never fitted: the TRE at the truth's points (``anatomy.truth``)
+        x0, x1 = case.truth.tre_points(reg.model.basis.nodes)
         pred = reg.transform(x0)
         write_csv(out / "targets.csv", np.column_stack([x0, pred]), ("x0", "y0", "z0", "x1", "y1", "z1"))
         summary["tre_rigid"] = tre_stats(reg.rigid.apply(x0), x1)
