@@ -23,6 +23,7 @@ import numpy as np
 import trimesh
 
 from ..anatomy.caseio import write_csv, write_preop, write_settings, write_truth
+from ..anatomy.model import VESSELS
 from ..errors import InputError
 from ..features import NAMES as FEATURE_NAMES
 from ..features import STYLUS as STYLUS_FEATURES
@@ -304,7 +305,7 @@ def export(folder: Path, reg, sd: SceneData, data: dict) -> list[Path]:
     folder.mkdir(parents=True, exist_ok=True)
     written = []
     preop = sd.case.preop
-    for name, mesh in (("liver", preop.liver), ("portal", preop.portal), ("hepatic", preop.hepatic)):
+    for name, mesh in ((n, getattr(preop, n)) for n in ("liver", *VESSELS)):
         if mesh is None:
             continue
         v = reg.transform(mesh.vertices)

@@ -26,7 +26,7 @@ import numpy as np
 from .. import progress
 from ..anatomy.truth import TruthField
 
-LEVELS = ("S", "S+all")
+LOAD_LEVELS = ("S", "S+all")  # the study's own subset of ``simulation.levels.LEVELS``
 METHODS = ("identity", "rigid-unguarded", "rigid", "libr-unguarded", "libr")
 COLUMNS = ("case", "level", "method", "pre_aligned", "covers", "displacement_mm", "tre_mean_mm", "tre_max_mm",
            "answer", "warned", "warning", "seconds")
@@ -72,7 +72,7 @@ def run_case(case_dir) -> list[dict]:
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
     facts = _case_facts(case_dir, case, model.basis.nodes)
     rows = []
-    for level in LEVELS:
+    for level in LOAD_LEVELS:
         data = data_level(case_dir, "S", case=case) if level == "S" else case.intraop
         for method in METHODS:
             t = time.perf_counter()
@@ -179,7 +179,7 @@ def write_report(results: Path, out_dir: Path) -> Path:
              "the deformation cross-validated against the rigid answer and dropped with a warning where the data "
              "do not support it; where the answer from ICP's pose is in doubt, the given pose held when the "
              "deformable fit there is within 15 % of ICP's).", ""]
-    for level in LEVELS:
+    for level in LOAD_LEVELS:
         lv = [r for r in rows if r["level"] == level]
         lines += [f"## {level}", "", "| method | mean TRE | median over cases | max TRE (mean over cases) | "
                   "warning rate | answer deformable | seconds (median) |", "|---|---|---|---|---|---|---|"]
@@ -207,7 +207,7 @@ def write_report(results: Path, out_dir: Path) -> Path:
               "rigid (unguarded / guarded) | LIBR unguarded | LIBR guarded | answer | warning |",
               "|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in cases:
-        for level in LEVELS:
+        for level in LOAD_LEVELS:
             if (c, level, "libr") not in by:
                 continue
             g = by[(c, level, "libr")]
@@ -221,10 +221,10 @@ def write_report(results: Path, out_dir: Path) -> Path:
     md = out_dir / "loads.md"
     md.write_text("\n".join(lines) + "\n")
 
-    fig, axes = plt.subplots(len(LEVELS), 1, figsize=(11, 7), sharex=True)
+    fig, axes = plt.subplots(len(LOAD_LEVELS), 1, figsize=(11, 7), sharex=True)
     x = np.arange(len(cases))
     colours = {"identity": "0.6", "rigid": "#4c72b0", "libr-unguarded": "#dd8452", "libr": "#55a868"}
-    for ax, level in zip(np.atleast_1d(axes), LEVELS, strict=True):
+    for ax, level in zip(np.atleast_1d(axes), LOAD_LEVELS, strict=True):
         for i, m in enumerate(colours):
             vals = [by[(c, level, m)]["tre_mean_mm"] if (c, level, m) in by else np.nan for c in cases]
             ax.bar(x + (i - 1.5) * 0.2, vals, 0.2, label=m, color=colours[m])

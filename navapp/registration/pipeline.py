@@ -21,6 +21,7 @@ import trimesh
 
 from ..anatomy.caseio import Case, write_csv
 from ..anatomy.meshing import cached_tetmesh
+from ..anatomy.model import VESSELS
 from ..defaults import EDGE_MM, K
 from ..errors import InputError
 from ..geometry.interpolation import interpolation_matrix
@@ -527,7 +528,7 @@ def write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dict
 
 def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dict:
     out = Path(out)
-    for name in ("liver", "portal", "hepatic"):
+    for name in ("liver", *VESSELS):
         mesh = getattr(case.preop, name)
         if mesh is not None:
             trimesh.Trimesh(reg.transform(mesh.vertices), mesh.faces, process=False).export(out / f"{name}.ply")
