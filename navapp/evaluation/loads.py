@@ -9,7 +9,7 @@ rigid answer, ``support``). One CSV row per registration: mean and max TRE over 
 targets, the answer given (deformable or rigid), whether a warning was raised and the
 first one, and the wall time. ``report`` writes ``loads.md`` and ``loads.png``.
 
-The criterion the issue states: on every case LIBR's mean TRE is at most the identity's
+The criterion the study checks: on every case LIBR's mean TRE is at most the identity's
 when the data come pre-aligned and at most the rigid answer's otherwise, or a warning
 fires; over the set, mean TRE ≤ 0.5 × the identity's.
 """
