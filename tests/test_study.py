@@ -159,7 +159,7 @@ def test_quiet_is_scoped(monkeypatch):
     run_chunk (which also runs in the caller's process, to warm caches) no longer leaves
     progress.QUIET set behind it."""
     from navapp import progress
-    from navapp.anatomy import caseio
+    from navapp.evaluation import table2
     from navapp.evaluation.table2 import run_chunk
 
     monkeypatch.setattr(progress, "QUIET", False)
@@ -176,7 +176,7 @@ def test_quiet_is_scoped(monkeypatch):
         seen.append(progress.is_quiet())
         raise RuntimeError("stop here")
 
-    monkeypatch.setattr(caseio, "read_case", failing_read)
+    monkeypatch.setattr(table2, "read_case", failing_read)
     with pytest.raises(RuntimeError, match="stop here"):
         run_chunk("no-such-case", [])
     assert seen == [True]

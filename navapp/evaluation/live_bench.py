@@ -26,7 +26,12 @@ import numpy as np
 from threadpoolctl import threadpool_info
 
 from ..defaults import EDGE_MM, K
+from ..geometry.interpolation import interpolation_matrix
 from ..registration.live import LiveRegistration
+from ..registration.pipeline import prepare, register, tre_stats
+from ..simulation.levels import data_level
+from ..simulation.scene import demo_scene
+from ..simulation.scenedata import auto_segmentation, load_scene_data, segment_frame
 from ..tracking.replay import interpolate_pose
 
 VARIANTS: dict[str, dict] = {"default": {"threads": 1, "iterations_per_frame": 1},
@@ -57,11 +62,6 @@ def _last(live: LiveRegistration):
 
 
 def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8):
-    from ..geometry.interpolation import interpolation_matrix
-    from ..registration.pipeline import prepare, register, tre_stats
-    from ..simulation.levels import data_level
-    from ..simulation.scene import demo_scene
-    from ..simulation.scenedata import auto_segmentation, load_scene_data, segment_frame
 
     sd = load_scene_data(demo_scene(), edge=edge)
     if auto_segmentation(sd.scene) is None:

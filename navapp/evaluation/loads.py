@@ -24,7 +24,11 @@ from pathlib import Path
 import numpy as np
 
 from .. import progress
+from ..anatomy.caseio import read_case
 from ..anatomy.truth import TruthField
+from ..geometry.interpolation import interpolation_matrix
+from ..registration.pipeline import RobustOptions, prepare, register, tre_stats
+from ..simulation.levels import data_level
 
 LOAD_LEVELS = ("S", "S+all")  # the study's own subset of ``simulation.levels.LEVELS``
 METHODS = ("identity", "rigid-unguarded", "rigid", "libr-unguarded", "libr")
@@ -60,10 +64,6 @@ def _old_warnings(reg) -> list[str]:
 @progress.quiet()
 def run_case(case_dir) -> list[dict]:
     """All rows of one case (module doc)."""
-    from ..anatomy.caseio import read_case
-    from ..geometry.interpolation import interpolation_matrix
-    from ..registration.pipeline import RobustOptions, prepare, register, tre_stats
-    from ..simulation.levels import data_level
 
     case_dir = Path(case_dir)
     case = read_case(case_dir)

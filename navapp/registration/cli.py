@@ -8,6 +8,7 @@ from pathlib import Path
 from .. import progress
 from ..argtypes import k_count, positive
 from ..defaults import EDGE_MM, LM_MAX_ITERATIONS, K
+from ..errors import InputError
 
 
 def add_register_parser(sub):
@@ -25,7 +26,6 @@ def add_register_parser(sub):
 
 def cmd_register(args):
     from ..anatomy.caseio import read_case
-    from ..errors import InputError
     from .libr import LMOptions
     from .pipeline import prepare, register, write_outputs
 

@@ -17,13 +17,14 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from ..anatomy.caseio import Case, read_case
+from ..anatomy.caseio import Case, read_case, read_csv
 from ..anatomy.model import VESSELS
 from ..cache import cache_dir, content_key
 from ..defaults import EDGE_MM
 from ..features import STYLUS
+from ..simulation.effects import Ledger
 from .probe import Probe
-from .scene import Scene
+from .scene import Effect, Scene
 from .simulate import simulate
 from .ultrasound import PlaneData, acquire_plane
 
@@ -107,7 +108,6 @@ def read_planes(case_dir: Path) -> tuple[list, Probe]:
     meta = json.loads(meta_path.read_text())
     probe = Probe(meta["width_px"], meta["height_px"], meta["spacing_mm"])
     planes = []
-    from ..anatomy.caseio import read_csv
 
     for p in meta["planes"]:
         pdir = udir / f"plane_{p['index']:02d}"
@@ -139,7 +139,6 @@ def load_scene_data(scene: Scene, cache_root=None, edge: float = EDGE_MM) -> Sce
 def acquire_free_plane(sd: SceneData, index: int, probe_to_tracker: np.ndarray) -> PlaneData:
     """Simulate a plane at a pose the user chose (same anatomy and effects as the presets;
     the random stream is seeded by scene seed and plane index, so it is reproducible)."""
-    from ..simulation.effects import Ledger
 
     rng = np.random.default_rng([sd.scene.seed, index])
     return acquire_plane(index, "free", np.asarray(probe_to_tracker, float), sd.probe, sd.truth["liver"],
@@ -163,8 +162,6 @@ def segment_frame(sd: SceneData, index: int, probe_to_tracker: np.ndarray) -> di
     segmentation), its contours perturbed by the declared ``auto_segmentation`` error in
     place of any ``contour_jitter``, and the scene's other effects as for any plane. Empty
     when the scene declares no automatic segmentation."""
-    from ..simulation.effects import Ledger
-    from .scene import Effect
 
     sd_px = auto_segmentation(sd.scene)
     if sd_px is None:

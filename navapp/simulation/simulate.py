@@ -28,6 +28,7 @@ from ..anatomy.meshing import cached_tetmesh
 from ..anatomy.phantom import make_phantom
 from ..anatomy.targets import TARGETS_DIR, map_targets, write_targets
 from ..anatomy.truth import TruthField
+from ..errors import InputError
 from ..features import STYLUS
 from ..mechanics.controlpoints import nodal_areas
 from ..mechanics.fem import NU_LIVER, Material
@@ -36,7 +37,8 @@ from .probe import Probe
 from .scene import Scene
 from .stylus import surface_patch, swath_pattern, thin
 from .tool import place_tool
-from .truth import Loading, Supports, solve_linear, solve_neo_hookean
+from .transpose import correspondence, reference_deformation, transpose
+from .truth import Loading, Supports, solve_linear, solve_neo_hookean, supported_nodes
 from .ultrasound import acquire_plane, plane_poses
 
 
@@ -63,7 +65,6 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
     rng = np.random.default_rng(scene.seed)
     preop = make_phantom(scene.phantom) if scene.phantom is not None else read_case(scene.case).preop
     if preop.regions is None:
-        from ..errors import InputError
 
         raise InputError("the scene's anatomy needs preop/regions.csv (anterior surface for the stylus and probe)")
     truth_mesh, _ = cached_tetmesh(preop.liver, scene.mesh_edge_mm, cache_root)
@@ -197,8 +198,6 @@ def transposed_truth(scene: Scene, preop, truth_mesh, ledger=None, cache_root=No
     displacement is carried onto the nodes of ``truth_mesh`` (this liver's) through an
     inexact correspondence (``transpose.py``). Returns the nodal displacements (M, 3) mm
     and what the report says about them."""
-    from .transpose import correspondence, reference_deformation, transpose
-    from .truth import supported_nodes
 
     ledger = ledger or fx.Ledger()
     loading, material = scene_loading(scene)
