@@ -26,8 +26,8 @@ def main(argv=None) -> dict:
           f"model {sum(seconds.values()):.1f} s, registration {sum(reg.seconds.values()):.2f} s")
     print(f"LIBR: {reg.libr.iterations} iterations, stopped: {reg.libr.stop_reason}, Ω = {reg.libr.omega:.3g}")
     out = {}
-    if case.targets is not None:  # truth: where preoperative points x0 really are (x1)
-        x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+    if case.truth is not None:  # truth: where the model's nodes x0 really are (x1)
+        x0, x1 = case.truth.tre_points(model.basis.nodes)
         out = {"rigid": navapp.tre_stats(reg.rigid.apply(x0), x1)["mean_mm"],
                "deformable": navapp.tre_stats(reg.transform(x0), x1)["mean_mm"]}
         print(f"mean target error: rigid {out['rigid']:.2f} mm, deformable {out['deformable']:.2f} mm "

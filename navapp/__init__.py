@@ -13,7 +13,8 @@ cheap)::
     case = navapp.read_case("my-case")                 # case folder (docs/design.md §3)
     model, seconds = navapp.prepare(case)              # tet mesh, basis (k = 45), model
     reg = navapp.register(model, case.intraop)         # rigid ICP, then LIBR (eq. 7–13)
-    moved = reg.transform(case.targets[:, :3])         # eq. 8 at any preoperative points
+    moved = reg.transform(case.preop.liver.vertices)   # eq. 8 at any preoperative points
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)  # a case with truth: where the nodes truly are
 
     scene = navapp.load_scene(navapp.scene_dir() / "phantom0-L.toml")
     navapp.simulate(scene, "phantom0-L")               # a simulated case folder with truth

@@ -17,7 +17,7 @@ import numpy as np
 from navapp import progress
 from navapp.anatomy.caseio import read_case, read_surface
 from navapp.evaluation.robustness import design, trial_data
-from navapp.mechanics.interpolation import interpolation_matrix
+from navapp.geometry.interpolation import interpolation_matrix
 from navapp.registration import pipeline
 from navapp.simulation.levels import study_data
 
@@ -45,7 +45,7 @@ def check(model, data, x0, x1, B, **where):
 for case_dir in map(Path, sys.argv[1:]):
     case = read_case(case_dir)
     model, _ = pipeline.prepare(case)
-    x0, x1 = case.truth_pairs()
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
     for level in ("CBCT", "iCT"):
         check(model, study_data(case_dir, level, case=case), x0, x1, B, case=case_dir.name, level=level)

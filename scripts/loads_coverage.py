@@ -18,7 +18,7 @@ import numpy as np
 from navapp import progress
 from navapp.anatomy.caseio import read_case
 from navapp.evaluation.error_estimate import band_coverage
-from navapp.mechanics.interpolation import interpolation_matrix
+from navapp.geometry.interpolation import interpolation_matrix
 from navapp.registration.pipeline import prepare, register
 from navapp.registration.uncertainty import DEFAULT_CALIBRATION as CAL
 from navapp.registration.uncertainty import estimate_error
@@ -29,7 +29,7 @@ warnings.simplefilter("ignore")
 for case_dir in sys.argv[1:]:
     case = read_case(case_dir)
     model, _ = prepare(case)
-    x0, x1 = case.truth_pairs()
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
     for level in ("S", "S+all"):
         data = data_level(case_dir, "S", case=case) if level == "S" else case.intraop

@@ -17,7 +17,7 @@ import numpy as np
 
 from navapp import progress
 from navapp.anatomy.caseio import read_case
-from navapp.mechanics.interpolation import interpolation_matrix
+from navapp.geometry.interpolation import interpolation_matrix
 from navapp.registration.pipeline import RobustOptions, prepare, register, tre_stats
 from navapp.registration.pose import _distances, trimmed_pose
 from navapp.registration.rigid import RigidResult
@@ -30,7 +30,7 @@ level = sys.argv[1]
 for case_dir in sys.argv[2:]:
     case = read_case(case_dir)
     model, _ = prepare(case)
-    x0, x1 = case.truth_pairs()
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
     data = data_level(case_dir, "S", case=case) if level == "S" else case.intraop
     icp = register(model, data, deform=False, init=RobustOptions.unguarded()).rigid

@@ -65,8 +65,8 @@ def modes_table(layers, volume_ml=None, edge=EDGE_MM, k=K):
 def tre_table(case_dirs, layers, combos, edge=EDGE_MM, k=K, seed=0):
     from navapp.anatomy.caseio import read_case
     from navapp.anatomy.meshing import cached_tetmesh
+    from navapp.geometry.interpolation import interpolation_matrix
     from navapp.mechanics.basis import BasisSettings, load_or_compute_basis
-    from navapp.mechanics.interpolation import interpolation_matrix
     from navapp.registration.model import build_model, usable_data
     from navapp.registration.pipeline import register, tre_stats
     from navapp.registration.rigid import TOL_BEFORE_LIBR, rigid_icp
@@ -81,7 +81,7 @@ def tre_table(case_dirs, layers, combos, edge=EDGE_MM, k=K, seed=0):
     for d in map(Path, case_dirs):
         case = read_case(d)
         mesh, _ = cached_tetmesh(case.preop.liver, edge)
-        x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+        x0, x1 = case.need_truth().tre_points(mesh.nodes)
         B = interpolation_matrix(mesh.nodes, mesh.tets, x0)
         stylus = data_level(d, "S", case=case)
         scenarios = [("S", stylus)] + [("S+3", data_level(d, "S+planes", planes=p, case=case)) for p in triples]

@@ -115,7 +115,7 @@ def test_session_autosaves_and_restores(scene_data, tmp_path):
     case = read_case(tmp_path / "s")
     assert case.intraop.keys() == data.keys()
     assert all(np.allclose(case.intraop[k], data[k]) for k in data)
-    assert case.targets is not None
+    assert case.truth is not None
     # removing data removes its file
     s2.contours.clear()
     s2.save(sd, planes2)

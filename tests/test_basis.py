@@ -3,6 +3,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from navapp.geometry.interpolation import interpolation_matrix
 from navapp.mechanics.basis import (
     BasisSettings,
     _dofs,
@@ -14,7 +15,6 @@ from navapp.mechanics.basis import (
 )
 from navapp.mechanics.controlpoints import geodesic_tiles, nodal_areas, place_control_points
 from navapp.mechanics.fem import Material, stiffness
-from navapp.mechanics.interpolation import interpolation_matrix
 
 
 @pytest.fixture(scope="module")

@@ -3,6 +3,7 @@ import pytest
 import trimesh
 
 from navapp.anatomy.caseio import Case, read_case, write_case
+from navapp.anatomy.truth import TruthPoints
 from navapp.cli import main
 from navapp.errors import InputError
 
@@ -15,7 +16,7 @@ def case_dir(phantoms, tmp_path_factory):
     intraop = {"anterior": rng.normal(size=(20, 3)) * 30, "portal_contour": rng.normal(size=(7, 3)) * 10}
     targets = rng.normal(size=(15, 6)) * 40
     d = tmp_path_factory.mktemp("case")
-    write_case(Case(m, intraop, targets, {"name": "t", "scene": "s.toml"}), d)
+    write_case(Case(m, intraop, TruthPoints(targets[:, :3], targets[:, 3:]), {"name": "t", "scene": "s.toml"}), d)
     return d, m, intraop, targets
 
 
@@ -33,7 +34,7 @@ def test_round_trip_is_exact(case_dir):
     assert np.array_equal(c.preop.fiducials, m.fiducials)
     for k in intraop:
         assert np.array_equal(c.intraop[k], intraop[k])
-    assert np.array_equal(c.targets, targets)
+    assert np.array_equal(np.column_stack(c.need_truth().tre_points()), targets)
     assert c.settings["scene"] == "s.toml" and c.name == "t"
 
 

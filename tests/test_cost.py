@@ -46,13 +46,12 @@ def test_cost_study_rows_resume_and_report(tmp_path, cache_root, monkeypatch):
     from navapp.evaluation import cost
     from navapp.evaluation.cost import run_cost_study
     from navapp.evaluation.cost_report import write_cost_report
-    from navapp.registration import pipeline
     from navapp.simulation.scene import parse_scene
     from navapp.simulation.simulate import simulate
 
     case = tmp_path / "c"
     simulate(parse_scene({"name": "c", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
-                          "ius": {"planes": 16}}), case, cache_root, registration_edge=12.0)
+                          "ius": {"planes": 16}}), case, cache_root)
     csv = tmp_path / "cost.csv"
     small = dict(ks=(8, 12), edges=(14.0, 12.0), caps=(0, 2), rtols=(1e-1,), plane_counts=(0, 2), peers=True,
                  edge0=12.0, k0=12)
@@ -62,10 +61,10 @@ def test_cost_study_rows_resume_and_report(tmp_path, cache_root, monkeypatch):
         prepared.append((float(edge), int(k), cache_root is not None and not any(cache_root.iterdir())))
         return real_prepare(case_, edge, k, cache_root=cache_root, **kw)
 
-    real_prepare = pipeline.prepare  # cost imports it from pipeline when it runs
-    monkeypatch.setattr(pipeline, "prepare", spy)
+    real_prepare = cost.prepare
+    monkeypatch.setattr(cost, "prepare", spy)
     n = run_cost_study([case], csv, **small)
-    monkeypatch.setattr(pipeline, "prepare", real_prepare)
+    monkeypatch.setattr(cost, "prepare", real_prepare)
 
     rows = list(csvmod.DictReader(csv.open()))
     assert n == len(rows) > 0
@@ -88,7 +87,7 @@ def test_cost_study_rows_resume_and_report(tmp_path, cache_root, monkeypatch):
             return fn(*a, **kw)
         return wrapped
 
-    monkeypatch.setattr(pipeline, "prepare", counting("prepare", pipeline.prepare))
+    monkeypatch.setattr(cost, "prepare", counting("prepare", cost.prepare))
     monkeypatch.setattr(cost, "register", counting("register", cost.register))
     assert run_cost_study([case], csv, **small) == 0
     assert calls == {"prepare": 0, "register": 0}
@@ -116,7 +115,7 @@ def test_cost_case_is_quiet_only_while_it_runs(tmp_path, monkeypatch):
     """cost_case hides bars in its own scope and leaves the caller's progress state as it
     was, also when it fails (it used to set progress.QUIET = True for good)."""
     from navapp import progress
-    from navapp.anatomy import caseio
+    from navapp.evaluation import cost
     from navapp.evaluation.cost import cost_case
 
     seen = []
@@ -126,7 +125,7 @@ def test_cost_case_is_quiet_only_while_it_runs(tmp_path, monkeypatch):
         raise RuntimeError("stop here")
 
     monkeypatch.setattr(progress, "QUIET", False)
-    monkeypatch.setattr(caseio, "read_case", failing_read)
+    monkeypatch.setattr(cost, "read_case", failing_read)
     with pytest.raises(RuntimeError, match="stop here"):
         cost_case(tmp_path / "c", ks=(), edges=(), caps=(0,), rtols=(), plane_counts=(), peers=False)
     assert seen == [True]

@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
-SMALL = ["--edge", "12", "--k", "12"]  # one 12 mm mesh serves the truth and the registration
+SMALL = ["--edge", "12", "--k", "12"]  # small registration model (the truth mesh is given apart)
 
 
 def example(name):

@@ -92,7 +92,7 @@ def test_write_outputs_stages_and_locks(tmp_path, monkeypatch):
     (out / "result.json").write_text('{"run": 1}')
     case = type("C", (), {})()
     case.preop = type("P", (), {"liver": trimesh.creation.box(), "portal": trimesh.creation.box(), "hepatic": None})()
-    case.targets = None
+    case.truth = None
     reg = type("R", (), {"quality": None, "transform": staticmethod(lambda x: x)})()
     exports = []
 

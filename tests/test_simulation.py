@@ -82,7 +82,7 @@ def test_effects_each_do_what_they_say():
 @pytest.fixture(scope="module")
 def plain_case(tmp_path_factory, cache_root):
     out = tmp_path_factory.mktemp("sim") / "plain"
-    report = simulate(small_scene(), out, cache_root, registration_edge=12.0)
+    report = simulate(small_scene(), out, cache_root)
     return out, report
 
 
@@ -105,7 +105,7 @@ def test_stylus_points_sit_on_the_deformed_surface(plain_case):
 def plane_case(tmp_path_factory, cache_root):
     out = tmp_path_factory.mktemp("sim") / "planes"
     scene = small_scene(ius={"planes": 4}, effects=[{"kind": "tracking_noise", "sd_mm": 0.2}])
-    return out, simulate(scene, out, cache_root, registration_edge=12.0)
+    return out, simulate(scene, out, cache_root)
 
 
 def test_planes_give_contours_on_the_deformed_vessels(plane_case):
@@ -146,9 +146,92 @@ def test_every_declared_effect_runs(tmp_path, cache_root):
                {"kind": "probe_compression", "depth_mm": 3.0, "radius_mm": 15.0},
                {"kind": "contour_jitter", "sd_px": 1.0},
                {"kind": "dropout", "fraction": 0.1}]
-    report = simulate(small_scene(ius={"planes": 2}, effects=effects), tmp_path / "fx", cache_root,
-                      registration_edge=12.0)
+    report = simulate(small_scene(ius={"planes": 2}, effects=effects), tmp_path / "fx", cache_root)
     assert {e["kind"] for e in effects} <= set(report["ran"])
     # and a scene with the same planes but no effects runs none of them
-    plain = simulate(small_scene(ius={"planes": 2}), tmp_path / "nofx", cache_root, registration_edge=12.0)
+    plain = simulate(small_scene(ius={"planes": 2}), tmp_path / "nofx", cache_root)
     assert not ({e["kind"] for e in effects} & set(plain["ran"]))
+
+
+@pytest.fixture(scope="module")
+def offset_case(tmp_path_factory, cache_root):
+    out = tmp_path_factory.mktemp("sim") / "offset"
+    scene = small_scene(effects=[{"kind": "tracker_offset", "rotation_deg": 20.0, "translation_mm": 40.0}])
+    return out, simulate(scene, out, cache_root)
+
+
+def test_the_truth_is_a_field_apart_from_any_registration_mesh(offset_case, cache_root):
+    """The simulator writes its truth as a field on its own mesh (10 mm here), builds no
+    registration mesh, and the field answers at any preoperative point: linear in each
+    truth tet, then the tracker offset."""
+    from navapp.anatomy.caseio import read_case
+    from navapp.anatomy.meshing import cached_tetmesh
+    from navapp.anatomy.truth import TruthField
+
+    out, report = offset_case
+    assert not (out / "truth" / "targets.csv").exists()
+    case = read_case(out)
+    truth = case.need_truth()
+    assert isinstance(truth, TruthField)
+    mesh, _ = cached_tetmesh(case.preop.liver, 10.0, cache_root)
+    assert np.array_equal(truth.nodes, mesh.nodes) and np.array_equal(truth.tets, mesh.tets)
+    T = np.array(report["tracker_offset"])
+    assert not np.allclose(T, np.eye(4)) and np.allclose(truth.offset, T, atol=1e-6)
+
+    def offset(p):
+        return p @ truth.offset[:3, :3].T + truth.offset[:3, 3]
+
+    # inside a tet, at arbitrary barycentric weights: the same weights of the nodes' truth
+    rng = np.random.default_rng(1)
+    tets = rng.choice(len(truth.tets), 50, replace=False)
+    w = rng.dirichlet(np.ones(4), 50)
+    corners = truth.nodes[truth.tets[tets]]  # (50, 4, 3)
+    p = np.einsum("pk,pkj->pj", w, corners)
+    want = offset(p + np.einsum("pk,pkj->pj", w, truth.u[truth.tets[tets]]))
+    np.testing.assert_allclose(truth.at(p), want, atol=1e-9)
+    # the true deformed liver the simulator wrote is the field at the preoperative surface
+    liver = trimesh.load(out / "truth/liver.ply", process=False)
+    np.testing.assert_allclose(truth.at(case.preop.liver.vertices), liver.vertices, atol=1e-3)  # float32 PLY
+    # a registration mesh of another size is asked, not matched: its nodes' truth is the field's
+    reg_mesh, _ = cached_tetmesh(case.preop.liver, 12.0, cache_root)
+    x0, x1 = truth.tre_points(reg_mesh.nodes)
+    assert x0 is not None and len(x0) == len(reg_mesh.nodes) != len(truth.nodes)
+    np.testing.assert_array_equal(x1, truth.at(reg_mesh.nodes))
+    # the report's displacement is the field's, at its own nodes
+    assert report["displacement_mm"]["max"] == round(float(np.linalg.norm(truth.u, axis=1).max()), 2)
+
+
+def test_a_truth_field_file_reads_back_bit_for_bit_and_refuses_damage(offset_case, tmp_path):
+    from navapp.anatomy.caseio import read_truth
+    from navapp.anatomy.truth import read_field
+
+    out, _ = offset_case
+    truth = read_truth(out)
+    truth.write(tmp_path)
+    again = read_truth(tmp_path)
+    for k in ("nodes", "tets", "u", "offset"):
+        assert np.array_equal(getattr(again, k), getattr(truth, k)), k
+    # the same field gives the same bytes (a viewer session compares them)
+    assert (tmp_path / "truth/field.npz").read_bytes() == (out / "truth/field.npz").read_bytes()
+    bad = tmp_path / "truth/field.npz"
+    np.savez(bad, nodes=truth.nodes, tets=truth.tets + len(truth.nodes), u=truth.u, offset=truth.offset)
+    with pytest.raises(InputError, match="tets index"):
+        read_field(bad)
+    bad.write_text("not a zip")
+    with pytest.raises(InputError, match="not a truth field"):
+        read_field(bad)
+
+
+def test_measured_truth_answers_only_at_its_own_points(tmp_path):
+    from navapp.anatomy.caseio import read_truth
+    from navapp.anatomy.truth import TruthPoints
+
+    (tmp_path / "truth").mkdir()
+    (tmp_path / "truth/targets.csv").write_text("x0,y0,z0,x1,y1,z1\n1,2,3,4,5,6\n7,8,9,10,11,12\n")
+    truth = read_truth(tmp_path)
+    assert isinstance(truth, TruthPoints)
+    x0, x1 = truth.tre_points(np.zeros((5, 3)))  # whatever the registration mesh: its own points
+    np.testing.assert_array_equal(x0, [[1, 2, 3], [7, 8, 9]])
+    np.testing.assert_array_equal(x1, [[4, 5, 6], [10, 11, 12]])
+    with pytest.raises(InputError, match="regenerate the case"):
+        truth.at(x0)

@@ -24,7 +24,7 @@ def quick_case(tmp_path_factory, cache_root):
     scene = parse_scene({"name": "q", "anatomy": {"phantom": 0},
                          "deformation": {"release": "L", "mesh_edge_mm": 10.0}, "ius": {"planes": 16}})
     case = tmp_path_factory.mktemp("study") / "q"
-    simulate(scene, case, cache_root, registration_edge=12.0)
+    simulate(scene, case, cache_root)
     return case
 
 
@@ -59,7 +59,8 @@ def test_quick_run_is_resumable_and_reported(quick_case, local_rows):
         if r["level"].startswith("S+"):
             planes = tuple(int(p) for p in r["planes"].split("-"))
             reg = register(model, data_level(case, "S+planes", planes=planes, case=c))
-            assert np.isclose(tre_stats(reg.transform(c.targets[:, :3]), c.targets[:, 3:])["mean_mm"],
+            x0, x1 = c.need_truth().tre_points(model.basis.nodes)
+            assert np.isclose(tre_stats(reg.transform(x0), x1)["mean_mm"],
                               float(r["tre_mean_mm"]), atol=1e-4)
 
 
@@ -158,7 +159,7 @@ def test_quiet_is_scoped(monkeypatch):
     run_chunk (which also runs in the caller's process, to warm caches) no longer leaves
     progress.QUIET set behind it."""
     from navapp import progress
-    from navapp.anatomy import caseio
+    from navapp.evaluation import table2
     from navapp.evaluation.table2 import run_chunk
 
     monkeypatch.setattr(progress, "QUIET", False)
@@ -175,7 +176,7 @@ def test_quiet_is_scoped(monkeypatch):
         seen.append(progress.is_quiet())
         raise RuntimeError("stop here")
 
-    monkeypatch.setattr(caseio, "read_case", failing_read)
+    monkeypatch.setattr(table2, "read_case", failing_read)
     with pytest.raises(RuntimeError, match="stop here"):
         run_chunk("no-such-case", [])
     assert seen == [True]

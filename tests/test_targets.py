@@ -389,24 +389,26 @@ def test_deformation_moves_targets_like_the_vessels(small_model, phantoms):
     np.testing.assert_allclose(got, expect, atol=1e-9)
 
 
-def test_truth_targets(tmp_path, small_basis, phantoms):
-    from navapp.anatomy.caseio import Case
+def test_true_targets(tmp_path, small_basis, phantoms):
     from navapp.anatomy.targets import write_targets
-    from navapp.registration.targets import truth_targets
+    from navapp.anatomy.truth import TruthField, TruthPoints, true_targets
 
     targets = phantoms[0].targets
     shift = np.array([1.0, -2.0, 0.5])
-    case = Case(preop=phantoms[0], targets=np.column_stack([small_basis.nodes, small_basis.nodes + shift]))
-    truth, source = truth_targets(tmp_path, targets, case, small_basis)  # interpolated from the nodes
-    assert "interpolated" in source
+    field = TruthField(small_basis.nodes, small_basis.tets, np.tile(shift, (len(small_basis.nodes), 1)), np.eye(4))
+    truth, source = true_targets(tmp_path, targets, field)  # the field asked at the targets' points
+    assert source == "truth/field.npz"
     for a, b in zip(targets, truth, strict=True):
         np.testing.assert_allclose(b.surface.vertices, a.surface.vertices + shift, atol=1e-9)
+    # measured points know nothing between them
+    points = TruthPoints(small_basis.nodes, small_basis.nodes + shift)
+    assert true_targets(tmp_path, targets, points)[0] is None
     write_targets(map_targets(targets, lambda p: p + 2 * shift), tmp_path / "truth" / "targets")
-    truth, source = truth_targets(tmp_path, targets, case, small_basis)  # the simulator's files win
+    truth, source = true_targets(tmp_path, targets, field)  # the simulator's files win
     assert source == "truth/targets/"
     for a, b in zip(targets, truth, strict=True):
         np.testing.assert_allclose(b.surface.vertices, a.surface.vertices + 2 * shift, atol=1e-4)
-    assert truth_targets(tmp_path / "none", targets, None, None)[0] is None
+    assert true_targets(tmp_path / "none", targets, None)[0] is None
 
 
 def test_register_cli_writes_targets(tmp_path, capsys):

@@ -14,7 +14,7 @@ from navapp.evaluation.error_estimate import (
     table2_part,
     validate,
 )
-from navapp.mechanics.interpolation import interpolation_matrix
+from navapp.geometry.interpolation import interpolation_matrix
 from navapp.registration.libr import register_libr
 from navapp.registration.pipeline import Registration, deform_points
 from navapp.registration.rigid import RigidResult

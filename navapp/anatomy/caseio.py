@@ -18,6 +18,7 @@ from ..errors import InputError
 from ..features import NAMES
 from .model import REGION_NAMES, VESSELS, Centerline, PreopModel, polyline_tangents
 from .targets import TARGETS_DIR, read_targets, write_targets
+from .truth import FIELD_FILE, POINT_COLUMNS, POINTS_FILE, Truth, TruthField, TruthPoints, read_field
 
 LIVER_SIZE_MM = (40.0, 400.0)  # plausible range of a liver's largest extent, for the units check
 
@@ -25,23 +26,25 @@ LIVER_SIZE_MM = (40.0, 400.0)  # plausible range of a liver's largest extent, fo
 @dataclass
 class Case:
     """One registration problem: the preoperative model, intraoperative point clouds
-    (feature → (N, 3) mm, tracker space) and optional truth (T, 6): x0,y0,z0,x1,y1,z1."""
+    (feature → (N, 3) mm, tracker space) and optionally the truth (``anatomy.truth``: a
+    field known everywhere, or measured point pairs)."""
 
     preop: PreopModel
     intraop: dict = field(default_factory=dict)
-    targets: np.ndarray | None = None
+    truth: Truth | None = None
     settings: dict = field(default_factory=dict)
 
     @property
     def name(self) -> str:
         return self.settings.get("name", self.preop.name)
 
-    def truth_pairs(self) -> tuple[np.ndarray, np.ndarray]:
-        """(x0, x1), each (T, 3) mm: preoperative target points and where they truly are
-        intraoperatively (``truth/targets.csv``). Raises InputError when the case has none."""
-        if self.targets is None:
-            raise InputError(f"case {self.name!r} has no truth/targets.csv: this needs the true target positions")
-        return self.targets[:, :3], self.targets[:, 3:]
+    def need_truth(self) -> Truth:
+        """The case's truth; raises InputError when it has none (``truth/field.npz`` or
+        ``truth/targets.csv``)."""
+        if self.truth is None:
+            raise InputError(f"case {self.name!r} has no truth/{FIELD_FILE} or truth/{POINTS_FILE}: "
+                             "this needs the true intraoperative positions")
+        return self.truth
 
 
 # ---------------------------------------------------------------- case.toml
@@ -241,13 +244,14 @@ def read_case(folder) -> Case:
         holds ``preop/liver.ply`` (required) and optionally ``case.toml``, the vessels
         (``preop/{portal,hepatic}.ply`` and ``_centerline.csv``), ``preop/fiducials.csv``,
         ``preop/regions.csv``, ``preop/targets/``, ``intraop/<feature>.csv`` (the names of
-        ``navapp.features.NAMES``) and ``truth/targets.csv``.
+        ``navapp.features.NAMES``) and the truth: ``truth/field.npz`` (a simulated case)
+        or ``truth/targets.csv`` (measured point pairs).
 
     Returns
     -------
     Case
         ``preop``: the model, mm, preoperative frame; ``intraop``: feature → (N, 3) points,
-        mm, tracker space; ``targets``: (T, 6) x0, y0, z0, x1, y1, z1 or None.
+        mm, tracker space; ``truth``: ``read_truth``'s, or None.
         Missing optional files are simply absent from the result.
 
     Raises
@@ -318,11 +322,29 @@ def read_case(folder) -> Case:
                 warnings.warn(f"{p}: unknown feature {p.stem!r} ignored (known: {', '.join(NAMES)})", stacklevel=2)
                 continue
             intraop[p.stem] = read_csv(p, ("x", "y", "z"), points=True)
-    targets = None
-    tp = folder / "truth" / "targets.csv"
-    if tp.exists():
-        targets = read_csv(tp, ("x0", "y0", "z0", "x1", "y1", "z1"))
-    return Case(preop=model, intraop=intraop, targets=targets, settings=settings)
+    return Case(preop=model, intraop=intraop, truth=read_truth(folder), settings=settings)
+
+
+def read_truth(folder) -> Truth | None:
+    """The truth of case folder ``folder``: ``truth/field.npz`` (the simulator's field)
+    when present, else ``truth/targets.csv``'s measured pairs, else None. A folder holding
+    both is read as the field: the csv beside it is an older simulator's sample of it."""
+    tdir = Path(folder) / "truth"
+    if (tdir / FIELD_FILE).exists():
+        return read_field(tdir / FIELD_FILE)
+    if (tdir / POINTS_FILE).exists():
+        pairs = read_csv(tdir / POINTS_FILE, POINT_COLUMNS)
+        return TruthPoints(pairs[:, :3], pairs[:, 3:])
+    return None
+
+
+def write_truth(truth: Truth, folder):
+    """``truth/field.npz`` or ``truth/targets.csv`` in case folder ``folder``."""
+    if isinstance(truth, TruthField):
+        truth.write(folder)
+        return
+    (Path(folder) / "truth").mkdir(parents=True, exist_ok=True)
+    write_csv(Path(folder) / "truth" / POINTS_FILE, np.column_stack([truth.x0, truth.x1]), POINT_COLUMNS)
 
 
 def read_regions(path: Path, n_vertices: int) -> np.ndarray:
@@ -385,6 +407,5 @@ def write_case(case: Case, folder):
             if name not in NAMES:
                 raise InputError(f"unknown feature {name!r}")
             write_csv(idir / f"{name}.csv", pts, ("x", "y", "z"))
-    if case.targets is not None:
-        (folder / "truth").mkdir(exist_ok=True)
-        write_csv(folder / "truth" / "targets.csv", case.targets, ("x0", "y0", "z0", "x1", "y1", "z1"))
+    if case.truth is not None:
+        write_truth(case.truth, folder)

@@ -8,6 +8,8 @@ region labels and vessel centerlines where the user gave none (``autolabel``,
 the transform into navapp's. Every problem is one ``InputError`` line naming the file.
 """
 
+import contextlib
+import time
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -96,8 +98,6 @@ def mask_surface(sm: StructureMask, edge: float, max_faces: int, timings: dict |
 
 
 def _timed(timings: dict, stage: str):
-    import contextlib
-    import time
 
     @contextlib.contextmanager
     def run():
@@ -287,7 +287,6 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
     -------
     ImportReport
     """
-    import time
 
     from . import caseio
     from .autolabel import auto_regions

@@ -7,6 +7,9 @@ that overruns its work budget; dies with its parent.
 
 import os
 import sys
+import time
+
+from ..errors import NavappError
 
 
 def _die_with_parent(parent: int):
@@ -28,7 +31,6 @@ def _die_with_parent(parent: int):
 def _exit_with_parent(parent: int):
     """Where PR_SET_PDEATHSIG does not exist: end the process once its parent is gone
     (Gmsh runs in C with the GIL released, so this thread runs while it works)."""
-    import time
 
     while True:
         time.sleep(1.0)
@@ -44,7 +46,6 @@ def main(src: str, dst: str, parent: int | None = None) -> int:
         threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
     import numpy as np
 
-    from ..errors import NavappError
     from .meshing import ftetwild_mesh, gmsh_mesh
 
     with np.load(src) as a:

@@ -11,6 +11,7 @@ mesh returned meets the quality floor: no inverted tet, no dihedral angle under 
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -312,7 +313,6 @@ TEMP_PREFIX = "navapp-mesh-"
 def _sweep_stale_folders():
     """Remove ``navapp-mesh-<pid>-*`` folders whose process is gone (a caller killed by
     SIGKILL cannot clean up after itself; its worker dies with it)."""
-    import shutil
 
     import psutil
 

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .. import progress
+from ..anatomy.truth import TruthField
 from ..errors import NavappError
 from ..registration.pipeline import Registration, prepare
 from ..simulation.scenedata import SceneData, load_scene_data
@@ -318,15 +319,11 @@ class _Stage:
 
 
 def truth_at_nodes(sd: SceneData, model) -> np.ndarray | None:
-    """The true deformed positions of the mesh nodes (M, 3), when the scene's truth targets
-    are those nodes (simulated scenes meshed as the registration model), else None: the
-    viewer's true error is measured at the nodes, so other truth points give none."""
-    t = sd.case.targets
-    if t is None:
-        return None
-    x0 = t[:, :3]
-    nodes = model.basis.nodes
-    return t[:, 3:] if x0.shape == nodes.shape and np.allclose(x0, nodes) else None
+    """The true intraoperative positions of the model's nodes (M, 3) mm, tracker space,
+    asked of the scene's truth field; None without one (no truth, or truth measured only
+    at points of its own): the viewer's true error is measured at the nodes."""
+    truth = sd.case.truth
+    return truth.at(model.basis.nodes) if isinstance(truth, TruthField) else None
 
 
 def _refresh(what: Change):

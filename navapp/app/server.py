@@ -185,7 +185,8 @@ def _stop_on_failure(app: App):
     the CLI, exit 2) on the terminal. Stopping rather than offering a retry: what fails at
     start-up is decided by the command's input (the scene, the case folder, --edge, --k,
     the memory budget; meshing no longer depends on how busy the machine is), so a retry
-    would fail the same way, and a process left up with a dead viewer is what issue 25 found."""
+    would fail the same way, and a process left up with a dead viewer looks alive to the
+    user and to any script that waits for it."""
     message = app.core.failed
     if app.core.failed_traceback is not None:  # a bug: the one line names where its traceback is
         fd, path = tempfile.mkstemp(prefix="navapp-serve-", suffix=".traceback.txt")

@@ -2,7 +2,7 @@
 collected, planes added, contours drawn, registrations run.
 
 The session folder is a complete case folder (docs/design.md §3: case.toml, preop/, intraop/,
-truth/targets.csv), so ``navapp register SESSION`` reproduces a registration from it, plus
+truth/), so ``navapp register SESSION`` reproduces a registration from it, plus
 ``session.json`` holding what the case format has no place for (contours in image pixels,
 which planes were added, free probe poses, the log of registrations). Every change is
 written at once, atomically, the first one as a whole folder renamed into place; a browser
@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from ..anatomy.caseio import write_csv, write_preop, write_settings
+from ..anatomy.caseio import write_csv, write_preop, write_settings, write_truth
+from ..anatomy.model import VESSELS
 from ..errors import InputError
 from ..features import NAMES as FEATURE_NAMES
 from ..features import STYLUS as STYLUS_FEATURES
@@ -120,9 +121,8 @@ def _write_case(folder: Path, sd: SceneData):
     """The case part of a session folder, all from the scene: case.toml, preop/, truth/."""
     write_settings(folder, {"name": _case_name(sd), "units": "mm"})
     write_preop(sd.case.preop, folder)
-    if sd.case.targets is not None:
-        (folder / "truth").mkdir(exist_ok=True)
-        write_csv(folder / "truth" / "targets.csv", sd.case.targets, ("x0", "y0", "z0", "x1", "y1", "z1"))
+    if sd.case.truth is not None:
+        write_truth(sd.case.truth, folder)
 
 
 def _write_data(s: Session, folder: Path, sd: SceneData, planes: dict):
@@ -305,7 +305,7 @@ def export(folder: Path, reg, sd: SceneData, data: dict) -> list[Path]:
     folder.mkdir(parents=True, exist_ok=True)
     written = []
     preop = sd.case.preop
-    for name, mesh in (("liver", preop.liver), ("portal", preop.portal), ("hepatic", preop.hepatic)):
+    for name, mesh in ((n, getattr(preop, n)) for n in ("liver", *VESSELS)):
         if mesh is None:
             continue
         v = reg.transform(mesh.vertices)

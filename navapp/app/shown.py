@@ -59,7 +59,7 @@ class Shown:
         if truth is None or not targets:
             return None
         if self._centre_B is None:
-            from ..mechanics.interpolation import interpolation_matrix
+            from ..geometry.interpolation import interpolation_matrix
 
             model, _ = core.need_model()
             self._centre_B = interpolation_matrix(model.basis.nodes, model.basis.tets,

@@ -19,8 +19,19 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import cache
+from ..anatomy.caseio import read_case
+from ..anatomy.meshing import cached_tetmesh
+from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
 from ..errors import NavappError
+from ..mechanics.basis import BasisSettings, basis_key, load_or_compute_basis
+from ..mechanics.fem import Material
+from ..registration.libr import LMOptions
+from ..registration.pipeline import prepare, register, tre_stats
+from ..simulation.levels import data_level
+from ..simulation.scene import demo_scene
+from ..simulation.simulate import simulate
 
 
 def peak_memory_mb() -> float:
@@ -44,10 +55,6 @@ def precompute_one(edge: float, k: int, volume_ml: float | None = None, relax: s
     ``relax``: "local" (the default subdomain) or "exact" (whole-mesh relaxation).
     ``mesh_from``: a cached mesh file to start from (Gmsh does not give the same mesh twice,
     and exact and local bases are compared on one mesh); its row then has no mesh time."""
-    from ..anatomy.meshing import cached_tetmesh
-    from ..anatomy.phantom import make_phantom
-    from ..mechanics.basis import BasisSettings, basis_key, load_or_compute_basis
-    from ..mechanics.fem import Material
 
     settings = BasisSettings(k=k) if relax == "local" else BasisSettings(k=k, relax_layers=None)
     root = Path(tempfile.mkdtemp(prefix="navapp-bench-"))
@@ -77,7 +84,6 @@ def precompute_one(edge: float, k: int, volume_ml: float | None = None, relax: s
 
 def mode_errors(fast_file, exact_file) -> dict:
     """Per-mode relative error ‖Ju_fast − Ju_exact‖/‖Ju_exact‖ (one per column): median, max."""
-    from .. import cache
 
     fast, exact = cache.load(Path(fast_file)), cache.load(Path(exact_file))
     if fast is None or exact is None:
@@ -116,20 +122,14 @@ def bench_precompute(edges, ks, volume_ml=None, relax="local"):
 def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM):
     """Demo scene, stylus data + the first ``planes`` iUS planes; then one more plane
     added and the fit warm-started from the previous state."""
-    from ..anatomy.caseio import read_case
-    from ..registration.libr import LMOptions
-    from ..registration.pipeline import prepare, register, tre_stats
-    from ..simulation.levels import data_level
-    from ..simulation.scene import demo_scene
-    from ..simulation.simulate import simulate
 
     folder = Path(tempfile.mkdtemp(prefix="navapp-bench-")) / "demo"
-    simulate(demo_scene(), folder, registration_edge=edge)
+    simulate(demo_scene(), folder)
     case = read_case(folder)
     data = data_level(folder, "S+planes", planes=range(planes), case=case)
     more = data_level(folder, "S+planes", planes=range(planes + 1), case=case)
     model, _ = prepare(case, edge, k)
-    x0, x1 = case.truth_pairs()
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     times, rigid_s, support_s, iters = [], [], [], []
     for _ in range(repeats):
         reg = register(model, data)

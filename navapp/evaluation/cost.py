@@ -7,16 +7,24 @@ study command (``navapp study cost``) adds the settings that need a new basis (k
 edge) and the amount of data (planes).
 """
 
+import csv
+import tempfile
 import time
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from .. import progress
+from ..anatomy.caseio import read_case
+from ..anatomy.meshing import cached_tetmesh
 from ..defaults import EDGE_MM, N_PLANES, K
-from ..mechanics.interpolation import interpolation_matrix
+from ..geometry.interpolation import interpolation_matrix
 from ..registration.libr import LMOptions
-from ..registration.pipeline import register, tre_stats
-from ..simulation.levels import plus_planes
+from ..registration.pipeline import prepare, register, tre_stats
+from ..simulation.levels import data_level, plus_planes
+from .distribute import ResultsCSV, check_scheduler, run_tasks
+from .peers import cpd_register, icp_register
 
 LM_CAPS = (0, 1, 2, 4, 8, 16, 100)  # 0 = rigid only
 LM_RTOLS = (1e-1, 1e-2, 1e-3)
@@ -129,10 +137,7 @@ def cost_case(case_dir, ks=KS, edges=EDGES, caps=LM_CAPS, rtols=LM_RTOLS, plane_
 
     Precompute seconds are measured cold (mesh + basis in an empty temporary cache), once
     per (edge, k); registration seconds are one run each, rigid ICP included."""
-    import tempfile
-    from pathlib import Path
 
-    from .. import progress
 
     case_dir = Path(case_dir)
     plan = _planned_keys(case_dir.name, ks, edges, caps, rtols, plane_counts, peers, edge0, k0)
@@ -140,17 +145,14 @@ def cost_case(case_dir, ks=KS, edges=EDGES, caps=LM_CAPS, rtols=LM_RTOLS, plane_
     if not any(todo.values()):
         return []
     with progress.quiet():  # a study step (often in a worker process): no bars of its own
-        return _cost_case(case_dir, todo, caps, rtols, plane_counts, peers, tempfile, Path)
+        return _cost_case(case_dir, todo, caps, rtols, plane_counts, peers)
 
 
-def _cost_case(case_dir, todo, caps, rtols, plane_counts, peers, tempfile, Path) -> list[dict]:
-    from ..anatomy.caseio import read_case
-    from ..registration.pipeline import prepare
-    from ..simulation.levels import data_level
-    from .peers import cpd_register, icp_register
+def _cost_case(case_dir, todo, caps, rtols, plane_counts, peers) -> list[dict]:
 
     case = read_case(case_dir)
-    x0, x1 = case.truth_pairs()
+    # every configuration's TRE at the same points: the default registration mesh's nodes
+    x0, x1 = case.need_truth().tre_points(cached_tetmesh(case.preop.liver, EDGE_MM)[0].nodes)
     levels = {name: data_level(case_dir, "S+planes", planes=pl, case=case) for name, pl in SWEEP_LEVELS.items()}
     rows: list[dict] = []
 
@@ -224,11 +226,7 @@ def run_cost_study(case_dirs, results_csv, workers=1, quick=False, scheduler=Non
     edges {6, 4}, fewer LM settings, no CPD; ``settings`` override ``cost_case``'s.
     ``scheduler``: a Dask scheduler's address (checked before any work); each case runs on
     one of its workers (their timings are then that worker's)."""
-    import csv
-    from pathlib import Path
 
-    from .. import progress
-    from .distribute import ResultsCSV, check_scheduler, run_tasks
 
     results_csv = Path(results_csv)
     done = set()

@@ -17,6 +17,8 @@ validation whatever the cases are called.
 import csv
 import hashlib
 import itertools
+import json
+import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -24,8 +26,11 @@ import numpy as np
 from scipy.optimize import nnls
 
 from .. import progress
+from ..anatomy.caseio import read_case
 from ..defaults import EDGE_MM, K
-from ..registration.uncertainty import Calibration
+from ..errors import InputError, NavappError
+from ..registration.pipeline import prepare, register, rigid_starts
+from ..registration.uncertainty import Calibration, estimate_error
 from ..simulation.levels import has_planes, plane_count, study_data, stylus_only_pose
 
 # the levels the estimate is calibrated and validated at (module doc), of ``simulation.levels.LEVELS``
@@ -53,7 +58,6 @@ def liver_id(case_dir) -> str:
     cases is made on it."""
     path = Path(case_dir) / "preop" / "liver.ply"
     if not path.is_file():
-        from ..errors import InputError
 
         raise InputError("no preoperative liver surface (preop/liver.ply)", Path(case_dir))
     return hashlib.sha1(path.read_bytes()).hexdigest()[:12]
@@ -71,20 +75,12 @@ def plane_choices(level, n_planes, combos, rng):
 
 def collect_case(case_dir, levels=ESTIMATE_LEVELS, combos=3, seed=0, edge=EDGE_MM, k=K) -> list[Sample]:
     """Register one case at every level and record d, σ and the true error per mesh node."""
-    import time
 
-    from ..anatomy.caseio import read_case
-    from ..registration.pipeline import prepare, register, rigid_starts
-    from ..registration.uncertainty import estimate_error
 
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
-    x0, x1 = case.truth_pairs()
-    if x0.shape != model.basis.nodes.shape or not np.allclose(x0, model.basis.nodes):
-        from ..errors import InputError
-
-        raise InputError("the case's targets are not the mesh nodes (regenerate the case)", case_dir)
+    x1 = case.need_truth().at(model.basis.nodes)  # the truth at every node (measured points: InputError)
     n_planes = len([p for p in (case_dir / "intraop" / "us").glob("plane_??") if p.is_dir()])
     stylus = study_data(case_dir, "S", case=case)
     starts = rigid_starts(model, stylus)  # shared by S and S + planes (``register``'s ``starts``)
@@ -174,7 +170,6 @@ def split_and_fit(collected: dict, calibration_livers, coverage=NOMINAL) -> tupl
     (calibration, {table name: validate rows}, calibration samples, validation samples).
     Raises NavappError when a liver would be both fitted and validated or a side is empty.
     """
-    from ..errors import NavappError
 
     livers = set(calibration_livers)
     calib = [s for v in collected.values() for s in v if s.liver in livers]
@@ -317,7 +312,6 @@ def set_label(case_dirs) -> str:
 def study_command(case_dirs, args):
     """``navapp study error-estimate``: writes <report>/error_estimate.md and .csv. The
     calibration livers: the first case's liver, in ``--cases`` and in ``--with-cases``."""
-    import json
 
     sets = {set_label(case_dirs): list(case_dirs)}
     if getattr(args, "with_cases", None):

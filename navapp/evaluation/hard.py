@@ -25,15 +25,28 @@ way. For each case the table records, and ``HardResult.failures`` checks:
 - identical input → bit-identical β, pose and TRE (the case is run twice).
 """
 
+import sys
 import time
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
+from .. import progress
+from ..anatomy.meshing import TetMesh, cached_tetmesh, dihedral_angles, tet_volumes
+from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
+from ..errors import NavappError
+from ..mechanics.basis import BasisSettings, load_or_compute_basis
+from ..mechanics.fem import Material
+from ..registration.libr import LMOptions
+from ..registration.model import REGION_FEATURES, build_model
+from ..registration.objective import Weights, evaluate
+from ..registration.pipeline import register
+from ..registration.rotation import rotation
 
 if TYPE_CHECKING:
     from ..anatomy.meshing import TetMesh
@@ -89,11 +102,6 @@ def bend(x, centre, half):
 
 def make_setup(preop=None, edge=EDGE_MM, k=K, cache_root=None) -> Setup:
     """Mesh and basis of phantom 0 (cached), the true deformation, targets and data."""
-    from ..anatomy.meshing import cached_tetmesh
-    from ..anatomy.phantom import make_phantom
-    from ..mechanics.basis import BasisSettings, load_or_compute_basis
-    from ..registration.model import build_model
-    from ..registration.rotation import rotation
 
     preop = make_phantom(0) if preop is None else preop
     mesh, _ = cached_tetmesh(preop.liver, edge, cache_root)
@@ -122,9 +130,6 @@ def _variant(setup: Setup, name: str):
     points), "locking" (ν = 0.4999), "slivers" (interior nodes jittered into slivers)."""
     if name in setup.variants:
         return setup.variants[name]
-    from ..mechanics.basis import BasisSettings, load_or_compute_basis
-    from ..mechanics.fem import Material
-    from ..registration.model import build_model
 
     mesh, settings, material = setup.mesh, BasisSettings(k=setup.k), Material()
     if name == "many":
@@ -142,7 +147,6 @@ def sliver_mesh(mesh, amplitude=0.45, seed=SEED):
     """The same mesh with every interior node moved at random by up to ``amplitude`` × its
     shortest edge (surface untouched), moves that invert a tet taken back: valid (all
     volumes positive) but full of slivers. Returns a TetMesh."""
-    from ..anatomy.meshing import TetMesh, tet_volumes
 
     nodes, tets = mesh.nodes.copy(), mesh.tets
     rng = np.random.default_rng(seed)
@@ -178,13 +182,11 @@ class HardCase:
 
 
 def _opts(**kw):
-    from ..registration.libr import LMOptions
 
     return LMOptions(condition=True, **kw)
 
 
 def _weights(all_=1.0, energy=1.0):
-    from ..registration.objective import Weights
 
     w = Weights().scaled(all_)
     return replace(w, energy=w.energy * energy)
@@ -193,7 +195,6 @@ def _weights(all_=1.0, energy=1.0):
 def _rotated_about_data(setup, degrees):
     """Data (and truth) rotated about the AP axis through the data centroid: the tracker
     frame of a wrongly mounted reference."""
-    from ..registration.rotation import rotation
 
     y = setup.baseline()
     c = y.mean(0)
@@ -347,9 +348,6 @@ def nonrigid_max(nodes, u) -> float:
 
 def _register_once(case: HardCase, setup: Setup):
     """One registration of the case: (outcome, message, reg or None, model, options, seconds)."""
-    from ..errors import NavappError
-    from ..registration.libr import LMOptions
-    from ..registration.pipeline import register
 
     data, model, options = case.make(setup)
     model = model or setup.model
@@ -373,8 +371,6 @@ def _register_once(case: HardCase, setup: Setup):
 
 def run_case(case: HardCase, setup: Setup) -> HardResult:
     """Register the case twice and check it (see the module doc)."""
-    from ..registration.model import REGION_FEATURES
-    from ..registration.objective import evaluate
 
     outcome, message, reg, model, options, sec = _register_once(case, setup)
     outcome2, message2, reg2, *_ = _register_once(case, setup)
@@ -485,7 +481,6 @@ def markdown(results, setup: Setup, command: str) -> str:
     lines += ["", "| case | what is hard | message |", "|---|---|---|"]
     lines += [f"| {r.case} | {r.what} | {r.message.replace('|', '/') or '—'} |" for r in results]
     if "slivers" in setup.variants:
-        from ..anatomy.meshing import dihedral_angles
 
         b = setup.variants["slivers"].basis
         ang = dihedral_angles(b.nodes, b.tets).min(1)
@@ -500,10 +495,7 @@ def markdown(results, setup: Setup, command: str) -> str:
 def study_command(report, edge: float = EDGE_MM, k: int = K) -> int:
     """``navapp study hard``: run every case at the given model, print the table, write
     ``<report>/hard_cases.md``. Exit status 1 when a case broke its bounds."""
-    import sys
-    from pathlib import Path
 
-    from .. import progress
 
     with progress.stage(f"hard cases: model of phantom 0 ({edge:g} mm, k = {k})"):
         setup = make_setup(edge=edge, k=k)

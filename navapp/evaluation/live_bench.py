@@ -26,7 +26,12 @@ import numpy as np
 from threadpoolctl import threadpool_info
 
 from ..defaults import EDGE_MM, K
+from ..geometry.interpolation import interpolation_matrix
 from ..registration.live import LiveRegistration
+from ..registration.pipeline import prepare, register, tre_stats
+from ..simulation.levels import data_level
+from ..simulation.scene import demo_scene
+from ..simulation.scenedata import auto_segmentation, load_scene_data, segment_frame
 from ..tracking.replay import interpolate_pose
 
 VARIANTS: dict[str, dict] = {"default": {"threads": 1, "iterations_per_frame": 1},
@@ -57,11 +62,6 @@ def _last(live: LiveRegistration):
 
 
 def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8):
-    from ..mechanics.interpolation import interpolation_matrix
-    from ..registration.pipeline import prepare, register, tre_stats
-    from ..simulation.levels import data_level
-    from ..simulation.scene import demo_scene
-    from ..simulation.scenedata import auto_segmentation, load_scene_data, segment_frame
 
     sd = load_scene_data(demo_scene(), edge=edge)
     if auto_segmentation(sd.scene) is None:
@@ -92,9 +92,7 @@ def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8):
             rows[name].append({"ms": wall, "iterations": reg.libr.iterations,
                                "stages_ms": {s: 1000 * v for s, v in reg.libr.timings.items()},
                                "outside_lm_ms": wall - 1000 * reg.seconds.get("deformable", wall / 1000)})
-    targets = sd.case.targets
-    assert targets is not None  # the demo scene is simulated: its truth is known
-    x0, x1 = targets[:, :3], targets[:, 3:]
+    x0, x1 = sd.case.need_truth().tre_points(model.basis.nodes)  # the demo scene is simulated: its truth is known
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
     out = {"liver": "demo (phantom 0)", "nodes": model.basis.M, "k": model.basis.k, "kept_planes": planes,
            "updates": len(rows["default"]), "frame_points_median": int(np.median(frame_pts)),

@@ -21,8 +21,15 @@ from pathlib import Path
 import numpy as np
 
 from .. import progress
+from ..anatomy.caseio import read_case, read_csv
 from ..defaults import EDGE_MM, K
-from ..simulation.levels import plus_planes
+from ..errors import InputError, NavappError
+from ..registration.next_plane import anterior_surface_mask, suggest_planes
+from ..registration.pipeline import prepare, register, rigid_starts, tre_stats
+from ..registration.uncertainty import DEFAULT_CALIBRATION as cal
+from ..registration.uncertainty import estimate_error
+from ..simulation.levels import data_level, plus_planes
+from .error_estimate import table2_part
 from .table2 import read_results
 
 COLUMNS = ("case", "level", "planes", "tre_mean_mm", "tre_table2_mm", "rank", "combinations", "percentile",
@@ -38,7 +45,6 @@ def compare_expected(candidates, plane_ids, case_dir) -> dict:
     points, and the median ratio expected pixel count / acquired points."""
     from scipy.spatial import cKDTree
 
-    from ..anatomy.caseio import read_csv
 
     agree, dist, ratio = [], [], []
     for c in candidates:
@@ -58,7 +64,6 @@ def compare_expected(candidates, plane_ids, case_dir) -> dict:
 
 def recorded_poses(case_dir) -> list[tuple[str, np.ndarray]]:
     """The case's recorded probe poses (orientation, 4×4 ProbeToTracker) from intraop/us/planes.json."""
-    from ..errors import InputError
 
     path = Path(case_dir) / "intraop" / "us" / "planes.json"
     try:
@@ -89,7 +94,6 @@ def _spearman(score, tre):
 def criteria() -> dict:
     """The scores compared: the default (ê = a + b·d + c·σ + e·d·m) and its distance and
     covariance parts alone."""
-    from ..registration.uncertainty import DEFAULT_CALIBRATION as cal
 
     return {"ê (default)": cal, "d only": replace(cal, c=0.0), "σ only": replace(cal, b=0.0, e=0.0)}
 
@@ -97,14 +101,11 @@ def criteria() -> dict:
 def fresh_single_planes(case_dir, edge=EDGE_MM, k=K) -> dict:
     """Mean TRE of S + each single plane registered now (as Table II registers), so that
     the S + 1 rank does not depend on a CSV made by an older registration: {plane: TRE}."""
-    from ..anatomy.caseio import read_case
-    from ..registration.pipeline import prepare, register, rigid_starts, tre_stats
-    from ..simulation.levels import data_level
 
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
-    x0, x1 = case.truth_pairs()
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     starts = rigid_starts(model, data_level(case_dir, "S", case=case))  # shared: the stylus's
     out = {}
     for i in range(len(recorded_poses(case_dir))):
@@ -116,15 +117,11 @@ def fresh_single_planes(case_dir, edge=EDGE_MM, k=K) -> dict:
 def run_case(case_dir, table, steps=3, edge=EDGE_MM, k=K, calibration=None, fresh=None) -> list[dict]:
     """Greedy suggestions from S on one case; ``fresh``: ``fresh_single_planes`` of the case
     (adds the S + 1 rank among this run's own single-plane registrations)."""
-    from ..anatomy.caseio import read_case
-    from ..registration.next_plane import suggest_planes
-    from ..registration.pipeline import prepare, register, rigid_starts, tre_stats
-    from ..simulation.levels import data_level
 
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
-    x0, x1 = case.truth_pairs()
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     poses = recorded_poses(case_dir)
     stylus = data_level(case_dir, "S", case=case)
     starts = rigid_starts(model, stylus)  # shared: every registration here has the stylus's
@@ -175,11 +172,6 @@ def run_case(case_dir, table, steps=3, edge=EDGE_MM, k=K, calibration=None, fres
 def benchmark(case_dir, repeats=5, edge=EDGE_MM, k=K) -> dict:
     """Seconds for one suggestion over 16 automatic candidates (``candidate_poses``) from the
     S registration of ``case_dir``: median and all runs."""
-    from ..anatomy.caseio import read_case
-    from ..registration.next_plane import anterior_surface_mask, suggest_planes
-    from ..registration.pipeline import prepare, register
-    from ..registration.uncertainty import estimate_error
-    from ..simulation.levels import data_level
 
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
@@ -323,13 +315,11 @@ def study_command(case_dirs, results, report, with_cases=None, with_results=None
     sets = {"study cases": (list(case_dirs), Path(results))}
     if with_cases:
         if not with_results:
-            from ..errors import NavappError
 
             raise NavappError("--with-cases needs --with-results (their Table II CSV) for the ranks")
         sets["second set"] = (list(with_cases), Path(with_results))
     for _, csv_path in sets.values():
         if not csv_path.exists():
-            from ..errors import InputError
 
             raise InputError("no Table II results to rank against (run `navapp study table2` first)", csv_path)
     run_study(sets, report, bench_case=case_dirs[0])
@@ -342,7 +332,6 @@ def table2_section(results_dir="results") -> str:
 results/table2.md, from
     error_estimate.csv, next_plane.csv and (when present) next_plane_lap.csv in
     ``results_dir``. Append it after ``report.write_report`` has (re)written table2.md."""
-    from .error_estimate import table2_part
 
     res = Path(results_dir)
     with (res / "error_estimate.csv").open() as f:

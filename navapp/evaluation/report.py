@@ -6,7 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
+from ..anatomy.caseio import read_case
 from ..defaults import EDGE_MM, N_PLANES, K
+from ..registration.pipeline import prepare, register
 from ..simulation.levels import LEVELS, study_data
 from .table2 import PAPER, read_results
 
@@ -85,8 +87,6 @@ def distance_plot(case_dirs, path, level="S+all", edge=EDGE_MM, k=K) -> float:
     from scipy.spatial import cKDTree
     from scipy.stats import pearsonr
 
-    from ..anatomy.caseio import read_case
-    from ..registration.pipeline import prepare, register
 
     dist, err = [], []
     for d in case_dirs:
@@ -95,7 +95,7 @@ def distance_plot(case_dirs, path, level="S+all", edge=EDGE_MM, k=K) -> float:
         planes = range(N_PLANES) if level == "S+all" else ()
         data = study_data(d, level, planes, case=case)
         reg = register(model, data)
-        x0, x1 = case.truth_pairs()
+        x0, x1 = case.need_truth().tre_points(model.basis.nodes)
         pts = np.vstack(list(data.values()))
         dist.append(cKDTree(pts).query(x1)[0])
         err.append(np.linalg.norm(reg.transform(x0) - x1, axis=1))

@@ -29,8 +29,13 @@ from pathlib import Path
 import numpy as np
 
 from .. import progress
+from ..anatomy.caseio import read_case, read_surface
 from ..defaults import EDGE_MM, N_PLANES, K
 from ..features import SALIENT
+from ..geometry.interpolation import interpolation_matrix
+from ..registration import pipeline
+from ..registration.pipeline import prepare, tre_stats
+from ..simulation.levels import data_level
 from .distribute import ResultsCSV, check_scheduler, run_tasks
 
 OFFSETS = ((0.0, 0.0), (5.0, 10.0), (10.0, 20.0), (15.0, 30.0), (20.0, 40.0))  # (degrees, mm)
@@ -129,7 +134,6 @@ def mislabel(data: dict, rng, fraction=0.1) -> dict:
 
 def trial_data(case_dir, case, trial: Trial, truth_surface=None, n_planes=N_PLANES):
     """(data, offset function, planes) of a trial: S + 3 planes, label noise, then offset."""
-    from ..simulation.levels import data_level
 
     rng = np.random.default_rng(_seed(trial.case, trial.draw, "planes"))
     planes = tuple(sorted(int(p) for p in rng.choice(n_planes, 3, replace=False)))
@@ -150,7 +154,6 @@ def register_with(method: str, model, data):
     Copied into a tree whose pipeline has no ``METHODS`` (before multi-start ICP), the only
     method is "single-icp", that tree's default path: how the baseline was checked against
     the old code."""
-    from ..registration import pipeline
 
     if not hasattr(pipeline, "METHODS"):
         if method != BASELINE:
@@ -162,14 +165,11 @@ def register_with(method: str, model, data):
 @progress.quiet()  # scoped, as table2.run_chunk: a study step must not silence its caller
 def run_case(case_dir, trials, methods, edge=EDGE_MM, k=K) -> list[dict]:
     """Every (trial, method) of one case; returns CSV rows."""
-    from ..anatomy.caseio import read_case, read_surface
-    from ..mechanics.interpolation import interpolation_matrix
-    from ..registration.pipeline import prepare, tre_stats
 
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
-    x0, x1 = case.truth_pairs()
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
     surface, _ = read_surface(case_dir / "truth" / "liver.ply", closed=False)
     surface = surface[0] if isinstance(surface, tuple) else surface  # (mesh, clean-up report) since 31bc815

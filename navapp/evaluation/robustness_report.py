@@ -1,5 +1,6 @@
 """``results/robustness.md`` and its plot from the robustness study's CSV rows."""
 
+import time
 from collections import defaultdict
 from pathlib import Path
 
@@ -203,7 +204,6 @@ def run_study(cases, results: Path, report: Path, workers: int = 1, quick: bool 
     one worker by default (the rows carry timings); ``quick``: one draw and the 0°, 15° and
     20° offsets; ``scheduler``: a Dask scheduler's address (``run_robustness``).
     """
-    import time
 
     offsets = tuple(o for o in OFFSETS if o[0] in (0.0, 15.0, 20.0)) if quick else OFFSETS
     t0 = time.perf_counter()

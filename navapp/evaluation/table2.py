@@ -17,7 +17,10 @@ from pathlib import Path
 import numpy as np
 
 from .. import progress
+from ..anatomy.caseio import read_case
 from ..defaults import EDGE_MM, N_PLANES, K
+from ..geometry.interpolation import interpolation_matrix
+from ..registration.pipeline import prepare, register, rigid_starts, tre_stats
 from ..simulation.levels import LEVELS, plus_planes, study_data, stylus_only_pose  # noqa: F401 (LEVELS: Table II's rows)
 from .distribute import DASK_CONNECT_S, ResultsCSV, check_scheduler, dask_client, run_tasks  # noqa: F401
 
@@ -47,14 +50,11 @@ def _key(case, level, planes):
 def run_chunk(case_dir, items, edge=EDGE_MM, k=K, init=None):
     """Register one case at the given (level, planes) items; returns CSV rows (dicts).
     ``init``: the registration's ``RobustOptions`` (default: the pipeline's)."""
-    from ..anatomy.caseio import read_case
-    from ..mechanics.interpolation import interpolation_matrix
-    from ..registration.pipeline import prepare, register, rigid_starts, tre_stats
 
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case, edge, k)
-    x0, x1 = case.truth_pairs()
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)  # once: it costs as much as a registration
     # The multi-start ICP sees only the stylus features (registration/rigid.py), which are
     # the same for S and every S + planes scenario of a case: it runs once per chunk and its

@@ -9,6 +9,7 @@ from pathlib import Path
 from .. import progress
 from ..argtypes import k_count, positive
 from ..defaults import EDGE_MM, LM_MAX_ITERATIONS, K
+from ..errors import InputError
 
 
 def add_register_parser(sub):
@@ -26,7 +27,6 @@ def add_register_parser(sub):
 
 def cmd_register(args):
     from ..anatomy.caseio import read_case
-    from ..errors import InputError
     from .libr import LMOptions
     from .pipeline import prepare, register, write_outputs
 
@@ -87,8 +87,9 @@ def _targets(case_dir, case, reg, model) -> tuple[list[dict], Callable[[Path], N
     truth is known, errors; and the writer of their surfaces (PLY, tracker space) into an
     output folder's ``targets/``, which ``write_outputs`` calls inside its staging folder."""
     from ..anatomy.targets import TARGETS_DIR, write_targets
+    from ..anatomy.truth import true_targets
     from .support import target_support
-    from .targets import registered_targets, target_errors, truth_targets
+    from .targets import registered_targets, target_errors
 
     targets = case.preop.targets
     moved = registered_targets(reg, targets)
@@ -96,7 +97,7 @@ def _targets(case_dir, case, reg, model) -> tuple[list[dict], Callable[[Path], N
     # (deformation is small against the distances that matter here)
     supports = target_support(reg.support, {t.name: t.centre for t in targets}, reg.data_model_frame) \
         if reg.libr is not None else []
-    truth, source = truth_targets(case_dir, targets, case, model.basis)
+    truth, source = true_targets(case_dir, targets, case.truth)
     rigid = registered_targets(reg, targets, rigid=True) if truth is not None else []
     rows = []
     for i, (t, m) in enumerate(zip(targets, moved, strict=True)):

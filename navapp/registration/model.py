@@ -23,8 +23,8 @@ from ..anatomy.model import REGION_NAMES, VESSELS, PreopModel
 from ..errors import InputError
 from ..features import SALIENT, data_to_model, weights_si
 from ..geometry.closest import incidence
+from ..geometry.interpolation import interpolation_matrix
 from ..mechanics.basis import Basis
-from ..mechanics.interpolation import interpolation_matrix
 from .rotation import rotation
 
 # the data features' weights (m⁻², paper §II-D), salient features and model targets come

@@ -27,8 +27,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..defaults import FAR_WALL_COS, FAR_WALL_MIN_DEPTH_MM, PROBE_HEIGHT_PX, PROBE_SPACING_MM, PROBE_WIDTH_PX
+from ..geometry.interpolation import interpolation_matrix
 from ..geometry.planes import plane_section
-from ..mechanics.interpolation import interpolation_matrix
 from ..threads import limit_threads
 from .objective import evaluate
 from .uncertainty import (

@@ -22,10 +22,11 @@ import trimesh
 
 from ..anatomy.caseio import Case, write_csv
 from ..anatomy.meshing import cached_tetmesh
+from ..anatomy.model import VESSELS
 from ..defaults import EDGE_MM, K
 from ..errors import CarriedWarning, InputError
+from ..geometry.interpolation import interpolation_matrix
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
-from ..mechanics.interpolation import interpolation_matrix
 from .coverage import note_coverage
 from .libr import LibrResult, LMOptions, register_libr
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
@@ -538,7 +539,7 @@ def write_outputs(case: Case, reg: Registration, out: Path, extra: dict,
 
 def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dict:
     out = Path(out)
-    for name in ("liver", "portal", "hepatic"):
+    for name in ("liver", *VESSELS):
         mesh = getattr(case.preop, name)
         if mesh is not None:
             trimesh.Trimesh(reg.transform(mesh.vertices), mesh.faces, process=False).export(out / f"{name}.ply")
@@ -552,8 +553,8 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
     lines = reg.warnings + [w for t in summary.get("targets", []) if (w := t.get("warning"))]
     summary["warnings"] = lines
     summary["warning"] = "; ".join(lines) if lines else None
-    if case.targets is not None:
-        x0, x1 = case.targets[:, :3], case.targets[:, 3:]
+    if case.truth is not None:  # reported, never fitted: the TRE at the truth's points (``anatomy.truth``)
+        x0, x1 = case.truth.tre_points(reg.model.basis.nodes)
         pred = reg.transform(x0)
         write_csv(out / "targets.csv", np.column_stack([x0, pred]), ("x0", "y0", "z0", "x1", "y1", "z1"))
         summary["tre_rigid"] = tre_stats(reg.rigid.apply(x0), x1)

@@ -1,17 +1,17 @@
-"""Tumour targets carried through a registration, and their error where truth is known.
+"""Tumour targets carried through a registration, and their error against a given truth
+(where the truth is, ``anatomy.truth.true_targets``: the solver never reads it).
 
 The targets are mapped by ``Registration.transform`` (rigid pose after eq. 8's
 deformation, ``pipeline.deform_points``): this module adds no second implementation of
 the deformation, it only feeds it the targets' points (``anatomy.targets.target_points``).
 """
 
-from pathlib import Path
 
 import numpy as np
 
-from ..anatomy.targets import TARGETS_DIR, Target, map_targets, read_targets, target_points, with_points
+from ..anatomy.targets import Target, map_targets, target_points
+from ..geometry.interpolation import interpolation_matrix
 from ..geometry.targets_distance import unsigned_distance
-from ..mechanics.interpolation import interpolation_matrix
 
 
 def target_interpolation(reg, targets: list[Target]):
@@ -32,34 +32,6 @@ def registered_targets(reg, targets: list[Target], beta=None, B=None, rigid: boo
     if rigid:
         return map_targets(targets, reg.rigid.apply)
     return map_targets(targets, lambda p: reg.transform(p, beta, B))
-
-
-def truth_targets(case_dir, targets: list[Target], case=None, basis=None) -> tuple[list[Target] | None, str]:
-    """Where the targets truly are intraoperatively, and how that is known.
-
-    ``truth/targets/`` (the simulator writes the targets deformed by its ground truth)
-    wins; otherwise, when ``case.targets`` (truth/targets.csv, x0 → x1) holds the nodes
-    of ``basis``'s mesh, the true node displacements are interpolated to the targets
-    (linear within each tetrahedron: exact up to the mesh's interpolation error).
-    Returns (targets in the order given, source) or (None, reason).
-    """
-    if not targets:
-        return None, "no targets"
-    tdir = Path(case_dir) / "truth" / TARGETS_DIR
-    if tdir.is_dir():
-        found = {t.name: t for t in read_targets(tdir)}
-        missing = [t.name for t in targets if t.name not in found]
-        if missing:
-            return None, f"truth/{TARGETS_DIR}/ lacks {', '.join(missing)}"
-        return [found[t.name] for t in targets], f"truth/{TARGETS_DIR}/"
-    if case is not None and case.targets is not None and basis is not None:
-        x0, x1 = case.targets[:, :3], case.targets[:, 3:]
-        if x0.shape == basis.nodes.shape and np.allclose(x0, basis.nodes, atol=1e-6):
-            p = target_points(targets)
-            u = interpolation_matrix(basis.nodes, basis.tets, p) @ (x1 - x0)
-            return with_points(targets, p + u), "truth/targets.csv interpolated in the registration mesh"
-        return None, "truth/targets.csv is not on this registration mesh"
-    return None, "no truth"
 
 
 def target_errors(registered: Target, truth: Target) -> dict:

@@ -26,7 +26,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..mechanics.interpolation import interpolation_matrix
+from ..geometry.interpolation import interpolation_matrix
 from ..threads import limit_threads
 from .model import REGION_FEATURES, RegistrationModel, deform
 from .objective import Weights, evaluate
@@ -137,7 +137,7 @@ def point_jacobian(model: RegistrationModel, beta, B=None, nodes=None) -> tuple[
     Parameters
     ----------
     B : sparse (P, M), optional
-        interpolation matrix of the points (``mechanics.interpolation``); None: mesh nodes.
+        interpolation matrix of the points (``geometry.interpolation``); None: mesh nodes.
     nodes : (P,) int, optional
         which mesh nodes (without ``B``); None: all of them.
 

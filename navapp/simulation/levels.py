@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..anatomy.caseio import read_csv, read_surface
+from ..anatomy.caseio import read_case, read_csv, read_surface
 from ..anatomy.model import VESSELS
 from ..errors import InputError
 from ..features import STYLUS
@@ -63,7 +63,6 @@ def study_data(case_dir, level: str, planes=(), case=None, stylus=None) -> dict:
 
 def data_level(case_dir, level: str, planes=(), spacing=3.0, case=None) -> dict:
     """Intraoperative data (feature → (N, 3) mm) of ``level`` for a simulated case."""
-    from ..anatomy.caseio import read_case
 
     case_dir = Path(case_dir)
     case = case or read_case(case_dir)

@@ -17,25 +17,29 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from ..anatomy.caseio import Case, read_case
+from ..anatomy.caseio import Case, read_case, read_csv
 from ..anatomy.model import VESSELS
 from ..cache import cache_dir, content_key
+from ..defaults import EDGE_MM
 from ..features import STYLUS
+from ..simulation.effects import Ledger
 from .probe import Probe
-from .scene import Scene
-from .simulate import REGISTRATION_EDGE_MM, simulate
+from .scene import Effect, Scene
+from .simulate import simulate
 from .ultrasound import PlaneData, acquire_plane
 
 STYLUS_FEATURES = STYLUS  # (``navapp.features``)
-SCENE_CACHE_VERSION = "1"  # bump when the simulator's output changes
+# bump when the simulator's output changes (2: the truth as a field, no registration mesh)
+SCENE_CACHE_VERSION = "2"
+SESSION_SCENE_VERSION = "1"  # a session's scene identity: sessions saved before stay valid
 
 
 @dataclass
 class SceneData:
     scene: Scene
-    edge: float  # registration mesh edge, mm
+    edge: float  # registration mesh edge, mm (the viewer's model; the simulation is apart from it)
     case_dir: Path
-    case: Case  # preop, all intraop data (stylus + every plane), truth targets
+    case: Case  # preop, all intraop data (stylus + every plane), the truth field
     stylus: dict  # feature → (N, 3) mm, the stylus's share of case.intraop
     stylus_path: np.ndarray  # (N, 3) all stylus points in the order the tip visits them
     stylus_labels: np.ndarray  # (N,) the feature each point of stylus_path belongs to
@@ -44,23 +48,33 @@ class SceneData:
     truth: dict  # "liver" / "portal" / "hepatic" → deformed trimesh (tracker space)
 
 
-def scene_key(scene: Scene, edge=REGISTRATION_EDGE_MM) -> str:
-    """Hash of every scene parameter and the registration mesh size (the truth targets
-    are that mesh's nodes). A scene built on a case folder is keyed by its path."""
+def _scene_params(scene: Scene) -> dict:
     d = dataclasses.asdict(scene)
     d.pop("source", None)
-    return content_key(SCENE_CACHE_VERSION, d, float(edge))[:16]
+    return d
 
 
-def simulated_case_dir(scene: Scene, cache_root=None, edge=REGISTRATION_EDGE_MM) -> Path:
+def scene_key(scene: Scene, edge: float = EDGE_MM) -> str:
+    """A session's identity: hash of every scene parameter and the registration mesh size
+    its runs were made on. A scene built on a case folder is keyed by its path."""
+    return content_key(SESSION_SCENE_VERSION, _scene_params(scene), float(edge))[:16]
+
+
+def case_key(scene: Scene) -> str:
+    """The simulated case folder's key: every scene parameter and the simulator's version
+    (no registration mesh size: the truth is a field, apart from it)."""
+    return content_key(SCENE_CACHE_VERSION, _scene_params(scene))[:16]
+
+
+def simulated_case_dir(scene: Scene, cache_root=None) -> Path:
     """Simulate ``scene`` into the cache unless already there; returns the case folder."""
     root = Path(cache_root) if cache_root else cache_dir()
-    out = root / "scenes" / f"{scene.name}-{scene_key(scene, edge)}"
+    out = root / "scenes" / f"{scene.name}-{case_key(scene)}"
     if (out / "truth" / "report.json").exists():
         return out
     tmp = out.with_name(out.name + ".partial")
     shutil.rmtree(tmp, ignore_errors=True)
-    simulate(scene, tmp, cache_root=cache_root, registration_edge=edge)
+    simulate(scene, tmp, cache_root=cache_root)
     shutil.rmtree(out, ignore_errors=True)
     tmp.rename(out)  # atomic: a half-written simulation is never mistaken for a finished one
     return out
@@ -94,7 +108,6 @@ def read_planes(case_dir: Path) -> tuple[list, Probe]:
     meta = json.loads(meta_path.read_text())
     probe = Probe(meta["width_px"], meta["height_px"], meta["spacing_mm"])
     planes = []
-    from ..anatomy.caseio import read_csv
 
     for p in meta["planes"]:
         pdir = udir / f"plane_{p['index']:02d}"
@@ -105,8 +118,10 @@ def read_planes(case_dir: Path) -> tuple[list, Probe]:
     return planes, probe
 
 
-def load_scene_data(scene: Scene, cache_root=None, edge=REGISTRATION_EDGE_MM) -> SceneData:
-    case_dir = simulated_case_dir(scene, cache_root, edge)
+def load_scene_data(scene: Scene, cache_root=None, edge: float = EDGE_MM) -> SceneData:
+    """The scene simulated (or read from the cache) for a viewer whose registration mesh
+    has edge ``edge`` mm."""
+    case_dir = simulated_case_dir(scene, cache_root)
     case = read_case(case_dir)
     stylus = {k: case.intraop[k] for k in STYLUS_FEATURES if k in case.intraop}
     allpts = np.vstack(list(stylus.values())) if stylus else np.zeros((0, 3))
@@ -124,7 +139,6 @@ def load_scene_data(scene: Scene, cache_root=None, edge=REGISTRATION_EDGE_MM) ->
 def acquire_free_plane(sd: SceneData, index: int, probe_to_tracker: np.ndarray) -> PlaneData:
     """Simulate a plane at a pose the user chose (same anatomy and effects as the presets;
     the random stream is seeded by scene seed and plane index, so it is reproducible)."""
-    from ..simulation.effects import Ledger
 
     rng = np.random.default_rng([sd.scene.seed, index])
     return acquire_plane(index, "free", np.asarray(probe_to_tracker, float), sd.probe, sd.truth["liver"],
@@ -148,8 +162,6 @@ def segment_frame(sd: SceneData, index: int, probe_to_tracker: np.ndarray) -> di
     segmentation), its contours perturbed by the declared ``auto_segmentation`` error in
     place of any ``contour_jitter``, and the scene's other effects as for any plane. Empty
     when the scene declares no automatic segmentation."""
-    from ..simulation.effects import Ledger
-    from .scene import Effect
 
     sd_px = auto_segmentation(sd.scene)
     if sd_px is None:

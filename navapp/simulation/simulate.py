@@ -7,6 +7,9 @@ stylus data plus every plane's features (the "S + all planes" level):
 - ``intraop/us/plane_XX/<feature>.csv`` and ``intraop/us/plane_XX.png`` (the B-mode image);
 - ``truth/liver.ply``, ``truth/portal.ply``, ``truth/hepatic.ply`` and the deformed
   centerlines: the true intraoperative anatomy, used for the CBCT and iCT data levels;
+- ``truth/field.npz``: the ground truth as a field (``anatomy.truth.TruthField``: the truth
+  mesh, its nodal displacement, the tracker offset), which evaluation asks at whatever
+  points it evaluates — no registration mesh is built here;
 - ``truth/targets/``: the tumour targets deformed by the ground truth (their TRE);
 - ``truth/report.json``: displacement statistics, coverage, points per plane, seconds and
   the ledger of stages and effects that ran.
@@ -24,20 +27,19 @@ from ..anatomy.caseio import Case, read_case, write_case, write_csv
 from ..anatomy.meshing import cached_tetmesh
 from ..anatomy.phantom import make_phantom
 from ..anatomy.targets import TARGETS_DIR, map_targets, write_targets
-from ..defaults import EDGE_MM
+from ..anatomy.truth import TruthField
+from ..errors import InputError
 from ..features import STYLUS
 from ..mechanics.controlpoints import nodal_areas
 from ..mechanics.fem import NU_LIVER, Material
-from ..mechanics.interpolation import interpolation_matrix
 from . import effects as fx
 from .probe import Probe
 from .scene import Scene
 from .stylus import surface_patch, swath_pattern, thin
 from .tool import place_tool
-from .truth import Loading, Supports, solve_linear, solve_neo_hookean
+from .transpose import correspondence, reference_deformation, transpose
+from .truth import Loading, Supports, solve_linear, solve_neo_hookean, supported_nodes
 from .ultrasound import acquire_plane, plane_poses
-
-REGISTRATION_EDGE_MM = EDGE_MM
 
 
 def gravity_direction(release: str, tilt_deg: float, head_up_deg: float = 0.0) -> tuple:
@@ -54,15 +56,15 @@ def gravity_direction(release: str, tilt_deg: float, head_up_deg: float = 0.0) -
     return tuple(g)
 
 
-def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTRATION_EDGE_MM) -> dict:
-    """Simulate ``scene`` into case folder ``out``; returns the report. Targets are the
-    nodes of the registration mesh at ``registration_edge`` mm."""
+def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
+    """Simulate ``scene`` into case folder ``out``; returns the report (``truth/report.json``).
+    The truth is written as a field on the truth mesh (``scene.mesh_edge_mm``), apart from
+    any registration mesh."""
     t0 = time.perf_counter()
     ledger = fx.Ledger()
     rng = np.random.default_rng(scene.seed)
     preop = make_phantom(scene.phantom) if scene.phantom is not None else read_case(scene.case).preop
     if preop.regions is None:
-        from ..errors import InputError
 
         raise InputError("the scene's anatomy needs preop/regions.csv (anterior surface for the stylus and probe)")
     truth_mesh, _ = cached_tetmesh(preop.liver, scene.mesh_edge_mm, cache_root)
@@ -89,11 +91,8 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
         offset = fx.tracker_offset(preop.liver.vertices.mean(0), np.random.default_rng([scene.seed, 7]), ledger,
                                    **eff["tracker_offset"])
 
-    def deformed(points):
-        return points + interpolation_matrix(truth_mesh.nodes, truth_mesh.tets, points) @ u
-
-    def moved(points):  # where a preoperative point is, in tracker space
-        return fx.apply(offset, deformed(points))
+    truth = TruthField(truth_mesh.nodes, truth_mesh.tets, u, offset)
+    moved = truth.at  # where a preoperative point is, in tracker space
 
     liver_d = trimesh.Trimesh(moved(preop.liver.vertices), preop.liver.faces, process=False)
     portal_d, hepatic_d = (None if m is None else trimesh.Trimesh(moved(m.vertices), m.faces, process=False)
@@ -140,10 +139,7 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
         for k, pts in pl.features.items():
             intraop[k] = np.vstack([intraop[k], pts]) if k in intraop else pts
 
-    # truth on the registration mesh's nodes
-    reg_mesh, _ = cached_tetmesh(preop.liver, registration_edge, cache_root)
-    x0 = reg_mesh.nodes
-    case = Case(preop=preop, intraop=intraop, targets=np.column_stack([x0, moved(x0)]),
+    case = Case(preop=preop, intraop=intraop, truth=truth,
                 settings={"name": scene.name, "units": "mm",
                           "scene": str(scene.source) if scene.source else scene.name})
     write_case(case, out)
@@ -159,7 +155,7 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
                       ("x", "y", "z", "branch"), True)
     if preop.targets:
         write_targets(map_targets(preop.targets, moved), tdir / TARGETS_DIR)
-    d = np.linalg.norm(deformed(x0) - x0, axis=1)
+    d = np.linalg.norm(u, axis=1)  # at the truth mesh's nodes
     report = {
         "scene": scene.name, "truth_nodes": int(len(truth_mesh.nodes)),
         "displacement_mm": {"mean": round(float(d.mean()), 2), "max": round(float(d.max()), 2)},
@@ -176,7 +172,7 @@ def simulate(scene: Scene, out: Path, cache_root=None, registration_edge=REGISTR
         c = np.asarray(tool.centre)[None]
         report["tool"] = {"centre_mm": np.round(tool.centre, 2).tolist(), "push": np.round(tool.direction, 4).tolist(),
                           "radius_mm": tool.radius_mm, "load": str(tool.load),
-                          "depth_mm": round(float((deformed(c) - c)[0] @ np.asarray(tool.direction)), 2)}
+                          "depth_mm": round(float(truth.displacement(c)[0] @ np.asarray(tool.direction)), 2)}
     if "tracker_offset" in eff:
         report["tracker_offset"] = offset.round(6).tolist()
     (tdir / "report.json").write_text(json.dumps(report, indent=1))
@@ -202,8 +198,6 @@ def transposed_truth(scene: Scene, preop, truth_mesh, ledger=None, cache_root=No
     displacement is carried onto the nodes of ``truth_mesh`` (this liver's) through an
     inexact correspondence (``transpose.py``). Returns the nodal displacements (M, 3) mm
     and what the report says about them."""
-    from .transpose import correspondence, reference_deformation, transpose
-    from .truth import supported_nodes
 
     ledger = ledger or fx.Ledger()
     loading, material = scene_loading(scene)

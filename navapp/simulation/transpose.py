@@ -32,13 +32,16 @@ motion (``report.json``: ``transposed.support_displacement_mm``). See
 docs/decisions.md.
 """
 
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 from scipy.interpolate import RBFInterpolator
 
-from ..anatomy.meshing import TetMesh
-from ..mechanics.interpolation import barycentric
+from .. import cache
+from ..anatomy.meshing import TetMesh, cached_tetmesh
+from ..geometry.interpolation import barycentric
+from ..threads import limit_threads
+from .truth import solve_linear, solve_neo_hookean
 
 CPD_POINTS = 700  # surface samples per liver for CPD (O(N²) per iteration)
 CPD_BETA_MM = 40.0  # width of CPD's Gaussian motion-coherence kernel
@@ -90,7 +93,6 @@ def correspondence(target_vertices, reference_vertices, n_points=CPD_POINTS, bet
     from pycpd import AffineRegistration, DeformableRegistration
     from scipy.spatial import cKDTree
 
-    from ..threads import limit_threads
 
     rng = np.random.default_rng(seed)
     y = _samples(target_vertices, n_points, rng)
@@ -153,11 +155,7 @@ def reference_deformation(reference_surface, mesh_edge_mm: float, loading, mater
     """The reference liver's own truth: its tet mesh and nodal displacements (M, 3) mm
     under ``loading`` (``truth.Loading``: gravity, anterior pressure, release), linear or
     neo-Hookean (``large``). Cached by content (surface, mesh, loads, material, model)."""
-    from dataclasses import asdict
 
-    from .. import cache
-    from ..anatomy.meshing import cached_tetmesh
-    from .truth import solve_linear, solve_neo_hookean
 
     mesh, _ = cached_tetmesh(reference_surface, mesh_edge_mm, cache_root)
     root = cache.cache_dir() if cache_root is None else cache_root

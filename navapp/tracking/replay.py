@@ -36,6 +36,7 @@ import numpy as np
 import pyigtl
 from scipy.spatial.transform import Rotation, Slerp
 
+from ..errors import InputError, NavappError
 from .config import TrackingConfig, full_image_matrix
 
 log = logging.getLogger("navapp.tracking")
@@ -119,7 +120,6 @@ def script_from_scene(scene, transit_frames: int = 6, dwell_s: float = 2.0, move
     """The scene simulated (or loaded from the cache) as the viewer does, made playable.
     ``edge``: the viewer's registration mesh size, to share its cached simulation (what is
     played does not depend on it)."""
-    from ..errors import InputError
     from ..simulation.scenedata import acquire_free_plane, load_scene_data
 
     sd = load_scene_data(scene, cache_root) if edge is None else load_scene_data(scene, cache_root, edge)
@@ -199,7 +199,6 @@ class ReplayServer:
         try:
             self._server = quiet_server(port)
         except OSError as exc:
-            from ..errors import NavappError
 
             raise NavappError(f"cannot listen on 127.0.0.1:{port}: {exc.strerror or exc}") from None
         self.port = self._server.server_address[1]

@@ -208,7 +208,8 @@ class _Server(ThreadingHTTPServer):
 
     def handle_error(self, request, client_address):
         # a tab closed while its response was on the way: the browser wanted nothing more, and a
-        # traceback on the viewer's terminal for it would hide the lines that matter (issue 25)
+        # traceback on the viewer's terminal for it would hide the lines that matter (a real
+        # failure's traceback among them)
         if isinstance(sys.exc_info()[1], ConnectionError):
             return
         super().handle_error(request, client_address)

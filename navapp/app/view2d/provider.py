@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from ...anatomy.model import VESSELS
 from ..contours import CENTERLINE_OF, contour_pixels
 from ..core import Core
 from ..drawing import Drawing
@@ -161,7 +162,7 @@ class View2D:
         rigid = geom.rigid
         place = rigid.apply if rigid is not None else (lambda x: np.asarray(x))
         preop = core.preop
-        pre = {"liver": preop.liver, "portal": preop.portal, "hepatic": preop.hepatic}
+        pre = {n: getattr(preop, n) for n in ("liver", *VESSELS)}
         for name, mesh in pre.items():
             if mesh is not None:
                 seg = section_pixels(probe, T, place(mesh.vertices), mesh.faces)

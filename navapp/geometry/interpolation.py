@@ -1,4 +1,5 @@
-"""Barycentric interpolation from the tet mesh to arbitrary points (vessels, fiducials)."""
+"""Barycentric interpolation from a tet mesh to arbitrary points (vessels, fiducials, the
+simulated truth): geometry, below the mechanics that use it for their fields."""
 
 import numpy as np
 import scipy.sparse as sp
