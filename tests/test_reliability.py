@@ -3,6 +3,7 @@ checked against their ranges, bounded memory for big inputs, warnings on their o
 and Dask studies that refuse or honour --scheduler before any work. One test per row of
 the issue's table; each was run against the code before its fix and failed there."""
 
+import json
 import subprocess
 import sys
 import textwrap
@@ -382,3 +383,30 @@ def test_pardiso_out_of_memory_is_a_memory_error():
 
     with pytest.raises(pypardiso.pardiso_wrapper.PyPardisoError):  # other failures stay what they are
         sparse._pardiso(Other(), None, None)
+
+
+def test_a_case_simulated_over_another_replaces_it_whole(tmp_path, capsys, cache_root):
+    """Simulating a scene without planes over a 16-plane case exited 0 and left the old
+    planes' contours, posterior wall, centerlines and images beside the new report, which
+    ``navapp register`` then used."""
+    from navapp.simulation.scene import parse_scene
+    from navapp.simulation.simulate import simulate
+
+    scene = {"name": "over", "anatomy": {"phantom": 0}, "deformation": {"mesh_edge_mm": 10.0},
+             "stylus": {"coverage": 0.2}, "ius": {"planes": 2}}
+    out = tmp_path / "case"
+    simulate(parse_scene(scene), out, cache_root=cache_root)
+    assert (out / "intraop" / "us").is_dir() and list((out / "intraop").glob("*_contour.csv"))
+    (out / "registration").mkdir()  # an old run's results: about the old case, not this one
+    simulate(parse_scene({**scene, "ius": {"planes": 0}}), out, cache_root=cache_root)
+    names = sorted(p.name for p in (out / "intraop").iterdir())
+    assert not (out / "intraop" / "us").exists() and not (out / "registration").exists(), names
+    assert not [n for n in names if "contour" in n or "posterior" in n or "centerline" in n], names
+    assert json.loads((out / "truth" / "report.json").read_text())["planes"] == []
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["case"]  # no staging folder left
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("the surgeon's")
+    with pytest.raises(InputError, match="holds files and is not a case folder"):
+        simulate(parse_scene(scene), mine, cache_root=cache_root)
+    assert (mine / "notes.txt").read_text() == "the surgeon's"

@@ -32,6 +32,7 @@ from ..errors import InputError
 from ..features import STYLUS
 from ..mechanics.controlpoints import nodal_areas
 from ..mechanics.fem import NU_LIVER, Material
+from ..outputs import folder_lock, staged
 from . import effects as fx
 from .probe import Probe
 from .scene import Scene
@@ -60,6 +61,7 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
     """Simulate ``scene`` into case folder ``out``; returns the report (``truth/report.json``).
     The truth is written as a field on the truth mesh (``scene.mesh_edge_mm``), apart from
     any registration mesh."""
+    _check_out(scene, Path(out))
     t0 = time.perf_counter()
     ledger = fx.Ledger()
     rng = np.random.default_rng(scene.seed)
@@ -142,41 +144,56 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
     case = Case(preop=preop, intraop=intraop, truth=truth,
                 settings={"name": scene.name, "units": "mm",
                           "scene": str(scene.source) if scene.source else scene.name})
-    write_case(case, out)
-    _write_planes(out, planes, probe)
-    tdir = Path(out) / "truth"
-    liver_d.export(tdir / "liver.ply", encoding="binary")
-    for name, mesh in (("portal", portal_d), ("hepatic", hepatic_d)):
-        if mesh is not None:
-            mesh.export(tdir / f"{name}.ply", encoding="binary")
-        cl = preop.centerline(name)
-        if cl is not None:
-            write_csv(tdir / f"{name}_centerline.csv", np.column_stack([moved(cl.points), cl.branch]),
-                      ("x", "y", "z", "branch"), True)
-    if preop.targets:
-        write_targets(map_targets(preop.targets, moved), tdir / TARGETS_DIR)
-    d = np.linalg.norm(u, axis=1)  # at the truth mesh's nodes
-    report = {
-        "scene": scene.name, "truth_nodes": int(len(truth_mesh.nodes)),
-        "displacement_mm": {"mean": round(float(d.mean()), 2), "max": round(float(d.max()), 2)},
-        "stylus": {"coverage_of_anterior": round(coverage, 3),
-                   "points": {k: int(len(intraop[k])) for k in STYLUS if k in intraop}},
-        "planes": [{k: int(len(p)) for k, p in pl.features.items()} for pl in planes],
-        "seconds": {"truth": round(t_truth, 2), "total": round(time.perf_counter() - t0, 2)},
-        "ran": sorted(set(ledger.ran)),
-    }
-    if transposed is not None:
-        report["transposed"] = transposed
-    if loading.tool is not None:
-        tool = loading.tool
-        c = np.asarray(tool.centre)[None]
-        report["tool"] = {"centre_mm": np.round(tool.centre, 2).tolist(), "push": np.round(tool.direction, 4).tolist(),
-                          "radius_mm": tool.radius_mm, "load": str(tool.load),
-                          "depth_mm": round(float(truth.displacement(c)[0] @ np.asarray(tool.direction)), 2)}
-    if "tracker_offset" in eff:
-        report["tracker_offset"] = offset.round(6).tolist()
-    (tdir / "report.json").write_text(json.dumps(report, indent=1))
+    # the whole case is written aside and moved into place: simulating into a folder that held
+    # another case (16 planes, then none) left the old planes' contours and images beside the new
+    # report, and register would have used them; a run stopped half way leaves the old case whole
+    with folder_lock(out), staged(out) as folder:
+        write_case(case, folder)
+        _write_planes(folder, planes, probe)
+        tdir = Path(folder) / "truth"
+        liver_d.export(tdir / "liver.ply", encoding="binary")
+        for name, mesh in (("portal", portal_d), ("hepatic", hepatic_d)):
+            if mesh is not None:
+                mesh.export(tdir / f"{name}.ply", encoding="binary")
+            cl = preop.centerline(name)
+            if cl is not None:
+                write_csv(tdir / f"{name}_centerline.csv", np.column_stack([moved(cl.points), cl.branch]),
+                          ("x", "y", "z", "branch"), True)
+        if preop.targets:
+            write_targets(map_targets(preop.targets, moved), tdir / TARGETS_DIR)
+        d = np.linalg.norm(u, axis=1)  # at the truth mesh's nodes
+        report = {
+            "scene": scene.name, "truth_nodes": int(len(truth_mesh.nodes)),
+            "displacement_mm": {"mean": round(float(d.mean()), 2), "max": round(float(d.max()), 2)},
+            "stylus": {"coverage_of_anterior": round(coverage, 3),
+                       "points": {k: int(len(intraop[k])) for k in STYLUS if k in intraop}},
+            "planes": [{k: int(len(p)) for k, p in pl.features.items()} for pl in planes],
+            "seconds": {"truth": round(t_truth, 2), "total": round(time.perf_counter() - t0, 2)},
+            "ran": sorted(set(ledger.ran)),
+        }
+        if transposed is not None:
+            report["transposed"] = transposed
+        if loading.tool is not None:
+            tool = loading.tool
+            c = np.asarray(tool.centre)[None]
+            report["tool"] = {"centre_mm": np.round(tool.centre, 2).tolist(),
+                              "push": np.round(tool.direction, 4).tolist(), "radius_mm": tool.radius_mm,
+                              "load": str(tool.load),
+                              "depth_mm": round(float(truth.displacement(c)[0] @ np.asarray(tool.direction)), 2)}
+        if "tracker_offset" in eff:
+            report["tracker_offset"] = offset.round(6).tolist()
+        (tdir / "report.json").write_text(json.dumps(report, indent=1))
     return report
+
+
+def _check_out(scene: Scene, out: Path):
+    """``out`` is replaced whole by the new case: refuse, before any work, a folder that holds
+    something other than a case, and the patient case the scene takes its anatomy from."""
+    if scene.case is not None and out.exists() and Path(scene.case).resolve() == out.resolve():
+        raise InputError("is the case this scene takes its anatomy from; simulate into another folder", out)
+    if out.is_dir() and any(out.iterdir()) and not (out / "case.toml").exists():
+        raise InputError("holds files and is not a case folder; simulate into a new folder or a case folder "
+                         "(which the new case replaces)", out)
 
 
 def scene_loading(scene: Scene, mesh=None) -> tuple[Loading, Material]:
