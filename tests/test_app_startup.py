@@ -27,8 +27,11 @@ def serve(tmp_path, *args, env=None, code=None):
     argv = ["serve", "--port", str(free_port()), "--session", str(tmp_path / "session"), "--edge", "12",
             "--k", "12", str(scene), *args]
     prog = f"import sys\n{code or ''}\nfrom navapp.cli import main\nsys.exit(main({argv!r}))"
+    # Ctrl+C as a terminal sends it: a suite started in the background (nohup, `cmd &`) hands its
+    # children SIGINT ignored, and a Python started so never raises KeyboardInterrupt
     return subprocess.Popen([sys.executable, "-c", prog], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})})
+                            env={**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})},
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
 
 
 def shown(raw: bytes) -> list[str]:
