@@ -9,6 +9,7 @@ of the clean-up checks.
 
 import os
 
+from .defaults import K
 from .errors import InputError, NavappError
 
 # expected tet-mesh nodes = volume / (NODES_PER_EDGE3 · edge³), fitted on the phantoms; its
@@ -76,8 +77,6 @@ def check_mesh(nodes: int, edge: float, volume_mm3: float):
 def check_basis(nodes: int, k: int):
     """Refuse a deformation basis of ``k`` control points on ``nodes`` mesh nodes that would
     not fit, naming the largest k that would (``check_mesh`` sizes the mesh at the default k)."""
-    from .defaults import K
-
     budget = available_mb()
     need = BASE_MB + nodes * (MB_PER_NODE + MB_PER_NODE_PER_K * (k - K))
     if need <= budget:

@@ -47,12 +47,12 @@ PARDISO_OUT_OF_MEMORY = (-2, -9)  # MKL PARDISO's codes: not enough memory; not 
 def _pardiso(solver, A, B):
     """One PARDISO call; its out-of-memory codes become ``MemoryError``, which the command
     line says in one line (a basis at k = 1000 on a 4 mm liver ended in "error code -2")."""
-    from pypardiso.pardiso_wrapper import PyPardisoError
-
     try:
         return solver._call_pardiso(A, B)
-    except PyPardisoError as exc:
-        if exc.value in PARDISO_OUT_OF_MEMORY:
+    except Exception as exc:
+        from pypardiso.pardiso_wrapper import PyPardisoError  # here, not on every solve
+
+        if isinstance(exc, PyPardisoError) and exc.value in PARDISO_OUT_OF_MEMORY:
             raise MemoryError(f"PARDISO ran out of memory (code {exc.value})") from None
         raise
 

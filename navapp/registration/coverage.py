@@ -64,12 +64,10 @@ def note_coverage(reg: "Registration") -> Coverage:
 
 def pose_warning(reg: "Registration") -> str | None:
     """Everything that says ``reg``'s pose is not to be believed, one line (None: nothing):
-    the notes raised before the fit (too few or collinear points: ``pipeline.undetermined_pose``),
-    an undetermined pose, too little coverage."""
+    the notes (too few or collinear points: ``pipeline.undetermined_pose``; too little coverage,
+    which ``register`` notes on every registration it returns, and a restored result carries
+    in its saved line) and an undetermined pose."""
     lines = list(reg.notes)
     if reg.determinacy is not None and reg.determinacy.warning:
         lines.append(reg.determinacy.warning)
-    cov = data_coverage(reg.model, reg.data_model_frame).warning
-    if cov:
-        lines.append(cov)
     return "; ".join(dict.fromkeys(lines)) or None
