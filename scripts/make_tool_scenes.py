@@ -2,6 +2,7 @@
 
     python scripts/make_tool_scenes.py
     python scripts/make_tool_scenes.py --held-out DIR   # a second draw, never used to set a margin
+    python scripts/make_tool_scenes.py --held-out DIR --draw 2   # a third (tooldraw2_<p>-<x>)
 
 
 Each liver gets the same eight kinds of case; only where the tool presses and where the
@@ -96,8 +97,15 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--held-out", type=Path, metavar="DIR",
                     help="write a held-out set (tooltest<p>-<x>.toml, other draw and noise seeds) into DIR")
+    ap.add_argument("--draw", type=int, default=1, metavar="K",
+                    help="which held-out draw (1: tooltest*, the first; K > 1: tooldrawK_*, drawn from "
+                         "seeds 500 + 100 (K - 1) and noise seeds 1000 K; a draw judges a rule only until "
+                         "it has been looked at)")
     args = ap.parse_args()
+    if args.draw < 1:
+        ap.error("--draw is 1 or more")
     if args.held_out:
-        main(args.held_out, "tooltest", draw=500, seed=1000)
+        prefix = "tooltest" if args.draw == 1 else f"tooldraw{args.draw}_"
+        main(args.held_out, prefix, draw=500 + 100 * (args.draw - 1), seed=1000 * args.draw)
     else:
         main()
