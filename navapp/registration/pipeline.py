@@ -44,7 +44,7 @@ from .rigid import (
     rigid_icp,
     start_poses,
 )
-from .support import Support, SupportOptions, check_support, pooled_rms
+from .support import Support, SupportOptions, check_support, pooled_rms, weigh_correction
 
 
 @dataclass
@@ -352,6 +352,16 @@ def rigid_starts(model: RegistrationModel, data: dict, options: LMOptions | None
     return _multi_start(model, usable_data(model, data), options, init)
 
 
+def _cross_validate(model: RegistrationModel, local: dict, options: LMOptions, settings: SupportOptions, cancel,
+                    rigid: RigidResult, result: LibrResult) -> Support | None:
+    """The spatial cross-validation of a fresh deformable fit; from a kept pose (a known-good
+    answer without deformation) the correction is also weighed against its own σ."""
+    support = check_support(model, local, options, settings, cancel)
+    if support is not None and rigid.kept and not (cancel is not None and cancel.is_set()):
+        support = weigh_correction(model, local, result.beta, support, options, settings)
+    return support
+
+
 def register(model: RegistrationModel, data: dict, deform=True, options: LMOptions | None = None,
              callback=None, cancel=None, beta0=None, rigid: RigidResult | None = None,
              init: RobustOptions | None = None, starts: list[Start] | None = None) -> Registration:
@@ -489,7 +499,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     support = None
     if deform and fresh and init.support is not None and result is not None and result.stop_reason != "cancelled":
         t = time.perf_counter()
-        support = check_support(model, local, options, init.support, cancel)
+        support = _cross_validate(model, local, options, init.support, cancel, rigid, result)
         sec["support"] = time.perf_counter() - t
     if fresh and result is not None and quality is not None and choice is not None and \
             choice.source is PoseSource.FITTED and result.stop_reason != "cancelled" and \
@@ -507,7 +517,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
             for s in starts:
                 s.chosen = False
             if init.support is not None:
-                support = check_support(model, local, options, init.support, cancel)
+                support = _cross_validate(model, local, options, init.support, cancel, rigid, result)
         sec["given_pose"] = time.perf_counter() - t
     if cancel is not None and cancel.is_set() and result is not None and result.stop_reason != "cancelled":
         # asked to stop after LM had converged, during the cross-validation or the given-pose fit: the

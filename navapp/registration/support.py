@@ -15,9 +15,19 @@ vessel data inside the organ take part). Where it does not, or where a target is
 not supported and the given pose was kept (the data lay on the undeformed model: never
 worse than no correction on what the data can show), and says so in one line either way;
 per target, ``target_support`` names the targets whose neighbourhood is unsupported.
+
+From a kept pose there is a second question the cross-validation cannot ask: is the
+correction itself larger than its own uncertainty? A dent the basis cannot make is fitted
+at its rim, and the held-out blocks over the dent are then predicted better than without
+deformation, while the organ around it moves by about a millimetre — a small error spread
+wide. ``weigh_correction`` compares the mean displacement the deformation adds at the mesh
+nodes with the mean σ there (the LM covariance propagated to the nodes, as the error
+estimate computes it, ``uncertainty``); a correction under ``z`` σ is not told apart from
+none, and the kept pose, which the data lie on, is the answer.
 """
 
 import math
+import time
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -29,6 +39,7 @@ from ..threads import limit_threads
 from .libr import LMOptions, register_libr
 from .model import DATA_TO_MODEL, RegistrationModel
 from .objective import evaluate
+from .uncertainty import covariance_factor, information, point_jacobian, point_sigma
 
 
 @dataclass(frozen=True)
@@ -46,6 +57,11 @@ class SupportOptions:
     far_mm: float = 40.0  # a target farther than this from every data point is extrapolated
     min_points: int = 30  # fewer data points: no cross-validation (too few to split)
     iterations: int = 30  # LM cap per fold (the fold fits start from β = 0)
+    # a kept pose's correction must be at least this many σ (means over the mesh nodes):
+    # the conventional three; docs/decisions.md ("A correction within its own uncertainty")
+    # has where the measured cases lie against it
+    z: float = 3.0
+    sample_nodes: int = 2000  # mesh nodes the comparison is made at (every n-th: σ costs time per node)
 
 
 @dataclass
@@ -69,10 +85,25 @@ class Support:
     blocks: list[Block] = field(default_factory=list)
     margin: float = SupportOptions.margin
     seconds: float = 0.0
+    # from a kept pose (``weigh_correction``): the mean displacement the deformation adds and
+    # the mean σ, over the sampled mesh nodes (mm); None where it was not weighed
+    correction_mm: float | None = None
+    sigma_mm: float | None = None
+    z: float = SupportOptions.z
+
+    @property
+    def predicts(self) -> bool:
+        """The cross-validation's verdict: held-out data predicted better than without deformation."""
+        return self.deformable_mm < (1 - self.margin) * self.rigid_mm
+
+    @property
+    def significant(self) -> bool:
+        """The correction stands out from its own uncertainty (True where it was not weighed)."""
+        return self.correction_mm is None or self.correction_mm >= self.z * self.sigma_mm
 
     @property
     def supported(self) -> bool:
-        return self.deformable_mm < (1 - self.margin) * self.rigid_mm
+        return self.predicts and self.significant
 
     @property
     def warning(self) -> str | None:
@@ -86,6 +117,10 @@ class Support:
         pose = "the given pose" if given else "the pose most of the data lie on"
         shown = (f"{pose} without deformation is shown" if shown_rigid else
                  "the deformable answer is shown: do not rely on it")
+        if self.predicts:
+            return (f"deformation not determined by the data: the correction it makes (mean "
+                    f"{self.correction_mm:.2f} mm over the organ) is under {self.z:g} × its own uncertainty "
+                    f"(σ {self.sigma_mm:.2f} mm) — {shown}; add data where the organ moved")
         return (f"deformation not supported by the data: fitted to part of the data it predicts the rest "
                 f"{self.deformable_mm:.2f} mm RMS against {self.rigid_mm:.2f} mm without deformation — "
                 f"{shown}; add data where the organ moved")
@@ -95,7 +130,10 @@ class Support:
                 "heldout_deformable_mm": round(self.deformable_mm, 3), "margin": self.margin,
                 "blocks": [{"centre_mm": np.round(b.centre, 1).tolist(), "points": b.points,
                             "rigid_mm": round(b.rigid_mm, 3), "deformable_mm": round(b.deformable_mm, 3)}
-                           for b in self.blocks], "seconds": round(self.seconds, 3)}
+                           for b in self.blocks], "seconds": round(self.seconds, 3),
+                **({} if self.correction_mm is None else
+                   {"correction_mm": round(self.correction_mm, 3), "sigma_mm": round(self.sigma_mm, 3),
+                    "z": self.z, "significant": self.significant})}
 
 
 def pooled_rms(features: dict, names=None) -> float:
@@ -122,8 +160,6 @@ def check_support(model: RegistrationModel, data: dict, options: LMOptions,
     """Cross-validate the deformable answer against the rigid one (module doc). ``data``:
     feature → (N, 3) mm in the model frame (after the rigid pose); ``options`` the LM
     settings of the real fit. None when there are too few data points to split."""
-    import time
-
     t0 = time.perf_counter()
     total = sum(len(p) for k, p in data.items() if k != "fiducials")
     if total < support.min_points:
@@ -155,6 +191,23 @@ def check_support(model: RegistrationModel, data: dict, options: LMOptions,
     d = float(np.average([b.deformable_mm for b in out], weights=w))
     inside = any(DATA_TO_MODEL[k] not in ("liver", "fiducials", *SALIENT) for k in data)
     return Support(r, d, out, support.margin_interior if inside else support.margin, time.perf_counter() - t0)
+
+
+def weigh_correction(model: RegistrationModel, data: dict, beta, support: Support, options: LMOptions,
+                     settings: SupportOptions = SupportOptions()) -> Support:
+    """``support`` with the correction of a fit from a kept pose weighed against its σ
+    (module doc): the mean over every n-th mesh node (``settings.sample_nodes`` of them) of
+    |x(β) − x| and of σ = sqrt(tr(G Σ_β Gᵀ)) (``uncertainty``), mm. ``data``: feature →
+    (N, 3) mm in the model frame; ``beta`` (3k + 6,) the fit's."""
+    t0 = time.perf_counter()
+    nodes = np.arange(0, model.basis.M, max(1, model.basis.M // settings.sample_nodes))
+    with limit_threads(1):  # small matrices: threaded BLAS only synchronises (see libr.py)
+        info = information(model, data, beta, options.weights)
+        x, G = point_jacobian(model, beta, nodes=nodes)
+        sigma = point_sigma(G, factor=covariance_factor(info))
+    moved = np.linalg.norm(x - model.basis.nodes[nodes], axis=1)
+    return replace(support, correction_mm=float(moved.mean()), sigma_mm=float(sigma.mean()), z=settings.z,
+                   seconds=support.seconds + time.perf_counter() - t0)
 
 
 @dataclass
