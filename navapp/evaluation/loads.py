@@ -165,6 +165,11 @@ def _case_set(cases: list[str]) -> str:
     if cases and all(c.startswith("tooltest") for c in cases):
         return ("the held-out draw, `python scripts/make_tool_scenes.py --held-out DIR`: other tool and data "
                 "sites, other noise; no margin of the guards was set on these")
+    draws = {c.split("_")[0] for c in cases}
+    if cases and len(draws) == 1 and next(iter(draws)).startswith("tooldraw"):
+        k = next(iter(draws))[len("tooldraw"):]
+        return (f"held-out draw {k}, `python scripts/make_tool_scenes.py --held-out DIR --draw {k}`: other tool "
+                "and data sites, other noise, registered once with the final defaults")
     return "`navapp/scenes/tool*.toml`, `scripts/make_tool_scenes.py`"
 
 
