@@ -249,6 +249,34 @@ def test_a_warning_is_never_glued_to_a_progress_bar(capsys, monkeypatch):
     assert hit and hit[0].rsplit("\r", 1)[-1] == "navapp: warning: the data lie on one line", lines
 
 
+def test_on_a_file_every_warning_has_a_line_of_its_own(capsys, monkeypatch):
+    """stderr not a terminal (a log, CI): a bar's states used to stay on one line of ``\r``s,
+    and a warning printed after the bar (closed or not) was glued onto that line."""
+    import sys
+
+    from navapp import progress
+
+    monkeypatch.setattr(progress, "QUIET", False)
+    assert not sys.stderr.isatty()
+    with progress.bar(10, "LIBR", "iter") as bar:
+        bar.update(3)
+        bar.refresh()
+        progress.echo("navapp: warning: one while the bar is drawn")
+        bar.update(7)
+    print("navapp: warning: one after the bar", file=sys.stderr)
+    with progress.stage("meshing"):
+        pass
+    print("navapp: warning: one after a stage", file=sys.stderr)
+    with progress.work("meshing (gmsh 40°)", 10.0) as bar:
+        bar.to(4.0)
+    print("navapp: warning: one after the work bar", file=sys.stderr)
+    err = capsys.readouterr().err
+    lines = err.split("\n")
+    said = [ln for ln in lines if "warning" in ln]
+    assert len(said) == 4 and all(ln.startswith("navapp: warning: one ") for ln in said), repr(err)
+    assert "\r" not in err and "LIBR" in err, repr(err)
+
+
 def _with_func(parser, command, fn):
     parser._subparsers._group_actions[0].choices[command].set_defaults(func=fn)
     return parser
