@@ -46,6 +46,15 @@ def test_register_hand_made_case(tmp_path, capsys):
     reg = trimesh.load(out / "liver.ply")
     assert len(reg.vertices) == len(read_case(tmp_path / "c").preop.liver.vertices)
     assert np.isfinite(reg.vertices).all()
+    # which mesher made the mesh, and why, is part of the result and of the command's output
+    mesher = result["mesher"]
+    assert mesher["method"].split()[0] in ("gmsh", "ftetwild") and mesher["why"].startswith(mesher["method"])
+    assert brief["mesher"] == mesher["why"] and mesher["edge_mm"] == 15.0 and mesher["nodes"] == result["nodes"]
+    assert main(["--quiet", "register", str(tmp_path / "c"), "--edge", "15", "--k", "10"]) == 0
+    io = capsys.readouterr()
+    again = json.loads((out / "result.json").read_text())["mesher"]
+    assert again["cached"] and again["why"] == mesher["why"]
+    assert f"navapp: mesher {mesher['why']} (mesh from the cache)" in io.err.splitlines()
 
 
 def test_register_without_data_is_a_clear_error(tmp_path, capsys):

@@ -537,6 +537,32 @@ def mesh_liver(surface: trimesh.Trimesh, edge: float = EDGE_MM, limit: float | N
     return mesh, report
 
 
+@dataclass(frozen=True)
+class MeshProvenance:
+    """Which mesher made a mesh and why: what a result made on it reports (``result.json``'s
+    ``mesher``, ``navapp register --json``), since the mesh is part of the answer. ``cached``:
+    the mesh was made by an earlier run with the same key (surface, edge, plan) and loaded."""
+
+    method: str  # the attempt that made the mesh, e.g. "gmsh 40°", "ftetwild at 0.85 × edge"
+    why: str  # one line: that method, and why this one (``why``)
+    choice: str  # $NAVAPP_MESHER: auto, gmsh or ftetwild
+    edge_mm: float
+    nodes: int
+    cached: bool = False
+
+    @classmethod
+    def from_report(cls, report: dict) -> "MeshProvenance":
+        """From ``mesh_liver``'s (or the cache's) report."""
+        method = str(report.get("method", "unknown"))
+        mesher = report.get("mesher") or {}
+        return cls(method, str(mesher.get("why", method)), str(mesher.get("choice", "auto")),
+                   float(report.get("edge_mm", 0.0)), int(report.get("nodes", 0)), bool(report.get("cached", False)))
+
+    def as_dict(self) -> dict:
+        return {"method": self.method, "why": self.why, "choice": self.choice, "edge_mm": self.edge_mm,
+                "nodes": self.nodes, "cached": self.cached}
+
+
 # gmsh 40/60/90° then fTetWild twice, each with pinches mended, checked against the floor,
 # each attempt bounded by CPU work (not wall clock)
 MESHER_VERSION = "mesh-chain-5"

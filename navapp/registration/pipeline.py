@@ -21,7 +21,7 @@ import numpy as np
 import trimesh
 
 from ..anatomy.caseio import Case, write_csv
-from ..anatomy.meshing import cached_tetmesh
+from ..anatomy.meshing import MeshProvenance, cached_tetmesh
 from ..anatomy.model import VESSELS
 from ..defaults import EDGE_MM, K
 from ..errors import CarriedWarning, InputError
@@ -237,7 +237,7 @@ def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None) -> tuple[Registratio
     """
     sec = {}
     t = time.perf_counter()
-    mesh, _ = cached_tetmesh(case.preop.liver, edge, cache_root)
+    mesh, report = cached_tetmesh(case.preop.liver, edge, cache_root)
     sec["mesh"] = time.perf_counter() - t
     t = time.perf_counter()
     if k > len(np.unique(mesh.boundary_faces())):
@@ -247,6 +247,7 @@ def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None) -> tuple[Registratio
     sec["basis"] = time.perf_counter() - t
     t = time.perf_counter()
     model = build_model(basis, case.preop, case.preop.fiducials)
+    model.mesher = MeshProvenance.from_report(report)
     sec["model"] = time.perf_counter() - t
     return model, sec
 
@@ -544,6 +545,8 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
         if mesh is not None:
             trimesh.Trimesh(reg.transform(mesh.vertices), mesh.faces, process=False).export(out / f"{name}.ply")
     summary = dict(extra)
+    if reg.model.mesher is not None:  # the mesh is part of the answer: which mesher made it, and why
+        summary["mesher"] = reg.model.mesher.as_dict()
     if reg.quality is not None:
         summary["fit_quality"] = reg.quality.as_dict()
     summary["answer"] = "deformable" if reg.deformed else "rigid"
