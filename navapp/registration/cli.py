@@ -76,6 +76,7 @@ def cmd_register(args):
         if "mesher" in summary:
             brief["mesher"] = summary["mesher"]["why"]
         brief["answer"] = summary["answer"]
+        brief["ok"] = summary["ok"]
         brief["warning"] = summary["warning"]
         brief["warnings"] = summary["warnings"]
         print(json.dumps(brief))

@@ -31,7 +31,7 @@ from .coverage import note_coverage
 from .libr import LibrResult, LMOptions, register_libr
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
 from .pose import Determinacy, PoseChoice, PoseSource, choose_pose, pose_determinacy, prefer_given, rms_on_model
-from .quality import FitQuality, assess_fit
+from .quality import FitQuality, Verdict, assess_fit
 from .rigid import (
     RIGID_ROBUST,
     RIGID_WITH_POSTERIOR,
@@ -547,13 +547,15 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
     summary = dict(extra)
     if reg.model.mesher is not None:  # the mesh is part of the answer: which mesher made it, and why
         summary["mesher"] = reg.model.mesher.as_dict()
-    if reg.quality is not None:
-        summary["fit_quality"] = reg.quality.as_dict()
     summary["answer"] = "deformable" if reg.deformed else "rigid"
     for key, part in (("pose", reg.pose_choice), ("pose_determinacy", reg.determinacy), ("support", reg.support)):
         if part is not None:
             summary[key] = part.as_dict()
     lines = reg.warnings + [w for t in summary.get("targets", []) if (w := t.get("warning"))]
+    verdict = Verdict(tuple(lines))  # one rule: ok only with no warning (fit_quality.ok says the same)
+    summary["ok"] = verdict.ok
+    if reg.quality is not None:
+        summary["fit_quality"] = reg.quality.as_dict(verdict)
     summary["warnings"] = lines
     summary["warning"] = "; ".join(lines) if lines else None
     if case.truth is not None:  # reported, never fitted: the TRE at the truth's points (``anatomy.truth``)
