@@ -413,6 +413,18 @@ def test_pardiso_out_of_memory_is_a_memory_error():
         sparse._pardiso(Other(), None, None)
 
 
+def test_a_scene_that_leaves_no_data_is_one_line(tmp_path, capsys):
+    """A dropout fraction of 0.99999 (in range) kept no point: simulate exited 0 with a case
+    without intraop data and said nothing."""
+    scene = tmp_path / "nodata.toml"
+    scene.write_text('[anatomy]\nphantom = 0\n[deformation]\nmesh_edge_mm = 10.0\n[ius]\nplanes = 0\n'
+                     '[[effects]]\nkind = "dropout"\nfraction = 0.99999\n')
+    err = _one_line_error(capsys, main(["--quiet", "simulate", str(scene), "--out", str(tmp_path / "case")]))
+    assert err.startswith(f"navapp: error: {scene}: the scene leaves 0 intraoperative data points after a "
+                          "dropout of 0.99999"), err
+    assert "lower the dropout fraction" in err and not (tmp_path / "case").exists()
+
+
 def test_a_case_simulated_over_another_replaces_it_whole(tmp_path, capsys, cache_root):
     """Simulating a scene without planes over a 16-plane case exited 0 and left the old
     planes' contours, posterior wall, centerlines and images beside the new report, which

@@ -140,6 +140,7 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
     for pl in planes:
         for k, pts in pl.features.items():
             intraop[k] = np.vstack([intraop[k], pts]) if k in intraop else pts
+    _check_data(scene, intraop)
 
     case = Case(preop=preop, intraop=intraop, truth=truth,
                 settings={"name": scene.name, "units": "mm",
@@ -194,6 +195,24 @@ def _check_out(scene: Scene, out: Path):
     if out.is_dir() and any(out.iterdir()) and not (out / "case.toml").exists():
         raise InputError("holds files and is not a case folder; simulate into a new folder or a case folder "
                          "(which the new case replaces)", out)
+
+
+MIN_DATA_POINTS = 6
+"""The fewest intraoperative points a simulated case may have: fewer cannot fix a rigid pose
+(``registration.pipeline.MIN_SURFACE_POINTS``). A scene whose effects leave fewer (a dropout
+fraction of 0.99999 kept none) wrote a case without intraop data and exited 0."""
+
+
+def _check_data(scene: Scene, intraop: dict):
+    """Refuse, in one line naming the scene file, a scene that leaves (almost) no data."""
+    n = sum(len(p) for p in intraop.values())
+    if n >= MIN_DATA_POINTS:
+        return
+    drop = next((e.params["fraction"] for e in scene.effects if e.kind == "dropout"), None)
+    cause = f" after a dropout of {drop:g}" if drop else ""
+    fix = "lower the dropout fraction" if drop else "add data (stylus.coverage, stylus.points, ius.planes)"
+    raise InputError(f"the scene leaves {n} intraoperative data point{'s' if n != 1 else ''}{cause}: a case needs "
+                     f"at least {MIN_DATA_POINTS} to register; {fix}", scene.source or scene.name)
 
 
 def scene_loading(scene: Scene, mesh=None) -> tuple[Loading, Material]:
