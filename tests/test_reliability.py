@@ -425,6 +425,31 @@ def test_a_scene_that_leaves_no_data_is_one_line(tmp_path, capsys):
     assert "lower the dropout fraction" in err and not (tmp_path / "case").exists()
 
 
+def test_a_scene_with_a_tiny_edge_is_refused_up_front_naming_the_file(tmp_path, capsys, monkeypatch):
+    """A scene's deformation.mesh_edge_mm of 0.3 reached the mesher's own check, whose line
+    named no file and advised a --edge that simulate does not have."""
+    from navapp.simulation import simulate
+
+    monkeypatch.setenv("NAVAPP_MEMORY_MB", "8000")
+    monkeypatch.setattr(simulate, "cached_tetmesh", lambda *a, **k: pytest.fail("meshing started"))
+    scene = tmp_path / "fine.toml"
+    scene.write_text("[anatomy]\nphantom = 0\n[deformation]\nmesh_edge_mm = 0.3\n")
+    err = _one_line_error(capsys, main(["--quiet", "simulate", str(scene), "--out", str(tmp_path / "case")]))
+    assert err.startswith(f"navapp: error: {scene}: a mesh at 0.3 mm would have about "), err
+    assert "set deformation.mesh_edge_mm = " in err and err.endswith(" or coarser"), err
+
+
+def test_a_viewer_edge_too_fine_is_refused_before_it_starts(phantoms, monkeypatch):
+    """``navapp serve --edge 0.3`` simulated the scene first and failed minutes later, at the
+    registration mesh; it is now refused before the viewer starts, saying what to use."""
+    from navapp.app.core import Core
+    from navapp.simulation.scene import demo_scene
+
+    monkeypatch.setenv("NAVAPP_MEMORY_MB", "8000")
+    with pytest.raises(InputError, match=r"a mesh at 0.3 mm would .* use --edge [\d.]+ or coarser"):
+        Core(demo_scene(), phantoms[0], 0.3, 45)
+
+
 def test_a_case_simulated_over_another_replaces_it_whole(tmp_path, capsys, cache_root):
     """Simulating a scene without planes over a 16-plane case exited 0 and left the old
     planes' contours, posterior wall, centerlines and images beside the new report, which

@@ -132,6 +132,15 @@ def expected_nodes(surface: trimesh.Trimesh, edge: float) -> int:
     return int(round(abs(float(surface.volume)) / (NODES_PER_EDGE3 * edge ** 3)))
 
 
+def check_size(surface: trimesh.Trimesh, edge: float, setting: str = "--edge", path=None):
+    """Refuse, before any work, a mesh of ``surface`` at ``edge`` mm beyond the memory budget
+    (``budget.check_mesh``), in one line naming ``path`` (e.g. the scene file) and what to
+    change (``setting``: "--edge", or the scene key that set the edge)."""
+    from .. import budget
+
+    budget.check_mesh(expected_nodes(surface, edge), edge, abs(float(surface.volume)), setting, path)
+
+
 def expected_cpu(attempt: MeshAttempt, nodes: int) -> float:
     """Expected CPU seconds of ``attempt`` for a mesh of ``nodes`` nodes."""
     a, b = CPU_SECONDS[attempt.method]
