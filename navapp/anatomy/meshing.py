@@ -26,6 +26,7 @@ from ..budget import NODES_PER_EDGE3 as _NODES_PER_EDGE3
 from ..defaults import EDGE_MM
 from ..errors import NavappError
 from .manifold import boundary_defects, mend_pinches
+from .mesh_worker import TEMP_PREFIX
 from .tets import TetMesh, tet_volumes  # TetMesh re-exported: its home is tets.py
 
 
@@ -316,12 +317,12 @@ class _OutOfTime(Exception):
     """The wall-clock limit passed: an error for the whole run, never a reason to try the next attempt."""
 
 
-TEMP_PREFIX = "navapp-mesh-"
 
 
 def _sweep_stale_folders():
-    """Remove ``navapp-mesh-<pid>-*`` folders whose process is gone (a caller killed by
-    SIGKILL cannot clean up after itself; its worker dies with it)."""
+    """Remove ``navapp-mesh-<pid>-*`` folders whose process is gone: a caller killed by
+    SIGKILL cannot clean up after itself, and the worker's clean-up process (``mesh_worker``)
+    removes its folder unless it was killed too (e.g. the whole process group by SIGKILL)."""
 
     import psutil
 
@@ -343,9 +344,27 @@ def _run_attempt(v, f, edge, seed, attempt: MeshAttempt, budget: float, deadline
     script); stop it when it has used ``budget`` CPU seconds (``_AttemptFailed``) or when
     the wall clock passes ``deadline`` (``_OutOfTime``). Returns (nodes, tets); the CPU
     seconds used go to ``usage["cpu"]``."""
+    _sweep_stale_folders()
+    # the worker's clean-up process waits on this pipe: its write end is this process's alone
+    # (not inherited), closed after the folder is removed here, or by the kernel at our death
+    watch_r, watch_w = os.pipe() if os.name == "posix" else (None, None)
+    try:
+        return _attempt_in_folder(v, f, edge, seed, attempt, budget, deadline, on_work, usage, watch_r)
+    finally:
+        for fd in (watch_r, watch_w):
+            if fd is not None:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+
+
+def _attempt_in_folder(v, f, edge, seed, attempt: MeshAttempt, budget: float, deadline: float | None, on_work,
+                       usage: dict | None, watch_r: int | None):
+    """``_run_attempt`` in its temporary folder; ``watch_r``: the pipe end the worker's
+    clean-up process waits on (None where there is none)."""
     import psutil
 
-    _sweep_stale_folders()
     with tempfile.TemporaryDirectory(prefix=f"{TEMP_PREFIX}{os.getpid()}-") as tmp:
         src, dst, log = Path(tmp, "in.npz"), Path(tmp, "out.npz"), Path(tmp, "stderr.txt")
         np.savez(src, vertices=v, faces=f, edge=edge, seed=seed, method=attempt.method,
@@ -356,8 +375,11 @@ def _run_attempt(v, f, edge, seed, attempt: MeshAttempt, budget: float, deadline
         env = dict(os.environ, OMP_NUM_THREADS="1",
                    PYTHONPATH=os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")])))
         command = [sys.executable, "-m", "navapp.anatomy.mesh_worker", str(src), str(dst), str(os.getpid())]
+        if watch_r is not None:
+            command.append(str(watch_r))
         with log.open("wb") as err:  # a file, not a pipe: a chatty mesher cannot fill it and block
-            proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err, env=env, cwd=tmp)
+            proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err, env=env, cwd=tmp,
+                                    pass_fds=() if watch_r is None else (watch_r,))
         cpu = 0.0
         try:
             ps = psutil.Process(proc.pid)
