@@ -155,6 +155,9 @@ def test_no_mesher_outlives_its_caller(tmp_path):
         while time.monotonic() < deadline and any(f.exists() for f in folders):
             time.sleep(0.2)
         assert not any(f.exists() for f in folders), folders
+        from navapp.anatomy import mesh_worker, meshing
+
+        assert mesh_worker.FOLDER_PREFIX == meshing.TEMP_PREFIX  # the worker removes only such folders
     finally:
         caller.kill()
 

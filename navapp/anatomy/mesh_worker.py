@@ -18,7 +18,9 @@ from pathlib import Path
 
 from ..errors import NavappError
 
-TEMP_PREFIX = "navapp-mesh-"  # the temporary folders of a meshing attempt (``meshing._run_attempt``)
+# only a meshing attempt's own temporary folder is ever removed (``meshing.TEMP_PREFIX``, not
+# imported: meshing imports this module's caller side, and loads numpy and trimesh)
+FOLDER_PREFIX = "navapp-mesh-"
 
 
 def _die_with_parent(parent: int):
@@ -53,7 +55,7 @@ def _clean_up_after_parent(watch_fd: int, folder: Path):
     or by dying. Forked before numpy or a mesher is loaded (a small copy), with no death
     signal of its own (it must outlive this mesher, which dies with the parent) and deaf to
     the terminal's Ctrl+C and hang-up and to a group's SIGTERM: it ends on the pipe alone."""
-    if not hasattr(os, "fork") or not folder.name.startswith(TEMP_PREFIX):
+    if not hasattr(os, "fork") or not folder.name.startswith(FOLDER_PREFIX):
         return
     if os.fork() == 0:
         try:

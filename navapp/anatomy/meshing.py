@@ -26,7 +26,6 @@ from ..budget import NODES_PER_EDGE3 as _NODES_PER_EDGE3
 from ..defaults import EDGE_MM
 from ..errors import NavappError
 from .manifold import boundary_defects, mend_pinches
-from .mesh_worker import TEMP_PREFIX
 from .tets import TetMesh, tet_volumes  # TetMesh re-exported: its home is tets.py
 
 
@@ -317,6 +316,7 @@ class _OutOfTime(Exception):
     """The wall-clock limit passed: an error for the whole run, never a reason to try the next attempt."""
 
 
+TEMP_PREFIX = "navapp-mesh-"  # a meshing attempt's temporary folder (``mesh_worker.FOLDER_PREFIX``)
 
 
 def _sweep_stale_folders():
