@@ -61,17 +61,21 @@ def _gb(mb: float) -> str:
     return f"{mb / 1024:.1f} GB"
 
 
-def check_mesh(nodes: int, edge: float, volume_mm3: float):
+def check_mesh(nodes: int, edge: float, volume_mm3: float, setting: str = "--edge", path=None):
     """Refuse a mesh of about ``nodes`` nodes (from the liver's volume and ``edge``) whose
-    basis would not fit, naming the finest edge that would."""
+    basis would not fit, naming the finest edge that would. ``setting``: what set ``edge``,
+    a command option ("--edge") or a scene key ("deformation.mesh_edge_mm"), named in the
+    advice; ``path``: the file that holds it, named first (a scene file)."""
     budget = available_mb()
     need = BASE_MB + MB_PER_NODE * nodes
     if need <= budget:
         return
     fits = max(1.0, (budget - BASE_MB) / MB_PER_NODE)
-    finest = (volume_mm3 / (NODES_PER_EDGE3 * fits)) ** (1 / 3)
-    raise NavappError(f"a mesh at {edge:g} mm would have about {nodes:,} nodes and need about {_gb(need)}, "
-                      f"more than the {_gb(budget)} this machine has free: use --edge {_ceil(finest)} or coarser")
+    finest = _ceil((volume_mm3 / (NODES_PER_EDGE3 * fits)) ** (1 / 3))
+    advice = f"use {setting} {finest} or coarser" if setting.startswith("-") else \
+        f"set {setting} = {finest} or coarser"
+    raise InputError(f"a mesh at {edge:g} mm would have about {nodes:,} nodes and need about {_gb(need)}, "
+                     f"more than the {_gb(budget)} this machine has free: {advice}", path)
 
 
 def check_basis(nodes: int, k: int):

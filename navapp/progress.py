@@ -4,7 +4,12 @@ calls that report no progress of their own (e.g. Gmsh).
 Silence: ``QUIET`` is the application's switch (the CLI's ``--quiet``, the test suite);
 library code that must not draw bars (a worker process, a study step) uses the scoped
 ``quiet()`` context, which restores the previous state when the block ends and never
-touches ``QUIET``."""
+touches ``QUIET``.
+
+A terminal redraws a bar in place at each ``\r``; a file or a pipe (a log, CI, ``2> log``)
+keeps every state on one endless line, and whatever is printed next — a warning — was glued
+onto it. Where stderr is not a terminal, each state a bar draws therefore ends its own line
+(``_Lines``), at most one every ``FILE_INTERVAL`` seconds, so every warning starts a line."""
 
 import contextvars
 import sys
@@ -47,6 +52,47 @@ def remove_listener(fn):
         _listeners.remove(fn)
 
 
+FILE_INTERVAL = 10.0
+"""Seconds between two states of one bar written to a file (a terminal redraws 5 a second):
+a log keeps a line per bar state, so fewer, and still a sign of life on a long stage."""
+
+
+class _Lines:
+    """stderr for a bar when it is not a terminal: a redraw (``\r`` + the bar) becomes the
+    bar's text ending its line, and the blanking of a cleared bar (``\r`` + spaces, cursor
+    moves), which only a terminal needs, is dropped; any other text passes as it is."""
+
+    def __init__(self, stream):
+        self._stream = stream
+
+    def write(self, s):
+        s = str(s)
+        if s.startswith(("\r", "\x1b[")):
+            text = s.replace("\x1b[A", "").strip("\r").rstrip()
+            if text:
+                self._stream.write(text + "\n")
+            return len(s)
+        return self._stream.write(s)
+
+    def flush(self):
+        getattr(self._stream, "flush", lambda: None)()
+
+    def __getattr__(self, name):  # encoding, isatty, fileno, … of the real stream
+        return getattr(self._stream, name)
+
+
+def _terminal() -> bool:
+    try:
+        return bool(sys.stderr.isatty())
+    except (AttributeError, ValueError):  # no stderr, or a closed one
+        return False
+
+
+def _stderr():
+    """(the stream bars write to, the seconds between two of a bar's states)."""
+    return (sys.stderr, 0.2) if _terminal() else (_Lines(sys.stderr), FILE_INTERVAL)
+
+
 def _notify(desc, fraction):
     for fn in list(_listeners):
         try:
@@ -76,16 +122,18 @@ class _Bar(tqdm):
 def bar(total, desc, unit="it"):
     """A tqdm bar on stderr (hidden when ``is_quiet()``), also reported to the listeners."""
     _notify(desc, 0.0)
-    return _Bar(total=total, desc=desc, unit=unit, file=sys.stderr, disable=is_quiet(), leave=False,
-                dynamic_ncols=True, mininterval=0.2)
+    stream, interval = _stderr()
+    return _Bar(total=total, desc=desc, unit=unit, file=stream, disable=is_quiet(), leave=False,
+                dynamic_ncols=True, mininterval=interval)
 
 
 def work(desc, total):
     """A bar for work measured in seconds of CPU (e.g. a mesher in a child process against
     its expected CPU time): percentage, elapsed and ETA, no rate."""
     _notify(desc, 0.0)
-    return _Bar(total=total, desc=desc, file=sys.stderr, disable=is_quiet(), leave=False, dynamic_ncols=True,
-                mininterval=0.5, bar_format="{desc}: {percentage:3.0f}% [{elapsed}<{remaining}]")
+    stream, interval = _stderr()
+    return _Bar(total=total, desc=desc, file=stream, disable=is_quiet(), leave=False, dynamic_ncols=True,
+                mininterval=max(0.5, interval), bar_format="{desc}: {percentage:3.0f}% [{elapsed}<{remaining}]")
 
 
 _write_lock = threading.Lock()
@@ -107,10 +155,11 @@ def stage(desc):
     t0 = time.perf_counter()
     _notify(desc, None)
     hidden = is_quiet()  # read here: the ticking thread does not see this context's quiet()
+    stream, interval = _stderr()
 
     def tick():
-        with tqdm(desc=desc, bar_format="{desc}: {elapsed}", file=sys.stderr, disable=hidden, leave=False) as t:
-            while not stop.wait(0.5):
+        with tqdm(desc=desc, bar_format="{desc}: {elapsed}", file=stream, disable=hidden, leave=False) as t:
+            while not stop.wait(max(0.5, interval)):
                 t.refresh()
 
     th = threading.Thread(target=tick, daemon=True)

@@ -116,7 +116,10 @@ def test_other_generators_mesh_above_the_floor(make, edge):
 
 
 def test_no_mesher_outlives_its_caller(tmp_path):
-    """A caller killed mid-mesh (Ctrl-C'd CLI, stopped server) leaves no mesher running."""
+    """A caller killed mid-mesh (Ctrl-C'd CLI, stopped server) leaves no mesher running, and
+    no temporary folder: a caller killed by SIGKILL left its ``navapp-mesh-*`` folder until
+    the next meshing run (the worker's clean-up process now removes it)."""
+    import os
     import subprocess
     import sys
     import time
@@ -130,7 +133,11 @@ def test_no_mesher_outlives_its_caller(tmp_path):
         "import surface_fixtures as sf\n"
         "from navapp.anatomy.meshing import tetrahedralise, MeshAttempt\n"
         "tetrahedralise(sf.sharp_ridged_liver(3.0), 10.0, attempts=(MeshAttempt('ftetwild'),))\n")
-    caller = subprocess.Popen([sys.executable, str(script)])
+    # a temporary folder of its own: another process's meshing run sweeps a dead caller's
+    # folders from the shared one, which would hide a folder this test must see removed
+    private = tmp_path / "tmp"
+    private.mkdir()
+    caller = subprocess.Popen([sys.executable, str(script)], env=dict(os.environ, TMPDIR=str(private)))
     try:
         deadline = time.monotonic() + 60
         workers = []
@@ -138,10 +145,19 @@ def test_no_mesher_outlives_its_caller(tmp_path):
             time.sleep(0.2)
             workers = [p for p in psutil.Process(caller.pid).children() if "mesh_worker" in " ".join(p.cmdline())]
         assert workers, "the caller never started a mesher"
+        folders = list(private.glob(f"navapp-mesh-{caller.pid}-*"))
+        assert folders
         caller.kill()
         caller.wait()
         gone, alive = psutil.wait_procs(workers, timeout=60)  # an orphaned mesher would run for minutes
         assert not alive
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and any(f.exists() for f in folders):
+            time.sleep(0.2)
+        assert not any(f.exists() for f in folders), folders
+        from navapp.anatomy import mesh_worker, meshing
+
+        assert mesh_worker.FOLDER_PREFIX == meshing.TEMP_PREFIX  # the worker removes only such folders
     finally:
         caller.kill()
 

@@ -46,6 +46,15 @@ def test_register_hand_made_case(tmp_path, capsys):
     reg = trimesh.load(out / "liver.ply")
     assert len(reg.vertices) == len(read_case(tmp_path / "c").preop.liver.vertices)
     assert np.isfinite(reg.vertices).all()
+    # which mesher made the mesh, and why, is part of the result and of the command's output
+    mesher = result["mesher"]
+    assert mesher["method"].split()[0] in ("gmsh", "ftetwild") and mesher["why"].startswith(mesher["method"])
+    assert brief["mesher"] == mesher["why"] and mesher["edge_mm"] == 15.0 and mesher["nodes"] == result["nodes"]
+    assert main(["--quiet", "register", str(tmp_path / "c"), "--edge", "15", "--k", "10"]) == 0
+    io = capsys.readouterr()
+    again = json.loads((out / "result.json").read_text())["mesher"]
+    assert again["cached"] and again["why"] == mesher["why"]
+    assert f"navapp: mesher {mesher['why']} (mesh from the cache)" in io.err.splitlines()
 
 
 def test_register_without_data_is_a_clear_error(tmp_path, capsys):
@@ -92,3 +101,29 @@ def test_each_warning_is_one_line_once(tmp_path, capsys):
     assert main(["--quiet", "register", str(tmp_path / "c"), "--edge", "15", "--k", "10"]) == 0
     err = [line for line in capsys.readouterr().err.splitlines() if "data points" in line]
     assert len(err) == 1 and err[0].startswith("navapp: warning: ellipsoid: only 1 data points"), err
+
+
+def test_ok_is_never_said_beside_a_warning(tmp_path, capsys):
+    """One rule for "the answer is fine": result.json said ``fit_quality.ok: true`` (the
+    residuals, which one point fits exactly) beside the warning that the pose is not
+    determined. ``ok`` (top level, in fit_quality and in --json) is now true only with no warning."""
+    make_case(tmp_path / "c")
+    (tmp_path / "c/intraop/anterior.csv").write_text("x,y,z\n0.0,60.0,0.0\n")
+    assert main(["--quiet", "register", str(tmp_path / "c"), "--edge", "15", "--k", "10", "--json"]) == 0
+    brief = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    result = json.loads((tmp_path / "c/registration/result.json").read_text())
+    assert any("only 1 data points" in w for w in result["warnings"])
+    assert result["ok"] is False and brief["ok"] is False
+    assert result["fit_quality"]["ok"] is False and result["fit_quality"]["residuals_ok"] is True
+
+
+def test_the_verdict_of_an_older_result_json():
+    """A result.json written before the one rule is read by it: its fit_quality.ok judged the
+    residuals alone, and the oldest have only ``warning``."""
+    from navapp.registration.quality import Verdict
+
+    assert not Verdict.of_result({"fit_quality": {"ok": True}, "warnings": ["the pose is not determined"]}).ok
+    assert not Verdict.of_result({"fit_quality": {"ok": True}, "warning": "a; b"}).ok
+    assert Verdict.of_result({"fit_quality": {"ok": False}, "warning": None}).warnings == ("poor fit",)
+    assert Verdict.of_result({"fit_quality": {"ok": True}, "warning": None}).ok
+    assert Verdict.of_result({"answer": "rigid", "warnings": []}).ok

@@ -249,6 +249,34 @@ def test_a_warning_is_never_glued_to_a_progress_bar(capsys, monkeypatch):
     assert hit and hit[0].rsplit("\r", 1)[-1] == "navapp: warning: the data lie on one line", lines
 
 
+def test_on_a_file_every_warning_has_a_line_of_its_own(capsys, monkeypatch):
+    """stderr not a terminal (a log, CI): a bar's states used to stay on one line of ``\r``s,
+    and a warning printed after the bar (closed or not) was glued onto that line."""
+    import sys
+
+    from navapp import progress
+
+    monkeypatch.setattr(progress, "QUIET", False)
+    assert not sys.stderr.isatty()
+    with progress.bar(10, "LIBR", "iter") as bar:
+        bar.update(3)
+        bar.refresh()
+        progress.echo("navapp: warning: one while the bar is drawn")
+        bar.update(7)
+    print("navapp: warning: one after the bar", file=sys.stderr)
+    with progress.stage("meshing"):
+        pass
+    print("navapp: warning: one after a stage", file=sys.stderr)
+    with progress.work("meshing (gmsh 40°)", 10.0) as bar:
+        bar.to(4.0)
+    print("navapp: warning: one after the work bar", file=sys.stderr)
+    err = capsys.readouterr().err
+    lines = err.split("\n")
+    said = [ln for ln in lines if "warning" in ln]
+    assert len(said) == 4 and all(ln.startswith("navapp: warning: one ") for ln in said), repr(err)
+    assert "\r" not in err and "LIBR" in err, repr(err)
+
+
 def _with_func(parser, command, fn):
     parser._subparsers._group_actions[0].choices[command].set_defaults(func=fn)
     return parser
@@ -383,6 +411,43 @@ def test_pardiso_out_of_memory_is_a_memory_error():
 
     with pytest.raises(pypardiso.pardiso_wrapper.PyPardisoError):  # other failures stay what they are
         sparse._pardiso(Other(), None, None)
+
+
+def test_a_scene_that_leaves_no_data_is_one_line(tmp_path, capsys):
+    """A dropout fraction of 0.99999 (in range) kept no point: simulate exited 0 with a case
+    without intraop data and said nothing."""
+    scene = tmp_path / "nodata.toml"
+    scene.write_text('[anatomy]\nphantom = 0\n[deformation]\nmesh_edge_mm = 10.0\n[ius]\nplanes = 0\n'
+                     '[[effects]]\nkind = "dropout"\nfraction = 0.99999\n')
+    err = _one_line_error(capsys, main(["--quiet", "simulate", str(scene), "--out", str(tmp_path / "case")]))
+    assert err.startswith(f"navapp: error: {scene}: the scene leaves 0 intraoperative data points after a "
+                          "dropout of 0.99999"), err
+    assert "lower the dropout fraction" in err and not (tmp_path / "case").exists()
+
+
+def test_a_scene_with_a_tiny_edge_is_refused_up_front_naming_the_file(tmp_path, capsys, monkeypatch):
+    """A scene's deformation.mesh_edge_mm of 0.3 reached the mesher's own check, whose line
+    named no file and advised a --edge that simulate does not have."""
+    from navapp.simulation import simulate
+
+    monkeypatch.setenv("NAVAPP_MEMORY_MB", "8000")
+    monkeypatch.setattr(simulate, "cached_tetmesh", lambda *a, **k: pytest.fail("meshing started"))
+    scene = tmp_path / "fine.toml"
+    scene.write_text("[anatomy]\nphantom = 0\n[deformation]\nmesh_edge_mm = 0.3\n")
+    err = _one_line_error(capsys, main(["--quiet", "simulate", str(scene), "--out", str(tmp_path / "case")]))
+    assert err.startswith(f"navapp: error: {scene}: a mesh at 0.3 mm would have about "), err
+    assert "set deformation.mesh_edge_mm = " in err and err.endswith(" or coarser"), err
+
+
+def test_a_viewer_edge_too_fine_is_refused_before_it_starts(phantoms, monkeypatch):
+    """``navapp serve --edge 0.3`` simulated the scene first and failed minutes later, at the
+    registration mesh; it is now refused before the viewer starts, saying what to use."""
+    from navapp.app.core import Core
+    from navapp.simulation.scene import demo_scene
+
+    monkeypatch.setenv("NAVAPP_MEMORY_MB", "8000")
+    with pytest.raises(InputError, match=r"a mesh at 0.3 mm would .* use --edge [\d.]+ or coarser"):
+        Core(demo_scene(), phantoms[0], 0.3, 45)
 
 
 def test_a_case_simulated_over_another_replaces_it_whole(tmp_path, capsys, cache_root):

@@ -1,15 +1,26 @@
-"""Child process of ``meshing.tetrahedralise``: ``python -m navapp.anatomy.mesh_worker IN OUT PARENT``.
+"""Child process of ``meshing.tetrahedralise``:
+``python -m navapp.anatomy.mesh_worker IN OUT PARENT [WATCH_FD]``.
 
 Reads the surface and the attempt from IN (.npz), meshes, and writes ``nodes`` and
 ``tets`` (or ``error``, one line) to OUT. Runs apart so that the parent can stop a mesher
-that overruns its work budget; dies with its parent.
+that overruns its work budget; dies with its parent. WATCH_FD is the read end of a pipe
+whose write end only the parent holds: a small process forked from here waits on it and
+removes IN's temporary folder once the parent is gone, whether it finished or was killed
+(a caller killed by SIGKILL can remove nothing, and its folder stayed until the next run).
 """
 
 import os
+import shutil
+import signal
 import sys
 import time
+from pathlib import Path
 
 from ..errors import NavappError
+
+# only a meshing attempt's own temporary folder is ever removed (``meshing.TEMP_PREFIX``, not
+# imported: meshing imports this module's caller side, and loads numpy and trimesh)
+FOLDER_PREFIX = "navapp-mesh-"
 
 
 def _die_with_parent(parent: int):
@@ -38,7 +49,30 @@ def _exit_with_parent(parent: int):
             os._exit(3)
 
 
-def main(src: str, dst: str, parent: int | None = None) -> int:
+def _clean_up_after_parent(watch_fd: int, folder: Path):
+    """Fork a process that removes ``folder`` when ``watch_fd`` reads end of file, i.e. when
+    the parent has closed the pipe's write end: after the attempt (the folder is gone then),
+    or by dying. Forked before numpy or a mesher is loaded (a small copy), with no death
+    signal of its own (it must outlive this mesher, which dies with the parent) and deaf to
+    the terminal's Ctrl+C and hang-up and to a group's SIGTERM: it ends on the pipe alone."""
+    if not hasattr(os, "fork") or not folder.name.startswith(FOLDER_PREFIX):
+        return
+    if os.fork() == 0:
+        try:
+            for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+                signal.signal(sig, signal.SIG_IGN)
+            os.chdir("/")
+            while os.read(watch_fd, 64):
+                pass
+            shutil.rmtree(folder, ignore_errors=True)
+        finally:
+            os._exit(0)
+    os.close(watch_fd)
+
+
+def main(src: str, dst: str, parent: int | None = None, watch_fd: int | None = None) -> int:
+    if watch_fd is not None:
+        _clean_up_after_parent(watch_fd, Path(src).resolve().parent)
     if parent is not None:
         _die_with_parent(parent)
         import threading
@@ -68,4 +102,5 @@ def main(src: str, dst: str, parent: int | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main(sys.argv[1], sys.argv[2], int(sys.argv[3]) if len(sys.argv) > 3 else None))
+    sys.exit(main(sys.argv[1], sys.argv[2], int(sys.argv[3]) if len(sys.argv) > 3 else None,
+                  int(sys.argv[4]) if len(sys.argv) > 4 else None))

@@ -132,6 +132,15 @@ def expected_nodes(surface: trimesh.Trimesh, edge: float) -> int:
     return int(round(abs(float(surface.volume)) / (NODES_PER_EDGE3 * edge ** 3)))
 
 
+def check_size(surface: trimesh.Trimesh, edge: float, setting: str = "--edge", path=None):
+    """Refuse, before any work, a mesh of ``surface`` at ``edge`` mm beyond the memory budget
+    (``budget.check_mesh``), in one line naming ``path`` (e.g. the scene file) and what to
+    change (``setting``: "--edge", or the scene key that set the edge)."""
+    from .. import budget
+
+    budget.check_mesh(expected_nodes(surface, edge), edge, abs(float(surface.volume)), setting, path)
+
+
 def expected_cpu(attempt: MeshAttempt, nodes: int) -> float:
     """Expected CPU seconds of ``attempt`` for a mesh of ``nodes`` nodes."""
     a, b = CPU_SECONDS[attempt.method]
@@ -307,12 +316,13 @@ class _OutOfTime(Exception):
     """The wall-clock limit passed: an error for the whole run, never a reason to try the next attempt."""
 
 
-TEMP_PREFIX = "navapp-mesh-"
+TEMP_PREFIX = "navapp-mesh-"  # a meshing attempt's temporary folder (``mesh_worker.FOLDER_PREFIX``)
 
 
 def _sweep_stale_folders():
-    """Remove ``navapp-mesh-<pid>-*`` folders whose process is gone (a caller killed by
-    SIGKILL cannot clean up after itself; its worker dies with it)."""
+    """Remove ``navapp-mesh-<pid>-*`` folders whose process is gone: a caller killed by
+    SIGKILL cannot clean up after itself, and the worker's clean-up process (``mesh_worker``)
+    removes its folder unless it was killed too (e.g. the whole process group by SIGKILL)."""
 
     import psutil
 
@@ -334,9 +344,27 @@ def _run_attempt(v, f, edge, seed, attempt: MeshAttempt, budget: float, deadline
     script); stop it when it has used ``budget`` CPU seconds (``_AttemptFailed``) or when
     the wall clock passes ``deadline`` (``_OutOfTime``). Returns (nodes, tets); the CPU
     seconds used go to ``usage["cpu"]``."""
+    _sweep_stale_folders()
+    # the worker's clean-up process waits on this pipe: its write end is this process's alone
+    # (not inherited), closed after the folder is removed here, or by the kernel at our death
+    watch_r, watch_w = os.pipe() if os.name == "posix" else (None, None)
+    try:
+        return _attempt_in_folder(v, f, edge, seed, attempt, budget, deadline, on_work, usage, watch_r)
+    finally:
+        for fd in (watch_r, watch_w):
+            if fd is not None:
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+
+
+def _attempt_in_folder(v, f, edge, seed, attempt: MeshAttempt, budget: float, deadline: float | None, on_work,
+                       usage: dict | None, watch_r: int | None):
+    """``_run_attempt`` in its temporary folder; ``watch_r``: the pipe end the worker's
+    clean-up process waits on (None where there is none)."""
     import psutil
 
-    _sweep_stale_folders()
     with tempfile.TemporaryDirectory(prefix=f"{TEMP_PREFIX}{os.getpid()}-") as tmp:
         src, dst, log = Path(tmp, "in.npz"), Path(tmp, "out.npz"), Path(tmp, "stderr.txt")
         np.savez(src, vertices=v, faces=f, edge=edge, seed=seed, method=attempt.method,
@@ -347,8 +375,11 @@ def _run_attempt(v, f, edge, seed, attempt: MeshAttempt, budget: float, deadline
         env = dict(os.environ, OMP_NUM_THREADS="1",
                    PYTHONPATH=os.pathsep.join(filter(None, [package_root, os.environ.get("PYTHONPATH")])))
         command = [sys.executable, "-m", "navapp.anatomy.mesh_worker", str(src), str(dst), str(os.getpid())]
+        if watch_r is not None:
+            command.append(str(watch_r))
         with log.open("wb") as err:  # a file, not a pipe: a chatty mesher cannot fill it and block
-            proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err, env=env, cwd=tmp)
+            proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=err, env=env, cwd=tmp,
+                                    pass_fds=() if watch_r is None else (watch_r,))
         cpu = 0.0
         try:
             ps = psutil.Process(proc.pid)
@@ -535,6 +566,32 @@ def mesh_liver(surface: trimesh.Trimesh, edge: float = EDGE_MM, limit: float | N
     report["attempts"] = log
     report["seconds"] = round(time.perf_counter() - t0, 3)
     return mesh, report
+
+
+@dataclass(frozen=True)
+class MeshProvenance:
+    """Which mesher made a mesh and why: what a result made on it reports (``result.json``'s
+    ``mesher``, ``navapp register --json``), since the mesh is part of the answer. ``cached``:
+    the mesh was made by an earlier run with the same key (surface, edge, plan) and loaded."""
+
+    method: str  # the attempt that made the mesh, e.g. "gmsh 40°", "ftetwild at 0.85 × edge"
+    why: str  # one line: that method, and why this one (``why``)
+    choice: str  # $NAVAPP_MESHER: auto, gmsh or ftetwild
+    edge_mm: float
+    nodes: int
+    cached: bool = False
+
+    @classmethod
+    def from_report(cls, report: dict) -> "MeshProvenance":
+        """From ``mesh_liver``'s (or the cache's) report."""
+        method = str(report.get("method", "unknown"))
+        mesher = report.get("mesher") or {}
+        return cls(method, str(mesher.get("why", method)), str(mesher.get("choice", "auto")),
+                   float(report.get("edge_mm", 0.0)), int(report.get("nodes", 0)), bool(report.get("cached", False)))
+
+    def as_dict(self) -> dict:
+        return {"method": self.method, "why": self.why, "choice": self.choice, "edge_mm": self.edge_mm,
+                "nodes": self.nodes, "cached": self.cached}
 
 
 # gmsh 40/60/90° then fTetWild twice, each with pinches mended, checked against the floor,

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .. import progress
+from ..anatomy.meshing import check_size
 from ..anatomy.truth import TruthField
 from ..errors import NavappError
 from ..registration.pipeline import Registration, prepare
@@ -72,6 +73,10 @@ class Ready:
 
 class Core:
     def __init__(self, scene, preop, edge: float, k: int, cache_root=None, session_dir=None):
+        # a registration mesh that would not fit in memory is refused before the viewer starts:
+        # a --edge too fine failed only after the scene's simulation; the scene's own truth mesh
+        # is checked by the simulation, first thing, naming the scene file
+        check_size(preop.liver, edge, "--edge")
         self.scene, self.preop, self.edge, self.k = scene, preop, edge, k
         self.cache_root, self.session_dir = cache_root, session_dir
         self.centre = preop.liver.vertices.mean(0)

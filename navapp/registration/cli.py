@@ -73,11 +73,18 @@ def cmd_register(args):
                 brief.setdefault("target_centroid_error_mm", {})[t["name"]] = t["tre"][how]["centroid_mm"]
         brief["seconds"] = summary["seconds"]
         brief["out"] = str(out)
+        if "mesher" in summary:
+            brief["mesher"] = summary["mesher"]["why"]
         brief["answer"] = summary["answer"]
+        brief["ok"] = summary["ok"]
         brief["warning"] = summary["warning"]
         brief["warnings"] = summary["warnings"]
         print(json.dumps(brief))
     else:
+        if "mesher" in summary:
+            mesher = summary["mesher"]
+            print(f"navapp: mesher {mesher['why']}{' (mesh from the cache)' if mesher['cached'] else ''}",
+                  file=sys.stderr)
         print(f"registered {case.name}: results in {out}", file=sys.stderr)
         print(json.dumps(summary, indent=2))
 

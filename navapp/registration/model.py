@@ -19,6 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
+from ..anatomy.meshing import MeshProvenance
 from ..anatomy.model import REGION_NAMES, VESSELS, PreopModel
 from ..errors import InputError
 from ..features import SALIENT, data_to_model, weights_si
@@ -58,6 +59,8 @@ class RegistrationModel:
     centroid: np.ndarray  # x̄0 (3,), centroid of the mesh nodes
     # derived data kept with the model (e.g. the multi-start ICP's vertex KD-trees)
     cache: dict = field(default_factory=dict, repr=False, compare=False)
+    # which mesher made the basis' mesh and why (``prepare`` sets it; results report it)
+    mesher: MeshProvenance | None = field(default=None, compare=False)
 
     def feature_for(self, data_name: str) -> ModelFeature:
         """The model feature a data feature slides on; a salient region the model has no

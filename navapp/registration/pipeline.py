@@ -21,7 +21,7 @@ import numpy as np
 import trimesh
 
 from ..anatomy.caseio import Case, write_csv
-from ..anatomy.meshing import cached_tetmesh
+from ..anatomy.meshing import MeshProvenance, cached_tetmesh
 from ..anatomy.model import VESSELS
 from ..defaults import EDGE_MM, K
 from ..errors import CarriedWarning, InputError
@@ -31,7 +31,7 @@ from .coverage import note_coverage
 from .libr import LibrResult, LMOptions, register_libr
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
 from .pose import Determinacy, PoseChoice, PoseSource, choose_pose, pose_determinacy, prefer_given, rms_on_model
-from .quality import FitQuality, assess_fit
+from .quality import FitQuality, Verdict, assess_fit
 from .rigid import (
     RIGID_ROBUST,
     RIGID_WITH_POSTERIOR,
@@ -237,7 +237,7 @@ def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None) -> tuple[Registratio
     """
     sec = {}
     t = time.perf_counter()
-    mesh, _ = cached_tetmesh(case.preop.liver, edge, cache_root)
+    mesh, report = cached_tetmesh(case.preop.liver, edge, cache_root)
     sec["mesh"] = time.perf_counter() - t
     t = time.perf_counter()
     if k > len(np.unique(mesh.boundary_faces())):
@@ -247,6 +247,7 @@ def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None) -> tuple[Registratio
     sec["basis"] = time.perf_counter() - t
     t = time.perf_counter()
     model = build_model(basis, case.preop, case.preop.fiducials)
+    model.mesher = MeshProvenance.from_report(report)
     sec["model"] = time.perf_counter() - t
     return model, sec
 
@@ -554,13 +555,17 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
         if mesh is not None:
             trimesh.Trimesh(reg.transform(mesh.vertices), mesh.faces, process=False).export(out / f"{name}.ply")
     summary = dict(extra)
-    if reg.quality is not None:
-        summary["fit_quality"] = reg.quality.as_dict()
+    if reg.model.mesher is not None:  # the mesh is part of the answer: which mesher made it, and why
+        summary["mesher"] = reg.model.mesher.as_dict()
     summary["answer"] = "deformable" if reg.deformed else "rigid"
     for key, part in (("pose", reg.pose_choice), ("pose_determinacy", reg.determinacy), ("support", reg.support)):
         if part is not None:
             summary[key] = part.as_dict()
     lines = reg.warnings + [w for t in summary.get("targets", []) if (w := t.get("warning"))]
+    verdict = Verdict(tuple(lines))  # one rule: ok only with no warning (fit_quality.ok says the same)
+    summary["ok"] = verdict.ok
+    if reg.quality is not None:
+        summary["fit_quality"] = reg.quality.as_dict(verdict)
     summary["warnings"] = lines
     summary["warning"] = "; ".join(lines) if lines else None
     if case.truth is not None:  # reported, never fitted: the TRE at the truth's points (``anatomy.truth``)

@@ -55,10 +55,42 @@ class FitQuality:
         return (f"poor fit: {parts} after convergence — the result may be wrong; "
                 f"check the labels and the initial pose, or add data")
 
-    def as_dict(self) -> dict:
-        return {"ok": self.ok, "warning": self.warning,
+    def as_dict(self, verdict: "Verdict | None" = None) -> dict:
+        """``ok``: the answer's ``verdict`` when given (a result's one rule), else the residuals'
+        own; ``residuals_ok``: the residuals' own, always."""
+        return {"ok": self.ok if verdict is None else verdict.ok, "residuals_ok": self.ok, "warning": self.warning,
                 "features": {f.name: {"n": f.n, "rms_mm": round(f.rms_mm, 3), "allowed_mm": f.allowed_mm,
                                       "flagged": f.flagged} for f in self.features}}
+
+
+@dataclass(frozen=True)
+class Verdict:
+    """Is the answer fine, as far as navapp can tell: one rule, and it is "no warning". Every
+    doubt about a registration — a pose the data cannot fix, too little of the liver covered,
+    a deformation the data do not support, residuals beyond their noise, a target far from
+    any data — is a line in ``warnings``; ``ok`` is true only when there is none. (The
+    residual check alone, ``FitQuality.ok``, said "ok" beside a warning that the pose was
+    not determined: two rules, and the wrong one was read first.)"""
+
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def ok(self) -> bool:
+        return not self.warnings
+
+    @classmethod
+    def of_result(cls, summary: dict) -> "Verdict":
+        """The verdict of a ``result.json`` (parsed), whichever navapp wrote it: older ones have
+        no top-level ``ok``, their ``fit_quality.ok`` judged the residuals alone, and the
+        oldest carry ``warning`` (lines joined by "; ") without ``warnings``."""
+        lines = summary.get("warnings")
+        if lines is None:
+            joined = summary.get("warning")
+            lines = joined.split("; ") if joined else []
+        fit = summary.get("fit_quality") or {}
+        if not lines and fit.get("ok") is False:
+            lines = [fit.get("warning") or "poor fit"]
+        return cls(tuple(lines))
 
 
 def assess_fit(features: dict, noise_mm: dict | None = None, margin_mm: float = MARGIN_MM) -> FitQuality:

@@ -24,7 +24,8 @@ import trimesh
 
 from .. import progress
 from ..anatomy.caseio import Case, read_case, write_case, write_csv
-from ..anatomy.meshing import cached_tetmesh
+from ..anatomy.meshing import cached_tetmesh, check_size
+from ..anatomy.model import PreopModel
 from ..anatomy.phantom import make_phantom
 from ..anatomy.targets import TARGETS_DIR, map_targets, write_targets
 from ..anatomy.truth import TruthField
@@ -69,13 +70,15 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
     if preop.regions is None:
 
         raise InputError("the scene's anatomy needs preop/regions.csv (anterior surface for the stylus and probe)")
+    reference = make_phantom(scene.transpose_from.phantom) if scene.transpose_from is not None else None
+    check_scene_size(scene, preop, reference)
     truth_mesh, _ = cached_tetmesh(preop.liver, scene.mesh_edge_mm, cache_root)
     loading, material = scene_loading(scene, truth_mesh)
     if loading.tool is not None:
         ledger.mark("tool")
     transposed = None
     if scene.transpose_from is not None:
-        u, transposed = transposed_truth(scene, preop, truth_mesh, ledger, cache_root)
+        u, transposed = transposed_truth(scene, preop, truth_mesh, ledger, cache_root, reference)
     else:
         with progress.stage("ground truth" + (" (neo-Hookean, Newton)" if scene.large else " (linear)")):
             if scene.large:
@@ -140,6 +143,7 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
     for pl in planes:
         for k, pts in pl.features.items():
             intraop[k] = np.vstack([intraop[k], pts]) if k in intraop else pts
+    _check_data(scene, intraop)
 
     case = Case(preop=preop, intraop=intraop, truth=truth,
                 settings={"name": scene.name, "units": "mm",
@@ -196,6 +200,37 @@ def _check_out(scene: Scene, out: Path):
                          "(which the new case replaces)", out)
 
 
+def check_scene_size(scene: Scene, preop: PreopModel, reference: PreopModel | None = None):
+    """Refuse, before any work, a scene whose truth mesh (``deformation.mesh_edge_mm`` on its
+    liver; ``transpose_from.mesh_edge_mm`` on the ``reference`` phantom) would not fit in
+    memory, in one line naming the scene file and the key to change. A tiny edge got as far
+    as the mesher's own check, whose line named neither and advised a --edge that
+    ``simulate`` does not have."""
+    where = scene.source or scene.name
+    check_size(preop.liver, scene.mesh_edge_mm, "deformation.mesh_edge_mm", where)
+    if reference is not None and scene.transpose_from is not None:
+        check_size(reference.liver, scene.transpose_from.mesh_edge_mm, "deformation.transpose_from.mesh_edge_mm",
+                   where)
+
+
+MIN_DATA_POINTS = 6
+"""The fewest intraoperative points a simulated case may have: fewer cannot fix a rigid pose
+(``registration.pipeline.MIN_SURFACE_POINTS``). A scene whose effects leave fewer (a dropout
+fraction of 0.99999 kept none) wrote a case without intraop data and exited 0."""
+
+
+def _check_data(scene: Scene, intraop: dict):
+    """Refuse, in one line naming the scene file, a scene that leaves (almost) no data."""
+    n = sum(len(p) for p in intraop.values())
+    if n >= MIN_DATA_POINTS:
+        return
+    drop = next((e.params["fraction"] for e in scene.effects if e.kind == "dropout"), None)
+    cause = f" after a dropout of {drop:g}" if drop else ""
+    fix = "lower the dropout fraction" if drop else "add data (stylus.coverage, stylus.points, ius.planes)"
+    raise InputError(f"the scene leaves {n} intraoperative data point{'s' if n != 1 else ''}{cause}: a case needs "
+                     f"at least {MIN_DATA_POINTS} to register; {fix}", scene.source or scene.name)
+
+
 def scene_loading(scene: Scene, mesh=None) -> tuple[Loading, Material]:
     """The truth's loads and material as the scene declares them; a ``[tool]`` is placed on
     ``mesh`` (the truth's own)."""
@@ -210,18 +245,19 @@ def scene_loading(scene: Scene, mesh=None) -> tuple[Loading, Material]:
     return loading, Material(E=scene.truth_E_pa, nu=NU_LIVER)
 
 
-def transposed_truth(scene: Scene, preop, truth_mesh, ledger=None, cache_root=None) -> tuple[np.ndarray, dict]:
-    """The scene's loads deform the reference phantom (``deformation.transpose_from``); its
-    displacement is carried onto the nodes of ``truth_mesh`` (this liver's) through an
-    inexact correspondence (``transpose.py``). Returns the nodal displacements (M, 3) mm
-    and what the report says about them."""
+def transposed_truth(scene: Scene, preop, truth_mesh, ledger=None, cache_root=None,
+                     reference: PreopModel | None = None) -> tuple[np.ndarray, dict]:
+    """The scene's loads deform the reference phantom (``deformation.transpose_from``; built
+    here unless given as ``reference``); its displacement is carried onto the nodes of
+    ``truth_mesh`` (this liver's) through an inexact correspondence (``transpose.py``).
+    Returns the nodal displacements (M, 3) mm and what the report says about them."""
 
     ledger = ledger or fx.Ledger()
     loading, material = scene_loading(scene)
     src = scene.transpose_from
     if src is None:
         raise ValueError(f"scene {scene.name!r} declares no deformation.transpose_from")
-    ref = make_phantom(src.phantom)
+    ref = make_phantom(src.phantom) if reference is None else reference
     with progress.stage(f"reference liver (phantom {src.phantom}) under laparoscopic loading"
                         + (" (neo-Hookean, Newton)" if scene.large else " (linear)")):
         ledger.mark("nonlinear_solve" if scene.large else "linear_solve")
