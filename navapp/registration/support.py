@@ -99,7 +99,9 @@ class Support:
     @property
     def significant(self) -> bool:
         """The correction stands out from its own uncertainty (True where it was not weighed)."""
-        return self.correction_mm is None or self.correction_mm >= self.z * self.sigma_mm
+        if self.correction_mm is None or self.sigma_mm is None:
+            return True
+        return self.correction_mm >= self.z * self.sigma_mm
 
     @property
     def supported(self) -> bool:
@@ -131,7 +133,7 @@ class Support:
                 "blocks": [{"centre_mm": np.round(b.centre, 1).tolist(), "points": b.points,
                             "rigid_mm": round(b.rigid_mm, 3), "deformable_mm": round(b.deformable_mm, 3)}
                            for b in self.blocks], "seconds": round(self.seconds, 3),
-                **({} if self.correction_mm is None else
+                **({} if self.correction_mm is None or self.sigma_mm is None else
                    {"correction_mm": round(self.correction_mm, 3), "sigma_mm": round(self.sigma_mm, 3),
                     "z": self.z, "significant": self.significant})}
 
