@@ -105,6 +105,7 @@ class _Bar(tqdm):
     def __init__(self, *args, **kw):
         super().__init__(*args, **kw)
         self.label, self.done = kw["desc"], 0  # tqdm keeps neither when disabled
+        self.log = isinstance(kw.get("file"), _Lines)  # tqdm wraps the stream it is given
 
     def update(self, n=1):
         out = super().update(n)
@@ -112,6 +113,11 @@ class _Bar(tqdm):
         if _listeners and self.total:
             _notify(self.label, min(1.0, self.done / self.total))
         return out
+
+    def set_postfix_str(self, s="", refresh=True):
+        # tqdm redraws on every postfix change, past ``mininterval``: LIBR's Ω each iteration
+        # wrote a line per iteration to a log; the next timed redraw shows it there
+        return super().set_postfix_str(s, refresh=refresh and not self.log)
 
     def to(self, n):
         """Move the bar to ``n`` done (the meshing bar follows a child's CPU seconds)."""

@@ -277,6 +277,20 @@ def test_on_a_file_every_warning_has_a_line_of_its_own(capsys, monkeypatch):
     assert "\r" not in err and "LIBR" in err, repr(err)
 
 
+def test_on_a_file_a_bar_with_a_changing_postfix_writes_a_line_per_interval_not_per_update(capsys, monkeypatch):
+    """LIBR's bar shows Ω after every iteration; tqdm redraws on a postfix change whatever its
+    interval, so a log got a line per iteration (100 lines for one registration)."""
+    from navapp import progress
+
+    monkeypatch.setattr(progress, "QUIET", False)
+    with progress.bar(100, "LIBR", "iter") as bar:
+        for i in range(100):
+            bar.update(1)
+            bar.set_postfix_str(f"Ω={1.0 / (i + 1):.3e}")
+    lines = [ln for ln in capsys.readouterr().err.split("\n") if ln.startswith("LIBR")]
+    assert 1 <= len(lines) <= 3, lines
+
+
 def _with_func(parser, command, fn):
     parser._subparsers._group_actions[0].choices[command].set_defaults(func=fn)
     return parser
