@@ -1,11 +1,13 @@
 """What a warm re-registration per frame reuses from the last one (coverage, the pose's
-determinacy) gives the answers computed afresh, whatever the data do between calls."""
+determinacy, the last evaluation's geometry and correspondences) gives the answers computed
+afresh, whatever the data do between calls."""
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from navapp.registration.coverage import COVER_MM, data_coverage
 from navapp.registration.model import RegistrationModel
+from navapp.registration.objective import Weights, evaluate
 from navapp.registration.pose import _determinacy, pose_determinacy
 from navapp.registration.rigid import RigidResult
 
@@ -82,3 +84,29 @@ def test_determinacy_given_again_equals_the_fresh_one(small_model):
     shifted = RigidResult(np.eye(3), np.array([2.0, 0, 0]), 0, 0.0)
     assert np.array_equal(pose_determinacy(model, stylus, shifted).eigenvalues,
                           _determinacy(model, stylus, shifted).eigenvalues)
+
+
+def test_evaluation_at_the_last_state_equals_a_fresh_one(small_model):
+    """The next frame's first evaluation is at the β the last one ended at: the geometry and
+    the correspondences of unchanged data are taken from it; everything equals a fresh model's."""
+    model = _bare(small_model)
+    rng = np.random.default_rng(6)
+    n = model.basis.Ju.shape[1]
+    beta = np.concatenate([rng.normal(0.0, 0.3, n), [0.5, -0.2, 0.1, 0.01, 0.0, -0.02]])
+    anterior = _surface_sample(model, rng, 50, 0.5)
+    posterior = _surface_sample(model, rng, 20, 0.5)
+    first = evaluate(model, {"anterior": anterior, "posterior": posterior}, beta, Weights())
+    assert "evaluation" in model.cache
+    posterior[:5] += 2.0  # the caller's array changed in place: not the points of the last call
+    for data in ({"anterior": anterior, "posterior": posterior},
+                 {"anterior": anterior, "posterior": posterior[:7], "ridge_right": _surface_sample(model, rng, 9)},
+                 {"anterior": anterior}):
+        for jacobian in (True, False):
+            got = evaluate(model, data, beta, Weights(), jacobian=jacobian)
+            fresh = evaluate(_bare(model), data, beta, Weights(), jacobian=jacobian)
+            assert got.omega == fresh.omega and np.array_equal(got.f, fresh.f) and np.array_equal(got.w, fresh.w)
+            assert (got.J is None) == (not jacobian) and (got.J is None or np.array_equal(got.J, fresh.J))
+            assert got.features == fresh.features
+    assert first.omega != evaluate(model, {"anterior": anterior, "posterior": posterior}, beta, Weights()).omega
+    other = evaluate(model, {"anterior": anterior}, beta * 0.5, Weights())
+    assert other.omega == evaluate(_bare(model), {"anterior": anterior}, beta * 0.5, Weights()).omega

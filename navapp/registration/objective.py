@@ -264,6 +264,15 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     fs, ws, stats, corr, terms = [], [], {}, {}, []
     dists, row_of = {}, {}  # feature → per-point residual f (N,), the point of each row (R,)
     geometry = {}  # model feature → (local, X, KD-tree): anterior and posterior share the liver
+    # a warm re-registration per frame starts at the β the last one ended at, where the model
+    # was just deformed and searched, and most of its data (the kept stylus points and planes)
+    # are the same: the last evaluation's geometry and the correspondences of data equal
+    # element for element are the ones this one would compute
+    last = model.cache.get("evaluation") if frozen is None else None
+    if last is not None and np.array_equal(last[0], beta):
+        geometry = dict(last[1])
+    else:
+        last = None
     for name, Y in data.items():
         feat = model.feature_for(name)
         key = id(feat)
@@ -287,13 +296,17 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
                 tim["kdtree"] += time.perf_counter() - t0
                 geometry[key] = (local, X, tree)
             local, X, tree = geometry[key]
-            t0 = time.perf_counter()
-            nearest = nearest_vertices(tree, Y) if tree is not None else None
-            tim["kdtree"] += time.perf_counter() - t0
-            t0 = time.perf_counter()
-            c = corr[name] = frozen[name] if frozen is not None else correspond(feat, X, Y, nearest=nearest)
+            seen = last[2].get(name) if last is not None else None
+            if seen is not None and seen[0].shape == np.shape(Y) and np.array_equal(seen[0], Y):
+                c = corr[name] = seen[1]
+            else:
+                t0 = time.perf_counter()
+                nearest = nearest_vertices(tree, Y) if tree is not None else None
+                tim["kdtree"] += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                c = corr[name] = frozen[name] if frozen is not None else correspond(feat, X, Y, nearest=nearest)
+                tim["closest"] += time.perf_counter() - t0
             S, direction = c.S, c.direction
-            tim["closest"] += time.perf_counter() - t0
             p = Y - S @ X
         t0 = time.perf_counter()
         r, q, rows = residuals(feat.kind, p, direction)
@@ -305,6 +318,9 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
         stats[name] = _stats(dist, wF)
         terms.append((name, feat, S, q, rows, local))
         tim["jacobian"] += time.perf_counter() - t0
+    if frozen is None:  # replaced whole: an evaluation in another thread reads the old or the new
+        model.cache["evaluation"] = (np.array(beta, float), geometry,
+                                     {name: (np.array(Y, float), corr[name]) for name, Y in data.items()})
     # robust weight factors (Huber, outlier rejection): held when given, so that with held
     # correspondences Ω is one fixed weighted least-squares problem
     robust = dict(scales) if scales is not None else weights.robust_factors(dists, row_of)
