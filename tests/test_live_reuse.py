@@ -7,7 +7,7 @@ from scipy.spatial import cKDTree
 
 from navapp.registration.coverage import COVER_MM, data_coverage
 from navapp.registration.model import RegistrationModel
-from navapp.registration.objective import Weights, evaluate
+from navapp.registration.objective import KEPT_ENDS, Weights, _at, evaluate, keep_end
 from navapp.registration.pose import _determinacy, pose_determinacy
 from navapp.registration.rigid import RigidResult
 
@@ -110,3 +110,21 @@ def test_evaluation_at_the_last_state_equals_a_fresh_one(small_model):
     assert first.omega != evaluate(model, {"anterior": anterior, "posterior": posterior}, beta, Weights()).omega
     other = evaluate(model, {"anterior": anterior}, beta * 0.5, Weights())
     assert other.omega == evaluate(_bare(model), {"anterior": anterior}, beta * 0.5, Weights()).omega
+
+
+def test_a_fits_end_is_found_again_after_other_fits(small_model):
+    """Other fits between two frames (the viewer's next-plane suggestion, the bench's other
+    variants) leave the ends of the last few fits to start from, with a fresh model's answers."""
+    model = _bare(small_model)
+    rng = np.random.default_rng(8)
+    n = model.basis.Ju.shape[1]
+    data = {"anterior": _surface_sample(model, rng, 50, 0.5)}
+    ends = [np.concatenate([rng.normal(0.0, 0.3, n), rng.normal(0.0, 0.02, 6)]) for _ in range(KEPT_ENDS + 1)]
+    for b in ends:
+        keep_end(model, evaluate(model, data, b, Weights(), jacobian=False))
+        evaluate(model, data, b * 0.9, Weights(), jacobian=False)  # the fit's other evaluations
+    assert _at(model, ends[0]) is None  # the oldest is gone: a bounded number is kept
+    for b in ends[1:]:
+        assert _at(model, b) is not None
+        got, fresh = (evaluate(m, data, b, Weights()) for m in (model, _bare(model)))
+        assert np.array_equal(got.f, fresh.f) and np.array_equal(got.J, fresh.J)
