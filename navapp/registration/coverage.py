@@ -43,11 +43,55 @@ class Coverage:
 
 def data_coverage(model: RegistrationModel, data_model_frame: dict) -> Coverage:
     """Coverage of the model's liver surface by data points in the model frame (feature → (N, 3) mm)."""
-    pts = [np.asarray(p, float).reshape(-1, 3) for p in data_model_frame.values() if len(p)]
+    pts = {name: np.asarray(p, float).reshape(-1, 3) for name, p in data_model_frame.items() if len(p)}
     if not pts or "liver" not in model.features:
         return Coverage(0.0)
-    d, _ = cKDTree(np.vstack(pts)).query(model.features["liver"].rest, distance_upper_bound=COVER_MM)
-    return Coverage(float(np.mean(d < COVER_MM)))
+    nodes = model.features["liver"].rest
+    last = model.cache.get("coverage", {})
+    kept, covered = {}, np.zeros(len(nodes), bool)
+    for name, Y in pts.items():
+        kept[name] = entry = _feature_cover(nodes, Y, last.get(name))
+        covered |= entry[3]
+    model.cache["coverage"] = kept  # replaced whole: a registration in another thread reads either
+    return Coverage(float(np.mean(covered)))
+
+
+def _feature_cover(nodes, Y, last):
+    """(Y, L, nodes covered by Y[:L], nodes covered by Y) for one feature's points.
+
+    The exact rule, computed again only for the rows that changed: re-registration per
+    ultrasound frame passes the kept data (stylus, frozen planes) first and the newest frame's
+    rows after them, in the same pose, so the rows of the last call that the new ones start
+    with (the length L) keep their nodes. A node is covered by the union of two sets of points
+    iff by one of them, so the answer is that of ``_cover(nodes, Y)`` whole."""
+    if last is None:
+        return (Y.copy(), len(Y), *(2 * (_cover(nodes, Y),)))
+    old, L, head, whole = last
+    if old.shape == Y.shape and np.array_equal(old, Y):
+        return last
+    n = min(len(old), len(Y))
+    diff = np.flatnonzero(np.any(old[:n] != Y[:n], axis=1))
+    m = int(diff[0]) if len(diff) else n  # rows the two share from the start
+    if m < L:  # the shared start is shorter than the kept one: keep the shorter one from now on
+        L, head = m, _cover(nodes, Y[:m])
+    return Y.copy(), L, head, head | _cover(nodes, Y[L:], skip=head)
+
+
+def _cover(nodes, Y, skip=None) -> np.ndarray:
+    """Nodes (V,) bool within ``COVER_MM`` of a point of Y; ``skip``: nodes known covered. Only
+    the nodes inside Y's bounding box grown by ``COVER_MM`` can be (a node outside it is farther
+    than that along one axis), so a frame's few hundred points look at a part of the surface."""
+    out = np.zeros(len(nodes), bool)
+    if not len(Y):
+        return out
+    near = np.all((nodes > Y.min(0) - COVER_MM) & (nodes < Y.max(0) + COVER_MM), axis=1)
+    if skip is not None:
+        near &= ~skip
+    idx = np.flatnonzero(near)
+    if len(idx):
+        d, _ = cKDTree(Y).query(nodes[idx], distance_upper_bound=COVER_MM)
+        out[idx] = d < COVER_MM
+    return out
 
 
 def note_coverage(reg: "Registration") -> Coverage:

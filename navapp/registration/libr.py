@@ -31,7 +31,7 @@ import scipy.linalg as sla
 from ..defaults import LM_MAX_ITERATIONS
 from ..threads import limit_threads
 from .model import RegistrationModel
-from .objective import Weights, add_jacobian, evaluate
+from .objective import Weights, add_jacobian, evaluate, keep_end
 
 
 @dataclass
@@ -215,5 +215,6 @@ def _register(model, data, beta0, options, callback, cancel):
     if ev.omega > best[0]:  # jitter at the end: report the best state seen
         beta = best[1]
         ev = run(beta, jac=False)
+    keep_end(model, ev)  # a warm start (the next frame) begins here
     return LibrResult(beta, ev.omega, it, reason, history, steps, ev.features, time.perf_counter() - start, tim,
                       condition)

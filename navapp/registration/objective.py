@@ -110,6 +110,8 @@ class Evaluation:
     beta: np.ndarray  # (3k + 6,) the state evaluated
     terms: list  # per data feature (name, feature, S, q, rows, local): what ``add_jacobian`` needs
     scales: dict | None = None  # feature → (R,) robust weight factors of its rows (``Weights.robust_factors``)
+    # (β, geometry, data and correspondences) for a later evaluation at the same β (``keep_end``)
+    reusable: tuple | None = field(default=None, repr=False)
 
     @property
     def jacobian(self) -> np.ndarray:
@@ -264,6 +266,13 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     fs, ws, stats, corr, terms = [], [], {}, {}, []
     dists, row_of = {}, {}  # feature → per-point residual f (N,), the point of each row (R,)
     geometry = {}  # model feature → (local, X, KD-tree): anterior and posterior share the liver
+    # a warm re-registration per frame starts at the β the last one ended at, where the model
+    # was just deformed and searched, and most of its data (the kept stylus points and planes)
+    # are the same: that evaluation's geometry and the correspondences of data equal element
+    # for element are the ones this one would compute
+    last = _at(model, beta) if frozen is None else None
+    if last is not None:
+        geometry = dict(last[1])
     for name, Y in data.items():
         feat = model.feature_for(name)
         key = id(feat)
@@ -287,13 +296,17 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
                 tim["kdtree"] += time.perf_counter() - t0
                 geometry[key] = (local, X, tree)
             local, X, tree = geometry[key]
-            t0 = time.perf_counter()
-            nearest = nearest_vertices(tree, Y) if tree is not None else None
-            tim["kdtree"] += time.perf_counter() - t0
-            t0 = time.perf_counter()
-            c = corr[name] = frozen[name] if frozen is not None else correspond(feat, X, Y, nearest=nearest)
+            seen = last[2].get(name) if last is not None else None
+            if seen is not None and seen[0].shape == np.shape(Y) and np.array_equal(seen[0], Y):
+                c = corr[name] = seen[1]
+            else:
+                t0 = time.perf_counter()
+                nearest = nearest_vertices(tree, Y) if tree is not None else None
+                tim["kdtree"] += time.perf_counter() - t0
+                t0 = time.perf_counter()
+                c = corr[name] = frozen[name] if frozen is not None else correspond(feat, X, Y, nearest=nearest)
+                tim["closest"] += time.perf_counter() - t0
             S, direction = c.S, c.direction
-            tim["closest"] += time.perf_counter() - t0
             p = Y - S @ X
         t0 = time.perf_counter()
         r, q, rows = residuals(feat.kind, p, direction)
@@ -305,6 +318,10 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
         stats[name] = _stats(dist, wF)
         terms.append((name, feat, S, q, rows, local))
         tim["jacobian"] += time.perf_counter() - t0
+    reusable = None
+    if frozen is None:  # replaced whole: an evaluation in another thread reads the old or the new
+        reusable = model.cache["evaluation"] = (np.array(beta, float), geometry, {
+            name: (np.array(Y, float), corr[name]) for name, Y in data.items()})
     # robust weight factors (Huber, outlier rejection): held when given, so that with held
     # correspondences Ω is one fixed weighted least-squares problem
     robust = dict(scales) if scales is not None else weights.robust_factors(dists, row_of)
@@ -318,8 +335,30 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     w = np.concatenate(ws)
     stats["strain_energy"] = {"f_E_pa": fE, "omega": float(weights.energy * fE ** 2)}
     ev = Evaluation(omega=float(w @ (f * f)), f=f, w=w, J=None, features=stats, timings=tim, correspondence=corr,
-                    beta=np.array(beta, float), terms=terms, scales=robust)
+                    beta=np.array(beta, float), terms=terms, scales=robust, reusable=reusable)
     return add_jacobian(model, ev) if jacobian else ev
+
+
+KEPT_ENDS = 4  # fits' last evaluations kept per model (``keep_end``)
+
+
+def keep_end(model: RegistrationModel, ev: Evaluation) -> None:
+    """Keep ``ev``, a fit's last evaluation, for the fit that starts where it ended (the next
+    frame's warm start): ``evaluate`` reuses the most recent evaluation and these. Several are
+    kept because other fits run in between (the viewer's next-plane suggestion; the live bench
+    runs three variants on one model, frame by frame)."""
+    if ev.reusable is None:
+        return
+    ends = [e for e in model.cache.get("ends", ()) if not np.array_equal(e[0], ev.beta)]
+    model.cache["ends"] = [ev.reusable, *ends[:KEPT_ENDS - 1]]
+
+
+def _at(model: RegistrationModel, beta) -> tuple | None:
+    """A kept evaluation at exactly ``beta`` (the most recent, or a fit's end), if any."""
+    for e in (model.cache.get("evaluation"), *model.cache.get("ends", ())):
+        if e is not None and np.array_equal(e[0], beta):
+            return e
+    return None
 
 
 def add_jacobian(model: RegistrationModel, ev: Evaluation) -> Evaluation:

@@ -36,7 +36,7 @@ import numpy as np
 
 from .model import RegistrationModel
 from .objective import correspond
-from .rigid import SURFACE_FEATURES, RigidResult
+from .rigid import SURFACE_FEATURES, RigidResult, _screen_geometry
 
 
 @dataclass(frozen=True)
@@ -88,7 +88,9 @@ def _surface_points(model: RegistrationModel, data: dict, pose: RigidResult, fea
             continue
         Y = np.asarray(Y)[:: -(-len(Y) // MAX_POINTS)]
         Ym = pose.inverse(Y)
-        c = correspond(feat, feat.rest, Ym)
+        # the rest geometry never changes: its k-d tree is built once per model (the trimmed
+        # fit calls this up to 30 times; a warm re-registration once per frame)
+        c = correspond(feat, feat.rest, Ym, tree=_screen_geometry(model, name)[0])
         Ps.append(Ym)
         Qs.append(c.S @ feat.rest)
         Ns.append(np.asarray(c.direction))
@@ -294,6 +296,24 @@ def _axis_words(v) -> str:
 
 def pose_determinacy(model: RegistrationModel, data: dict, pose: RigidResult) -> Determinacy | None:
     """The data's sliding directions at ``pose`` (module doc); None without surface data."""
+    # a warm re-registration per ultrasound frame asks again with the same pose and the same
+    # stylus data (frames add iUS features, which this does not use): the last answer is kept
+    # on the model and given again when pose and surface data are equal, element for element
+    surface = {n: np.array(y, float) for n, y in data.items() if n in SURFACE_FEATURES and len(y)}
+    last = model.cache.get("determinacy")
+    if last is not None and np.array_equal(last[0], pose.R) and np.array_equal(last[1], pose.t) and \
+            last[2].keys() == surface.keys() and all(np.array_equal(last[2][n], y) for n, y in surface.items()):
+        return _copy(last[3])
+    found = _determinacy(model, data, pose)
+    model.cache["determinacy"] = (np.array(pose.R, float), np.array(pose.t, float), surface, _copy(found))
+    return found
+
+
+def _copy(d: Determinacy | None) -> Determinacy | None:
+    return None if d is None else Determinacy(d.eigenvalues.copy(), list(d.weak), d.points)
+
+
+def _determinacy(model: RegistrationModel, data: dict, pose: RigidResult) -> Determinacy | None:
     P, _, N = _surface_points(model, data, pose)
     if len(P) < 6:
         return None

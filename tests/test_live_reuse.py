@@ -1,0 +1,130 @@
+"""What a warm re-registration per frame reuses from the last one (coverage, the pose's
+determinacy, the last evaluation's geometry and correspondences) gives the answers computed
+afresh, whatever the data do between calls."""
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from navapp.registration.coverage import COVER_MM, data_coverage
+from navapp.registration.model import RegistrationModel
+from navapp.registration.objective import KEPT_ENDS, Weights, _at, evaluate, keep_end
+from navapp.registration.pose import _determinacy, pose_determinacy
+from navapp.registration.rigid import RigidResult
+
+
+def _fresh(model, data) -> float:
+    """The coverage rule as first written: one k-d tree of all points, every surface node asked."""
+    pts = [np.asarray(p, float).reshape(-1, 3) for p in data.values() if len(p)]
+    if not pts:
+        return 0.0
+    d, _ = cKDTree(np.vstack(pts)).query(model.features["liver"].rest, distance_upper_bound=COVER_MM)
+    return float(np.mean(d < COVER_MM))
+
+
+def _bare(model) -> RegistrationModel:
+    return RegistrationModel(model.basis, model.features, model.centroid)  # an empty cache
+
+
+def _surface_sample(model, rng, n, spread=1.0):
+    rest = model.features["liver"].rest
+    return rest[rng.choice(len(rest), n, replace=False)] + rng.normal(0.0, spread, (n, 3))
+
+
+def test_coverage_reused_between_frames_equals_the_fresh_rule(small_model):
+    model = _bare(small_model)
+    rng = np.random.default_rng(3)
+    base = {"anterior": _surface_sample(model, rng, 60), "posterior": _surface_sample(model, rng, 20, 6.0)}
+    R = RigidResult(np.eye(3), np.zeros(3), 0, 0.0)
+    turned = RigidResult(np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]]), np.array([3.0, 0, 0]), 0, 0.0)
+    seen = set()
+    for i in range(12):
+        frame = {"posterior": _surface_sample(model, rng, int(rng.integers(1, 30)), 8.0)}
+        if i % 3 == 0:
+            frame["portal_contour"] = _surface_sample(model, rng, 15, 12.0)
+        data = {n: np.vstack([base[n], frame[n]]) if n in base and n in frame else base.get(n, frame.get(n))
+                for n in {**base, **frame}}
+        pose = turned if i == 7 else R  # one frame in another pose: every row changes
+        local = {n: pose.inverse(p) for n, p in data.items()}
+        if i == 9:
+            local = {"anterior": local["anterior"][:25]}  # fewer rows and features than last time
+        if i == 10:
+            base["anterior"] = base["anterior"][::-1].copy()  # same points, another order
+        got = data_coverage(model, local)
+        assert got.fraction == _fresh(model, local), i
+        seen.add(round(got.fraction, 3))
+    assert len(seen) > 3  # the frames did change the answer
+    assert data_coverage(model, {}).fraction == 0.0
+
+
+def test_coverage_warning_comes_and_goes_with_the_data(small_model):
+    """From a small patch (warned) to the whole sweep (not) and back, on one model."""
+    model = _bare(small_model)
+    rest = model.features["liver"].rest
+    patch = rest[np.linalg.norm(rest - rest[0], axis=1) < 12.0]
+    assert data_coverage(model, {"anterior": patch}).warning is not None
+    assert data_coverage(model, {"anterior": rest[::2]}).warning is None
+    assert data_coverage(model, {"anterior": patch}).warning is not None
+
+
+def test_determinacy_given_again_equals_the_fresh_one(small_model):
+    model = _bare(small_model)
+    rng = np.random.default_rng(4)
+    stylus = {"anterior": _surface_sample(model, rng, 80, 0.3)}
+    pose = RigidResult(np.eye(3), np.array([1.0, 0, 0]), 0, 0.0)
+    first = pose_determinacy(model, stylus, pose)
+    frames = ({}, {"posterior": _surface_sample(model, rng, 30)}, {"portal_contour": _surface_sample(model, rng, 9)})
+    for frame in frames:  # iUS features: the determinacy reads the stylus's alone
+        again = pose_determinacy(model, {**stylus, **frame}, pose)
+        assert again is not first and np.array_equal(again.eigenvalues, first.eigenvalues)
+        assert again.warning == first.warning
+    moved = {"anterior": stylus["anterior"][:40]}
+    other = pose_determinacy(model, moved, pose)
+    assert np.array_equal(other.eigenvalues, _determinacy(model, moved, pose).eigenvalues)
+    assert not np.array_equal(other.eigenvalues, first.eigenvalues)
+    shifted = RigidResult(np.eye(3), np.array([2.0, 0, 0]), 0, 0.0)
+    assert np.array_equal(pose_determinacy(model, stylus, shifted).eigenvalues,
+                          _determinacy(model, stylus, shifted).eigenvalues)
+
+
+def test_evaluation_at_the_last_state_equals_a_fresh_one(small_model):
+    """The next frame's first evaluation is at the β the last one ended at: the geometry and
+    the correspondences of unchanged data are taken from it; everything equals a fresh model's."""
+    model = _bare(small_model)
+    rng = np.random.default_rng(6)
+    n = model.basis.Ju.shape[1]
+    beta = np.concatenate([rng.normal(0.0, 0.3, n), [0.5, -0.2, 0.1, 0.01, 0.0, -0.02]])
+    anterior = _surface_sample(model, rng, 50, 0.5)
+    posterior = _surface_sample(model, rng, 20, 0.5)
+    first = evaluate(model, {"anterior": anterior, "posterior": posterior}, beta, Weights())
+    assert "evaluation" in model.cache
+    posterior[:5] += 2.0  # the caller's array changed in place: not the points of the last call
+    for data in ({"anterior": anterior, "posterior": posterior},
+                 {"anterior": anterior, "posterior": posterior[:7], "ridge_right": _surface_sample(model, rng, 9)},
+                 {"anterior": anterior}):
+        for jacobian in (True, False):
+            got = evaluate(model, data, beta, Weights(), jacobian=jacobian)
+            fresh = evaluate(_bare(model), data, beta, Weights(), jacobian=jacobian)
+            assert got.omega == fresh.omega and np.array_equal(got.f, fresh.f) and np.array_equal(got.w, fresh.w)
+            assert (got.J is None) == (not jacobian) and (got.J is None or np.array_equal(got.J, fresh.J))
+            assert got.features == fresh.features
+    assert first.omega != evaluate(model, {"anterior": anterior, "posterior": posterior}, beta, Weights()).omega
+    other = evaluate(model, {"anterior": anterior}, beta * 0.5, Weights())
+    assert other.omega == evaluate(_bare(model), {"anterior": anterior}, beta * 0.5, Weights()).omega
+
+
+def test_a_fits_end_is_found_again_after_other_fits(small_model):
+    """Other fits between two frames (the viewer's next-plane suggestion, the bench's other
+    variants) leave the ends of the last few fits to start from, with a fresh model's answers."""
+    model = _bare(small_model)
+    rng = np.random.default_rng(8)
+    n = model.basis.Ju.shape[1]
+    data = {"anterior": _surface_sample(model, rng, 50, 0.5)}
+    ends = [np.concatenate([rng.normal(0.0, 0.3, n), rng.normal(0.0, 0.02, 6)]) for _ in range(KEPT_ENDS + 1)]
+    for b in ends:
+        keep_end(model, evaluate(model, data, b, Weights(), jacobian=False))
+        evaluate(model, data, b * 0.9, Weights(), jacobian=False)  # the fit's other evaluations
+    assert _at(model, ends[0]) is None  # the oldest is gone: a bounded number is kept
+    for b in ends[1:]:
+        assert _at(model, b) is not None
+        got, fresh = (evaluate(m, data, b, Weights()) for m in (model, _bare(model)))
+        assert np.array_equal(got.f, fresh.f) and np.array_equal(got.J, fresh.J)
