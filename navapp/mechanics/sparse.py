@@ -78,7 +78,14 @@ class Factorisation:
             p[9] = 8  # pivot perturbation 1e-8
             p[36] = -80  # VBSR: merge supernode columns whose patterns agree to 80 %
             self._s.set_phase(12)
-            _pardiso(self._s, self._A, np.zeros((self.n, 1)))
+            try:
+                _pardiso(self._s, self._A, np.zeros((self.n, 1)))
+            except BaseException:
+                # a refused factorisation (not positive definite: the neo-Hookean truth's
+                # shifted retries) still holds PARDISO's work memory, and no ``with`` frees it:
+                # a simulation grew past 24 GB this way and was killed by the kernel
+                self._s.free_memory(everything=True)
+                raise
             self._s.factorized_A = self._A
         else:
             self._lu = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True})
