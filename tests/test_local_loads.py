@@ -251,6 +251,26 @@ def test_data_off_the_model_everywhere_do_not_keep_the_given_pose(small_model, p
     assert reg.pose_choice.source is PoseSource.FITTED and not reg.rigid.kept
 
 
+def _dented_scan(liver, model, depth, radius, far_mm):
+    """A 40 mm scan of the front of ``liver`` (its vertices, (V, 3) mm) at its right tip,
+    already aligned, pressed in by a smooth dent of ``depth`` mm and footprint ``radius`` mm
+    at the scan's centre; and a function giving the mean motion an answer puts on the mesh
+    nodes farther than ``far_mm`` from the dent (truly at rest)."""
+    front = liver[liver[:, 1] > np.percentile(liver[:, 1], 40)]
+    c0 = front[np.argmax(front[:, 0])]
+    scan = front[np.linalg.norm(front - c0, axis=1) < 40.0]
+    tip = scan.mean(0)
+    r = np.linalg.norm(scan - tip, axis=1)
+    data = {"anterior": scan + (depth * np.clip(1 - (r / radius) ** 2, 0, None) ** 2)[:, None] * [0.0, -1.0, 0.0]}
+    nodes = model.basis.nodes
+    far = nodes[np.linalg.norm(nodes - tip, axis=1) > far_mm]
+
+    def far_motion(reg):
+        return float(np.linalg.norm(reg.transform(far) - far, axis=1).mean())
+
+    return data, far_motion
+
+
 def test_a_pose_the_fit_does_not_pay_for_is_not_taken_over_the_given_one(small_model, phantoms, monkeypatch):
     """A partial scan over a deep dent, already aligned, most of it pressed in by several mm:
     no pose puts most of it on the model, so the given pose is not kept as aligned, and the
@@ -261,19 +281,8 @@ def test_a_pose_the_fit_does_not_pay_for_is_not_taken_over_the_given_one(small_m
     import navapp.registration.pipeline as pipeline
     from navapp.registration.pose import POSE_RULE, PoseSource
 
-    liver = phantoms[0].liver.vertices
-    front = liver[liver[:, 1] > np.percentile(liver[:, 1], 40)]
-    c0 = front[np.argmax(front[:, 0])]
-    scan = front[np.linalg.norm(front - c0, axis=1) < 40.0]
-    tip = scan.mean(0)
-    r = np.linalg.norm(scan - tip, axis=1)
-    data = {"anterior": scan + (45.0 * np.clip(1 - (r / 35.0) ** 2, 0, None) ** 2)[:, None] * [0.0, -1.0, 0.0]}
+    data, far_motion = _dented_scan(phantoms[0].liver.vertices, small_model, 45.0, 35.0, far_mm=80.0)
     nodes = small_model.basis.nodes
-    far = nodes[np.linalg.norm(nodes - tip, axis=1) > 80.0]  # away from the dent: truly at rest
-
-    def far_motion(reg):
-        return float(np.linalg.norm(reg.transform(far) - far, axis=1).mean())
-
     reg = pipeline.register(small_model, data)
     choice = reg.pose_choice
     assert choice.source is PoseSource.GIVEN_FITS and reg.rigid.kept
@@ -299,19 +308,7 @@ def test_a_small_dent_the_basis_cannot_make_is_not_shown_as_a_correction(small_m
     from navapp.registration.pipeline import RobustOptions, register
     from navapp.registration.support import SupportOptions
 
-    liver = phantoms[0].liver.vertices
-    front = liver[liver[:, 1] > np.percentile(liver[:, 1], 40)]
-    c0 = front[np.argmax(front[:, 0])]
-    scan = front[np.linalg.norm(front - c0, axis=1) < 40.0]
-    tip = scan.mean(0)
-    r = np.linalg.norm(scan - tip, axis=1)
-    data = {"anterior": scan + (30.0 * np.clip(1 - (r / 15.0) ** 2, 0, None) ** 2)[:, None] * [0.0, -1.0, 0.0]}
-    nodes = small_model.basis.nodes
-    far = nodes[np.linalg.norm(nodes - tip, axis=1) > 50.0]  # away from the dent: truly at rest
-
-    def far_motion(reg):
-        return float(np.linalg.norm(reg.transform(far) - far, axis=1).mean())
-
+    data, far_motion = _dented_scan(phantoms[0].liver.vertices, small_model, 30.0, 15.0, far_mm=50.0)
     reg = register(small_model, data)
     s = reg.support
     assert reg.rigid.kept and s is not None
