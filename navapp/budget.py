@@ -58,7 +58,8 @@ def available_mb() -> float:
 
 
 def _gb(mb: float) -> str:
-    return f"{mb / 1024:.1f} GB"
+    # under 1 GB in MB: a need of 430 MB against 420 MB free read "0.4 GB, more than the 0.4 GB"
+    return f"{mb:.0f} MB" if mb < 1024 else f"{mb / 1024:.1f} GB"
 
 
 def check_mesh(nodes: int, edge: float, volume_mm3: float, setting: str = "--edge", path=None):
