@@ -162,7 +162,7 @@ class Runs:
             if any(w.rejected for w in worst):
                 core.notify("Registration", _left_out(worst).strip())
         elif entry.warning:
-            core.notify("Registration: check the fit", entry.warning + _left_out(worst), error=True)
+            core.notify("Registration: check the fit", fit_notice(reg.warnings, entry.pose_only, worst), error=True)
         elif any(w.rejected for w in worst):
             core.notify("Registration", _left_out(worst).strip())
 
@@ -231,6 +231,28 @@ class Runs:
                 return BUSY
         core.changed(Change.RUN)
         return None
+
+
+NOTICE_HEAD = 90
+"""Characters of a warning's head (its words before the first colon) in the red box."""
+
+
+def fit_notice(warnings: list[str], pose_only: bool, worst: list[WorstPoint]) -> str:
+    """The red box's words after a run that warned: each warning's head, what is shown, and
+    where the whole text is. The box is a few lines high over the 3D view (viser clips it at
+    200 px, centred): the whole warnings, each a sentence or two, showed only their middles."""
+    heads = [_clip(w.split(":", 1)[0].strip(), NOTICE_HEAD) for w in warnings]
+    text = "⚠ " + "; ".join(heads) + "."
+    if pose_only:
+        text += " Shown: the pose alone, without deformation."
+    n = sum(w.rejected for w in worst)
+    if n:
+        text += f" {n} data point{'s were' if n > 1 else ' was'} left out of the fit."
+    return text + " The whole text is in the Registration panel."
+
+
+def _clip(text: str, n: int) -> str:
+    return text if len(text) <= n else text[:n].rsplit(" ", 1)[0].rstrip(" ,;(") + "…"
 
 
 def _left_out(worst: list[WorstPoint]) -> str:

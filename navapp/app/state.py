@@ -257,6 +257,8 @@ class RunEntry:
     live: str | None = None  # a live re-registration's summary
     note: str = ""
     targets_mm: dict[str, float] | None = None  # each tumour's true error at its centre, simulated scenes only
+    # a deformable run whose answer is its rigid pose (the data do not support the deformation)
+    pose_only: bool = False
 
     @property
     def kind(self) -> RunKind:
@@ -274,6 +276,7 @@ class RunEntry:
                      "; ".join(reg.warnings) or None)
         if error is not None and not stopped:
             e.error_mean_mm, e.error_max_mm = round(float(error.mean()), 3), round(float(error.max()), 3)
+        e.pose_only = kind.deformable and not stopped and lm is not None and not reg.deformed
         if live is not None:
             e.live, e.note = live, live.split(",")[0]
         return e
@@ -287,6 +290,8 @@ class RunEntry:
                 d[k] = getattr(self, k)
         if self.note:
             d["note"] = self.note
+        if self.pose_only:
+            d["pose_only"] = True
         return d
 
     @staticmethod
@@ -295,4 +300,5 @@ class RunEntry:
                         int(d.get("updates_streamed", 0)), bool(d.get("cancelled", False)),
                         [list(map(float, x)) for x in d.get("trace", [])], d.get("warning"),
                         d.get("error_mean_mm"), d.get("error_max_mm"), d.get("live"), str(d.get("note", "")),
-                        {str(k): float(v) for k, v in d["targets_mm"].items()} if d.get("targets_mm") else None)
+                        {str(k): float(v) for k, v in d["targets_mm"].items()} if d.get("targets_mm") else None,
+                        bool(d.get("pose_only", False)))

@@ -46,6 +46,7 @@ class ClientView:
         # the same two warnings pinned over the 3D view: the panel's banner scrolls away with the
         # panel, and a surgeon working at the bottom of it (the run table) would not see it
         self._pinned: dict[str, NotificationHandle] = {}  # "lost" / "pose" -> viser NotificationHandle
+        self._errors: dict[str, NotificationHandle] = {}  # title -> the red box showing it
         self.layers = LayersPanel(self)  # first: the others show their nodes through it
         self.guide = GuidePanel(self)
         self.stylus = StylusPanel(self)
@@ -169,8 +170,15 @@ class ClientView:
             note.title, note.body = title, body
 
     def notify(self, title, body, error=False):
-        self.client.add_notification(title, body, color="red" if error else None,
-                                     auto_close_seconds=None if error else 6.0)
+        if error:
+            # a red box stays until closed: the next one with the same title replaces it (one per
+            # registration piled up over the 3D view, each saying what the panel already holds)
+            old = self._errors.pop(title, None)
+            if old is not None:
+                old.remove()
+            self._errors[title] = self.client.add_notification(title, body, color="red", auto_close_seconds=None)
+        else:
+            self.client.add_notification(title, body, auto_close_seconds=6.0)
 
     def show_stylus(self, pos):
         self.layers.show_stylus(pos)

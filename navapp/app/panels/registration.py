@@ -14,6 +14,7 @@ BUTTONS = {RunKind.RIGID: "Rigid", RunKind.SURFACE: "Deformable (surface only)",
            RunKind.WARM: "Re-register (warm start)"}
 TABLE_ROWS = 8  # the newest runs shown
 NOTHING = "—"
+POSE_ONLY = " → the pose alone, without deformation"  # the data did not support the deformation
 
 
 class RegistrationPanel:
@@ -158,7 +159,7 @@ class RegistrationPanel:
         if last.cancelled:
             head = f"**{last.run} cancelled** after {last.seconds:.2f} s; the previous result is kept."
         else:
-            head = f"**Last: {last.run}, {last.seconds:.2f} s"
+            head = f"**Last: {last.run}{POSE_ONLY if last.pose_only else ''}, {last.seconds:.2f} s"
             if last.error_mean_mm is not None:
                 head += f", mean error {last.error_mean_mm:.2f} mm, max {last.error_max_mm:.2f} mm"
             head += "**"
@@ -167,7 +168,9 @@ class RegistrationPanel:
         res = core.result
         if res is not None:
             err = res.node_error_mm
-            head += f"  \nOn show: {res.run}" + (f" (mean error {err.mean():.2f} mm)" if err is not None else "")
+            pose_only = res.beta is None and RunKind.from_label(res.run) not in (RunKind.RIGID, RunKind.RESTORED)
+            head += (f"  \nOn show: {res.run}{POSE_ONLY if pose_only else ''}"
+                     + (f" (mean error {err.mean():.2f} mm)" if err is not None else ""))
             if res.predicted_mm is not None:
                 head += (f"  \nPredicted error (no truth used): mean {res.predicted_mm.mean():.1f} mm over the "
                          f"liver surface")
@@ -192,7 +195,7 @@ class RegistrationPanel:
             mean = f"{e.error_mean_mm:.2f}" if e.error_mean_mm is not None else "–"
             mx = f"{e.error_max_mm:.2f}" if e.error_max_mm is not None else "–"
             tumours = " / ".join(f"{e.targets_mm[n]:.1f}" for n in names if n in e.targets_mm) if e.targets_mm else "–"
-            note = "cancelled" if e.cancelled else ("⚠" if e.warning else e.note)
+            note = "cancelled" if e.cancelled else ("⚠ pose only" if e.pose_only else "⚠" if e.warning else e.note)
             rows.append(f"| {i} | {e.run} | {e.points} | {e.seconds:.1f} | {its} | {mean} | {mx} | {tumours} "
                         f"| {note} |")
         self.table.content = "\n".join(rows)

@@ -1,0 +1,59 @@
+"""What the viewer says after a deformable run whose answer is its rigid pose (issue 22,
+"never silent", walked in Chromium on the held-out tool case tooltest2-a): the red box over
+the 3D view was the whole warning text, clipped at 200 px with its title and both ends
+hidden, and one more box piled up per run; the panel and the run table called the answer
+"deformable" while the pose alone was on show."""
+
+import types
+
+from test_local_loads import _dented_scan
+
+from navapp.app.panels import ClientView
+from navapp.app.panels.registration import POSE_ONLY, RegistrationPanel
+from navapp.app.runs import fit_notice
+from navapp.app.state import RegisteredState, RunEntry, RunKind
+
+
+def test_a_deformable_run_answered_with_its_pose_says_so_in_a_short_box(small_model, phantoms):
+    from navapp.registration.pipeline import register
+
+    data, _ = _dented_scan(phantoms[0].liver.vertices, small_model, 30.0, 15.0, far_mm=50.0)
+    reg = register(small_model, data)
+    assert not reg.deformed and reg.warnings  # the pose alone, warned (test_local_loads)
+    entry = RunEntry.of(RunKind.SURFACE, reg, len(data["anterior"]), 1.0)
+    assert entry.pose_only and RunEntry.from_json(entry.to_json()).pose_only
+    assert not RunEntry.of(RunKind.RIGID, reg, 10, 1.0).pose_only  # a rigid run asked for no deformation
+
+    notice = fit_notice(reg.warnings, entry.pose_only, [])
+    whole = "; ".join(reg.warnings)
+    assert notice.startswith("⚠ ") and "; deformation not determined by the data." in notice, notice
+    assert "Shown: the pose alone" in notice and len(notice) < 300 < len(whole), (notice, whole)
+
+    # the panel: the last run and the result on show name the pose alone
+    result = RegisteredState(entry.run, reg.rigid, None)
+    core = types.SimpleNamespace(session=types.SimpleNamespace(log=[entry]), result=result)
+    panel = types.SimpleNamespace(core=core, md=types.SimpleNamespace(content=""))
+    RegistrationPanel._summary(panel)
+    assert panel.md.content.count(POSE_ONLY) == 2 and whole in panel.md.content, panel.md.content
+
+
+def test_the_next_red_box_of_a_kind_replaces_the_last():
+    shown = []
+
+    class Box:
+        def __init__(self, title, body):
+            self.title, self.body = title, body
+            shown.append(self)
+
+        def remove(self):
+            shown.remove(self)
+
+    client = types.SimpleNamespace(add_notification=lambda title, body, **kw: Box(title, body))
+    view = types.SimpleNamespace(client=client, _errors={})
+    for i in range(3):
+        ClientView.notify(view, "Registration: check the fit", f"run {i}", error=True)
+    ClientView.notify(view, "On show", "That run's result is not kept", error=True)
+    ClientView.notify(view, "Registration", "Cancelled: the previous result is kept.")
+    assert [(b.title, b.body) for b in shown] == [("Registration: check the fit", "run 2"),
+                                                   ("On show", "That run's result is not kept"),
+                                                   ("Registration", "Cancelled: the previous result is kept.")]
