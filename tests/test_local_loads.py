@@ -295,6 +295,12 @@ def test_a_pose_the_fit_does_not_pay_for_is_not_taken_over_the_given_one(small_m
     before = pipeline.register(small_model, data)
     assert before.pose_choice.source is PoseSource.FITTED
     assert far_motion(before) > 15.0
+    # where ICP's pose stays the answer (its fit here is taken as better by more than the
+    # margin), the answer from it still in doubt: one line says how far it moved the organ
+    line = next(w for w in before.warnings if w.startswith("ICP's pose is kept, though the answer from it is in doubt"))
+    moved = float(line.split("it moved the organ ")[1].split(" mm")[0])
+    assert moved == round(before.pose_choice.fitted_shift_mm) and moved > 5.0, line
+    assert before.pose_choice.as_dict()["fitted_shift_mm"] > 5.0
 
 
 def test_a_small_dent_the_basis_cannot_make_is_not_shown_as_a_correction(small_model, phantoms):

@@ -30,7 +30,16 @@ from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from .coverage import note_coverage
 from .libr import LibrResult, LMOptions, register_libr
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
-from .pose import Determinacy, PoseChoice, PoseSource, choose_pose, pose_determinacy, prefer_given, rms_on_model
+from .pose import (
+    Determinacy,
+    PoseChoice,
+    PoseSource,
+    choose_pose,
+    pose_determinacy,
+    prefer_given,
+    rms_on_model,
+    weighed,
+)
 from .quality import FitQuality, Verdict, assess_fit
 from .rigid import (
     RIGID_ROBUST,
@@ -509,7 +518,10 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         t = time.perf_counter()
         held = replace(options, pose=False)
         at_given = fit(data, held)
-        given = prefer_given(choice, pooled_rms(result.features), pooled_rms(at_given.features), _shift(rigid, data))
+        compared = (pooled_rms(result.features), pooled_rms(at_given.features), _shift(rigid, data))
+        given = prefer_given(choice, *compared)
+        if given is None and at_given.stop_reason != "cancelled":
+            choice = weighed(choice, *compared)  # ICP's pose stays, and the line says how far it moved
         if given is not None and at_given.stop_reason != "cancelled":
             choice, options = given, held
             rigid = _given(rms_on_model(model, data, _given()))

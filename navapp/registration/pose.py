@@ -170,7 +170,22 @@ class PoseChoice:
         return self.source in (PoseSource.GIVEN, PoseSource.GIVEN_FITS)
 
     @property
+    def weighed(self) -> bool:
+        """The answer from ICP's pose was in doubt and the given pose, held, was fitted too
+        (``prefer_given``): the two residuals and ICP's move are known."""
+        return self.given_rms_mm is not None and self.fitted_rms_mm is not None and self.fitted_shift_mm is not None
+
+    @property
     def warning(self) -> str | None:
+        if self.source is PoseSource.FITTED and self.weighed:
+            # ICP's pose stays the answer, the answer from it in doubt: the surgeon is told how far
+            # it moved the organ from the tracker's pose, which both a wrong tracker registration and
+            # a partial scan of a lobe that swung away can make (docs/decisions.md, "Local loads")
+            return (f"ICP's pose is kept, though the answer from it is in doubt: it moved the organ "
+                    f"{self.fitted_shift_mm:.0f} mm from the given pose; the deformable fit leaves the data "
+                    f"{self.fitted_rms_mm:.2f} mm RMS off there against {self.given_rms_mm:.2f} mm at the given "
+                    "pose — neither pose is determined by these data; check the tracker's registration and add "
+                    "data away from where the organ moved")
         if self.source is not PoseSource.GIVEN_FITS:
             return None
         return (f"ICP's pose is not earned by the fit: it moved the organ {self.fitted_shift_mm:.0f} mm from the "
@@ -183,7 +198,7 @@ class PoseChoice:
                "trimmed_fit_moved_mm": None if self.moved_mm is None else round(self.moved_mm, 3),
                "kept_given": self.given,
                "on_model_fraction": {k.value: round(v, 3) for k, v in self.on_model.items()}}
-        if self.source is PoseSource.GIVEN_FITS:
+        if self.weighed:
             out.update(fitted_rms_mm=round(self.fitted_rms_mm or 0.0, 3),
                        given_rms_mm=round(self.given_rms_mm or 0.0, 3),
                        fitted_shift_mm=round(self.fitted_shift_mm or 0.0, 3), warning=self.warning)
@@ -247,7 +262,14 @@ def prefer_given(choice: PoseChoice, fitted_rms_mm: float, given_rms_mm: float, 
     measurement. Returns the new choice, or None to keep ICP's."""
     if choice.source is not PoseSource.FITTED or not given_rms_mm <= rule.given_ratio * fitted_rms_mm:
         return None
-    return replace(choice, source=PoseSource.GIVEN_FITS, fitted_rms_mm=fitted_rms_mm, given_rms_mm=given_rms_mm,
+    return weighed(choice, fitted_rms_mm, given_rms_mm, fitted_shift_mm, PoseSource.GIVEN_FITS)
+
+
+def weighed(choice: PoseChoice, fitted_rms_mm: float, given_rms_mm: float, fitted_shift_mm: float,
+            source: PoseSource = PoseSource.FITTED) -> PoseChoice:
+    """``choice`` with the two fits' residuals and ICP's move recorded (``prefer_given``), its
+    pose from ``source``: ICP's kept (the default) or the given one."""
+    return replace(choice, source=source, fitted_rms_mm=fitted_rms_mm, given_rms_mm=given_rms_mm,
                    fitted_shift_mm=fitted_shift_mm)
 
 
