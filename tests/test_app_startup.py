@@ -79,27 +79,31 @@ def test_each_stage_and_ready_reach_the_terminal_on_lines_of_their_own(tmp_path,
     assert not any("Traceback" in line for line in lines), lines
 
 
+def refused(tmp_path, memory_mb: str) -> tuple[str, list[str]]:
+    """``navapp serve`` under a pretended memory budget: its one error line and the terminal's
+    lines, after checking that it ended with exit 2, one error line and no traceback."""
+    proc = serve(tmp_path, env={"NAVAPP_CACHE": str(tmp_path / "cache"), "NAVAPP_MEMORY_MB": memory_mb})
+    code, lines = finished(proc)
+    errors = [line for line in lines if "error" in line.lower()]
+    assert code == 2 and len(errors) == 1, lines
+    assert not any("Traceback" in line for line in lines), lines
+    return errors[0], lines
+
+
 def test_a_scene_that_cannot_load_ends_serve_with_exit_2_and_one_line(tmp_path):
     # the scene's simulation needs a truth mesh (10 mm: ~1,160 nodes, ~452 MB) that this (pretended)
     # memory cannot hold, while the registration mesh (--edge 12: ~670 nodes, ~430 MB) fits, so the
     # viewer starts and its start-up fails; a --edge too fine is refused before it starts (below)
-    proc = serve(tmp_path, env={"NAVAPP_CACHE": str(tmp_path / "cache"), "NAVAPP_MEMORY_MB": "440"})
-    code, lines = finished(proc)
-    errors = [line for line in lines if "error" in line.lower()]
-    assert code == 2, lines
-    assert len(errors) == 1 and errors[0].startswith("navapp: error: the viewer could not start: "), lines
-    assert "a mesh at 10 mm" in errors[0] and "set deformation.mesh_edge_mm = " in errors[0], lines
-    assert not any("Traceback" in line for line in lines), lines
+    error, lines = refused(tmp_path, "440")
+    assert error.startswith("navapp: error: the viewer could not start: "), lines
+    assert "a mesh at 10 mm" in error and "set deformation.mesh_edge_mm = " in error, lines
 
 
 def test_a_registration_mesh_too_fine_for_memory_ends_serve_before_the_viewer_starts(tmp_path):
-    proc = serve(tmp_path, env={"NAVAPP_CACHE": str(tmp_path / "cache"), "NAVAPP_MEMORY_MB": "420"})
-    code, lines = finished(proc)
-    errors = [line for line in lines if "error" in line.lower()]
-    assert code == 2, lines
-    assert len(errors) == 1 and errors[0].startswith("navapp: error: a mesh at 12 mm would have about "), lines
-    assert "need about 430 MB, more than the 420 MB" in errors[0] and "use --edge " in errors[0], lines
-    assert not any("Simulating" in line or "Traceback" in line for line in lines), lines
+    error, lines = refused(tmp_path, "420")
+    assert error.startswith("navapp: error: a mesh at 12 mm would have about "), lines
+    assert "need about 430 MB, more than the 420 MB" in error and "use --edge " in error, lines
+    assert not any("Simulating" in line for line in lines), lines
 
 
 def test_a_failing_start_up_step_ends_serve_with_one_line_naming_its_traceback(tmp_path):
