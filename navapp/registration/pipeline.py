@@ -35,10 +35,10 @@ from .pose import (
     PoseChoice,
     PoseSource,
     choose_pose,
+    compared,
     pose_determinacy,
     prefer_given,
     rms_on_model,
-    weighed,
 )
 from .quality import FitQuality, Verdict, assess_fit
 from .rigid import (
@@ -518,11 +518,11 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         t = time.perf_counter()
         held = replace(options, pose=False)
         at_given = fit(data, held)
-        compared = (pooled_rms(result.features), pooled_rms(at_given.features), _shift(rigid, data))
-        given = prefer_given(choice, *compared)
+        both = (pooled_rms(result.features), pooled_rms(at_given.features), _shift(rigid, data))
+        given = prefer_given(choice, *both)
         if given is None and at_given.stop_reason != "cancelled":
-            choice = weighed(choice, *compared)  # ICP's pose stays, and the line says how far it moved
-        if given is not None and at_given.stop_reason != "cancelled":
+            choice = compared(choice, *both)  # ICP's pose stays, and its line says how far it moved
+        elif given is not None and at_given.stop_reason != "cancelled":
             choice, options = given, held
             rigid = _given(rms_on_model(model, data, _given()))
             local, result, quality = dict(data), at_given, assess_fit(at_given.features)

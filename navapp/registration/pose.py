@@ -180,7 +180,8 @@ class PoseChoice:
         if self.source is PoseSource.FITTED and self.weighed:
             # ICP's pose stays the answer, the answer from it in doubt: the surgeon is told how far
             # it moved the organ from the tracker's pose, which both a wrong tracker registration and
-            # a partial scan of a lobe that swung away can make (docs/decisions.md, "Local loads")
+            # a partial scan of a lobe that swung away can make (docs/decisions.md, "ICP's pose kept while
+            # the answer from it is in doubt")
             return (f"ICP's pose is kept, though the answer from it is in doubt: it moved the organ "
                     f"{self.fitted_shift_mm:.0f} mm from the given pose; the deformable fit leaves the data "
                     f"{self.fitted_rms_mm:.2f} mm RMS off there against {self.given_rms_mm:.2f} mm at the given "
@@ -262,10 +263,10 @@ def prefer_given(choice: PoseChoice, fitted_rms_mm: float, given_rms_mm: float, 
     measurement. Returns the new choice, or None to keep ICP's."""
     if choice.source is not PoseSource.FITTED or not given_rms_mm <= rule.given_ratio * fitted_rms_mm:
         return None
-    return weighed(choice, fitted_rms_mm, given_rms_mm, fitted_shift_mm, PoseSource.GIVEN_FITS)
+    return compared(choice, fitted_rms_mm, given_rms_mm, fitted_shift_mm, PoseSource.GIVEN_FITS)
 
 
-def weighed(choice: PoseChoice, fitted_rms_mm: float, given_rms_mm: float, fitted_shift_mm: float,
+def compared(choice: PoseChoice, fitted_rms_mm: float, given_rms_mm: float, fitted_shift_mm: float,
             source: PoseSource = PoseSource.FITTED) -> PoseChoice:
     """``choice`` with the two fits' residuals and ICP's move recorded (``prefer_given``), its
     pose from ``source``: ICP's kept (the default) or the given one."""
