@@ -206,6 +206,24 @@ def wait_until(page, cond, deadline: Deadline, what: str):
         page.wait_for_timeout(100)
 
 
+def set_checkbox(page, label: str, on: bool, deadline: Deadline):
+    """Tick or untick the panel's checkbox ``label`` and wait until it shows ``on``.
+
+    Not Playwright's ``check``/``uncheck``: they click once and want the new state at once, and CI
+    once found a checkbox unchanged right after the click (stop 31, on a panel folder just opened).
+    The click is the element's own (no coordinates to miss while the folder unfolds); it is
+    repeated only when the state has not come after 10 s, and the whole wait is the test's budget."""
+    box = page.get_by_label(label, exact=True).first
+    clicked = -1e9
+    while box.is_checked(timeout=deadline.ms()) != on:
+        if time.monotonic() >= deadline.end:
+            raise AssertionError(f"the checkbox {label!r} did not become {on}: not within the test's budget")
+        if time.monotonic() - clicked > 10.0:
+            box.evaluate("e => e.click()", timeout=deadline.ms())
+            clicked = time.monotonic()
+        page.wait_for_timeout(100)
+
+
 RULER, TOP, ZOOM = 34, 22, 2  # the 2D view's canvas layout (view2d.PAGE)
 
 

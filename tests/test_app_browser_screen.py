@@ -18,6 +18,7 @@ from test_app_browser import (
     Deadline,
     click_button,
     playwright,
+    set_checkbox,
     start_server,
     us_frame,
     wait_text,
@@ -98,12 +99,12 @@ def test_a_small_window_keeps_the_3d_view_and_a_gross_pose_is_red(server, tmp_pa
 
         page.get_by_text("Layers and views").first.click(timeout=deadline.ms())
         for layer in ("Preoperative liver", "Preoperative vessels", "Collected data", "Targets", "Ultrasound plane"):
-            page.get_by_label(layer, exact=True).first.uncheck(force=True, timeout=deadline.ms())
+            set_checkbox(page, layer, False, deadline)
         click_button(page, "Anterior", deadline)
         with_dots = shot()
-        page.get_by_label("Error colours", exact=True).first.uncheck(force=True, timeout=deadline.ms())
+        set_checkbox(page, "Error colours", False, deadline)
         without = shot()
-        page.get_by_label("Registered vessels", exact=True).first.uncheck(force=True, timeout=deadline.ms())
+        set_checkbox(page, "Registered vessels", False, deadline)
         no_vessels = shot()
         vessel = np.abs(without - no_vessels).sum(2) > 40
         covered = (vessel & (np.abs(with_dots - without).sum(2) > 40)).sum() / max(vessel.sum(), 1)
