@@ -286,7 +286,7 @@ def test_a_pose_the_fit_does_not_pay_for_is_not_taken_over_the_given_one(small_m
     reg = pipeline.register(small_model, data)
     choice = reg.pose_choice
     assert choice.source is PoseSource.GIVEN_FITS and reg.rigid.kept
-    assert choice.given_rms_mm <= POSE_RULE.given_ratio * choice.fitted_rms_mm
+    assert choice.fits.given_rms_mm <= POSE_RULE.given_ratio * choice.fits.fitted_rms_mm
     assert np.allclose(reg.rigid.apply(nodes), nodes)
     assert any(w.startswith("ICP's pose is not earned by the fit: it moved") for w in reg.warnings)
     assert far_motion(reg) < 2.0
@@ -299,8 +299,88 @@ def test_a_pose_the_fit_does_not_pay_for_is_not_taken_over_the_given_one(small_m
     # margin), the answer from it still in doubt: one line says how far it moved the organ
     line = next(w for w in before.warnings if w.startswith("ICP's pose is kept, though the answer from it is in doubt"))
     moved = float(line.split("it moved the organ ")[1].split(" mm")[0])
-    assert moved == round(before.pose_choice.fitted_shift_mm) and moved > 5.0, line
+    assert moved == round(before.pose_choice.fits.shift_mm) and moved > 5.0, line
     assert before.pose_choice.as_dict()["fitted_shift_mm"] > 5.0
+
+
+def _lifted_lobe(liver, tip_deg, base_deg):
+    """A scan of the front of the right lobe of ``liver`` (its vertices, (V, 3) mm) alone, the lobe
+    lifted about a vertical hinge at its base: the base turned ``base_deg``, the tip ``tip_deg``
+    (a bend when they differ), the rest of the organ where it was; and the mesh-free check of an
+    answer: the mean motion it puts on the vertices left of the hinge by 20 mm and more."""
+    from scipy.spatial.transform import Rotation
+
+    front = liver[liver[:, 1] > np.percentile(liver[:, 1], 40)]
+    x0 = np.percentile(liver[:, 0], 65)
+    lobe = front[front[:, 0] > x0]
+    hinge = np.array([x0, lobe[:, 1].mean(), lobe[:, 2].mean()])
+    along = (lobe[:, 0] - x0) / (lobe[:, 0].max() - x0)
+    turn = np.radians(base_deg + (tip_deg - base_deg) * along)
+    R = Rotation.from_rotvec(turn[:, None] * np.array([0.0, 0.0, 1.0])).as_matrix()
+    rest = liver[liver[:, 0] < x0 - 20.0]
+
+    def rest_motion(reg):
+        return float(np.linalg.norm(reg.transform(rest) - rest, axis=1).mean())
+
+    return {"anterior": np.einsum("nij,nj->ni", R, lobe - hinge) + hinge}, rest_motion
+
+
+def test_a_turn_no_tracker_makes_is_not_taken_when_the_answer_from_it_is_in_doubt(small_model, phantoms, monkeypatch):
+    """A scan of a lifted right lobe alone (tip turned 80°, base 40°), already aligned. The
+    undeformed organ fits it best turned about 76° from the given pose, where the pose alone
+    leaves most of the scan off the model and the deformable fit stays poor: the answer from
+    there is in doubt, and the given pose fits worse by more than the margin. No tracker's
+    registration is 76° off: the given pose is held (``PoseSource.GIVEN_TURN``) and one line
+    says so, and the rest of the organ, which did not move, stays. Without the rule (a limit
+    of 180°) the rest of the organ is turned with the lobe, tens of mm.
+
+    A whole-front scan turned 70°, as a tracker that far off would give, puts every point on
+    the model at ICP's pose: that turn is taken, and said. A lobe lifted less steeply (60° /
+    30°), which the deformation explains from a turned pose, is an answer not in doubt, and the
+    turn is said too (it was silent)."""
+    from dataclasses import replace
+
+    import navapp.registration.pipeline as pipeline
+    from navapp.registration.pose import POSE_RULE, PoseSource, prefer_given
+
+    liver = phantoms[0].liver.vertices
+    data, rest_motion = _lifted_lobe(liver, 80.0, 40.0)
+    reg = pipeline.register(small_model, data)
+    choice = reg.pose_choice
+    assert choice.source is PoseSource.GIVEN_TURN and reg.rigid.kept, choice.as_dict()
+    assert choice.turn_deg > POSE_RULE.tracker_turn_deg
+    assert choice.fits.given_rms_mm > POSE_RULE.given_ratio * choice.fits.fitted_rms_mm  # not the other rule
+    assert choice.on_model[PoseSource.FITTED] < POSE_RULE.consensus
+    line = next(w for w in reg.warnings if w.startswith("ICP's pose is not taken: it moved the organ"))
+    assert f"turned it {choice.turn_deg:.0f}°" in line and "further than a tracker's registration errs" in line
+    assert choice.as_dict()["source"] == "given-turn" and choice.as_dict()["fitted_turn_deg"] > 45.0
+
+    monkeypatch.setattr(pipeline, "prefer_given",
+                        lambda c, f: prefer_given(c, f, replace(POSE_RULE, tracker_turn_deg=180.0)))
+    before = pipeline.register(small_model, data)
+    assert before.pose_choice.source is PoseSource.FITTED
+    print(f"the rest of the organ moved {rest_motion(reg):.1f} mm (given pose held), {rest_motion(before):.1f} (ICP's)")
+    # held, the k = 12 deformation still drags the rest of the organ after the lifted lobe
+    assert rest_motion(before) > 40.0 and rest_motion(reg) < 0.5 * rest_motion(before)
+    monkeypatch.undo()
+
+    front = liver[liver[:, 1] > np.percentile(liver[:, 1], 40)]
+    c = front.mean(0)
+    axis = np.array([0.3, 0.2, 0.93]) / np.linalg.norm([0.3, 0.2, 0.93])
+    from scipy.spatial.transform import Rotation
+
+    R = Rotation.from_rotvec(np.radians(70.0) * axis).as_matrix()
+    offset = pipeline.register(small_model, {"anterior": (front - c) @ R.T + c})
+    assert offset.pose_choice.source is PoseSource.FITTED
+    assert offset.pose_choice.on_model[PoseSource.FITTED] > 0.9
+    assert np.allclose(offset.rigid.R, R, atol=1e-2)
+    assert any("turn" in w and "check the tracker's registration" in w for w in offset.warnings)
+
+    lifted, _ = _lifted_lobe(liver, 60.0, 30.0)
+    explained = pipeline.register(small_model, lifted)
+    assert explained.pose_choice.source is PoseSource.FITTED and explained.pose_choice.fits is None
+    line = next(w for w in explained.warnings if w.startswith("ICP's pose turns the organ"))
+    assert "either the tracker's registration is that far off or the scanned part of the organ moved" in line
 
 
 def test_a_small_dent_the_basis_cannot_make_is_not_shown_as_a_correction(small_model, phantoms):

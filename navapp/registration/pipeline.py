@@ -33,12 +33,14 @@ from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usab
 from .pose import (
     Determinacy,
     PoseChoice,
+    PoseFits,
     PoseSource,
     choose_pose,
     compared,
     pose_determinacy,
     prefer_given,
     rms_on_model,
+    with_turn,
 )
 from .quality import FitQuality, Verdict, assess_fit
 from .rigid import (
@@ -511,6 +513,8 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         t = time.perf_counter()
         support = _cross_validate(model, local, options, init.support, cancel, rigid, result)
         sec["support"] = time.perf_counter() - t
+    if choice is not None:
+        choice = with_turn(choice, rigid)  # ICP's pose is final here
     if fresh and result is not None and quality is not None and choice is not None and \
             choice.source is PoseSource.FITTED and result.stop_reason != "cancelled" and \
             (not quality.ok or (support is not None and not support.supported)):
@@ -518,10 +522,10 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         t = time.perf_counter()
         held = replace(options, pose=False)
         at_given = fit(data, held)
-        both = (pooled_rms(result.features), pooled_rms(at_given.features), _shift(rigid, data))
-        given = prefer_given(choice, *both)
+        fits = PoseFits(pooled_rms(result.features), pooled_rms(at_given.features), _shift(rigid, data))
+        given = prefer_given(choice, fits)
         if given is None and at_given.stop_reason != "cancelled":
-            choice = compared(choice, *both)  # ICP's pose stays, and its line says how far it moved
+            choice = compared(choice, fits)  # ICP's pose stays, and its line says how far it moved
         elif given is not None and at_given.stop_reason != "cancelled":
             choice, options = given, held
             rigid = _given(rms_on_model(model, data, _given()))

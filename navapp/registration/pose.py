@@ -21,6 +21,12 @@ given pose: a consensus of data on the model, as in RANSAC, that a pose sharing 
 misfit does not reach. A global sag or a tracker offset puts no
 pose's consensus that high, and ICP's pose is taken as before.
 
+**Not a turn no tracker makes.** A partial scan of a lobe that swung away fits the undeformed
+organ best turned as far as the lobe (82° and 125° on the neo-Hookean tool cases). Where the
+answer from ICP's pose is in doubt and the pose alone leaves most data off the model, a turn
+beyond ``POSE_RULE.tracker_turn_deg`` is not taken (``prefer_given``); where it is taken, one
+line says the turn and that the tracker or the scanned part is that far off.
+
 **Sliding directions.** The point-to-plane normal matrix A = Σ w aᵢaᵢᵀ, aᵢ = ((xᵢ − c) × nᵢ / L,
 nᵢ) (rotation scaled by the data radius L, so both halves are mm), is the inverse of the
 pose's ICP covariance up to the noise. An eigenvector with a small eigenvalue is a motion
@@ -70,6 +76,13 @@ class PoseRule:
     # RMS, given ÷ ICP, docs/decisions.md "Local loads"): at most 1.09 where the given pose was right,
     # at least 1.23 where ICP's was
     given_ratio: float = 1.15
+    # ... and, the answer from ICP's pose in doubt, the given pose is held when ICP's pose turns
+    # the organ by more than this from it (degrees), whatever the residuals: a tracker's
+    # registration is not that far off, so such a turn is the multi-start search's guess at a
+    # lobe that moved, not a correction of the tracker (docs/decisions.md, "A turn no tracker
+    # makes"). The robustness study's largest offset is 20°; its starts turn by 15° and by
+    # the principal axes' flips (90°, 180°)
+    tracker_turn_deg: float = 45.0
 
 
 POSE_RULE = PoseRule()
@@ -143,6 +156,29 @@ class PoseSource(Enum):
     FITTED = "fitted"  # the multi-start ICP's pose
     # the tracker's pose, held: ICP's pose, with deformation, fitted the data no better (``prefer_given``)
     GIVEN_FITS = "given-fits"
+    # the tracker's pose, held: ICP's pose turned the organ further than a tracker errs, and the
+    # answer from it was in doubt (``prefer_given``)
+    GIVEN_TURN = "given-turn"
+
+
+@dataclass(frozen=True)
+class PoseFits:
+    """The deformable fit from ICP's pose beside the same fit with the given pose held
+    (``prefer_given``), made where the answer from ICP's pose is in doubt."""
+    fitted_rms_mm: float  # the data residual of the fit from ICP's pose (pooled RMS, mm)
+    given_rms_mm: float  # ... and of the fit with the given pose held
+    shift_mm: float  # how far ICP's pose moves the data from where they are given (RMS, mm)
+
+    def as_dict(self) -> dict:
+        return {"fitted_rms_mm": round(self.fitted_rms_mm, 3), "given_rms_mm": round(self.given_rms_mm, 3),
+                "fitted_shift_mm": round(self.shift_mm, 3)}
+
+
+def turn_deg(pose: RigidResult) -> float:
+    """The rotation angle of ``pose`` (degrees, 0–180): how far it turns the organ from the
+    given (identity) pose, about whatever axis."""
+    c = (np.trace(pose.R) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
 @dataclass
@@ -153,11 +189,11 @@ class PoseChoice:
     # fraction of the surface points on the model (within ``PoseRule.on_mm``) at each pose looked at
     on_model: dict = field(default_factory=dict)
     local: RigidResult | None = None  # the trimmed fit's pose (model → data)
-    # ``GIVEN_FITS``: the deformable fits' data residuals (pooled RMS, mm) at ICP's pose and at the
-    # given one, and how far ICP's pose moved the data from the given one (RMS, mm)
-    fitted_rms_mm: float | None = None
-    given_rms_mm: float | None = None
-    fitted_shift_mm: float | None = None
+    # how far ICP's pose turns the organ from the given one (degrees; ``turn_deg``), once ICP's
+    # pose is final (the caller's ``with_turn``)
+    turn_deg: float | None = None
+    # the two deformable fits, where the answer from ICP's pose was in doubt (``prefer_given``)
+    fits: PoseFits | None = None
 
     @property
     def kept(self) -> bool:
@@ -167,31 +203,48 @@ class PoseChoice:
     @property
     def given(self) -> bool:
         """The answer's pose is the tracker's own (kept as aligned, or as fitting no worse)."""
-        return self.source in (PoseSource.GIVEN, PoseSource.GIVEN_FITS)
+        return self.source in (PoseSource.GIVEN, PoseSource.GIVEN_FITS, PoseSource.GIVEN_TURN)
 
     @property
     def weighed(self) -> bool:
         """The answer from ICP's pose was in doubt and the given pose, held, was fitted too
-        (``prefer_given``): the two residuals and ICP's move are known."""
-        return self.given_rms_mm is not None and self.fitted_rms_mm is not None and self.fitted_shift_mm is not None
+        (``prefer_given``): the two residuals and ICP's move are known (``fits``)."""
+        return self.fits is not None
 
     @property
     def warning(self) -> str | None:
-        if self.source is PoseSource.FITTED and self.weighed:
+        f, turn = self.fits, self.turn_deg or 0.0
+        if f is None:
+            if self.source is PoseSource.FITTED and turn > POSE_RULE.tracker_turn_deg:
+                # the answer is not in doubt, yet a turn no tracker's registration needs: either
+                # the tracker was that far off, or the scanned part of the organ turned as a whole
+                # (a lobe lifted) and the rest follows it wrongly; the data cannot tell which
+                return (f"ICP's pose turns the organ {turn:.0f}° from the given pose, further than a tracker's "
+                        f"registration errs ({POSE_RULE.tracker_turn_deg:.0f}°): either the tracker's registration "
+                        "is that far off or the scanned part of the organ moved as a whole — check the tracker's "
+                        "registration and add data over the rest of the organ")
+            return None
+        moved = f"{f.shift_mm:.0f} mm" + (f" and turned it {turn:.0f}°" if turn >= 5.0 else "")
+        if self.source is PoseSource.FITTED:
             # ICP's pose stays the answer, the answer from it in doubt: the surgeon is told how far
             # it moved the organ from the tracker's pose, which both a wrong tracker registration and
             # a partial scan of a lobe that swung away can make (docs/decisions.md, "ICP's pose kept while
             # the answer from it is in doubt")
-            return (f"ICP's pose is kept, though the answer from it is in doubt: it moved the organ "
-                    f"{self.fitted_shift_mm:.0f} mm from the given pose; the deformable fit leaves the data "
-                    f"{self.fitted_rms_mm:.2f} mm RMS off there against {self.given_rms_mm:.2f} mm at the given "
-                    "pose — neither pose is determined by these data; check the tracker's registration and add "
-                    "data away from where the organ moved")
+            return (f"ICP's pose is kept, though the answer from it is in doubt: it moved the organ {moved} from "
+                    f"the given pose; the deformable fit leaves the data {f.fitted_rms_mm:.2f} mm RMS off there "
+                    f"against {f.given_rms_mm:.2f} mm at the given pose — neither pose is determined by these data; "
+                    "check the tracker's registration and add data away from where the organ moved")
+        if self.source is PoseSource.GIVEN_TURN:
+            return (f"ICP's pose is not taken: it moved the organ {moved} from the given pose, further than a "
+                    f"tracker's registration errs ({POSE_RULE.tracker_turn_deg:.0f}°), and the answer from it is in "
+                    f"doubt (the deformable fit leaves the data {f.fitted_rms_mm:.2f} mm RMS off there against "
+                    f"{f.given_rms_mm:.2f} mm at the given pose) — the given pose is kept; neither pose is determined "
+                    "by these data: check the tracker's registration and add data away from where the organ moved")
         if self.source is not PoseSource.GIVEN_FITS:
             return None
-        return (f"ICP's pose is not earned by the fit: it moved the organ {self.fitted_shift_mm:.0f} mm from the "
-                f"given pose, but the deformable fit there leaves the data {self.fitted_rms_mm:.2f} mm RMS off against "
-                f"{self.given_rms_mm:.2f} mm at the given pose — the given pose is kept; add data away from where "
+        return (f"ICP's pose is not earned by the fit: it moved the organ {moved} from the given pose, but the "
+                f"deformable fit there leaves the data {f.fitted_rms_mm:.2f} mm RMS off against "
+                f"{f.given_rms_mm:.2f} mm at the given pose — the given pose is kept; add data away from where "
                 "the organ moved")
 
     def as_dict(self) -> dict:
@@ -199,10 +252,12 @@ class PoseChoice:
                "trimmed_fit_moved_mm": None if self.moved_mm is None else round(self.moved_mm, 3),
                "kept_given": self.given,
                "on_model_fraction": {k.value: round(v, 3) for k, v in self.on_model.items()}}
-        if self.weighed:
-            out.update(fitted_rms_mm=round(self.fitted_rms_mm or 0.0, 3),
-                       given_rms_mm=round(self.given_rms_mm or 0.0, 3),
-                       fitted_shift_mm=round(self.fitted_shift_mm or 0.0, 3), warning=self.warning)
+        if self.turn_deg is not None:
+            out["fitted_turn_deg"] = round(self.turn_deg, 2)
+        if self.fits is not None:
+            out.update(self.fits.as_dict())
+        if self.warning:
+            out["warning"] = self.warning
         return out
 
 
@@ -252,26 +307,39 @@ def choose_pose(model: RegistrationModel, data: dict, given: RigidResult, fitted
     return PoseChoice(PoseSource.FITTED, moved, on, local)
 
 
-def prefer_given(choice: PoseChoice, fitted_rms_mm: float, given_rms_mm: float, fitted_shift_mm: float,
-                 rule: PoseRule = POSE_RULE) -> PoseChoice | None:
+def prefer_given(choice: PoseChoice, fits: PoseFits, rule: PoseRule = POSE_RULE) -> PoseChoice | None:
     """ICP's pose was chosen (``choice.source`` FITTED) and the answer from it is in doubt (the
     caller's test: a poor fit, or a deformation the data do not support): the given pose
     replaces it when the deformable fit with the given pose held leaves the data within
-    ``rule.given_ratio`` of the residual at ICP's pose (pooled RMS, mm). On a partial scan of a
+    ``rule.given_ratio`` of the residual at ICP's pose (pooled RMS, mm), or when ICP's pose
+    turns the organ by more than ``rule.tracker_turn_deg`` from it and puts fewer than
+    ``rule.consensus`` of the surface data on the undeformed model. On a partial scan of a
     dented surface the deformable model fits the data about as well tens of millimetres away as
     where they are: a move the fit does not pay for is a guess of the multi-start search, not a
-    measurement. Returns the new choice, or None to keep ICP's."""
-    if choice.source is not PoseSource.FITTED or not given_rms_mm <= rule.given_ratio * fitted_rms_mm:
+    measurement; and a scan of a lobe that swung away fits the undeformed organ best turned as
+    far as the lobe, a turn no tracker's registration needs. Returns the new choice, or None to
+    keep ICP's."""
+    if choice.source is not PoseSource.FITTED:
         return None
-    return compared(choice, fitted_rms_mm, given_rms_mm, fitted_shift_mm, PoseSource.GIVEN_FITS)
+    if fits.given_rms_mm <= rule.given_ratio * fits.fitted_rms_mm:
+        return compared(choice, fits, PoseSource.GIVEN_FITS)
+    # a turn the pose alone makes good (most data on the undeformed model there) is a tracker
+    # that was that far off, and the data say so
+    if (choice.turn_deg or 0.0) > rule.tracker_turn_deg and \
+            choice.on_model.get(PoseSource.FITTED, 0.0) < rule.consensus:
+        return compared(choice, fits, PoseSource.GIVEN_TURN)
+    return None
 
 
-def compared(choice: PoseChoice, fitted_rms_mm: float, given_rms_mm: float, fitted_shift_mm: float,
-            source: PoseSource = PoseSource.FITTED) -> PoseChoice:
-    """``choice`` with the two fits' residuals and ICP's move recorded (``prefer_given``), its
-    pose from ``source``: ICP's kept (the default) or the given one."""
-    return replace(choice, source=source, fitted_rms_mm=fitted_rms_mm, given_rms_mm=given_rms_mm,
-                   fitted_shift_mm=fitted_shift_mm)
+def with_turn(choice: PoseChoice, pose: RigidResult) -> PoseChoice:
+    """``choice`` with ICP's final ``pose``'s turn from the given one recorded (FITTED only)."""
+    return replace(choice, turn_deg=turn_deg(pose)) if choice.source is PoseSource.FITTED else choice
+
+
+def compared(choice: PoseChoice, fits: PoseFits, source: PoseSource = PoseSource.FITTED) -> PoseChoice:
+    """``choice`` with the two fits recorded (``prefer_given``), its pose from ``source``: ICP's
+    kept (the default) or the given one."""
+    return replace(choice, source=source, fits=fits)
 
 
 @dataclass
