@@ -406,3 +406,15 @@ def test_a_small_dent_the_basis_cannot_make_is_not_shown_as_a_correction(small_m
 
     unweighed = register(small_model, data, init=RobustOptions(support=SupportOptions(z=0.0)))
     assert unweighed.deformed and far_motion(unweighed) > 1.0
+
+
+def test_the_load_study_does_not_append_to_a_file_with_other_columns(tmp_path):
+    """A results file written before the study's columns grew (``pose``, ``turn_deg``) is not
+    appended to with rows that would not line up under its header: one line says so."""
+    from navapp.evaluation.loads import COLUMNS, run_loads
+
+    old = tmp_path / "loads.csv"
+    old.write_text(",".join(COLUMNS[:-2]) + "\ntool0-a,S,identity,True,True,0.8,0.8,28.69,none,False,,0.0\n")
+    with pytest.raises(InputError, match="its columns are not this study's"):
+        run_loads([tmp_path / "tool0-b"], old)
+    assert old.read_text().count("\n") == 2

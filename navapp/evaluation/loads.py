@@ -26,6 +26,7 @@ import numpy as np
 from .. import progress
 from ..anatomy.caseio import read_case
 from ..anatomy.truth import TruthField
+from ..errors import InputError
 from ..geometry.interpolation import interpolation_matrix
 from ..registration.pipeline import RobustOptions, prepare, register, tre_stats
 from ..simulation.levels import data_level
@@ -33,7 +34,7 @@ from ..simulation.levels import data_level
 LOAD_LEVELS = ("S", "S+all")  # the study's own subset of ``simulation.levels.LEVELS``
 METHODS = ("identity", "rigid-unguarded", "rigid", "libr-unguarded", "libr")
 COLUMNS = ("case", "level", "method", "pre_aligned", "covers", "displacement_mm", "tre_mean_mm", "tre_max_mm",
-           "answer", "warned", "warning", "seconds")
+           "answer", "warned", "warning", "seconds", "pose", "turn_deg")
 
 
 def _case_facts(case_dir: Path, case, nodes: np.ndarray) -> dict:
@@ -78,6 +79,8 @@ def run_case(case_dir) -> list[dict]:
             t = time.perf_counter()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # collected from the Registration instead
+                pose: str = ""
+                turn: str | float = ""
                 if method == "identity":
                     pred, answer, lines = x0, "none", []
                 else:
@@ -87,12 +90,15 @@ def run_case(case_dir) -> list[dict]:
                     pred = reg.transform(x0, B=B)
                     answer = "deformable" if reg.deformed else "rigid"
                     lines = reg.warnings if guarded else _old_warnings(reg)
+                    c = reg.pose_choice
+                    if c is not None:  # where the rigid stage's pose came from, and ICP's turn from the given one
+                        pose, turn = c.source.value, "" if c.turn_deg is None else round(c.turn_deg, 1)
             sec = time.perf_counter() - t
             st = tre_stats(pred, x1)
             rows.append({"case": case_dir.name, "level": level, "method": method, **facts,
                          "tre_mean_mm": round(st["mean_mm"], 3), "tre_max_mm": round(st["max_mm"], 2),
                          "answer": answer, "warned": bool(lines), "warning": lines[0] if lines else "",
-                         "seconds": round(sec, 3)})
+                         "seconds": round(sec, 3), "pose": pose, "turn_deg": turn})
     return rows
 
 
@@ -103,7 +109,11 @@ def run_loads(cases, results: Path, workers: int = 1) -> int:
     done = set()
     if results.exists():
         with results.open() as fh:
-            done = {r["case"] for r in csv.DictReader(fh)}
+            reader = csv.DictReader(fh)
+            if tuple(reader.fieldnames or ()) != COLUMNS:
+                raise InputError(f"its columns are not this study's ({', '.join(COLUMNS)}): "
+                                 "give a new results file to start again", results)
+            done = {r["case"] for r in reader}
     todo = [Path(c) for c in cases if Path(c).name not in done]
     new = not results.exists()
     results.parent.mkdir(parents=True, exist_ok=True)
