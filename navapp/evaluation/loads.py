@@ -29,6 +29,7 @@ from ..anatomy.truth import TruthField
 from ..errors import InputError
 from ..geometry.interpolation import interpolation_matrix
 from ..registration.pipeline import RobustOptions, prepare, register, tre_stats
+from ..registration.pose import POSE_RULE
 from ..simulation.levels import data_level
 
 LOAD_LEVELS = ("S", "S+all")  # the study's own subset of ``simulation.levels.LEVELS``
@@ -202,7 +203,9 @@ def write_report(results: Path, out_dir: Path) -> Path:
              "*guarded*: today's default (a good given pose, or the pose most of the data lie on near it, kept; "
              "the deformation cross-validated against the rigid answer and dropped with a warning where the data "
              "do not support it; where the answer from ICP's pose is in doubt, the given pose held when the "
-             "deformable fit there is within 15 % of ICP's).", ""]
+             f"deformable fit there is within {(POSE_RULE.given_ratio - 1) * 100:.0f} % of ICP's, or when ICP's pose "
+             f"turns the organ more than {POSE_RULE.tracker_turn_deg:.0f}° from it and leaves most data off the "
+             "model). The CSV's `pose` and `turn_deg`: where the rigid stage's pose came from, and ICP's turn.", ""]
     for level in LOAD_LEVELS:
         lv = [r for r in rows if r["level"] == level]
         lines += [f"## {level}", "", "| method | mean TRE | median over cases | max TRE (mean over cases) | "
