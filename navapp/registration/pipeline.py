@@ -517,7 +517,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         choice = with_turn(choice, rigid)  # ICP's pose is final here
     if fresh and result is not None and quality is not None and choice is not None and \
             choice.source is PoseSource.FITTED and result.stop_reason != "cancelled" and \
-            (not quality.ok or (support is not None and not support.supported)):
+            (not quality.ok or (support is not None and not support.supported) or choice.unconfirmed_turn()):
         # ICP's pose, and the answer from it is in doubt: does the given pose, held, fit as well?
         t = time.perf_counter()
         held = replace(options, pose=False)

@@ -22,10 +22,11 @@ misfit does not reach. A global sag or a tracker offset puts no
 pose's consensus that high, and ICP's pose is taken as before.
 
 **Not a turn no tracker makes.** A partial scan of a lobe that swung away fits the undeformed
-organ best turned as far as the lobe (82° and 125° on the neo-Hookean tool cases). Where the
-answer from ICP's pose is in doubt and the pose alone leaves most data off the model, a turn
-beyond ``POSE_RULE.tracker_turn_deg`` is not taken (``prefer_given``); where it is taken, one
-line says the turn and that the tracker or the scanned part is that far off.
+organ best turned as far as the lobe (82° and 125° on the neo-Hookean tool cases). A turn
+beyond ``POSE_RULE.tracker_turn_deg`` that the pose alone does not confirm (it leaves most data
+off the model) puts the answer in doubt, and the given pose is held (``prefer_given``); where
+such a turn is taken, one line says the turn and that the tracker or the scanned part is that
+far off.
 
 **Sliding directions.** The point-to-plane normal matrix A = Σ w aᵢaᵢᵀ, aᵢ = ((xᵢ − c) × nᵢ / L,
 nᵢ) (rotation scaled by the data radius L, so both halves are mm), is the inverse of the
@@ -76,12 +77,12 @@ class PoseRule:
     # RMS, given ÷ ICP, docs/decisions.md "Local loads"): at most 1.09 where the given pose was right,
     # at least 1.23 where ICP's was
     given_ratio: float = 1.15
-    # ... and, the answer from ICP's pose in doubt, the given pose is held when ICP's pose turns
-    # the organ by more than this from it (degrees), whatever the residuals: a tracker's
-    # registration is not that far off, so such a turn is the multi-start search's guess at a
-    # lobe that moved, not a correction of the tracker (docs/decisions.md, "A turn no tracker
-    # makes"). The robustness study's largest offset is 20°; its starts turn by 15° and by
-    # the principal axes' flips (90°, 180°)
+    # ... and the given pose is held when ICP's pose turns the organ by more than this from it
+    # (degrees) and the pose alone leaves most data off the model (under ``consensus`` within
+    # ``on_mm``), whatever the residuals: a tracker's registration is not that far off, so such a
+    # turn is the multi-start search's guess at a lobe that moved, not a correction of the
+    # tracker (docs/decisions.md, "A turn no tracker makes"). The robustness study's largest
+    # offset is 20°; its starts turn by 15° and by the principal axes' flips (90°, 180°)
     tracker_turn_deg: float = 45.0
 
 
@@ -157,7 +158,7 @@ class PoseSource(Enum):
     # the tracker's pose, held: ICP's pose, with deformation, fitted the data no better (``prefer_given``)
     GIVEN_FITS = "given-fits"
     # the tracker's pose, held: ICP's pose turned the organ further than a tracker errs, and the
-    # answer from it was in doubt (``prefer_given``)
+    # pose alone left most data off the model (``prefer_given``)
     GIVEN_TURN = "given-turn"
 
 
@@ -211,6 +212,13 @@ class PoseChoice:
         (``prefer_given``): the two residuals and ICP's move are known (``fits``)."""
         return self.fits is not None
 
+    def unconfirmed_turn(self, rule: PoseRule = POSE_RULE) -> bool:
+        """ICP's pose turns the organ further than a tracker's registration errs
+        (``rule.tracker_turn_deg``) and the pose alone leaves most surface data off the model
+        (under ``rule.consensus`` within ``rule.on_mm``): the answer from it is in doubt."""
+        return self.source is PoseSource.FITTED and (self.turn_deg or 0.0) > rule.tracker_turn_deg and \
+            self.on_model.get(PoseSource.FITTED, 0.0) < rule.consensus
+
     @property
     def warning(self) -> str | None:
         f, turn = self.fits, self.turn_deg or 0.0
@@ -235,11 +243,13 @@ class PoseChoice:
                     f"against {f.given_rms_mm:.2f} mm at the given pose — neither pose is determined by these data; "
                     "check the tracker's registration and add data away from where the organ moved")
         if self.source is PoseSource.GIVEN_TURN:
+            on = self.on_model.get(PoseSource.FITTED, 0.0)
             return (f"ICP's pose is not taken: it moved the organ {moved} from the given pose, further than a "
-                    f"tracker's registration errs ({POSE_RULE.tracker_turn_deg:.0f}°), and the answer from it is in "
-                    f"doubt (the deformable fit leaves the data {f.fitted_rms_mm:.2f} mm RMS off there against "
-                    f"{f.given_rms_mm:.2f} mm at the given pose) — the given pose is kept; neither pose is determined "
-                    "by these data: check the tracker's registration and add data away from where the organ moved")
+                    f"tracker's registration errs ({POSE_RULE.tracker_turn_deg:.0f}°), and the pose alone leaves "
+                    f"most of the data off the model there ({on:.0%} within {POSE_RULE.on_mm:g} mm) — the given pose "
+                    f"is kept (the deformable fit leaves the data {f.fitted_rms_mm:.2f} mm RMS off at ICP's pose, "
+                    f"{f.given_rms_mm:.2f} mm at the given one); neither pose is determined by these data: check the "
+                    "tracker's registration and add data away from where the organ moved")
         if self.source is not PoseSource.GIVEN_FITS:
             return None
         return (f"ICP's pose is not earned by the fit: it moved the organ {moved} from the given pose, but the "
@@ -309,11 +319,10 @@ def choose_pose(model: RegistrationModel, data: dict, given: RigidResult, fitted
 
 def prefer_given(choice: PoseChoice, fits: PoseFits, rule: PoseRule = POSE_RULE) -> PoseChoice | None:
     """ICP's pose was chosen (``choice.source`` FITTED) and the answer from it is in doubt (the
-    caller's test: a poor fit, or a deformation the data do not support): the given pose
-    replaces it when the deformable fit with the given pose held leaves the data within
-    ``rule.given_ratio`` of the residual at ICP's pose (pooled RMS, mm), or when ICP's pose
-    turns the organ by more than ``rule.tracker_turn_deg`` from it and puts fewer than
-    ``rule.consensus`` of the surface data on the undeformed model. On a partial scan of a
+    caller's test: a poor fit, a deformation the data do not support, or a turn the pose alone
+    does not confirm, ``PoseChoice.unconfirmed_turn``): the given pose replaces it when the
+    deformable fit with the given pose held leaves the data within ``rule.given_ratio`` of the
+    residual at ICP's pose (pooled RMS, mm), or when the turn is unconfirmed. On a partial scan of a
     dented surface the deformable model fits the data about as well tens of millimetres away as
     where they are: a move the fit does not pay for is a guess of the multi-start search, not a
     measurement; and a scan of a lobe that swung away fits the undeformed organ best turned as
@@ -325,8 +334,7 @@ def prefer_given(choice: PoseChoice, fits: PoseFits, rule: PoseRule = POSE_RULE)
         return compared(choice, fits, PoseSource.GIVEN_FITS)
     # a turn the pose alone makes good (most data on the undeformed model there) is a tracker
     # that was that far off, and the data say so
-    if (choice.turn_deg or 0.0) > rule.tracker_turn_deg and \
-            choice.on_model.get(PoseSource.FITTED, 0.0) < rule.consensus:
+    if choice.unconfirmed_turn(rule):
         return compared(choice, fits, PoseSource.GIVEN_TURN)
     return None
 
