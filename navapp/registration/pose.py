@@ -206,12 +206,6 @@ class PoseChoice:
         """The answer's pose is the tracker's own (kept as aligned, or as fitting no worse)."""
         return self.source in (PoseSource.GIVEN, PoseSource.GIVEN_FITS, PoseSource.GIVEN_TURN)
 
-    @property
-    def weighed(self) -> bool:
-        """The answer from ICP's pose was in doubt and the given pose, held, was fitted too
-        (``prefer_given``): the two residuals and ICP's move are known (``fits``)."""
-        return self.fits is not None
-
     def unconfirmed_turn(self, rule: PoseRule = POSE_RULE) -> bool:
         """ICP's pose turns the organ further than a tracker's registration errs
         (``rule.tracker_turn_deg``) and the pose alone leaves most surface data off the model
