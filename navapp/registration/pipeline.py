@@ -40,6 +40,7 @@ from .pose import (
     pose_determinacy,
     prefer_given,
     rms_on_model,
+    shift_mm,
     with_turn,
 )
 from .quality import FitQuality, Verdict, assess_fit
@@ -314,12 +315,6 @@ def _given(rms_mm: float = 0.0) -> RigidResult:
     return RigidResult(np.eye(3), np.zeros(3), 0, rms_mm, kept=True)
 
 
-def _shift(pose: RigidResult, data: dict) -> float:
-    """How far ``pose`` moves the data from where they are given (RMS, mm)."""
-    pts = np.vstack([p for p in data.values() if len(p)]) if data else np.zeros((0, 3))
-    return float(np.sqrt(np.mean(np.sum((pose.inverse(pts) - pts) ** 2, axis=1)))) if len(pts) else 0.0
-
-
 def _settings(options: LMOptions | None, init: RobustOptions | None) -> tuple[LMOptions, RobustOptions]:
     options = options or LMOptions()
     init = init or RobustOptions()
@@ -522,7 +517,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         t = time.perf_counter()
         held = replace(options, pose=False)
         at_given = fit(data, held)
-        fits = PoseFits(pooled_rms(result.features), pooled_rms(at_given.features), _shift(rigid, data))
+        fits = PoseFits(pooled_rms(result.features), pooled_rms(at_given.features), shift_mm(rigid, data))
         given = prefer_given(choice, fits)
         if given is None and at_given.stop_reason != "cancelled":
             choice = compared(choice, fits)  # ICP's pose stays, and its line says how far it moved

@@ -44,6 +44,7 @@ import numpy as np
 from .model import RegistrationModel
 from .objective import correspond
 from .rigid import SURFACE_FEATURES, RigidResult, _screen_geometry
+from .rotation import rotation_angle
 
 
 @dataclass(frozen=True)
@@ -176,10 +177,14 @@ class PoseFits:
 
 
 def turn_deg(pose: RigidResult) -> float:
-    """The rotation angle of ``pose`` (degrees, 0–180): how far it turns the organ from the
-    given (identity) pose, about whatever axis."""
-    c = (np.trace(pose.R) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    """How far ``pose`` turns the organ from the given (identity) pose (degrees, 0–180)."""
+    return float(np.degrees(rotation_angle(pose.R)))
+
+
+def shift_mm(pose: RigidResult, data: dict) -> float:
+    """How far ``pose`` moves the data from where they are given (RMS, mm)."""
+    pts = np.vstack([p for p in data.values() if len(p)]) if data else np.zeros((0, 3))
+    return float(np.sqrt(np.mean(np.sum((pose.inverse(pts) - pts) ** 2, axis=1)))) if len(pts) else 0.0
 
 
 @dataclass

@@ -25,6 +25,7 @@ from scipy.spatial import cKDTree
 from ..features import RIGID
 from .model import REGION_FEATURES, RegistrationModel
 from .objective import Weights, correspond
+from .rotation import rotation_angle
 
 
 @dataclass
@@ -232,7 +233,7 @@ def start_poses(model: RegistrationModel, data: dict, angle_deg=15.0, principal_
             Rm = Vp.T @ np.diag(s) @ Vd  # data axes → model axes
             if np.linalg.det(Rm) < 0:
                 Rm = Vp.T @ np.diag(s) @ np.diag([1, 1, -1]) @ Vd
-            angle = np.arccos(np.clip((np.trace(Rm) - 1) / 2, -1, 1))
+            angle = rotation_angle(Rm)
             if angle < best[0]:
                 best = (angle, Rm)
         Rm = best[1]

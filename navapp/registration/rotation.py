@@ -1,4 +1,5 @@
-"""R(θ) = R_x(θx) R_y(θy) R_z(θz) (paper eq. 9; this order everywhere) and its derivatives."""
+"""R(θ) = R_x(θx) R_y(θy) R_z(θz) (paper eq. 9; this order everywhere), its derivatives, and the
+angle of a rotation matrix."""
 
 import numpy as np
 
@@ -44,3 +45,7 @@ def rotation_derivatives(theta) -> np.ndarray:
     Rx, Ry, Rz = _rx(tx), _ry(ty), _rz(tz)
     return np.stack([_drx(tx) @ Ry @ Rz, Rx @ _dry(ty) @ Rz, Rx @ Ry @ _drz(tz)])
 
+
+def rotation_angle(R) -> float:
+    """The angle (radians, 0–π) by which the rotation matrix ``R`` (3, 3) turns, about whatever axis."""
+    return float(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)))
