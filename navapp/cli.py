@@ -355,6 +355,9 @@ def build_parser():
     s.add_argument("--with-cases", type=Path, nargs="+", help="error-estimate, next-plane: a second set of cases "
                    "judged beside --cases (e.g. the laparoscopic ones); error-estimate calibrates on the first "
                    "case's liver in both sets and validates on the other livers")
+    s.add_argument("--band-cases", type=Path, nargs="+", help="error-estimate: cases of another kind of deformation "
+                   "(e.g. the local loads, tool*) the predicted-error band must hold on too; judged like the others, "
+                   "but ê's coefficients (which rank the suggested planes) are not fitted on them")
     s.add_argument("--with-results", type=Path, help="next-plane: the second set's Table II CSV (for the ranks)")
     s.add_argument("--cases", type=Path, nargs="+", help="case folders (default: simulate the nine study scenes)")
     s.add_argument("--case-root", type=Path, default=Path("study-cases"), help="where simulated cases go")

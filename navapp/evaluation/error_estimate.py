@@ -12,6 +12,12 @@ over the level's registrations, and the median of per-registration r), r of d al
 alone, and the fraction of nodes whose true error lies in the band. A liver is identified
 by its preoperative surface file (``liver_id``), so no liver is in both the fit and the
 validation whatever the cases are called.
+
+A set may take part in the band only (``band_only``: the local-load cases, tool*): ê's
+coefficients, which also rank the suggested next planes, are fitted on the other sets, and
+the band is widened until it holds the nominal coverage on the calibration liver's cases of
+every set (``fit_band``). The band and the tables count only registrations whose answer is
+deformable (``Registration.deformed``): the viewer shows no band for a rigid answer.
 """
 
 import csv
@@ -49,6 +55,7 @@ class Sample:
     err: np.ndarray  # (M,) true error, mm
     seconds: float  # the estimate's time at all M nodes
     liver: str = ""  # ``liver_id`` of the case: which preoperative liver it registers
+    deformed: bool = True  # the answer is the deformable fit (the viewer shows a band only then)
 
 
 def liver_id(case_dir) -> str:
@@ -95,7 +102,7 @@ def collect_case(case_dir, levels=ESTIMATE_LEVELS, combos=3, seed=0, edge=EDGE_M
             sec = time.perf_counter() - t
             err = np.linalg.norm(est.positions - x1, axis=1)
             out.append(Sample(case_dir.name, level, planes, est.distance_mm, est.sigma_mm, err, sec,
-                              liver_id(case_dir)))
+                              liver_id(case_dir), reg.deformed))
     return out
 
 
@@ -118,9 +125,35 @@ def fit_calibration(samples: list[Sample], coverage=NOMINAL, seed=0, name="") ->
     A = np.column_stack([np.ones_like(D), D, S, D * Mm])
     (a, b, c, e), _ = nnls(A * W[:, None], E * W)
     cal = Calibration(float(a), float(b), float(c), float(e), coverage=coverage, fitted_on=name)
+    lo, hi = _band_quantiles(cal, D, S, E, Mm, coverage)
+    return replace(cal, lower=lo, upper=hi)
+
+
+def _band_quantiles(cal: Calibration, D, S, E, Mm, coverage) -> tuple[float, float]:
     ratio = E / np.maximum(cal.predict(D, S, Mm), 1e-9)
     lo, hi = np.quantile(ratio, [(1 - coverage) / 2, (1 + coverage) / 2])
-    return replace(cal, lower=float(lo), upper=float(hi))
+    return float(lo), float(hi)
+
+
+def fit_band(cal: Calibration, sample_sets: list[list[Sample]], coverage=NOMINAL, seed=0) -> Calibration:
+    """Widen ``cal``'s band until it holds ``coverage`` of every set's samples: per set the
+    (1 ± coverage)/2 quantiles of true / ê over ``FIT_NODES`` random nodes of each
+    registration, the band [smallest lower, largest upper] (it contains each set's own
+    band, so it holds at least ``coverage`` of each). ê's coefficients are kept. Empty sets
+    are skipped."""
+    rng = np.random.default_rng(seed)
+    lo, hi = cal.lower, cal.upper
+    for samples in sample_sets:
+        if not samples:
+            continue
+        rows = []
+        for s in samples:
+            i = rng.choice(len(s.err), min(FIT_NODES, len(s.err)), replace=False)
+            rows.append((s.d[i], s.sigma[i], s.err[i], np.full(len(i), np.median(s.d))))
+        D, S, E, Mm = (np.concatenate(c) for c in zip(*rows, strict=True))
+        q_lo, q_hi = _band_quantiles(cal, D, S, E, Mm, coverage)
+        lo, hi = min(lo, q_lo), max(hi, q_hi)
+    return replace(cal, lower=lo, upper=hi)
 
 
 def band_coverage(err, predicted, lower: float, upper: float) -> float:
@@ -156,7 +189,8 @@ def validate(samples: list[Sample], cal: Calibration) -> list[dict]:
     return rows
 
 
-def split_and_fit(collected: dict, calibration_livers, coverage=NOMINAL) -> tuple[Calibration, dict, list, list]:
+def split_and_fit(collected: dict, calibration_livers, coverage=NOMINAL,
+                  band_only=()) -> tuple[Calibration, dict, list, list]:
     """Fit on the samples of ``calibration_livers`` (``liver_id`` values) in every set and
     judge each set's other livers with it.
 
@@ -164,24 +198,34 @@ def split_and_fit(collected: dict, calibration_livers, coverage=NOMINAL) -> tupl
     ----------
     collected : {set label: [Sample]}
     calibration_livers : the livers to fit on; every other liver validates.
+    band_only : labels of sets ê's coefficients are not fitted on; the band is widened
+        (``fit_band``) to hold ``coverage`` on their calibration-liver samples too.
+
+    Only samples whose answer is deformable (``Sample.deformed``) are fitted and judged.
 
     Returns
     -------
     (calibration, {table name: validate rows}, calibration samples, validation samples).
     Raises NavappError when a liver would be both fitted and validated or a side is empty.
     """
-
     livers = set(calibration_livers)
-    calib = [s for v in collected.values() for s in v if s.liver in livers]
-    held = [s for v in collected.values() for s in v if s.liver not in livers]
-    if not calib or not held:
+    shown = {label: [s for s in v if s.deformed] for label, v in collected.items()}
+    calib = [s for v in shown.values() for s in v if s.liver in livers]
+    held = [s for v in shown.values() for s in v if s.liver not in livers]
+    fit_on = [s for label, v in shown.items() if label not in band_only for s in v if s.liver in livers]
+    if not fit_on or not held:
         raise NavappError("error-estimate needs cases of at least two livers (calibrated on the first case's liver, "
                           "validated on the others)")
     if {s.liver for s in calib} & {s.liver for s in held}:  # the split above makes this impossible; keep it so
         raise NavappError("error-estimate: a liver is in both the calibration and the validation cases")
-    cal = fit_calibration(calib, coverage=coverage, name="+".join(sorted({s.case for s in calib})))
+    cal = fit_calibration(fit_on, coverage=coverage, name="+".join(sorted({s.case for s in fit_on})))
+    if band_only:
+        cal = fit_band(cal, [[s for s in v if s.liver in livers] for v in shown.values()], coverage)
+        cal = replace(cal, fitted_on=cal.fitted_on + "; band also on "
+                      + "+".join(sorted({s.case for label in band_only for s in shown.get(label, [])
+                                         if s.liver in livers})))
     tables = {}
-    for label, samples in collected.items():
+    for label, samples in shown.items():
         for part, ss in (("calibration cases (fit)", [s for s in samples if s.liver in livers]),
                          ("validation cases (held out)", [s for s in samples if s.liver not in livers])):
             if ss:
@@ -189,10 +233,8 @@ def split_and_fit(collected: dict, calibration_livers, coverage=NOMINAL) -> tupl
     return cal, tables, calib, held
 
 
-def run_study(sets: dict, out_dir, combos=3, seed=0):
-    """Collect every set's cases ({label: case_dirs}), fit on the first case's liver in all
-    sets (``split_and_fit``), validate on the other livers, write ``error_estimate.md`` and
-    ``error_estimate.csv`` in ``out_dir``."""
+def collect_sets(sets: dict, combos=3, seed=0) -> dict:
+    """{label: case_dirs} → {label: [Sample]} (``collect_case`` on every case, with progress)."""
     collected: dict = {}
     with progress.bar(sum(len(v) for v in sets.values()), "error estimate: cases", "case") as pb:
         for label, dirs in sets.items():
@@ -200,9 +242,20 @@ def run_study(sets: dict, out_dir, combos=3, seed=0):
             for d in dirs:
                 collected[label] += collect_case(d, combos=combos, seed=seed)
                 pb.update(1)
+    return collected
+
+
+def run_study(sets: dict, out_dir, combos=3, seed=0, band_only=(), collected: dict | None = None):
+    """Collect every set's cases ({label: case_dirs}; or take ``collected``, as
+    ``collect_sets`` returns it), fit on the first case's liver in all sets
+    (``split_and_fit``; sets in ``band_only`` widen the band only), validate on the other
+    livers, write ``error_estimate.md`` and ``error_estimate.csv`` in ``out_dir``."""
+    if collected is None:
+        collected = collect_sets(sets, combos, seed)
     first = next(iter(sets.values()))[0]
-    cal, tables, calib, held = split_and_fit(collected, [liver_id(first)])
+    cal, tables, calib, held = split_and_fit(collected, [liver_id(first)], band_only=band_only)
     secs = [s.seconds for v in collected.values() for s in v]
+    rigid = {label: sum(not s.deformed for s in v) for label, v in collected.items()}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     fitted = {k: getattr(cal, k) for k in ("a", "b", "c", "e", "lower", "upper")}
@@ -215,7 +268,7 @@ def run_study(sets: dict, out_dir, combos=3, seed=0):
             for r in rows:
                 w.writerow({"set": name, **{k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()},
                             **{k: f"{v:.6g}" for k, v in fitted.items()}})
-    (out / "error_estimate.md").write_text(markdown(tables, cal, calib, held, secs, sets))
+    (out / "error_estimate.md").write_text(markdown(tables, cal, calib, held, secs, sets, band_only, rigid))
     return cal, tables
 
 
@@ -223,7 +276,7 @@ def _cases(samples) -> str:
     return ", ".join(sorted({s.case for s in samples}))
 
 
-def markdown(tables, cal, calib, held, secs, sets) -> str:
+def markdown(tables, cal, calib, held, secs, sets, band_only=(), rigid=None) -> str:
     cases = _cases
     text = ["# A registration-error estimate without the truth\n\n",
             "Per mesh node, from what the registration knows: d = distance from the node's registered position to the "
@@ -240,6 +293,15 @@ def markdown(tables, cal, calib, held, secs, sets) -> str:
             "r: Pearson r between predicted and true per-node error pooled over the level's registrations "
             "(median over registrations beside it); coverage: fraction of nodes whose true error lies in the band; "
             "below upper: fraction under the band's upper edge.\n"]
+    if band_only:
+        text.append(f"\nê's coefficients are fitted on {', '.join(k for k in sets if k not in band_only)} only; the "
+                    f"band is then widened until it holds {cal.coverage:.0%} of the calibration liver's nodes in "
+                    f"every set, {', '.join(band_only)} included (per set the quantiles of true / ê; the band "
+                    "spans the smallest lower and the largest upper factor).\n")
+    if rigid and any(rigid.values()):
+        text.append("\nRegistrations whose answer is the rigid pose alone (the deformation not supported from a kept "
+                    "pose: the viewer shows no band) are left out: "
+                    + "; ".join(f"{k}: {v}" for k, v in rigid.items()) + ".\n")
     for name, rows in tables.items():
         text.append(f"\n## {name}\n\n| level | registrations | r (ê) | median r per registration | r (d only) | "
                     "r (σ only) | coverage | below upper | mean ê (mm) | mean true (mm) |\n"
@@ -311,11 +373,17 @@ def set_label(case_dirs) -> str:
 
 def study_command(case_dirs, args):
     """``navapp study error-estimate``: writes <report>/error_estimate.md and .csv. The
-    calibration livers: the first case's liver, in ``--cases`` and in ``--with-cases``."""
+    calibration livers: the first case's liver, in ``--cases``, ``--with-cases`` and
+    ``--band-cases`` (the last widen the band only)."""
 
     sets = {set_label(case_dirs): list(case_dirs)}
-    if getattr(args, "with_cases", None):
-        label = set_label(args.with_cases)
-        sets[label if label not in sets else label + " (second set)"] = list(args.with_cases)
-    cal, _ = run_study(sets, args.report)
+    band_only = []
+    for more, only in ((getattr(args, "with_cases", None), False), (getattr(args, "band_cases", None), True)):
+        if more:
+            label = set_label(more)
+            label = label if label not in sets else f"{label} ({len(sets) + 1})"
+            sets[label] = list(more)
+            if only:
+                band_only.append(label)
+    cal, _ = run_study(sets, args.report, band_only=tuple(band_only))
     print(json.dumps({"report": str(Path(args.report) / "error_estimate.md"), "calibration": cal.__dict__}))
