@@ -1,12 +1,13 @@
 """The predicted-error band on the local-load cases: the default calibration (fitted on
-phantom 0 and lap 0) judged at every truth target of each tool case, at S and S + all,
+liver 0's cases: ê on phantom 0 and lap 0, the band also on tool0-*; judge it on tool1-*
+and tool2-*) at every truth target of each tool case, at S and S + all,
 with today's default registration. One JSON line per registration: the fraction of
 targets whose true error lies in the band (``coverage``), under its upper edge for the
 deformable answer (``below_upper``) and for the answer shown (``below_upper_shown``: the
 rigid pose where the deformation was not supported), and the mean predicted, deformable
 and shown errors (mm).
 
-    python scripts/loads_coverage.py CASE [CASE ...] > results/loads_coverage.jsonl
+    python scripts/loads_coverage.py TOOL/tool1-* TOOL/tool2-* > results/loads_coverage.jsonl
 """
 
 import json
