@@ -113,7 +113,17 @@ def fit_calibration(samples: list[Sample], coverage=NOMINAL, seed=0, name="") ->
     the fit is on relative errors and cases with errors several times larger (the
     transposed ones) do not set the coefficients alone; then the band factors: the
     (1 ± coverage)/2 quantiles of true / ê over the same nodes."""
-    rng = np.random.default_rng(seed)
+    D, S, E, Mm, W = _fit_rows(samples, np.random.default_rng(seed))
+    A = np.column_stack([np.ones_like(D), D, S, D * Mm])
+    (a, b, c, e), _ = nnls(A * W[:, None], E * W)
+    cal = Calibration(float(a), float(b), float(c), float(e), coverage=coverage, fitted_on=name)
+    lo, hi = _band_quantiles(cal, D, S, E, Mm, coverage)
+    return replace(cal, lower=lo, upper=hi)
+
+
+def _fit_rows(samples: list[Sample], rng) -> tuple[np.ndarray, ...]:
+    """d, σ, true error, m (the registration's median d over all its nodes) and the weight
+    1 / (its mean true error) at ``FIT_NODES`` random nodes of each registration, pooled."""
     parts: tuple[list, list, list, list, list] = ([], [], [], [], [])
     for s in samples:
         i = rng.choice(len(s.err), min(FIT_NODES, len(s.err)), replace=False)
@@ -121,12 +131,7 @@ def fit_calibration(samples: list[Sample], coverage=NOMINAL, seed=0, name="") ->
         for part, v in zip(parts, (s.d[i], s.sigma[i], s.err[i], np.full(len(i), np.median(s.d)),
                                    np.full(len(i), w)), strict=True):
             part.append(v)
-    D, S, E, Mm, W = (np.concatenate(p) for p in parts)
-    A = np.column_stack([np.ones_like(D), D, S, D * Mm])
-    (a, b, c, e), _ = nnls(A * W[:, None], E * W)
-    cal = Calibration(float(a), float(b), float(c), float(e), coverage=coverage, fitted_on=name)
-    lo, hi = _band_quantiles(cal, D, S, E, Mm, coverage)
-    return replace(cal, lower=lo, upper=hi)
+    return tuple(np.concatenate(p) for p in parts)
 
 
 def _band_quantiles(cal: Calibration, D, S, E, Mm, coverage) -> tuple[float, float]:
@@ -146,11 +151,7 @@ def fit_band(cal: Calibration, sample_sets: list[list[Sample]], coverage=NOMINAL
     for samples in sample_sets:
         if not samples:
             continue
-        rows = []
-        for s in samples:
-            i = rng.choice(len(s.err), min(FIT_NODES, len(s.err)), replace=False)
-            rows.append((s.d[i], s.sigma[i], s.err[i], np.full(len(i), np.median(s.d))))
-        D, S, E, Mm = (np.concatenate(c) for c in zip(*rows, strict=True))
+        D, S, E, Mm, _ = _fit_rows(samples, rng)
         q_lo, q_hi = _band_quantiles(cal, D, S, E, Mm, coverage)
         lo, hi = min(lo, q_lo), max(hi, q_hi)
     return replace(cal, lower=lo, upper=hi)

@@ -42,9 +42,9 @@ class Calibration:
     --band-cases TOOL/tool*`` on the cases of one liver (phantom 0): ê on the direct gravity
     cases phantom0-L/N/R and the transposed, paper-difficulty cases lap0-L/N/R (neo-Hookean
     reference), at every data level, on relative errors; the band then widened until it
-    holds ``coverage`` of each kind of deformation, the local tool loads tool0-* included
-    (their lower factor, the transposed cases' upper one). Validated on the cases of the two
-    other livers (results/error_estimate.md, docs/decisions.md)."""
+    holds ``coverage`` of each kind of deformation, the local tool loads tool0-* included.
+    Validated on the cases of the two other livers (results/error_estimate.md,
+    docs/decisions.md)."""
     a: float = 0.59697  # mm
     b: float = 0.0038633  # mm per mm of distance to the data
     c: float = 5.1995  # per mm of σ
