@@ -18,15 +18,11 @@ progress.QUIET = True
 # The suite runs on two workers (pytest-xdist, ``-n 2`` in pyproject.toml): a 2-core CI machine
 # sat about half idle through the single-threaded tests. A module's tests stay on one worker
 # (its module fixtures are built once); the modules that drive Chromium share one worker, so
-# that two software-drawn browsers never compete for the two cores (tried: the two groups on
-# the two workers at once made 24 tests in 19 minutes). That group is the suite's longest
-# chain (about 19 of CI's 23 minutes), so it starts first, and the heaviest other modules
-# follow, longest first; xdist's own order (most tests first) had put it wherever its test
-# count fell. (xdist's ``--dist loadgroup`` does not group under pytest 9: it renames the test
-# ids, which pytest 9 no longer reads back; the scheduler below groups by module name instead.)
+# that two software-drawn browsers never compete for the two cores. (xdist's own
+# ``--dist loadgroup`` does not group under pytest 9: it renames the test ids, which pytest 9
+# no longer reads back; the scheduler below groups by module name instead.)
 BROWSER_MODULES = {"test_app_browser", "test_app_browser_live", "test_app_browser_screen",
                    "test_app_browser_truth", "test_app_live"}
-FIRST = ("browser", "tests/test_meshing.py", "tests/test_study.py", "tests/test_cost.py", "tests/test_app_server.py")
 
 
 @pytest.hookimpl(optionalhook=True)  # an xdist hook: absent without it
@@ -37,13 +33,6 @@ def pytest_xdist_make_scheduler(config, log):
         def _split_scope(self, nodeid):
             module = nodeid.split("::", 1)[0]
             return "browser" if Path(module).stem in BROWSER_MODULES else module
-
-        def _assign_work_unit(self, node):
-            # the longest scopes first (the workqueue is an OrderedDict, popped from the front)
-            scope = next((s for s in FIRST if s in self.workqueue), None)
-            if scope is not None:
-                self.workqueue.move_to_end(scope, last=False)
-            super()._assign_work_unit(node)
 
     return ByModule(config, log)
 
