@@ -101,3 +101,26 @@ def test_the_home_view_shows_the_whole_liver_between_the_panels(size, phantoms):
     assert y.min() >= 0 and y.max() <= h
     assert x.max() - x.min() > 0.6 * screen.free_px  # and not a speck
     assert screen.free_px > 500  # the 2D view docks at 1× on a narrow window: the 3D view is no strip
+
+
+def test_the_viewer_draws_without_shadows_or_image_based_lighting(app):
+    """What a browser is sent on connecting: the default lights without shadows and no
+    environment map. Drawn in software (no GPU), the idle viewer's shadows and image-based
+    lighting cost more than a core (docs/decisions.md, "The viewer's lighting")."""
+    import time
+
+    import viser
+    from conftest import viser_messages
+    from websockets.sync.client import connect
+
+    seen = {}
+    port = app.server.get_port()
+    with connect(f"ws://127.0.0.1:{port}", subprotocols=[f"viser-v{viser.__version__}"],
+                 max_size=None, open_timeout=BUSY_WAIT_S) as ws:
+        end = time.monotonic() + BUSY_WAIT_S
+        while "ReplayDoneMessage" not in seen and time.monotonic() < end:  # the scene so far, all of it
+            for m in viser_messages(ws.recv(timeout=end - time.monotonic())):
+                seen[m.get("type")] = m
+    assert "EnableLightsMessage" in seen and "EnvironmentMapMessage" in seen, sorted(seen)
+    assert seen["EnableLightsMessage"]["enabled"] and not seen["EnableLightsMessage"]["cast_shadow"]
+    assert seen["EnvironmentMapMessage"]["hdri_data"] is None
