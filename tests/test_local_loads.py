@@ -424,3 +424,34 @@ def test_the_load_study_does_not_append_to_a_file_with_other_columns(tmp_path):
     with pytest.raises(InputError, match="its columns are not this study's"):
         run_loads([tmp_path / "tool0-b"], old)
     assert old.read_text().count("\n") == 2
+
+
+def test_an_answer_whose_predicted_error_exceeds_the_margin_says_so(small_model, phantoms, tmp_path):
+    """150 points of a lifted right lobe (tip turned 30°, base 15°), already aligned: ICP turns
+    the organ about 28° — under the turn no tracker makes — the deformation from there fits
+    and is supported, and the rest of the organ, which did not move, is moved over 20 mm.
+    No check that compares the answer with simpler ones fires; its predicted error over the
+    organ (about 16 mm) is over the 10 mm oncological margin, and one line says so, in the
+    warnings and in result.json (``uncertainty.OrganError``). The same scan turned as a
+    whole, as a tracker that far off would give, is predicted within the margin: silent."""
+    from navapp.registration.pipeline import register
+    from navapp.registration.uncertainty import ONCOLOGICAL_MARGIN_MM, OrganError
+
+    liver = phantoms[0].liver.vertices
+    data, rest_motion = _lifted_lobe(liver, 30.0, 15.0)
+    rng = np.random.default_rng(0)
+    scan = {"anterior": data["anterior"][rng.choice(len(data["anterior"]), 150, replace=False)]}
+    reg = register(small_model, scan)
+    assert reg.deformed and not reg.rigid.kept
+    assert rest_motion(reg) > 20.0  # the answer is wrong by tens of mm where nothing moved
+    assert isinstance(reg.organ, OrganError) and reg.organ.mean_mm > ONCOLOGICAL_MARGIN_MM
+    lines = [w for w in reg.warnings if w.startswith("the data do not determine this answer")]
+    assert lines == reg.warnings, reg.warnings  # the only line: without it the answer is silent
+    assert f"{reg.organ.mean_mm:.0f} mm (mean), more than the 10 mm oncological margin" in lines[0]
+    assert reg.organ.as_dict()["exceeds_bound"] and reg.organ.nodes > 100
+
+    front = liver[liver[:, 1] > np.percentile(liver[:, 1], 40)]
+    sample = front[rng.choice(len(front), 150, replace=False)]
+    whole = register(small_model, {"anterior": sample + [4.0, -3.0, 2.0]})
+    assert whole.organ is not None and whole.organ.mean_mm < ONCOLOGICAL_MARGIN_MM
+    assert not any(w.startswith("the data do not determine this answer") for w in whole.warnings)

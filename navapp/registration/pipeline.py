@@ -57,6 +57,7 @@ from .rigid import (
     start_poses,
 )
 from .support import Support, SupportOptions, check_support, pooled_rms, weigh_correction
+from .uncertainty import OrganError, organ_error
 
 
 @dataclass
@@ -153,6 +154,9 @@ class Registration:
     determinacy: Determinacy | None = None  # the pose's sliding directions (``pose.pose_determinacy``)
     support: Support | None = None  # the deformation's held-out prediction against rigid (``support``)
     notes: list[str] = field(default_factory=list)  # warnings raised before the fit (e.g. too few points)
+    # the deformable answer's predicted error over the organ against the oncological margin
+    # (``uncertainty.organ_error``); fresh deformable answers only
+    organ: OrganError | None = None
 
     @property
     def deformed(self) -> bool:
@@ -173,7 +177,8 @@ class Registration:
                   self.determinacy.warning if self.determinacy else None,
                   self.support.warning_for(shown_rigid=not self.deformed, given=self.pose_choice is None
                                           or self.pose_choice.given) if self.support else None,
-                  self.quality.warning if self.quality else None):
+                  self.quality.warning if self.quality else None,
+                  self.organ.warning if self.organ is not None and self.deformed else None):
             if w:
                 lines.append(w)
         return lines
@@ -538,6 +543,12 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         result = replace(result, stop_reason="cancelled")
         support = None
     reg = Registration(model, rigid, result, local, sec, starts, quality, choice, determinacy, support, notes)
+    if fresh and reg.deformed and result.stop_reason != "cancelled":
+        # every check above compares the answer with simpler ones on the data; this one asks
+        # whether it is good enough to navigate by at all (docs/decisions.md, "An answer the data
+        # do not determine"). Warm re-registrations skip it, as they skip the cross-validation
+        reg.organ = organ_error(reg)
+        sec["organ_error"] = reg.organ.seconds
     # last, so that it steers nothing above (a note before the pose choice would skip it): too
     # little of the liver covered is said by every caller — the CLI and result.json as the viewer
     note_coverage(reg)
@@ -569,7 +580,8 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
     if reg.model.mesher is not None:  # the mesh is part of the answer: which mesher made it, and why
         summary["mesher"] = reg.model.mesher.as_dict()
     summary["answer"] = "deformable" if reg.deformed else "rigid"
-    for key, part in (("pose", reg.pose_choice), ("pose_determinacy", reg.determinacy), ("support", reg.support)):
+    for key, part in (("pose", reg.pose_choice), ("pose_determinacy", reg.determinacy), ("support", reg.support),
+                      ("predicted_error", reg.organ)):
         if part is not None:
             summary[key] = part.as_dict()
     lines = reg.warnings + [w for t in summary.get("targets", []) if (w := t.get("warning"))]
