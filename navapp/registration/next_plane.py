@@ -33,12 +33,14 @@ from ..threads import limit_threads
 from .objective import evaluate
 from .uncertainty import (
     DEFAULT_CALIBRATION,
+    ORGAN_NODES,
     Calibration,
     Information,
     covariance_factor,
     default_weights,
     information,
     nearest_data_distance,
+    organ_nodes,
     point_jacobian,
     point_sigma,
 )
@@ -48,7 +50,6 @@ IMAGE_WIDTH_MM = PROBE_WIDTH_PX * PROBE_SPACING_MM
 IMAGE_DEPTH_MM = PROBE_HEIGHT_PX * PROBE_SPACING_MM
 PIXEL_MM = PROBE_SPACING_MM
 SAMPLE_MM = 1.0  # Jacobian rows taken every 1 mm along a section, weighted as the pixels they stand for
-EVAL_NODES = 1500  # mesh nodes (a fixed random sample) on which the mean predicted error is compared
 
 
 @dataclass
@@ -229,7 +230,7 @@ def _extra_blocks(model, beta, feats, pixels, weights) -> dict:
 
 
 def suggest_planes(reg, anterior=None, preop=None, poses=None, calibration: Calibration | None = None,
-                   count=8, seed=0, eval_nodes=EVAL_NODES, weights=None, points=None,
+                   count=8, seed=0, eval_nodes=ORGAN_NODES, weights=None, points=None,
                    points_name: str = "the targets") -> Suggestion:
     """Rank candidate probe poses by the expected drop of the mean predicted error.
 
@@ -273,8 +274,7 @@ def suggest_planes(reg, anterior=None, preop=None, poses=None, calibration: Cali
                                                                       np.asarray(points, float)))
             over = points_name
         else:
-            rng = np.random.default_rng(seed)
-            sample = np.sort(rng.choice(model.basis.M, min(eval_nodes, model.basis.M), replace=False))
+            sample = organ_nodes(model, eval_nodes, seed)
             x, G = point_jacobian(model, beta, nodes=sample)
             over = Suggestion.over
         deformed = deformed_surfaces(model, beta)
