@@ -543,7 +543,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         result = replace(result, stop_reason="cancelled")
         support = None
     reg = Registration(model, rigid, result, local, sec, starts, quality, choice, determinacy, support, notes)
-    if fresh and reg.deformed and result.stop_reason != "cancelled":
+    if fresh and reg.deformed and result is not None and result.stop_reason != "cancelled":
         # every check above compares the answer with simpler ones on the data; this one asks
         # whether it is good enough to navigate by at all (docs/decisions.md, "An answer the data
         # do not determine"). Warm re-registrations skip it, as they skip the cross-validation
