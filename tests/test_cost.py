@@ -53,8 +53,12 @@ def test_cost_study_rows_resume_and_report(tmp_path, cache_root, monkeypatch):
     simulate(parse_scene({"name": "c", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
                           "ius": {"planes": 16}}), case, cache_root)
     csv = tmp_path / "cost.csv"
+    # TRE at a 12 mm mesh's nodes and two of the three sweep levels: the same bookkeeping for
+    # a third of the registrations (the 4 mm TRE mesh and S + all were half the test's time)
     small = dict(ks=(8, 12), edges=(14.0, 12.0), caps=(0, 2), rtols=(1e-1,), plane_counts=(0, 2), peers=True,
-                 edge0=12.0, k0=12)
+                 edge0=12.0, k0=12, tre_edge=12.0)
+    monkeypatch.setattr(cost, "SWEEP_LEVELS", {lv: SWEEP_LEVELS[lv] for lv in ("S", "S+3")})
+    levels = cost.SWEEP_LEVELS
     prepared = []  # (edge, k, whether the cache it built into was empty): precompute is measured cold
 
     def spy(case_, edge, k, cache_root=None, **kw):
@@ -94,7 +98,7 @@ def test_cost_study_rows_resume_and_report(tmp_path, cache_root, monkeypatch):
     # rows lost from one whole model (edge 14) and one LM setting: exactly that work is redone
     lost = [r for r in rows if r["edge_mm"] == "14.0" or (r["sweep"] == "lm" and r["setting"] == "2 it"
                                                           and r["level"] == "S")]
-    assert len(lost) == len(SWEEP_LEVELS) + 1
+    assert len(lost) == len(levels) + 1
     with csv.open("w", newline="") as f:
         w = csvmod.DictWriter(f, cost.COST_COLUMNS)
         w.writeheader()

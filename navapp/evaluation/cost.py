@@ -129,14 +129,16 @@ def _planned_keys(case, ks, edges, caps, rtols, plane_counts, peers, edge0, k0) 
 
 
 def cost_case(case_dir, ks=KS, edges=EDGES, caps=LM_CAPS, rtols=LM_RTOLS, plane_counts=PLANE_COUNTS,
-              peers=True, done=frozenset(), edge0=DEFAULT_EDGE, k0=DEFAULT_K) -> list[dict]:
+              peers=True, done=frozenset(), edge0=DEFAULT_EDGE, k0=DEFAULT_K, tre_edge=EDGE_MM) -> list[dict]:
     """All cost-study rows of one simulated case that are not in ``done`` (row keys, see
     ``_row_key``). Work whose rows are all done is not redone: a model configuration with
     nothing left is neither precomputed nor registered, and within one only the missing
     registrations run.
 
     Precompute seconds are measured cold (mesh + basis in an empty temporary cache), once
-    per (edge, k); registration seconds are one run each, rigid ICP included."""
+    per (edge, k); registration seconds are one run each, rigid ICP included. Every
+    configuration's TRE is taken at the same points: the nodes of the liver meshed at
+    ``tre_edge`` mm (the default registration mesh's)."""
 
 
     case_dir = Path(case_dir)
@@ -145,14 +147,13 @@ def cost_case(case_dir, ks=KS, edges=EDGES, caps=LM_CAPS, rtols=LM_RTOLS, plane_
     if not any(todo.values()):
         return []
     with progress.quiet():  # a study step (often in a worker process): no bars of its own
-        return _cost_case(case_dir, todo, caps, rtols, plane_counts, peers)
+        return _cost_case(case_dir, todo, caps, rtols, plane_counts, peers, tre_edge)
 
 
-def _cost_case(case_dir, todo, caps, rtols, plane_counts, peers) -> list[dict]:
+def _cost_case(case_dir, todo, caps, rtols, plane_counts, peers, tre_edge) -> list[dict]:
 
     case = read_case(case_dir)
-    # every configuration's TRE at the same points: the default registration mesh's nodes
-    x0, x1 = case.need_truth().tre_points(cached_tetmesh(case.preop.liver, EDGE_MM)[0].nodes)
+    x0, x1 = case.need_truth().tre_points(cached_tetmesh(case.preop.liver, tre_edge)[0].nodes)
     levels = {name: data_level(case_dir, "S+planes", planes=pl, case=case) for name, pl in SWEEP_LEVELS.items()}
     rows: list[dict] = []
 
