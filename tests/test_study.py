@@ -104,16 +104,16 @@ def _same_rows(a, b):
     return [strip(r) for r in sorted(a, key=key)] == [strip(r) for r in sorted(b, key=key)]
 
 
-def _study_cli(monkeypatch, case, tmp, *extra):
+def _study_cli(monkeypatch, case, tmp, *extra, chunk=6):
     """`navapp study table2 --quick` on ``case`` at the small test model (12 mm, k = 12:
-    the CLI's defaults are the 4 mm, k = 45 model), its 11 scenarios in two chunks (so that
-    two workers both get one). Returns (exit code, CSV path)."""
+    the CLI's defaults are the 4 mm, k = 45 model), the scenarios still to run in chunks of
+    ``chunk`` (6: the 11 in two, so that two workers both get one). Returns (exit code, CSV path)."""
     import functools
 
     from navapp import cli
     from navapp.evaluation import table2
 
-    monkeypatch.setattr(table2, "run_table2", functools.partial(table2.run_table2, edge=12.0, k=12, chunk=6))
+    monkeypatch.setattr(table2, "run_table2", functools.partial(table2.run_table2, edge=12.0, k=12, chunk=chunk))
     csv = tmp / "t2.csv"
     code = cli.main(["--quiet", "study", "table2", "--quick", "--cases", str(case), "--results", str(csv),
                      "--report", str(tmp / "report"), *extra])
@@ -126,9 +126,19 @@ def test_dask_scheduler_matches_the_local_run(quick_case, local_rows, tmp_path, 
     worker processes): it finishes and every row equals the local run's (TRE, iterations,
     stop reason; only the wall time differs)."""
     distributed = pytest.importorskip("distributed", reason=NO_DASK)
+    # the cluster computes four S + planes rows (two chunks of two, one per worker) and the
+    # run resumes the other seven from the local run's CSV: the S + all, CBCT and iCT rows
+    # took 10-19 s each at load 4, a chunk holding them a minute, and the suite's time is short
+    csv_lines = local_rows[0].read_text().splitlines(keepends=True)
+    header, body = csv_lines[0], csv_lines[1:]
+    rows = read_results(local_rows[0])
+    fresh = [i for i, r in enumerate(rows) if r["level"].startswith("S+") and r["level"] != "S+all"][:4]
+    assert len(fresh) == 4
+    (tmp_path / "t2.csv").write_text(header + "".join(line for i, line in enumerate(body) if i not in fresh))
     with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
                                   host="127.0.0.1") as cluster:
-        code, csv = _study_cli(monkeypatch, quick_case, tmp_path, "--scheduler", cluster.scheduler_address)
+        code, csv = _study_cli(monkeypatch, quick_case, tmp_path, "--scheduler", cluster.scheduler_address,
+                               chunk=2)
         assert code == 0
         with distributed.Client(cluster) as client:  # both workers were there to take chunks
             assert len(client.scheduler_info()["workers"]) == 2
