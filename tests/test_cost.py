@@ -53,8 +53,8 @@ def test_cost_study_rows_resume_and_report(tmp_path, cache_root, monkeypatch):
     simulate(parse_scene({"name": "c", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
                           "ius": {"planes": 16}}), case, cache_root)
     csv = tmp_path / "cost.csv"
-    # TRE at a 12 mm mesh's nodes and two of the three sweep levels: the same bookkeeping for
-    # a third of the registrations (the 4 mm TRE mesh and S + all were half the test's time)
+    # TRE at a 12 mm mesh's nodes and two of the three sweep levels (S + all, the longest fit,
+    # left out): the same bookkeeping with fewer and shorter registrations and no 4 mm mesh
     small = dict(ks=(8, 12), edges=(14.0, 12.0), caps=(0, 2), rtols=(1e-1,), plane_counts=(0, 2), peers=True,
                  edge0=12.0, k0=12, tre_edge=12.0)
     monkeypatch.setattr(cost, "SWEEP_LEVELS", {lv: SWEEP_LEVELS[lv] for lv in ("S", "S+3")})

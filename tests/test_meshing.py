@@ -72,7 +72,6 @@ def fallback_run(sharp, tmp_path_factory, request):
 
     # Gmsh fails on this surface, by an error or by hanging (which of the two depends on
     # the last bits of the coordinates); a Gmsh attempt with a work budget of 0.2 CPU s
-    # stands in for a hang in case the first one errs
     # stands in for a hang in case the first one errs; 6 CPU s, not the default 27, for the
     # first: a hang is stopped by whatever budget the attempt has
     attempts = (MeshAttempt("gmsh", 40.0, limit=6.0), MeshAttempt("gmsh", 90.0, limit=0.2), MeshAttempt("ftetwild"))
