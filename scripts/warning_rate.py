@@ -1,0 +1,99 @@
+"""How often today's defaults warn on the study cases, and whether the warned answers were the
+bad ones: Table II's quick design, every deformable registration's warnings set against its
+TRE and the rigid answer's (the truth is read here, after the fit; the solver never sees it).
+
+    python scripts/warning_rate.py CASE [CASE ...] [--out results/warning_rate.csv] [--workers 2]
+
+Per case: S, two S + 1/2/3 plane choices (seeded as ``table2.scenarios(quick=True)``), S + all,
+CBCT, iCT. A row is *worse than rigid* when its TRE exceeds the rigid answer's by more than
+0.1 mm (the study cases come with a tracker offset, so rigid is the reference). Only the
+registration's own lines are counted (``Registration.warnings``), not the per-target lines
+``navapp register`` adds for targets far from every data point.
+"""
+
+import argparse
+import csv
+import json
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+from navapp import progress
+from navapp.anatomy.caseio import read_case
+from navapp.defaults import EDGE_MM, K
+from navapp.evaluation.table2 import scenarios
+from navapp.geometry.interpolation import interpolation_matrix
+from navapp.registration.pipeline import prepare, register, tre_stats
+from navapp.simulation.levels import study_data
+
+COLUMNS = ("case", "level", "planes", "tre_mm", "tre_rigid_mm", "answer", "worse_than_rigid", "warned", "kinds",
+           "support_rigid_mm", "support_deformable_mm", "support_margin", "seconds")
+
+
+def kind(line: str) -> str:
+    """A warning line's kind: its text before the first colon or dash (the rest is numbers)."""
+    return line.split(":")[0].split(" — ")[0].strip()
+
+
+def run_case(case_dir: str) -> list[dict]:
+    progress.QUIET = True
+    case_dir_p = Path(case_dir)
+    case = read_case(case_dir_p)
+    model, _ = prepare(case, EDGE_MM, K)
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
+    B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
+    rows = []
+    for level, planes in scenarios(quick=True):
+        if level == "rigid":
+            continue
+        reg = register(model, study_data(case_dir_p, level, planes, case=case))
+        tre = tre_stats(reg.transform(x0, B=B), x1)["mean_mm"]
+        rigid = tre_stats(reg.rigid.apply(x0), x1)["mean_mm"]
+        lines = reg.warnings
+        rows.append({"case": case_dir_p.name, "level": level, "planes": "-".join(map(str, planes)),
+                     "tre_mm": round(tre, 4), "tre_rigid_mm": round(rigid, 4),
+                     "answer": "deformable" if reg.deformed else "rigid",
+                     "worse_than_rigid": tre > rigid + 0.1, "warned": bool(lines),
+                     "kinds": " | ".join(sorted({kind(w) for w in lines})),
+                     # the cross-validation's held-out residuals: supported when the deformable one
+                     # is at least ``support_margin`` (relative) below the rigid one
+                     "support_rigid_mm": round(reg.support.rigid_mm, 3) if reg.support else "",
+                     "support_deformable_mm": round(reg.support.deformable_mm, 3) if reg.support else "",
+                     "support_margin": reg.support.margin if reg.support else "",
+                     "seconds": round(sum(reg.seconds.values()), 3)})
+    return rows
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("cases", type=Path, nargs="+")
+    ap.add_argument("--out", type=Path, default=Path("results/warning_rate.csv"))
+    ap.add_argument("--workers", type=int, default=2)
+    args = ap.parse_args()
+    rows: list[dict] = []
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    with ProcessPoolExecutor(args.workers) as pool:
+        for case_rows in pool.map(run_case, [str(c) for c in args.cases]):
+            rows += case_rows
+            print(json.dumps({"case": case_rows[0]["case"], "rows": len(case_rows),
+                              "warned": sum(r["warned"] for r in case_rows)}), flush=True)
+    with args.out.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, COLUMNS)
+        w.writeheader()
+        w.writerows(rows)
+    n = len(rows)
+    warned = [r for r in rows if r["warned"]]
+    worse = [r for r in rows if r["worse_than_rigid"]]
+    kinds: dict[str, int] = {}
+    for r in warned:
+        for k in r["kinds"].split(" | "):
+            kinds[k] = kinds.get(k, 0) + 1
+    print(json.dumps({"registrations": n, "warned": len(warned),
+                      "worse_than_rigid": len(worse),
+                      "worse_and_warned": sum(r["warned"] for r in worse),
+                      "silently_worse": sum(not r["warned"] for r in worse),
+                      "warned_not_worse": sum(not r["worse_than_rigid"] for r in warned),
+                      "rigid_answers": sum(r["answer"] == "rigid" for r in rows), "kinds": kinds}))
+
+
+if __name__ == "__main__":
+    main()
