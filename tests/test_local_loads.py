@@ -279,7 +279,9 @@ def test_a_pose_the_fit_does_not_pay_for_is_not_taken_over_the_given_one(small_m
     given pose is held (``pose.prefer_given``) and one line says ICP's pose is not earned by the fit.
     Without the rule the organ far from the dent, which did not move, is moved tens of mm."""
     import navapp.registration.pipeline as pipeline
+    from navapp.registration.pipeline import RobustOptions
     from navapp.registration.pose import POSE_RULE, PoseSource
+    from navapp.registration.support import SupportOptions
 
     data, far_motion = _dented_scan(phantoms[0].liver.vertices, small_model, 45.0, 35.0, far_mm=80.0)
     nodes = small_model.basis.nodes
@@ -301,6 +303,19 @@ def test_a_pose_the_fit_does_not_pay_for_is_not_taken_over_the_given_one(small_m
     moved = float(line.split("it moved the organ ")[1].split(" mm")[0])
     assert moved == round(before.pose_choice.fits.shift_mm) and moved > 5.0, line
     assert before.pose_choice.as_dict()["fitted_shift_mm"] > 5.0
+    # this slide's correction is within its own uncertainty (z < 1), so neither line is let go
+    # (``Support.outweighs``): the cross-validation's "do not rely on it" stands beside it
+    s = before.support
+    assert s.correction_mm is not None and s.correction_mm < s.z_strong * s.sigma_mm and not s.outweighs
+    assert not before.pose_choice.confirmed
+    assert any(w.startswith("deformation not supported by the data") for w in before.warnings)
+
+    # were the correction to outweigh its σ, the same answer would be shown without either line
+    strong = pipeline.register(small_model, data, init=RobustOptions(support=SupportOptions(z_strong=0.0)))
+    assert strong.support.outweighs and strong.pose_choice.confirmed and strong.deformed
+    assert np.array_equal(strong.transform(nodes), before.transform(nodes))  # the answer is not changed
+    assert not any(w.startswith("deformation not supported") or "in doubt" in w for w in strong.warnings)
+    assert strong.pose_choice.as_dict()["confirmed"] is True
 
 
 def _lifted_lobe(liver, tip_deg, base_deg):
@@ -387,6 +402,24 @@ def test_a_turn_no_tracker_makes_is_not_taken_when_the_answer_from_it_is_in_doub
     monkeypatch.setattr(pipeline, "prefer_given",
                         lambda c, f: prefer_given(c, f, replace(POSE_RULE, tracker_turn_deg=180.0)))
     assert rest_motion(explained) < 0.5 * rest_motion(pipeline.register(small_model, lifted))
+
+
+def test_a_correction_far_beyond_its_uncertainty_is_not_warned_about_from_icps_pose_only():
+    """From ICP's pose (the deformable answer shown whatever the verdict) a failed
+    cross-validation is not warned about when the correction is at least ``z_strong`` σ; from a
+    kept pose (the rigid answer shown) it still is, and an unweighed correction never outweighs."""
+    from navapp.registration.support import Support, SupportOptions
+
+    failed = dict(rigid_mm=2.87, deformable_mm=3.12, margin=0.3)  # the demo's first surface-only fit
+    strong = Support(**failed, correction_mm=3.41, sigma_mm=0.78)  # z 4.4
+    weak = Support(**failed, correction_mm=3.41, sigma_mm=0.90)  # z 3.8
+    assert SupportOptions().z_strong == strong.z_strong == 4.0
+    assert not strong.supported and strong.outweighs and not weak.outweighs
+    assert strong.warning_for(shown_rigid=False) is None
+    assert weak.warning_for(shown_rigid=False).startswith("deformation not supported by the data")
+    assert strong.warning_for(shown_rigid=True).startswith("deformation not supported by the data")
+    assert not Support(**failed).outweighs and Support(**failed).warning_for(shown_rigid=False)
+    assert strong.as_dict()["outweighs"] is True and "outweighs" not in Support(**failed).as_dict()
 
 
 def test_a_small_dent_the_basis_cannot_make_is_not_shown_as_a_correction(small_model, phantoms):

@@ -367,9 +367,10 @@ def rigid_starts(model: RegistrationModel, data: dict, options: LMOptions | None
 def _cross_validate(model: RegistrationModel, local: dict, options: LMOptions, settings: SupportOptions, cancel,
                     rigid: RigidResult, result: LibrResult) -> Support | None:
     """The spatial cross-validation of a fresh deformable fit; from a kept pose (a known-good
-    answer without deformation) the correction is also weighed against its own σ."""
+    answer without deformation), or where the cross-validation fails from ICP's pose (whether to
+    warn, ``Support.outweighs``), the correction is also weighed against its own σ."""
     support = check_support(model, local, options, settings, cancel)
-    if support is not None and rigid.kept and not (cancel is not None and cancel.is_set()):
+    if support is not None and (rigid.kept or not support.predicts) and not (cancel is not None and cancel.is_set()):
         support = weigh_correction(model, local, result.beta, support, options, settings)
     return support
 
@@ -525,7 +526,9 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         fits = PoseFits(pooled_rms(result.features), pooled_rms(at_given.features), shift_mm(rigid, data))
         given = prefer_given(choice, fits)
         if given is None and at_given.stop_reason != "cancelled":
-            choice = compared(choice, fits)  # ICP's pose stays, and its line says how far it moved
+            # ICP's pose stays, and its line says how far it moved — unless the only doubt was the
+            # cross-validation and the correction outweighs its σ (``Support.outweighs``)
+            choice = compared(choice, fits, confirmed=quality.ok and support is not None and support.outweighs)
         elif given is not None and at_given.stop_reason != "cancelled":
             choice, options = given, held
             rigid = _given(rms_on_model(model, data, _given()))

@@ -200,6 +200,9 @@ class PoseChoice:
     turn_deg: float | None = None
     # the two deformable fits, where the answer from ICP's pose was in doubt (``prefer_given``)
     fits: PoseFits | None = None
+    # ICP's pose kept after that comparison, and the doubt cleared: the deformation from it
+    # outweighs its own uncertainty (``support.Support.outweighs``), so no line says it is in doubt
+    confirmed: bool = False
 
     @property
     def kept(self) -> bool:
@@ -221,7 +224,7 @@ class PoseChoice:
     @property
     def warning(self) -> str | None:
         f, turn = self.fits, self.turn_deg or 0.0
-        if f is None:
+        if f is None or (self.confirmed and self.source is PoseSource.FITTED):
             if self.source is PoseSource.FITTED and turn > POSE_RULE.tracker_turn_deg:
                 # the answer is not in doubt, yet a turn no tracker's registration needs: either
                 # the tracker was that far off, or the scanned part of the organ turned as a whole
@@ -265,6 +268,7 @@ class PoseChoice:
             out["fitted_turn_deg"] = round(self.turn_deg, 2)
         if self.fits is not None:
             out.update(self.fits.as_dict())
+            out["confirmed"] = self.confirmed
         if self.warning:
             out["warning"] = self.warning
         return out
@@ -343,10 +347,11 @@ def with_turn(choice: PoseChoice, pose: RigidResult) -> PoseChoice:
     return replace(choice, turn_deg=turn_deg(pose)) if choice.source is PoseSource.FITTED else choice
 
 
-def compared(choice: PoseChoice, fits: PoseFits, source: PoseSource = PoseSource.FITTED) -> PoseChoice:
+def compared(choice: PoseChoice, fits: PoseFits, source: PoseSource = PoseSource.FITTED,
+             confirmed: bool = False) -> PoseChoice:
     """``choice`` with the two fits recorded (``prefer_given``), its pose from ``source``: ICP's
-    kept (the default) or the given one."""
-    return replace(choice, source=source, fits=fits)
+    kept (the default) or the given one; ``confirmed``: ICP's kept with the doubt cleared."""
+    return replace(choice, source=source, fits=fits, confirmed=confirmed)
 
 
 @dataclass

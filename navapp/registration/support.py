@@ -24,6 +24,14 @@ wide. ``weigh_correction`` compares the mean displacement the deformation adds a
 nodes with the mean σ there (the LM covariance propagated to the nodes, as the error
 estimate computes it, ``uncertainty``); a correction under ``z`` σ is not told apart from
 none, and the kept pose, which the data lie on, is the answer.
+
+From ICP's pose the deformable answer is shown whatever the verdict (no pose there is a
+known-good answer without deformation), and the verdict only decides whether to warn. There
+the held-out surface is a poor judge: on surface data alone a deformation that lowered the
+rigid TRE by a third predicted the held-out blocks no better than the tool loads it harmed.
+So where the cross-validation fails from ICP's pose the correction is weighed too, and one
+of at least ``z_strong`` σ — a correction the data demand far beyond their noise — is not
+warned about (``outweighs``). The answer is the same either way; only the line changes.
 """
 
 import math
@@ -61,6 +69,10 @@ class SupportOptions:
     # the conventional three; docs/decisions.md ("A correction within its own uncertainty")
     # has where the measured cases lie against it
     z: float = 3.0
+    # from ICP's pose, a correction of at least this many σ is not warned about where the
+    # cross-validation fails (module doc); docs/decisions.md ("The warnings on good answers")
+    # has the measured cases on either side of it
+    z_strong: float = 4.0
     sample_nodes: int = 2000  # mesh nodes the comparison is made at (every n-th: σ costs time per node)
 
 
@@ -90,6 +102,7 @@ class Support:
     correction_mm: float | None = None
     sigma_mm: float | None = None
     z: float = SupportOptions.z
+    z_strong: float = SupportOptions.z_strong
 
     @property
     def predicts(self) -> bool:
@@ -108,13 +121,21 @@ class Support:
         return self.predicts and self.significant
 
     @property
+    def outweighs(self) -> bool:
+        """The correction is at least ``z_strong`` × its own σ (False where it was not weighed):
+        from ICP's pose such an answer is not warned about, whatever the cross-validation said."""
+        if self.correction_mm is None or self.sigma_mm is None:
+            return False
+        return self.correction_mm >= self.z_strong * self.sigma_mm
+
+    @property
     def warning(self) -> str | None:
         return self.warning_for(shown_rigid=True)
 
     def warning_for(self, shown_rigid: bool, given: bool = True) -> str | None:
         """One line when the deformation is not supported, saying which answer is shown
         (``given``: the rigid answer is the given pose, not the trimmed fit's)."""
-        if self.supported:
+        if self.supported or (not shown_rigid and self.outweighs):
             return None
         pose = "the given pose" if given else "the pose most of the data lie on"
         shown = (f"{pose} without deformation is shown" if shown_rigid else
@@ -135,7 +156,8 @@ class Support:
                            for b in self.blocks], "seconds": round(self.seconds, 3),
                 **({} if self.correction_mm is None or self.sigma_mm is None else
                    {"correction_mm": round(self.correction_mm, 3), "sigma_mm": round(self.sigma_mm, 3),
-                    "z": self.z, "significant": self.significant})}
+                    "z": self.z, "significant": self.significant, "z_strong": self.z_strong,
+                    "outweighs": self.outweighs})}
 
 
 def pooled_rms(features: dict, names=None) -> float:
@@ -209,7 +231,7 @@ def weigh_correction(model: RegistrationModel, data: dict, beta, support: Suppor
         sigma = point_sigma(G, factor=covariance_factor(info))
     moved = np.linalg.norm(x - model.basis.nodes[nodes], axis=1)
     return replace(support, correction_mm=float(moved.mean()), sigma_mm=float(sigma.mean()), z=settings.z,
-                   seconds=support.seconds + time.perf_counter() - t0)
+                   z_strong=settings.z_strong, seconds=support.seconds + time.perf_counter() - t0)
 
 
 @dataclass
