@@ -21,6 +21,7 @@ whatever the answer, and no correction (pre-aligned cases); JSON lines appended 
 import argparse
 import csv
 import json
+import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
@@ -91,14 +92,18 @@ def probe_case(args) -> dict:
     out = {"case": case_dir.name, "level": level, "pre_aligned": pre, "tre_answer": round(t_ans, 3),
            "tre_rigid": round(t_rig, 3), "tre_deformed": round(t_def, 3), "tre_identity": t_id and round(t_id, 3),
            "reference": round(t_id if t_id is not None else t_rig, 3), "deformation_helps": t_def < t_rig - 0.1,
-           "warned": bool(reg.warnings)}
+           "warned": bool(reg.warnings), "kinds": [kind(w) for w in reg.warnings],
+           "pose": reg.pose_choice.source.value if reg.pose_choice else None}
     s = reg.support
     if s is not None:
         local = {n: reg.rigid.inverse(p) for n, p in data.items()}
+        t = time.perf_counter()
         w = weigh_correction(model, local, reg.libr.beta, s, settings(None, None)[0])
+        weigh_s = time.perf_counter() - t
         assert w.correction_mm is not None and w.sigma_mm is not None
         out.update(support_rel=round(1 - s.deformable_mm / s.rigid_mm, 3), correction_mm=round(w.correction_mm, 3),
-                   sigma_mm=round(w.sigma_mm, 3), z=round(w.correction_mm / w.sigma_mm, 2))
+                   sigma_mm=round(w.sigma_mm, 3), z=round(w.correction_mm / w.sigma_mm, 2),
+                   weigh_s=round(weigh_s, 3), support_s=round(reg.seconds.get("support", 0.0), 3))
     return out
 
 
