@@ -30,6 +30,7 @@ from ..errors import InputError
 from ..geometry.interpolation import interpolation_matrix
 from ..registration.pipeline import RobustOptions, prepare, register, tre_stats
 from ..registration.pose import POSE_RULE
+from ..registration.support import SupportOptions
 from ..simulation.levels import data_level
 
 LOAD_LEVELS = ("S", "S+all")  # the study's own subset of ``simulation.levels.LEVELS``
@@ -201,8 +202,10 @@ def write_report(results: Path, out_dir: Path) -> Path:
              "liver, made when the case was simulated), mm. "
              "*unguarded*: the default before local loads were handled (multi-start ICP, then LIBR); "
              "*guarded*: today's default (a good given pose, or the pose most of the data lie on near it, kept; "
-             "the deformation cross-validated against the rigid answer and dropped with a warning where the data "
-             "do not support it; where the answer from ICP's pose is in doubt, the given pose held when the "
+             "the deformation cross-validated against the rigid answer and, from a kept pose, dropped with a "
+             "warning where the data do not support it; from ICP's pose it stays, warned unless its correction is "
+             f"at least {SupportOptions.z_strong:g} × its own σ; where the answer from ICP's pose is in doubt, "
+             "the given pose held when the "
              f"deformable fit there is within {(POSE_RULE.given_ratio - 1) * 100:.0f} % of ICP's, or when ICP's pose "
              f"turns the organ more than {POSE_RULE.tracker_turn_deg:.0f}° from it and leaves most data off the "
              "model). The CSV's `pose` and `turn_deg`: where the rigid stage's pose came from, and ICP's turn.", ""]
