@@ -40,9 +40,10 @@ def lock_path(out) -> Path:
 
 
 @contextmanager
-def folder_lock(out):
-    """Hold the lock on output folder ``out`` for the block; raise ``NavappError`` in one
-    line when another process holds it."""
+def folder_lock(out, kind: str = "folder"):
+    """Hold the lock on output folder ``out`` (or any path a run writes: a study's results
+    file, ``kind`` naming it in the message) for the block; raise ``NavappError`` in one line
+    when another process holds it."""
     path = lock_path(out)
     if path in _held:
         _held[path][1] += 1
@@ -59,8 +60,9 @@ def folder_lock(out):
         f.seek(0)
         holder = f.read().strip() or "another process"
         f.close()
-        raise NavappError(f"{Path(out)}: another navapp run is writing this folder ({holder}); wait for it to "
-                          "finish or write elsewhere (--out)") from None
+        where = "(--out)" if kind == "folder" else "(--results, --report)"
+        raise NavappError(f"{Path(out)}: another navapp run is writing this {kind} ({holder}); wait for it to "
+                          f"finish or write elsewhere {where}") from None
     f.seek(0)
     f.truncate()
     command = " ".join(["navapp", *sys.argv[1:]]) if sys.argv and sys.argv[0] else "navapp"

@@ -64,6 +64,52 @@ def test_the_lock_is_reentrant_in_one_process(tmp_path):
         pass
 
 
+def test_a_second_study_appending_to_the_same_results_stops_at_once(tmp_path, capsys):
+    """Two `navapp study loads` on one results CSV both skipped the cases already in it and
+    wrote the rest twice; the report then averaged the doubled rows without a word. The
+    second run now stops before any case is read, naming the first; a study writing another
+    file in the same report folder is not held up by it."""
+    results = tmp_path / "results"
+    holder = _hold_lock(results / "loads.csv")
+    try:
+        err = _one_line_error(capsys, main(["study", "loads", "--cases", str(tmp_path / "nowhere"),
+                                            "--report", str(results)]))
+        assert "loads.csv: another navapp run is writing this results file" in err and f"pid {holder.pid}" in err
+        # table2 appends to its own CSV in that folder: it goes on (and stops on the missing case)
+        err = _one_line_error(capsys, main(["study", "table2", "--cases", str(tmp_path / "nowhere"),
+                                            "--results", str(results / "table2.csv"), "--report", str(results)]))
+        assert "another navapp run" not in err
+    finally:
+        holder.stdin.close()
+        holder.wait()
+    # the lock on the report (released by the refused run) does not linger in this process
+    from navapp.outputs import _held
+
+    assert not _held
+
+
+def test_a_loads_results_file_with_a_row_written_twice_is_refused(tmp_path):
+    """A results file two runs appended to at once (before the lock above) must not be
+    averaged as if its repeated rows were more cases."""
+    import csv
+
+    from navapp.evaluation.loads import COLUMNS, read_rows
+
+    path = tmp_path / "loads.csv"
+    row = dict.fromkeys(COLUMNS, "")
+    row.update(case="tool0-a", level="S", method="identity", tre_mean_mm="0.8", tre_max_mm="28.7",
+               seconds="0", displacement_mm="0.8", pre_aligned="True", warned="False")
+    with path.open("w", newline="") as fh:
+        out = csv.DictWriter(fh, COLUMNS)
+        out.writeheader()
+        out.writerows([row, {**row, "level": "S+all"}])
+    assert len(read_rows(path)) == 2
+    with path.open("a", newline="") as fh:
+        csv.DictWriter(fh, COLUMNS).writerow(row)
+    with pytest.raises(InputError, match="tool0-a S identity appears twice"):
+        read_rows(path)
+
+
 def test_outputs_appear_whole_or_not_at_all(tmp_path):
     """A run that fails while writing leaves the previous outputs exactly as they were;
     a run that succeeds replaces them whole (no file of the earlier run left in)."""

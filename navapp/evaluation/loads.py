@@ -117,6 +117,8 @@ def run_loads(cases, results: Path, workers: int = 1) -> int:
                                  "give a new results file to start again", results)
             done = {r["case"] for r in reader}
     todo = [Path(c) for c in cases if Path(c).name not in done]
+    for c in todo:  # a bad case stops the study in one line, before the file or the bar is touched
+        read_case(c).need_truth()
     new = not results.exists()
     results.parent.mkdir(parents=True, exist_ok=True)
     added = 0
@@ -143,8 +145,17 @@ def run_loads(cases, results: Path, workers: int = 1) -> int:
 
 
 def read_rows(results: Path) -> list[dict]:
+    """The study's rows, typed; a (case, level, method) written twice (two runs appending
+    at once, or files joined by hand) is refused: the report would average it twice."""
     with Path(results).open() as fh:
         rows = list(csv.DictReader(fh))
+    seen = set()
+    for r in rows:
+        key = (r["case"], r["level"], r["method"])
+        if key in seen:
+            raise InputError(f"{' '.join(key)} appears twice (two studies appended to it at once?): "
+                             "remove the repeated rows or give a new results file", results)
+        seen.add(key)
     for r in rows:
         for k in ("tre_mean_mm", "tre_max_mm", "seconds", "displacement_mm"):
             r[k] = float(r[k])
