@@ -410,7 +410,8 @@ def test_a_listener_that_is_not_a_scheduler_is_one_line_in_bounded_time(tmp_path
     try:
         err = _one_line_error(capsys, main(["study", "table2", "--scheduler",
                                             f"tcp://127.0.0.1:{server.getsockname()[1]}",
-                                            "--results", str(tmp_path / "r.csv")]))
+                                            "--results", str(tmp_path / "r.csv"), "--report",
+                                            str(tmp_path / "report")]))  # its own: runs are one per report
     finally:
         server.close()
         for c in held:
