@@ -1,0 +1,119 @@
+"""Probe, not the pipeline: local modes where the data say the surface moved (issue 22, item 3).
+
+Today's registration is fitted first. Where at least MIN_POINTS of the liver-surface data stay more
+than OFF_MM off the deformed fit's surface, up to MAX_SOURCES k-means centres of those points each
+get a Kelvin point-load source (the displacement of an infinite elastic body under a point
+force, regularised over EPS_MM) DEPTH_MM inside the undeformed surface under them. That is 3 modes
+per source, force in x, y, z, scaled to 5 mm at most like the control-point modes. They are
+appended to J_u; the strain-energy matrix (eq. 13) is recomputed over every mode; the model is
+rebuilt and registered again with today's guards. The truth is read only after both fits.
+The constants were set before the first run and not tuned.
+
+    python scripts/local_modes_probe.py OUT.jsonl CASE [CASE ...]
+"""
+
+import json
+import sys
+import time
+import warnings
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import trimesh
+from scipy.cluster.vq import kmeans2
+
+from navapp import progress
+from navapp.anatomy.caseio import read_case
+from navapp.geometry.interpolation import interpolation_matrix
+from navapp.mechanics.basis import energy_matrix
+from navapp.registration.model import DATA_TO_MODEL, build_model
+from navapp.registration.pipeline import prepare, register, tre_stats
+from navapp.simulation.levels import data_level
+
+OFF_MM, MIN_POINTS, DEPTH_MM, MAX_SOURCES, EPS_MM, MODE_MM = 2.5, 8, 10.0, 2, 5.0, 5.0
+
+
+def kelvin_modes(nodes, source, nu):
+    """(3M, 3): the regularised Kelvin displacement at ``nodes`` (M, 3) mm of a unit force
+    in x, y and z at ``source`` (3,) mm, each scaled to MODE_MM at most."""
+    r = nodes - source
+    R = np.sqrt((r ** 2).sum(1) + EPS_MM ** 2)
+    cols = []
+    for j in range(3):
+        u = (3 - 4 * nu) * np.eye(3)[j][None, :] / R[:, None] + r * r[:, j:j + 1] / R[:, None] ** 3
+        cols.append((u * MODE_MM / np.linalg.norm(u, axis=1).max()).reshape(-1))
+    return np.stack(cols, 1)
+
+
+def surface_points(data):
+    """The liver-surface data (stylus and its regions), (N, 3) mm."""
+    return np.vstack([p for k, p in data.items() if DATA_TO_MODEL[k] not in ("portal", "hepatic", "fiducials")
+                      and "centerline" not in k and "contour" not in k])
+
+
+def extended_model(model, case, reg, data):
+    """The model with Kelvin modes under the data the first fit left off, and how many
+    sources (None, 0 when the fit left too few points off)."""
+    b = model.basis
+    x = reg.transform(b.nodes, beta=reg.libr.beta)  # the deformed fit, whatever the answer shown
+    pts = surface_points(data)
+    _, dist, _ = trimesh.proximity.closest_point(trimesh.Trimesh(x, b.surface_faces, process=False), pts)
+    off = pts[dist > OFF_MM]
+    if len(off) < MIN_POINTS:
+        return None, 0
+    n = min(MAX_SOURCES, max(1, len(off) // 40))
+    centres = kmeans2(off, n, seed=0, minit="++")[0] if n > 1 else off.mean(0, keepdims=True)
+    normals = trimesh.Trimesh(b.nodes, b.surface_faces, process=False).vertex_normals
+    cols, nodes = [], []
+    for c in centres:
+        i = b.surface[np.argmin(np.linalg.norm(x[b.surface] - c, axis=1))]
+        cols.append(kelvin_modes(b.nodes, b.nodes[i] - DEPTH_MM * normals[i], b.material.nu))
+        nodes.append(i)
+    Ju = np.hstack([b.Ju, *cols])
+    basis = replace(b, control=np.concatenate([b.control, nodes]), Ju=Ju,
+                    energy=energy_matrix(b.nodes, b.tets, Ju, b.material))
+    return build_model(basis, case.preop, case.preop.fiducials), len(nodes)
+
+
+def main(out_path, cases):
+    progress.QUIET = True
+    with open(out_path, "a") as out:
+        for c in cases:
+            case = read_case(c)
+            model, _ = prepare(case)
+            x0, x1 = case.need_truth().tre_points(model.basis.nodes)
+            B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
+
+            def tre(reg, fit=False, x0=x0, x1=x1, B=B):
+                pred = reg.transform(x0, beta=reg.libr.beta, B=B) if fit else reg.transform(x0, B=B)
+                return round(tre_stats(pred, x1)["mean_mm"], 3)
+
+            def held_out(reg):  # the cross-validation's held-out RMS, deformable and rigid (mm)
+                s = reg.support
+                return None if s is None else [round(s.deformable_mm, 3), round(s.rigid_mm, 3)]
+
+            for level in ("S", "S+all"):
+                data = data_level(Path(c), "S", case=case) if level == "S" else case.intraop
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")  # collected from the Registration instead
+                    t = time.perf_counter()
+                    reg = register(model, data, deform=True)
+                    row = {"case": Path(c).name, "level": level, "tre": tre(reg), "tre_fit": tre(reg, True),
+                           "answer": "deformable" if reg.deformed else "rigid", "warned": bool(reg.warnings),
+                           "held_out": held_out(reg), "s": round(time.perf_counter() - t, 2)}
+                    t = time.perf_counter()
+                    extended, row["added"] = extended_model(model, case, reg, data)
+                    if extended is not None:
+                        reg2 = register(extended, data, deform=True)
+                        row.update(tre2=tre(reg2), tre2_fit=tre(reg2, True), warned2=bool(reg2.warnings),
+                                   held_out2=held_out(reg2),
+                                   answer2="deformable" if reg2.deformed else "rigid",
+                                   first2=reg2.warnings[0][:60] if reg2.warnings else "")
+                    row["s2"] = round(time.perf_counter() - t, 2)
+                print(json.dumps(row), file=out, flush=True)
+                print(row, flush=True)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], sys.argv[2:])
