@@ -1,0 +1,112 @@
+"""Probe: the choice between today's basis and the Kelvin-extended one
+(``local_modes_probe.py``), with the sources placed inside each fold of the cross-validation,
+so that no held-out block has a say in where its modes go.
+
+Per registration: today's registration (its pose and LM settings), the data in the model frame,
+the same five spatial blocks as ``support.check_support``; per block, today's basis and the
+extended one (sources from the training data's own fit) are fitted to the other four blocks
+and the held-out RMS of each is kept. JSON lines appended to OUT, one per registration:
+``folds`` = [deformable held-out RMS with today's basis, with the extended one], mm.
+
+    python scripts/local_modes_folds.py OUT.jsonl CASE [CASE ...]
+"""
+
+import json
+import sys
+import time
+import warnings
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from navapp import progress
+from navapp.anatomy.caseio import read_case
+from navapp.mechanics.basis import energy_matrix
+from navapp.registration.libr import register_libr
+from navapp.registration.model import build_model, deform, usable_data
+from navapp.registration.objective import evaluate
+from navapp.registration.pipeline import _settings, prepare, register
+from navapp.registration.support import SupportOptions, blocks_of, pooled_rms
+from navapp.simulation.levels import data_level
+
+sys.path.insert(0, str(Path(__file__).parent))
+from local_modes_probe import DEPTH_MM, MAX_SOURCES, MIN_POINTS, OFF_MM, kelvin_modes, surface_points  # noqa: E402
+
+
+def extended_for(model, case, beta, train):
+    """The model extended under the training data its own fit (``beta``) leaves off, or None."""
+    import trimesh
+    from scipy.cluster.vq import kmeans2
+
+    b = model.basis
+    n = len(beta) - 6
+    _, x = deform(b.nodes, (b.Ju @ beta[:n]).reshape(-1, 3), beta, model.centroid)
+    pts = surface_points(train)
+    _, dist, _ = trimesh.proximity.closest_point(trimesh.Trimesh(x, b.surface_faces, process=False), pts)
+    off = pts[dist > OFF_MM]
+    if len(off) < MIN_POINTS:
+        return None
+    count = min(MAX_SOURCES, max(1, len(off) // 40))
+    centres = kmeans2(off, count, seed=0, minit="++")[0] if count > 1 else off.mean(0, keepdims=True)
+    normals = trimesh.Trimesh(b.nodes, b.surface_faces, process=False).vertex_normals
+    cols, nodes = [], []
+    for c in centres:
+        i = b.surface[np.argmin(np.linalg.norm(x[b.surface] - c, axis=1))]
+        cols.append(kelvin_modes(b.nodes, b.nodes[i] - DEPTH_MM * normals[i], b.material.nu))
+        nodes.append(i)
+    Ju = np.hstack([b.Ju, *cols])
+    basis = replace(b, control=np.concatenate([b.control, nodes]), Ju=Ju,
+                    energy=energy_matrix(b.nodes, b.tets, Ju, b.material))
+    return build_model(basis, case.preop, case.preop.fiducials)
+
+
+def folds(model, case, data, reg):
+    settings = SupportOptions()
+    options, _ = _settings(None, None)
+    if reg.rigid.kept:
+        options = replace(options, pose=False)
+    fold = replace(options, max_iterations=min(options.max_iterations, settings.iterations))
+    local = {k: reg.rigid.inverse(p) for k, p in usable_data(model, data).items()}
+    labels = blocks_of(local, settings.blocks)
+    base, ext, weight = [], [], []
+    for blk in range(settings.blocks):
+        train = {k: p[labels[k] != blk] for k, p in local.items() if (labels[k] != blk).any()}
+        held = {k: p[labels[k] == blk] for k, p in local.items() if (labels[k] == blk).any()}
+        if not held or not train:
+            continue
+        fit = register_libr(model, train, None, fold, None, None)
+        r1 = pooled_rms(evaluate(model, held, fit.beta, options.weights, jacobian=False).features, held)
+        m2 = extended_for(model, case, fit.beta, train)
+        if m2 is None:
+            r2 = r1
+        else:
+            fit2 = register_libr(m2, train, None, fold, None, None)
+            r2 = pooled_rms(evaluate(m2, held, fit2.beta, options.weights, jacobian=False).features, held)
+        base.append(r1)
+        ext.append(r2)
+        weight.append(sum(len(p) for p in held.values()))
+    return [round(float(np.average(base, weights=weight)), 3), round(float(np.average(ext, weights=weight)), 3)]
+
+
+def main(out_path, cases):
+    progress.QUIET = True
+    with open(out_path, "a") as out:
+        for c in cases:
+            case = read_case(c)
+            model, _ = prepare(case)
+            for level in ("S", "S+all"):
+                data = data_level(Path(c), "S", case=case) if level == "S" else case.intraop
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    t = time.perf_counter()
+                    reg = register(model, data, deform=True)
+                    row = {"case": Path(c).name, "level": level,
+                           "held_out": None if reg.support is None else round(reg.support.deformable_mm, 3),
+                           "folds": folds(model, case, data, reg), "s": round(time.perf_counter() - t, 1)}
+                print(json.dumps(row), file=out, flush=True)
+                print(row, flush=True)
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], sys.argv[2:])
