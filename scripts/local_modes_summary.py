@@ -3,7 +3,10 @@ that keeps the extended basis: always, or when the cross-validation's held-out R
 deformable fit drops by more than a margin. The tool set's ratio is to its no-correction
 mean in results/loads.csv.
 
-    python scripts/local_modes_summary.py results/local_modes_probe.jsonl
+    python scripts/local_modes_summary.py results/local_modes_probe.jsonl [results/local_modes_folds.jsonl]
+
+With the second file (``local_modes_folds.py``), the rule reads its held-out RMS, where the
+sources were placed inside each fold, instead of the first probe's.
 """
 
 import csv
@@ -31,8 +34,12 @@ def pick(r, margin):
     return r["tre"], r["warned"], False
 
 
-def main(path):
+def main(path, folds_path=None):
     rows = [json.loads(line) for line in open(path)]
+    if folds_path:
+        folds = {(f["case"], f["level"]): f["folds"] for f in map(json.loads, open(folds_path))}
+        for r in rows:
+            r["held_out"], r["held_out2"] = [[v] for v in folds[(r["case"], r["level"])]]
     with open("results/loads.csv") as fh:
         identity = [float(r["tre_mean_mm"]) for r in csv.DictReader(fh) if r["method"] == "identity"]
     none_mm = st.mean(identity)
@@ -54,4 +61,4 @@ def main(path):
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    main(*sys.argv[1:3])
