@@ -22,43 +22,23 @@ import numpy as np
 
 from navapp import progress
 from navapp.anatomy.caseio import read_case
-from navapp.mechanics.basis import energy_matrix
 from navapp.registration.libr import register_libr
-from navapp.registration.model import build_model, deform, usable_data
+from navapp.registration.model import deform, usable_data
 from navapp.registration.objective import evaluate
 from navapp.registration.pipeline import _settings, prepare, register
 from navapp.registration.support import SupportOptions, blocks_of, pooled_rms
 from navapp.simulation.levels import data_level
 
 sys.path.insert(0, str(Path(__file__).parent))
-from local_modes_probe import DEPTH_MM, MAX_SOURCES, MIN_POINTS, OFF_MM, kelvin_modes, surface_points  # noqa: E402
+from local_modes_probe import extend_under, surface_points  # noqa: E402
 
 
 def extended_for(model, case, beta, train):
     """The model extended under the training data its own fit (``beta``) leaves off, or None."""
-    import trimesh
-    from scipy.cluster.vq import kmeans2
-
     b = model.basis
     n = len(beta) - 6
     _, x = deform(b.nodes, (b.Ju @ beta[:n]).reshape(-1, 3), beta, model.centroid)
-    pts = surface_points(train)
-    _, dist, _ = trimesh.proximity.closest_point(trimesh.Trimesh(x, b.surface_faces, process=False), pts)
-    off = pts[dist > OFF_MM]
-    if len(off) < MIN_POINTS:
-        return None
-    count = min(MAX_SOURCES, max(1, len(off) // 40))
-    centres = kmeans2(off, count, seed=0, minit="++")[0] if count > 1 else off.mean(0, keepdims=True)
-    normals = trimesh.Trimesh(b.nodes, b.surface_faces, process=False).vertex_normals
-    cols, nodes = [], []
-    for c in centres:
-        i = b.surface[np.argmin(np.linalg.norm(x[b.surface] - c, axis=1))]
-        cols.append(kelvin_modes(b.nodes, b.nodes[i] - DEPTH_MM * normals[i], b.material.nu))
-        nodes.append(i)
-    Ju = np.hstack([b.Ju, *cols])
-    basis = replace(b, control=np.concatenate([b.control, nodes]), Ju=Ju,
-                    energy=energy_matrix(b.nodes, b.tets, Ju, b.material))
-    return build_model(basis, case.preop, case.preop.fiducials)
+    return extend_under(model, case, x, surface_points(train))[0]
 
 
 def folds(model, case, data, reg):

@@ -55,9 +55,15 @@ def surface_points(data):
 def extended_model(model, case, reg, data):
     """The model with Kelvin modes under the data the first fit left off, and how many
     sources (None, 0 when the fit left too few points off)."""
+    x = reg.transform(model.basis.nodes, beta=reg.libr.beta)  # the deformed fit, whatever the answer shown
+    return extend_under(model, case, x, surface_points(data))
+
+
+def extend_under(model, case, x, pts):
+    """The model with Kelvin modes under the surface points ``pts`` (N, 3) mm that lie more
+    than OFF_MM off the fitted surface, whose nodes are at ``x`` (M, 3) mm in the same
+    frame; and how many sources (None, 0 when too few points are off)."""
     b = model.basis
-    x = reg.transform(b.nodes, beta=reg.libr.beta)  # the deformed fit, whatever the answer shown
-    pts = surface_points(data)
     _, dist, _ = trimesh.proximity.closest_point(trimesh.Trimesh(x, b.surface_faces, process=False), pts)
     off = pts[dist > OFF_MM]
     if len(off) < MIN_POINTS:
