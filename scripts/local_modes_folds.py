@@ -20,17 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
-from navapp import progress
-from navapp.anatomy.caseio import read_case
 from navapp.registration.libr import register_libr
 from navapp.registration.model import deform, usable_data
 from navapp.registration.objective import evaluate
-from navapp.registration.pipeline import _settings, prepare, register
+from navapp.registration.pipeline import _settings, register
 from navapp.registration.support import SupportOptions, blocks_of, pooled_rms
-from navapp.simulation.levels import data_level
 
 sys.path.insert(0, str(Path(__file__).parent))
-from local_modes_probe import extend_under, surface_points  # noqa: E402
+from local_modes_probe import each_case, each_level, extend_under, surface_points  # noqa: E402
 
 
 def extended_for(model, case, beta, train):
@@ -70,18 +67,14 @@ def folds(model, case, data, reg):
 
 
 def main(out_path, cases):
-    progress.QUIET = True
     with open(out_path, "a") as out:
-        for c in cases:
-            case = read_case(c)
-            model, _ = prepare(case)
-            for level in ("S", "S+all"):
-                data = data_level(Path(c), "S", case=case) if level == "S" else case.intraop
+        for c, case, model in each_case(cases):
+            for level, data in each_level(c, case):
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
                     t = time.perf_counter()
                     reg = register(model, data, deform=True)
-                    row = {"case": Path(c).name, "level": level,
+                    row = {"case": c.name, "level": level,
                            "held_out": None if reg.support is None else round(reg.support.deformable_mm, 3),
                            "folds": folds(model, case, data, reg), "s": round(time.perf_counter() - t, 1)}
                 print(json.dumps(row), file=out, flush=True)

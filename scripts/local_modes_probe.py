@@ -82,12 +82,23 @@ def extend_under(model, case, x, pts):
     return build_model(basis, case.preop, case.preop.fiducials), len(nodes)
 
 
-def main(out_path, cases):
+def each_case(cases):
+    """(case folder, Case, registration model) per case, progress bars off."""
     progress.QUIET = True
+    for c in cases:
+        case = read_case(c)
+        yield Path(c), case, prepare(case)[0]
+
+
+def each_level(case_dir, case):
+    """(level, data): the stylus sweep alone (S), then every intraoperative feature (S + all)."""
+    for level in ("S", "S+all"):
+        yield level, data_level(case_dir, "S", case=case) if level == "S" else case.intraop
+
+
+def main(out_path, cases):
     with open(out_path, "a") as out:
-        for c in cases:
-            case = read_case(c)
-            model, _ = prepare(case)
+        for c, case, model in each_case(cases):
             x0, x1 = case.need_truth().tre_points(model.basis.nodes)
             B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
 
@@ -99,13 +110,12 @@ def main(out_path, cases):
                 s = reg.support
                 return None if s is None else [round(s.deformable_mm, 3), round(s.rigid_mm, 3)]
 
-            for level in ("S", "S+all"):
-                data = data_level(Path(c), "S", case=case) if level == "S" else case.intraop
+            for level, data in each_level(c, case):
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")  # collected from the Registration instead
                     t = time.perf_counter()
                     reg = register(model, data, deform=True)
-                    row = {"case": Path(c).name, "level": level, "tre": tre(reg), "tre_fit": tre(reg, True),
+                    row = {"case": c.name, "level": level, "tre": tre(reg), "tre_fit": tre(reg, True),
                            "answer": "deformable" if reg.deformed else "rigid", "warned": bool(reg.warnings),
                            "held_out": held_out(reg), "s": round(time.perf_counter() - t, 2)}
                     t = time.perf_counter()
