@@ -18,7 +18,6 @@ import csv
 import json
 import time
 import warnings
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -32,6 +31,7 @@ from ..registration.pipeline import RobustOptions, prepare, register, tre_stats
 from ..registration.pose import POSE_RULE
 from ..registration.support import SupportOptions
 from ..simulation.levels import data_level
+from .distribute import ResultsCSV, run_tasks
 
 LOAD_LEVELS = ("S", "S+all")  # the study's own subset of ``simulation.levels.LEVELS``
 METHODS = ("identity", "rigid-unguarded", "rigid", "libr-unguarded", "libr")
@@ -117,30 +117,15 @@ def run_loads(cases, results: Path, workers: int = 1) -> int:
                                  "give a new results file to start again", results)
             done = {r["case"] for r in reader}
     todo = [Path(c) for c in cases if Path(c).name not in done]
-    for c in todo:  # a bad case stops the study in one line, before the file or the bar is touched
+    for c in todo:  # a bad case stops the study in one line, before any work or progress bar
         read_case(c).need_truth()
-    new = not results.exists()
-    results.parent.mkdir(parents=True, exist_ok=True)
     added = 0
-    with results.open("a", newline="") as fh:
-        out = csv.DictWriter(fh, COLUMNS)
-        if new:
-            out.writeheader()
-        with progress.bar(len(todo), "local-load cases", "case") as pb:
-            if workers > 1:
-                with ProcessPoolExecutor(workers) as pool:
-                    for rows in pool.map(run_case, todo):
-                        out.writerows(rows)
-                        fh.flush()
-                        added += len(rows)
-                        pb.update(1)
-            else:
-                for c in todo:
-                    rows = run_case(c)
-                    out.writerows(rows)
-                    fh.flush()
-                    added += len(rows)
-                    pb.update(1)
+    # the file is made with the first case's rows; cases land as they finish (the report sorts them)
+    with ResultsCSV(results, COLUMNS) as out, progress.bar(len(todo), "local-load cases", "case") as pb:
+        for rows in run_tasks(run_case, [(c,) for c in todo], workers=workers):
+            out.write(rows)
+            added += len(rows)
+            pb.update(1)
     return added
 
 
