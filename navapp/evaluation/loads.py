@@ -4,8 +4,9 @@ Every case is registered at two data levels — the surface data alone (S) and w
 iUS planes (S+all) — by five methods: no correction (identity), the rigid registration
 without and with the rule that keeps a good given pose (``pose.choose_pose``), and LIBR
 without the guards (``RobustOptions.unguarded``: the default before local loads were
-handled) and with them (the default: kept pose, spatial cross-validation against the
-rigid answer, ``support``). One CSV row per registration: mean and max TRE over the truth
+handled), with them (the default: kept pose, spatial cross-validation against the
+rigid answer, ``support``), and with them and local modes (``registration.local_modes``,
+not yet the default). One CSV row per registration: mean and max TRE over the truth
 targets, the answer given (deformable or rigid), whether a warning was raised and the
 first one, and the wall time. ``report`` writes ``loads.md`` and ``loads.png``.
 
@@ -27,6 +28,7 @@ from ..anatomy.caseio import read_case
 from ..anatomy.truth import TruthField
 from ..errors import InputError
 from ..geometry.interpolation import interpolation_matrix
+from ..registration.local_modes import LocalModeOptions
 from ..registration.pipeline import RobustOptions, prepare, register, tre_stats
 from ..registration.pose import POSE_RULE
 from ..registration.support import SupportOptions
@@ -34,7 +36,7 @@ from ..simulation.levels import data_level
 from .distribute import ResultsCSV, run_tasks
 
 LOAD_LEVELS = ("S", "S+all")  # the study's own subset of ``simulation.levels.LEVELS``
-METHODS = ("identity", "rigid-unguarded", "rigid", "libr-unguarded", "libr")
+METHODS = ("identity", "rigid-unguarded", "rigid", "libr-unguarded", "libr", "libr-local")
 COLUMNS = ("case", "level", "method", "pre_aligned", "covers", "displacement_mm", "tre_mean_mm", "tre_max_mm",
            "answer", "warned", "warning", "seconds", "pose", "turn_deg")
 
@@ -64,9 +66,15 @@ def _old_warnings(reg) -> list[str]:
     return list(reg.notes) + ([reg.quality.warning] if reg.quality is not None and reg.quality.warning else [])
 
 
+def _init(method: str) -> RobustOptions:
+    if method == "libr-local":
+        return RobustOptions(local_modes=LocalModeOptions())
+    return RobustOptions.unguarded() if method.endswith("unguarded") else RobustOptions()
+
+
 @progress.quiet()
-def run_case(case_dir) -> list[dict]:
-    """All rows of one case (module doc)."""
+def run_case(case_dir, methods: tuple[str, ...] = METHODS) -> list[dict]:
+    """The rows of one case by ``methods`` (module doc)."""
 
     case_dir = Path(case_dir)
     case = read_case(case_dir)
@@ -77,7 +85,7 @@ def run_case(case_dir) -> list[dict]:
     rows = []
     for level in LOAD_LEVELS:
         data = data_level(case_dir, "S", case=case) if level == "S" else case.intraop
-        for method in METHODS:
+        for method in methods:
             t = time.perf_counter()
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")  # collected from the Registration instead
@@ -87,8 +95,7 @@ def run_case(case_dir) -> list[dict]:
                     pred, answer, lines = x0, "none", []
                 else:
                     guarded = not method.endswith("unguarded")
-                    init = RobustOptions() if guarded else RobustOptions.unguarded()
-                    reg = register(model, data, deform=method.startswith("libr"), init=init)
+                    reg = register(model, data, deform=method.startswith("libr"), init=_init(method))
                     pred = reg.transform(x0, B=B)
                     answer = "deformable" if reg.deformed else "rigid"
                     lines = reg.warnings if guarded else _old_warnings(reg)
@@ -105,8 +112,9 @@ def run_case(case_dir) -> list[dict]:
 
 
 def run_loads(cases, results: Path, workers: int = 1) -> int:
-    """Register every case (``run_case``) and append its rows to ``results`` (CSV); cases
-    already in the file are skipped, so an interrupted study resumes. Returns rows added."""
+    """Register every case (``run_case``) and append its rows to ``results`` (CSV); a
+    case's methods already in the file are skipped, so an interrupted study resumes and a
+    method added later is run alone. Returns rows added."""
     results = Path(results)
     done = set()
     if results.exists():
@@ -115,14 +123,15 @@ def run_loads(cases, results: Path, workers: int = 1) -> int:
             if tuple(reader.fieldnames or ()) != COLUMNS:
                 raise InputError(f"its columns are not this study's ({', '.join(COLUMNS)}): "
                                  "give a new results file to start again", results)
-            done = {r["case"] for r in reader}
-    todo = [Path(c) for c in cases if Path(c).name not in done]
-    for c in todo:  # a bad case stops the study in one line, before any work or progress bar
+            done = {(r["case"], r["method"]) for r in reader}
+    todo = [(Path(c), methods) for c in cases
+            if (methods := tuple(m for m in METHODS if (Path(c).name, m) not in done))]
+    for c, _ in todo:  # a bad case stops the study in one line, before any work or progress bar
         read_case(c).need_truth()
     added = 0
     # the file is made with the first case's rows; cases land as they finish (the report sorts them)
     with ResultsCSV(results, COLUMNS) as out, progress.bar(len(todo), "local-load cases", "case") as pb:
-        for rows in run_tasks(run_case, [(c,) for c in todo], workers=workers):
+        for rows in run_tasks(run_case, todo, workers=workers):
             out.write(rows)
             added += len(rows)
             pb.update(1)
@@ -181,6 +190,11 @@ def _case_set(cases: list[str]) -> str:
     return "`navapp/scenes/tool*.toml`, `scripts/make_tool_scenes.py`"
 
 
+def _local(row: dict | None) -> str:
+    """The per-case table's LIBR-local cell: its TRE, and '!' where it warned."""
+    return "—" if row is None else f"{row['tre_mean_mm']:.2f}{' !' if row['warned'] else ''}"
+
+
 def write_report(results: Path, out_dir: Path) -> Path:
     """``loads.md`` (tables) and ``loads.png`` (TRE per case and method) from the CSV."""
     import matplotlib
@@ -204,7 +218,10 @@ def write_report(results: Path, out_dir: Path) -> Path:
              "the given pose held when the "
              f"deformable fit there is within {(POSE_RULE.given_ratio - 1) * 100:.0f} % of ICP's, or when ICP's pose "
              f"turns the organ more than {POSE_RULE.tracker_turn_deg:.0f}° from it and leaves most data off the "
-             "model). The CSV's `pose` and `turn_deg`: where the rigid stage's pose came from, and ICP's turn.", ""]
+             "model); *libr-local*: guarded, with point-load modes under the surface data the first fit leaves "
+             f"more than {LocalModeOptions.off_mm:g} mm off, kept where the held-out RMS drops by more than "
+             f"{LocalModeOptions.min_gain * 100:.0f} % (not the default). "
+             "The CSV's `pose` and `turn_deg`: where the rigid stage's pose came from, and ICP's turn.", ""]
     for level in LOAD_LEVELS:
         lv = [r for r in rows if r["level"] == level]
         lines += [f"## {level}", "", "| method | mean TRE | median over cases | max TRE (mean over cases) | "
@@ -220,8 +237,10 @@ def write_report(results: Path, out_dir: Path) -> Path:
                          f"{np.mean([r['answer'] == 'deformable' for r in mr]) * 100:.0f} % | "
                          f"{np.median([r['seconds'] for r in mr]):.2f} |")
         ident = np.mean([r["tre_mean_mm"] for r in lv if r["method"] == "identity"])
-        for m in ("libr-unguarded", "libr"):
+        for m in ("libr-unguarded", "libr", "libr-local"):
             v = verdicts(lv, m)
+            if not v:
+                continue
             mean = np.mean([x["tre"] for x in v.values()])
             lines += ["", f"**{m}**: within its reference (identity when pre-aligned, rigid otherwise) on "
                       f"{sum(x['ok'] for x in v.values())} of {len(v)} cases; warned on "
@@ -230,8 +249,8 @@ def write_report(results: Path, out_dir: Path) -> Path:
                       f"{mean / ident:.2f} × identity's {ident:.2f} mm."]
         lines += [""]
     lines += ["## Per case", "", "| case | aligned | data on the dent | mean displacement | level | identity | "
-              "rigid (unguarded / guarded) | LIBR unguarded | LIBR guarded | answer | warning |",
-              "|---|---|---|---|---|---|---|---|---|---|---|"]
+              "rigid (unguarded / guarded) | LIBR unguarded | LIBR guarded | answer | warning | LIBR local |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in cases:
         for level in LOAD_LEVELS:
             if (c, level, "libr") not in by:
@@ -243,25 +262,26 @@ def write_report(results: Path, out_dir: Path) -> Path:
                          f"{by[(c, level, 'rigid-unguarded')]['tre_mean_mm']:.2f} / "
                          f"{by[(c, level, 'rigid')]['tre_mean_mm']:.2f} | "
                          f"{by[(c, level, 'libr-unguarded')]['tre_mean_mm']:.2f} | {g['tre_mean_mm']:.2f} | "
-                         f"{g['answer']} | {g['warning'][:90]} |")
+                         f"{g['answer']} | {g['warning'][:90]} | {_local(by.get((c, level, 'libr-local')))} |")
     md = out_dir / "loads.md"
     md.write_text("\n".join(lines) + "\n")
 
     fig, axes = plt.subplots(len(LOAD_LEVELS), 1, figsize=(11, 7), sharex=True)
     x = np.arange(len(cases))
-    colours = {"identity": "0.6", "rigid": "#4c72b0", "libr-unguarded": "#dd8452", "libr": "#55a868"}
+    colours = {"identity": "0.6", "rigid": "#4c72b0", "libr-unguarded": "#dd8452", "libr": "#55a868",
+               "libr-local": "#8172b3"}
     for ax, level in zip(np.atleast_1d(axes), LOAD_LEVELS, strict=True):
         for i, m in enumerate(colours):
             vals = [by[(c, level, m)]["tre_mean_mm"] if (c, level, m) in by else np.nan for c in cases]
-            ax.bar(x + (i - 1.5) * 0.2, vals, 0.2, label=m, color=colours[m])
+            ax.bar(x + (i - (len(colours) - 1) / 2) * 0.16, vals, 0.16, label=m, color=colours[m])
         for j, c in enumerate(cases):
             if (c, level, "libr") in by and by[(c, level, "libr")]["warned"]:
-                ax.text(x[j] + 0.3, 0.92, "!", color="crimson", fontsize=9, ha="center",
+                ax.text(x[j] + 0.16, 0.92, "!", color="crimson", fontsize=9, ha="center",
                         transform=ax.get_xaxis_transform())  # x in data, y in axes units
         ax.set_ylabel(f"{level}: mean TRE (mm)")
         ax.set_yscale("log")
     # above the panels: inside, the legend hid the first cases' warning marks
-    axes[0].legend(ncol=4, fontsize=8, loc="lower right", bbox_to_anchor=(1.0, 1.08), frameon=False)
+    axes[0].legend(ncol=5, fontsize=8, loc="lower right", bbox_to_anchor=(1.0, 1.08), frameon=False)
     axes[0].set_title("Local loads: identity, rigid, LIBR unguarded and guarded ('!': guarded LIBR warned)")
     axes[-1].set_xticks(x, cases, rotation=60, fontsize=7)
     fig.tight_layout()

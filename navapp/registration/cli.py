@@ -21,6 +21,9 @@ def add_register_parser(sub):
     s.add_argument("--no-deform", action="store_true", help="rigid registration only")
     cap = LM_MAX_ITERATIONS
     s.add_argument("--max-iterations", type=positive(int), default=cap, help=f"LM iteration cap (default {cap})")
+    s.add_argument("--local-modes", action="store_true",
+                   help="add point-load modes under the surface data the first fit leaves off, kept where "
+                        "held-out data gain (for local tool loads; off by default, docs/decisions.md)")
     s.add_argument("--json", action="store_true", help="print a one-line JSON summary on stdout")
     s.set_defaults(func=cmd_register)
 
@@ -28,7 +31,8 @@ def add_register_parser(sub):
 def cmd_register(args):
     from ..anatomy.caseio import read_case
     from .libr import LMOptions
-    from .pipeline import prepare, register, write_outputs
+    from .local_modes import LocalModeOptions
+    from .pipeline import RobustOptions, prepare, register, write_outputs
 
     t0 = time.perf_counter()
     case = read_case(args.case)
@@ -42,7 +46,8 @@ def cmd_register(args):
         bar.set_postfix_str(f"Ω={p.omega:.3e}")
 
     reg = register(model, case.intraop, deform=not args.no_deform,
-                   options=LMOptions(max_iterations=args.max_iterations), callback=on_iteration)
+                   options=LMOptions(max_iterations=args.max_iterations), callback=on_iteration,
+                   init=RobustOptions(local_modes=LocalModeOptions() if args.local_modes else None))
     bar.close()
     sec.update(reg.seconds)
     summary: dict = {"case": case.name, "nodes": model.basis.M, "k": model.basis.k,

@@ -13,7 +13,7 @@ points on the centerline polylines; fiducials on their preoperative counterparts
 """
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.sparse as sp
@@ -155,6 +155,17 @@ def build_model(basis: Basis, preop: PreopModel, fiducials: np.ndarray | None = 
     if fiducials is not None:
         feats["fiducials"] = _feature("fiducial", interpolation_matrix(nodes, basis.tets, fiducials), None, basis)
     return RegistrationModel(basis=basis, features=feats, centroid=nodes.mean(0))
+
+
+def extended_model(model: RegistrationModel, basis: Basis) -> RegistrationModel:
+    """``model`` on ``basis``, the same mesh with modes appended after the model's own
+    (``mechanics.local_modes.with_modes``): every feature keeps its points and cells and
+    gets the new modes carried to them. The cache starts empty."""
+    n = model.basis.Ju.shape[1]
+    new = replace(basis, Ju=basis.Ju[:, n:])
+    feats = {name: replace(f, BJ=np.concatenate([f.BJ, new.modes_at(f.B)], axis=2))
+             for name, f in model.features.items()}
+    return RegistrationModel(basis=basis, features=feats, centroid=model.centroid, mesher=model.mesher)
 
 
 def usable_data(model: RegistrationModel, data: dict) -> dict:

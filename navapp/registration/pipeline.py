@@ -29,6 +29,7 @@ from ..geometry.interpolation import interpolation_matrix
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from .coverage import note_coverage
 from .libr import LibrResult, LMOptions, register_libr
+from .local_modes import LocalModeOptions, LocalModes, choose_local_modes
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
 from .pose import (
     Determinacy,
@@ -84,6 +85,10 @@ class RobustOptions:
     keep_given_pose: bool = True
     # spatial cross-validation of the deformation against the rigid answer; None: off
     support: SupportOptions | None = field(default_factory=SupportOptions)
+    # Kelvin modes under the surface data the first fit leaves off, kept where held-out data
+    # gain (``local_modes``); None: off (not yet the default: docs/decisions.md, "Local modes
+    # under the data the fit leaves off")
+    local_modes: LocalModeOptions | None = None
 
     @classmethod
     def single_icp(cls) -> "RobustOptions":
@@ -157,6 +162,9 @@ class Registration:
     # the deformable answer's predicted error over the organ against the oncological margin
     # (``uncertainty.organ_error``); fresh deformable answers only
     organ: OrganError | None = None
+    # the local-mode step (``RobustOptions.local_modes``): where its sources went, the held-out
+    # RMS with and without them, and whether ``model`` carries them
+    local_modes: LocalModes | None = None
 
     @property
     def deformed(self) -> bool:
@@ -480,6 +488,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     sec["rigid"] = time.perf_counter() - t
     local = {name: rigid.inverse(p) for name, p in data.items()}
     result, quality = None, None
+    local_modes: LocalModes | None = None
 
     def fit(local, options, callback=None):
         b0 = beta0
@@ -509,6 +518,15 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
                         s.chosen = s.result is cand
                     rigid, local, result, quality = cand, other_local, other, other_quality
         sec["deformable"] = time.perf_counter() - t
+        if fresh and init.local_modes is not None and result.stop_reason != "cancelled":
+            t = time.perf_counter()
+            extended, local_modes = choose_local_modes(model, local, result.beta, options,
+                                                       init.support or SupportOptions(), init.local_modes, cancel)
+            if extended is not None:
+                model = extended  # ``fit`` and every check below use the extended model
+                result = fit(local, options, callback)
+                quality = assess_fit(result.features)
+            sec["local_modes"] = time.perf_counter() - t
     support = None
     if deform and fresh and init.support is not None and result is not None and result.stop_reason != "cancelled":
         t = time.perf_counter()
@@ -545,7 +563,8 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         # viewer had told the surgeon the previous result is kept, and then showed this one)
         result = replace(result, stop_reason="cancelled")
         support = None
-    reg = Registration(model, rigid, result, local, sec, starts, quality, choice, determinacy, support, notes)
+    reg = Registration(model, rigid, result, local, sec, starts, quality, choice, determinacy, support, notes,
+                       local_modes=local_modes)
     if fresh and reg.deformed and result is not None and result.stop_reason != "cancelled":
         # every check above compares the answer with simpler ones on the data; this one asks
         # whether it is good enough to navigate by at all (docs/decisions.md, "An answer the data
@@ -584,7 +603,7 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
         summary["mesher"] = reg.model.mesher.as_dict()
     summary["answer"] = "deformable" if reg.deformed else "rigid"
     for key, part in (("pose", reg.pose_choice), ("pose_determinacy", reg.determinacy), ("support", reg.support),
-                      ("predicted_error", reg.organ)):
+                      ("predicted_error", reg.organ), ("local_modes", reg.local_modes)):
         if part is not None:
             summary[key] = part.as_dict()
     lines = reg.warnings + [w for t in summary.get("targets", []) if (w := t.get("warning"))]
