@@ -17,7 +17,7 @@ leaves off") has the measurements behind the constants, which were set before th
 """
 
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import trimesh
@@ -26,10 +26,9 @@ from scipy.cluster.vq import kmeans2
 from ..features import SALIENT
 from ..mechanics.fem import nodal_strain_operator
 from ..mechanics.local_modes import EPS_MM, MODE_MM, kelvin_modes, with_modes
-from .libr import LMOptions, register_libr
+from .libr import LMOptions
 from .model import DATA_TO_MODEL, RegistrationModel, deform, extended_model
-from .objective import evaluate
-from .support import SupportOptions, blocks_of, pooled_rms
+from .support import Support, SupportOptions, check_support_pair
 
 
 @dataclass(frozen=True)
@@ -109,7 +108,7 @@ def with_sources(model: RegistrationModel, nodes: np.ndarray, sources: np.ndarra
 
 def choose_local_modes(model: RegistrationModel, data: dict, beta: np.ndarray, options: LMOptions,
                        settings: SupportOptions | None = None, opts: LocalModeOptions = LocalModeOptions(),
-                       cancel=None) -> tuple[RegistrationModel | None, LocalModes | None]:
+                       cancel=None) -> tuple[RegistrationModel | None, LocalModes | None, Support | None]:
     """The extended model if held-out data say the fit should keep local modes (module doc).
 
     Parameters
@@ -130,40 +129,35 @@ def choose_local_modes(model: RegistrationModel, data: dict, beta: np.ndarray, o
         the extended model where its modes are kept, else None.
     report : LocalModes or None
         None only when cancelled.
+    support : Support or None
+        the cross-validation of the answer's basis against the rigid answer, from the same
+        folds (``support.check_support_pair``): the extended basis' with each fold's own
+        sources, or today's (then equal to ``check_support``'s); None where there was no
+        cross-validation (no modes to weigh, too few data, cancelled).
     """
     t0 = time.perf_counter()
     settings = SupportOptions() if settings is None else settings
     nodes, sources = place_sources(model, beta, data, opts)
     report = LocalModes(nodes=nodes.tolist())
-    if not len(nodes) or sum(len(p) for k, p in data.items() if k != "fiducials") < settings.min_points:
-        report.seconds = time.perf_counter() - t0
-        return None, report
-    labels = blocks_of(data, settings.blocks)
-    fold = replace(options, max_iterations=min(options.max_iterations, settings.iterations))
-    base, ext, weight = [], [], []
-    for blk in range(settings.blocks):
+    pair = None
+    if len(nodes):
+        pair = check_support_pair(model, data, options, settings, cancel, extend=lambda train, b: fold_model(
+            model, train, b, opts))
         if cancel is not None and cancel.is_set():
-            return None, None
-        train = {k: p[labels[k] != blk] for k, p in data.items() if (labels[k] != blk).any()}
-        held = {k: p[labels[k] == blk] for k, p in data.items() if (labels[k] == blk).any()}
-        if not held or not train:
-            continue
-        fit = register_libr(model, train, None, fold, None, cancel)
-        r_base = pooled_rms(evaluate(model, held, fit.beta, options.weights, jacobian=False).features, held)
-        fold_nodes, fold_sources = place_sources(model, fit.beta, train, opts)
-        r_ext = r_base  # the training blocks alone leave too few points off: no modes in this fold
-        if len(fold_nodes):
-            m2 = with_sources(model, fold_nodes, fold_sources, opts)
-            fit2 = register_libr(m2, train, None, fold, None, cancel)
-            r_ext = pooled_rms(evaluate(m2, held, fit2.beta, options.weights, jacobian=False).features, held)
-        base.append(r_base)
-        ext.append(r_ext)
-        weight.append(sum(len(p) for p in held.values()))
-    if cancel is not None and cancel.is_set():
-        return None, None
-    if base:
-        report.heldout_base_mm = float(np.average(base, weights=weight))
-        report.heldout_extended_mm = float(np.average(ext, weights=weight))
-        report.adopted = report.heldout_extended_mm < (1 - opts.min_gain) * report.heldout_base_mm
+            return None, None, None
     report.seconds = time.perf_counter() - t0
-    return (with_sources(model, nodes, sources, opts) if report.adopted else None), report
+    if pair is None:
+        return None, report, None
+    base, ext = pair
+    report.heldout_base_mm, report.heldout_extended_mm = base.deformable_mm, ext.deformable_mm
+    report.adopted = ext.deformable_mm < (1 - opts.min_gain) * base.deformable_mm
+    if not report.adopted:
+        return None, report, base
+    return with_sources(model, nodes, sources, opts), report, ext
+
+
+def fold_model(model: RegistrationModel, train: dict, beta: np.ndarray,
+               opts: LocalModeOptions = LocalModeOptions()) -> RegistrationModel | None:
+    """``model`` extended under the training data its fit ``beta`` leaves off, or None."""
+    nodes, sources = place_sources(model, beta, train, opts)
+    return with_sources(model, nodes, sources, opts) if len(nodes) else None

@@ -29,7 +29,7 @@ from ..geometry.interpolation import interpolation_matrix
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from .coverage import note_coverage
 from .libr import LibrResult, LMOptions, register_libr
-from .local_modes import LocalModeOptions, LocalModes, choose_local_modes
+from .local_modes import LocalModeOptions, LocalModes, choose_local_modes, fold_model
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
 from .pose import (
     Determinacy,
@@ -57,7 +57,7 @@ from .rigid import (
     rigid_icp,
     start_poses,
 )
-from .support import Support, SupportOptions, check_support, pooled_rms, weigh_correction
+from .support import Support, SupportOptions, check_support, check_support_pair, pooled_rms, weigh_correction
 from .uncertainty import OrganError, organ_error
 
 
@@ -373,11 +373,13 @@ def rigid_starts(model: RegistrationModel, data: dict, options: LMOptions | None
 
 
 def _cross_validate(model: RegistrationModel, local: dict, options: LMOptions, settings: SupportOptions, cancel,
-                    rigid: RigidResult, result: LibrResult) -> Support | None:
-    """The spatial cross-validation of a fresh deformable fit; from a kept pose (a known-good
-    answer without deformation), or where the cross-validation fails from ICP's pose (whether to
-    warn, ``Support.outweighs``), the correction is also weighed against its own σ."""
-    support = check_support(model, local, options, settings, cancel)
+                    rigid: RigidResult, result: LibrResult, support: Support | None = None) -> Support | None:
+    """The spatial cross-validation of a fresh deformable fit (``support``: already made, by
+    the local-mode step's folds); from a kept pose (a known-good answer without deformation),
+    or where the cross-validation fails from ICP's pose (whether to warn, ``Support.outweighs``),
+    the correction is also weighed against its own σ."""
+    if support is None:
+        support = check_support(model, local, options, settings, cancel)
     if support is not None and (rigid.kept or not support.predicts) and not (cancel is not None and cancel.is_set()):
         support = weigh_correction(model, local, result.beta, support, options, settings)
     return support
@@ -489,6 +491,8 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     local = {name: rigid.inverse(p) for name, p in data.items()}
     result, quality = None, None
     local_modes: LocalModes | None = None
+    base_model = None  # today's model, where local modes extended it
+    folds_support: Support | None = None  # the local-mode step's cross-validation of the answer's basis
 
     def fit(local, options, callback=None):
         b0 = beta0
@@ -520,17 +524,17 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         sec["deformable"] = time.perf_counter() - t
         if fresh and init.local_modes is not None and result.stop_reason != "cancelled":
             t = time.perf_counter()
-            extended, local_modes = choose_local_modes(model, local, result.beta, options,
-                                                       init.support or SupportOptions(), init.local_modes, cancel)
+            extended, local_modes, folds_support = choose_local_modes(
+                model, local, result.beta, options, init.support or SupportOptions(), init.local_modes, cancel)
             if extended is not None:
-                model = extended  # ``fit`` and every check below use the extended model
+                base_model, model = model, extended  # ``fit`` and every check below use the extended model
                 result = fit(local, options, callback)
                 quality = assess_fit(result.features)
             sec["local_modes"] = time.perf_counter() - t
     support = None
     if deform and fresh and init.support is not None and result is not None and result.stop_reason != "cancelled":
         t = time.perf_counter()
-        support = _cross_validate(model, local, options, init.support, cancel, rigid, result)
+        support = _cross_validate(model, local, options, init.support, cancel, rigid, result, folds_support)
         sec["support"] = time.perf_counter() - t
     if choice is not None:
         choice = with_turn(choice, rigid)  # ICP's pose is final here
@@ -555,7 +559,13 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
             for s in starts:
                 s.chosen = False
             if init.support is not None:
-                support = _cross_validate(model, local, options, init.support, cancel, rigid, result)
+                refolded = None
+                if base_model is not None and (modes := init.local_modes) is not None:
+                    # the extended basis at the given pose, each fold with its own sources again
+                    pair = check_support_pair(base_model, local, options, init.support, cancel,
+                                              extend=lambda train, b: fold_model(base_model, train, b, modes))
+                    refolded = None if pair is None else pair[1]
+                support = _cross_validate(model, local, options, init.support, cancel, rigid, result, refolded)
         sec["given_pose"] = time.perf_counter() - t
     if cancel is not None and cancel.is_set() and result is not None and result.stop_reason != "cancelled":
         # asked to stop after LM had converged, during the cross-validation or the given-pose fit: the

@@ -36,6 +36,7 @@ warned about (``outweighs``). The answer is the same either way; only the line c
 
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -184,6 +185,19 @@ def check_support(model: RegistrationModel, data: dict, options: LMOptions,
     """Cross-validate the deformable answer against the rigid one (module doc). ``data``:
     feature → (N, 3) mm in the model frame (after the rigid pose); ``options`` the LM
     settings of the real fit. None when there are too few data points to split."""
+    pair = check_support_pair(model, data, options, support, cancel)
+    return None if pair is None else pair[0]
+
+
+def check_support_pair(model: RegistrationModel, data: dict, options: LMOptions,
+                       support: SupportOptions = SupportOptions(), cancel=None,
+                       extend: Callable[[dict, np.ndarray], RegistrationModel | None] | None = None,
+                       ) -> tuple[Support, Support] | None:
+    """``check_support`` for ``model`` and, in the same folds, for a model each fold extends
+    from its own training data: ``extend(train, beta)`` (the training data, feature →
+    (N, 3) mm, and the fit of ``model`` to them, (3k + 6,)) returns the extended model or None
+    (the fold keeps ``model``'s prediction). So no held-out point has a say in what its fold's
+    model can do (``local_modes``). Without ``extend`` both Supports are the same."""
     t0 = time.perf_counter()
     total = sum(len(p) for k, p in data.items() if k != "fiducials")
     if total < support.min_points:
@@ -192,7 +206,7 @@ def check_support(model: RegistrationModel, data: dict, options: LMOptions,
     fold = replace(options, max_iterations=min(options.max_iterations, support.iterations))
     n = model.basis.Ju.shape[1]
     zero = np.zeros(n + 6)
-    out = []
+    out, out_ext = [], []
     for b in range(support.blocks):
         if cancel is not None and cancel.is_set():
             return None  # cut short: folds stopped before they were fitted say nothing about the data
@@ -204,17 +218,27 @@ def check_support(model: RegistrationModel, data: dict, options: LMOptions,
         # the rigid answer fitted to the same training data (τ, θ alone; a kept pose stays)
         pose = zero if not options.pose else register_libr(model, train, None, replace(fold, deform=False), None,
                                                            cancel).beta
-        rigid = evaluate(model, held, pose, options.weights, jacobian=False).features
-        deformed = evaluate(model, held, fit.beta, options.weights, jacobian=False).features
+        rigid = pooled_rms(evaluate(model, held, pose, options.weights, jacobian=False).features, held)
+        deformed = pooled_rms(evaluate(model, held, fit.beta, options.weights, jacobian=False).features, held)
         pts = np.vstack(list(held.values()))
-        out.append(Block(pts.mean(0), len(pts), pooled_rms(rigid, held), pooled_rms(deformed, held)))
+        out.append(Block(pts.mean(0), len(pts), rigid, deformed))
+        other = None if extend is None else extend(train, fit.beta)
+        if other is not None:
+            fit2 = register_libr(other, train, None, fold, None, cancel)
+            deformed = pooled_rms(evaluate(other, held, fit2.beta, options.weights, jacobian=False).features, held)
+        out_ext.append(Block(pts.mean(0), len(pts), rigid, deformed))
     if not out or (cancel is not None and cancel.is_set()):
         return None  # cut short: folds stopped before they were fitted say nothing about the data
-    w = np.array([b.points for b in out], float)
-    r = float(np.average([b.rigid_mm for b in out], weights=w))
-    d = float(np.average([b.deformable_mm for b in out], weights=w))
     inside = any(DATA_TO_MODEL[k] not in ("liver", "fiducials", *SALIENT) for k in data)
-    return Support(r, d, out, support.margin_interior if inside else support.margin, time.perf_counter() - t0)
+    margin, sec = support.margin_interior if inside else support.margin, time.perf_counter() - t0
+    return _summary(out, margin, sec), _summary(out_ext, margin, sec)
+
+
+def _summary(blocks: list[Block], margin: float, seconds: float) -> Support:
+    w = np.array([b.points for b in blocks], float)
+    r = float(np.average([b.rigid_mm for b in blocks], weights=w))
+    d = float(np.average([b.deformable_mm for b in blocks], weights=w))
+    return Support(r, d, blocks, margin, seconds)
 
 
 def weigh_correction(model: RegistrationModel, data: dict, beta, support: Support, options: LMOptions,
