@@ -50,6 +50,7 @@ _EXPORTS = {
     "tre_stats": "navapp.registration.pipeline",
     "Registration": "navapp.registration.pipeline",
     "RobustOptions": "navapp.registration.pipeline",
+    "LocalModeOptions": "navapp.registration.local_modes",
     "RegistrationModel": "navapp.registration.model",
     "LMOptions": "navapp.registration.libr",
     "LibrResult": "navapp.registration.libr",
@@ -71,11 +72,11 @@ _EXPORTS = {
 }
 
 __all__ = [
-    "Basis", "BasisSettings", "Case", "Correspondence", "EDGE_MM", "FEATURES", "Feature", "FitQuality",
-    "InputError", "K", "LMOptions", "LibrResult", "NavappError", "PreopModel", "Registration", "RegistrationModel",
-    "RigidResult", "RobustOptions", "Scene", "Weights", "data_level", "deform_points", "demo_scene", "load_scene",
-    "make_phantom", "prepare", "read_case", "register", "rigid_starts", "scene_dir", "simulate", "study_scenes",
-    "tre_stats", "write_case", "write_outputs",
+    "Basis", "BasisSettings", "Case", "Correspondence", "EDGE_MM", "FEATURES", "Feature", "FitQuality", "InputError",
+    "K", "LMOptions", "LibrResult", "LocalModeOptions", "NavappError", "PreopModel", "Registration",
+    "RegistrationModel", "RigidResult", "RobustOptions", "Scene", "Weights", "data_level", "deform_points",
+    "demo_scene", "load_scene", "make_phantom", "prepare", "read_case", "register", "rigid_starts", "scene_dir",
+    "simulate", "study_scenes", "tre_stats", "write_case", "write_outputs",
 ]  # the keys of _EXPORTS (a test checks)
 
 if TYPE_CHECKING:  # what type checkers and editors see; at run time ``__getattr__`` imports on first use
@@ -88,6 +89,7 @@ if TYPE_CHECKING:  # what type checkers and editors see; at run time ``__getattr
     from .features import Feature
     from .mechanics.basis import Basis, BasisSettings
     from .registration.libr import LibrResult, LMOptions
+    from .registration.local_modes import LocalModeOptions
     from .registration.model import RegistrationModel
     from .registration.objective import Correspondence, Weights
     from .registration.pipeline import (
