@@ -127,3 +127,19 @@ def test_the_verdict_of_an_older_result_json():
     assert Verdict.of_result({"fit_quality": {"ok": False}, "warning": None}).warnings == ("poor fit",)
     assert Verdict.of_result({"fit_quality": {"ok": True}, "warning": None}).ok
     assert Verdict.of_result({"answer": "rigid", "warnings": []}).ok
+
+
+def test_local_modes_are_asked_for_and_reported(tmp_path, capsys):
+    """``--local-modes`` reaches the registration: result.json says what the step did (a smooth
+    sag in the basis leaves no point off to place a source under, so the answer is the
+    default's); without the flag there is no such entry."""
+    make_case(tmp_path / "c")
+    args = ["--quiet", "register", str(tmp_path / "c"), "--edge", "15", "--k", "10", "--json"]
+    assert main(args) == 0
+    default = json.loads((tmp_path / "c" / "registration" / "result.json").read_text())
+    assert main([*args, "--local-modes"]) == 0
+    local = json.loads((tmp_path / "c" / "registration" / "result.json").read_text())
+    assert "local_modes" not in default and "local_modes" in local["seconds"]
+    modes = local["local_modes"]
+    assert set(modes) >= {"sources", "adopted", "heldout_base_mm", "heldout_extended_mm"}
+    assert modes["sources"] == 0 and not modes["adopted"] and local["tre_deformable"] == default["tre_deformable"]
