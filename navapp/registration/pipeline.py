@@ -373,14 +373,19 @@ def rigid_starts(model: RegistrationModel, data: dict, options: LMOptions | None
 
 
 def _cross_validate(model: RegistrationModel, local: dict, options: LMOptions, settings: SupportOptions, cancel,
-                    rigid: RigidResult, result: LibrResult, support: Support | None = None) -> Support | None:
+                    rigid: RigidResult, result: LibrResult, support: Support | None = None,
+                    local_modes: bool = False) -> Support | None:
     """The spatial cross-validation of a fresh deformable fit (``support``: already made, by
     the local-mode step's folds); from a kept pose (a known-good answer without deformation),
     or where the cross-validation fails from ICP's pose (whether to warn, ``Support.outweighs``),
-    the correction is also weighed against its own σ."""
+    the correction is also weighed against its own σ. So is a fit with local modes
+    (``local_modes``) from ICP's pose: the modes were placed where the data asked, and
+    held-out blocks are a weaker judge of a fit that can bend there (docs/decisions.md,
+    "Local modes in register")."""
     if support is None:
         support = check_support(model, local, options, settings, cancel)
-    if support is not None and (rigid.kept or not support.predicts) and not (cancel is not None and cancel.is_set()):
+    if support is not None and (rigid.kept or not support.predicts or local_modes) and \
+            not (cancel is not None and cancel.is_set()):
         support = weigh_correction(model, local, result.beta, support, options, settings)
     return support
 
@@ -534,7 +539,8 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     support = None
     if deform and fresh and init.support is not None and result is not None and result.stop_reason != "cancelled":
         t = time.perf_counter()
-        support = _cross_validate(model, local, options, init.support, cancel, rigid, result, folds_support)
+        support = _cross_validate(model, local, options, init.support, cancel, rigid, result, folds_support,
+                                  local_modes=base_model is not None)
         sec["support"] = time.perf_counter() - t
     if choice is not None:
         choice = with_turn(choice, rigid)  # ICP's pose is final here
@@ -565,7 +571,8 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
                     pair = check_support_pair(base_model, local, options, init.support, cancel,
                                               extend=lambda train, b: fold_model(base_model, train, b, modes))
                     refolded = None if pair is None else pair[1]
-                support = _cross_validate(model, local, options, init.support, cancel, rigid, result, refolded)
+                support = _cross_validate(model, local, options, init.support, cancel, rigid, result, refolded,
+                                          local_modes=base_model is not None)
         sec["given_pose"] = time.perf_counter() - t
     if cancel is not None and cancel.is_set() and result is not None and result.stop_reason != "cancelled":
         # asked to stop after LM had converged, during the cross-validation or the given-pose fit: the
