@@ -222,7 +222,9 @@ def write_report(results: Path, out_dir: Path) -> Path:
              f"turns the organ more than {POSE_RULE.tracker_turn_deg:.0f}° from it and leaves most data off the "
              "model); *libr-local*: guarded, with point-load modes under the surface data the first fit leaves "
              f"more than {LocalModeOptions.off_mm:g} mm off, kept where the held-out RMS drops by more than "
-             f"{LocalModeOptions.min_gain * 100:.0f} % (not the default). "
+             f"{LocalModeOptions.min_gain * 100:.0f} % (the answer's cross-validation from the same folds, each "
+             f"with its own sources), and from ICP's pose warned unless the correction is at least "
+             f"{SupportOptions.z:g} × its own σ (not the default). "
              "The CSV's `pose` and `turn_deg`: where the rigid stage's pose came from, and ICP's turn.", ""]
     for level in LOAD_LEVELS:
         lv = [r for r in rows if r["level"] == level]
@@ -285,7 +287,8 @@ def write_report(results: Path, out_dir: Path) -> Path:
         ax.set_yscale("log")
     # above the panels: inside, the legend hid the first cases' warning marks
     axes[0].legend(ncol=5, fontsize=8, loc="lower right", bbox_to_anchor=(1.0, 1.08), frameon=False)
-    axes[0].set_title("Local loads: identity, rigid, LIBR unguarded and guarded ('!': guarded LIBR warned)")
+    axes[0].set_title("Local loads: identity, rigid, LIBR unguarded, guarded and with local modes "
+                      "('!': guarded LIBR warned)")
     axes[-1].set_xticks(x, cases, rotation=60, fontsize=7)
     fig.tight_layout()
     fig.savefig(out_dir / "loads.png", dpi=120)
