@@ -87,7 +87,7 @@ class RobustOptions:
     support: SupportOptions | None = field(default_factory=SupportOptions)
     # Kelvin modes under the surface data the first fit leaves off, kept where held-out data
     # gain (``local_modes``); None: off (not yet the default: docs/decisions.md, "Local modes
-    # under the data the fit leaves off")
+    # in register")
     local_modes: LocalModeOptions | None = None
 
     @classmethod
