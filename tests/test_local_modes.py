@@ -158,7 +158,10 @@ def test_a_deformation_the_basis_makes_gets_no_local_modes(small_model):
         base = register(small_model, {"anterior": noisy})
         local = register(small_model, {"anterior": noisy}, init=RobustOptions(local_modes=LocalModeOptions()))
     assert local.local_modes.nodes and not local.local_modes.adopted and local.model is small_model
-    assert local.support.as_dict() | {"seconds": 0} == base.support.as_dict() | {"seconds": 0}
+    for a, b in ((local.support, base.support), *zip(local.support.blocks, base.support.blocks, strict=True)):
+        assert (a.rigid_mm, a.deformable_mm) == (b.rigid_mm, b.deformable_mm)  # bit for bit, not rounded
+    assert (local.support.correction_mm, local.support.sigma_mm) == (base.support.correction_mm,
+                                                                    base.support.sigma_mm)
     assert np.array_equal(local.transform(probe), base.transform(probe))
 
 
@@ -185,3 +188,22 @@ def test_the_load_study_runs_a_method_added_later_alone(tmp_path, monkeypatch):
     monkeypatch.setattr(loads, "run_case", lambda c, methods: asked.append((Path(c).name, methods)) or [])
     loads.run_loads([tmp_path / "tool0-a", tmp_path / "tool0-b", tmp_path / "tool0-c"], old)
     assert asked == [("tool0-a", ("libr-local",)), ("tool0-b", loads.METHODS)]
+
+
+def test_a_warm_start_from_a_fit_with_local_modes_needs_its_own_model(small_model, tool_dent):
+    """β of a fit whose model carries local modes has their weights too: a warm start with it
+    on the model without them is one clear line, not a shape error deep in LM; on the fit's
+    own model it runs."""
+    from navapp.errors import InputError
+    from navapp.registration.local_modes import LocalModeOptions
+    from navapp.registration.pipeline import RobustOptions, register
+
+    data = tool_dent[0]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        reg = register(small_model, data, init=RobustOptions(local_modes=LocalModeOptions()))
+        assert reg.local_modes.adopted
+        with pytest.raises(InputError, match="pass its own reg.model"):
+            register(small_model, data, beta0=reg.libr.beta, rigid=reg.rigid)
+        warm = register(reg.model, data, beta0=reg.libr.beta, rigid=reg.rigid)
+    assert warm.libr is not None and len(warm.libr.beta) == len(reg.libr.beta)

@@ -92,7 +92,8 @@ def place_sources(model: RegistrationModel, beta: np.ndarray, data: dict,
     count = min(opts.max_sources, max(1, len(off) // opts.per_source))
     centres = kmeans2(off, count, seed=0, minit="++")[0] if count > 1 else off.mean(0, keepdims=True)
     normals = trimesh.Trimesh(b.nodes, b.surface_faces, process=False).vertex_normals  # outward, undeformed
-    nodes = np.array([b.surface[np.argmin(np.linalg.norm(x[b.surface] - c, axis=1))] for c in centres])
+    # two centres nearest one node would give one source twice (identical modes)
+    nodes = np.unique([b.surface[np.argmin(np.linalg.norm(x[b.surface] - c, axis=1))] for c in centres])
     return nodes, b.nodes[nodes] - opts.depth_mm * normals[nodes]
 
 
@@ -100,7 +101,7 @@ def with_sources(model: RegistrationModel, nodes: np.ndarray, sources: np.ndarra
                  opts: LocalModeOptions = LocalModeOptions()) -> RegistrationModel:
     """``model`` with three Kelvin modes per source (s, 3) mm appended (``mechanics.local_modes``)."""
     b = model.basis
-    if "strain_operator" not in model.cache:  # the same mesh in every fold
+    if "strain_operator" not in model.cache:  # the same mesh in every fold and registration (≈ 28 MB at 18.5k nodes)
         model.cache["strain_operator"] = nodal_strain_operator(b.nodes, b.tets)
     cols = np.hstack([kelvin_modes(b.nodes, s, b.material.nu, opts.eps_mm, opts.scale_mm) for s in sources])
     return extended_model(model, with_modes(b, cols, nodes, model.cache["strain_operator"]))

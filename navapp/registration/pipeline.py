@@ -382,7 +382,7 @@ def _cross_validate(model: RegistrationModel, local: dict, options: LMOptions, s
     (``local_modes``) from ICP's pose: the modes were placed where the data asked, and
     held-out blocks are a weaker judge of a fit that can bend there (docs/decisions.md,
     "Local modes in register")."""
-    if support is None:
+    if support is None and not local_modes:  # with local modes only the folds' own verdict, which no block saw
         support = check_support(model, local, options, settings, cancel)
     if support is not None and (rigid.kept or not support.predicts or local_modes) and \
             not (cancel is not None and cancel.is_set()):
@@ -431,6 +431,10 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     InputError
         for data that are not (N, 3), not finite, or of an unknown feature.
     """
+    if beta0 is not None and len(beta0) != model.basis.Ju.shape[1] + 6:
+        # a warm start from a fit whose model carried local modes: its β has their weights too
+        raise InputError(f"beta0 has {len(beta0)} entries; this model's state has {model.basis.Ju.shape[1] + 6} "
+                         "(a registration with local modes: pass its own reg.model)")
     data = usable_data(model, data)
     check_units(model, data)
     notes = []
@@ -533,7 +537,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
                 model, local, result.beta, options, init.support or SupportOptions(), init.local_modes, cancel)
             if extended is not None:
                 base_model, model = model, extended  # ``fit`` and every check below use the extended model
-                result = fit(local, options, callback)
+                result = fit(local, options)
                 quality = assess_fit(result.features)
             sec["local_modes"] = time.perf_counter() - t
     support = None
@@ -566,11 +570,20 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
                 s.chosen = False
             if init.support is not None:
                 refolded = None
-                if base_model is not None and (modes := init.local_modes) is not None:
-                    # the extended basis at the given pose, each fold with its own sources again
-                    pair = check_support_pair(base_model, local, options, init.support, cancel,
-                                              extend=lambda train, b: fold_model(base_model, train, b, modes))
-                    refolded = None if pair is None else pair[1]
+                if (base := base_model) is not None and (modes := init.local_modes) is not None and \
+                        local_modes is not None:
+                    # at the given pose the choice is made again, each fold with its own sources
+                    pair = check_support_pair(base, local, options, init.support, cancel,
+                                              extend=lambda train, b: fold_model(base, train, b, modes))
+                    if pair is not None:
+                        local_modes.heldout_base_mm, local_modes.heldout_extended_mm = (
+                            pair[0].deformable_mm, pair[1].deformable_mm)
+                        local_modes.adopted = pair[1].deformable_mm < (1 - modes.min_gain) * pair[0].deformable_mm
+                        if not local_modes.adopted:  # the modes do not earn their place here: today's basis
+                            model, base_model = base, None
+                            result = fit(local, options)
+                            quality = assess_fit(result.features)
+                        refolded = pair[1] if local_modes.adopted else pair[0]
                 support = _cross_validate(model, local, options, init.support, cancel, rigid, result, refolded,
                                           local_modes=base_model is not None)
         sec["given_pose"] = time.perf_counter() - t

@@ -222,6 +222,8 @@ def check_support_pair(model: RegistrationModel, data: dict, options: LMOptions,
         deformed = pooled_rms(evaluate(model, held, fit.beta, options.weights, jacobian=False).features, held)
         pts = np.vstack(list(held.values()))
         out.append(Block(pts.mean(0), len(pts), rigid, deformed))
+        if cancel is not None and cancel.is_set():
+            return None
         other = None if extend is None else extend(train, fit.beta)
         if other is not None:
             fit2 = register_libr(other, train, None, fold, None, cancel)
