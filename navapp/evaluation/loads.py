@@ -224,7 +224,8 @@ def write_report(results: Path, out_dir: Path) -> Path:
              f"more than {LocalModeOptions.off_mm:g} mm off, kept where the held-out RMS drops by more than "
              f"{LocalModeOptions.min_gain * 100:.0f} % (the answer's cross-validation from the same folds, each "
              f"with its own sources), and from ICP's pose warned unless the correction is at least "
-             f"{SupportOptions.z:g} × its own σ (not the default). "
+             f"{SupportOptions.z:g} × its own σ ({SupportOptions.z_strong:g} × where the cross-validation fails; "
+             "not the default). "
              "The CSV's `pose` and `turn_deg`: where the rigid stage's pose came from, and ICP's turn.", ""]
     for level in LOAD_LEVELS:
         lv = [r for r in rows if r["level"] == level]
