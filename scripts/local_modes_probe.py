@@ -27,23 +27,12 @@ from navapp import progress
 from navapp.anatomy.caseio import read_case
 from navapp.geometry.interpolation import interpolation_matrix
 from navapp.mechanics.basis import energy_matrix
+from navapp.mechanics.local_modes import kelvin_modes
 from navapp.registration.model import DATA_TO_MODEL, build_model
 from navapp.registration.pipeline import prepare, register, tre_stats
 from navapp.simulation.levels import data_level
 
-OFF_MM, MIN_POINTS, DEPTH_MM, MAX_SOURCES, EPS_MM, MODE_MM = 2.5, 8, 10.0, 2, 5.0, 5.0
-
-
-def kelvin_modes(nodes, source, nu):
-    """(3M, 3): the regularised Kelvin displacement at ``nodes`` (M, 3) mm of a unit force
-    in x, y and z at ``source`` (3,) mm, each scaled to MODE_MM at most."""
-    r = nodes - source
-    R = np.sqrt((r ** 2).sum(1) + EPS_MM ** 2)
-    cols = []
-    for j in range(3):
-        u = (3 - 4 * nu) * np.eye(3)[j][None, :] / R[:, None] + r * r[:, j:j + 1] / R[:, None] ** 3
-        cols.append((u * MODE_MM / np.linalg.norm(u, axis=1).max()).reshape(-1))
-    return np.stack(cols, 1)
+OFF_MM, MIN_POINTS, DEPTH_MM, MAX_SOURCES = 2.5, 8, 10.0, 2  # EPS_MM, MODE_MM: the package's (5, 5 mm)
 
 
 def surface_points(data):
