@@ -5,8 +5,9 @@ than OFF_MM off the deformed fit's surface, up to MAX_SOURCES k-means centres of
 get a Kelvin point-load source (the displacement of an infinite elastic body under a point
 force, regularised over EPS_MM) DEPTH_MM inside the undeformed surface under them. That is 3 modes
 per source, force in x, y, z, scaled to 5 mm at most like the control-point modes. They are
-appended to J_u; the strain-energy matrix (eq. 13) is recomputed over every mode; the model is
-rebuilt and registered again with today's guards. The truth is read only after both fits.
+appended to J_u; the strain-energy matrix (eq. 13) is extended over them; the model is
+registered again with today's guards. The placement and the extension are the package's
+(``registration.local_modes``, here with the probe's constants). The truth is read only after both fits.
 The constants were set before the first run and not tuned.
 
     python scripts/local_modes_probe.py OUT.jsonl CASE [CASE ...]
@@ -16,19 +17,15 @@ import json
 import sys
 import time
 import warnings
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-import trimesh
-from scipy.cluster.vq import kmeans2
 
 from navapp import progress
 from navapp.anatomy.caseio import read_case
 from navapp.geometry.interpolation import interpolation_matrix
-from navapp.mechanics.basis import energy_matrix
-from navapp.mechanics.local_modes import kelvin_modes
-from navapp.registration.model import DATA_TO_MODEL, build_model
+from navapp.registration.local_modes import LocalModeOptions, sources_under, with_sources
+from navapp.registration.model import DATA_TO_MODEL
 from navapp.registration.pipeline import prepare, register, tre_stats
 from navapp.simulation.levels import data_level
 
@@ -51,24 +48,13 @@ def extended_model(model, case, reg, data):
 def extend_under(model, case, x, pts):
     """The model with Kelvin modes under the surface points ``pts`` (N, 3) mm that lie more
     than OFF_MM off the fitted surface, whose nodes are at ``x`` (M, 3) mm in the same
-    frame; and how many sources (None, 0 when too few points are off)."""
-    b = model.basis
-    _, dist, _ = trimesh.proximity.closest_point(trimesh.Trimesh(x, b.surface_faces, process=False), pts)
-    off = pts[dist > OFF_MM]
-    if len(off) < MIN_POINTS:
+    frame (``registration.local_modes``, the probe's constants); and how many sources
+    (None, 0 when too few points are off)."""
+    opts = LocalModeOptions(off_mm=OFF_MM, min_points=MIN_POINTS, depth_mm=DEPTH_MM, max_sources=MAX_SOURCES)
+    nodes, sources = sources_under(model, x, pts, opts)
+    if not len(nodes):
         return None, 0
-    n = min(MAX_SOURCES, max(1, len(off) // 40))
-    centres = kmeans2(off, n, seed=0, minit="++")[0] if n > 1 else off.mean(0, keepdims=True)
-    normals = trimesh.Trimesh(b.nodes, b.surface_faces, process=False).vertex_normals
-    cols, nodes = [], []
-    for c in centres:
-        i = b.surface[np.argmin(np.linalg.norm(x[b.surface] - c, axis=1))]
-        cols.append(kelvin_modes(b.nodes, b.nodes[i] - DEPTH_MM * normals[i], b.material.nu))
-        nodes.append(i)
-    Ju = np.hstack([b.Ju, *cols])
-    basis = replace(b, control=np.concatenate([b.control, nodes]), Ju=Ju,
-                    energy=energy_matrix(b.nodes, b.tets, Ju, b.material))
-    return build_model(basis, case.preop, case.preop.fiducials), len(nodes)
+    return with_sources(model, nodes, sources, opts), len(nodes)
 
 
 def each_case(cases):

@@ -76,12 +76,20 @@ def surface_data(data: dict) -> np.ndarray:
 def place_sources(model: RegistrationModel, beta: np.ndarray, data: dict,
                   opts: LocalModeOptions = LocalModeOptions()) -> tuple[np.ndarray, np.ndarray]:
     """Where the fit ``beta`` (3k + 6,) leaves the surface data (feature → (N, 3) mm, model
-    frame) more than ``opts.off_mm`` off: the surface nodes (s,) int the sources lie under
-    and the sources (s, 3) mm, in the undeformed mesh. Both empty where too few points are off."""
+    frame) more than ``opts.off_mm`` off: ``sources_under`` the fitted mesh."""
     b = model.basis
     n = len(beta) - 6
     _, x = deform(b.nodes, (b.Ju @ beta[:n]).reshape(-1, 3), beta, model.centroid)
-    pts = surface_data(data)
+    return sources_under(model, x, surface_data(data), opts)
+
+
+def sources_under(model: RegistrationModel, x: np.ndarray, pts: np.ndarray,
+                  opts: LocalModeOptions = LocalModeOptions()) -> tuple[np.ndarray, np.ndarray]:
+    """The surface nodes (s,) int the sources lie under, and the sources (s, 3) mm in the
+    undeformed mesh, for the points ``pts`` (N, 3) mm farther than ``opts.off_mm`` from the
+    fitted surface whose nodes are at ``x`` (M, 3) mm in the same frame (any rigid frame:
+    the placement moves with it). Both empty where too few points are off."""
+    b = model.basis
     none = np.zeros(0, int), np.zeros((0, 3))
     if len(pts) < opts.min_points:
         return none
