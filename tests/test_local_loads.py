@@ -83,6 +83,25 @@ def test_tool_pressure_reaches_its_depth_and_neo_hookean_agrees_at_small_load(bl
         solve_neo_hookean(block, _press(block), mat)
 
 
+def test_neo_hookean_truth_reaches_the_declared_depth(block):
+    """The dead load scaled to the linear depth is not the depth the neo-Hookean truth
+    reaches (here 10 % short; on phantom 1 a lobe went 116 mm for a declared 45): the truth
+    scales its tool load until its own patch centre is at the declared depth."""
+    from navapp.simulation.truth import _free_dofs, solve_hyperelastic, tool_force
+
+    mat = Material(E=5000.0, nu=0.45)
+    load = _press(block, 10.0, ToolLoad.PRESSURE)
+    nodes, _ = tool_patch(block, load.tool)
+    centre = nodes[np.argmin(np.linalg.norm(block.nodes[nodes] - [30.0, 30.0, 20.0], axis=1))]
+    seen = []
+    nh = solve_neo_hookean(block, load, mat, reached=seen.append)
+    assert -nh[centre, 1] == pytest.approx(10.0, rel=0.01)
+    assert seen[-1] == 1.0 and all(b > a for a, b in zip(seen, seen[1:], strict=False))
+    at_linear_load = solve_hyperelastic(block.nodes, block.tets, tool_force(block, load, mat),
+                                        _free_dofs(block, load), mat)
+    assert abs(-at_linear_load[centre, 1] - 10.0) > 0.05 * 10.0
+
+
 def test_tool_scene_keys_are_checked():
     base = {"anatomy": {"phantom": 0}, "deformation": {"gravity": False, "supports": "bare_area"},
             "tool": {"site": "anterior", "at": [0.0, 60.0, 0.0], "radius_mm": 15.0, "depth_mm": 30.0}}
