@@ -140,6 +140,14 @@ def test_newton_converges_quadratically(coarse_mesh):
     assert all(b < 10 * a ** 2 for a, b in zip(tail, tail[1:], strict=False))
 
 
+def test_progress_follows_the_converged_load(coarse_mesh):
+    """The simulator's bar moves with each converged increment, up to the whole load."""
+    seen = []
+    solve_neo_hookean(coarse_mesh, Loading(gravity=4.0), MAT, steps=4, reached=seen.append)
+    assert seen[-1] == pytest.approx(1.0) and len(seen) >= 2
+    assert all(b > a for a, b in zip(seen, seen[1:], strict=False))
+
+
 def test_rigid_motion_gives_no_internal_force_and_forces_are_objective():
     mesh = cube()
     R = Rotation.from_rotvec([0.4, -1.1, 0.7]).as_matrix()  # a 75° rotation: far from infinitesimal

@@ -80,11 +80,11 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
     if scene.transpose_from is not None:
         u, transposed = transposed_truth(scene, preop, truth_mesh, ledger, cache_root, reference)
     else:
-        with progress.stage("ground truth" + (" (neo-Hookean, Newton)" if scene.large else " (linear)")):
-            if scene.large:
-                ledger.mark("nonlinear_solve")
-                u = solve_neo_hookean(truth_mesh, loading, material)
-            else:
+        if scene.large:
+            ledger.mark("nonlinear_solve")
+            u = newton_with_progress("ground truth (neo-Hookean, Newton): load", truth_mesh, loading, material)
+        else:
+            with progress.stage("ground truth (linear)"):
                 ledger.mark("linear_solve")
                 u = solve_linear(truth_mesh, loading, material)
     t_truth = time.perf_counter() - t0
@@ -229,6 +229,14 @@ def _check_data(scene: Scene, intraop: dict):
     fix = "lower the dropout fraction" if drop else "add data (stylus.coverage, stylus.points, ius.planes)"
     raise InputError(f"the scene leaves {n} intraoperative data point{'s' if n != 1 else ''}{cause}: a case needs "
                      f"at least {MIN_DATA_POINTS} to register; {fix}", scene.source or scene.name)
+
+
+def newton_with_progress(desc, mesh, loading, material, **kw):
+    """``solve_neo_hookean`` behind a bar of the load applied so far, with elapsed time and an
+    estimate of the rest (from the rate so far: increments are cut where the organ softens,
+    so the estimate is rough, but a solve of many minutes is no longer a bare clock)."""
+    with progress.work(desc, 1000) as bar:
+        return solve_neo_hookean(mesh, loading, material, reached=lambda t: bar.to(round(1000 * t)), **kw)
 
 
 def scene_loading(scene: Scene, mesh=None) -> tuple[Loading, Material]:
