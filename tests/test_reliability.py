@@ -7,6 +7,7 @@ import json
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -86,6 +87,24 @@ def test_a_second_study_appending_to_the_same_results_stops_at_once(tmp_path, ca
     from navapp.outputs import _held
 
     assert not _held
+
+
+def test_the_loads_report_folder_is_made_or_refused_before_any_work(tmp_path, capsys, monkeypatch):
+    """`study loads --report` to a folder not yet made ran the whole study and then stopped on
+    a FileNotFoundError traceback; to a file, the same. Now it is made first, or refused in one
+    line before any case is read."""
+    from navapp.evaluation import loads
+
+    ran = []
+    monkeypatch.setattr(loads, "run_loads", lambda *a: ran.append(a) or 0)
+    monkeypatch.setattr(loads, "write_report", lambda results, out: Path(out) / "loads.md")
+    a_file = tmp_path / "a-file"
+    a_file.write_text("x")
+    err = _one_line_error(capsys, main(["study", "loads", "--cases", str(tmp_path), "--report", str(a_file)]))
+    assert "a-file: --report: not a folder" in err and not ran
+    new = tmp_path / "not" / "yet"
+    assert main(["--quiet", "study", "loads", "--cases", str(tmp_path), "--report", str(new)]) == 0
+    assert new.is_dir() and len(ran) == 1
 
 
 def test_a_loads_results_file_with_a_row_written_twice_is_refused(tmp_path):
