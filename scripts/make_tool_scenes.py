@@ -8,7 +8,7 @@
 Each liver gets the same eight kinds of case; only where the tool presses and where the
 data lie are drawn (seeded) from that liver's own surface, so the scenes are reproducible
 and the draw is written into each file. The kinds vary what navapp's other scenes never
-did: the load (a tool alone, no gravity; a prescribed dent or a pressure that swings the lobe),
+did: the load (a tool alone, no gravity; a prescribed dent or a pressure that bends the lobe),
 its footprint (10–25 mm radius) and depth (20–60 mm), linear and neo-Hookean truth, three
 kinds of support, partial surface data that
 cover the indentation or miss it, and data pre-aligned or in an offset tracker frame.
