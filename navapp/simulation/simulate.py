@@ -82,7 +82,7 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
     else:
         if scene.large:
             ledger.mark("nonlinear_solve")
-            u = newton_with_progress("ground truth (neo-Hookean, Newton): load", truth_mesh, loading, material)
+            u = newton_with_progress("ground truth (neo-Hookean, Newton)", truth_mesh, loading, material)
         else:
             with progress.stage("ground truth (linear)"):
                 ledger.mark("linear_solve")
@@ -232,9 +232,10 @@ def _check_data(scene: Scene, intraop: dict):
 
 
 def newton_with_progress(desc, mesh, loading, material, **kw):
-    """``solve_neo_hookean`` behind a bar of the load applied so far, with elapsed time and an
-    estimate of the rest (from the rate so far: increments are cut where the organ softens,
-    so the estimate is rough, but a solve of many minutes is no longer a bare clock)."""
+    """``solve_neo_hookean`` behind a bar of the way done (the load applied, or with a pressure
+    tool the fraction of its depth reached), elapsed time and an estimate of the rest, from
+    the rate so far: rough, as increments are cut where the organ softens and the last
+    stretch to the depth is a search, but a solve of many minutes is no longer a bare clock."""
     with progress.work(desc, 1000) as bar:
         return solve_neo_hookean(mesh, loading, material, reached=lambda t: bar.to(round(1000 * t)), **kw)
 
