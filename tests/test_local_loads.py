@@ -102,6 +102,22 @@ def test_neo_hookean_truth_reaches_the_declared_depth(block):
     assert abs(-at_linear_load[centre, 1] - 10.0) > 0.05 * 10.0
 
 
+def test_with_gravity_the_tool_adds_its_depth_as_in_the_linear_truth(block):
+    """The depth is the tool's own push, beyond where the body loads left the patch: as the
+    linear truth's superposition has it (the total would stop the tool short by the sag)."""
+    mat = Material(E=5000.0, nu=0.45)
+    sag = Loading(gravity=9.81, supports=Supports.POSTERIOR)
+    load = Loading(gravity=9.81, supports=Supports.POSTERIOR, tool=_press(block, 4.0, ToolLoad.PRESSURE).tool)
+    nodes, _ = tool_patch(block, load.tool)
+    centre = nodes[np.argmin(np.linalg.norm(block.nodes[nodes] - [30.0, 30.0, 20.0], axis=1))]
+    lin = solve_linear(block, load, mat) - solve_linear(block, sag, mat)
+    assert -lin[centre, 1] == pytest.approx(4.0, rel=1e-6)
+    below = solve_neo_hookean(block, sag, mat)
+    assert -below[centre, 1] > 0.5  # the sag is not negligible beside 1 % of 4 mm
+    nh = solve_neo_hookean(block, load, mat) - below
+    assert -nh[centre, 1] == pytest.approx(4.0, rel=0.01)
+
+
 def test_tool_scene_keys_are_checked():
     base = {"anatomy": {"phantom": 0}, "deformation": {"gravity": False, "supports": "bare_area"},
             "tool": {"site": "anterior", "at": [0.0, 60.0, 0.0], "radius_mm": 15.0, "depth_mm": 30.0}}

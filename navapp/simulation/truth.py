@@ -306,8 +306,9 @@ def solve_neo_hookean(mesh: TetMesh, loading: Loading, material: Material = Mate
     the compressible neo-Hookean model by ``solve_hyperelastic``. Returns (M, 3) mm.
 
     A pressure tool is applied after the body loads, and only as far as moves the patch
-    centre ``depth_mm`` along the push (within ``DEPTH_TOL``): a dead load scaled to the
-    linear depth moved a lobe of phantom 1 116 mm where the scene declared 45."""
+    centre ``depth_mm`` further along the push (within ``DEPTH_TOL``), as the tool alone
+    does in the linear truth: a dead load scaled to the linear depth moved a lobe of
+    phantom 1 116 mm where the scene declared 45."""
     if loading.tool is not None and loading.tool.load == ToolLoad.DISPLACEMENT:
         raise NavappError("a prescribed tool displacement needs the linear truth: use the pressure tool load")
     f_body = _body_force(mesh, loading)
@@ -323,7 +324,7 @@ def solve_neo_hookean(mesh: TetMesh, loading: Loading, material: Material = Mate
                             min_increment, report).ravel()
     return solve_hyperelastic(mesh.nodes, mesh.tets, f_tool, free, material, steps, tol, max_newton,
                               min_increment, report, reached, base=f_body, start=u0,
-                              until=(lambda u: float(u[c] @ push), tool.depth_mm))
+                              until=(lambda u: float((u[c] - u0[c]) @ push), tool.depth_mm))
 
 
 DEPTH_TOL = 0.01  # the truth's tool depth is found to 1 % of the declared one
@@ -372,8 +373,6 @@ def solve_hyperelastic(nodes, tets, f_ext, free, material: Material = Material()
     u = np.zeros(3 * len(nodes)) if start is None else start.copy()
     if not f_ext[free].any():
         return u.reshape(-1, 3)
-    if until and until[0](u) >= until[1]:  # the body loads alone already move it that far
-        return u.reshape(-1, 3)
     end = MAX_LOAD if until else 1.0
     t, dt, first = 0.0, 1.0 / steps, 1.0 / steps
     prev = None  # (load fraction, u) of the previous converged state, for the predictor
@@ -392,7 +391,7 @@ def solve_hyperelastic(nodes, tets, f_ext, free, material: Material = Material()
         if done is None:
             dt /= 2
             if dt < min_increment:
-                raise NavappError(f"neo-Hookean truth did not converge at load {t:.3f} of 1 ({failure}; "
+                raise NavappError(f"neo-Hookean truth did not converge at load fraction {t:.3f} ({failure}; "
                                   f"increment cut to {dt:.1e})")
             continue
         if until and until[0](done) >= until[1]:
@@ -418,7 +417,10 @@ def _reach(until, solve_at, lo, hi, min_increment):
     the target: regula falsi (Illinois), each trial solved from the state below it."""
     g, target = until
     glo, ghi = g(lo[1]) - target, g(hi[1]) - target
-    wlo, whi = glo, ghi  # the secant's ends, halved on a side that stays (Illinois)
+    # the secant's ends: the one a trial did not replace is halved, every trial (a variant of
+    # Illinois that halves more often than it must: a trial or two more on a smooth curve,
+    # kept because the six neo-Hookean tool truths of the study were made with it)
+    wlo, whi = glo, ghi
     for _ in range(40):
         if abs(ghi) <= DEPTH_TOL * target:
             return hi[1]
@@ -429,9 +431,10 @@ def _reach(until, solve_at, lo, hi, min_increment):
             break
         t = lo[0] + width * wlo / (wlo - whi)
         t = min(max(t, lo[0] + 0.05 * width), hi[0] - 0.05 * width)
-        done, _, _ = solve_at(t, lo[1], lo[1] + (hi[1] - lo[1]) * (t - lo[0]) / width)
+        done, _, failure = solve_at(t, lo[1], lo[1] + (hi[1] - lo[1]) * (t - lo[0]) / width)
         if done is None:
-            break
+            raise NavappError(f"neo-Hookean truth did not converge at load fraction {t:.4f} while finding the "
+                              f"tool's depth {target:g} mm ({failure})")
         gm = g(done) - target
         if gm < 0:
             lo, glo, wlo = (t, done), gm, gm
@@ -441,7 +444,8 @@ def _reach(until, solve_at, lo, hi, min_increment):
             wlo /= 2
     raise NavappError(f"the tool's pressure snaps the patch centre from {g(lo[1]):.1f} to {g(hi[1]):.1f} mm "
                       f"within a load step of {hi[0] - lo[0]:.1e}: no equilibrium reaches its depth "
-                      f"{target:g} mm; declare a shallower depth or a prescribed displacement")
+                      f"{target:g} mm; declare a shallower depth, or a prescribed displacement with the "
+                      f"linear truth (large = false)")
 
 
 def _descent_step(K, r):
