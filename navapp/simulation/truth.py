@@ -469,11 +469,11 @@ def _descent_step(K, r):
     return None, 0.0, tau
 
 
-def _newton(model: NeoHookean, f_ext, free, u, load, scale, tol, max_newton, report, base=None):
+def _newton(model: NeoHookean, f_ext, free, u, load, scale, tol, max_newton, report, base):
     """Newton with a backtracking line search at load ``base + load · f_ext``, from ``u`` (3M,).
     Returns (u, iterations, "") when converged, or (None, iterations, why) when not."""
     u = u.copy()
-    f = f_ext * load if base is None else base + f_ext * load
+    f = base + f_ext * load
 
     def potential(v):
         e = model.energy(v)
