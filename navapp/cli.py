@@ -3,6 +3,7 @@
 
 import argparse
 import json
+import os
 import sys
 import time
 import warnings
@@ -168,10 +169,27 @@ def cmd_simulate(args):
     print(json.dumps(report))
 
 
+def _check_report_folder(report: Path):
+    """Every study writes its report into ``--report`` after its work: a path that cannot be
+    that folder (a file, or under one, or where nothing may be written) is refused before any
+    work, in one line, instead of a traceback at the end. The folder itself is made by the study."""
+    report = Path(report)
+    if report.exists() and not report.is_dir():
+        raise InputError("--report: not a folder", report)
+    parent = report
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise InputError(f"--report: {parent} is not a folder", report)
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise InputError(f"--report: {parent} cannot be written to", report)
+
+
 def cmd_study(args):
     from .evaluation.report import write_report
     from .evaluation.table2 import run_table2
 
+    _check_report_folder(args.report)
     if args.scheduler:  # before any work: refused by the studies that run locally, checked by the others
         if args.what not in DASK_STUDIES:
             raise NavappError(f"--scheduler: study {args.what} runs on this machine only; --scheduler is for "

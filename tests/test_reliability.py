@@ -105,6 +105,10 @@ def test_the_loads_report_folder_is_made_or_refused_before_any_work(tmp_path, ca
     new = tmp_path / "not" / "yet"
     assert main(["--quiet", "study", "loads", "--cases", str(tmp_path), "--report", str(new)]) == 0
     assert new.is_dir() and len(ran) == 1
+    # the check is the studies' own, not the loads study's: table2 under a file stops at once too
+    err = _one_line_error(capsys, main(["study", "table2", "--cases", str(tmp_path / "nowhere"),
+                                        "--report", str(a_file / "sub")]))
+    assert "--report:" in err and "is not a folder" in err
 
 
 def test_a_loads_results_file_with_a_row_written_twice_is_refused(tmp_path):
