@@ -395,7 +395,7 @@ def solve_hyperelastic(nodes, tets, f_ext, free, material: Material = Material()
                                   f"increment cut to {dt:.1e})")
             continue
         if until and until[0](done) >= until[1]:
-            u = _reach(until, solve_at, (t, u), (t + dt, done), min_increment)
+            u = _reach(until, solve_at, (t, u), (t + dt, done), min_increment, reached)
             if reached:
                 reached(1.0)
             return u.reshape(-1, 3)
@@ -411,17 +411,24 @@ def solve_hyperelastic(nodes, tets, f_ext, free, material: Material = Material()
     return u.reshape(-1, 3)
 
 
-def _reach(until, solve_at, lo, hi, min_increment):
+def _reach(until, solve_at, lo, hi, min_increment, reached=None):
     """The converged state between load fractions ``lo`` and ``hi`` (each ``(t, u)``, the
     monitor below and at or above its target) where the monitor is within ``DEPTH_TOL`` of
-    the target: regula falsi (Illinois), each trial solved from the state below it."""
+    the target: regula falsi (Illinois), each trial solved from the state below it.
+    ``reached`` sees 1 − (the bracket's smaller miss) / target after every trial: the search
+    can take many minutes, and a bar held at the last increment's figure looked stuck."""
     g, target = until
     glo, ghi = g(lo[1]) - target, g(hi[1]) - target
+    shown = 1.0 - abs(glo) / target  # what the last increment reported
     # the secant's ends: the one a trial did not replace is halved, every trial (a variant of
     # Illinois that halves more often than it must: a trial or two more on a smooth curve,
     # kept because the six neo-Hookean tool truths of the study were made with it)
     wlo, whi = glo, ghi
     for _ in range(40):
+        closer = 1.0 - min(abs(glo), abs(ghi)) / target
+        if reached and shown < closer < 1.0:
+            reached(closer)
+            shown = closer
         if abs(ghi) <= DEPTH_TOL * target:
             return hi[1]
         if abs(glo) <= DEPTH_TOL * target:
