@@ -50,7 +50,7 @@ class Calibration:
     b: float = 0.0038633  # mm per mm of distance to the data
     c: float = 5.1995  # per mm of σ
     e: float = 0.00027235  # per mm of m (× d)
-    lower: float = 0.14035
+    lower: float = 0.12739
     upper: float = 2.8245
     coverage: float = 0.9
     fitted_on: str = ("lap0-L+lap0-N+lap0-R+phantom0-L+phantom0-N+phantom0-R; "
