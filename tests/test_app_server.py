@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from conftest import BUSY_WAIT_S, start_app, stop_app
 
-from navapp.app.state import RunKind
+from navapp.app.state import CARRIED, RunKind
+from navapp.registration.uncertainty import OrganError
 
 SCENE = {"name": "apptest", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
          "stylus": {"coverage": 0.2}, "ius": {"planes": 2}}
@@ -294,6 +295,34 @@ def test_warm_rerun_sweep_and_export(app):
     assert (out / "registered_liver.vtk").exists() and (out / "registered_portal.ply").exists()
     assert (out / "data_anterior.csv").exists()
 
+
+def test_a_warm_start_keeps_the_last_full_checks_warnings(app):
+    """A warm start repeats neither the cross-validation nor the predicted error over the
+    organ. Their warnings from the fresh fit it continues from stay on its targets and in its
+    row, said to be from then; before, they vanished (the demo's tumour2 line did, after
+    "Register with ultrasound") as if the data now determined the answer."""
+    app.stylus.collect_now()
+    assert app.runs.start(RunKind.ALL) is None
+    wait_idle(app)
+    fresh = app.core.result.checked
+    assert fresh is app.core.last_reg and fresh.support is not None and fresh.deformed
+    # the fresh checks, made to fail: every held-out block unsupported, the organ over the margin
+    for block in fresh.support.blocks:
+        block.deformable_mm = block.rigid_mm + 1.0
+    fresh.organ = OrganError(mean_mm=50.0, nodes=1500)
+    try:
+        assert app.runs.start(RunKind.WARM) is None
+        wait_idle(app)
+        warm = app.core.result
+        assert warm.checked is fresh and app.core.last_reg is not fresh and app.core.last_reg.support is None
+        near = [b for b in warm.target_bands if "not predicted better" in (b.warning or "")]
+        assert near and all(CARRIED in b.warning for b in near)
+        row = app.core.session.log[-1].warning or ""
+        assert "oncological margin" in row and CARRIED in row
+    finally:
+        assert app.runs.start(RunKind.ALL) is None  # a fresh fit: its own checks again
+        wait_idle(app)
+    assert app.core.result.checked is app.core.last_reg
 
 def test_predicted_error_and_the_suggested_next_plane(app):
     """Issue 12 in the viewer: a deformable result carries the error predicted without the

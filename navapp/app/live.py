@@ -43,7 +43,7 @@ from .core import Core
 from .imaging import LIVE_PLANE_BASE, Imaging
 from .shown import Shown
 from .slicer import Slicer
-from .state import Action, Change, ClientState, RegisteredState, RunEntry, RunKind, Undone
+from .state import Action, Change, ClientState, RegisteredState, RunEntry, RunKind, Undone, checked_by
 from .worker import viewer_options
 
 PUMP_HZ = 20.0  # status refresh and digitiser collection; tip and frames go out as they arrive
@@ -418,9 +418,11 @@ class Live:
             return
         self._shown = now
         err = shown.node_error(reg.rigid, beta)
-        predicted = shown.predict(reg) if final else (None, [])  # ~0.1 s: not on every frame
+        checked = checked_by(core.result, reg, warm=True)
+        predicted = shown.predict(reg, checked) if final else (None, [])  # ~0.1 s: not on every frame
         state = RegisteredState(RunKind.LIVE.label, reg.rigid, beta, err, *predicted,
-                                data_model_frame=reg.data_model_frame, pose_warning=pose_warning(reg))
+                                data_model_frame=reg.data_model_frame, pose_warning=pose_warning(reg),
+                                checked=checked)
         flipped = (core.result.pose_warning if core.result is not None else None) != state.pose_warning
         with core.lock:
             core.result, core.last_reg = state, reg
@@ -430,7 +432,8 @@ class Live:
                 session = core.need_session()
                 session.result = state.to_json()
                 points = int(sum(len(v) for v in core.data().values()))
-                entry = RunEntry.of(RunKind.LIVE, reg, points, sum(reg.seconds.values()), err, live=summary)
+                entry = RunEntry.of(RunKind.LIVE, reg, points, sum(reg.seconds.values()), err, live=summary,
+                                    checked=checked)
                 entry.targets_mm = shown.target_errors(reg.rigid, beta)
                 session.log.append(entry)
                 core.shown_runs[len(session.log) - 1] = (state, reg, [])

@@ -26,7 +26,7 @@ from .imaging import FREE_PLANE_BASE, LIVE_PLANE_BASE
 from .palette import feature_words
 from .shown import Shown
 from .slicer import Slicer
-from .state import Change, RegisteredState, Run, RunEntry, RunKind, WorstPoint
+from .state import Change, RegisteredState, Run, RunEntry, RunKind, WorstPoint, checked_by
 from .worker import Update, cancelled, viewer_options
 
 MIN_POINTS = 3  # fewer data points than this fix nothing
@@ -135,12 +135,15 @@ class Runs:
         # the answer: the rigid pose alone where the data do not support the deformation
         beta = reg.libr.beta if reg.libr is not None and reg.deformed else None
         err = None if stopped else shown.node_error(reg.rigid, beta)
-        entry = RunEntry.of(run.kind, reg, run.points, time.monotonic() - run.t0, err, run.streamed, run.trace)
+        checked = checked_by(core.result, reg, warm=run.kind is RunKind.WARM)
+        entry = RunEntry.of(run.kind, reg, run.points, time.monotonic() - run.t0, err, run.streamed, run.trace,
+                            checked=checked)
         worst: list[WorstPoint] = []
         if not stopped:
             entry.targets_mm = shown.target_errors(reg.rigid, beta)
-            result = RegisteredState(run.kind.label, reg.rigid, beta, err, *shown.predict(reg),
-                                     data_model_frame=reg.data_model_frame, pose_warning=pose_warning(reg))
+            result = RegisteredState(run.kind.label, reg.rigid, beta, err, *shown.predict(reg, checked),
+                                     data_model_frame=reg.data_model_frame, pose_warning=pose_warning(reg),
+                                     checked=checked)
             worst = worst_points(reg, run.data, run.origins, viewer_options().weights)
             with core.lock:
                 core.result, core.last_reg, core.worst = result, reg, worst
@@ -307,3 +310,4 @@ def worst_points(reg: Registration, data: dict, origins: dict, weights: Weights,
         if len(out) == n:
             break
     return out
+

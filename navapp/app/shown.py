@@ -17,10 +17,11 @@ from ..registration.libr import LibrResult
 from ..registration.model import deform
 from ..registration.pipeline import Registration
 from ..registration.rigid import RigidResult
+from ..registration.support import SupportOptions, TargetSupport, target_support
 from ..registration.targets import registered_targets, target_interpolation
 from .core import Core
 from .slicer import Slicer
-from .state import ClientState, RegisteredState, StateGeometry, TargetBand
+from .state import CARRIED, ClientState, RegisteredState, StateGeometry, TargetBand
 from .worker import viewer_options
 
 IN_IMAGE_MM = 0.05  # a target this close to the image plane is cut by it
@@ -67,11 +68,13 @@ class Shown:
         d = np.linalg.norm(self._centre_B @ (self.node_positions(rigid, beta) - truth), axis=1)
         return {t.name: round(float(e), 3) for t, e in zip(targets, d, strict=True)}
 
-    def predict(self, reg: Registration) -> tuple[np.ndarray | None, list[TargetBand]]:
+    def predict(self, reg: Registration, checked: Registration | None = None) -> tuple[np.ndarray | None,
+                                                                                        list[TargetBand]]:
         """The predicted error without the truth (``registration.uncertainty``): (S,) at the
         surface nodes, and a ``TargetBand`` per target; (None, []) for a rigid result or
-        when it cannot be had (too few data)."""
-        from ..registration.support import target_support
+        when it cannot be had (too few data). ``checked``: the fresh registration a warm one
+        continues from (``RegisteredState.checked``): its held-out blocks' verdicts stand for
+        the warm result's, said to be from then, as a warm start does not cross-validate."""
         from ..registration.uncertainty import estimate_error
 
         model, _ = self.core.need_model()
@@ -80,7 +83,10 @@ class Shown:
         preop = self.core.preop
         centres = {t.name: t.centre for t in preop.targets}
         # the data and the targets' preoperative centres are both in the model frame
-        support = {s.name: s for s in target_support(reg.support, centres, reg.data_model_frame)}
+        verdicts, carried = reg.support, False
+        if verdicts is None and checked is not None and checked is not reg and checked.support is not None:
+            verdicts, carried = checked.support, True
+        support = {s.name: s for s in target_support(verdicts, centres, reg.data_model_frame)}
         if not reg.deformed:  # the rigid answer: no prediction, the reason beside each target
             why = reg.support.warning if reg.support is not None else None
             short = why.split(":")[0] if why else None
@@ -94,7 +100,7 @@ class Shown:
             bands = []
             if preop.targets:
                 est = estimate_error(reg, points=np.array([t.centre for t in preop.targets]), weights=weights)
-                bands = [TargetBand(t.name, float(e), float(lo), float(hi), support[t.name].warning)
+                bands = [TargetBand(t.name, float(e), float(lo), float(hi), _said(support[t.name], carried))
                          for t, e, lo, hi in zip(preop.targets, est.predicted_mm, est.lower_mm, est.upper_mm,
                                                  strict=True)]
             return surface, bands
@@ -205,3 +211,11 @@ class Shown:
         core.result = RegisteredState(d.get("run", "restored"), rigid, beta, self.node_error(rigid, beta), *predicted,
                                       data_model_frame=inv, pose_warning=doubt)
         self.slicer.send(reg)  # queued: a Slicer connecting later receives the result on show
+
+
+def _said(target: TargetSupport, carried: bool) -> str | None:
+    """A target's warning; one that rests on a carried block verdict says it is from then."""
+    line = target.warning
+    if line and carried and target.block_supported is False and target.nearest_data_mm <= SupportOptions.far_mm:
+        return f"{line} ({CARRIED})"
+    return line

@@ -134,6 +134,11 @@ class RegisteredState:
     # why its pose is not to be believed (``coverage.pose_warning``: undetermined, too little of
     # the liver covered), shown in red; a warm start or live re-registration never continues from it
     pose_warning: str | None = field(default=None, kw_only=True)
+    # the fresh registration whose checks (the cross-validation, the predicted error over the
+    # organ) this result's warnings come from: itself when fresh; for a warm start or a live
+    # frame, which repeat neither check, the one it continues from. Not saved: after a
+    # restart a warm start becomes a fresh fit, which checks again
+    checked: Registration | None = field(default=None, kw_only=True, repr=False, compare=False)
 
     def to_json(self) -> dict:
         # the prediction is kept too: it was made from the data of the fit, which for a live
@@ -145,6 +150,28 @@ class RegisteredState:
                 "target_bands": [b.to_json() for b in self.target_bands], "pose_warning": self.pose_warning,
                 "data_model_frame": None if self.data_model_frame is None else
                 {k: np.round(np.asarray(v, float), 4).tolist() for k, v in self.data_model_frame.items()}}
+
+
+CARRIED = "at the last full registration (a warm start or a live frame does not repeat this check; Re-register does)"
+
+
+def carried_warnings(reg: Registration, checked: Registration | None) -> list[str]:
+    """The warning of the predicted error over the organ made at ``checked``, for ``reg``, a warm
+    re-registration from it (which skips that check): kept, and said to be from then. Without
+    it the line vanished from a warm start's row as if the data now determined the answer."""
+    if checked is None or checked is reg or reg.organ is not None or not reg.deformed:
+        return []
+    line = checked.organ.warning if checked.organ is not None and checked.deformed else None
+    return [f"{line} ({CARRIED})"] if line else []
+
+
+def checked_by(previous: RegisteredState | None, reg: Registration, warm: bool) -> Registration | None:
+    """The fresh registration whose checks stand for ``reg``'s (``RegisteredState.checked``):
+    ``reg`` itself when it was fitted fresh; for a warm start (or a live frame), the one the
+    result it continued from carried."""
+    if not warm:
+        return reg if reg.libr is not None else None
+    return previous.checked if previous is not None else None
 
 
 @dataclass(frozen=True)
@@ -266,14 +293,15 @@ class RunEntry:
 
     @staticmethod
     def of(kind: RunKind, reg: Registration, points: int, seconds: float, error: np.ndarray | None = None,
-           streamed: int = 0, trace=(), live: str | None = None) -> RunEntry:
-        """The row of a finished (or cancelled) registration; ``error`` (M,) its true error."""
+           streamed: int = 0, trace=(), live: str | None = None, checked: Registration | None = None) -> RunEntry:
+        """The row of a finished (or cancelled) registration; ``error`` (M,) its true error;
+        ``checked``: the fresh registration whose checks a warm one carries (``carried_warnings``)."""
         lm = reg.libr
         stopped = cancelled(reg)
         e = RunEntry(kind.label, int(points), round(float(seconds), 3), lm.iterations if lm else 0,
                      lm.stop_reason if lm else "rigid", streamed, stopped,
                      [[round(t, 3), round(v, 3)] for t, v in trace],
-                     "; ".join(reg.warnings) or None)
+                     "; ".join(reg.warnings + carried_warnings(reg, checked)) or None)
         if error is not None and not stopped:
             e.error_mean_mm, e.error_max_mm = round(float(error.mean()), 3), round(float(error.max()), 3)
         e.pose_only = kind.deformable and not stopped and lm is not None and not reg.deformed
