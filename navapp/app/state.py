@@ -152,7 +152,7 @@ class RegisteredState:
                 {k: np.round(np.asarray(v, float), 4).tolist() for k, v in self.data_model_frame.items()}}
 
 
-CARRIED = "at the last full registration (a warm start or a live frame does not repeat this check; Re-register does)"
+CARRIED = "at the last full registration — a warm start or a live frame does not repeat this check; Re-register does"
 
 
 def carried_warnings(reg: Registration, checked: Registration | None) -> list[str]:
