@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from conftest import BUSY_WAIT_S, start_app, stop_app
 
+from navapp.app.panels.registration import BUTTONS
 from navapp.app.state import CARRIED, RunKind
 from navapp.registration.uncertainty import OrganError
 
@@ -317,6 +318,8 @@ def test_a_warm_start_keeps_the_last_full_checks_warnings(app):
         assert warm.checked is fresh and app.core.last_reg is not fresh and app.core.last_reg.support is None
         near = [b for b in warm.target_bands if "not predicted better" in (b.warning or "")]
         assert near and all(CARRIED in b.warning for b in near)
+        assert BUTTONS[RunKind.ALL] in CARRIED and BUTTONS[RunKind.WARM] not in CARRIED  # the button that checks
+        assert all(b.text(short=True).endswith("(last full registration)") for b in near)  # the 2D view's
         row = app.core.session.log[-1].warning or ""
         assert "oncological margin" in row and CARRIED in row
     finally:

@@ -154,9 +154,10 @@ class Shown:
     def _which(self) -> str:
         return "registered" if (self.core.result is not None or self.core.run is not None) else "preoperative"
 
-    def target_plane_lines(self, index: int) -> list[str]:
+    def target_plane_lines(self, index: int, short: bool = False) -> list[str]:
         """One line per target: its distance from this plane's image (0: the image cuts it)
-        and, for a result on show, its predicted error (and the result's warning for it)."""
+        and, for a result on show, its predicted error (and the result's warning for it;
+        ``short``: its first clause, ``TargetBand.text``)."""
         core = self.core
         targets = self.geometry().targets
         if not targets or index not in core.planes or core.sd is None:
@@ -170,7 +171,7 @@ class Shown:
             band = bands.get(t.name) if core.run is None else None
             out.append(f"**{t.name}** ({self._which()}): " +
                        ("in this image" if d <= IN_IMAGE_MM else f"{d:.1f} mm from this image") +
-                       (f"; {band.text()}" if band is not None else ""))
+                       (f"; {band.text(short)}" if band is not None else ""))
         return out
 
     def target_distance_lines(self, tip) -> list[str]:

@@ -152,7 +152,10 @@ class RegisteredState:
                 {k: np.round(np.asarray(v, float), 4).tolist() for k, v in self.data_model_frame.items()}}
 
 
-CARRIED = "at the last full registration — a warm start or a live frame does not repeat this check; Re-register does"
+# the button that fits fresh is named (panels.registration.BUTTONS[RunKind.ALL]): "Re-register (warm
+# start)" is itself a warm start, which does not repeat the check
+CARRIED = ("at the last full registration — a warm start or a live frame does not repeat this check; "
+           "\"Deformable (all data)\" does")
 
 
 def carried_warnings(reg: Registration, checked: Registration | None) -> list[str]:
@@ -185,11 +188,16 @@ class TargetBand:
     upper_mm: float
     warning: str | None = None  # what the registration result warns about this target, shown after the band
 
-    def text(self) -> str:
+    def text(self, short: bool = False) -> str:
+        """The band and the warning; ``short``: the warning's first clause only (the 2D view,
+        whose frame clipped the whole line), with "(last full registration)" if carried."""
+        warning = self.warning
+        if warning and short:
+            warning = warning.split(":")[0] + (" (last full registration)" if CARRIED in warning else "")
         if not np.isfinite(self.predicted_mm):  # a rigid answer: no prediction, only its warning
-            return f"⚠ {self.warning}" if self.warning else ""
+            return f"⚠ {warning}" if warning else ""
         band = f"predicted error {self.predicted_mm:.1f} mm ({self.lower_mm:.1f}–{self.upper_mm:.1f})"
-        return band if not self.warning else f"{band} ⚠ {self.warning}"
+        return band if not warning else f"{band} ⚠ {warning}"
 
     def to_json(self) -> list:
         return [self.name, self.predicted_mm, self.lower_mm, self.upper_mm] + ([self.warning] if self.warning else [])

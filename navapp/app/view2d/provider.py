@@ -78,7 +78,7 @@ class View2D:
             out["drawing"] = {"feature": drawing.feature, "vertices": [list(v) for v in drawing.vertices]}
         out["legend"] = [{"name": o["name"], "colour": o["colour"]} for o in out["overlays"]] + \
             [{"name": f"drawn {n}", "colour": DRAWN_COLOURS[f]} for n, f in DRAWABLE.items()]
-        out["targets"] = [line.replace("**", "") for line in self.shown.target_plane_lines(index)]
+        out["targets"] = [line.replace("**", "") for line in self.shown.target_plane_lines(index, short=True)]
         return out
 
     def view_known(self, token: str) -> bool:
