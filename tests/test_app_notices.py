@@ -57,3 +57,22 @@ def test_the_next_red_box_of_a_kind_replaces_the_last():
     assert [(b.title, b.body) for b in shown] == [("Registration: check the fit", "run 2"),
                                                    ("On show", "That run's result is not kept"),
                                                    ("Registration", "Cancelled: the previous result is kept.")]
+
+
+def test_the_last_run_and_the_result_on_show_read_the_same_mean_error():
+    """The same result read "mean error 3.92 mm" in "Last" and "3.91" in "On show" (walking the
+    demo): the run table keeps 0.001 mm, and the one line formatted the unrounded mean."""
+    import numpy as np
+
+    from navapp.registration.rigid import RigidResult
+
+    err = np.array([3.91496, 3.91496])
+    rigid = RigidResult(np.eye(3), np.zeros(3), 0, 0.0)
+    entry = RunEntry(RunKind.ALL.label, 100, 1.0, 3, "converged", 0, False, [], None)
+    entry.error_mean_mm, entry.error_max_mm = round(float(err.mean()), 3), round(float(err.max()), 3)
+    result = RegisteredState(entry.run, rigid, np.zeros(3), err)
+    core = types.SimpleNamespace(session=types.SimpleNamespace(log=[entry]), result=result)
+    panel = types.SimpleNamespace(core=core, md=types.SimpleNamespace(content=""))
+    RegistrationPanel._summary(panel)
+    assert "mean error 3.92 mm, max" in panel.md.content and "(mean error 3.92 mm)" in panel.md.content, \
+        panel.md.content

@@ -169,8 +169,10 @@ class RegistrationPanel:
         if res is not None:
             err = res.node_error_mm
             pose_only = res.beta is None and RunKind.from_label(res.run) not in (RunKind.RIGID, RunKind.RESTORED)
+            # the run table's figure is kept to 0.001 mm (``RunEntry.of``): formatted from the same
+            # rounding, the same result read 3.92 in "Last" and 3.91 here
             head += (f"  \nOn show: {res.run}{POSE_ONLY if pose_only else ''}"
-                     + (f" (mean error {err.mean():.2f} mm)" if err is not None else ""))
+                     + (f" (mean error {round(float(err.mean()), 3):.2f} mm)" if err is not None else ""))
             if res.predicted_mm is not None:
                 head += (f"  \nPredicted error (no truth used): mean {res.predicted_mm.mean():.1f} mm over the "
                          f"liver surface")
