@@ -310,4 +310,3 @@ def worst_points(reg: Registration, data: dict, origins: dict, weights: Weights,
         if len(out) == n:
             break
     return out
-

@@ -170,9 +170,9 @@ def carried_warnings(reg: Registration, checked: Registration | None) -> list[st
 
 def checked_by(previous: RegisteredState | None, reg: Registration, warm: bool) -> Registration | None:
     """The fresh registration whose checks stand for ``reg``'s (``RegisteredState.checked``):
-    ``reg`` itself when it was fitted fresh; for a warm start (or a live frame), the one the
-    result it continued from carried."""
-    if not warm:
+    ``reg`` itself when it was fitted fresh or made the checks (a live frame that started
+    afresh); for a warm start or a live frame, the one the result it continued from carried."""
+    if not warm or reg.support is not None or reg.organ is not None:
         return reg if reg.libr is not None else None
     return previous.checked if previous is not None else None
 
