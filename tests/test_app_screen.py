@@ -97,10 +97,43 @@ def test_the_home_view_shows_the_whole_liver_between_the_panels(size, phantoms):
     fov = np.deg2rad(75.0)  # viser's default camera
     position, target = frame(liver[::5], HOME_VIEW_MM, (0.0, 0.0, 1.0), fov, screen)
     x, y = project(liver, position, target, np.array([0.0, 0.0, 1.0]), fov, screen)
-    assert x.min() >= screen.left_px and x.max() <= w - screen.right_px, (x.min(), x.max())
+    assert x.min() >= screen.left_px and x.max() <= screen.width_px - screen.right_px, (x.min(), x.max())
     assert y.min() >= 0 and y.max() <= h
     assert x.max() - x.min() > 0.6 * screen.free_px  # and not a speck
     assert screen.free_px > 500  # the 2D view docks at 1× on a narrow window: the 3D view is no strip
+
+
+@pytest.mark.parametrize("size", [(1366, 768), (1600, 1000)])
+def test_every_view_shows_the_whole_liver_between_the_panels(size, phantoms):
+    """The plane view ("Show plane 1") looked at the plane's centre from a fixed 330 mm:
+    mid-canvas, so at 1600 × 1000 the demo liver's far side was behind the control panel (seen
+    walking the demo). Framed like the home view, it and the standard views swung from side to
+    side (and Left/Right past the panel) until the centring was damped and the camera kept
+    outside the organ."""
+    from navapp.app.framing import Screen, dock_width, frame, plane_view, project
+    from navapp.app.panels.layers import STANDARD_VIEWS
+
+    w, h = size
+    screen = Screen(w - dock_width(w), h)
+    fov = np.deg2rad(75.0)
+    up = np.array([0.0, 0.0, 1.0])
+    # the demo's plane 1: probe face, depth axis (z) and plane normal (y), as its panel prints them
+    z, y = np.array([0.82, -0.58, -0.02]), np.array([-0.58, -0.82, 0.0])
+    z /= np.linalg.norm(z)
+    y -= (y @ z) * z
+    y /= np.linalg.norm(y)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = np.cross(y, z), y, z, (-83.7, 27.8, 8.0)
+    for phantom in phantoms:
+        liver = phantom.liver.vertices
+        views = {"plane": plane_view(T, liver[::5], fov, screen, probe_mm=(50.0, 12.0, 25.0))}
+        views.update({name: frame(liver[::5], d, up, fov, screen) for name, d in STANDARD_VIEWS.items()})
+        for name, (position, target) in views.items():
+            x, y_px = project(liver, position, target, up, fov, screen)
+            assert x.min() >= screen.left_px and x.max() <= screen.width_px - screen.right_px, (name, x.min(), x.max())
+            assert y_px.min() >= 0 and y_px.max() <= h, (name, y_px.min(), y_px.max())
+        x, y_px = project(liver, *views["plane"], up, fov, screen)
+        assert x.max() - x.min() > 0.6 * screen.free_px or y_px.max() - y_px.min() > 0.6 * h  # not a speck
 
 
 def test_the_viewer_draws_without_shadows_or_image_based_lighting(app):

@@ -18,6 +18,9 @@ CONTROL_PANEL_PX = 24 * 16 + 24  # viser's "large" control panel (24 em) and its
 DOCK_2D_PX = (610, 340)  # the 2D view docked at 2× and at 1× (its 256-pixel-wide image, the rulers, a margin)
 NARROW_PX = 1500  # below this window width the 2D view is docked at 1×
 FILL = 0.85  # the share of the free width (and of the height) the liver may take
+FRAME_ROUNDS = 12  # rounds of ``frame``'s centring and scaling
+STEP = 0.5  # the share of the centring correction taken each round
+CLEARANCE_MM = 20.0  # the camera stays this far in front of the nearest point it frames
 
 
 @dataclass(frozen=True)
@@ -72,12 +75,35 @@ def frame(points, direction, up, fov_rad: float, screen: Screen) -> tuple[np.nda
     target = (pts.min(0) + pts.max(0)) / 2
     dist = float(np.ptp(pts, axis=0).max()) / np.tan(fov_rad / 2)
     free_x = screen.left_px + screen.free_px / 2
-    for _ in range(6):
+    for _ in range(FRAME_ROUNDS):
         x, y = project(pts, target + d * dist, target, up, fov_rad, screen)
         mm_per_px = 2 * dist * np.tan(fov_rad / 2) / screen.height_px
-        # centre the organ's on-screen box on the free part, then scale it to FILL of it
-        target = target + right * ((x.max() + x.min()) / 2 - free_x) * mm_per_px \
-            - above * ((y.max() + y.min()) / 2 - screen.height_px / 2) * mm_per_px
+        # centre the organ's on-screen box on the free part (half the way each round: a full
+        # step overshot under perspective and swung from side to side on oblique views), then
+        # scale it to FILL of it, the camera kept outside the organ (points behind it projected
+        # to infinity, and the distance swung between far and inside)
+        target = target + STEP * (right * ((x.max() + x.min()) / 2 - free_x) * mm_per_px
+                                  - above * ((y.max() + y.min()) / 2 - screen.height_px / 2) * mm_per_px)
         grow = max((x.max() - x.min()) / (FILL * screen.free_px), (y.max() - y.min()) / (FILL * screen.height_px))
-        dist *= grow
+        dist = max(dist * grow, float(((pts - target) @ d).max()) + CLEARANCE_MM)
     return target + d * dist, target
+
+
+PLANE_VIEW_MM = (320.0, (0.0, 80.0, 120.0))  # from the plane's front (its y axis) and a little above
+
+
+def plane_view(probe_to_tracker, liver, fov_rad: float, screen: Screen,
+               probe_mm=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
+    """(camera position, look-at target), mm: an oblique view onto an image plane (its probe's
+    pose, (4, 4), probe → tracker, mm) from the plane's front and a little above, framed like
+    the home view: ``liver`` (N, 3) mm and the probe's body (a box ``probe_mm`` = (lateral,
+    thickness, length behind the face), mm) whole, centred in the free part of ``screen``.
+    Looking at the plane's centre from a fixed distance put it mid-canvas, and at
+    1600 × 1000 the liver's far side was behind the control panel."""
+    T = np.asarray(probe_to_tracker, float)
+    front, lift = PLANE_VIEW_MM
+    direction = T[:3, 1] * front + np.asarray(lift)
+    w, t, length = probe_mm
+    box = np.array([[sx * w / 2, sy * t / 2, -sz * length] for sx in (-1, 1) for sy in (-1, 1) for sz in (0, 1)])
+    points = np.vstack([np.asarray(liver, float), box @ T[:3, :3].T + T[:3, 3]])
+    return frame(points, direction, (0.0, 0.0, 1.0), fov_rad, screen)

@@ -7,7 +7,7 @@ import trimesh
 import viser.transforms as vtf
 
 from ...anatomy.model import VESSELS
-from ..framing import frame
+from ..framing import PLANE_VIEW_MM, frame, plane_view
 from ..motion import Tween
 from ..palette import (
     FEATURE_COLOURS,
@@ -57,6 +57,11 @@ def stylus_tool() -> trimesh.Trimesh:
     tip.apply_transform(trimesh.transformations.rotation_matrix(np.pi, [1, 0, 0]))
     tip.apply_translation([0, 0, 15.0])
     return trimesh.util.concatenate([shaft, tip])
+
+
+def probe_body_mm(probe) -> tuple[float, float, float]:
+    """The drawn probe's box, mm: its image's width and 6 mm, 12 mm thick, 25 mm behind the face."""
+    return (probe.width_px * probe.spacing_mm + 6, 12.0, 25.0)
 
 
 class LayersPanel:
@@ -138,8 +143,8 @@ class LayersPanel:
             probe = sd.probe
             self.probe = self._add("Ultrasound plane", s.add_frame("/probe", show_axes=False))
             self.probe.visible = False
-            body = trimesh.creation.box((probe.width_px * probe.spacing_mm + 6, 12.0, 25.0))
-            body.apply_translation([0, 0, -12.5])
+            body = trimesh.creation.box(probe_body_mm(probe))
+            body.apply_translation([0, 0, -probe_body_mm(probe)[2] / 2])
             s.add_mesh_simple("/probe/body", body.vertices, body.faces, color=(80, 80, 80))
             H, W, sp_ = probe.height_px, probe.width_px, probe.spacing_mm
             # image node axes (x right, y up, z out) = probe (lateral, −depth, elevation)
@@ -338,11 +343,20 @@ class LayersPanel:
         cam.look_at = target
 
     def look_at_plane(self, T):
-        """An oblique view onto a plane: from its front, a little above."""
+        """An oblique view onto a plane: from its front, a little above; framed for this tab's
+        window when it is known (``framing.plane_view``: the liver whole, between the panels)."""
         cam = self.view.client.camera
-        centre = T[:3, 3] + T[:3, 2] * 40.0
         cam.up_direction = (0.0, 0.0, 1.0)
-        cam.position = centre + T[:3, 1] * 320.0 + np.array([0.0, 80.0, 120.0])
+        screen = self.view.screen
+        if screen is not None:
+            probe = self.core.sd.probe if self.core.sd is not None else None
+            position, centre = plane_view(T, self.core.preop.liver.vertices[::5], float(cam.fov), screen,
+                                          probe_body_mm(probe) if probe is not None else (0.0, 0.0, 0.0))
+        else:
+            front, lift = PLANE_VIEW_MM
+            centre = T[:3, 3] + T[:3, 2] * 40.0
+            position = centre + T[:3, 1] * front + np.asarray(lift)
+        cam.position = position  # viser moves look_at with position, so the target is set second
         cam.look_at = centre
 
     def _render_legend(self):
