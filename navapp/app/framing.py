@@ -92,17 +92,21 @@ def frame(points, direction, up, fov_rad: float, screen: Screen) -> tuple[np.nda
 PLANE_VIEW_MM = (320.0, (0.0, 80.0, 120.0))  # from the plane's front (its y axis) and a little above
 
 
-def plane_view(probe_to_tracker, liver, fov_rad: float, screen: Screen,
+def plane_view(probe_to_tracker, liver, fov_rad: float, screen: Screen | None,
                probe_mm=(0.0, 0.0, 0.0)) -> tuple[np.ndarray, np.ndarray]:
     """(camera position, look-at target), mm: an oblique view onto an image plane (its probe's
     pose, (4, 4), probe → tracker, mm) from the plane's front and a little above, framed like
     the home view: ``liver`` (N, 3) mm and the probe's body (a box ``probe_mm`` = (lateral,
     thickness, length behind the face), mm) whole, centred in the free part of ``screen``.
     Looking at the plane's centre from a fixed distance put it mid-canvas, and at
-    1600 × 1000 the liver's far side was behind the control panel."""
+    1600 × 1000 the liver's far side was behind the control panel. Without a ``screen`` (the
+    browser has not reported its size yet), that fixed view onto the plane's centre."""
     T = np.asarray(probe_to_tracker, float)
     front, lift = PLANE_VIEW_MM
     direction = T[:3, 1] * front + np.asarray(lift)
+    if screen is None:
+        centre = T[:3, 3] + T[:3, 2] * 40.0
+        return centre + direction, centre
     w, t, length = probe_mm
     box = np.array([[sx * w / 2, sy * t / 2, -sz * length] for sx in (-1, 1) for sy in (-1, 1) for sz in (0, 1)])
     points = np.vstack([np.asarray(liver, float), box @ T[:3, :3].T + T[:3, 3]])

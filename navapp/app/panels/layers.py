@@ -7,7 +7,7 @@ import trimesh
 import viser.transforms as vtf
 
 from ...anatomy.model import VESSELS
-from ..framing import PLANE_VIEW_MM, frame, plane_view
+from ..framing import frame, plane_view
 from ..motion import Tween
 from ..palette import (
     FEATURE_COLOURS,
@@ -143,8 +143,9 @@ class LayersPanel:
             probe = sd.probe
             self.probe = self._add("Ultrasound plane", s.add_frame("/probe", show_axes=False))
             self.probe.visible = False
-            body = trimesh.creation.box(probe_body_mm(probe))
-            body.apply_translation([0, 0, -probe_body_mm(probe)[2] / 2])
+            size = probe_body_mm(probe)
+            body = trimesh.creation.box(size)
+            body.apply_translation([0, 0, -size[2] / 2])
             s.add_mesh_simple("/probe/body", body.vertices, body.faces, color=(80, 80, 80))
             H, W, sp_ = probe.height_px, probe.width_px, probe.spacing_mm
             # image node axes (x right, y up, z out) = probe (lateral, −depth, elevation)
@@ -347,15 +348,9 @@ class LayersPanel:
         window when it is known (``framing.plane_view``: the liver whole, between the panels)."""
         cam = self.view.client.camera
         cam.up_direction = (0.0, 0.0, 1.0)
-        screen = self.view.screen
-        if screen is not None:
-            probe = self.core.sd.probe if self.core.sd is not None else None
-            position, centre = plane_view(T, self.core.preop.liver.vertices[::5], float(cam.fov), screen,
-                                          probe_body_mm(probe) if probe is not None else (0.0, 0.0, 0.0))
-        else:
-            front, lift = PLANE_VIEW_MM
-            centre = T[:3, 3] + T[:3, 2] * 40.0
-            position = centre + T[:3, 1] * front + np.asarray(lift)
+        probe = self.core.sd.probe if self.core.sd is not None else None
+        position, centre = plane_view(T, self.core.preop.liver.vertices[::5], float(cam.fov), self.view.screen,
+                                      probe_body_mm(probe) if probe is not None else (0.0, 0.0, 0.0))
         cam.position = position  # viser moves look_at with position, so the target is set second
         cam.look_at = centre
 
