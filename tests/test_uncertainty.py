@@ -11,6 +11,7 @@ from navapp.evaluation.error_estimate import (
     fit_band,
     fit_calibration,
     liver_id,
+    liver_rotation,
     split_and_fit,
     table2_part,
     validate,
@@ -220,7 +221,9 @@ def test_calibration_is_fitted_on_one_liver_and_validated_on_the_others():
     cal, tables, calib, held = split_and_fit({"direct": direct, "transposed": transposed}, ["A"])
     assert {s.liver for s in calib} == {"A"} and {s.liver for s in held} == {"B", "C"}
     assert len(calib) == 8 and len(held) == 8
-    assert cal == fit_calibration(direct[:4] + transposed[:4], name=cal.fitted_on)
+    alone = fit_calibration(direct[:4] + transposed[:4], name=cal.fitted_on)
+    assert (cal.a, cal.b, cal.c, cal.e) == (alone.a, alone.b, alone.c, alone.e)
+    assert cal.lower <= alone.lower and cal.upper >= alone.upper  # widened per level, never narrowed
     assert cal.c < 4.0  # the calibration liver's scale (2.0 to 3.0), not the held-out livers' (40)
     assert set(tables) == {"direct: calibration cases (fit)", "direct: validation cases (held out)",
                            "transposed: calibration cases (fit)", "transposed: validation cases (held out)"}
@@ -293,3 +296,43 @@ def test_a_band_only_set_widens_the_band_and_leaves_the_estimate_alone():
     assert narrow["coverage"] < 0.6  # the gravity-only band misses most of the local-load errors
     # the set the band was fitted on (same nodes drawn) changes nothing
     assert fit_band(alone, [direct[:6]]) == alone
+
+
+def test_the_band_holds_the_nominal_coverage_at_every_level_of_the_calibration_liver():
+    """A level with few registrations and errors spread wider than the rest (the transposed
+    cases at CBCT: 3 registrations of 36) is outvoted when the quantiles are pooled over a
+    set's levels; the band must hold 90 % there too. Fails with the band of the quantiles
+    pooled over the set's levels (coverage 0.50 at CBCT)."""
+    rng = np.random.default_rng(13)
+    many = _liver_samples(rng, "A", 12, 1.0)
+    few = _liver_samples(rng, "A", 2, 1.0)
+    for s in few:
+        s.level = "CBCT"
+        s.err *= rng.lognormal(0.0, 0.9, len(s.err))  # the same ê, errors spread three times wider
+    pooled = fit_calibration(many + few)
+    banded = fit_band(pooled, [many + few])
+    for cal, ok in ((pooled, False), (banded, True)):
+        cover = {r["level"]: r["coverage"] for r in validate(many + few, cal)}
+        assert (min(cover[lv] for lv in ("S", "S+1", "CBCT")) >= 0.9) is ok, (cal, cover)
+    assert (banded.a, banded.b, banded.c, banded.e) == (pooled.a, pooled.b, pooled.c, pooled.e)
+    assert fit_band(banded, [many + few]) == banded  # the quantiles are over all nodes: nothing drawn at random
+
+
+def test_liver_rotation_calibrates_on_each_liver_and_judges_only_the_others():
+    """Three livers: each is the calibration liver once; its cells are the other livers'
+    (set, level) cells, with the band split_and_fit gives for that liver."""
+    rng = np.random.default_rng(14)
+    direct = [s for liver in "ABC" for s in _liver_samples(rng, liver, 4, 1.0)]
+    loads = [s for liver in "ABC" for s in _liver_samples(rng, liver, 2, 0.5)]
+    cells = liver_rotation({"direct": direct, "loads": loads}, band_only=("loads",))
+    assert list(dict.fromkeys(c.calibrated_on for c in cells)) == ["A-L", "B-L", "C-L"]
+    for name, liver in (("A-L", "A"), ("B-L", "B"), ("C-L", "C")):
+        cal, tables, _, held = split_and_fit({"direct": direct, "loads": loads}, [liver], band_only=("loads",))
+        mine = [c for c in cells if c.calibrated_on == name]
+        assert {(c.set, c.level) for c in mine} == {(s, lv) for s in ("direct", "loads") for lv in ("S", "S+1")}
+        assert all((c.lower, c.upper) == (cal.lower, cal.upper) for c in mine)
+        want = {r["level"]: r for r in tables["direct: validation cases (held out)"]}["S"]
+        got = next(c for c in mine if (c.set, c.level) == ("direct", "S"))
+        assert (got.registrations, got.coverage) == (want["registrations"], want["coverage"])
+        assert got.registrations == 4  # two livers' S registrations: 2 each
+        assert liver not in {s.liver for s in held}

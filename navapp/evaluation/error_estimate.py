@@ -13,11 +13,13 @@ alone, and the fraction of nodes whose true error lies in the band. A liver is i
 by its preoperative surface file (``liver_id``), so no liver is in both the fit and the
 validation whatever the cases are called.
 
-A set may take part in the band only (``band_only``: the local-load cases, tool*): ê's
-coefficients, which also rank the suggested next planes, are fitted on the other sets, and
-the band is widened until it holds the nominal coverage on the calibration liver's cases of
-every set (``fit_band``). The band and the tables count only registrations whose answer is
-deformable (``Registration.deformed``): the viewer shows no band for a rigid answer.
+The band is widened until it holds the nominal coverage on the calibration liver's cases
+at every level of every set (``fit_band``). A set may take part in the band only
+(``band_only``: the local-load cases, tool*): ê's coefficients, which also rank the
+suggested next planes, are fitted on the other sets. ``liver_rotation`` repeats the
+calibration with each liver in turn and judges the others. The band and the tables count
+only registrations whose answer is deformable (``Registration.deformed``): the viewer shows
+no band for a rigid answer.
 """
 
 import csv
@@ -140,20 +142,21 @@ def _band_quantiles(cal: Calibration, D, S, E, Mm, coverage) -> tuple[float, flo
     return float(lo), float(hi)
 
 
-def fit_band(cal: Calibration, sample_sets: list[list[Sample]], coverage=NOMINAL, seed=0) -> Calibration:
-    """Widen ``cal``'s band until it holds ``coverage`` of every set's samples: per set the
-    (1 ± coverage)/2 quantiles of true / ê over ``FIT_NODES`` random nodes of each
-    registration, the band [smallest lower, largest upper] (it contains each set's own
-    band, so it holds at least ``coverage`` of each). ê's coefficients are kept. Empty sets
-    are skipped."""
-    rng = np.random.default_rng(seed)
+def fit_band(cal: Calibration, sample_sets: list[list[Sample]], coverage=NOMINAL) -> Calibration:
+    """Widen ``cal``'s band until it holds ``coverage`` of every set's samples at every
+    level: per set and level the (1 ± coverage)/2 quantiles of true / ê over all the
+    registrations' nodes, the band [smallest lower, largest upper] (it contains each
+    group's own band, so it holds at least ``coverage`` of each). ê's coefficients are
+    kept; empty sets are skipped. A liver's registrations have the same nodes, so every
+    registration of a group counts the same."""
     lo, hi = cal.lower, cal.upper
     for samples in sample_sets:
-        if not samples:
-            continue
-        D, S, E, Mm, _ = _fit_rows(samples, rng)
-        q_lo, q_hi = _band_quantiles(cal, D, S, E, Mm, coverage)
-        lo, hi = min(lo, q_lo), max(hi, q_hi)
+        for level in dict.fromkeys(s.level for s in samples):
+            group = [s for s in samples if s.level == level]
+            D, S, E = (np.concatenate([getattr(s, a) for s in group]) for a in ("d", "sigma", "err"))
+            Mm = np.concatenate([np.full(len(s.d), np.median(s.d)) for s in group])
+            q_lo, q_hi = _band_quantiles(cal, D, S, E, Mm, coverage)
+            lo, hi = min(lo, q_lo), max(hi, q_hi)
     return replace(cal, lower=lo, upper=hi)
 
 
@@ -200,7 +203,8 @@ def split_and_fit(collected: dict, calibration_livers, coverage=NOMINAL,
     collected : {set label: [Sample]}
     calibration_livers : the livers to fit on; every other liver validates.
     band_only : labels of sets ê's coefficients are not fitted on; the band is widened
-        (``fit_band``) to hold ``coverage`` on their calibration-liver samples too.
+        to hold ``coverage`` on their calibration-liver samples too, as on every set's
+        (``fit_band``: at every level of every set).
 
     Only samples whose answer is deformable (``Sample.deformed``) are fitted and judged.
 
@@ -220,8 +224,8 @@ def split_and_fit(collected: dict, calibration_livers, coverage=NOMINAL,
     if {s.liver for s in calib} & {s.liver for s in held}:  # the split above makes this impossible; keep it so
         raise NavappError("error-estimate: a liver is in both the calibration and the validation cases")
     cal = fit_calibration(fit_on, coverage=coverage, name="+".join(sorted({s.case for s in fit_on})))
+    cal = fit_band(cal, [[s for s in v if s.liver in livers] for v in shown.values()], coverage)
     if band_only:
-        cal = fit_band(cal, [[s for s in v if s.liver in livers] for v in shown.values()], coverage)
         cal = replace(cal, fitted_on=cal.fitted_on + "; band also on "
                       + "+".join(sorted({s.case for label in band_only for s in shown.get(label, [])
                                          if s.liver in livers})))
@@ -232,6 +236,53 @@ def split_and_fit(collected: dict, calibration_livers, coverage=NOMINAL,
             if ss:
                 tables[f"{label}: {part}"] = validate(ss, cal)
     return cal, tables, calib, held
+
+
+@dataclass(frozen=True)
+class RotationCell:
+    """One held-out (set, level) cell of ``liver_rotation``: the band calibrated on
+    ``calibrated_on``'s liver, judged on the other livers' registrations."""
+    calibrated_on: str  # the calibration liver's first case in the first set
+    lower: float
+    upper: float
+    set: str
+    level: str
+    registrations: int
+    coverage: float  # fraction of the held-out nodes inside the band
+
+
+def liver_rotation(collected: dict, band_only=(), coverage=NOMINAL) -> list[RotationCell]:
+    """``split_and_fit`` with each liver in turn as the calibration liver (every liver with
+    deformable registrations in a set ê is fitted on), each held-out (set, level) cell's
+    band coverage: whether the band's rule, not one split's luck, holds on livers it was
+    not fitted on."""
+    fitted = [s for label, v in collected.items() if label not in band_only for s in v if s.deformed]
+    livers = list(dict.fromkeys(s.liver for s in fitted))
+    out = []
+    for liver in livers:
+        cal, tables, _, _ = split_and_fit(collected, [liver], coverage, band_only)
+        name = next(s.case for s in fitted if s.liver == liver)
+        for table, rows in tables.items():
+            if table.endswith("(held out)"):
+                out += [RotationCell(name, cal.lower, cal.upper, table.split(":")[0], r["level"],
+                                     r["registrations"], r["coverage"]) for r in rows if r["level"] != "all"]
+    return out
+
+
+def rotation_markdown(cells: list[RotationCell], coverage=NOMINAL) -> str:
+    """One row per calibration liver: its band, the held-out cells at or above ``coverage``
+    and the lowest cell."""
+    text = [f"\n## Every liver in turn\n\nThe calibration repeated with each liver as the calibration liver "
+            f"(`liver_rotation`), each other liver's registrations judged per set and level: the cells holding "
+            f"{coverage:.0%} or more, and the lowest.\n\n| calibrated on the liver of | band | cells ≥ {coverage:.0%} "
+            "| lowest cell |\n|---|---|---|---|\n"]
+    for name in dict.fromkeys(c.calibrated_on for c in cells):
+        cc = [c for c in cells if c.calibrated_on == name]
+        low = min(cc, key=lambda c: c.coverage)
+        text.append(f"| {name} | [{cc[0].lower:.3f} ê, {cc[0].upper:.3f} ê] | "
+                    f"{sum(c.coverage >= coverage for c in cc)} of {len(cc)} | "
+                    f"{low.coverage:.1%} ({low.set}, {low.level}) |\n")
+    return "".join(text)
 
 
 def collect_sets(sets: dict, combos=3, seed=0) -> dict:
@@ -269,7 +320,9 @@ def run_study(sets: dict, out_dir, combos=3, seed=0, band_only=(), collected: di
             for r in rows:
                 w.writerow({"set": name, **{k: (round(v, 4) if isinstance(v, float) else v) for k, v in r.items()},
                             **{k: f"{v:.6g}" for k, v in fitted.items()}})
-    (out / "error_estimate.md").write_text(markdown(tables, cal, calib, held, secs, sets, band_only, rigid))
+    rotation = rotation_markdown(liver_rotation(collected, band_only))
+    (out / "error_estimate.md").write_text(markdown(tables, cal, calib, held, secs, sets, band_only, rigid)
+                                           + rotation)
     return cal, tables
 
 
@@ -296,9 +349,9 @@ def markdown(tables, cal, calib, held, secs, sets, band_only=(), rigid=None) -> 
             "below upper: fraction under the band's upper edge.\n"]
     if band_only:
         text.append(f"\nê's coefficients are fitted on {', '.join(k for k in sets if k not in band_only)} only; the "
-                    f"band is then widened until it holds {cal.coverage:.0%} of the calibration liver's nodes in "
-                    f"every set, {', '.join(band_only)} included (per set the quantiles of true / ê; the band "
-                    "spans the smallest lower and the largest upper factor).\n")
+                    f"band is then widened until it holds {cal.coverage:.0%} of the calibration liver's nodes at "
+                    f"every level of every set, {', '.join(band_only)} included (per set and level the quantiles "
+                    "of true / ê; the band spans the smallest lower and the largest upper factor).\n")
     if rigid and any(rigid.values()):
         text.append("\nRegistrations whose answer is the rigid pose alone (the deformation not supported from a kept "
                     "pose: the viewer shows no band) are left out: "
