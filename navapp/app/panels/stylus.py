@@ -11,7 +11,7 @@ class StylusPanel:
         with g.add_folder("Stylus"):
             self.md = g.add_markdown("Waiting for the scene…")
             self.speed = g.add_slider("Speed (× realistic)", 1.0, 20.0, 1.0, 5.0)
-            self.btn = g.add_button("Digitise anterior surface", disabled=True)
+            self.btn = g.add_button("Digitise the anterior surface", disabled=True)
             self.btn_all = g.add_button("Collect the whole sweep now", disabled=True)
             self.dist = g.add_markdown("")
         self.btn.on_click(lambda e: self.app.stylus.start(lambda: float(self.speed.value), view.cs))
@@ -25,11 +25,11 @@ class StylusPanel:
             n = min(session.stylus_count, len(sd.stylus_path))
             self.md.content = f"{n} of {len(sd.stylus_path)} sweep points digitised"
             self.btn.disabled = self.btn_all.disabled = False
-            self.btn.label = "Stop digitising" if self.app.stylus.sweeping else "Digitise anterior surface"
+            self.btn.label = "Stop digitising" if self.app.stylus.sweeping else "Digitise the anterior surface"
 
     def show_tip(self, pos):
         if pos is None:
-            self.btn.label = "Digitise anterior surface"
+            self.btn.label = "Digitise the anterior surface"
             return
         self.btn.label = "Stop digitising"
         lines = self.app.shown.target_distance_lines(pos)
