@@ -361,8 +361,17 @@ def test_predicted_error_and_the_suggested_next_plane(app):
 
 def test_a_restarted_server_restores_the_session_and_the_registered_model(app, cache_root):
     wait_idle(app)
+    assert app.runs.start(RunKind.ALL) is None  # a fresh fit on the session's data as they are
+    wait_idle(app)
+    worst = [(w.feature, w.text()) for w in app.core.worst]
+    assert worst  # the demo's drawn contours leave points beyond their noise: the list is not trivially equal
     again = start_app(SCENE, cache_root, app.core.session.folder)
     try:
+        # the worst data points come back with the result (the panel said "none beyond its noise")
+        # (the session keeps the fit to 0.1 µm and β to its digits: residuals within 0.01 mm)
+        assert [(w.feature, w.text()) for w in again.core.worst] == worst
+        assert np.allclose([w.residual_mm for w in again.core.worst], [w.residual_mm for w in app.core.worst],
+                           atol=0.01)
         assert again.core.session.to_json() == app.core.session.to_json()
         assert set(again.core.planes) == set(app.core.planes)  # free planes re-simulated from their poses
         assert again.core.result is not None and again.core.result.run == app.core.result.run
@@ -376,6 +385,12 @@ def test_a_restarted_server_restores_the_session_and_the_registered_model(app, c
         assert again.runs.start(RunKind.WARM) is None  # and a warm start continues from it
         again.core.worker.join(BUSY_WAIT_S)
         assert again.core.session.log[-1].run.endswith("(warm)") and not again.core.session.log[-1].cancelled
+        # data that are no longer those of the restored fit: the list is unknown, not empty
+        reg = again.core.last_reg = again.core.worker.last
+        reg.data_model_frame = {k: v + 1.0 for k, v in reg.data_model_frame.items()}
+        again.core.worst = []
+        again.runs.restore_worst()
+        assert again.core.worst is None
     finally:
         again.server.stop()
         again.view2d.stop()

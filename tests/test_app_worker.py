@@ -74,6 +74,53 @@ def test_cancel_stops_within_an_iteration(small_model):
     assert done[0].libr.iterations < 500
 
 
+def test_a_cancel_after_the_last_check_still_cancels(small_model, monkeypatch):
+    """A Cancel that arrives once ``register`` has looked at the event for the last time (the
+    viewer's fresh fit spends seconds in the checks after LM) was answered "the previous
+    result is kept" and the new result went on show (walking the demo in Chromium). Here the
+    click comes as ``register`` returns: the run must be reported cancelled and not kept."""
+    import navapp.app.worker as worker
+
+    real = worker.register
+    holder = {}
+
+    def register_then_click(*args, **kwargs):
+        reg = real(*args, **kwargs)
+        if kwargs.get("deform"):
+            holder["asked"] = holder["w"].cancel()
+        return reg
+
+    monkeypatch.setattr(worker, "register", register_then_click)
+    done = []
+    w = RegistrationWorker(small_model, on_done=done.append, max_rate_hz=1e6)
+    holder["w"] = w
+    assert w.start(data_for(small_model, np.random.default_rng(4)))
+    w.join(BUSY_WAIT_S)
+    assert holder["asked"] is True
+    assert done and done[0].libr.stop_reason == "cancelled" and w.last is None
+
+
+def test_a_cancel_after_the_result_is_decided_is_refused(small_model):
+    """Once the result is decided (the final state is being shown), Cancel is refused rather
+    than promising a previous result that the screen no longer shows; a rigid registration,
+    which has no iteration to stop at, refuses it too."""
+    asked = []
+    done = []
+    w = RegistrationWorker(small_model, on_done=done.append, max_rate_hz=1e6)
+    w.on_update = lambda u: asked.append(w.cancel()) if u.final else None
+    assert w.start(data_for(small_model, np.random.default_rng(5)))
+    w.join(BUSY_WAIT_S)
+    assert asked == [False]
+    assert done[0].libr.stop_reason != "cancelled" and w.last is done[0]
+    assert not w.cancel()  # nothing running
+    gate = threading.Event()
+    w.on_update = lambda u: gate.wait(BUSY_WAIT_S)
+    assert w.start(data_for(small_model, np.random.default_rng(6)), deform=False)
+    assert w.busy and not w.cancel()
+    gate.set()
+    w.join(BUSY_WAIT_S)
+
+
 def test_second_request_is_refused_while_running(small_model):
     gate = threading.Event()
     w = RegistrationWorker(small_model, on_update=lambda u: gate.wait(BUSY_WAIT_S), max_rate_hz=1e6)

@@ -92,7 +92,9 @@ class Core:
         self.sweeping = False  # the accuracy sweep holds the worker (``runs.Runs.sweep``)
         self.result: RegisteredState | None = None  # the registered model on show
         self.last_reg: Registration | None = None  # what Export and a warm start use
-        self.worst: list[WorstPoint] = []  # the last finished run's data points furthest from its model
+        # the last finished run's data points furthest from its model; None: not known (a result
+        # restored after a restart whose data have changed since, ``Runs.restore_worst``)
+        self.worst: list[WorstPoint] | None = []
         # every finished run of this server's life by its row in the session's log: any can be put
         # back on show (``runs.Runs.show``), so a Rigid press never loses a good deformable result
         self.shown_runs: dict[int, tuple[RegisteredState, Registration, list[WorstPoint]]] = {}

@@ -228,7 +228,7 @@ class Drawing:
                 session.excluded.append(entry)
                 cs.undo.append(PointExcluded(session, entry))
                 msg = "Removed the point."
-            core.worst = [w for w in core.worst if w is not wp]
+            core.worst = [w for w in core.worst or [] if w is not wp]
             cs.touch()
         core.changed(Change.DATA)
         return f"{msg} Register again to see the fit without it (Undo brings it back)."

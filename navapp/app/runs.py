@@ -13,6 +13,8 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
+import numpy as np
+
 from ..errors import NavappError
 from ..evaluation.cost import lm_sweep
 from ..registration.coverage import pose_warning
@@ -104,7 +106,11 @@ class Runs:
         with self._starting:  # a click handled before the start it followed has run (callbacks run in a pool)
             if not worker.busy:
                 return "Nothing to cancel: no registration is running."
-            worker.cancel()
+            run = core.run
+            if not worker.cancel():
+                if run is not None and run.kind is RunKind.RIGID:
+                    return "A rigid registration is not cancelled: it takes about a second, and its result is shown."
+                return "Too late to cancel: the run had finished; its result is on show."
         return "Cancelling: the run stops at its next iteration; the previous result is kept."
 
     # ------------------------------------------------------------------ from the worker thread
@@ -187,6 +193,34 @@ class Runs:
         core.changed(Change.RESULT)
         self.slicer.send(reg)
         return None
+
+    def restore_worst(self) -> None:
+        """The worst data points of the result restored after a restart (``Shown.restore``),
+        from the data it was fitted to. Only where the session's data are still those, point
+        for point (the fit's own, stored in the model frame): a list from other data would
+        name the wrong points. Otherwise the list is unknown (None), and the panel says so
+        rather than "none beyond its noise" (said after a restart walking the demo, with
+        3.9 mm points listed before it)."""
+        core = self.core
+        reg = core.last_reg
+        with core.lock:
+            if reg is None or core.result is None or core.worst:
+                return
+            core.worst = None
+        fitted = {k: v for k, v in reg.data_model_frame.items() if len(v)}
+        if not fitted:
+            return
+        for surface_only in (False, True):  # the session keeps the fit's data to 0.1 µm: compared to 1 µm
+            data, origins = core.data_with_origins(surface_only=surface_only)
+            now = {k: reg.rigid.inverse(v) for k, v in data.items() if len(v)}
+            if set(now) == set(fitted) and all(now[k].shape == fitted[k].shape
+                                               and np.allclose(now[k], fitted[k], atol=1e-3) for k in now):
+                worst = worst_points(reg, data, origins, viewer_options().weights)
+                with core.lock:
+                    if core.last_reg is reg:
+                        core.worst = worst
+                core.changed(Change.RESULT)
+                return
 
     def on_error(self, exc: BaseException):
         msg = str(exc) if isinstance(exc, NavappError) else f"{exc.__class__.__name__}: {exc}"

@@ -97,6 +97,7 @@ class App:
             core.worker = RegistrationWorker(ready.model, self.runs.on_update, self.runs.on_done, self.runs.on_error,
                                              max_rate_hz=STREAM_HZ)
             self.shown.restore()
+        self.runs.restore_worst()
 
     def export(self):
         """The registered model and the data into the session's export/ folder: (folder or None, message)."""

@@ -9,7 +9,7 @@ No viser here: the server wires ``on_update`` / ``on_done`` / ``on_error`` to th
 
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -56,6 +56,9 @@ class RegistrationWorker:
         self._thread = None
         self._cancel = threading.Event()
         self._lock = threading.Lock()
+        # set when the running registration's result is decided (kept or cancelled): a Cancel
+        # after it is refused, so "the previous result is kept" is never followed by the new one
+        self._decided = True
         self.last: Registration | None = None
 
     @property
@@ -69,15 +72,23 @@ class RegistrationWorker:
             if self.busy:
                 return False
             self._cancel.clear()
+            self._decided = not deform  # a rigid registration has no iteration to stop at
             prev = self.last if warm else None
             self._thread = threading.Thread(target=self._run, args=(data, deform, prev, options or viewer_options()),
                                             daemon=True)
             self._thread.start()
             return True
 
-    def cancel(self):
-        """Ask the running fit to stop at its next iteration boundary."""
-        self._cancel.set()
+    def cancel(self) -> bool:
+        """Ask the running fit or job to stop at its next iteration boundary. Returns False,
+        asking nothing, when nothing is running or the running registration's result is
+        already decided (it finished, or it is rigid); a run asked in time is reported
+        cancelled even if it was past its last check, and never becomes the state."""
+        with self._lock:
+            if not self.busy or self._decided:
+                return False
+            self._cancel.set()
+            return True
 
     @property
     def cancel_requested(self) -> bool:
@@ -111,6 +122,7 @@ class RegistrationWorker:
             if self.busy:
                 return False
             self._cancel.clear()
+            self._decided = False  # a job (the sweep) stops at its next setting whenever asked
 
             def run():
                 try:
@@ -154,6 +166,12 @@ class RegistrationWorker:
                 lm = reg.libr
                 assert lm is not None  # a deformable run has an LM result
                 final = self._state(lm.iterations, lm.omega, t0, rigid, lm.beta, True)
+            with self._lock:  # the decision: a Cancel before it stops the run, one after it is refused
+                if self._cancel.is_set() and reg.libr is not None and not cancelled(reg):
+                    # asked after LM's and the checks' last look at the event (the last fold fit,
+                    # the organ's predicted error): the surgeon was told the previous result is kept
+                    reg.libr = replace(reg.libr, stop_reason="cancelled")
+                self._decided = True
             if not cancelled(reg):  # a cancelled run is reported but never becomes the state to continue from
                 self.last = reg
                 self.on_update(final)

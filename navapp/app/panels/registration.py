@@ -89,15 +89,18 @@ class RegistrationPanel:
         self.on_show.disabled = len(choices) < 2 and shown is not None or not choices
 
     def remove(self, i: int):
-        worst = self.core.worst
+        worst = self.core.worst or []
         if i >= len(worst):
             return
         self.view.notify("Removed", self.app.drawing.remove(self.view.cs, worst[i]))
 
     def _worst(self):
-        worst = list(self.core.worst)
+        worst = list(self.core.worst or [])
         if self.core.result is None:
             self.worst_md.content = ""
+        elif self.core.worst is None:
+            self.worst_md.content = ("**Worst data points**: not known for this result, restored after a restart: "
+                                     "the data have changed since it was fitted. Register again to list them.")
         elif not worst:
             self.worst_md.content = "**Worst data points**: none beyond its noise — every point lies on the model."
         else:

@@ -57,7 +57,7 @@ class View2D:
             out["image_id"] = f"{index}-{id(plane)}"
             contours = [c for c in session.contours if c.plane == index]
             drawing = cs.drawing if cs.drawing in contours else None
-            worst = list(core.worst)
+            worst = list(core.worst or [])
         out["overlays"] = [ov.to_json() for ov in self.overlays(index)]
         for c in contours:
             if c is drawing:
