@@ -168,7 +168,9 @@ class Shown:
         bands = {b.name: b for b in core.result.target_bands} if core.result is not None else {}
         out = []
         for t, d in zip(targets, plane_distances(plane, targets), strict=True):
-            band = bands.get(t.name) if core.run is None else None
+            # kept while a run streams: it is the band of the result still on show (Cancel keeps
+            # it), and lines that lost it moved the Registration panel's Cancel from under the mouse
+            band = bands.get(t.name)
             out.append(f"**{t.name}** ({self._which()}): " +
                        ("in this image" if d <= IN_IMAGE_MM else f"{d:.1f} mm from this image") +
                        (f"; {band.text(short)}" if band is not None else ""))
