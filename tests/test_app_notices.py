@@ -6,12 +6,13 @@ hidden, and one more box piled up per run; the panel and the run table called th
 
 import types
 
+import numpy as np
 from test_local_loads import _dented_scan
 
 from navapp.app.panels import ClientView
 from navapp.app.panels.registration import POSE_ONLY, RegistrationPanel
 from navapp.app.runs import fit_notice
-from navapp.app.state import RegisteredState, RunEntry, RunKind
+from navapp.app.state import RegisteredState, Run, RunEntry, RunKind
 
 
 def test_a_deformable_run_answered_with_its_pose_says_so_in_a_short_box(small_model, phantoms):
@@ -62,8 +63,6 @@ def test_the_next_red_box_of_a_kind_replaces_the_last():
 def test_the_last_run_and_the_result_on_show_read_the_same_mean_error():
     """The same result read "mean error 3.92 mm" in "Last" and "3.91" in "On show" (walking the
     demo): the run table keeps 0.001 mm, and the one line formatted the unrounded mean."""
-    import numpy as np
-
     from navapp.registration.rigid import RigidResult
 
     err = np.array([3.91496, 3.91496])
@@ -76,3 +75,35 @@ def test_the_last_run_and_the_result_on_show_read_the_same_mean_error():
     RegistrationPanel._summary(panel)
     assert "mean error 3.92 mm, max" in panel.md.content and "(mean error 3.92 mm)" in panel.md.content, \
         panel.md.content
+
+
+def test_the_on_show_dropdown_is_held_while_a_run_goes_and_says_nothing_unasked():
+    """A tab reloaded during a registration got a red "On show — A registration is already
+    running" though nobody touched the dropdown: the browser settling its value reached
+    ``show``. While a run (or the sweep) goes the dropdown is disabled, and a value arriving
+    then is put back quietly."""
+    from navapp.registration.rigid import RigidResult
+
+    rigid = RigidResult(np.eye(3), np.zeros(3), 0, 0.0)
+    entries = [RunEntry(RunKind.ALL.label, 100, 1.0, 3, "converged", 0, False, [], None) for _ in range(2)]
+    first, second = (RegisteredState(e.run, rigid, np.zeros(3)) for e in entries)
+    asked, said = [], []
+    core = types.SimpleNamespace(session=types.SimpleNamespace(log=entries), result=second,
+                                 shown_runs={0: (first, None, []), 1: (second, None, [])},
+                                 run=Run(RunKind.ALL, 100, 0.0), sweeping=False)
+    dropdown = types.SimpleNamespace(options=(), value=None, disabled=False)
+    panel = types.SimpleNamespace(core=core, on_show=dropdown, _choices={},
+                                  app=types.SimpleNamespace(runs=types.SimpleNamespace(show=asked.append)),
+                                  view=types.SimpleNamespace(notify=lambda *a, **k: said.append(a)))
+    panel._on_show = lambda: RegistrationPanel._on_show(panel)
+    panel._on_show()
+    assert dropdown.disabled and dropdown.value.startswith("2.")
+    dropdown.value = dropdown.options[0]  # the browser's value, not the surgeon's
+    RegistrationPanel.show(panel)
+    assert not asked and not said and dropdown.value.startswith("2.")
+    core.run = None
+    panel._on_show()
+    assert not dropdown.disabled
+    dropdown.value = dropdown.options[0]  # idle: a pick is carried out
+    RegistrationPanel.show(panel)
+    assert asked == [0]

@@ -65,6 +65,11 @@ class RegistrationPanel:
         core = self.core
         if row is None or core.result is (core.shown_runs.get(row) or (None,))[0]:
             return  # our own refresh, or already on show
+        if core.run is not None or core.sweeping:
+            # the dropdown is disabled while a run or the sweep goes: this is the browser settling
+            # its value (a tab reloaded mid-run got "A registration is already running" unasked)
+            self._on_show()
+            return
         err = self.app.runs.show(row)
         if err:
             self.view.notify("On show", err, error=True)
@@ -86,7 +91,8 @@ class RegistrationPanel:
         value = shown or NOTHING
         if self.on_show.value != value:
             self.on_show.value = value
-        self.on_show.disabled = len(choices) < 2 and shown is not None or not choices
+        self.on_show.disabled = (len(choices) < 2 and shown is not None or not choices
+                                 or core.run is not None or core.sweeping)
 
     def remove(self, i: int):
         worst = self.core.worst or []
@@ -125,12 +131,16 @@ class RegistrationPanel:
                                f"when it is switched off.")
         if what in (Change.RESULT, Change.DATA, Change.SCENE):
             self._worst()
-        if what in (Change.RESULT, Change.SCENE, Change.MODEL):
+        if what in (Change.RESULT, Change.SCENE, Change.MODEL, Change.RUN):
             self._on_show()
         if what in (Change.MODEL, Change.RESULT, Change.RUN, Change.LOG, Change.SCENE):
             self._table()
             if run is not None:
                 self.md.content = f"Running **{run.kind.label}** on {run.points} points…"
+                return
+            if core.sweeping:  # the run buttons are greyed: say why (a tab saw no reason for 20 s)
+                self.md.content = ("**The accuracy sweep is running** (What accuracy costs): registrations wait for "
+                                   "it; Cancel stops it.")
                 return
             self._summary()
             log = core.session.log if core.session else []
