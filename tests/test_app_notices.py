@@ -107,3 +107,35 @@ def test_the_on_show_dropdown_is_held_while_a_run_goes_and_says_nothing_unasked(
     dropdown.value = dropdown.options[0]  # idle: a pick is carried out
     RegistrationPanel.show(panel)
     assert asked == [0]
+
+
+def test_a_tab_that_connects_while_the_server_loads_is_placed_when_the_model_is_ready(monkeypatch):
+    """After a restart, two tabs that reconnected before the session was loaded went from step
+    9 of the guide to step 1 (a reload kept it): a new tab's step is chosen again once the
+    model is ready, unless the surgeon has moved it meanwhile."""
+    import navapp.app.panels.guide as guide_panel
+    from navapp.app.panels.guide import GuidePanel
+
+    step = types.SimpleNamespace(title="t", text="", button="b", done=None, blocked=lambda app, cs: None)
+    monkeypatch.setattr(guide_panel, "STEPS", (step,) * 9)
+    core = types.SimpleNamespace(worker=None)
+    monkeypatch.setattr(guide_panel, "first_open_step", lambda app, cs: 8 if core.worker is not None else 0)
+
+    def panel():
+        p = object.__new__(GuidePanel)
+        p.app, p.cs = types.SimpleNamespace(core=core), types.SimpleNamespace(guide_step=0)
+        p.md, p.btn, p.why, p.extra = (types.SimpleNamespace(content="", label="", disabled=False) for _ in range(4))
+        p._placing = True
+        p._place()
+        return p
+
+    early, moved = panel(), panel()
+    assert early.cs.guide_step == moved.cs.guide_step == 0
+    moved.move(1)  # the surgeon's own step
+    core.worker = object()  # the model is ready, the stored result restored
+    for p in (early, moved):
+        p.refresh(None)
+    assert early.cs.guide_step == 8 and "Step 9 of 9" in early.md.content
+    assert moved.cs.guide_step == 1
+    late = panel()
+    assert late.cs.guide_step == 8 and not late._placing

@@ -17,15 +17,27 @@ class GuidePanel:
             self.extra = g.add_markdown("")
         self.btn.on_click(lambda e: self.press())
         self.nav.on_click(lambda e: self.move(-1 if e.target.value.startswith("◀") else 1))
-        if self.cs.guide_step == 0:  # a new tab: past the work the session already holds (a reload takes its own)
-            self.cs.guide_step = first_open_step(self.app, self.cs)
+        # a new tab starts past the work the session already holds (a reload takes its own). A tab
+        # that connects while a restarted server is still loading sees no session yet: it is
+        # placed again when the model is ready, unless the surgeon has moved it (walking the demo,
+        # two tabs reconnected early went from step 9 to step 1, and a reload kept it)
+        self._placing = self.cs.guide_step == 0
+        self._place()
         self.show()
+
+    def _place(self):
+        if not self._placing:
+            return
+        self.cs.guide_step = first_open_step(self.app, self.cs)
+        if self.app.core.worker is not None:  # the model is ready and the stored result restored
+            self._placing = False
 
     @property
     def step(self):
         return STEPS[self.cs.guide_step]
 
     def move(self, d):
+        self._placing = False
         self.cs.guide_step = max(0, min(len(STEPS) - 1, self.cs.guide_step + d))
         self.extra.content = ""
         self.show()
@@ -54,6 +66,7 @@ class GuidePanel:
         self.why.content = f"<small>{why}</small>" if why else ""
 
     def refresh(self, what):
+        self._place()
         st = self.step
         if st.done is not None and st.done(self.app, self.cs) and self.cs.guide_step < len(STEPS) - 1:
             self.move(1)
