@@ -439,8 +439,9 @@ def build_parser():
                    help="session folder (default ~/navapp-sessions/<scene>-<key>, or under $NAVAPP_SESSIONS)")
     s.add_argument("--edge", type=_positive(float), default=EDGE_MM, help="registration mesh element size, mm")
     s.add_argument("--k", type=_k, default=K, help="number of control points")
-    s.add_argument("--view2d-port", type=_positive(int, most=65535, least=0), default=0,
-                   help="port of the 2D ultrasound view's pages (default: any free port)")
+    s.add_argument("--view2d-port", type=_positive(int, most=65535, least=0), default=None,
+                   help="port of the 2D ultrasound view's pages (default: the viewer's port + 1 where free, "
+                        "else any free port; 0: any free port)")
     s.add_argument("--igtl", metavar="HOST:PORT",
                    help="connect to an OpenIGTLink server (PLUS, 3D Slicer, navapp replay) for the tracked "
                         "stylus and ultrasound")

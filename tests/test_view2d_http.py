@@ -163,3 +163,25 @@ def test_the_injection_url_runs_no_script_in_chromium(served, tmp_path):
         page.wait_for_function("document.getElementById('title').textContent.startsWith('No plane shown yet:')",
                                timeout=deadline.ms())
         browser.close()
+
+
+def test_the_2d_view_takes_the_viewer_port_plus_one_where_free():
+    """A tab left open across a server restart reaches the new 2D server only if it is on the
+    same port: by default the viewer's port + 1, any free port where that is taken."""
+    from navapp.app.server import _view2d_server
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        viewer = s.getsockname()[1]  # a port that was free; the one after it is tried
+    provider = object()
+    first = _view2d_server(provider, "127.0.0.1", None, viewer)
+    try:
+        if first.port != viewer + 1:  # the next port was taken on this machine: nothing to check
+            pytest.skip(f"port {viewer + 1} was not free")
+        second = _view2d_server(provider, "127.0.0.1", None, viewer)  # taken now: any free one
+        try:
+            assert second.port not in (0, viewer + 1)
+        finally:
+            second.stop()
+    finally:
+        first.stop()

@@ -49,7 +49,7 @@ class App:
     when the registration model is ready (or start-up failed: ``core.failed``)."""
 
     def __init__(self, scene, host="127.0.0.1", port=8080, session_dir=None, edge=EDGE_MM, k=K, cache_root=None,
-                 view2d_port=0, tracking=None, results=None):
+                 view2d_port: int | None = 0, tracking=None, results=None):
         preop = make_phantom(scene.phantom) if scene.phantom is not None else _read_case_preop(scene)
         core = self.core = Core(scene, preop, edge, k, cache_root, session_dir)
         # the rooms, each given what it uses; none knows the App
@@ -66,8 +66,8 @@ class App:
         self.view2d_state = View2D(core, self.imaging, self.shown, self.drawing)
         self.server = viser.ViserServer(host=host, port=port, label="navapp", verbose=False)
         self.url = f"http://{self.server.get_host()}:{self.server.get_port()}"
-        self.view2d = View2DServer(self.view2d_state, host=host if host not in ("", "::") else "0.0.0.0",
-                                   port=view2d_port)
+        self.view2d = _view2d_server(self.view2d_state, host if host not in ("", "::") else "0.0.0.0",
+                                     view2d_port, self.server.get_port())
         self.view2d_host = _other_site(host)
         self.server.scene.set_up_direction("+z")
         cam = self.server.initial_camera
@@ -150,7 +150,19 @@ def _other_site(host: str) -> str:
 
 
 
-def serve(scene, host="127.0.0.1", port=8080, session_dir=None, edge=EDGE_MM, k=K, cache_root=None, view2d_port=0,
+def _view2d_server(provider, host: str, port: int | None, viewer_port: int) -> View2DServer:
+    """The 2D view's server on ``port`` (0: any free port; None: the viewer's port + 1 where
+    free, else any). A fixed port lets a tab left open across a server restart reach the new
+    server, which tells it to reload (its view is unknown there) instead of "not answering"."""
+    if port is None:
+        try:
+            return View2DServer(provider, host=host, port=viewer_port + 1 if viewer_port < 65535 else 0)
+        except OSError:  # taken: another program, or a second navapp beside this one
+            port = 0
+    return View2DServer(provider, host=host, port=port)
+
+
+def serve(scene, host="127.0.0.1", port=8080, session_dir=None, edge=EDGE_MM, k=K, cache_root=None, view2d_port=None,
           tracking=None, slicer=None):
     """Start the viewer and block until interrupted. ``tracking``: a ``TrackingConfig`` to
     connect to an OpenIGTLink server (PLUS, 3D Slicer, ``navapp replay``); ``slicer``:

@@ -99,11 +99,16 @@ function apply(s){
   draw();
 }
 
+// the server answers, but not for this page's view: it was restarted (its views are new), and
+// the viewer's own page reconnects only after a while; a reload gets a view at once
+const RESTARTED = "The navapp server was restarted. Reload the page: the session's data and result come back; " +
+  "clicks made while it was down are not kept.";
+function restarted(){ $("gone").textContent = RESTARTED; $("gone").style.display = "block"; }
 async function poll(){
   try {
     // the tab's pixel ratio: viser reports the 3D canvas in device pixels, the layout is in CSS pixels
     const r = await fetch(url("/us/state?v=" + encodeURIComponent(etag) + "&dpr=" + window.devicePixelRatio));
-    $("gone").style.display = "none";
+    if (r.status === 404) restarted(); else $("gone").style.display = "none";
     if (r.status === 200) apply(await r.json());
   } catch (e) { $("gone").style.display = "block"; }
   setTimeout(poll, POLL);
@@ -112,7 +117,7 @@ async function poll(){
 async function post(path, body){
   const r = await fetch(url(path), {method: "POST", body: JSON.stringify(body)});
   const t = await r.text();
-  if (!r.ok) return {error: t};
+  if (!r.ok) return {error: t, status: r.status};
   return JSON.parse(t);
 }
 
@@ -123,6 +128,9 @@ async function pump(){
     const p = pending[0];
     try {
       const s = await post("/us/click", {col: p.col, row: p.row, plane: p.plane, feature: p.feature});
+      if (s.status === 404 || s.status === 409 && s.error.includes("no longer connected")) {
+        restarted(); pending.length = 0; break;  // a view this server does not know: nothing to deliver to
+      }
       $("gone").style.display = "none";
       window.navappLatencies.push(performance.now() - p.t);
       pending.shift();
