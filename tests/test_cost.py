@@ -134,3 +134,27 @@ def test_cost_case_is_quiet_only_while_it_runs(tmp_path, monkeypatch):
         cost_case(tmp_path / "c", ks=(), edges=(), caps=(0,), rtols=(), plane_counts=(), peers=False)
     assert seen == [True]
     assert progress.QUIET is False and not progress.is_quiet()
+
+
+def test_the_lm_sweep_keeps_the_fit_s_other_options(monkeypatch):
+    """The caps and tolerances vary on the caller's fit (the viewer's robust weights), not on
+    a default one."""
+    import types
+
+    import navapp.evaluation.cost as cost
+    from navapp.registration.libr import LMOptions
+    from navapp.registration.objective import robust_weights
+
+    used = []
+
+    def register(model, data, deform=True, options=None):
+        used.append(options)
+        return types.SimpleNamespace(transform=lambda x, B=None: x, libr=None)
+
+    monkeypatch.setattr(cost, "register", register)
+    base = LMOptions(weights=robust_weights(1.0))
+    x = np.zeros((3, 3))
+    rows = cost.lm_sweep(None, {}, x, x, caps=(0, 100), rtols=(1e-2,), B=object(), base=base)
+    assert [r.label for r in rows] == ["rigid", "100 it", "rtol 0.01"]
+    assert all(o.weights is base.weights for o in used)
+    assert [o.max_iterations for o in used[:2]] == [1, 100] and used[2].rtol == 1e-2

@@ -10,7 +10,7 @@ edge) and the amount of data (planes).
 import csv
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -58,12 +58,15 @@ def _rtol_label(rtol: float) -> str:
     return f"rtol {rtol:g}"
 
 
-def lm_sweep(model, data, x0, x1, caps=LM_CAPS, rtols=LM_RTOLS, cancel=None, on_row=None, B=None) -> list[CostRow]:
+def lm_sweep(model, data, x0, x1, caps=LM_CAPS, rtols=LM_RTOLS, cancel=None, on_row=None, B=None,
+             base: LMOptions | None = None) -> list[CostRow]:
     """Rows for each iteration cap (at the default tolerance) and each tolerance (no cap).
     ``cancel`` (threading.Event) stops between settings; ``on_row`` sees each row as it lands;
-    ``B``: x0's interpolation matrix, if the caller has it."""
-    plan = [(_cap_label(c), LMOptions(max_iterations=max(c, 1)), c > 0, {"max_iterations": c}) for c in caps]
-    plan += [(_rtol_label(r), LMOptions(rtol=r), True, {"rtol": r}) for r in rtols]
+    ``B``: x0's interpolation matrix, if the caller has it; ``base``: the fit's other options
+    (the viewer's robust weights: its sweep is of its own fit)."""
+    base = base or LMOptions()
+    plan = [(_cap_label(c), replace(base, max_iterations=max(c, 1)), c > 0, {"max_iterations": c}) for c in caps]
+    plan += [(_rtol_label(r), replace(base, rtol=r), True, {"rtol": r}) for r in rtols]
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0) if B is None else B
     rows = []
     for label, opt, deform, settings in plan:
