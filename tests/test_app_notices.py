@@ -139,3 +139,21 @@ def test_a_tab_that_connects_while_the_server_loads_is_placed_when_the_model_is_
     assert moved.cs.guide_step == 1
     late = panel()
     assert late.cs.guide_step == 8 and not late._placing
+
+
+def test_a_result_restored_after_a_restart_is_named_in_the_on_show_dropdown():
+    """After a restart the dropdown read "—" beside "On show: deformable, all data (warm)": the
+    runs before the restart are not kept, so the restored result had no row."""
+    from navapp.registration.rigid import RigidResult
+
+    rigid = RigidResult(np.eye(3), np.zeros(3), 0, 0.0)
+    restored = RegisteredState("deformable, all data (warm)", rigid, np.zeros(3), restored=True)
+    core = types.SimpleNamespace(session=types.SimpleNamespace(log=[]), result=restored, shown_runs={}, run=None,
+                                 sweeping=False)
+    dropdown = types.SimpleNamespace(options=(), value=None, disabled=False)
+    panel = types.SimpleNamespace(core=core, on_show=dropdown, _choices={})
+    RegistrationPanel._on_show(panel)
+    assert dropdown.value == "deformable, all data (warm) (restored after a restart)" == dropdown.options[0]
+    core.result = None
+    RegistrationPanel._on_show(panel)
+    assert dropdown.value == "—"

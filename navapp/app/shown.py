@@ -212,7 +212,7 @@ class Shown:
         if saved is not None and len(saved) == len(model.basis.surface):
             predicted = (np.array(saved, float), [TargetBand.from_json(b) for b in d.get("target_bands", [])])
         core.result = RegisteredState(d.get("run", "restored"), rigid, beta, self.node_error(rigid, beta), *predicted,
-                                      data_model_frame=inv, pose_warning=doubt)
+                                      data_model_frame=inv, pose_warning=doubt, restored=True)
         self.slicer.send(reg)  # queued: a Slicer connecting later receives the result on show
 
 

@@ -139,6 +139,7 @@ class RegisteredState:
     # frame, which repeat neither check, the one it continues from. Not saved: after a
     # restart a warm start becomes a fresh fit, which checks again
     checked: Registration | None = field(default=None, kw_only=True, repr=False, compare=False)
+    restored: bool = field(default=False, kw_only=True)  # read back from the session after a restart
 
     def to_json(self) -> dict:
         # the prediction is kept too: it was made from the data of the fit, which for a live

@@ -85,10 +85,14 @@ class RegistrationPanel:
             choices[f"{row + 1}. {e.run if e else 'run'}{err}"] = row
         self._choices = choices
         shown = next((w for w, r in choices.items() if core.shown_runs[r][0] is core.result), None)
-        options = tuple(choices) if shown is not None else (NOTHING, *choices)
+        # a result restored after a restart is on show without a row of its own (the runs before
+        # the restart are not kept): named, not "—" beside "On show: deformable, all data"
+        here = (f"{core.result.run} (restored after a restart)" if core.result is not None and core.result.restored
+                else core.result.run if core.result is not None else NOTHING)
+        options = tuple(choices) if shown is not None else (here, *choices)
         if tuple(self.on_show.options) != options:
             self.on_show.options = options
-        value = shown or NOTHING
+        value = shown or here
         if self.on_show.value != value:
             self.on_show.value = value
         self.on_show.disabled = (len(choices) < 2 and shown is not None or not choices
