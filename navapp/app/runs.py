@@ -106,11 +106,13 @@ class Runs:
         with self._starting:  # a click handled before the start it followed has run (callbacks run in a pool)
             if not worker.busy:
                 return "Nothing to cancel: no registration is running."
-            run = core.run
+            run, sweeping = core.run, core.sweeping
             if not worker.cancel():
                 if run is not None and run.kind is RunKind.RIGID:
                     return "A rigid registration is not cancelled: it takes about a second, and its result is shown."
                 return "Too late to cancel: the run had finished; its result is on show."
+        if sweeping:  # no result is at stake: the sweep's rows so far stay in its table
+            return "Cancelling the accuracy sweep: it stops after the setting it is running."
         return "Cancelling: the run stops at its next iteration; the previous result is kept."
 
     # ------------------------------------------------------------------ from the worker thread
