@@ -157,3 +157,22 @@ def test_a_result_restored_after_a_restart_is_named_in_the_on_show_dropdown():
     core.result = None
     RegistrationPanel._on_show(panel)
     assert dropdown.value == "—"
+
+
+def test_the_error_curve_is_the_run_on_show():
+    """With a rigid result picked under On show, the plot still drew the last deformable run's
+    error against time (walking the demo)."""
+    from navapp.registration.rigid import RigidResult
+
+    rigid = RigidResult(np.eye(3), np.zeros(3), 0, 0.0)
+    entries = [RunEntry(label, 100, 1.0, 3, "converged", 0, False, trace, None)
+               for label, trace in ((RunKind.RIGID.label, []), (RunKind.ALL.label, [(0.0, 6.0), (0.5, 3.0)]))]
+    states = [RegisteredState(e.run, rigid, None if i == 0 else np.zeros(3)) for i, e in enumerate(entries)]
+    core = types.SimpleNamespace(session=types.SimpleNamespace(log=entries), result=states[1],
+                                 shown_runs={0: (states[0], None, []), 1: (states[1], None, [])})
+    panel = types.SimpleNamespace(core=core, plot=types.SimpleNamespace(data=None))
+    RegistrationPanel._plot_shown(panel)
+    assert list(panel.plot.data[1]) == [6.0, 3.0]
+    core.result = states[0]
+    RegistrationPanel._plot_shown(panel)
+    assert list(panel.plot.data[1]) == [0.0]

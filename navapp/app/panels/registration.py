@@ -147,11 +147,21 @@ class RegistrationPanel:
                                    "it; Cancel stops it.")
                 return
             self._summary()
-            log = core.session.log if core.session else []
-            done = [e for e in log if not e.cancelled and e.trace]
-            if done:
-                t, e = np.array(done[-1].trace, float).T
-                self.plot.data = (t, e)
+            self._plot_shown()
+
+    def _plot_shown(self):
+        """The error-against-time curve of the run whose result is on show; emptied for one
+        without a curve (a rigid run). It showed the last deformable run's curve with a rigid
+        result picked under On show. A result with no row (a live frame, one restored after a
+        restart) leaves the plot as it is."""
+        core = self.core
+        log = core.session.log if core.session else []
+        row = next((r for r, kept in core.shown_runs.items() if kept[0] is core.result), None)
+        if row is None or row >= len(log):
+            return
+        trace = log[row].trace
+        t, e = np.array(trace, float).T if trace else (np.zeros(1), np.zeros(1))
+        self.plot.data = (t, e)
 
     def show_update(self, u: Update):
         run = self.core.run
