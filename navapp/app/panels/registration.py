@@ -224,7 +224,9 @@ class RegistrationPanel:
             mean = f"{e.error_mean_mm:.2f}" if e.error_mean_mm is not None else "–"
             mx = f"{e.error_max_mm:.2f}" if e.error_max_mm is not None else "–"
             tumours = " / ".join(f"{e.targets_mm[n]:.1f}" for n in names if n in e.targets_mm) if e.targets_mm else "–"
-            note = "cancelled" if e.cancelled else ("⚠ pose only" if e.pose_only else "⚠" if e.warning else e.note)
-            rows.append(f"| {i} | {e.run} | {e.points} | {e.seconds:.1f} | {its} | {mean} | {mx} | {tumours} "
+            # "cancelled" in the run's own cell: the last column is narrow and cut it to "cance"
+            run = f"{e.run}, **cancelled**" if e.cancelled else e.run
+            note = "" if e.cancelled else ("⚠ pose only" if e.pose_only else "⚠" if e.warning else e.note)
+            rows.append(f"| {i} | {run} | {e.points} | {e.seconds:.1f} | {its} | {mean} | {mx} | {tumours} "
                         f"| {note} |")
         self.table.content = "\n".join(rows)
