@@ -122,6 +122,27 @@ def test_session_autosaves_and_restores(scene_data, tmp_path):
     assert not (tmp_path / "s" / "intraop" / "hepatic_centerline.csv").exists()
 
 
+def test_a_frame_frozen_before_the_first_save_is_kept(scene_data, tmp_path):
+    """The viewer writes a frozen tracked frame's PNG into the session folder at once; the
+    first save renamed a freshly written folder over it, so the first frame frozen in a new
+    session was lost and the next start refused the session ("refers to a frozen frame
+    live/frame_000.png that is missing"; the live test failed in CI when it ran first)."""
+    from PIL import Image
+
+    sd = scene_data
+    s, planes = open_session(tmp_path / "s", sd)
+    image = (np.arange(sd.probe.height_px * sd.probe.width_px) % 251).astype(np.uint8).reshape(
+        sd.probe.height_px, sd.probe.width_px)
+    (s.folder / "live").mkdir(parents=True)
+    Image.fromarray(image).save(s.folder / "live" / "frame_000.png")
+    pose = sd.planes[0].probe_to_tracker
+    s.live_planes.append({"index": 1000, "pose": pose.tolist(), "png": "live/frame_000.png"})
+    s.save(sd, planes)
+    assert (s.folder / "live" / "frame_000.png").is_file()
+    _, planes2 = open_session(tmp_path / "s", sd)
+    assert np.array_equal(planes2[1000].image, image)
+
+
 def test_session_of_another_scene_or_damaged_is_refused(scene_data, tmp_path):
     sd = scene_data
     s, planes = open_session(tmp_path / "s", sd)

@@ -110,6 +110,14 @@ class Session:
         try:
             _write_case(tmp, sd)
             _write_data(self, tmp, sd, planes)
+            # files the session refers to that were written into the folder before its first save
+            # (a frozen tracked frame's PNG): the renamed-in folder replaces that one whole, and the
+            # first frame frozen in a fresh session was lost with it (a restart then refused the session)
+            for lp in self.live_planes:
+                src = self.folder / lp["png"]
+                if src.is_file():
+                    (tmp / lp["png"]).parent.mkdir(parents=True, exist_ok=True)
+                    shutil.copy2(src, tmp / lp["png"])
             _into_place(tmp, self.folder)
         except BaseException:
             shutil.rmtree(tmp, ignore_errors=True)
