@@ -132,7 +132,10 @@ def test_live_re_registration_follows_the_frames_and_reaches_slicer(live_app):
     try:
         follower = app.live.link.follower
         assert app.live.set_follow(True) is None
-        assert wait_until(lambda: follower.frames >= 6), follower.summary()
+        # the follower's own error, if its first update raised (CI once saw only "Not re-registered
+        # on live frames yet" after the 900 s bound, with the machine idle)
+        assert wait_until(lambda: follower.frames >= 6 or not follower.on), (follower.summary(), follower.last_error)
+        assert follower.frames >= 6, (follower.summary(), follower.last_error)
         assert app.core.result.run.startswith("live")
         assert "Live re-registration is on" in app.runs.start(RunKind.ALL)  # one registration at a time
         # each update registered the kept data plus its frame's automatic contours
