@@ -146,6 +146,18 @@ CHROMIUM = Path("/usr/bin/chromium")
 
 
 @pytest.mark.skipif(not CHROMIUM.exists(), reason="Chromium not installed")
+def test_a_click_for_a_view_the_server_does_not_know_is_a_404(served):
+    """A tab of a server since restarted: its click is answered 404, as its poll is, and the
+    page asks for a reload (it was a 409 whose words the page had to match)."""
+    provider, base, _ = served
+    status, body = post(f"{base}/us/click?c=Unknown_123", json.dumps({"col": 1, "row": 2, "plane": 0,
+                                                                       "feature": "PV contour"}).encode())
+    assert status == 404 and b"reload" in body and not provider.clicks
+    status, _ = post(f"{base}/us/click?c={TOKEN}", json.dumps({"col": 1, "row": 2, "plane": 0,
+                                                                "feature": "PV contour"}).encode())
+    assert status == 200 and provider.clicks == [(1, 2, "PV contour", 0)]
+
+
 def test_the_injection_url_runs_no_script_in_chromium(served, tmp_path):
     from playwright import sync_api as playwright
     from test_app_browser import ARGS, Deadline

@@ -177,7 +177,9 @@ class _Handler(BaseHTTPRequestHandler):
         token = self._token(q)
         try:
             body = _body(self._read_body())
-            if token is None:
+            # a view this server does not know (a tab of a server since restarted): 404, as GET
+            # answers it, so the page tells it from a refused click and asks for a reload
+            if token is None or not self.provider.view_known(token):
                 return self._send(404, UNKNOWN_VIEW, "text/plain; charset=utf-8")
             if path == "/us/click":
                 # the plane is the one the click was aimed at: the tab's plane may have changed since

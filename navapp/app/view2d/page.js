@@ -128,7 +128,7 @@ async function pump(){
     const p = pending[0];
     try {
       const s = await post("/us/click", {col: p.col, row: p.row, plane: p.plane, feature: p.feature});
-      if (s.status === 404 || s.status === 409 && s.error.includes("no longer connected")) {
+      if (s.status === 404) {
         restarted(); pending.length = 0; break;  // a view this server does not know: nothing to deliver to
       }
       $("gone").style.display = "none";
