@@ -262,10 +262,10 @@ def liver_rotation(collected: dict, band_only=(), coverage=NOMINAL) -> list[Rota
     for liver in livers:
         cal, tables, _, _ = split_and_fit(collected, [liver], coverage, band_only)
         name = next(s.case for s in fitted if s.liver == liver)
-        for table, rows in tables.items():
-            if table.endswith("(held out)"):
-                out += [RotationCell(name, cal.lower, cal.upper, table.split(":")[0], r["level"],
-                                     r["registrations"], r["coverage"]) for r in rows if r["level"] != "all"]
+        for label in collected:  # each set's held-out table, by the name split_and_fit gives it
+            rows = tables.get(f"{label}: validation cases (held out)", [])
+            out += [RotationCell(name, cal.lower, cal.upper, label, r["level"], r["registrations"], r["coverage"])
+                    for r in rows if r["level"] != "all"]
     return out
 
 
