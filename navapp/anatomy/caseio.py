@@ -8,6 +8,7 @@ import io
 import tomllib
 import warnings
 from dataclasses import dataclass, field
+from numbers import Real
 from pathlib import Path
 
 import numpy as np
@@ -54,6 +55,9 @@ CASE_SETTINGS: dict = {
     "units": str,  # "mm", the only unit
     "scene": str,  # the scene a simulated case came from
     "frame": {"case": str, "source": str, "source_to_case": list, "files": dict, "file_frames": dict},  # navapp import
+    # the intraoperative data's frame is registered to the preoperative one, to within these
+    # standard deviations per axis (``registration.prior.PosePrior``); absent or known = false: unknown
+    "intraop": {"pose": {"known": bool, "sd_mm": Real, "sd_deg": Real}},
 }
 """Every key case.toml may hold, with its type; a table's keys are listed in a dict. Keys
 navapp does not read are refused: a setting that is silently ignored looks honoured."""
@@ -271,6 +275,11 @@ def read_case(folder) -> Case:
         except tomllib.TOMLDecodeError as exc:
             raise InputError(f"invalid TOML ({exc})", toml) from None
         check_settings(settings, toml)
+        pose = settings.get("intraop", {}).get("pose", {})
+        if pose.get("known", False) and not all(isinstance(pose.get(k), Real) and pose[k] > 0
+                                                for k in ("sd_mm", "sd_deg")):
+            raise InputError("[intraop.pose] known = true needs sd_mm and sd_deg, both positive (the given pose's "
+                             "standard deviations, mm and degrees)", toml)
         units = settings.get("units", "mm")
         if units != "mm":
             raise InputError(f"units = {units!r}; case folders are in millimetres (units = \"mm\")", toml)

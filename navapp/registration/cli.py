@@ -24,6 +24,10 @@ def add_register_parser(sub):
     s.add_argument("--local-modes", action="store_true",
                    help="add point-load modes under the surface data the first fit leaves off, kept where "
                         "held-out data gain (for local tool loads; off by default, docs/decisions.md)")
+    s.add_argument("--pose-sd", nargs="+", metavar="MM DEG",
+                   help="the data arrive in a frame registered to the preoperative one, to within MM and DEG "
+                        "(standard deviations per axis): a pose prior holds what the data cannot determine; "
+                        "'none': an unknown frame (the multi-start search). Default: the case's [intraop.pose]")
     s.add_argument("--json", action="store_true", help="print a one-line JSON summary on stdout")
     s.set_defaults(func=cmd_register)
 
@@ -33,9 +37,17 @@ def cmd_register(args):
     from .libr import LMOptions
     from .local_modes import LocalModeOptions
     from .pipeline import RobustOptions, prepare, register, write_outputs
+    from .prior import declared_pose, parse_pose_sd
 
     t0 = time.perf_counter()
+    if getattr(args, "pose_sd", None) is not None:
+        try:
+            prior = parse_pose_sd(args.pose_sd)
+        except ValueError as exc:
+            raise InputError(str(exc)) from None
     case = read_case(args.case)
+    if getattr(args, "pose_sd", None) is None:
+        prior = declared_pose(case.settings)
     if not case.intraop:
         raise InputError("no intraoperative data (intraop/*.csv): nothing to register to", args.case)
     model, sec = prepare(case, args.edge, args.k)
@@ -47,7 +59,8 @@ def cmd_register(args):
 
     reg = register(model, case.intraop, deform=not args.no_deform,
                    options=LMOptions(max_iterations=args.max_iterations), callback=on_iteration,
-                   init=RobustOptions(local_modes=LocalModeOptions() if args.local_modes else None))
+                   init=RobustOptions(local_modes=LocalModeOptions() if args.local_modes else None),
+                   pose_prior=prior)
     bar.close()
     sec.update(reg.seconds)
     summary: dict = {"case": case.name, "nodes": model.basis.M, "k": model.basis.k,

@@ -18,6 +18,7 @@ from scipy.spatial import cKDTree
 
 from ..geometry.closest import closest_on_polyline, closest_on_surface, nearest_vertices
 from .model import REGION_FEATURES, W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform
+from .prior import PosePrior
 from .rotation import rotation, rotation_derivatives
 
 
@@ -60,10 +61,12 @@ class Weights:
     huber_mm: dict = field(default_factory=dict)
     # outlier rejection on every feature (``Rejection``), in the same weight factors; None: off
     reject: Rejection | None = None
+    # the pose prior's term of Ω (``prior.PosePrior``: τ, θ about the rigid stage's pose); None: no prior
+    pose_prior: PosePrior | None = None
 
     def scaled(self, factor: float) -> "Weights":
         return Weights({k: v * factor for k, v in self.features.items()}, self.energy * factor, self.unit_m,
-                       dict(self.huber_mm), self.reject)
+                       dict(self.huber_mm), self.reject, self.pose_prior)
 
     def robust_factors(self, distances: dict, rows: dict) -> dict:
         """Feature → (R,) weight factors of its residual rows from its per-point residuals f
@@ -101,15 +104,18 @@ def robust_weights(salient_mm: float) -> Weights:
 @dataclass
 class Evaluation:
     omega: float
-    f: np.ndarray  # (R + 1,) residual rows (see ``residuals``): data (mm), then f_E (Pa)
-    w: np.ndarray  # (R + 1,) weights of f² in Ω
-    J: np.ndarray | None  # (R + 1, 3k + 6); None until asked for (``jacobian=True`` or ``add_jacobian``)
+    # (R + P + 1,) residual rows (see ``residuals``): data (mm), the pose prior's P = 6 rows when
+    # ``Weights.pose_prior`` is set (else P = 0; dimensionless), then f_E (Pa)
+    f: np.ndarray
+    w: np.ndarray  # (R + P + 1,) weights of f² in Ω
+    J: np.ndarray | None  # (R + P + 1, 3k + 6); None until asked for (``jacobian=True`` or ``add_jacobian``)
     features: dict  # name → {"n", "rms_mm", "mean_abs_mm", "max_abs_mm", "omega"}
     timings: dict
     correspondence: dict  # name → Correspondence: reuse with ``frozen=`` to hold them fixed
     beta: np.ndarray  # (3k + 6,) the state evaluated
     terms: list  # per data feature (name, feature, S, q, rows, local): what ``add_jacobian`` needs
     scales: dict | None = None  # feature → (R,) robust weight factors of its rows (``Weights.robust_factors``)
+    pose_prior: PosePrior | None = None  # the prior whose P rows f holds (``Weights.pose_prior``)
     # (β, geometry, data and correspondences) for a later evaluation at the same β (``keep_end``)
     reusable: tuple | None = field(default=None, repr=False)
 
@@ -328,6 +334,14 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     for i, name in enumerate(data):
         if name in robust:
             ws[i] = ws[i] * robust[name]
+    if (prior := weights.pose_prior) is not None:  # rows between the data's and f_E's (``add_jacobian``)
+        JP = prior.jacobian(n)
+        fP, sP = prior.residual(JP, beta), prior.scale(weights.unit_m)
+        fs.append(fP)
+        ws.append(np.full(6, sP))
+        moved = fP * np.repeat([prior.sd_mm, prior.sd_deg], 3)  # the organ's rigid motion: mm, degrees
+        stats["pose_prior"] = {"omega": float(sP * fP @ fP), "shift_mm": float(np.linalg.norm(moved[:3])),
+                               "turn_deg": float(np.linalg.norm(moved[3:]))}
     fE = basis.strain_energy_density(alpha)
     fs.append(np.array([fE]))
     ws.append(np.array([weights.energy]))
@@ -335,7 +349,8 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     w = np.concatenate(ws)
     stats["strain_energy"] = {"f_E_pa": fE, "omega": float(weights.energy * fE ** 2)}
     ev = Evaluation(omega=float(w @ (f * f)), f=f, w=w, J=None, features=stats, timings=tim, correspondence=corr,
-                    beta=np.array(beta, float), terms=terms, scales=robust, reusable=reusable)
+                    beta=np.array(beta, float), terms=terms, scales=robust, reusable=reusable,
+                    pose_prior=weights.pose_prior)
     return add_jacobian(model, ev) if jacobian else ev
 
 
@@ -387,6 +402,8 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation) -> Evaluation:
         for j in range(3):
             Jf[:, n + 3 + j] = -np.einsum("ia,ab,ib->i", q, dR[j], xl)
         Js.append(Jf)
+    if ev.pose_prior is not None:
+        Js.append(ev.pose_prior.jacobian(n))
     JE = np.zeros((1, n + 6))
     JE[0, :n] = (basis.energy @ beta[:n]) / basis.M
     ev.J = np.vstack(Js + [JE])

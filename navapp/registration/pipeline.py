@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from ..anatomy.caseio import Case, write_csv
 from ..anatomy.meshing import MeshProvenance, cached_tetmesh
@@ -31,6 +32,7 @@ from .coverage import note_coverage
 from .libr import LibrResult, LMOptions, register_libr
 from .local_modes import LocalModeOptions, LocalModes, choose_local_modes, fold_model
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
+from .objective import HUBER_MM, evaluate
 from .pose import (
     Determinacy,
     PoseChoice,
@@ -42,9 +44,11 @@ from .pose import (
     prefer_given,
     rms_on_model,
     shift_mm,
+    turn_deg,
     with_turn,
 )
-from .quality import FitQuality, Verdict, assess_fit
+from .prior import PosePrior
+from .quality import EXPECTED_NOISE_MM, FitQuality, Verdict, assess_fit
 from .rigid import (
     RIGID_ROBUST,
     RIGID_WITH_POSTERIOR,
@@ -57,6 +61,7 @@ from .rigid import (
     rigid_icp,
     start_poses,
 )
+from .rotation import rotation
 from .support import Support, SupportOptions, check_support, check_support_pair, pooled_rms, weigh_correction
 from .uncertainty import OrganError, organ_error
 
@@ -165,6 +170,8 @@ class Registration:
     # the local-mode step (``RobustOptions.local_modes``): where its sources went, the held-out
     # RMS with and without them, and whether ``model`` carries them
     local_modes: LocalModes | None = None
+    # the declared pose knowledge the fit used (``register(pose_prior=)``), centred on ``rigid``
+    pose_prior: PosePrior | None = None
 
     @property
     def deformed(self) -> bool:
@@ -390,9 +397,99 @@ def _cross_validate(model: RegistrationModel, local: dict, options: LMOptions, s
     return support
 
 
+SCALE_ROUNDS = 6  # refits of the rigid stage while its scale σ_F settles (``_declared_rigid``)
+
+
+def _declared_rigid(model: RegistrationModel, data: dict, prior: PosePrior, options: LMOptions,
+                    init: RobustOptions, cancel) -> tuple[RigidResult, PosePrior, list[Start]]:
+    """The rigid stage with a declared pose (docs/design.md, "Pose prior").
+
+    τ, θ are fitted by LM with the prior about the given pose (identity: the data arrive in
+    the preoperative frame), with Huber weights on every feature. The search is confined to
+    where the prior allows: the multi-start ICP from the given pose and from turns of at most
+    two declared σ_θ (no principal-axes flip), its distinct poses kept within ``PRIOR_REACH``
+    declared σ of the given one. Each kept pose, and the given one, starts an LM fit; the one
+    with the lowest Ω (data and prior, at one scale) is the answer. Its scale σ_F is the data's
+    RMS distance from the undeformed model there (``prior``, "The scale"), refitted until it
+    changes by less than a tenth, floored at the features' expected noise. Returns the pose
+    (model → data frame), the prior re-centred on where the given pose is from it, and the
+    starts searched."""
+    n = model.basis.Ju.shape[1]
+    floor = min(EXPECTED_NOISE_MM.get(name, 1.0) for name in data)
+    # Huber on every feature (δ = ``HUBER_MM``): where the organ deformed under part of the data
+    # (a dent), a rigid fit in least squares shares that misfit out as a pose error; with the
+    # pull of the points far off bounded, the prior holds the given pose unless most data move
+    huber = {name: HUBER_MM for name in data}
+    rigid_only = replace(options, deform=False, pose=True)
+    at_given = replace(prior, centre=(0.0,) * 6)
+    c = model.centroid
+
+    def beta_of(pose: RigidResult) -> np.ndarray:
+        # R (x − x̄0) + τ + x̄0 = R x + t  ⇒  τ = t − x̄0 + R x̄0; θ: R = R_x R_y R_z (intrinsic XYZ)
+        b = np.zeros(n + 6)
+        b[n:n + 3] = pose.t - c + pose.R @ c
+        b[n + 3:] = Rotation.from_matrix(pose.R).as_euler("XYZ")
+        return b
+
+    def fit(beta0, current, rounds=SCALE_ROUNDS):
+        fitted = None
+        for _ in range(rounds):
+            fitted = register_libr(model, data, beta0, replace(rigid_only, weights=replace(
+                options.weights, huber_mm=huber, pose_prior=current)), None, cancel)
+            sd = max(_robust_sd(model, data, fitted.beta, options.weights), floor)
+            settled = abs(sd - current.feature_sd_mm) < 0.1 * current.feature_sd_mm
+            current = replace(current, feature_sd_mm=sd)
+            if settled or fitted.stop_reason == "cancelled":
+                break
+        assert fitted is not None
+        return fitted, current
+
+    best, current = fit(None, at_given)
+    starts: list[Start] = []
+    if init.multi_start and any(n_ in SURFACE_FEATURES for n_ in data):
+        features = _rigid_features(init)
+        turn = min(init.start_angle_deg, 2.0 * prior.sd_deg)
+        poses = start_poses(model, {k: v for k, v in data.items() if k in features} or data, turn, False)
+        starts = multi_start_icp(model, data, poses, options.weights, mode=init.icp, features=features,
+                                 robust=init.rigid_robust)
+        scale = replace(current, feature_sd_mm=current.feature_sd_mm)
+        for rep in basin_representatives(starts)[:init.max_candidates]:
+            b = beta_of(rep.fitted)
+            reach = np.concatenate([b[n:n + 3] / prior.sd_mm, b[n + 3:] / prior.sd_rad])
+            if np.abs(reach).max() > PRIOR_REACH or np.allclose(b, 0.0):
+                continue
+            other, _ = fit(b, scale, rounds=1)  # at the given pose's scale: one Ω to compare
+            here, _ = fit(best.beta, scale, rounds=1)
+            if other.omega < here.omega:
+                best, current = fit(other.beta, scale)
+                for st in starts:
+                    st.chosen = st is rep
+    beta = best.beta
+    tau, theta = beta[n:n + 3], beta[n + 3:]
+    R = rotation(theta)
+    # x ↦ R (x − x̄0) + τ + x̄0: the pose moved from the given one (model → data frame)
+    pose = RigidResult(R, c + tau - R @ c, best.iterations, 0.0, kept=True)
+    pose = replace(pose, rms_mm=rms_on_model(model, data, pose))
+    return pose, replace(current, centre=tuple(np.concatenate([-R.T @ tau, -theta]).tolist())), starts
+
+
+def _robust_sd(model: RegistrationModel, data: dict, beta, weights) -> float:
+    """σ_F of the prior's scale at β (``prior``, "The scale"): the data's residuals' robust
+    standard deviation, 1.4826 × their median absolute value (the normal's MAD factor), so a
+    deformation under fewer than half of the points does not set it."""
+    ev = evaluate(model, data, beta, replace(weights, pose_prior=None), jacobian=False)
+    return float(1.4826 * np.median(np.abs(ev.f[:-1]))) if len(ev.f) > 1 else 0.0
+
+
+PRIOR_REACH = 3.0
+"""How many declared standard deviations (per axis) from the given pose a multi-start ICP
+pose may lie and still be a candidate of the declared rigid stage (``_declared_rigid``)."""
+
+
 def register(model: RegistrationModel, data: dict, deform=True, options: LMOptions | None = None,
              callback=None, cancel=None, beta0=None, rigid: RigidResult | None = None,
-             init: RobustOptions | None = None, starts: list[Start] | None = None) -> Registration:
+             init: RobustOptions | None = None, starts: list[Start] | None = None,
+             pose_prior: PosePrior | None = None) -> Registration:
     """Rigid initialisation then (unless ``deform`` is False) LIBR: β minimising Ω of eq. 7
     (data terms of Table I plus the strain-energy term) by Levenberg–Marquardt.
 
@@ -444,11 +541,18 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     warm = rigid is not None  # the pose is given: no choice of pose
     fresh = beta0 is None  # a deformable fit from β = 0 (not a warm re-registration): cross-validated
     options, init = _settings(options, init)
+    declared = pose_prior is not None and not warm and bool(data)
+    if pose_prior is not None and warm:  # about the warm start's pose (the caller's last registration)
+        options = replace(options, weights=replace(options.weights, pose_prior=pose_prior))
     features = _rigid_features(init)
     sec = {}
     t = time.perf_counter()
     candidates: list[RigidResult] = []
-    if rigid is not None or not init.multi_start:
+    if declared:
+        assert pose_prior is not None
+        rigid, centred, starts = _declared_rigid(model, data, pose_prior, options, init, cancel)
+        options = replace(options, weights=replace(options.weights, pose_prior=centred))
+    elif rigid is not None or not init.multi_start:
         starts = []
     elif starts is None:
         starts = _multi_start(model, data, options, init)
@@ -475,9 +579,10 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         rigid = screened[0][1]
         for s in starts:
             s.omega = next((o for o, c, _ in screened if c is s.result), None)
-    for s in starts:
-        s.chosen = s.result is rigid
-    if starts:
+    if not declared:  # the declared rigid stage marked its own choice and finished its pose
+        for s in starts:
+            s.chosen = s.result is rigid
+    if starts and not declared:
         # the chosen basin's pose is finished by today's exact point-to-point ICP: on the
         # phantom cases LIBR went on to a lower Ω and TRE from it than from the
         # vertex-matched point-to-plane pose (e.g. 0.48 against 0.95 mm). Starting it from
@@ -485,7 +590,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,
                           start=rigid, features=features, robust=init.rigid_robust)
     choice = None
-    if not warm and init.keep_given_pose and "fiducials" not in data and not notes:
+    if not warm and not declared and init.keep_given_pose and "fiducials" not in data and not notes:
         choice = choose_pose(model, data, _given(), rigid)
         if choice.kept:
             trimmed = choice.local
@@ -493,9 +598,10 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
                 _given(rms_on_model(model, data, _given()))
             for s in starts:
                 s.chosen = False
-    if rigid.kept:
+    if rigid.kept and options.weights.pose_prior is None:
         options = replace(options, pose=False)
-    determinacy = pose_determinacy(model, data, rigid)
+    # with a declared pose the prior fixes what the data leave free: no sliding direction to report
+    determinacy = None if declared else pose_determinacy(model, data, rigid)
     sec["rigid"] = time.perf_counter() - t
     local = {name: rigid.inverse(p) for name, p in data.items()}
     result, quality = None, None
@@ -594,7 +700,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         result = replace(result, stop_reason="cancelled")
         support = None
     reg = Registration(model, rigid, result, local, sec, starts, quality, choice, determinacy, support, notes,
-                       local_modes=local_modes)
+                       local_modes=local_modes, pose_prior=options.weights.pose_prior)
     if fresh and reg.deformed and result is not None and result.stop_reason != "cancelled":
         # every check above compares the answer with simpler ones on the data; this one asks
         # whether it is good enough to navigate by at all (docs/decisions.md, "An answer the data
@@ -632,6 +738,12 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
     if reg.model.mesher is not None:  # the mesh is part of the answer: which mesher made it, and why
         summary["mesher"] = reg.model.mesher.as_dict()
     summary["answer"] = "deformable" if reg.deformed else "rigid"
+    if reg.pose_prior is not None:  # declared: how far the answer moved the organ from the given pose
+        moved = reg.libr.features.get("pose_prior", {}) if reg.libr is not None and reg.deformed else {}
+        summary["pose_prior"] = {**reg.pose_prior.as_dict(), "rigid_stage_moved_mm": round(shift_mm(reg.rigid, {
+            "nodes": reg.model.basis.nodes}), 3), "rigid_stage_turned_deg": round(turn_deg(reg.rigid), 3),
+            **({"libr_moved_mm": round(moved["shift_mm"], 3), "libr_turned_deg": round(moved["turn_deg"], 3)}
+               if moved else {})}
     for key, part in (("pose", reg.pose_choice), ("pose_determinacy", reg.determinacy), ("support", reg.support),
                       ("predicted_error", reg.organ), ("local_modes", reg.local_modes)):
         if part is not None:

@@ -23,15 +23,18 @@ true / ê).
 """
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.stats import chi2
 
 from ..geometry.interpolation import interpolation_matrix
 from ..threads import limit_threads
 from .model import REGION_FEATURES, RegistrationModel, deform
 from .objective import Weights, evaluate
+from .prior import FEATURE_SD_MM, likelihood_scale
+from .quality import EXPECTED_NOISE_MM
 from .rotation import rotation, rotation_derivatives
 
 
@@ -81,6 +84,9 @@ class ErrorEstimate:
     positions: np.ndarray  # (P, 3) registered positions, tracker frame
     calibration: Calibration = field(default_factory=Calibration)
     noise_scale: float = 0.0  # s, the reduced χ² scaling H⁻¹ (dimensionless, Ω's units)
+    # (P,) σ_pose: the RMS displacement at each point under the pose's own posterior (``pose_error``),
+    # already joined into ``predicted_mm`` and ``upper_mm``
+    pose_sigma_mm: np.ndarray | None = None
 
 
 @dataclass
@@ -133,7 +139,9 @@ def information(model: RegistrationModel, data: dict, beta, weights: Weights | N
     JE, wE, fE = ev.jacobian[-1], ev.w[-1], ev.f[-1]
     prior = wE * np.outer(JE, JE)
     prior[:n, :n] += wE * fE * model.basis.energy / model.basis.M
-    dof = max(len(ev.f) - 1 - len(beta), 1)
+    # the pose prior's rows (``prior``) are no data: Σ_β here is the data's (the prior's share of
+    # the error estimate is ``pose_error``)
+    dof = max(len(ev.f) - 1 - (6 if ev.pose_prior is not None else 0) - len(beta), 1)
     return Information(blocks, counts, prior, float(ev.omega / dof), beta)
 
 
@@ -220,6 +228,43 @@ def nearest_data_distance(positions, data: dict) -> np.ndarray:
     return cKDTree(np.vstack(pts)).query(positions)[0]
 
 
+POSE_BAND = float(np.sqrt(chi2.ppf(0.9, 3) / 3))
+"""The 90 % quantile of the length of a 3-D normal vector over its RMS (1.44): the band's
+upper edge allows this × σ_pose for the pose, as the calibrated band allows 90 % for the rest."""
+
+
+def pose_covariance(model: RegistrationModel, data: dict, beta, weights: Weights,
+                    feature_sd_mm: float = FEATURE_SD_MM) -> np.ndarray:
+    """Σ_pose (6, 6): the posterior covariance of τ (mm) and θ (rad) at β, from the data's
+    rows and the pose prior's (``weights.pose_prior``, if declared), with α held: H = J_poseᵀ W
+    J_pose and Σ = s_P H⁻¹, s_P the scale at which Ω reads as a log-likelihood (``prior``:
+    each data feature one observation of σ_F RMS). α is held because the modes can move the
+    organ almost rigidly: the marginal would count that freedom twice, once here and once in
+    σ; this is the question the rigid stage answers — how well data and prior fix the pose.
+    σ_F is the prior's own (``PosePrior.feature_sd_mm``) when one is declared, else
+    ``feature_sd_mm``. Directions the data and prior leave free get the organ's size in σ
+    (``FREE_POSE_MM``)."""
+    n = len(beta) - 6
+    ev = evaluate(model, data, np.asarray(beta, float), weights, jacobian=True)
+    J = ev.jacobian[:, n:]
+    H = (J.T * ev.w) @ J
+    prior = weights.pose_prior
+    s = prior.scale(weights.unit_m) if prior is not None else likelihood_scale(weights.unit_m, feature_sd_mm)
+    # τ in mm and θ in rad: equilibrate before the pseudo-inverse (θ scaled by the organ's radius)
+    radius = float(np.sqrt(np.mean(np.sum((model.basis.nodes - model.centroid) ** 2, axis=1))))
+    D = np.concatenate([np.ones(3), np.full(3, radius)])
+    Hs = H / np.outer(D, D)
+    w, V = np.linalg.eigh(Hs)
+    floor = s / FREE_POSE_MM ** 2  # a direction nothing fixes: σ of the organ's size
+    cov = (V / np.maximum(w, floor)) @ V.T * s
+    return cov / np.outer(D, D)
+
+
+FREE_POSE_MM = 100.0
+"""σ (mm) given to a pose direction that neither the data nor a prior fix: the organ's size,
+not infinity, so that the band stays a number a surgeon reads as "do not navigate"."""
+
+
 def estimate_error(reg, points=None, calibration: Calibration | None = None, B=None,
                    weights: Weights | None = None, nodes=None) -> ErrorEstimate:
     """Predicted registration error of a deformable registration, without the truth.
@@ -251,11 +296,25 @@ def estimate_error(reg, points=None, calibration: Calibration | None = None, B=N
         info = information(model, data, reg.libr.beta, weights)
         x, G = point_jacobian(model, reg.libr.beta, B, nodes=None if B is not None else nodes)
         sigma = point_sigma(G, factor=covariance_factor(info))
+        # the pose's own uncertainty: the calibrated ê was fitted on answers whose pose was right
+        # (the study cases' data determine it), so it leaves out what a partial scan leaves the
+        # pose free to do; joined in quadrature, the band's upper edge by its 90 % quantile
+        w = weights or default_weights()
+        if reg.pose_prior is not None and w.pose_prior is None:
+            w = replace(w, pose_prior=reg.pose_prior)
+        # undeclared: σ_F as the declared pose's rigid stage sets it, the data's RMS distance from the
+        # undeformed model at the rigid pose (``prior``), floored at the data's expected noise
+        floor = min((EXPECTED_NOISE_MM.get(k, 1.0) for k in data), default=1.0)
+        cov = pose_covariance(model, data, reg.libr.beta, w, max(reg.rigid.rms_mm, floor))
+        Gp = G[:, :, -6:]
+        pose_sigma = point_sigma(Gp, cov=cov)
     d = nearest_data_distance(x, data)
     m = float(np.median(d)) if B is None and nodes is None else data_spread(model, reg.libr.beta, data)
-    pred = calibration.predict(d, sigma, m)
-    return ErrorEstimate(pred, pred * calibration.lower, pred * calibration.upper, d, sigma, m, reg.rigid.apply(x),
-                         calibration, info.scale)
+    base = calibration.predict(d, sigma, m)
+    pred = np.sqrt(base ** 2 + pose_sigma ** 2)
+    upper = np.sqrt((base * calibration.upper) ** 2 + (POSE_BAND * pose_sigma) ** 2)
+    return ErrorEstimate(pred, base * calibration.lower, upper, d, sigma, m, reg.rigid.apply(x),
+                         calibration, info.scale, pose_sigma)
 
 
 def surface_estimate(reg, vertices, calibration: Calibration | None = None) -> ErrorEstimate:
@@ -273,7 +332,8 @@ def surface_estimate(reg, vertices, calibration: Calibration | None = None) -> E
         model.cache[key] = near
     est = estimate_error(reg, calibration=calibration, nodes=model.basis.surface)
     return ErrorEstimate(est.predicted_mm[near], est.lower_mm[near], est.upper_mm[near], est.distance_mm[near],
-                         est.sigma_mm[near], est.spread_mm, est.positions[near], est.calibration, est.noise_scale)
+                         est.sigma_mm[near], est.spread_mm, est.positions[near], est.calibration, est.noise_scale,
+                         None if est.pose_sigma_mm is None else est.pose_sigma_mm[near])
 
 
 ONCOLOGICAL_MARGIN_MM = 10.0

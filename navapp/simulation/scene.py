@@ -116,6 +116,25 @@ class Scene:
     effects: list = field(default_factory=list)
     seed: int = 0
     source: Path | None = None
+    # [pose]: the case says its data's frame is registered to the preoperative one, to within
+    # these standard deviations (case.toml [intraop.pose]); None: the scene's tracker offset's own
+    # size (its translation_mm, rotation_deg), or ``DECLARED_POSE`` for data in the preoperative frame
+    pose_declared: bool = False
+    pose_sd_mm: float | None = None
+    pose_sd_deg: float | None = None
+
+    def declared_pose(self) -> tuple[float, float] | None:
+        """(sd_mm, sd_deg) the case declares (``[pose]``), or None (an unknown frame)."""
+        if not self.pose_declared:
+            return None
+        offset = next((e.params for e in self.effects if e.kind == "tracker_offset"), None)
+        mm, deg = DECLARED_POSE if offset is None else (offset["translation_mm"], offset["rotation_deg"])
+        return (self.pose_sd_mm or max(mm, 0.1), self.pose_sd_deg or max(deg, 0.1))
+
+
+DECLARED_POSE = (1.5, 1.5)
+"""(sd_mm, sd_deg) a scene with ``[pose] declared = true`` and no tracker offset declares by
+default: a fiducial registration's few millimetres and degrees."""
 
 
 _SECTIONS: dict[str, dict[str, type]] = {
@@ -125,6 +144,7 @@ _SECTIONS: dict[str, dict[str, type]] = {
                     "transpose_from": dict, "gravity": bool, "supports": str},
     "stylus": {"coverage": float, "pattern": str, "points": int, "at": list},
     "ius": {"planes": int},
+    "pose": {"declared": bool, "sd_mm": float, "sd_deg": float},
 }
 
 
@@ -206,7 +226,8 @@ def parse_scene(data: dict, path=None) -> Scene:
                 value = _point(value, f"{section}.{key}", path)
             else:
                 value = _typed(value, keys[key], f"{section}.{key}", path)
-            attr = "patch_at" if (section, key) == ("stylus", "at") else key
+            attr = "patch_at" if (section, key) == ("stylus", "at") else \
+                f"pose_{key}" if section == "pose" else key
             setattr(scene, attr, Path(value) if key == "case" else value)
     if "tool" in data:
         scene.tool = _tool(data["tool"], path)
@@ -232,6 +253,8 @@ def parse_scene(data: dict, path=None) -> Scene:
         raise InputError("stylus.coverage must be in (0, 1]", path)
     if not 0 <= scene.planes <= N_PLANES:
         raise InputError(f"ius.planes must be between 0 and {N_PLANES}", path)
+    if any(v is not None and v <= 0 for v in (scene.pose_sd_mm, scene.pose_sd_deg)):
+        raise InputError("pose.sd_mm and pose.sd_deg must be positive (standard deviations, mm and degrees)", path)
     if scene.mesh_edge_mm <= 0 or scene.truth_E_pa <= 0:
         raise InputError("deformation.mesh_edge_mm and deformation.truth_E_pa must be positive", path)
     if not 0.0 <= scene.gravity_tilt_deg <= 90.0:

@@ -145,9 +145,10 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
             intraop[k] = np.vstack([intraop[k], pts]) if k in intraop else pts
     _check_data(scene, intraop)
 
-    case = Case(preop=preop, intraop=intraop, truth=truth,
-                settings={"name": scene.name, "units": "mm",
-                          "scene": str(scene.source) if scene.source else scene.name})
+    settings: dict = {"name": scene.name, "units": "mm", "scene": str(scene.source) if scene.source else scene.name}
+    if (pose := scene.declared_pose()) is not None:
+        settings["intraop"] = {"pose": {"known": True, "sd_mm": float(pose[0]), "sd_deg": float(pose[1])}}
+    case = Case(preop=preop, intraop=intraop, truth=truth, settings=settings)
     # the whole case is written aside and moved into place: simulating into a folder that held
     # another case (16 planes, then none) left the old planes' contours and images beside the new
     # report, and register would have used them; a run stopped half way leaves the old case whole

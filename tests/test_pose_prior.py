@@ -1,0 +1,172 @@
+"""The pose prior (keep a pose the data cannot determine where the surgeon's registration put
+it): its closed-form Jacobian, ``register(pose_prior=)`` on a dented partial scan and on a
+declared tracker offset, and the error estimate's pose term."""
+
+import numpy as np
+import pytest
+
+from navapp.registration.objective import Weights, evaluate
+from navapp.registration.prior import PosePrior, parse_pose_sd
+from navapp.registration.rotation import rotation
+
+
+def test_the_prior_rows_jacobian_matches_finite_differences(small_model, phantoms):
+    rng = np.random.default_rng(0)
+    n = small_model.basis.Ju.shape[1]
+    Y = phantoms[0].liver.vertices[rng.choice(len(phantoms[0].liver.vertices), 150)] + rng.normal(0, 1, (150, 3))
+    prior = PosePrior(2.0, 2.0, centre=(0.5, -0.3, 0.2, 0.01, 0.0, -0.02))
+    w = Weights(pose_prior=prior)
+    beta = np.concatenate([rng.normal(0, 0.1, n), [1.0, -2.0, 0.5], [0.01, -0.02, 0.03]])
+    ev = evaluate(small_model, {"anterior": Y}, beta, w, jacobian=True)
+    rows = slice(len(ev.f) - 7, len(ev.f) - 1)  # the prior's six rows sit before f_E
+    for j in (0, 7, n, n + 2, n + 3, n + 5):
+        h = 1e-6
+        plus, minus = beta.copy(), beta.copy()
+        plus[j] += h
+        minus[j] -= h
+        fd = (evaluate(small_model, {"anterior": Y}, plus, w, jacobian=False, frozen=ev.correspondence,
+                       scales=ev.scales).f
+              - evaluate(small_model, {"anterior": Y}, minus, w, jacobian=False, frozen=ev.correspondence,
+                         scales=ev.scales).f) / (2 * h)
+        assert np.allclose(fd[rows], ev.jacobian[rows, j], atol=1e-7)
+        assert np.allclose(fd, ev.jacobian[:, j], atol=1e-6 * max(1.0, np.abs(ev.jacobian[:, j]).max()))
+    # Ω's prior term is s_P |f_P|², and f_P is zero at the centre
+    beta0 = np.zeros(n + 6)
+    beta0[n:] = prior.centre
+    beta0[n + 3:] = prior.centre[3:]
+    at = evaluate(small_model, {"anterior": Y}, beta0, w, jacobian=False)
+    assert at.features["pose_prior"]["omega"] == pytest.approx(0.0, abs=1e-20)
+
+
+def test_pose_sd_parses_two_numbers_or_none():
+    assert parse_pose_sd(["1.5", "2"]) == PosePrior(1.5, 2.0)
+    assert parse_pose_sd(["none"]) is None
+    for bad in (["1"], ["a", "b"], ["-1", "2"], ["1", "0"]):
+        with pytest.raises(ValueError):
+            parse_pose_sd(bad)
+
+
+def _dented_scan(model):
+    """A partial anterior scan (about a tenth of the surface) with a 25 mm dent under a third
+    of it, the data already in the preoperative frame; and the true positions of the nodes."""
+    rest = model.features["liver"].rest
+    c0 = rest[np.argmax(rest[:, 1])]
+    scan = rest[np.linalg.norm(rest - c0, axis=1) < 55.0]
+    tip = scan[np.argmax(scan[:, 0])]
+
+    def dent(x):
+        r = np.linalg.norm(x - tip, axis=1)
+        return (25.0 * np.clip(1 - (r / 40.0) ** 2, 0, None) ** 2)[:, None] * np.array([0.0, -1.0, 0.0])
+
+    nodes = model.basis.nodes
+    return {"anterior": scan + dent(scan)}, nodes + dent(nodes)
+
+
+def test_a_declared_pose_holds_a_dented_partial_scan_where_icp_turns_it_away(small_model):
+    """The multi-start ICP, unguarded, moves the organ to share the dent's misfit out (25 mm
+    off here); with the pose declared (1.5 mm, 1.5°) the rigid stage stays at the given pose:
+    the dent's misfit sets the prior's scale, and the Huber fit bounds its pull. This
+    12 mm, k = 12 model cannot make the dent, so the answer is that pose, as good as no
+    correction."""
+    from navapp.registration.pipeline import RobustOptions, register
+
+    data, truth = _dented_scan(small_model)
+    nodes = small_model.basis.nodes
+    none = np.linalg.norm(nodes - truth, axis=1).mean()
+    free = register(small_model, data, init=RobustOptions.unguarded())
+    held = register(small_model, data, pose_prior=PosePrior(1.5, 1.5))
+    err_free = np.linalg.norm(free.transform(nodes) - truth, axis=1).mean()
+    err_held = np.linalg.norm(held.transform(nodes) - truth, axis=1).mean()
+    assert err_free > 10 * none  # what the issue measured: the free pose throws the given one away
+    assert err_held < none + 0.1
+    assert held.starts == [] and held.pose_choice is None and held.pose_prior is not None
+    assert np.linalg.norm(held.rigid.t) < 0.2 and held.pose_prior.feature_sd_mm > 2.0
+
+
+def test_a_declared_tracker_offset_is_corrected_by_the_data(small_model):
+    """Data that cover the anterior surface, in a frame off by 3° and 4 mm, declared at that
+    size: the prior lets the data take the offset out. Held at the given pose (the prior far
+    tighter than the offset) the answer keeps it."""
+    from navapp.registration.pipeline import register
+
+    rest = small_model.features["liver"].rest
+    scan = rest[rest[:, 1] > np.percentile(rest[:, 1], 55)]
+    R, t = rotation(np.radians([3.0, -2.0, 1.5])), np.array([3.0, -2.5, 1.5])
+    data = {"anterior": scan @ R.T + t}
+    nodes = small_model.basis.nodes
+    truth = nodes @ R.T + t
+    declared = register(small_model, data, deform=False, pose_prior=PosePrior(4.0, 3.0))
+    tight = register(small_model, data, deform=False, pose_prior=PosePrior(0.05, 0.05))
+    err = np.linalg.norm(declared.transform(nodes) - truth, axis=1).mean()
+    err_tight = np.linalg.norm(tight.transform(nodes) - truth, axis=1).mean()
+    assert err < 1.0 < 4.0 < err_tight
+    deformable = register(small_model, data, pose_prior=PosePrior(4.0, 3.0))
+    assert np.linalg.norm(deformable.transform(nodes) - truth, axis=1).mean() < 1.5
+
+
+def test_the_pose_covariance_is_the_priors_without_data_and_tighter_with_them(small_model):
+    """``pose_covariance``: with the data weighted out it is the declared prior's own
+    (diag(σ_τ², σ_θ²), analytic); with the dented scan it is tighter than the prior on every
+    axis; without a prior the scan alone leaves some direction looser than the prior."""
+    from dataclasses import replace
+
+    from navapp.registration.uncertainty import pose_covariance
+
+    data, _ = _dented_scan(small_model)
+    n = small_model.basis.Ju.shape[1]
+    prior = PosePrior(2.0, 1.5, feature_sd_mm=3.0)
+    w = Weights(pose_prior=prior)
+    beta = np.zeros(n + 6)
+    faint = replace(w, features={k: v * 1e-12 for k, v in w.features.items()})
+    alone = pose_covariance(small_model, data, beta, faint)
+    expected = np.diag([4.0] * 3 + [np.radians(1.5) ** 2] * 3)
+    assert np.allclose(alone, expected, rtol=1e-6, atol=1e-12)
+    # the data's scale is the prior's own σ_F (3 mm): read at that scale they fix the pose better than it
+    with_data = pose_covariance(small_model, data, beta, w)
+    assert (np.diag(with_data) < np.diag(expected)).all()
+    unknown = pose_covariance(small_model, data, beta, replace(w, pose_prior=None))
+    assert np.linalg.eigvalsh(unknown).max() > np.linalg.eigvalsh(with_data).max()
+
+
+def test_register_reads_the_declared_pose_from_case_toml_and_from_the_command(tmp_path, capsys):
+    """``[intraop.pose]`` in case.toml and ``--pose-sd`` reach ``register``: result.json says
+    which prior the fit used; ``--pose-sd none`` overrides the case's; a bad value is one line."""
+    import json
+
+    from navapp.cli import main
+    from test_register_cli import make_case
+
+    case = tmp_path / "c"
+    make_case(case)
+    args = ["--quiet", "register", str(case), "--edge", "15", "--k", "10", "--json"]
+    with (case / "case.toml").open("a") as fh:
+        fh.write("[intraop.pose]\nknown = true\nsd_mm = 2.0\nsd_deg = 1.5\n")
+    assert main(args) == 0
+    result = json.loads((case / "registration" / "result.json").read_text())
+    assert result["pose_prior"]["sd_mm"] == 2.0 and result["pose_prior"]["sd_deg"] == 1.5
+    assert main([*args, "--pose-sd", "none"]) == 0
+    assert "pose_prior" not in json.loads((case / "registration" / "result.json").read_text())
+    assert main([*args, "--pose-sd", "3", "4"]) == 0
+    assert json.loads((case / "registration" / "result.json").read_text())["pose_prior"]["sd_mm"] == 3.0
+    capsys.readouterr()
+    assert main([*args, "--pose-sd", "3"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--pose-sd takes two numbers" in err[0]
+    (case / "case.toml").write_text('name = "e"\nunits = "mm"\n[intraop.pose]\nknown = true\nsd_mm = 0\nsd_deg = 1\n')
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "case.toml" in err[0] and "sd_mm and sd_deg" in err[0]
+
+
+def test_a_scene_declares_its_pose_from_its_tracker_offset():
+    from navapp.errors import InputError
+    from navapp.simulation.scene import DECLARED_POSE, parse_scene
+
+    base = {"name": "s", "anatomy": {"phantom": 0}}
+    assert parse_scene(base).declared_pose() is None
+    assert parse_scene({**base, "pose": {"declared": True}}).declared_pose() == DECLARED_POSE
+    offset = {"effects": [{"kind": "tracker_offset", "rotation_deg": 10.0, "translation_mm": 15.0}]}
+    assert parse_scene({**base, **offset, "pose": {"declared": True}}).declared_pose() == (15.0, 10.0)
+    assert parse_scene({**base, "pose": {"declared": True, "sd_mm": 2.0, "sd_deg": 1.0}}).declared_pose() == (2.0, 1.0)
+    with pytest.raises(InputError, match="pose.sd_mm"):
+        parse_scene({**base, "pose": {"declared": True, "sd_mm": -1.0}})
