@@ -133,8 +133,9 @@ def test_register_reads_the_declared_pose_from_case_toml_and_from_the_command(tm
     which prior the fit used; ``--pose-sd none`` overrides the case's; a bad value is one line."""
     import json
 
-    from navapp.cli import main
     from test_register_cli import make_case
+
+    from navapp.cli import main
 
     case = tmp_path / "c"
     make_case(case)
