@@ -184,3 +184,25 @@ def test_jobs_share_the_one_at_a_time_rule_and_report_errors(small_model):
     assert w.submit(lambda cancel: 1 / 0)
     w.join(BUSY_WAIT_S)
     assert len(errors) == 1 and isinstance(errors[0], ZeroDivisionError) and not w.busy
+
+
+def test_a_declared_pose_reaches_the_fresh_run_and_the_warm_one(small_model):
+    """The worker's ``pose_prior`` (the case's [intraop.pose]): a fresh run fits its rigid stage
+    with it (no multi-start search), and a warm run after it carries the prior centred on that
+    run's pose. Without it the viewer's runs are as before."""
+    from navapp.registration.prior import PosePrior
+
+    done = []
+    w = RegistrationWorker(small_model, on_done=done.append, max_rate_hz=1e6, pose_prior=PosePrior(1.5, 1.5))
+    data = data_for(small_model, np.random.default_rng(3))
+    assert w.start(data)
+    w.join(BUSY_WAIT_S)
+    fresh = done[-1]
+    assert fresh.pose_prior is not None and fresh.pose_prior.sd_mm == 1.5 and fresh.starts == []
+    assert w.start(data, warm=True)
+    w.join(BUSY_WAIT_S)
+    assert done[-1].pose_prior == fresh.pose_prior
+    plain = RegistrationWorker(small_model, on_done=done.append, max_rate_hz=1e6)
+    assert plain.start(data)
+    plain.join(BUSY_WAIT_S)
+    assert done[-1].pose_prior is None

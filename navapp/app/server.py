@@ -27,6 +27,7 @@ from .. import progress
 from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
 from ..errors import NavappError
+from ..registration.prior import declared_pose
 from .core import Core, Loaded, Ready
 from .drawing import Drawing
 from .imaging import Imaging
@@ -94,8 +95,9 @@ class App:
         core = self.core
         with core.lock:
             core.model, core.truth_nodes = ready.model, ready.truth_nodes
+            prior = declared_pose(core.sd.case.settings) if core.sd is not None else None
             core.worker = RegistrationWorker(ready.model, self.runs.on_update, self.runs.on_done, self.runs.on_error,
-                                             max_rate_hz=STREAM_HZ)
+                                             max_rate_hz=STREAM_HZ, pose_prior=prior)
             self.shown.restore()
         self.runs.restore_worst()
 

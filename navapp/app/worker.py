@@ -47,8 +47,11 @@ def cancelled(reg: Registration) -> bool:
 class RegistrationWorker:
     """Runs ``pipeline.register`` on a registration model in a background thread."""
 
-    def __init__(self, model, on_update=None, on_done=None, on_error=None, max_rate_hz=20.0):
+    def __init__(self, model, on_update=None, on_done=None, on_error=None, max_rate_hz=20.0, pose_prior=None):
         self.model = model
+        # the case's declared pose (case.toml [intraop.pose], a scene's [pose]): a fresh run's rigid
+        # stage fits τ, θ with it, and every run after carries it, centred on that run's pose
+        self.pose_prior = pose_prior
         self.on_update = on_update or (lambda u: None)
         self.on_done = on_done or (lambda r: None)
         self.on_error = on_error or (lambda e: None)
@@ -142,12 +145,13 @@ class RegistrationWorker:
         last_sent = -np.inf
         try:
             if prev is not None:
-                rigid_run, rigid = None, prev.rigid
+                rigid_run, rigid, prior = None, prev.rigid, prev.pose_prior
             else:
-                rigid_run = register(self.model, data, deform=False, options=options)
-                rigid = rigid_run.rigid
+                rigid_run = register(self.model, data, deform=False, options=options, pose_prior=self.pose_prior)
+                rigid, prior = rigid_run.rigid, rigid_run.pose_prior
             if not deform:
-                reg = rigid_run or register(self.model, data, deform=False, options=options, rigid=rigid)
+                reg = rigid_run or register(self.model, data, deform=False, options=options, rigid=rigid,
+                                            pose_prior=prior)
                 final = self._state(0, float("nan"), t0, rigid, None, True)
             else:
                 def on_iteration(p):
@@ -162,7 +166,7 @@ class RegistrationWorker:
                 self.on_update(self._state(0, float("nan"), t0, rigid, beta0))
                 last_sent = time.monotonic()
                 reg = register(self.model, data, deform=True, options=options, callback=on_iteration,
-                               cancel=self._cancel, beta0=beta0, rigid=rigid)
+                               cancel=self._cancel, beta0=beta0, rigid=rigid, pose_prior=prior)
                 lm = reg.libr
                 assert lm is not None  # a deformable run has an LM result
                 final = self._state(lm.iterations, lm.omega, t0, rigid, lm.beta, True)
