@@ -381,17 +381,18 @@ def rigid_starts(model: RegistrationModel, data: dict, options: LMOptions | None
 
 def _cross_validate(model: RegistrationModel, local: dict, options: LMOptions, settings: SupportOptions, cancel,
                     rigid: RigidResult, result: LibrResult, support: Support | None = None,
-                    local_modes: bool = False) -> Support | None:
+                    local_modes: bool = False, declared: bool = False) -> Support | None:
     """The spatial cross-validation of a fresh deformable fit (``support``: already made, by
     the local-mode step's folds); from a kept pose (a known-good answer without deformation),
     or where the cross-validation fails from ICP's pose (whether to warn, ``Support.outweighs``),
     the correction is also weighed against its own σ. So is a fit with local modes
     (``local_modes``) from ICP's pose: the modes were placed where the data asked, and
     held-out blocks are a weaker judge of a fit that can bend there (docs/decisions.md,
-    "Local modes in register")."""
+    "Local modes in register"). With a declared pose (``declared``) the held-out prediction is the
+    one criterion: the correction is not weighed against its σ (docs/decisions.md, "Pose prior")."""
     if support is None and not local_modes:  # with local modes only the folds' own verdict, which no block saw
         support = check_support(model, local, options, settings, cancel)
-    if support is not None and (rigid.kept or not support.predicts or local_modes) and \
+    if support is not None and not declared and (rigid.kept or not support.predicts or local_modes) and \
             not (cancel is not None and cancel.is_set()):
         support = weigh_correction(model, local, result.beta, support, options, settings)
     return support
@@ -650,7 +651,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     if deform and fresh and init.support is not None and result is not None and result.stop_reason != "cancelled":
         t = time.perf_counter()
         support = _cross_validate(model, local, options, init.support, cancel, rigid, result, folds_support,
-                                  local_modes=base_model is not None)
+                                  local_modes=base_model is not None, declared=declared)
         sec["support"] = time.perf_counter() - t
     if choice is not None:
         choice = with_turn(choice, rigid)  # ICP's pose is final here
