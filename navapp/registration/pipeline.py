@@ -410,9 +410,10 @@ def _declared_rigid(model: RegistrationModel, data: dict, prior: PosePrior, opti
     where the prior allows: the multi-start ICP from the given pose and from turns of at most
     two declared σ_θ (no principal-axes flip), its distinct poses kept within ``PRIOR_REACH``
     declared σ of the given one. Each kept pose, and the given one, starts an LM fit; the one
-    with the lowest Ω (data and prior, at one scale) is the answer. Its scale σ_F is the data's
-    RMS distance from the undeformed model there (``prior``, "The scale"), refitted until it
-    changes by less than a tenth, floored at the features' expected noise. Returns the pose
+    with the lowest Ω (data and prior, at one scale) is the answer. Its scale σ_F is the robust
+    standard deviation of the data's distances from the undeformed model there (``prior``, "The
+    scale"), refitted until it changes by less than a tenth, floored at the features' expected
+    noise. Returns the pose
     (model → data frame), the prior re-centred on where the given pose is from it, and the
     starts searched."""
     n = model.basis.Ju.shape[1]
@@ -453,15 +454,16 @@ def _declared_rigid(model: RegistrationModel, data: dict, prior: PosePrior, opti
         poses = start_poses(model, {k: v for k, v in data.items() if k in features} or data, turn, False)
         starts = multi_start_icp(model, data, poses, options.weights, mode=init.icp, features=features,
                                  robust=init.rigid_robust)
-        scale = replace(current, feature_sd_mm=current.feature_sd_mm)
+        scale = current  # every candidate's Ω at the given pose's scale: one criterion to compare
+        here = fit(best.beta, scale, rounds=1)[0].omega
         for rep in basin_representatives(starts)[:init.max_candidates]:
             b = beta_of(rep.fitted)
             reach = np.concatenate([b[n:n + 3] / prior.sd_mm, b[n + 3:] / prior.sd_rad])
             if np.abs(reach).max() > PRIOR_REACH or np.allclose(b, 0.0):
                 continue
-            other, _ = fit(b, scale, rounds=1)  # at the given pose's scale: one Ω to compare
-            here, _ = fit(best.beta, scale, rounds=1)
-            if other.omega < here.omega:
+            other, _ = fit(b, scale, rounds=1)
+            if other.omega < here:
+                here = other.omega
                 best, current = fit(other.beta, scale)
                 for st in starts:
                     st.chosen = st is rep
