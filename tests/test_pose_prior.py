@@ -64,10 +64,10 @@ def _dented_scan(model):
 
 def test_a_declared_pose_holds_a_dented_partial_scan_where_icp_turns_it_away(small_model):
     """The multi-start ICP, unguarded, moves the organ to share the dent's misfit out (25 mm
-    off here); with the pose declared (1.5 mm, 1.5°) the rigid stage stays at the given pose:
-    the dent's misfit sets the prior's scale, and the Huber fit bounds its pull. This
-    12 mm, k = 12 model cannot make the dent, so the answer is that pose, as good as no
-    correction."""
+    off here); with the pose declared (1.5 mm, 1.5°) the rigid stage stays within the declared
+    spread of the given pose (the Huber fit bounds the dent's pull; the scale is the undented
+    majority's). This 12 mm, k = 12 model cannot make the dent, so the answer is that pose, and
+    the line says it is the pose fitted within the declared prior, not the given one."""
     from navapp.registration.pipeline import RobustOptions, register
 
     data, truth = _dented_scan(small_model)
@@ -78,9 +78,10 @@ def test_a_declared_pose_holds_a_dented_partial_scan_where_icp_turns_it_away(sma
     err_free = np.linalg.norm(free.transform(nodes) - truth, axis=1).mean()
     err_held = np.linalg.norm(held.transform(nodes) - truth, axis=1).mean()
     assert err_free > 10 * none  # what the issue measured: the free pose throws the given one away
-    assert err_held < none + 0.1
-    assert held.starts == [] and held.pose_choice is None and held.pose_prior is not None
-    assert np.linalg.norm(held.rigid.t) < 0.2 and held.pose_prior.feature_sd_mm > 2.0
+    assert err_held < 2.5 * none < err_free / 10
+    assert held.pose_choice is None and held.pose_prior is not None
+    assert np.linalg.norm(held.rigid.t) < 1.5 and np.degrees(np.arccos((np.trace(held.rigid.R) - 1) / 2)) < 1.5
+    assert not held.deformed and any("the rigid pose fitted within the declared prior" in w for w in held.warnings)
 
 
 def test_a_declared_tracker_offset_is_corrected_by_the_data(small_model):

@@ -191,7 +191,8 @@ class Registration:
         for w in (self.pose_choice.warning if self.pose_choice else None,
                   self.determinacy.warning if self.determinacy else None,
                   self.support.warning_for(shown_rigid=not self.deformed, given=self.pose_choice is None
-                                          or self.pose_choice.given) if self.support else None,
+                                          or self.pose_choice.given, declared=self.pose_prior is not None)
+                  if self.support else None,
                   self.quality.warning if self.quality else None,
                   self.organ.warning if self.organ is not None and self.deformed else None):
             if w:

@@ -133,12 +133,14 @@ class Support:
     def warning(self) -> str | None:
         return self.warning_for(shown_rigid=True)
 
-    def warning_for(self, shown_rigid: bool, given: bool = True) -> str | None:
+    def warning_for(self, shown_rigid: bool, given: bool = True, declared: bool = False) -> str | None:
         """One line when the deformation is not supported, saying which answer is shown
-        (``given``: the rigid answer is the given pose, not the trimmed fit's)."""
+        (``given``: the rigid answer is the given pose, not the trimmed fit's; ``declared``: it
+        is the rigid fit with a declared pose prior)."""
         if self.supported or (not shown_rigid and self.outweighs):
             return None
-        pose = "the given pose" if given else "the pose most of the data lie on"
+        pose = "the rigid pose fitted within the declared prior" if declared else \
+            "the given pose" if given else "the pose most of the data lie on"
         shown = (f"{pose} without deformation is shown" if shown_rigid else
                  "the deformable answer is shown: do not rely on it")
         if self.predicts:

@@ -34,7 +34,6 @@ from ..threads import limit_threads
 from .model import REGION_FEATURES, RegistrationModel, deform
 from .objective import Weights, evaluate
 from .prior import FEATURE_SD_MM, likelihood_scale
-from .quality import EXPECTED_NOISE_MM
 from .rotation import rotation, rotation_derivatives
 
 
@@ -296,23 +295,24 @@ def estimate_error(reg, points=None, calibration: Calibration | None = None, B=N
         info = information(model, data, reg.libr.beta, weights)
         x, G = point_jacobian(model, reg.libr.beta, B, nodes=None if B is not None else nodes)
         sigma = point_sigma(G, factor=covariance_factor(info))
-        # the pose's own uncertainty: the calibrated ê was fitted on answers whose pose was right
-        # (the study cases' data determine it), so it leaves out what a partial scan leaves the
-        # pose free to do; joined in quadrature, the band's upper edge by its 90 % quantile
-        w = weights or default_weights()
-        if reg.pose_prior is not None and w.pose_prior is None:
-            w = replace(w, pose_prior=reg.pose_prior)
-        # undeclared: σ_F as the declared pose's rigid stage sets it, the data's RMS distance from the
-        # undeformed model at the rigid pose (``prior``), floored at the data's expected noise
-        floor = min((EXPECTED_NOISE_MM.get(k, 1.0) for k in data), default=1.0)
-        cov = pose_covariance(model, data, reg.libr.beta, w, max(reg.rigid.rms_mm, floor))
-        Gp = G[:, :, -6:]
-        pose_sigma = point_sigma(Gp, cov=cov)
+        # the pose's own uncertainty, where a pose is declared: the calibrated ê was fitted on
+        # answers whose pose was right, so it leaves out how far the declared pose may be off.
+        # Undeclared it is not joined: on a smooth cap the data leave turns free, and σ_pose put a
+        # right answer's predicted error over the organ at 21 mm (docs/decisions.md, "Pose prior")
+        pose_sigma = np.zeros(len(x))
+        if reg.pose_prior is not None:
+            w = weights or default_weights()
+            if w.pose_prior is None:
+                w = replace(w, pose_prior=reg.pose_prior)
+            cov = pose_covariance(model, data, reg.libr.beta, w)
+            pose_sigma = point_sigma(G[:, :, -6:], cov=cov)
     d = nearest_data_distance(x, data)
     m = float(np.median(d)) if B is None and nodes is None else data_spread(model, reg.libr.beta, data)
     base = calibration.predict(d, sigma, m)
-    pred = np.sqrt(base ** 2 + pose_sigma ** 2)
-    upper = np.sqrt((base * calibration.upper) ** 2 + (POSE_BAND * pose_sigma) ** 2)
+    pred, upper = base, base * calibration.upper
+    if reg.pose_prior is not None:
+        pred = np.sqrt(base ** 2 + pose_sigma ** 2)
+        upper = np.sqrt(upper ** 2 + (POSE_BAND * pose_sigma) ** 2)
     return ErrorEstimate(pred, base * calibration.lower, upper, d, sigma, m, reg.rigid.apply(x),
                          calibration, info.scale, pose_sigma)
 
