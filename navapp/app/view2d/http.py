@@ -45,9 +45,17 @@ def _no_constant(name):
     raise BadRequest(f"{name} is not a number")
 
 
+def _whole(text: str) -> int:
+    # a pixel or plane index has a few digits; Python refuses int() past 4,300 with a ValueError
+    # the handler would not recognise (a 500 with a traceback in the log)
+    if len(text.lstrip("-")) > 9:
+        raise BadRequest(f"{text[:12]}… is not a pixel or plane index")
+    return int(text)
+
+
 def _body(raw: bytes) -> dict:
     try:
-        body = json.loads(raw or b"{}", parse_constant=_no_constant)
+        body = json.loads(raw or b"{}", parse_constant=_no_constant, parse_int=_whole)
     except RecursionError:
         raise BadRequest("the body is nested too deeply") from None
     except (UnicodeDecodeError, json.JSONDecodeError):
