@@ -3,13 +3,38 @@
 Candidates come from a KD-tree on the vertices: the triangles (segments) incident to the
 ``near`` nearest vertices are tested exactly, which finds the true closest point for any
 query whose nearest surface point lies on a triangle incident to one of its nearest
-vertices (always the case for well-shaped meshes and queries near the surface).
+vertices (always the case for well-shaped meshes and queries near the surface). Skinny
+triangles need more vertices: the decimated vessel surfaces use ``NEAR_DECIMATED``.
+
+LM rebuilds the tree on the deformed vertices at every evaluation; pykdtree builds and
+queries it in half the time of SciPy's cKDTree (same neighbours), so ``vertex_tree`` uses it
+where installed. Exact bounding-volume hierarchies refit per evaluation were measured and
+lost (docs/decisions.md, "Closest points at the tracker's speed").
 """
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+try:  # a declared dependency; SciPy's tree where it is missing (same neighbours, slower)
+    from pykdtree.kdtree import KDTree as _FastTree
+except ImportError:  # pragma: no cover - only without pykdtree
+    _FastTree = None
+
 NEAR = 2  # nearest vertices whose incident cells are tested
+# quadric-decimated surfaces (the vessels, ``registration.model.VESSEL_FACES``): with two
+# nearest vertices 4 % of the portal contour points of the demo missed their closest
+# triangle (by up to 0.28 mm), with three 0.3 %, with four none (docs/decisions.md)
+NEAR_DECIMATED = 4
+
+
+def vertex_tree(vertices):
+    """A k-d tree of ``vertices`` (V, 3) for ``nearest_vertices``, built to be used once (LM
+    builds one per deformed feature and evaluation): pykdtree, else SciPy's cKDTree."""
+    vertices = np.ascontiguousarray(vertices, dtype=float)
+    if _FastTree is not None:
+        return _FastTree(vertices)
+    # unbalanced and not compacted: half the build time, queries as fast near the surface
+    return cKDTree(vertices, balanced_tree=False, compact_nodes=False)
 
 
 def incidence(n_vertices, cells):
@@ -78,8 +103,10 @@ def triangle_weights(p, tri):
 
 
 def nearest_vertices(tree, points, near=NEAR):
-    """Indices (N, near) of the ``near`` vertices nearest each point, from a cKDTree."""
-    return tree.query(points, k=near)[1].reshape(len(points), near)
+    """Indices (N, near) of the ``near`` vertices nearest each point, from a k-d tree
+    (``vertex_tree`` or a cKDTree)."""
+    points = np.ascontiguousarray(points, dtype=float)
+    return np.asarray(tree.query(points, k=near)[1], np.int64).reshape(len(points), near)
 
 
 def closest_on_surface(points, vertices, faces, table, near=NEAR, tree=None, nearest=None):

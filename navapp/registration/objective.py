@@ -14,12 +14,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.spatial import cKDTree
 
-from ..geometry.closest import closest_on_polyline, closest_on_surface, nearest_vertices
+from ..geometry.closest import closest_on_polyline, closest_on_surface, nearest_vertices, vertex_tree
 from .model import REGION_FEATURES, W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform
 from .rotation import rotation, rotation_derivatives
-from .search import placed_surface
 
 
 @dataclass(frozen=True)
@@ -129,9 +127,8 @@ def _stats(f, wF) -> dict:
 
 
 def _tree(X):
-    # rebuilt on the deformed points at every evaluation: the unbalanced, non-compacted
-    # tree builds in half the time and queries as fast for these near-surface queries
-    return cKDTree(X, balanced_tree=False, compact_nodes=False)
+    # rebuilt on the deformed points at every evaluation (``vertex_tree``: the fastest to build)
+    return vertex_tree(X)
 
 
 def _rows_matrix(weights, columns, n_columns):
@@ -176,17 +173,15 @@ class Correspondence:
         return Correspondence(self.S, self.direction)
 
 
-def correspond(feat, X, Y, tree=None, nearest=None, found=None) -> Correspondence:
+def correspond(feat, X, Y, tree=None, nearest=None) -> Correspondence:
     """Closest points of data Y (N, 3) mm on the model feature ``feat`` at its current
     geometry X (V, 3) mm: S and the direction data (normals for surfaces, tangents for
     centerlines). ``tree``/``nearest``: a KD-tree of X, or Y's nearest vertices of X when
-    already found; ``found``: a surface's (face, barycentric weights) already found
-    (``search.PlacedSurface.closest``)."""
+    already found."""
     N = len(Y)
     kind = feat.kind
     if kind == "surface":
-        face, bary = found if found is not None else closest_on_surface(Y, X, feat.cells, feat.table, tree=tree,
-                                                                         nearest=nearest)[:2]
+        face, bary, _ = closest_on_surface(Y, X, feat.cells, feat.table, feat.near, tree=tree, nearest=nearest)
         tri = feat.cells[face]
         S = _rows_matrix(bary, tri, len(X))
         a, b, c = X[tri[:, 0]], X[tri[:, 1]], X[tri[:, 2]]
@@ -295,9 +290,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
                 local, X = model.positions(feat, beta)
                 tim["deform"] += time.perf_counter() - t0
                 t0 = time.perf_counter()
-                # surfaces: one hierarchy per model surface, refit (``search``); centerlines: a k-d tree
-                tree = (None if frozen is not None else placed_surface(model, feat, local, beta)
-                        if feat.kind == "surface" else _tree(X) if feat.kind == "centerline" else None)
+                tree = _tree(X) if frozen is None and feat.kind != "fiducial" else None
                 tim["kdtree"] += time.perf_counter() - t0
                 geometry[key] = (local, X, tree)
             local, X, tree = geometry[key]
@@ -306,12 +299,10 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
                 c = corr[name] = seen[1]
             else:
                 t0 = time.perf_counter()
-                nearest = nearest_vertices(tree, Y) if isinstance(tree, cKDTree) else None
+                nearest = nearest_vertices(tree, Y, feat.near) if tree is not None else None
                 tim["kdtree"] += time.perf_counter() - t0
                 t0 = time.perf_counter()
-                found = tree.closest(Y) if tree is not None and nearest is None else None
-                c = corr[name] = frozen[name] if frozen is not None else correspond(feat, X, Y, nearest=nearest,
-                                                                                    found=found)
+                c = corr[name] = frozen[name] if frozen is not None else correspond(feat, X, Y, nearest=nearest)
                 tim["closest"] += time.perf_counter() - t0
             S, direction = c.S, c.direction
             p = Y - S @ X
