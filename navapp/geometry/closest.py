@@ -15,10 +15,17 @@ lost (docs/decisions.md, "Closest points at the tracker's speed").
 import numpy as np
 from scipy.spatial import cKDTree
 
-try:  # a declared dependency; SciPy's tree where it is missing (same neighbours, slower)
-    from pykdtree.kdtree import KDTree as _FastTree
-except ImportError:  # pragma: no cover - only without pykdtree
-    _FastTree = None
+
+def _fast_tree():
+    """pykdtree's KDTree: a declared dependency; None where it is missing (SciPy's then)."""
+    try:
+        from pykdtree.kdtree import KDTree
+    except ImportError:  # pragma: no cover - only without pykdtree
+        return None
+    return KDTree
+
+
+_FastTree = _fast_tree()
 
 NEAR = 2  # nearest vertices whose incident cells are tested
 # quadric-decimated surfaces (the vessels, ``registration.model.VESSEL_FACES``): with two
