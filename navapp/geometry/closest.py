@@ -15,6 +15,8 @@ lost (docs/decisions.md, "Closest points at the tracker's speed").
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..threads import limit_threads
+
 
 def _fast_tree():
     """pykdtree's KDTree: a declared dependency; None where it is missing (SciPy's then)."""
@@ -121,7 +123,12 @@ def nearest_vertices(tree, points, near=NEAR):
     """Indices (N, near) of the ``near`` vertices nearest each point, from a k-d tree
     (``vertex_tree`` or a cKDTree)."""
     points = np.ascontiguousarray(points, dtype=float)
-    return np.asarray(tree.query(points, k=near)[1], np.int64).reshape(len(points), near)
+    # one OpenMP thread for pykdtree: a query of ~1,000 points ends before a second thread
+    # pays, and OpenMP's waiting threads took CPU from the rest on 2 cores (a fresh
+    # registration: 2.2 s CPU with two threads, 1.8 s with one; docs/decisions.md)
+    with limit_threads(1):
+        found = tree.query(points, k=near)[1]
+    return np.asarray(found, np.int64).reshape(len(points), near)
 
 
 def closest_on_surface(points, vertices, faces, table, near=NEAR, tree=None, nearest=None):
