@@ -3,13 +3,47 @@
 Candidates come from a KD-tree on the vertices: the triangles (segments) incident to the
 ``near`` nearest vertices are tested exactly, which finds the true closest point for any
 query whose nearest surface point lies on a triangle incident to one of its nearest
-vertices (always the case for well-shaped meshes and queries near the surface).
+vertices (always the case for well-shaped meshes and queries near the surface). Skinny
+triangles need more vertices: the decimated vessel surfaces use ``NEAR_DECIMATED``.
+
+LM rebuilds the tree on the deformed vertices at every evaluation; pykdtree builds and
+queries it in half the time of SciPy's cKDTree (same neighbours), so ``vertex_tree`` uses it
+where installed. Exact bounding-volume hierarchies refit per evaluation were measured and
+lost (docs/decisions.md, "Closest points at the tracker's speed").
 """
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..threads import limit_threads
+
+
+def _fast_tree():
+    """pykdtree's KDTree: a declared dependency; None where it is missing (SciPy's then)."""
+    try:
+        from pykdtree.kdtree import KDTree
+    except ImportError:  # pragma: no cover - only without pykdtree
+        return None
+    return KDTree
+
+
+_FastTree = _fast_tree()
+
 NEAR = 2  # nearest vertices whose incident cells are tested
+# quadric-decimated surfaces (the vessels, ``registration.model.VESSEL_FACES``): with two
+# nearest vertices 4 % of the portal contour points of the demo missed their closest
+# triangle (by up to 0.28 mm), with three 0.3 %, with four none (docs/decisions.md)
+NEAR_DECIMATED = 4
+
+
+def vertex_tree(vertices):
+    """A k-d tree of ``vertices`` (V, 3) for ``nearest_vertices``, built to be used once (LM
+    builds one per deformed feature and evaluation): pykdtree, else SciPy's cKDTree."""
+    vertices = np.ascontiguousarray(vertices, dtype=float)
+    if _FastTree is not None:
+        return _FastTree(vertices)
+    # unbalanced and not compacted: half the build time, queries as fast near the surface
+    return cKDTree(vertices, balanced_tree=False, compact_nodes=False)
 
 
 def incidence(n_vertices, cells):
@@ -32,23 +66,32 @@ def _dot(x, y):
     return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
 
 
-def triangle_weights(p, tri):
+def triangle_weights(p, tri, index=None):
     """Barycentric weights (K, 3) of the closest points on triangles ``tri`` (K, 3, 3) to
-    points ``p`` (K, 3), and the squared distances (K,).
+    points ``p`` (K, 3), and the squared distances (K,). With ``index`` (K,), ``tri`` holds
+    U distinct triangles (U, 3, 3) and point k is tested against ``tri[index[k]]``.
 
     The projection onto the triangle's plane is the answer when it falls inside; otherwise
     the closest point lies on the boundary and is the nearest of the three clamped edge
     projections. Everything is written with the dot products of ab, ac and ap on
     coordinate-major (3, K) arrays: this runs on ~16,000 candidate triangles per LM
-    evaluation, and it is 2.5× faster than Ericson's region tests with (K, 3) rows.
-    Degenerate triangles (NaN/inf in the plane solve) fall through to their edges.
+    evaluation, and it is 2.5× faster than Ericson's region tests with (K, 3) rows. The
+    products of ab and ac alone are made once per distinct triangle (LM's candidates test
+    ~1,600 triangles ~8,500 times), by the same operations, so the answer is the same to
+    the bit. Degenerate triangles (NaN/inf in the plane solve) fall through to their edges.
     """
-    T = np.ascontiguousarray(np.transpose(tri, (1, 2, 0)))  # (vertex, coordinate, K)
+    T = np.ascontiguousarray(np.transpose(tri, (1, 2, 0)))  # (vertex, coordinate, K or U)
     a = T[0]
-    ab, ac, ap = T[1] - a, T[2] - a, np.ascontiguousarray(np.transpose(p)) - a
-    d1, d2 = _dot(ab, ap), _dot(ac, ap)
-    aa, ae, cc, pp = _dot(ab, ab), _dot(ab, ac), _dot(ac, ac), _dot(ap, ap)
+    ab, ac = T[1] - a, T[2] - a
+    aa, ae, cc = _dot(ab, ab), _dot(ab, ac), _dot(ac, ac)
     bb = aa - 2 * ae + cc  # |bc|²
+    det = aa * cc - ae * ae
+    if index is not None:
+        a, ab, ac = a[:, index], ab[:, index], ac[:, index]
+        aa, ae, cc, bb, det = aa[index], ae[index], cc[index], bb[index], det[index]
+    ap = np.ascontiguousarray(np.transpose(p)) - a
+    d1, d2 = _dot(ab, ap), _dot(ac, ap)
+    pp = _dot(ap, ap)
     bd = d2 - d1 - ae + aa  # bc·(p − b)
     tiny = 1e-300
     t_ab = np.clip(d1 / np.maximum(aa, tiny), 0.0, 1.0)
@@ -58,7 +101,6 @@ def triangle_weights(p, tri):
     D_ac = pp - t_ac * (2 * d2 - t_ac * cc)
     D_bc = pp - 2 * d1 + aa - t_bc * (2 * bd - t_bc * bb)
     with np.errstate(divide="ignore", invalid="ignore"):
-        det = aa * cc - ae * ae
         s = (cc * d1 - ae * d2) / det
         t = (aa * d2 - ae * d1) / det
         r = ap - s * ab - t * ac
@@ -78,8 +120,15 @@ def triangle_weights(p, tri):
 
 
 def nearest_vertices(tree, points, near=NEAR):
-    """Indices (N, near) of the ``near`` vertices nearest each point, from a cKDTree."""
-    return tree.query(points, k=near)[1].reshape(len(points), near)
+    """Indices (N, near) of the ``near`` vertices nearest each point, from a k-d tree
+    (``vertex_tree`` or a cKDTree)."""
+    points = np.ascontiguousarray(points, dtype=float)
+    # one OpenMP thread for pykdtree: a query of ~1,000 points ends before a second thread
+    # pays, and OpenMP's waiting threads took CPU from the rest on 2 cores (a fresh
+    # registration: 2.2 s CPU with two threads, 1.8 s with one; docs/decisions.md)
+    with limit_threads(1):
+        found = tree.query(points, k=near)[1]
+    return np.asarray(found, np.int64).reshape(len(points), near)
 
 
 def closest_on_surface(points, vertices, faces, table, near=NEAR, tree=None, nearest=None):
@@ -98,7 +147,11 @@ def closest_on_surface(points, vertices, faces, table, near=NEAR, tree=None, nea
     valid[:, 1:] &= cand[:, 1:] != cand[:, :-1]
     r, c = np.nonzero(valid)
     f = cand[r, c]
-    w, dist2 = triangle_weights(points[r], vertices[faces[f]])
+    # each distinct candidate triangle's own products once (``triangle_weights``)
+    seen = np.zeros(len(faces), bool)
+    seen[f] = True
+    distinct = np.flatnonzero(seen)
+    w, dist2 = triangle_weights(points[r], vertices[faces[distinct]], (np.cumsum(seen) - 1)[f])
     d = np.full(cand.shape, np.inf)
     d[r, c] = dist2
     flat = np.full(cand.shape, -1)

@@ -23,7 +23,7 @@ from ..anatomy.meshing import MeshProvenance
 from ..anatomy.model import REGION_NAMES, VESSELS, PreopModel
 from ..errors import InputError
 from ..features import SALIENT, data_to_model, weights_si
-from ..geometry.closest import incidence
+from ..geometry.closest import NEAR, NEAR_DECIMATED, incidence
 from ..geometry.interpolation import interpolation_matrix
 from ..mechanics.basis import Basis
 from .rotation import rotation
@@ -46,6 +46,7 @@ class ModelFeature:
     table: np.ndarray | None  # vertex → incident cells (see geometry.closest.incidence)
     rest: np.ndarray  # (V, 3) undeformed points, mm
     BJ: np.ndarray  # (V, 3, 3k): the basis carried to these points, B·J_u (mm per unit α)
+    near: int = NEAR  # nearest vertices whose incident cells LM tests (``geometry.closest``)
 
 
 @dataclass
@@ -109,13 +110,13 @@ def deform(rest, u, beta, centroid) -> tuple[np.ndarray, np.ndarray]:
 VESSEL_FACES = 4000
 
 
-def _feature(kind, B, cells, basis, BJ=None):
+def _feature(kind, B, cells, basis, BJ=None, near=NEAR):
     B = sp.csr_matrix(B)
     rest = np.asarray(B @ basis.nodes)
     table = None if cells is None else incidence(B.shape[0], cells)
     if BJ is None:
         BJ = basis.modes_at(B)
-    return ModelFeature(kind, B, cells, table, rest, BJ)
+    return ModelFeature(kind, B, cells, table, rest, BJ, near)
 
 
 def build_model(basis: Basis, preop: PreopModel, fiducials: np.ndarray | None = None) -> RegistrationModel:
@@ -147,7 +148,7 @@ def build_model(basis: Basis, preop: PreopModel, fiducials: np.ndarray | None = 
                 # quadric decimation (see VESSEL_FACES for what it costs in accuracy)
                 mesh = mesh.simplify_quadric_decimation(face_count=VESSEL_FACES)
             feats[v] = _feature("surface", interpolation_matrix(nodes, basis.tets, mesh.vertices),
-                                np.asarray(mesh.faces), basis)
+                                np.asarray(mesh.faces), basis, near=NEAR_DECIMATED)
         cl = preop.centerline(v)
         if cl is not None:
             feats[f"{v}_centerline"] = _feature("centerline", interpolation_matrix(nodes, basis.tets, cl.points),
