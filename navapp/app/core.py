@@ -29,6 +29,7 @@ from ..errors import NavappError
 from ..registration.pipeline import Registration, prepare
 from ..simulation.scenedata import SceneData, load_scene_data
 from ..simulation.ultrasound import PlaneData
+from .access import Role
 from .session import Session, default_folder, open_session
 from .state import Change, ClientState, RegisteredState, Run, WorstPoint
 
@@ -143,9 +144,9 @@ class Core:
             return session.data_with_origins(sd, self.planes, surface_only=surface_only)
 
     # ------------------------------------------------------------------ browsers
-    def new_client_state(self, client_id: int = -1) -> ClientState:
+    def new_client_state(self, client_id: int = -1, role: Role = Role.EDITOR) -> ClientState:
         """A browser's own state (also used headless, by tests and scripts)."""
-        cs = ClientState(client_id, secrets.token_urlsafe(8))
+        cs = ClientState(client_id, secrets.token_urlsafe(8), role)
         with self.lock:
             self.states[cs.token] = cs
         return cs

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..registration.pipeline import Registration
 from ..registration.rigid import RigidResult
+from .access import Role
 from .contours import Contour, Origin
 from .worker import cancelled
 
@@ -59,6 +60,7 @@ class ClientState:
 
     client_id: int
     token: str  # identifies this tab's 2D view page
+    role: Role = Role.EDITOR  # from the token of the link the tab was opened with (``access``)
     plane: int | None = None  # index of the plane shown (presets 0…, free planes from 100)
     drawing: Contour | None = None  # the contour being drawn (it is already in the session)
     # the unfinished contour on each plane this tab switched away from: clicks aimed at that plane

@@ -22,7 +22,7 @@ class AccuracyPanel:
                                     scales={"x": {"time": False}},
                                     axes=({"label": "registration time (s)"}, {"label": "mean TRE (mm)"}))
             self.md = g.add_markdown("")
-        self.btn.on_click(self._sweep_in_order)
+        self.btn.on_click(view.edits(self._sweep_in_order))
 
     async def _sweep_in_order(self, _event):  # after any start or Cancel clicked before it (``Runs.order``)
         self.app.runs.order(self.sweep)

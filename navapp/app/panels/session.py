@@ -10,7 +10,7 @@ class SessionPanel:
         with g.add_folder("Session"):
             self.md = g.add_markdown("")
             self.btn = g.add_button("Export (PLY, VTK, CSV)", disabled=True)
-        self.btn.on_click(lambda e: self.export())
+        self.btn.on_click(view.edits(lambda e: self.export()))
 
     def refresh(self, what):
         core = self.app.core

@@ -23,9 +23,9 @@ class TrackingPanel:
                                                 "re-registered from the last state; off: converged and kept")
             self.live_summary = g.add_markdown("")
             self.slicer = g.add_markdown("")
-        self.record.on_update(lambda e: self._record())
-        self.freeze.on_click(lambda e: self._freeze())
-        self.live_reg.on_update(lambda e: self._live_reg())
+        self.record.on_update(view.edits(lambda e: self._record()))
+        self.freeze.on_click(view.edits(lambda e: self._freeze()))
+        self.live_reg.on_update(view.edits(lambda e: self._live_reg()))
 
     def _record(self):
         err = self.app.live.set_recording(bool(self.record.value), self.label.value, self.cs)
