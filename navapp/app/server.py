@@ -18,6 +18,7 @@ for long.
 """
 
 import os
+import shutil
 import ssl
 import tempfile
 import time
@@ -29,6 +30,8 @@ from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
 from ..errors import NavappError
 from .access import OPEN, Access, Role
+from .actions import FILE as ACTIONS_FILE
+from .actions import Act
 from .core import Core, Loaded, Ready
 from .drawing import Drawing
 from .front import TOKEN_HEADER, Front
@@ -39,6 +42,7 @@ from .runs import Runs
 from .session import export
 from .shown import Shown
 from .slicer import Slicer
+from .state import ClientState
 from .stylus import Stylus
 from .view2d import View2DServer
 from .view2d.provider import View2D
@@ -114,15 +118,20 @@ class App:
             self.shown.restore()
         self.runs.restore_worst()
 
-    def export(self):
-        """The registered model and the data into the session's export/ folder: (folder or None, message)."""
+    def export(self, cs: ClientState | None = None):
+        """The registered model, the data and the action log into the session's export/ folder,
+        an action of ``cs``: (folder or None, message)."""
         core = self.core
         if core.last_reg is None:
             return None, "Register first: the export holds the registered model."
         sd, session = core.need_scene()
         out = session.folder / "export"
         files = export(out, core.last_reg, sd, core.data())
-        return out, f"{len(files)} files written to {out}"
+        shown = core.result.run if core.result is not None else "?"
+        core.record(cs, Act.EXPORT, f"{len(files) + 1} files to {out} (result on show: {shown})")
+        if core.actions is not None:  # after its own line: the export's log ends with the export
+            shutil.copy2(core.actions.path, out / ACTIONS_FILE)
+        return out, f"{len(files) + 1} files written to {out}"
 
     def _connect(self, client):
         core = self.core

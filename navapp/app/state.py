@@ -37,6 +37,7 @@ class Change(Enum):
     RESULT = "result"  # a registration finished: the result on show, the log
     LOG = "log"
     LIVE = "live"  # tracker status, recording, live re-registration
+    ACTIONS = "actions"  # a line added to the session's action log
 
 
 class Undone(Enum):

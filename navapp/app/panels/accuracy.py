@@ -53,6 +53,6 @@ class AccuracyPanel:
             self.view.notify("Cost", f"Cancelled after {len(out)} settings." if cancelled
                              else f"{len(out)} settings run.")
 
-        err = self.app.runs.sweep(on_row, done)
+        err = self.app.runs.sweep(on_row, done, self.view.cs)
         if err:
             self.view.notify("Cost", err)

@@ -53,12 +53,12 @@ class RegistrationPanel:
         return on_click
 
     def start(self, kind: RunKind):
-        err = self.app.runs.start(kind)
+        err = self.app.runs.start(kind, self.view.cs)
         if err:
             self.view.notify("Registration", err, error="Collect" in err)
 
     def cancel(self):
-        self.view.notify("Cancel", self.app.runs.cancel())
+        self.view.notify("Cancel", self.app.runs.cancel(self.view.cs))
 
     def show(self):
         row = self._choices.get(self.on_show.value)
@@ -70,7 +70,7 @@ class RegistrationPanel:
             # its value (a tab reloaded mid-run got "A registration is already running" unasked)
             self._on_show()
             return
-        err = self.app.runs.show(row)
+        err = self.app.runs.show(row, self.view.cs)
         if err:
             self.view.notify("On show", err, error=True)
 
