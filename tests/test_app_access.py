@@ -284,3 +284,31 @@ def test_tls_files_are_checked_in_one_line(cert, tmp_path):
         tls_context(tmp_path / "junk.pem", keyfile)
     assert tls_context(None, None) is None
 
+
+
+def test_app_behind_the_front_with_tls(cert, tmp_path):
+    """The viewer's own wiring: viser on loopback behind the front, both servers on TLS, the
+    printed links carrying the tokens, the 2D view's links carrying the tab's token."""
+    from navapp.app.server import App
+    from navapp.simulation.scene import parse_scene
+
+    certfile, keyfile, client = cert
+    scene = parse_scene({"name": "tlstest", "anatomy": {"phantom": 0}, "deformation": {"mesh_edge_mm": 10.0},
+                         "stylus": {"coverage": 0.2}, "ius": {"planes": 2}})
+    port = free_port()
+    app = App(scene, host="127.0.0.1", port=port, session_dir=tmp_path / "s", edge=12.0, k=12,
+              cache_root=tmp_path / "cache", access=ACCESS, tls=tls_context(certfile, keyfile))
+    try:
+        assert app.url == f"https://127.0.0.1:{port}/?token={EDITOR}"
+        assert app.observer_url == f"https://127.0.0.1:{port}/?token={OBSERVER}"
+        assert app.server.get_host() == "127.0.0.1" and app.server.get_port() != port  # viser behind the front
+        assert get(app.url, context=client)[0] == 200
+        assert get(f"https://127.0.0.1:{port}/", context=client)[0] == 403
+        url = app.view2d.page_url("tab1", "127.0.0.1", ACCESS.token_for(Role.OBSERVER))
+        assert url.startswith("https://") and url.endswith(f"&t={OBSERVER}")
+        assert get(url, context=client)[0] == 404  # let in, and the tab is unknown (nothing connected)
+        assert get(url.split("&t=")[0], context=client)[0] == 403
+    finally:
+        app.front.stop()
+        app.server.stop()
+        app.view2d.stop()

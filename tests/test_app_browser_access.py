@@ -6,6 +6,7 @@ nothing and say so. Needs /usr/bin/chromium, as test_app_browser."""
 import json
 import os
 import re
+import signal
 import subprocess
 import sys
 import time
@@ -34,12 +35,9 @@ planes = 2
 """
 
 
-@pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    d = tmp_path_factory.mktemp("access")
-    (d / "scene.toml").write_text(SCENE)
-    log = d / "server.log"
-    port = free_port()
+def start(d, port):
+    """``navapp serve --token`` on 127.0.0.1:``port`` with the session in ``d``; its two links."""
+    log = d / f"server{len(list(d.glob('server*.log')))}.log"
     with log.open("w") as out:
         proc = subprocess.Popen([sys.executable, "-m", "navapp.cli", "--quiet", "serve", str(d / "scene.toml"),
                                  "--host", "127.0.0.1", "--port", str(port), "--token", TOKEN,
@@ -55,10 +53,19 @@ def server(tmp_path_factory):
     editor = re.search(r"viewer at (http://\S+)", text)
     observer = re.search(r"observer link \(watches, changes nothing\): (http://\S+)", text)
     assert editor and observer, text
-    yield {"editor": editor.group(1), "observer": observer.group(1), "port": port, "session": d / "session",
-           "log": log}
-    proc.terminate()
-    proc.wait(20)
+    return proc, editor.group(1), observer.group(1)
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    d = tmp_path_factory.mktemp("access")
+    (d / "scene.toml").write_text(SCENE)
+    port = free_port()
+    proc, editor, observer = start(d, port)
+    state = {"proc": proc, "editor": editor, "observer": observer, "port": port, "session": d / "session", "dir": d}
+    yield state
+    state["proc"].terminate()
+    state["proc"].wait(20)
 
 
 def test_token_observer_and_refusals_in_chromium(server):
@@ -112,4 +119,18 @@ def test_token_observer_and_refusals_in_chromium(server):
         click_button(editor, "Collect the whole sweep now", deadline)
         wait_text(observer, rf"{total} of {total} sweep points digitised", deadline)
         assert json.loads((server["session"] / "session.json").read_text())["stylus_count"] == total
+        # the action log, in the Session panel of every tab, the observer's too
+        wait_text(observer, r"tab \d+: points digitised — whole sweep at once", deadline)
+        assert "points digitised" in editor.inner_text("body")
+
+        # kill -9 and a restart on the same session: the log is all there
+        server["proc"].send_signal(signal.SIGKILL)
+        server["proc"].wait(30)
+        server["proc"], editor_url, _ = start(server["dir"], server["port"])
+        again = deadline.open(browser.new_context(viewport=VIEW).new_page())
+        again.goto(editor_url)
+        wait_text(again, r"Ready\.", deadline)
+        wait_text(again, r"tab \d+: points digitised — whole sweep at once", deadline)
+        logged = [json.loads(x) for x in (server["session"] / "actions.jsonl").read_text().splitlines()]
+        assert [x["action"] for x in logged] == ["points digitised"] and logged[0]["role"] == "editor"
         browser.close()
