@@ -55,8 +55,9 @@ def test_a_given_token_is_used_and_asked_for_even_on_localhost():
     assert decide("127.0.0.1", "my-own-token-1").editor == "my-own-token-1"
     assert decide("0.0.0.0", env={"NAVAPP_TOKEN": "from-the-env-2"}).editor == "from-the-env-2"
     assert decide("0.0.0.0", "flag-wins-3", env={"NAVAPP_TOKEN": "from-the-env-2"}).editor == "flag-wins-3"
-    with pytest.raises(InputError, match="at least 8"):
-        decide("0.0.0.0", "short")
+    for bad in ("short", "has space in it", "plus+sign+x", "amp&ersand&x", "per%cent%20x"):
+        with pytest.raises(InputError, match="at least 8 characters, each a letter"):
+            decide("0.0.0.0", bad)
 
 
 def test_roles_from_tokens():
@@ -312,3 +313,12 @@ def test_app_behind_the_front_with_tls(cert, tmp_path):
         app.front.stop()
         app.server.stop()
         app.view2d.stop()
+
+
+def test_printed_links_name_a_host_another_machine_can_open():
+    import socket
+
+    from navapp.app.server import _link_host
+
+    assert _link_host("0.0.0.0") == _link_host("") == _link_host("::") == socket.gethostname()
+    assert _link_host("::1") == "[::1]" and _link_host("192.168.1.20") == "192.168.1.20"

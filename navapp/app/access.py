@@ -13,6 +13,7 @@ from __future__ import annotations
 import hmac
 import ipaddress
 import os
+import re
 import secrets
 import ssl
 from collections.abc import Mapping
@@ -23,6 +24,7 @@ from pathlib import Path
 from ..errors import InputError
 
 TOKEN_ENV = "NAVAPP_TOKEN"
+USER_TOKEN = re.compile(r"[A-Za-z0-9._~-]{8,256}")  # a link's query carries it unchanged
 TOKEN_BYTES = 32  # secrets.token_urlsafe: 43 characters, 256 bits
 REFUSED = b"403 Forbidden: this viewer asks for the token of its link (printed where navapp serve was started)."
 OBSERVING = "Observer link: this view shows everything live and changes nothing. The change was refused."
@@ -85,8 +87,9 @@ def decide(host: str, token: str | None = None, env: Mapping[str, str] | None = 
     token = token or (os.environ if env is None else env).get(TOKEN_ENV) or None
     if token is None and is_loopback(host):
         return Access()
-    if token is not None and (len(token) < 8 or any(c.isspace() or c in "&#;,\"'" for c in token)):
-        raise InputError("--token (or $NAVAPP_TOKEN) wants at least 8 characters, none of them a space or &#;,\"'")
+    if token is not None and not USER_TOKEN.fullmatch(token):
+        raise InputError("--token (or $NAVAPP_TOKEN) wants at least 8 characters, each a letter, a digit or one "
+                         "of - _ . ~ (it travels in a link as it is)")
     return Access(token or secrets.token_urlsafe(TOKEN_BYTES), secrets.token_urlsafe(TOKEN_BYTES))
 
 

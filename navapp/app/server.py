@@ -82,8 +82,9 @@ class App:
         else:
             self.server = viser.ViserServer(host=host, port=port, label="navapp", verbose=False)
             viewer_port = self.server.get_port()
-        self.url = f"{scheme}://{host}:{viewer_port}" + (f"/?token={access.editor}" if access.editor else "")
-        self.observer_url = (f"{scheme}://{host}:{viewer_port}/?token={access.observer}" if access.observer
+        site = _link_host(host)
+        self.url = f"{scheme}://{site}:{viewer_port}" + (f"/?token={access.editor}" if access.editor else "")
+        self.observer_url = (f"{scheme}://{site}:{viewer_port}/?token={access.observer}" if access.observer
                              else None)
         self.view2d = _view2d_server(self.view2d_state, host if host not in ("", "::") else "0.0.0.0",
                                      view2d_port, viewer_port, access, tls)
@@ -164,6 +165,16 @@ class App:
         except (AttributeError, KeyError):
             token = None
         return self.access.role_for(token) or Role.OBSERVER
+
+
+def _link_host(host: str) -> str:
+    """The host of the printed links: this machine's name for a wildcard address (0.0.0.0 is
+    no address another machine can open), an IPv6 address in brackets."""
+    if host in ("0.0.0.0", "::", ""):
+        import socket
+
+        return socket.gethostname()
+    return f"[{host}]" if ":" in host else host
 
 
 def _front(access: Access, backend_port: int, host: str, port: int, tls) -> Front:
