@@ -135,3 +135,12 @@ def test_an_observer_tab_changes_nothing_and_logs_nothing(app):
     assert "Observer link" in app.view2d_state.view_click(obs.token, 10, 10, "PV contour", 0)
     assert "Observer link" in app.view2d_state.view_command(obs.token, "Clear plane", "PV contour", 0)
     assert (core.actions.path.read_bytes(), json.dumps(core.session.to_json())) == before
+
+
+def test_a_failed_run_is_logged_as_finished_with_its_reason(app):
+    from navapp.errors import NavappError
+
+    app.runs.on_error(NavappError("the data are degenerate"))
+    last = lines(app.core.session.folder)[-1]
+    assert (last["tab"], last["action"], last["detail"]) == ("server", "run finished",
+                                                             "failed: the data are degenerate")

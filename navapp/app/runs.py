@@ -243,6 +243,7 @@ class Runs:
             core.run = None
         core.notify("Registration failed", msg, error=True)
         core.changed(Change.RUN)
+        core.record(None, Act.FINISHED, f"failed: {msg}")
 
     # ------------------------------------------------------------------ cost sweep
     def sweep(self, on_row=None, on_done=None, cs: ClientState | None = None) -> str | None:
