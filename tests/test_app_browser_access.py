@@ -10,6 +10,8 @@ import signal
 import subprocess
 import sys
 import time
+import urllib.error
+import urllib.request
 
 import pytest
 from conftest import free_port
@@ -92,6 +94,12 @@ def test_token_observer_and_refusals_in_chromium(server):
         wait_text(editor, r"0 of \d+ sweep points digitised", deadline)
         us = us_frame(editor, deadline)
         assert f"t={TOKEN}" in us.url
+        # the 2D view's server refuses this tab's own, valid value without the token
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(us.url.replace(f"&t={TOKEN}", ""), timeout=30)
+        assert refused.value.code == 403
+        with urllib.request.urlopen(us.url, timeout=30) as r:
+            assert r.status == 200
         wait_until(editor, lambda: "Plane" in us.inner_text("body"), deadline, "the 2D view's page")
 
         observer = deadline.open(browser.new_context(viewport=VIEW).new_page())

@@ -151,7 +151,6 @@ class App:
         if view is not None:
             view.layers.tween.close()  # no frames to a closed tab
 
-
     def _role(self, client) -> Role:
         """The tab's role, from the token the front passed on with its websocket. viser's
         client handle does not carry its request, so it is read from viser's connection; when

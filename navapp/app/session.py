@@ -114,9 +114,10 @@ class Session:
             # files the session refers to that were written into the folder before its first save
             # (a frozen tracked frame's PNG): the renamed-in folder replaces that one whole, and the
             # first frame frozen in a fresh session was lost with it (a restart then refused the session)
-            kept = [self.folder / ACTIONS_FILE] if (self.folder / ACTIONS_FILE).is_file() else []
-            for p in kept:  # the action log (``actions``): appended to before the first save
-                shutil.copy2(p, tmp / p.name)
+            if (self.folder / ACTIONS_FILE).is_file():  # the action log (``actions``), fsync'd as it is there
+                shutil.copy2(self.folder / ACTIONS_FILE, tmp / ACTIONS_FILE)
+                with open(tmp / ACTIONS_FILE, "rb+") as f:
+                    os.fsync(f.fileno())
             for lp in self.live_planes:
                 src = self.folder / lp["png"]
                 if src.is_file():
