@@ -218,9 +218,9 @@ def test_view2d_observer_sees_but_its_clicks_are_refused(view2d):
 
 
 # ---------------------------------------------------------------------- TLS
-@pytest.fixture(scope="module")
-def cert(tmp_path_factory):
-    """A self-signed certificate for 127.0.0.1 and its key (PEM), made with ``cryptography``."""
+def make_cert(d):
+    """A self-signed certificate for 127.0.0.1 and its key (PEM) in folder ``d``, made with
+    ``cryptography``: (cert.pem, key.pem)."""
     import datetime
     import ipaddress
 
@@ -237,12 +237,17 @@ def cert(tmp_path_factory):
          .not_valid_after(now + datetime.timedelta(days=2))
          .add_extension(x509.SubjectAlternativeName([x509.IPAddress(ipaddress.ip_address("127.0.0.1"))]), False)
          .sign(key, hashes.SHA256()))
-    d = tmp_path_factory.mktemp("tls")
     (d / "cert.pem").write_bytes(c.public_bytes(serialization.Encoding.PEM))
     (d / "key.pem").write_bytes(key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
                                                   serialization.NoEncryption()))
-    client = ssl.create_default_context(cafile=str(d / "cert.pem"))
-    return d / "cert.pem", d / "key.pem", client
+    return d / "cert.pem", d / "key.pem"
+
+
+@pytest.fixture(scope="module")
+def cert(tmp_path_factory):
+    d = tmp_path_factory.mktemp("tls")
+    certfile, keyfile = make_cert(d)
+    return certfile, keyfile, ssl.create_default_context(cafile=str(certfile))
 
 
 def test_tls_for_both_servers_and_wss(cert):

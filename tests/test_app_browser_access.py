@@ -142,3 +142,40 @@ def test_token_observer_and_refusals_in_chromium(server):
         logged = [json.loads(x) for x in (server["session"] / "actions.jsonl").read_text().splitlines()]
         assert [x["action"] for x in logged] == ["points digitised"] and logged[0]["role"] == "editor"
         browser.close()
+
+
+def test_viewer_page_over_tls_opens_its_websocket_on_wss(tmp_path):
+    """viser's client behind the front on TLS (a self-signed certificate made here): the page
+    loads over https with the token, and its websocket goes over wss and receives the scene."""
+    import viser
+    from test_app_access import ACCESS, EDITOR, make_cert
+
+    from navapp.app.access import tls_context
+    from navapp.app.front import Front
+
+    certfile, keyfile = make_cert(tmp_path)
+    server = viser.ViserServer(host="127.0.0.1", port=free_port(), verbose=False)
+    server.scene.add_icosphere("/marker", radius=1.0)
+    front = Front(ACCESS, server.get_port(), "127.0.0.1", free_port(), tls_context(certfile, keyfile))
+    try:
+        with playwright.sync_playwright() as p:
+            browser = p.chromium.launch(executable_path=str(CHROMIUM), args=ARGS)
+            page = browser.new_context(ignore_https_errors=True).new_page()
+            sockets, frames = [], []
+
+            def opened(ws):
+                sockets.append(ws.url)
+                ws.on("framereceived", lambda f: frames.append(f))
+
+            page.on("websocket", opened)
+            page.goto(f"https://127.0.0.1:{front.port}/?token={EDITOR}")
+            page.wait_for_function("() => document.querySelector('canvas') !== null", timeout=60_000)
+            t0 = time.time()
+            while not frames and time.time() - t0 < 60:
+                page.wait_for_timeout(100)
+            assert sockets and all(u.startswith(f"wss://127.0.0.1:{front.port}") for u in sockets), sockets
+            assert frames, "nothing reached the page over wss"
+            browser.close()
+    finally:
+        front.stop()
+        server.stop()
