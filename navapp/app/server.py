@@ -9,10 +9,12 @@ The rooms, each a module: ``core`` (shared state, lock, start-up, change notific
 readouts), ``runs`` (registrations and the cost sweep), ``drawing`` (contours and undo),
 ``imaging`` (ultrasound planes), ``stylus`` (the simulated sweep), ``live`` (a tracker),
 ``slicer`` (results to 3D Slicer), ``view2d`` (the 2D view's page and server), ``palette``
-(colours and words), ``session`` (what is saved) and ``panels`` (the GUI).
+(colours and words), ``session`` (what is saved), ``actions`` (the session's action log),
+``access`` and ``front`` (who may use the viewer: tokens, roles, TLS) and ``panels`` (the GUI).
 
 Threads: viser's callbacks, the start-up thread, the registration worker, the stylus
-sweep, the tracker pump and the 2D view's HTTP server. They meet only in the rooms'
+sweep, the tracker pump, the 2D view's HTTP server and, when a token or TLS is asked
+for, the front's event loop. They meet only in the rooms'
 methods, which take ``Core.lock`` around shared data and never call viser while holding it
 for long.
 """
