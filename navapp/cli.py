@@ -157,8 +157,11 @@ def cmd_serve(args):
         if not port.isdigit() or not 0 < int(port) < 65536:
             raise InputError(f"--slicer wants HOST:PORT or PORT, not {args.slicer!r}")
         slicer = (host or None, int(port))
+    from .app.access import decide, tls_context
+
     serve(scene, args.host, args.port, args.session, args.edge, args.k, view2d_port=args.view2d_port,
-          tracking=tracking, slicer=slicer)
+          tracking=tracking, slicer=slicer, access=decide(args.host, args.token),
+          tls=tls_context(args.certfile, args.keyfile))
 
 
 def cmd_simulate(args):
@@ -450,6 +453,10 @@ def build_parser():
                         "OpenIGTLinkIF connector in server mode; PORT alone listens for it in client mode")
     s.add_argument("--igtl-config", type=Path, metavar="FILE",
                    help="tracking TOML (PLUS transform names, ImageToProbe, timeouts); see README, 'With a tracker'")
+    s.add_argument("--token", help="the token the viewer's link must carry (default $NAVAPP_TOKEN; when --host is not "
+                                   "a loopback address and neither is given, a random one, printed in the URL)")
+    s.add_argument("--certfile", type=Path, help="TLS certificate (PEM) for https and wss")
+    s.add_argument("--keyfile", type=Path, help="its private key (PEM; default: in --certfile)")
     s.set_defaults(func=cmd_serve)
 
     return p

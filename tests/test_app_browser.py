@@ -409,6 +409,17 @@ def test_guided_demo_in_chromium(server, tmp_path):
         print(f"cancel: run {len(tries)} of {CANCEL_TRIES} was cancelled, after {last['seconds']:.2f} s")
         browser.close()
 
+    # the session's action log lists every step that changed the data, each with its tab and role
+    acts = [json.loads(x) for x in (session / "actions.jsonl").read_text().splitlines()]
+    kinds = [a["action"] for a in acts]
+    assert all(re.fullmatch(r"tab \d+", a["tab"]) and a["role"] == "editor" or (a["tab"], a["role"]) ==
+               ("server", "server") for a in acts), acts
+    assert kinds[:2] == ["stylus sweep", "points digitised"], kinds
+    assert kinds.count("contour vertex") == len(targets) and kinds.count("contour committed") == 1, kinds
+    started = [a["detail"].split(",")[0] for a in acts if a["action"] == "run started"]
+    assert started[:3] == ["rigid", "deformable", "deformable"] and len(started) == 3 + len(tries), started
+    assert "run cancelled" in kinds and kinds.count("run finished") == len(started), kinds
+
     print(f"\n2D view: click → vertex acknowledged and drawn: median {np.median(latencies):.0f} ms, "
           f"max {max(latencies):.0f} ms over {len(latencies)} clicks 0.2 s apart")
     assert surface < rigid and final < rigid, (rigid, surface, final)

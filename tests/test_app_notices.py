@@ -93,8 +93,9 @@ def test_the_on_show_dropdown_is_held_while_a_run_goes_and_says_nothing_unasked(
                                  run=Run(RunKind.ALL, 100, 0.0), sweeping=False)
     dropdown = types.SimpleNamespace(options=(), value=None, disabled=False)
     panel = types.SimpleNamespace(core=core, on_show=dropdown, _choices={},
-                                  app=types.SimpleNamespace(runs=types.SimpleNamespace(show=asked.append)),
-                                  view=types.SimpleNamespace(notify=lambda *a, **k: said.append(a)))
+                                  app=types.SimpleNamespace(runs=types.SimpleNamespace(
+                                      show=lambda row, cs=None: asked.append(row))),
+                                  view=types.SimpleNamespace(notify=lambda *a, **k: said.append(a), cs=None))
     panel._on_show = lambda: RegistrationPanel._on_show(panel)
     panel._on_show()
     assert dropdown.disabled and dropdown.value.startswith("2.")

@@ -29,6 +29,8 @@ from ..errors import NavappError
 from ..registration.pipeline import Registration, prepare
 from ..simulation.scenedata import SceneData, load_scene_data
 from ..simulation.ultrasound import PlaneData
+from .access import Role
+from .actions import Act, ActionLog
 from .session import Session, default_folder, open_session
 from .state import Change, ClientState, RegisteredState, Run, WorstPoint
 
@@ -46,7 +48,7 @@ RELOAD_S = 60.0  # a tab whose connection closed this recently may be coming bac
 CLOSE_LAG_S = 5.0
 WAIT = "wait: the tab before the reload is still connected"
 SAVED = (Change.DATA, Change.RESULT, Change.LOG)  # changes the session file must hold at once
-ON_CONNECT = (Change.STATUS, Change.SCENE, Change.MODEL, Change.DATA, Change.PLANE, Change.RESULT)
+ON_CONNECT = (Change.STATUS, Change.SCENE, Change.MODEL, Change.DATA, Change.PLANE, Change.RESULT, Change.ACTIONS)
 
 
 class NotReady(RuntimeError):
@@ -84,6 +86,7 @@ class Core:
         self.version = 0  # bumped on every change to shared data
         self.sd: SceneData | None = None
         self.session: Session | None = None
+        self.actions: ActionLog | None = None  # the session's action log, opened with it
         self.planes: dict[int, PlaneData] = {}
         self.model: RegistrationModel | None = None
         self.worker: RegistrationWorker | None = None
@@ -143,9 +146,9 @@ class Core:
             return session.data_with_origins(sd, self.planes, surface_only=surface_only)
 
     # ------------------------------------------------------------------ browsers
-    def new_client_state(self, client_id: int = -1) -> ClientState:
+    def new_client_state(self, client_id: int = -1, role: Role = Role.EDITOR) -> ClientState:
         """A browser's own state (also used headless, by tests and scripts)."""
-        cs = ClientState(client_id, secrets.token_urlsafe(8))
+        cs = ClientState(client_id, secrets.token_urlsafe(8), role)
         with self.lock:
             self.states[cs.token] = cs
         return cs
@@ -207,6 +210,18 @@ class Core:
         view = self.views.get(cs.client_id)
         if view is not None:
             view.refresh(what)  # under the view's lock
+
+    def record(self, cs: ClientState | None, act: Act, detail: str = ""):
+        """Append a change to shared data to the session's action log (``actions``): by the tab
+        ``cs``, or by the server (None) following a tab's action (a run's end, a send to Slicer)."""
+        log = self.actions
+        if log is None:
+            return
+        tab, role = ("server", "server") if cs is None else (
+            f"tab {cs.client_id}" if cs.client_id >= 0 else "script", cs.role)
+        with self.lock:  # not beside a session's first save, which carries the file into the new folder
+            log.append(tab, role, act, detail)
+        self.changed(Change.ACTIONS)
 
     def changed(self, what: Change = Change.DATA):
         with self.lock:
@@ -288,8 +303,9 @@ class Core:
                 self._say(session.note)
                 self.notify("Session", session.note)
             loaded = Loaded(sd, session, planes)
+            actions = ActionLog(folder)
             with self.lock:
-                self.sd, self.session, self.planes = sd, session, planes
+                self.sd, self.session, self.planes, self.actions = sd, session, planes, actions
             self.changed(Change.SCENE)
             on_loaded(loaded)
             begin(f"Building the registration model (mesh at {self.edge:g} mm, basis of k = {self.k} "

@@ -7,9 +7,13 @@ never touches another tab's. No viser here.
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 from enum import Enum
 
+import numpy as np
+
+from .actions import Act
 from .contours import Contour
 from .core import Core
 from .palette import DRAWABLE
@@ -154,6 +158,8 @@ class Drawing:
             cs.undo.append(VertexAdded(session, c))
             cs.touch()
         core.changed(Change.DATA)
+        core.record(cs, Act.VERTEX, f"{name} on plane {target}, pixel ({int(col)}, {int(row)}), "
+                                    f"vertex {len(c.vertices)}")
         return None
 
     def command(self, cs: ClientState, cmd: str, feature: str | None = None) -> str | None:
@@ -166,6 +172,7 @@ class Drawing:
         core = self.core
         session = core.need_session()
         msg = None
+        done: tuple[Act, str] | None = None  # what the action log gets
         with core.lock:
             c = cs.drawing
             if command is Command.FEATURE:
@@ -184,7 +191,10 @@ class Drawing:
                     c.closed = True
                     cs.drawing = None
                     cs.undo.append(Closed(session, c))
+                    done = Act.COMMIT, f"closed {c.feature} on plane {c.plane}, {len(c.vertices)} vertices"
             elif command is Command.FINISH:
+                if c is not None and c.vertices:
+                    done = Act.COMMIT, f"line {c.feature} on plane {c.plane}, {len(c.vertices)} vertices"
                 cs.drawing = None
             elif command is Command.UNDO:
                 msg = self.undo(cs)
@@ -197,9 +207,13 @@ class Drawing:
                     session.planes_added.remove(plane)
                 cs.undo.append(Cleared(session, plane, removed, was_added))
                 cs.drawing = None
+                done = Act.CLEAR, f"plane {plane}: {len(removed)} contours" + (
+                    ", its segmentation" if was_added else "")
             cs.message = msg or ""
             cs.touch()
         core.changed(Change.DATA)
+        if done is not None:
+            core.record(cs, *done)
         return msg
 
     def remove(self, cs: ClientState, wp: WorstPoint) -> str:
@@ -231,6 +245,7 @@ class Drawing:
             core.worst = [w for w in core.worst or [] if w is not wp]
             cs.touch()
         core.changed(Change.DATA)
+        core.record(cs, Act.REMOVE, f"{wp.feature} at {np.round(wp.point, 1).tolist()} mm: {msg}")
         return f"{msg} Register again to see the fit without it (Undo brings it back)."
 
     def undo(self, cs: ClientState) -> str | None:
@@ -240,8 +255,14 @@ class Drawing:
                 a = cs.undo.pop()
                 out = a.undo(cs)
                 if out is Undone.DONE:
+                    self.core.record(cs, Act.UNDO, _words(type(a).__name__))
                     return None
                 if isinstance(out, str):
                     cs.undo.append(a)  # kept: it can be undone once the reason is gone
                     return out
         return "Nothing of yours to undo."
+
+
+def _words(name: str) -> str:
+    """An action's class name in the log's words: ``VertexAdded`` -> "vertex added"."""
+    return re.sub(r"(?<!^)([A-Z])", r" \1", name).lower()

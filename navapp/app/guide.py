@@ -127,7 +127,7 @@ def _all(app, cs):
     if v is not None:
         v.layers.look("Anterior")
     _, worker = app.core.need_model()
-    return app.runs.start(RunKind.WARM if worker.last is not None else RunKind.ALL)
+    return app.runs.start(RunKind.WARM if worker.last is not None else RunKind.ALL, cs)
 
 
 def _compare(app, cs):
@@ -153,11 +153,11 @@ STEPS = (
     Step("Rigid registration",
          "First a rigid fit (ICP on the salient features: falciform ligament and inferior ridges). The "
          "error colours show what a rigid fit cannot fix.",
-         "Register rigidly", lambda app, cs: app.runs.start(RunKind.RIGID), _need_sweep, _ran(RunKind.RIGID)),
+         "Register rigidly", lambda app, cs: app.runs.start(RunKind.RIGID, cs), _need_sweep, _ran(RunKind.RIGID)),
     Step("Deformable registration, surface only",
          "LIBR deforms the model with a linear-elastic basis of boundary modes until it matches the "
          "stylus data, keeping strain energy low. Watch it converge live.",
-         "Register deformably (surface data)", lambda app, cs: app.runs.start(RunKind.SURFACE), _need_model,
+         "Register deformably (surface data)", lambda app, cs: app.runs.start(RunKind.SURFACE, cs), _need_model,
          _ran(RunKind.SURFACE)),
     Step("An ultrasound plane",
          "A tracked ultrasound probe images the liver's interior. The plane is shown at its tracked pose in "

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..simulation.scenedata import acquire_free_plane
 from ..simulation.ultrasound import PlaneData
+from .actions import Act
 from .core import Core
 from .palette import VESSEL_SHORT, feature_words
 from .session import Session
@@ -94,6 +95,7 @@ class Imaging:
             session.planes_added.append(cs.plane)
             cs.undo.append(PlaneAdded(session, cs.plane))
         core.changed(Change.DATA)
+        core.record(cs, Act.PLANE, self.label(cs.plane))
         return None
 
     def place_probe(self, cs: ClientState, T) -> int:
@@ -111,6 +113,7 @@ class Imaging:
             cs.undo.append(FreePlanePlaced(core, index))
         self.show(cs, index)
         core.changed(Change.DATA)
+        core.record(cs, Act.FREE_PLANE, f"plane {index} at {np.round(np.asarray(T)[:3, 3], 1).tolist()} mm")
         return index
 
     def acquire_at(self, T, index: int | None = None) -> PlaneData:

@@ -22,13 +22,14 @@ from ..registration.objective import Weights
 from ..registration.pipeline import Registration
 from ..registration.quality import EXPECTED_NOISE_MM, MARGIN_MM
 from ..registration.residuals import point_residuals
+from .actions import Act
 from .contours import OriginKind
 from .core import Core
 from .imaging import FREE_PLANE_BASE, LIVE_PLANE_BASE
 from .palette import feature_words
 from .shown import Shown
 from .slicer import Slicer
-from .state import Change, RegisteredState, Run, RunEntry, RunKind, WorstPoint, checked_by
+from .state import Change, ClientState, RegisteredState, Run, RunEntry, RunKind, WorstPoint, checked_by
 from .worker import Update, cancelled, viewer_options
 
 MIN_POINTS = 3  # fewer data points than this fix nothing
@@ -59,8 +60,8 @@ class Runs:
 
         self._orders.submit(run)
 
-    def start(self, kind: RunKind) -> str | None:
-        """Start a registration; returns why it could not start, or None."""
+    def start(self, kind: RunKind, cs: ClientState | None = None) -> str | None:
+        """Start a registration, an action of ``cs``; returns why it could not start, or None."""
         core = self.core
         worker = core.worker
         if worker is None:
@@ -89,9 +90,10 @@ class Runs:
                     core.run = None
                 return BUSY
         core.changed(Change.RUN)
+        core.record(cs, Act.RUN, f"{kind.label}, {npts} points")
         return None
 
-    def cancel(self) -> str:
+    def cancel(self, cs: ClientState | None = None) -> str:
         """Stop the registration or the sweep in progress at its next iteration (or setting);
         returns what happened, in words for the surgeon.
 
@@ -111,6 +113,7 @@ class Runs:
                 if run is not None and run.kind is RunKind.RIGID:
                     return "A rigid registration is not cancelled: it takes about a second, and its result is shown."
                 return "Too late to cancel: the run had finished; its result is on show."
+        core.record(cs, Act.CANCEL, "the accuracy sweep" if sweeping else run.kind.label if run is not None else "")
         if sweeping:  # no result is at stake: the sweep's rows so far stay in its table
             return "Cancelling the accuracy sweep: it stops after the setting it is running."
         return "Cancelling: the run stops at its next iteration; the previous result is kept."
@@ -163,8 +166,11 @@ class Runs:
                 core.shown_runs[len(log) - 1] = (result, reg, worst)
             core.run = None
         core.changed(Change.RESULT)
+        core.record(None, Act.FINISHED, f"row {len(log)}: {run.kind.label}" + (
+            ", cancelled" if stopped else f", mean error {entry.error_mean_mm:.2f} mm"
+            if entry.error_mean_mm is not None else ""))
         if not stopped:
-            self.slicer.send(reg)
+            self._send(reg, f"row {len(log)}")
         if stopped:
             core.notify("Registration", "Cancelled: the previous result is kept.")
         elif entry.warning and entry.warning.strip() == (result.pose_warning or "").strip():
@@ -177,7 +183,12 @@ class Runs:
         elif any(w.rejected for w in worst):
             core.notify("Registration", _left_out(worst).strip())
 
-    def show(self, row: int) -> str | None:
+    def _send(self, reg: Registration, what: str):
+        if self.slicer.sender is not None:
+            self.slicer.send(reg)
+            self.core.record(None, Act.SLICER, what + (f" (failed: {self.slicer.error})" if self.slicer.error else ""))
+
+    def show(self, row: int, cs: ClientState | None = None) -> str | None:
         """Put the result of run ``row`` (its index in the session's log) back on show — after a
         Rigid press replaced a good deformable result, say; Export, Slicer, a warm start and the
         error colours then use it. Returns why it cannot, or None."""
@@ -193,7 +204,8 @@ class Runs:
             worker.last = reg
             core.need_session().result = result.to_json()
         core.changed(Change.RESULT)
-        self.slicer.send(reg)
+        core.record(cs, Act.CHOSEN, f"row {row + 1}: {result.run}")
+        self._send(reg, f"row {row + 1}")
         return None
 
     def restore_worst(self) -> None:
@@ -231,9 +243,10 @@ class Runs:
             core.run = None
         core.notify("Registration failed", msg, error=True)
         core.changed(Change.RUN)
+        core.record(None, Act.FINISHED, f"failed: {msg}")
 
     # ------------------------------------------------------------------ cost sweep
-    def sweep(self, on_row=None, on_done=None) -> str | None:
+    def sweep(self, on_row=None, on_done=None, cs: ClientState | None = None) -> str | None:
         """Rerun the current data with the LM iteration cap and tolerance varied (``evaluation.cost``)."""
         core = self.core
         model, worker, truth = core.model, core.worker, core.truth_nodes
@@ -272,6 +285,7 @@ class Runs:
                     core.sweeping = False
                 return BUSY
         core.changed(Change.RUN)
+        core.record(cs, Act.ACCURACY, f"{sum(len(v) for v in data.values())} points")
         return None
 
 

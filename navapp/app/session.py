@@ -29,6 +29,7 @@ from ..features import NAMES as FEATURE_NAMES
 from ..features import STYLUS as STYLUS_FEATURES
 from ..simulation.scenedata import SceneData, acquire_free_plane, scene_key
 from ..simulation.ultrasound import PlaneData
+from .actions import FILE as ACTIONS_FILE
 from .contours import Contour, Origin, OriginKind, contour_points
 from .state import RunEntry
 
@@ -113,6 +114,10 @@ class Session:
             # files the session refers to that were written into the folder before its first save
             # (a frozen tracked frame's PNG): the renamed-in folder replaces that one whole, and the
             # first frame frozen in a fresh session was lost with it (a restart then refused the session)
+            if (self.folder / ACTIONS_FILE).is_file():  # the action log (``actions``), fsync'd as it is there
+                shutil.copy2(self.folder / ACTIONS_FILE, tmp / ACTIONS_FILE)
+                with open(tmp / ACTIONS_FILE, "rb+") as f:
+                    os.fsync(f.fileno())
             for lp in self.live_planes:
                 src = self.folder / lp["png"]
                 if src.is_file():
@@ -287,7 +292,7 @@ def open_session(folder: Path, sd: SceneData) -> tuple[Session, dict]:
     return s, planes
 
 
-SESSION_ENTRIES = {"case.toml", "preop", "truth", "intraop", "session.json.tmp"}  # what a save writes
+SESSION_ENTRIES = {"case.toml", "preop", "truth", "intraop", "session.json.tmp", ACTIONS_FILE}  # what a save writes
 
 
 def _cut_short(folder: Path, sd: SceneData) -> bool:

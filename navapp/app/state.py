@@ -18,6 +18,7 @@ import numpy as np
 
 from ..registration.pipeline import Registration
 from ..registration.rigid import RigidResult
+from .access import Role
 from .contours import Contour, Origin
 from .worker import cancelled
 
@@ -36,6 +37,7 @@ class Change(Enum):
     RESULT = "result"  # a registration finished: the result on show, the log
     LOG = "log"
     LIVE = "live"  # tracker status, recording, live re-registration
+    ACTIONS = "actions"  # a line added to the session's action log
 
 
 class Undone(Enum):
@@ -59,6 +61,7 @@ class ClientState:
 
     client_id: int
     token: str  # identifies this tab's 2D view page
+    role: Role = Role.EDITOR  # from the token of the link the tab was opened with (``access``)
     plane: int | None = None  # index of the plane shown (presets 0…, free planes from 100)
     drawing: Contour | None = None  # the contour being drawn (it is already in the session)
     # the unfinished contour on each plane this tab switched away from: clicks aimed at that plane

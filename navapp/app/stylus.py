@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .actions import Act
 from .core import Core
 from .state import Action, Change, ClientState, Undone
 
@@ -57,6 +58,7 @@ class Stylus:
         self._stop.clear()
         self._owner = cs
         self._sweeping = True
+        self.core.record(cs, Act.SWEEP, "started")
         self._thread = threading.Thread(target=self._sweep, args=(speed,), daemon=True, name="navapp-stylus")
         self._thread.start()
         return True
@@ -91,6 +93,8 @@ class Stylus:
         self._record_batch(start, self._owner)
         core.each_view(lambda v: v.show_stylus(None))
         core.changed(Change.DATA)
+        core.record(self._owner, Act.POINTS, f"sweep points {start + 1}-{i} of {len(path)}" if i > start else
+                    "none")
 
     def _record_batch(self, start: int, owner: ClientState | None):
         """One undoable action per sweep, in the undo of the tab that made it only: another
@@ -112,6 +116,7 @@ class Stylus:
             session.stylus_count = len(sd.stylus_path)
         self._record_batch(start, cs)
         core.changed(Change.DATA)
+        core.record(cs, Act.POINTS, f"whole sweep at once: points {start + 1}-{len(sd.stylus_path)}")
 
 
 def _show_stylus(pos):

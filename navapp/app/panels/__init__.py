@@ -4,6 +4,7 @@ module of its own."""
 
 from __future__ import annotations
 
+import inspect
 import threading
 import time
 from html import escape
@@ -11,6 +12,7 @@ from html import escape
 import numpy as np
 from viser import NotificationHandle
 
+from ..access import OBSERVING, Role
 from ..core import ON_CONNECT
 from ..framing import DOCK_2D_PX, Screen, dock_width
 from ..state import Change, ClientState
@@ -23,6 +25,7 @@ from .stylus import StylusPanel
 from .tracking import TrackingPanel
 from .ultrasound import UltrasoundPanel
 
+OBSERVER_NOTE = "this view shows everything live and changes nothing."
 DISTANCE_TEXT_S = 0.2  # tumour-distance text refreshed at most this often while a tracked tip moves
 
 
@@ -47,6 +50,8 @@ class ClientView:
         # panel, and a surgeon working at the bottom of it (the run table) would not see it
         self._pinned: dict[str, NotificationHandle] = {}  # "lost" / "pose" -> viser NotificationHandle
         self._errors: dict[str, NotificationHandle] = {}  # title -> the red box showing it
+        if cs.role is Role.OBSERVER:
+            g.add_markdown(f"**Observer link**: {OBSERVER_NOTE}")
         self.layers = LayersPanel(self)  # first: the others show their nodes through it
         self.guide = GuidePanel(self)
         self.stylus = StylusPanel(self)
@@ -168,6 +173,21 @@ class ClientView:
                                                              auto_close_seconds=None, color="red")
         elif (note.title, note.body) != (title, body):
             note.title, note.body = title, body
+
+    def edits(self, cb):
+        """``cb`` for a control that changes the shared data; an observer's use of it is
+        refused and said so (``access.Role``). Controls of the tab's own view (layers, camera,
+        colour scale, the plane it shows) are not wrapped: an observer uses them."""
+        if self.cs.role is not Role.OBSERVER:
+            return cb
+        if inspect.iscoroutinefunction(cb):
+            async def refused_in_order(_event):
+                self.refuse()
+            return refused_in_order
+        return lambda _event: self.refuse()
+
+    def refuse(self):
+        self.notify("Observer link", OBSERVING, error=True)
 
     def notify(self, title, body, error=False):
         if error:

@@ -22,7 +22,7 @@ class AccuracyPanel:
                                     scales={"x": {"time": False}},
                                     axes=({"label": "registration time (s)"}, {"label": "mean TRE (mm)"}))
             self.md = g.add_markdown("")
-        self.btn.on_click(self._sweep_in_order)
+        self.btn.on_click(view.edits(self._sweep_in_order))
 
     async def _sweep_in_order(self, _event):  # after any start or Cancel clicked before it (``Runs.order``)
         self.app.runs.order(self.sweep)
@@ -53,6 +53,6 @@ class AccuracyPanel:
             self.view.notify("Cost", f"Cancelled after {len(out)} settings." if cancelled
                              else f"{len(out)} settings run.")
 
-        err = self.app.runs.sweep(on_row, done)
+        err = self.app.runs.sweep(on_row, done, self.view.cs)
         if err:
             self.view.notify("Cost", err)

@@ -15,7 +15,7 @@ class GuidePanel:
             self.why = g.add_markdown("")
             self.nav = g.add_button_group("Step", ("◀ Back", "Skip ▶"))
             self.extra = g.add_markdown("")
-        self.btn.on_click(lambda e: self.press())
+        self.btn.on_click(view.edits(lambda e: self.press()))
         self.nav.on_click(lambda e: self.move(-1 if e.target.value.startswith("◀") else 1))
         # a new tab starts past the work the session already holds (a reload takes its own). A tab
         # that connects while a restarted server is still loading sees no session yet: it is

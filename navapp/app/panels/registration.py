@@ -39,12 +39,12 @@ class RegistrationPanel:
             self.worst_md = g.add_markdown("")
             self.btn_worst = [g.add_button("Remove", visible=False) for _ in range(WORST_SHOWN)]
         for i, b in enumerate(self.btn_worst):
-            b.on_click(lambda e, i=i: self.remove(i))
+            b.on_click(view.edits(lambda e, i=i: self.remove(i)))
         # starts and Cancel are handled in the order they were clicked (``runs.Runs.order``)
         for kind, b in self.btn.items():
-            b.on_click(self._in_order(lambda kind=kind: self.start(kind)))
-        self.btn_cancel.on_click(self._in_order(self.cancel))
-        self.on_show.on_update(lambda e: self.show())
+            b.on_click(view.edits(self._in_order(lambda kind=kind: self.start(kind))))
+        self.btn_cancel.on_click(view.edits(self._in_order(self.cancel)))
+        self.on_show.on_update(view.edits(lambda e: self.show()))
         self._choices: dict[str, int] = {}  # dropdown words → row of the log
 
     def _in_order(self, action):
@@ -53,12 +53,12 @@ class RegistrationPanel:
         return on_click
 
     def start(self, kind: RunKind):
-        err = self.app.runs.start(kind)
+        err = self.app.runs.start(kind, self.view.cs)
         if err:
             self.view.notify("Registration", err, error="Collect" in err)
 
     def cancel(self):
-        self.view.notify("Cancel", self.app.runs.cancel())
+        self.view.notify("Cancel", self.app.runs.cancel(self.view.cs))
 
     def show(self):
         row = self._choices.get(self.on_show.value)
@@ -70,7 +70,7 @@ class RegistrationPanel:
             # its value (a tab reloaded mid-run got "A registration is already running" unasked)
             self._on_show()
             return
-        err = self.app.runs.show(row)
+        err = self.app.runs.show(row, self.view.cs)
         if err:
             self.view.notify("On show", err, error=True)
 

@@ -14,8 +14,8 @@ class StylusPanel:
             self.btn = g.add_button("Digitise the anterior surface", disabled=True)
             self.btn_all = g.add_button("Collect the whole sweep now", disabled=True)
             self.dist = g.add_markdown("")
-        self.btn.on_click(lambda e: self.app.stylus.start(lambda: float(self.speed.value), view.cs))
-        self.btn_all.on_click(lambda e: self.app.stylus.collect_now(view.cs))
+        self.btn.on_click(view.edits(lambda e: self.app.stylus.start(lambda: float(self.speed.value), view.cs)))
+        self.btn_all.on_click(view.edits(lambda e: self.app.stylus.collect_now(view.cs)))
 
     def refresh(self, what):
         sd, session = self.app.core.sd, self.app.core.session

@@ -3,6 +3,7 @@ per-tool status (seen / stale / missing, as SlicerIGT's Watchdog), digitising wi
 tracked stylus while a switch is on, the live image, and freezing a frame to draw on."""
 
 from ...features import STYLUS as STYLUS_FEATURES
+from ..actions import Act
 from ..state import Change
 
 
@@ -23,14 +24,18 @@ class TrackingPanel:
                                                 "re-registered from the last state; off: converged and kept")
             self.live_summary = g.add_markdown("")
             self.slicer = g.add_markdown("")
-        self.record.on_update(lambda e: self._record())
-        self.freeze.on_click(lambda e: self._freeze())
-        self.live_reg.on_update(lambda e: self._live_reg())
+        self.record.on_update(view.edits(lambda e: self._record()))
+        self.freeze.on_click(view.edits(lambda e: self._freeze()))
+        self.live_reg.on_update(view.edits(lambda e: self._live_reg()))
 
     def _record(self):
-        err = self.app.live.set_recording(bool(self.record.value), self.label.value, self.cs)
+        on = bool(self.record.value)
+        was = self.app.live.recording
+        err = self.app.live.set_recording(on, self.label.value, self.cs)
         if err:
             self.view.notify("Live tracking", err, error=True)
+        elif was != on:
+            self.app.core.record(self.cs, Act.RECORDING, f"on ({self.label.value})" if on else "off")
 
     def _live_reg(self):
         on = bool(self.live_reg.value)
@@ -40,11 +45,15 @@ class TrackingPanel:
         if err:
             self.live_reg.value = False
             self.view.notify("Live tracking", err, error=True)
+        else:
+            self.app.core.record(self.cs, Act.FOLLOW, "on" if on else "off")
 
     def _freeze(self):
         err = self.app.live.freeze_frame(self.cs)
         if err:
             self.view.notify("Live tracking", err, error=True)
+        else:
+            self.app.core.record(self.cs, Act.FROZEN, f"as plane {self.cs.plane}")
 
     def refresh(self, what):
         live = self.app.live.link

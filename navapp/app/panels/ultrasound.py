@@ -35,15 +35,16 @@ class UltrasoundPanel:
             self.info = g.add_markdown("")
             self.dist = g.add_markdown("")
         self.plane_dd.on_update(lambda e: self._choose())
-        self.btn_add.on_click(lambda e: self._msg(self.app.imaging.add(self.cs)))
+        self.btn_add.on_click(view.edits(lambda e: self._msg(self.app.imaging.add(self.cs))))
         self.cb_2d.on_update(lambda e: self._show_2d(self.cb_2d.value))
         self.feature.on_update(lambda e: self.app.drawing.command(self.cs, Command.FEATURE.value, self.feature.value))
-        self.cmds.on_click(lambda e: self._msg(self.app.drawing.command(self.cs, e.target.value, self.feature.value)))
-        self.cb_free.on_update(lambda e: self._free_probe(self.cb_free.value))
-        self.btn_suggest.on_click(lambda e: self._suggest())
+        self.cmds.on_click(view.edits(lambda e: self._msg(self.app.drawing.command(self.cs, e.target.value,
+                                                                                      self.feature.value))))
+        self.cb_free.on_update(view.edits(lambda e: self._free_probe(self.cb_free.value)))
+        self.btn_suggest.on_click(view.edits(lambda e: self._suggest()))
         self.panel = g.add_panel()
         tab = self.panel.add_tab("Ultrasound image")
-        url = view.app.view2d.page_url(self.cs.token, view.app.view2d_host)
+        url = view.app.view2d.page_url(self.cs.token, view.app.view2d_host, view.app.access.token_for(self.cs.role))
         with tab:
             self.frame = g.add_html(f"<iframe src='{url}' title='ultrasound 2D view' "
                                     f"style='width:100%;height:{IFRAME_H}px;border:0'></iframe>")

@@ -15,6 +15,7 @@ served comes from a ``Provider`` (``view2d.provider.View2D`` in the viewer).
 import json
 import logging
 import re
+import ssl
 import sys
 import threading
 from functools import cache
@@ -24,6 +25,7 @@ from importlib.resources import files
 from typing import Any, Protocol
 from urllib.parse import parse_qs, urlparse
 
+from ..access import OBSERVING, OPEN, REFUSED, Access, Role
 from ..palette import DRAWABLE, IN_PROGRESS
 
 POLL_MS = 250  # how often a page asks whether anything changed
@@ -97,15 +99,17 @@ def _asset(name: str) -> str:
     return (files(__package__) / name).read_text(encoding="utf-8")
 
 
-def page(token: str) -> str:
-    """The 2D view's page for one tab."""
+def page(token: str, access: str = "") -> str:
+    """The 2D view's page for one tab; ``access``: the viewer's token the page's requests carry."""
     options = "".join(f"<option>{escape(name)}</option>" for name in DRAWABLE)
-    return (_asset("page.html").replace("__TOKEN__", escape(token)).replace("__POLL__", str(POLL_MS))
+    return (_asset("page.html").replace("__TOKEN__", escape(token)).replace("__ACCESS__", escape(access))
+            .replace("__POLL__", str(POLL_MS))
             .replace("__IN_PROGRESS__", IN_PROGRESS).replace("__FEATURES__", options))
 
 
 class _Handler(BaseHTTPRequestHandler):
     provider: Any = None  # a Provider, set per server class
+    access: Access = OPEN  # the viewer's tokens (``access``), set per server class
     timeout = BODY_TIMEOUT_S  # socketserver sets it on the connection: every read is bounded
 
     def log_message(self, *args):  # the app's console is for the user, not for every poll
@@ -127,9 +131,19 @@ class _Handler(BaseHTTPRequestHandler):
         token = q.get("c", "")
         return token if TOKEN.fullmatch(token) else None
 
+    def _role(self, q) -> Role | None:
+        """The role the request's access token (``t``) gives; None: refused with a short 403,
+        before the tab's value is looked at (a valid tab value without the token is refused too)."""
+        role = self.access.role_for(q.get("t"))
+        if role is None:
+            self._send(403, REFUSED, "text/plain; charset=utf-8")
+        return role
+
     def do_GET(self):
         path, q = self._query()
         token = self._token(q)
+        if self._role(q) is None:
+            return
         try:
             if path == "/us/page.js":
                 return self._send(200, _asset("page.js").encode(), "text/javascript; charset=utf-8")
@@ -138,7 +152,7 @@ class _Handler(BaseHTTPRequestHandler):
                     return self._send(404, UNKNOWN_VIEW, "text/plain; charset=utf-8")
                 return self._send(404, b"not found", "text/plain")
             if path == "/us":
-                return self._send(200, page(token).encode(), "text/html; charset=utf-8")
+                return self._send(200, page(token, q.get("t", "")).encode(), "text/html; charset=utf-8")
             if path == "/us/state":
                 try:
                     self.provider.view_pixel_ratio(token, float(q.get("dpr", "")))
@@ -183,8 +197,15 @@ class _Handler(BaseHTTPRequestHandler):
     def do_POST(self):
         path, q = self._query()
         token = self._token(q)
+        role = self._role(q)
+        if role is None:
+            self.close_connection = True  # the body is left unread
+            return
         try:
             body = _body(self._read_body())
+            if role is Role.OBSERVER and path in ("/us/click", "/us/command") and body.get("cmd") not in (
+                    "Plane", "Feature"):
+                return self._send(403, OBSERVING.encode(), "text/plain; charset=utf-8")
             # a view this server does not know (a tab of a server since restarted): 404, as GET
             # answers it, so the page tells it from a refused click and asks for a reload
             if token is None or not self.provider.view_known(token):
@@ -215,6 +236,24 @@ class _Handler(BaseHTTPRequestHandler):
 
 class _Server(ThreadingHTTPServer):
     daemon_threads = True
+    tls: ssl.SSLContext | None = None
+
+    def get_request(self):
+        sock, addr = super().get_request()
+        if self.tls is None:
+            return sock, addr
+        # the TLS handshake is made in the request's own thread (``finish_request``): made here,
+        # one client that never completes it would hold every other one back
+        return self.tls.wrap_socket(sock, server_side=True, do_handshake_on_connect=False), addr
+
+    def finish_request(self, request, client_address):
+        if self.tls is not None:
+            request.settimeout(BODY_TIMEOUT_S)
+            try:
+                request.do_handshake()
+            except (OSError, ssl.SSLError):  # not TLS, or a certificate the browser refused: nothing to serve
+                return
+        super().finish_request(request, client_address)
 
     def handle_error(self, request, client_address):
         # a tab closed while its response was on the way: the browser wanted nothing more, and a
@@ -228,16 +267,20 @@ class _Server(ThreadingHTTPServer):
 class View2DServer:
     """Serves the 2D view pages on ``host:port`` (port 0: any free port) in a thread."""
 
-    def __init__(self, provider: Provider, host: str = "127.0.0.1", port: int = 0):
-        handler = type("Handler", (_Handler,), {"provider": provider})
+    def __init__(self, provider: Provider, host: str = "127.0.0.1", port: int = 0, access: Access = OPEN,
+                 tls: ssl.SSLContext | None = None):
+        handler = type("Handler", (_Handler,), {"provider": provider, "access": access})
         self.httpd = _Server((host, port), handler)
+        self.httpd.tls = tls
         self.port = self.httpd.server_address[1]
         self.host = host
         self._thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
         self._thread.start()
 
-    def page_url(self, token: str, host: str | None = None) -> str:
-        return f"http://{host or self.host}:{self.port}/us?c={token}"
+    def page_url(self, token: str, host: str | None = None, access: str | None = None) -> str:
+        """The tab ``token``'s page; ``access``: the token of the link the tab was opened with."""
+        scheme = "https" if self.httpd.tls is not None else "http"
+        return f"{scheme}://{host or self.host}:{self.port}/us?c={token}" + (f"&t={access}" if access else "")
 
     def stop(self):
         self.httpd.shutdown()

@@ -1,6 +1,7 @@
 // the 2D ultrasound view (view2d/page.html): draws the frame, the model's sections and the
 // contours on a canvas, queues clicks and sends them one at a time (see view2d/__init__.py)
 const TOKEN = document.body.dataset.token;
+const ACCESS = document.body.dataset.access;  // the viewer's token, when it asks for one
 const POLL = Number(document.body.dataset.poll);
 const IN_PROGRESS = document.body.dataset.drawing;
 const RULER = 34, TOP = 22;
@@ -9,7 +10,9 @@ let pending = [], sending = false;
 window.navappLatencies = [];
 const cv = document.getElementById("cv"), g = cv.getContext("2d");
 const $ = id => document.getElementById(id);
-function url(p){ return p + (p.includes("?") ? "&" : "?") + "c=" + encodeURIComponent(TOKEN); }
+function url(p){
+  return p + (p.includes("?") ? "&" : "?") + "c=" + encodeURIComponent(TOKEN) + (ACCESS ? "&t=" + encodeURIComponent(ACCESS) : "");
+}
 function msg(t){ $("msg").textContent = t || ""; }
 
 function toPixel(e){

@@ -11,9 +11,10 @@ from typing import Any
 import numpy as np
 
 from ...anatomy.model import VESSELS
+from ..access import OBSERVING, Role
 from ..contours import CENTERLINE_OF, contour_pixels
 from ..core import Core
-from ..drawing import Drawing
+from ..drawing import Command, Drawing
 from ..imaging import Imaging
 from ..palette import DRAWABLE, DRAWN_COLOURS, OVERLAY_STYLE, WORST_POINT
 from ..shown import Shown
@@ -119,6 +120,8 @@ class View2D:
         cs = self.core.state_for(token)
         if cs is None:
             return GONE
+        if cs.role is Role.OBSERVER:
+            return OBSERVING
         return self.drawing.click(cs, col, row, feature, plane)
 
     def view_command(self, token: str, cmd: str, feature: str, plane: int | None = None) -> str | None:
@@ -127,6 +130,8 @@ class View2D:
             return GONE
         if cmd == "Plane":
             return None if self.imaging.show(cs, plane) else f"there is no plane {plane}"
+        if cs.role is Role.OBSERVER and cmd != Command.FEATURE.value:  # the feature drawn next is the tab's own
+            return OBSERVING
         return self.drawing.command(cs, cmd, feature)
 
     def view_pixel_ratio(self, token: str, ratio: float) -> None:
