@@ -179,3 +179,35 @@ def test_import_cli_prints_json(phantoms, tmp_path, capsys):
                  "--out", str(tmp_path / "case")]) == 0
     out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert out["frame"] == "LAS"
+
+
+def test_a_vessel_tree_in_several_large_pieces_is_kept_whole(phantoms, tmp_path):
+    """Vessel trees segmented from CT often come in several large pieces (the portal trunk apart
+    from its branches): every piece large, no speck to drop, and ``read_case`` ended in
+    ``max() arg is an empty sequence`` where it reported the dropped specks."""
+    liver = phantoms[0].liver
+    c = liver.centroid
+    pieces = []
+    for i, (dx, axis) in enumerate([(-25.0, [1, 0, 0]), (0.0, [0, 1, 0]), (25.0, [0, 0, 1])]):
+        tube = trimesh.creation.cylinder(radius=3.0 + i, height=30.0, sections=16)
+        tube.apply_transform(trimesh.geometry.align_vectors([0, 0, 1], axis))
+        tube.apply_translation(c + [dx, 0.0, 0.0])
+        pieces.append(tube)
+    portal = trimesh.util.concatenate(pieces)
+    assert len(portal.split(only_watertight=False)) == 3
+    clean, rep = clean_surface(portal, "portal.ply", closed=False, what="portal surface")
+    assert not rep.specks and not rep.warnings
+    assert len(clean.vertices) == len(portal.vertices) and len(clean.faces) == len(portal.faces)
+    case = tmp_path / "case"
+    (case / "preop").mkdir(parents=True)
+    (case / "case.toml").write_text('name = "pieces"\nunits = "mm"\n')
+    liver.export(case / "preop/liver.ply")
+    portal.export(case / "preop/portal.ply")
+    got = read_case(case).preop.portal
+    assert got is not None and len(got.faces) == len(portal.faces)
+    # a speck beside the large pieces is still dropped, and said
+    speck = trimesh.creation.icosphere(subdivisions=1, radius=0.2)
+    speck.apply_translation(c + [0.0, 20.0, 0.0])
+    clean, rep = clean_surface(trimesh.util.concatenate([portal, speck]), "portal.ply", closed=False)
+    assert len(rep.specks) == 1 and len(clean.faces) == len(portal.faces)
+    assert "dropped 1 tiny separate piece" in rep.warnings[0]

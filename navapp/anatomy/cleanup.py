@@ -84,7 +84,7 @@ def merge_duplicates(vertices: np.ndarray, faces: np.ndarray):
 
 
 def _pieces(faces: np.ndarray) -> list[np.ndarray]:
-    """Face indices of each edge-connected piece, largest first."""
+    """Face indices of each edge-connected piece, most triangles first."""
     groups = trimesh.graph.connected_components(trimesh.graph.face_adjacency(faces), nodes=np.arange(len(faces)),
                                                 min_len=1)
     return sorted((np.asarray(g) for g in groups), key=len, reverse=True)
@@ -130,18 +130,24 @@ def clean_surface(mesh: trimesh.Trimesh, path=None, closed=True,
         raise InputError("holds only degenerate triangles", path)
 
     pieces = _pieces(f)
+    large = np.ones(len(pieces), bool)
     if len(pieces) > 1:
         area = trimesh.triangles.area(v[f])
         sizes = np.array([area[p].sum() for p in pieces])
-        large = sizes >= SPECK_FRACTION * sizes[0]
-        if closed and large.sum() > 1:
-            bad = _crossing(v, f, path, what)
-            if len(bad):
-                raise InputError(f"{what} is self-intersecting ({len(bad)} triangles cross another)", path)
-            ml = [abs(trimesh.Trimesh(v, f[pieces[i]]).volume) / 1000 for i in np.flatnonzero(large)]
-            raise InputError(f"{what} has {int(large.sum())} large separate pieces "
-                             f"({', '.join(f'{x:.3g} ml' for x in ml[:4])}); "
-                             f"{'a liver' if what.startswith('liver') else 'it'} must be one piece", path)
+        # by area, not by triangle count: a finely triangulated speck can have more triangles
+        # than a coarse organ
+        large = sizes >= SPECK_FRACTION * sizes.max()
+    if closed and large.sum() > 1:
+        bad = _crossing(v, f, path, what)
+        if len(bad):
+            raise InputError(f"{what} is self-intersecting ({len(bad)} triangles cross another)", path)
+        ml = [abs(trimesh.Trimesh(v, f[pieces[i]]).volume) / 1000 for i in np.flatnonzero(large)]
+        raise InputError(f"{what} has {int(large.sum())} large separate pieces "
+                         f"({', '.join(f'{x:.3g} ml' for x in ml[:4])}); "
+                         f"{'a liver' if what.startswith('liver') else 'it'} must be one piece", path)
+    # several large pieces are kept in a vessel tree (segmented from CT it often comes so: the
+    # portal trunk apart from its branches); only specks are dropped
+    if not large.all():
         keep = np.concatenate([pieces[i] for i in np.flatnonzero(large)])
         for i in np.flatnonzero(~large):
             pv = v[np.unique(f[pieces[i]])]
