@@ -211,3 +211,53 @@ def test_a_vessel_tree_in_several_large_pieces_is_kept_whole(phantoms, tmp_path)
     clean, rep = clean_surface(trimesh.util.concatenate([portal, speck]), "portal.ply", closed=False)
     assert len(rep.specks) == 1 and len(clean.faces) == len(portal.faces)
     assert "dropped 1 tiny separate piece" in rep.warnings[0]
+
+
+def msd_like_labelmap(liver, path, tumour_radius=12.0, depth=5.0):
+    """A label map made as the Decathlon's liver task and LiTS make theirs: liver 1 and tumour 2
+    disjoint (the liver label leaves the tumour out), a tumour at the border notching the liver,
+    1 × 1 × 5 mm voxels on an oblique grid, NIfTI in RAS. Returns (union voxel count, voxel
+    volume mm³, tumour centre, affine)."""
+    from navapp.anatomy import ctcase
+
+    v, n = liver.vertices, liver.vertex_normals
+    front = np.flatnonzero(np.abs(v[:, 0] - liver.centroid[0]) < 30)
+    k = front[np.argmax(v[front, 1])]  # anterior, mid-liver: a broad part of the surface
+    centre = v[k] - depth * n[k]
+    tumour = trimesh.creation.icosphere(subdivisions=3, radius=tumour_radius)
+    tumour.apply_translation(centre)
+    spacing = (1.0, 1.0, 5.0)
+    shape = np.ceil((liver.extents + 60.0) / spacing).astype(int)
+    A = ctcase.grid_affine(liver.bounds.mean(0), spacing, shape)
+    in_liver, in_tumour = ctcase.voxelise(liver, A, shape), ctcase.voxelise(tumour, A, shape)
+    labels = np.zeros(tuple(shape), np.uint8)
+    labels[in_liver] = 1
+    labels[in_tumour] = 2
+    ctcase.write_nifti(labels, A, path)
+    return int((in_liver | in_tumour).sum()), float(np.prod(spacing)), centre, A
+
+
+@pytest.mark.filterwarnings("error::UserWarning")  # nor a warning that the tumour lies outside the liver
+def test_liver_label_without_its_tumour_is_joined_with_it(phantoms, tmp_path, capsys):
+    """Decathlon / LiTS: the tumour label is disjoint from the liver label, and a tumour at the
+    border notches the liver. It was refused ("its centre … lies outside the liver"); the organ
+    is now the union of both, said in one line, and the tumour is kept as a target."""
+    liver = phantoms[0].liver
+    path = tmp_path / "liver_7.nii.gz"
+    union_voxels, voxel_mm3, centre, _ = msd_like_labelmap(liver, path)
+    labels = np.asarray(nibabel.load(path).dataobj)
+    assert not ((labels == 1) & (labels == 2)).any() and (labels == 2).sum() > 500
+    out = tmp_path / "case"
+    assert main(["--quiet", "import", "--liver", f"{path}:1", "--target", f"{path}:2", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    said = [line for line in err.splitlines() if "union of both" in line]
+    assert len(said) == 1 and "liver_7.nii.gz:2" in said[0], err
+    case = read_case(out)
+    got = case.preop.liver
+    assert got.volume == pytest.approx(union_voxels * voxel_mm3, rel=0.02)
+    (target,) = case.preop.targets
+    assert np.linalg.norm(target.centre - centre) < 2.0
+    assert target.diameter_mm == pytest.approx(24.0, abs=5.0)  # 5 mm slices: a staircase at the poles
+    # the tumour lies in the organ now: where it meets the organ's surface, within a fraction of a voxel
+    assert vessels_outside(got, target.surface, beyond_mm=1.0) == (0.0, 0.0)
+    assert vessels_outside(got, target.surface)[0] > 0.05  # …on which the plain voxel test goes either way

@@ -189,13 +189,17 @@ def clean_surface(mesh: trimesh.Trimesh, path=None, closed=True,
     return out, rep
 
 
-def vessels_outside(liver: trimesh.Trimesh, vessel: trimesh.Trimesh, voxel: float = 1.0) -> tuple[float, float]:
+def vessels_outside(liver: trimesh.Trimesh, vessel: trimesh.Trimesh, voxel: float = 1.0,
+                    beyond_mm: float = 0.0) -> tuple[float, float]:
     """Fraction of ``vessel``'s vertices outside the closed ``liver``, and the largest
     distance (mm) of those from the liver's vertices; (0, 0) when all lie inside.
 
     Inside is read off a ``voxel`` mm inside grid of the liver (trimesh's ray-based
     ``contains`` needs gigabytes for a vessel tree), so a vertex within a voxel of the
-    surface may go either way: this is a warning's test, not a measurement.
+    surface may go either way: this is a warning's test, not a measurement. With
+    ``beyond_mm`` > 0, a vertex counts as outside only when it lies farther than that from
+    the liver's surface (distances to the surface, not its vertices): a tumour at the
+    border has a face on the organ's surface, which is not a tumour outside the organ.
     """
     from scipy.spatial import cKDTree
 
@@ -208,5 +212,12 @@ def vessels_outside(liver: trimesh.Trimesh, vessel: trimesh.Trimesh, voxel: floa
     is_in[ok] = inside[tuple(ijk[ok].T)]
     if is_in.all():
         return 0.0, 0.0
-    distance, _ = cKDTree(liver.vertices).query(np.asarray(vessel.vertices)[~is_in])
+    out = np.asarray(vessel.vertices)[~is_in]
+    if beyond_mm > 0:
+        _, distance, _ = trimesh.proximity.closest_point(liver, out)
+        far = distance > beyond_mm
+        if not far.any():
+            return 0.0, 0.0
+        return float(far.sum() / len(is_in)), float(distance.max())
+    distance, _ = cKDTree(liver.vertices).query(out)
     return float((~is_in).mean()), float(distance.max())

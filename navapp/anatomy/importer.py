@@ -178,6 +178,51 @@ def fill_liver(liver: StructureMask, others: list[StructureMask]) -> StructureMa
     return StructureMask(mask, liver.affine, liver.path, liver.label)
 
 
+def join_touching_targets(liver: StructureMask, target: StructureMask) -> tuple[StructureMask, float, int]:
+    """The liver mask joined with the pieces of ``target`` (a tumour mask on the same grid)
+    that touch it (a face-neighbouring voxel), and the volume (ml) and number of pieces added.
+
+    The public CT segmentation sets (the Medical Segmentation Decathlon's liver and
+    hepatic-vessel tasks, LiTS) label the liver and its tumours apart: the liver label leaves
+    the tumours out, and a tumour at the border notches it. The tumour is part of the organ
+    that deforms, so the organ is the union; a tumour that does not touch the liver label is
+    left out (it is checked as a target like any other)."""
+    from scipy import ndimage
+
+    P = np.linalg.inv(liver.affine) @ target.affine
+    if not np.allclose(P[:3, :3], np.round(P[:3, :3]), atol=1e-3):
+        return liver, 0.0, 0
+    pieces, n = ndimage.label(target.mask)
+    idx = np.argwhere(pieces)
+    ijk = np.round(frames.apply(P, idx.astype(float))).astype(int)  # in the liver crop's index
+    piece_of = pieces[tuple(idx.T)]
+    steps = np.vstack([np.eye(3, dtype=int), -np.eye(3, dtype=int)])
+    touching = np.zeros(n + 1, bool)
+    for step in steps:
+        q = ijk + step
+        ok = np.all((q >= 0) & (q < liver.mask.shape), axis=1)
+        hit = np.zeros(len(q), bool)
+        hit[ok] = liver.mask[tuple(q[ok].T)]
+        touching[piece_of[hit]] = True
+    join = touching[piece_of]
+    if not join.any():
+        return liver, 0.0, 0
+    add = ijk[join]
+    # the tumour may reach past the liver's box: grow the crop (one empty voxel all round)
+    lo = np.minimum(add.min(0) - 1, 0)
+    hi = np.maximum(add.max(0) + 2, liver.mask.shape)
+    mask = np.zeros(tuple(hi - lo), bool)
+    shape = liver.mask.shape
+    mask[-lo[0]:-lo[0] + shape[0], -lo[1]:-lo[1] + shape[1], -lo[2]:-lo[2] + shape[2]] = liver.mask
+    before = int(mask.sum())
+    mask[tuple((add - lo).T)] = True
+    shift = np.eye(4)
+    shift[:3, 3] = lo
+    added_ml = (int(mask.sum()) - before) * liver.voxel_ml
+    return (StructureMask(mask, liver.affine @ shift, liver.path, liver.label), added_ml,
+            int(touching.sum()))
+
+
 def clip_to_liver(vessel: StructureMask, liver: StructureMask, within_mm: float) -> tuple[StructureMask, float]:
     """The voxels of ``vessel`` inside the liver or within ``within_mm`` of it (same grid),
     and the volume (ml) dropped: TotalSegmentator's portal vein comes with the splenic vein,
@@ -343,6 +388,18 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
     frames_of: dict[str, str] = {}
     surfaces: dict[str, trimesh.Trimesh] = {}  # in navapp's frame
     if "liver" in masks:
+        with _timed(timings, "read"):
+            for src in target_sources:
+                if not src.is_labelmap:
+                    continue
+                lm = read_map(src.path)
+                tumour = structure_mask(lm, resolve_label(lm, "target", src.label))
+                masks["liver"], ml, n = join_touching_targets(masks["liver"], tumour)
+                if ml > 0:
+                    early.append(f"{sources['liver'].path.name} (liver): its label leaves out the tumour "
+                                 f"{src.path.name}:{tumour.label} ({n} piece{'s' * (n > 1)} touching it, {ml:.1f} ml "
+                                 "beyond the liver label, as the Decathlon and LiTS label them): the organ is the "
+                                 "union of both, the tumour kept as a target")
         with _timed(timings, "checks"):
             check_liver_like(masks["liver"].volume_ml, mask_solidity(masks["liver"]), sources["liver"].path, early)
             masks["liver"] = fill_liver(masks["liver"], [masks[v] for v in VESSELS if v in masks])
