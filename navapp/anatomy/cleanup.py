@@ -221,3 +221,21 @@ def vessels_outside(liver: trimesh.Trimesh, vessel: trimesh.Trimesh, voxel: floa
         return float(far.sum() / len(is_in)), float(distance.max())
     distance, _ = cKDTree(liver.vertices).query(out)
     return float((~is_in).mean()), float(distance.max())
+
+
+def outside_distance(liver: trimesh.Trimesh, surface: trimesh.Trimesh, voxel: float = 1.0) -> np.ndarray:
+    """(V,) how far (mm) each vertex of ``surface`` lies outside the closed ``liver``: its
+    distance to the liver's surface where a ``voxel`` mm inside grid puts it outside (see
+    ``vessels_outside``), 0 where inside."""
+    from .skeleton import voxelize
+
+    inside, origin = voxelize(liver, voxel)
+    pts = np.asarray(surface.vertices, float)
+    ijk = np.round((pts - origin) / voxel).astype(int)
+    ok = np.all((ijk >= 0) & (ijk < inside.shape), axis=1)
+    is_in = np.zeros(len(ijk), bool)
+    is_in[ok] = inside[tuple(ijk[ok].T)]
+    out = np.zeros(len(pts))
+    if not is_in.all():
+        _, out[~is_in], _ = trimesh.proximity.closest_point(liver, pts[~is_in])
+    return out

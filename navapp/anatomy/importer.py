@@ -19,7 +19,7 @@ import trimesh
 
 from ..errors import InputError, NavappError
 from . import frames
-from .cleanup import clean_surface, vessels_outside
+from .cleanup import clean_surface, outside_distance
 from .labelmaps import (
     LABELMAP_SUFFIXES,
     STRUCTURE_WORDS,
@@ -40,6 +40,10 @@ __all__ = ["LABELMAP_SUFFIXES", "SURFACE_SUFFIXES", "ImportReport", "LabelMap", 
            "mask_surface", "read_any_surface", "read_labelmap", "slicer_frame"]
 
 OUTSIDE_WARN_FRACTION = 0.01  # warn when more than 1 % of a vessel's vertices lie outside the liver
+VESSEL_MARGIN_MM = 15.0
+"""The model holds a vessel within this of the liver's surface and cuts off the rest: the
+portal trunk at the hilum stays, the extrahepatic portal vein, the IVC and a splenic vein
+beyond go; the FE model has no tissue out there to move them with (docs/decisions.md)."""
 
 
 def slicer_frame(path) -> str | None:
@@ -470,10 +474,10 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
     for vessel in VESSELS:
         if vessel not in cleaned:
             continue
-        setattr(model, vessel, cleaned[vessel])
         with _timed(timings, "checks"):
-            fraction, far = vessels_outside(liver_mesh, cleaned[vessel])
+            out_mm = outside_distance(liver_mesh, cleaned[vessel])
         path = sources[vessel].path
+        fraction, far = float((out_mm > 0).mean()), float(out_mm.max())
         if fraction > OUTSIDE_REFUSE_FRACTION:
             raise InputError(f"{100 * fraction:.0f} % of the {vessel} surface lies outside the liver "
                              f"({sources['liver'].path.name}; up to {far:.0f} mm): not this liver's {vessel} vein, "
@@ -481,6 +485,14 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
         if fraction > OUTSIDE_WARN_FRACTION:
             rep.warnings.append(f"{path}: {100 * fraction:.0f} % of the {vessel} vertices lie outside the "
                                 f"liver (up to {far:.0f} mm): check the segmentation or the frame")
+        beyond = out_mm > VESSEL_MARGIN_MM
+        if beyond.any():
+            with _timed(timings, "cleanup"):
+                cleaned[vessel] = _crop_vessel(cleaned[vessel], ~beyond, path, vessel)
+            rep.lines.append(f"{path.name} ({vessel}): kept within {VESSEL_MARGIN_MM:g} mm of the liver, "
+                             f"{int(beyond.sum())} of {len(beyond)} vertices cut off (up to {far:.0f} mm out: "
+                             "the model cannot move what lies outside the organ)")
+        setattr(model, vessel, cleaned[vessel])
 
     if target_sources:
         from .targets import check_targets, read_target_file
@@ -562,6 +574,20 @@ PORTAL_CLIP_MM = 15.0
 """TotalSegmentator's portal_vein_and_splenic_vein mask is kept within this of the liver:
 the portal trunk at the hilum stays, the splenic vein goes."""
 MIN_TARGET_ML = 0.05  # pieces of a tumour mask smaller than this are specks
+
+
+def _crop_vessel(vessel: trimesh.Trimesh, keep: np.ndarray, path, name: str) -> trimesh.Trimesh:
+    """The triangles of ``vessel`` whose three corners are kept (``keep`` (V,) bool), its
+    specks dropped."""
+    faces = np.asarray(vessel.faces)[keep[np.asarray(vessel.faces)].all(axis=1)]
+    if not len(faces):
+        raise InputError(f"no part of the {name} lies within {VESSEL_MARGIN_MM:g} mm of the liver", path)
+    used = np.unique(faces)
+    remap = np.full(len(vessel.vertices), -1)
+    remap[used] = np.arange(len(used))
+    cut = trimesh.Trimesh(np.asarray(vessel.vertices)[used], remap[faces], process=False)
+    clean, _ = clean_surface(cut, path, closed=False, what=f"{name} surface")
+    return clean
 
 
 def _mask_targets(lm: LabelMap, src: Source):
