@@ -177,6 +177,9 @@ def clean_surface(mesh: trimesh.Trimesh, path=None, closed=True,
                 raise InputError(f"{what} cannot be wound consistently (is it a one-sided surface?)", path)
             rep.reoriented = True
             rep.warnings.append("triangle winding was inconsistent: made consistent")
+        extent = float(np.ptp(out.vertices, axis=0).max())
+        if abs(out.volume) <= 1e-9 * extent ** 3:  # a closed surface folded flat: nothing inside
+            raise InputError(f"{what} encloses no volume (it is flat)", path)
         if out.volume < 0:
             out = trimesh.Trimesh(out.vertices, out.faces[:, ::-1], process=False)
             rep.flipped = True

@@ -95,9 +95,11 @@ def mask_surface(sm: StructureMask, edge: float, max_faces: int, timings: dict |
     with _timed(timings, "smoothing"):
         trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=smooth_iterations)
     with _timed(timings, "decimation"):
-        target = min(int(mesh.area / (np.sqrt(3) / 4 * edge ** 2)), max_faces)
+        # never below 200 triangles, and never asked for more than there are (a mask of a few
+        # voxels: the decimator refuses, a traceback)
+        target = max(min(int(mesh.area / (np.sqrt(3) / 4 * edge ** 2)), max_faces), 200)
         if target < len(mesh.faces):
-            mesh = mesh.simplify_quadric_decimation(face_count=max(target, 200))
+            mesh = mesh.simplify_quadric_decimation(face_count=target)
     return mesh
 
 
