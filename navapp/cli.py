@@ -7,6 +7,7 @@ import os
 import sys
 import time
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 from . import __version__, progress
@@ -123,15 +124,19 @@ def cmd_demo(args):
     from .simulation.scene import demo_scene
     from .simulation.simulate import simulate
 
-    report = simulate(demo_scene(), args.out)
+    scene = demo_scene()
+    if args.truth_edge is not None:
+        scene = replace(scene, mesh_edge_mm=args.truth_edge)
+    report = simulate(scene, args.out)
     d = report["displacement_mm"]
     print(f"navapp: demo case simulated into {args.out} (true displacement mean {d['mean']} mm, "
           f"max {d['max']} mm); registering it", file=sys.stderr)
-    from .defaults import LM_MAX_ITERATIONS
     from .registration.cli import cmd_register
 
-    ns = argparse.Namespace(case=args.out, out=None, k=K, edge=EDGE_MM, no_deform=False,
-                            max_iterations=LM_MAX_ITERATIONS, json=True)
+    # the register command's own parser gives every option its default: a Namespace written out
+    # here by hand fell behind when register gained --local-modes (AttributeError at the end of the demo)
+    ns = build_parser().parse_args(["register", "--json", "--edge", repr(args.edge), "--k", str(args.k),
+                                    "--", str(args.out)])
     return cmd_register(ns)
 
 
@@ -431,6 +436,11 @@ def build_parser():
     s = sub.add_parser("demo",
                        help="simulate the built-in demo scene (phantom 0, stylus, 16 iUS planes) and register it")
     s.add_argument("--out", type=Path, default=Path("navapp-demo"), help="case folder to write (default ./navapp-demo)")
+    s.add_argument("--truth-edge", type=_positive(float),
+                   help="element size of the mesh the truth is simulated on, mm (default: the scene's, 3.5)")
+    s.add_argument("--edge", type=_positive(float), default=EDGE_MM,
+                   help=f"registration mesh element size, mm (default {EDGE_MM:g})")
+    s.add_argument("--k", type=_k, default=K, help=f"number of control points (default {K})")
     s.set_defaults(func=cmd_demo)
 
     s = sub.add_parser("serve", help="open the navigation viewer in the browser (built-in demo scene by default)")

@@ -270,3 +270,94 @@ def test_a_lost_stylus_is_hidden_blanked_and_bannered(live_app, tmp_path):
         if browser is not None:
             browser.close()
             pw.stop()
+
+
+class FakeHandle:
+    """A viser GUI handle as far as the panel uses it: assigning ``value`` from Python calls
+    the update callbacks at once (as viser does); ``browser_sets`` is what viser does on a
+    click: the value first, the callbacks later, from its thread pool."""
+
+    def __init__(self, value=None):
+        self._value, self.callbacks, self.visible, self.content = value, [], True, ""
+
+    @property
+    def value(self):
+        return self._value
+
+    @value.setter
+    def value(self, v):
+        if v != self._value:
+            self._value = v
+            for cb in self.callbacks:
+                cb(None)
+
+    def on_update(self, cb):
+        self.callbacks.append(cb)
+
+    on_click = on_update
+
+    def browser_sets(self, v):
+        self._value = v
+        return lambda: [cb(None) for cb in self.callbacks]
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+def test_a_switch_toggled_in_the_browser_is_not_undone_by_a_refresh_before_its_callback():
+    """CI's live browser test twice saw "Not re-registered on live frames yet" for good: the
+    browser's toggle of "Re-register on every frame" was set back by the pump's refresh that ran
+    between viser setting the value and running the callback (which then read it off). Replayed
+    here in that order, deterministically; the same for "Digitise"."""
+    from types import SimpleNamespace
+
+    from navapp.app.panels.tracking import TrackingPanel
+    from navapp.app.state import Change
+
+    class Gui:
+        def __getattr__(self, name):  # add_folder, add_markdown, add_checkbox, …
+            return lambda *a, **k: FakeHandle(a[1] if len(a) > 1 else None)
+
+    calls = []
+    follower = SimpleNamespace(on=False, summary=lambda: "Not re-registered on live frames yet.",
+                               segmentation_px=None)
+    link = SimpleNamespace(follower=follower, recording=False, status_lines=lambda: ["connected"])
+
+    class Live:
+        config = object()
+        link = None
+
+        @property
+        def following(self):
+            return follower.on
+
+        @property
+        def recording(self):
+            return link.recording
+
+        def set_follow(self, on):
+            calls.append(("follow", on))
+            follower.on = on
+
+        def set_recording(self, on, label, cs):
+            calls.append(("record", on))
+            link.recording = on
+
+    live = Live()
+    live.link = link
+    app = SimpleNamespace(live=live, core=SimpleNamespace(session=None), slicer=SimpleNamespace(sender=None))
+    view = SimpleNamespace(app=app, cs=None, client=SimpleNamespace(gui=Gui()), notify=lambda *a, **k: None)
+    panel = TrackingPanel(view)
+    for switch, name in ((panel.live_reg, "follow"), (panel.record, "record")):
+        callback = switch.browser_sets(True)
+        panel.refresh(Change.LIVE)  # the pump's refresh, before viser's thread pool runs the callback
+        callback()
+        assert calls and calls[-1] == (name, True) and switch.value is True, calls
+        panel.refresh(Change.LIVE)
+        assert switch.value is True
+    follower.on = False  # the follower switched itself off (its error): the switch follows
+    panel.refresh(Change.LIVE)
+    assert panel.live_reg.value is False and calls[-1] == ("record", True)

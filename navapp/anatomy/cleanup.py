@@ -84,7 +84,7 @@ def merge_duplicates(vertices: np.ndarray, faces: np.ndarray):
 
 
 def _pieces(faces: np.ndarray) -> list[np.ndarray]:
-    """Face indices of each edge-connected piece, largest first."""
+    """Face indices of each edge-connected piece, most triangles first."""
     groups = trimesh.graph.connected_components(trimesh.graph.face_adjacency(faces), nodes=np.arange(len(faces)),
                                                 min_len=1)
     return sorted((np.asarray(g) for g in groups), key=len, reverse=True)
@@ -130,18 +130,24 @@ def clean_surface(mesh: trimesh.Trimesh, path=None, closed=True,
         raise InputError("holds only degenerate triangles", path)
 
     pieces = _pieces(f)
+    large = np.ones(len(pieces), bool)
     if len(pieces) > 1:
         area = trimesh.triangles.area(v[f])
         sizes = np.array([area[p].sum() for p in pieces])
-        large = sizes >= SPECK_FRACTION * sizes[0]
-        if closed and large.sum() > 1:
-            bad = _crossing(v, f, path, what)
-            if len(bad):
-                raise InputError(f"{what} is self-intersecting ({len(bad)} triangles cross another)", path)
-            ml = [abs(trimesh.Trimesh(v, f[pieces[i]]).volume) / 1000 for i in np.flatnonzero(large)]
-            raise InputError(f"{what} has {int(large.sum())} large separate pieces "
-                             f"({', '.join(f'{x:.3g} ml' for x in ml[:4])}); "
-                             f"{'a liver' if what.startswith('liver') else 'it'} must be one piece", path)
+        # by area, not by triangle count: a finely triangulated speck can have more triangles
+        # than a coarse organ
+        large = sizes >= SPECK_FRACTION * sizes.max()
+    if closed and large.sum() > 1:
+        bad = _crossing(v, f, path, what)
+        if len(bad):
+            raise InputError(f"{what} is self-intersecting ({len(bad)} triangles cross another)", path)
+        ml = [abs(trimesh.Trimesh(v, f[pieces[i]]).volume) / 1000 for i in np.flatnonzero(large)]
+        raise InputError(f"{what} has {int(large.sum())} large separate pieces "
+                         f"({', '.join(f'{x:.3g} ml' for x in ml[:4])}); "
+                         f"{'a liver' if what.startswith('liver') else 'it'} must be one piece", path)
+    # several large pieces are kept in a vessel tree (segmented from CT it often comes so: the
+    # portal trunk apart from its branches); only specks are dropped
+    if not large.all():
         keep = np.concatenate([pieces[i] for i in np.flatnonzero(large)])
         for i in np.flatnonzero(~large):
             pv = v[np.unique(f[pieces[i]])]
@@ -171,6 +177,9 @@ def clean_surface(mesh: trimesh.Trimesh, path=None, closed=True,
                 raise InputError(f"{what} cannot be wound consistently (is it a one-sided surface?)", path)
             rep.reoriented = True
             rep.warnings.append("triangle winding was inconsistent: made consistent")
+        extent = float(np.ptp(out.vertices, axis=0).max())
+        if abs(out.volume) <= 1e-9 * extent ** 3:  # a closed surface folded flat: nothing inside
+            raise InputError(f"{what} encloses no volume (it is flat)", path)
         if out.volume < 0:
             out = trimesh.Trimesh(out.vertices, out.faces[:, ::-1], process=False)
             rep.flipped = True
@@ -183,13 +192,17 @@ def clean_surface(mesh: trimesh.Trimesh, path=None, closed=True,
     return out, rep
 
 
-def vessels_outside(liver: trimesh.Trimesh, vessel: trimesh.Trimesh, voxel: float = 1.0) -> tuple[float, float]:
+def vessels_outside(liver: trimesh.Trimesh, vessel: trimesh.Trimesh, voxel: float = 1.0,
+                    beyond_mm: float = 0.0) -> tuple[float, float]:
     """Fraction of ``vessel``'s vertices outside the closed ``liver``, and the largest
     distance (mm) of those from the liver's vertices; (0, 0) when all lie inside.
 
     Inside is read off a ``voxel`` mm inside grid of the liver (trimesh's ray-based
     ``contains`` needs gigabytes for a vessel tree), so a vertex within a voxel of the
-    surface may go either way: this is a warning's test, not a measurement.
+    surface may go either way: this is a warning's test, not a measurement. With
+    ``beyond_mm`` > 0, a vertex counts as outside only when it lies farther than that from
+    the liver's surface (distances to the surface, not its vertices): a tumour at the
+    border has a face on the organ's surface, which is not a tumour outside the organ.
     """
     from scipy.spatial import cKDTree
 
@@ -202,5 +215,30 @@ def vessels_outside(liver: trimesh.Trimesh, vessel: trimesh.Trimesh, voxel: floa
     is_in[ok] = inside[tuple(ijk[ok].T)]
     if is_in.all():
         return 0.0, 0.0
-    distance, _ = cKDTree(liver.vertices).query(np.asarray(vessel.vertices)[~is_in])
+    out = np.asarray(vessel.vertices)[~is_in]
+    if beyond_mm > 0:
+        _, distance, _ = trimesh.proximity.closest_point(liver, out)
+        far = distance > beyond_mm
+        if not far.any():
+            return 0.0, 0.0
+        return float(far.sum() / len(is_in)), float(distance.max())
+    distance, _ = cKDTree(liver.vertices).query(out)
     return float((~is_in).mean()), float(distance.max())
+
+
+def outside_distance(liver: trimesh.Trimesh, surface: trimesh.Trimesh, voxel: float = 1.0) -> np.ndarray:
+    """(V,) how far (mm) each vertex of ``surface`` lies outside the closed ``liver``: its
+    distance to the liver's surface where a ``voxel`` mm inside grid puts it outside (see
+    ``vessels_outside``), 0 where inside."""
+    from .skeleton import voxelize
+
+    inside, origin = voxelize(liver, voxel)
+    pts = np.asarray(surface.vertices, float)
+    ijk = np.round((pts - origin) / voxel).astype(int)
+    ok = np.all((ijk >= 0) & (ijk < inside.shape), axis=1)
+    is_in = np.zeros(len(ijk), bool)
+    is_in[ok] = inside[tuple(ijk[ok].T)]
+    out = np.zeros(len(pts))
+    if not is_in.all():
+        _, out[~is_in], _ = trimesh.proximity.closest_point(liver, pts[~is_in])
+    return out

@@ -19,7 +19,7 @@ import trimesh
 
 from ..errors import InputError, NavappError
 from . import frames
-from .cleanup import clean_surface, vessels_outside
+from .cleanup import clean_surface, outside_distance
 from .labelmaps import (
     LABELMAP_SUFFIXES,
     STRUCTURE_WORDS,
@@ -40,6 +40,10 @@ __all__ = ["LABELMAP_SUFFIXES", "SURFACE_SUFFIXES", "ImportReport", "LabelMap", 
            "mask_surface", "read_any_surface", "read_labelmap", "slicer_frame"]
 
 OUTSIDE_WARN_FRACTION = 0.01  # warn when more than 1 % of a vessel's vertices lie outside the liver
+VESSEL_MARGIN_MM = 15.0
+"""The model holds a vessel within this of the liver's surface and cuts off the rest: the
+portal trunk at the hilum stays, the extrahepatic portal vein, the IVC and a splenic vein
+beyond go; the FE model has no tissue out there to move them with (docs/decisions.md)."""
 
 
 def slicer_frame(path) -> str | None:
@@ -91,9 +95,11 @@ def mask_surface(sm: StructureMask, edge: float, max_faces: int, timings: dict |
     with _timed(timings, "smoothing"):
         trimesh.smoothing.filter_taubin(mesh, lamb=0.5, nu=0.53, iterations=smooth_iterations)
     with _timed(timings, "decimation"):
-        target = min(int(mesh.area / (np.sqrt(3) / 4 * edge ** 2)), max_faces)
+        # never below 200 triangles, and never asked for more than there are (a mask of a few
+        # voxels: the decimator refuses, a traceback)
+        target = max(min(int(mesh.area / (np.sqrt(3) / 4 * edge ** 2)), max_faces), 200)
         if target < len(mesh.faces):
-            mesh = mesh.simplify_quadric_decimation(face_count=max(target, 200))
+            mesh = mesh.simplify_quadric_decimation(face_count=target)
     return mesh
 
 
@@ -176,6 +182,51 @@ def fill_liver(liver: StructureMask, others: list[StructureMask]) -> StructureMa
         mask |= extra & closed
     mask = ndimage.binary_fill_holes(mask)
     return StructureMask(mask, liver.affine, liver.path, liver.label)
+
+
+def join_touching_targets(liver: StructureMask, target: StructureMask) -> tuple[StructureMask, float, int]:
+    """The liver mask joined with the pieces of ``target`` (a tumour mask on the same grid)
+    that touch it (a face-neighbouring voxel), and the volume (ml) and number of pieces added.
+
+    The public CT segmentation sets (the Medical Segmentation Decathlon's liver and
+    hepatic-vessel tasks, LiTS) label the liver and its tumours apart: the liver label leaves
+    the tumours out, and a tumour at the border notches it. The tumour is part of the organ
+    that deforms, so the organ is the union; a tumour that does not touch the liver label is
+    left out (it is checked as a target like any other)."""
+    from scipy import ndimage
+
+    P = np.linalg.inv(liver.affine) @ target.affine
+    if not np.allclose(P[:3, :3], np.round(P[:3, :3]), atol=1e-3):
+        return liver, 0.0, 0
+    pieces, n = ndimage.label(target.mask)
+    idx = np.argwhere(pieces)
+    ijk = np.round(frames.apply(P, idx.astype(float))).astype(int)  # in the liver crop's index
+    piece_of = pieces[tuple(idx.T)]
+    steps = np.vstack([np.eye(3, dtype=int), -np.eye(3, dtype=int)])
+    touching = np.zeros(n + 1, bool)
+    for step in steps:
+        q = ijk + step
+        ok = np.all((q >= 0) & (q < liver.mask.shape), axis=1)
+        hit = np.zeros(len(q), bool)
+        hit[ok] = liver.mask[tuple(q[ok].T)]
+        touching[piece_of[hit]] = True
+    join = touching[piece_of]
+    if not join.any():
+        return liver, 0.0, 0
+    add = ijk[join]
+    # the tumour may reach past the liver's box: grow the crop (one empty voxel all round)
+    lo = np.minimum(add.min(0) - 1, 0)
+    hi = np.maximum(add.max(0) + 2, liver.mask.shape)
+    mask = np.zeros(tuple(hi - lo), bool)
+    shape = liver.mask.shape
+    mask[-lo[0]:-lo[0] + shape[0], -lo[1]:-lo[1] + shape[1], -lo[2]:-lo[2] + shape[2]] = liver.mask
+    before = int(mask.sum())
+    mask[tuple((add - lo).T)] = True
+    shift = np.eye(4)
+    shift[:3, 3] = lo
+    added_ml = (int(mask.sum()) - before) * liver.voxel_ml
+    return (StructureMask(mask, liver.affine @ shift, liver.path, liver.label), added_ml,
+            int(touching.sum()))
 
 
 def clip_to_liver(vessel: StructureMask, liver: StructureMask, within_mm: float) -> tuple[StructureMask, float]:
@@ -343,6 +394,18 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
     frames_of: dict[str, str] = {}
     surfaces: dict[str, trimesh.Trimesh] = {}  # in navapp's frame
     if "liver" in masks:
+        with _timed(timings, "read"):
+            for src in target_sources:
+                if not src.is_labelmap:
+                    continue
+                lm = read_map(src.path)
+                tumour = structure_mask(lm, resolve_label(lm, "target", src.label))
+                masks["liver"], ml, n = join_touching_targets(masks["liver"], tumour)
+                if ml > 0:
+                    early.append(f"{sources['liver'].path.name} (liver): its label leaves out the tumour "
+                                 f"{src.path.name}:{tumour.label} ({n} piece{'s' * (n > 1)} touching it, {ml:.1f} ml "
+                                 "beyond the liver label, as the Decathlon and LiTS label them): the organ is the "
+                                 "union of both, the tumour kept as a target")
         with _timed(timings, "checks"):
             check_liver_like(masks["liver"].volume_ml, mask_solidity(masks["liver"]), sources["liver"].path, early)
             masks["liver"] = fill_liver(masks["liver"], [masks[v] for v in VESSELS if v in masks])
@@ -413,10 +476,10 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
     for vessel in VESSELS:
         if vessel not in cleaned:
             continue
-        setattr(model, vessel, cleaned[vessel])
         with _timed(timings, "checks"):
-            fraction, far = vessels_outside(liver_mesh, cleaned[vessel])
+            out_mm = outside_distance(liver_mesh, cleaned[vessel])
         path = sources[vessel].path
+        fraction, far = float((out_mm > 0).mean()), float(out_mm.max())
         if fraction > OUTSIDE_REFUSE_FRACTION:
             raise InputError(f"{100 * fraction:.0f} % of the {vessel} surface lies outside the liver "
                              f"({sources['liver'].path.name}; up to {far:.0f} mm): not this liver's {vessel} vein, "
@@ -424,6 +487,14 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
         if fraction > OUTSIDE_WARN_FRACTION:
             rep.warnings.append(f"{path}: {100 * fraction:.0f} % of the {vessel} vertices lie outside the "
                                 f"liver (up to {far:.0f} mm): check the segmentation or the frame")
+        beyond = out_mm > VESSEL_MARGIN_MM
+        if beyond.any():
+            with _timed(timings, "cleanup"):
+                cleaned[vessel] = _crop_vessel(cleaned[vessel], ~beyond, path, vessel)
+            rep.lines.append(f"{path.name} ({vessel}): kept within {VESSEL_MARGIN_MM:g} mm of the liver, "
+                             f"{int(beyond.sum())} of {len(beyond)} vertices cut off (up to {far:.0f} mm out: "
+                             "the model cannot move what lies outside the organ)")
+        setattr(model, vessel, cleaned[vessel])
 
     if target_sources:
         from .targets import check_targets, read_target_file
@@ -505,6 +576,20 @@ PORTAL_CLIP_MM = 15.0
 """TotalSegmentator's portal_vein_and_splenic_vein mask is kept within this of the liver:
 the portal trunk at the hilum stays, the splenic vein goes."""
 MIN_TARGET_ML = 0.05  # pieces of a tumour mask smaller than this are specks
+
+
+def _crop_vessel(vessel: trimesh.Trimesh, keep: np.ndarray, path, name: str) -> trimesh.Trimesh:
+    """The triangles of ``vessel`` whose three corners are kept (``keep`` (V,) bool), its
+    specks dropped."""
+    faces = np.asarray(vessel.faces)[keep[np.asarray(vessel.faces)].all(axis=1)]
+    if not len(faces):
+        raise InputError(f"no part of the {name} lies within {VESSEL_MARGIN_MM:g} mm of the liver", path)
+    used = np.unique(faces)
+    remap = np.full(len(vessel.vertices), -1)
+    remap[used] = np.arange(len(used))
+    cut = trimesh.Trimesh(np.asarray(vessel.vertices)[used], remap[faces], process=False)
+    clean, _ = clean_surface(cut, path, closed=False, what=f"{name} surface")
+    return clean
 
 
 def _mask_targets(lm: LabelMap, src: Source):

@@ -46,10 +46,12 @@ def read_any_surface(path) -> trimesh.Trimesh:
 
 
 def _read_vtk(path: Path) -> trimesh.Trimesh:
-    import meshio
+    from meshio import vtk
 
     try:
-        m = meshio.read(path)
+        # the format's reader itself: meshio.read prints the reader's error and calls
+        # sys.exit(1) when the only format it tried fails (an empty .vtk ended the command)
+        m = vtk.read(str(path))
     except Exception as exc:  # meshio raises many types for a bad file
         raise InputError(f"not a readable VTK file ({short_error(exc)})", path) from None
     tris = [c.data for c in m.cells if c.type == "triangle"]

@@ -30,6 +30,10 @@ POINTS_FILE = "points.csv"  # what ``write_targets`` names the point targets' fi
 CSV_COLUMNS = ("name", "x", "y", "z")
 SPHERE_SUBDIVISIONS = 3  # a CSV sphere becomes an icosphere of 642 vertices, 1,280 triangles
 OUTSIDE_WARN_FRACTION = 0.05  # warn when more of a target's surface than this lies outside the liver
+TARGET_SURFACE_TOLERANCE_MM = 1.0
+"""A target vertex within this of the liver's surface is not outside it: surfaces made from
+masks of one scan (a tumour at the border and the organ around it) differ by a fraction of
+a voxel where they share a face."""
 
 
 def from_surface(name: str, mesh: trimesh.Trimesh, source=None) -> Target:
@@ -137,7 +141,8 @@ def check_targets(targets: list[Target], liver: trimesh.Trimesh):
             raise InputError(f"target {t.name!r}: its {what} ({c}) mm lies outside the liver "
                              "(check the file's frame and units)", t.source)
         if t.surface is not None:
-            fraction, far = vessels_outside(liver, t.surface)
+            # within a voxel of the surface either way (a tumour at the border shares the organ's surface)
+            fraction, far = vessels_outside(liver, t.surface, beyond_mm=TARGET_SURFACE_TOLERANCE_MM)
             if fraction > OUTSIDE_WARN_FRACTION:
                 warnings.warn(f"{t.source}: {100 * fraction:.0f} % of target {t.name!r} lies outside the liver "
                               f"(up to {far:.0f} mm)", stacklevel=3)

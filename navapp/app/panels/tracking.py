@@ -24,6 +24,13 @@ class TrackingPanel:
                                                 "re-registered from the last state; off: converged and kept")
             self.live_summary = g.add_markdown("")
             self.slicer = g.add_markdown("")
+        # what each switch last showed of the app's state: a refresh moves a switch only when that
+        # state changed since. viser sets a switch's value when the browser toggles it and runs the
+        # callback later, in a thread of its own; a refresh in between (the pump's, every 0.5 s) saw
+        # the switch differ from the state it had not yet been told of, set it back, and the
+        # callback then read it off: "Re-register on every frame" (or Digitise) stayed off, and the
+        # panel said "Not re-registered on live frames yet" for good (CI's live browser test)
+        self._shown_recording = self._shown_following = False
         self.record.on_update(view.edits(lambda e: self._record()))
         self.freeze.on_click(view.edits(lambda e: self._freeze()))
         self.live_reg.on_update(view.edits(lambda e: self._live_reg()))
@@ -31,6 +38,8 @@ class TrackingPanel:
     def _record(self):
         on = bool(self.record.value)
         was = self.app.live.recording
+        if self.app.live.link is not None and was == on:
+            return  # the echo of a refresh
         err = self.app.live.set_recording(on, self.label.value, self.cs)
         if err:
             self.view.notify("Live tracking", err, error=True)
@@ -66,10 +75,12 @@ class TrackingPanel:
             n = len(session.live_points) if session else 0
             self.count.content = f"{n} points digitised with the tracked stylus" + \
                 (" — **recording**" if live.recording else "")
-            if self.record.value != live.recording:
+            if live.recording != self._shown_recording:
+                self._shown_recording = live.recording
                 self.record.value = live.recording
             f = live.follower
-            if self.live_reg.value != f.on:
+            if f.on != self._shown_following:
+                self._shown_following = f.on
                 self.live_reg.value = f.on
             seg = f.segmentation_px
             self.live_summary.content = f.summary() + (
