@@ -348,8 +348,11 @@ def test_a_switch_toggled_in_the_browser_is_not_undone_by_a_refresh_before_its_c
 
     live = Live()
     live.link = link
-    app = SimpleNamespace(live=live, core=SimpleNamespace(session=None), slicer=SimpleNamespace(sender=None))
-    view = SimpleNamespace(app=app, cs=None, client=SimpleNamespace(gui=Gui()), notify=lambda *a, **k: None)
+    app = SimpleNamespace(live=live, core=SimpleNamespace(session=None, record=lambda *a: None),
+                          slicer=SimpleNamespace(sender=None))
+    # an editor's tab: its edits pass (``ClientView.edits``)
+    view = SimpleNamespace(app=app, cs=None, client=SimpleNamespace(gui=Gui()), notify=lambda *a, **k: None,
+                           edits=lambda f: f)
     panel = TrackingPanel(view)
     for switch, name in ((panel.live_reg, "follow"), (panel.record, "record")):
         callback = switch.browser_sets(True)
