@@ -63,7 +63,8 @@ def _copy(src, dst):
     ("case.toml", 'name = "t"\nk = 0\n', "unknown key 'k' .*the command's --k"),
     ("case.toml", 'name = "t"\n[solver]\nk = 100000\n', "unknown key 'solver' .*the command's --k"),
     ("case.toml", 'name = "t"\nedge = -1\n', "unknown key 'edge' .*--edge"),
-    ("case.toml", 'name = "t"\ncolour = "red"\n', "unknown key 'colour' \\(known: frame, name, scene, units\\)"),
+    ("case.toml", 'name = "t"\ncolour = "red"\n',
+     "unknown key 'colour' \\(known: frame, intraop, name, scene, units\\)"),
     ("case.toml", 'name = 3\n', "name must be a str"),
     ("case.toml", 'name = "t"\n[frame]\nsauce = "x"\n', "unknown key 'frame.sauce'"),
 ])

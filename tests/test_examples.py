@@ -52,5 +52,9 @@ def test_03_sweep_k(case_dir):
 # moved by the given-pose rule (``pose.prefer_given``): at 12 mm and k = 12 the fits from ICP's pose
 # (12-14 mm from the given one, which is the true pose in this scene) were in doubt and fitted the
 # data only 6-12 % better than the given pose held, which is now kept: S 5.61 -> 4.37, S + 2
-# 4.31 -> 4.10, all data 3.30 -> 4.04 (k = 6: 5.55 -> 5.48)
-PIN = {"S": 4.37, "S+2": 4.10, "all": 4.04, "k6": 5.48}
+# 4.31 -> 4.10, all data 3.30 -> 4.04 (k = 6: 5.55 -> 5.48). Moved back at S + 2 and all data by the
+# vessel closest points made exact (4 nearest vertices' triangles on the decimated vessel surfaces, not
+# 2: 2 missed the closest triangle of 4 % of the demo's portal contour points by up to 0.28 mm): the
+# contour residuals changed the given-pose rule's comparison (within 15 %) to ICP's pose: S + 2
+# 4.10 -> 4.32, all data 4.04 -> 3.30
+PIN = {"S": 4.37, "S+2": 4.32, "all": 3.30, "k6": 5.48}
