@@ -38,9 +38,10 @@ from dataclasses import dataclass
 import numpy as np
 
 FEATURE_SD_MM = 1.0
-"""σ_F (mm): the residual RMS that one unit-weight data feature is read as carrying when Ω is
-read as a log-likelihood (module doc). The data's own misfit after a good fit is of this order
-(``quality.EXPECTED_NOISE_MM``); measured against 0.5 and 2 mm in docs/decisions.md, "Pose prior"."""
+"""σ_F (mm) of a ``PosePrior`` made by hand: the residual RMS one unit-weight data feature is read
+as carrying when Ω is read as a log-likelihood (module doc). ``register`` replaces it by the data's
+own robust σ at the rigid stage's pose; a fixed 1 mm shrank a declared offset by half
+(docs/decisions.md, "Pose prior")."""
 
 W_REF_SI = 1.0
 """w_ref (m⁻²): the weight of a unit data feature (eq. 7's anterior surface)."""
