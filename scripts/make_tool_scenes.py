@@ -3,6 +3,7 @@
     python scripts/make_tool_scenes.py
     python scripts/make_tool_scenes.py --held-out DIR   # a second draw, never used to set a margin
     python scripts/make_tool_scenes.py --held-out DIR --draw 2   # a third (tooldraw2_<p>-<x>)
+    python scripts/make_tool_scenes.py --held-out DIR --draw 3 --coverage 0.2 0.65   # patches of 5–15 %
 
 
 Each liver gets the same eight kinds of case; only where the tool presses and where the
@@ -44,14 +45,17 @@ def site_points(liver, site):
     return liver.vertices[on]
 
 
-def main(out=OUT, prefix="tool", draw=100, seed=0):
+def main(out=OUT, prefix="tool", draw=100, seed=0, coverage=None):
     """``draw`` seeds where the tools and data lie, ``seed`` each scene's own noise; the
     study's scenes are (100, 0). A held-out set draws again with other seeds and another
-    name, so its cases cannot be mistaken for the ones the guards' margins were set on."""
+    name, so its cases cannot be mistaken for the ones the guards' margins were set on.
+    ``coverage`` (lo, hi): each partial scan's share of the anterior surface drawn uniformly
+    from it (its own seeded stream, so the sites drawn are those without it); else 0.3."""
     out.mkdir(parents=True, exist_ok=True)
     for p in range(3):
         liver = make_phantom(p).liver
         rng = np.random.default_rng(draw + p)
+        share = np.random.default_rng(10_000 + draw + p)
         front = site_points(liver, "anterior")
         for x, (site, load, large, radius, depth, supports, data, offset, E) in KINDS.items():
             pts = site_points(liver, site)
@@ -83,7 +87,8 @@ def main(out=OUT, prefix="tool", draw=100, seed=0):
             if data == "swaths":
                 lines += ["coverage = 0.2"]
             else:
-                lines += ['pattern = "patch"', "points = 500", "coverage = 0.3",
+                c = 0.3 if coverage is None else float(share.uniform(*coverage))
+                lines += ['pattern = "patch"', "points = 500", f"coverage = {c:.2f}",
                           "at = [" + ", ".join(f"{v:.1f}" for v in patch) + "]"]
             lines += ["", "[ius]", "planes = 16"]
             if offset:
@@ -101,11 +106,16 @@ if __name__ == "__main__":
                     help="which held-out draw (1: tooltest*, the first; K > 1: tooldrawK_*, drawn from "
                          "seeds 500 + 100 (K - 1) and noise seeds 1000 K; a draw judges a rule only until "
                          "it has been looked at)")
+    ap.add_argument("--coverage", type=float, nargs=2, metavar=("LO", "HI"),
+                    help="draw each partial scan's share of the anterior surface uniformly from [LO, HI] "
+                         "(default 0.3, about 7 %% of the whole liver surface)")
     args = ap.parse_args()
     if args.draw < 1:
         ap.error("--draw is 1 or more")
+    if args.coverage is not None and not 0.0 < args.coverage[0] <= args.coverage[1] <= 1.0:
+        ap.error("--coverage LO HI: 0 < LO <= HI <= 1")
     if args.held_out:
         prefix = "tooltest" if args.draw == 1 else f"tooldraw{args.draw}_"
-        main(args.held_out, prefix, draw=500 + 100 * (args.draw - 1), seed=1000 * args.draw)
+        main(args.held_out, prefix, draw=500 + 100 * (args.draw - 1), seed=1000 * args.draw, coverage=args.coverage)
     else:
         main()
