@@ -184,15 +184,35 @@ class Registration:
             return False
         return self.support is None or self.support.supported or not self.rigid.kept
 
+    def _support_line(self) -> str | None:
+        if self.support is None:
+            return None
+        return self.support.warning_for(shown_rigid=not self.deformed, given=self.pose_choice is None
+                                        or self.pose_choice.given, declared=self.pose_prior is not None)
+
+    @property
+    def _support_remarks(self) -> bool:
+        # with a declared pose, the rigid fit within the prior is the declared method's own simpler
+        # answer: where the deformation is dropped, that answer is shown and nothing is in doubt
+        # beyond what the declaration said — a remark, not a warning (docs/decisions.md, "Pose
+        # prior: warnings")
+        return self.pose_prior is not None and not self.deformed
+
+    @property
+    def remarks(self) -> list[str]:
+        """Lines that say which answer is shown and why where nothing about it is in doubt (the
+        declared pose's rigid fit shown because the data do not support a deformation); the CLI
+        prints them as notes, result.json lists them under ``remarks``."""
+        line = self._support_line()
+        return [line] if line and self._support_remarks else []
+
     @property
     def warnings(self) -> list[str]:
         """Every warning about this answer, one line each (the CLI, result.json and the viewer show them)."""
         lines = list(self.notes)
         for w in (self.pose_choice.warning if self.pose_choice else None,
                   self.determinacy.warning if self.determinacy else None,
-                  self.support.warning_for(shown_rigid=not self.deformed, given=self.pose_choice is None
-                                          or self.pose_choice.given, declared=self.pose_prior is not None)
-                  if self.support else None,
+                  None if self._support_remarks else self._support_line(),
                   self.quality.warning if self.quality else None,
                   self.organ.warning if self.organ is not None and self.deformed else None):
             if w:
@@ -485,6 +505,33 @@ def _robust_sd(model: RegistrationModel, data: dict, beta, weights) -> float:
     return float(1.4826 * np.median(np.abs(ev.f[:-1]))) if len(ev.f) > 1 else 0.0
 
 
+def _settle_scale(model: RegistrationModel, local: dict, result, options: LMOptions, cancel):
+    """The deformable fit with the pose prior's scale σ_F re-estimated from its own residuals.
+
+    σ_F is the noise of the likelihood the prior is weighed against (``prior``, "The scale").
+    The rigid stage estimates it at the undeformed model, where the deformation is still part
+    of the misfit; once LIBR has fitted the deformation, what is left is the residual the
+    model cannot explain, and that is the likelihood's noise. So σ_F is re-estimated from the
+    answer's residuals (robust σ, floored at the features' expected noise) and the fit is
+    continued from its β until σ_F changes by less than a tenth (at most ``SCALE_ROUNDS``):
+    the scale and the answer agree, as in an EM estimate of a noise variance. Kept with the
+    rigid stage's scale, a declared tracker offset of its true size was held part-way
+    (tool2-e at S: 10.6 mm against 6.9 mm settled; docs/decisions.md, "Pose prior")."""
+    prior = options.weights.pose_prior
+    assert prior is not None
+    floor = min(EXPECTED_NOISE_MM.get(name, 1.0) for name in local)
+    for _ in range(SCALE_ROUNDS):
+        sd = max(_robust_sd(model, local, result.beta, options.weights), floor)
+        if abs(sd - prior.feature_sd_mm) < 0.1 * prior.feature_sd_mm:
+            break
+        prior = replace(prior, feature_sd_mm=sd)
+        options = replace(options, weights=replace(options.weights, pose_prior=prior))
+        result = register_libr(model, local, result.beta, options, None, cancel)
+        if result.stop_reason == "cancelled":
+            break
+    return result, options
+
+
 PRIOR_REACH = 3.0
 """How many declared standard deviations (per axis) from the given pose a multi-start ICP
 pose may lie and still be a candidate of the declared rigid stage (``_declared_rigid``)."""
@@ -626,6 +673,8 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         t = time.perf_counter()
 
         result = fit(local, options, callback)
+        if declared and result.stop_reason != "cancelled":
+            result, options = _settle_scale(model, local, result, options, cancel)
         quality = assess_fit(result.features)
         stopped = result.stop_reason == "cancelled"
         if not quality.ok and init.retry_poor_fit and len(screened) > 1 and not stopped:
@@ -759,6 +808,7 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
         summary["fit_quality"] = reg.quality.as_dict(verdict)
     summary["warnings"] = lines
     summary["warning"] = "; ".join(lines) if lines else None
+    summary["remarks"] = reg.remarks
     if case.truth is not None:  # reported, never fitted: the TRE at the truth's points (``anatomy.truth``)
         x0, x1 = case.truth.tre_points(reg.model.basis.nodes)
         pred = reg.transform(x0)

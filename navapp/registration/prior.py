@@ -24,13 +24,15 @@ noise). Read so, a unit-weight feature whose residuals are σ_F RMS costs w_ref 
 a pose one declared standard deviation away costs the same.
 
 The scale σ_F is the data's own: the robust standard deviation (1.4826 × the median absolute
-value) of their distances from the undeformed model at the rigid stage's pose, refitted until
-it settles (``register``), floored at the features' expected noise. Data a rigid motion
-explains (a tracker offset, with or without a dent under part of them) leave little misfit
-at the right pose, so the prior yields to them; a dent under fewer than half of the points
-does not set the scale, and the rigid stage's Huber weights bound its pull. A fixed
-σ_F = 1 mm shrank a declared 4 mm / 3° offset by half; the RMS in place of the median held a
-declared 10° / 17 mm offset at 4° (docs/decisions.md, "Pose prior").
+value) of the residuals the model leaves, floored at the features' expected noise. The rigid
+stage estimates it from the distances to the undeformed model at its pose, refitted until it
+settles; data a rigid motion explains (a tracker offset, with or without a dent under part
+of them) leave little misfit at the right pose, so the prior yields to them, and a dent under
+fewer than half of the points does not set it. The deformable fit then re-estimates it from
+its own residuals, where the deformation is no longer misfit (``pipeline._settle_scale``). A
+fixed σ_F = 1 mm shrank a declared 4 mm / 3° offset by half; the RMS in place of the median
+held a declared 10° / 17 mm offset at 4°; the rigid stage's scale kept for the deformable fit
+held declared tracker offsets part-way (docs/decisions.md, "Pose prior").
 """
 
 from dataclasses import dataclass
