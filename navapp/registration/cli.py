@@ -80,8 +80,6 @@ def cmd_register(args):
     for line in summary["warnings"]:
         # one line each, on stderr whatever the output format: a wrong answer must not pass silently
         print(f"navapp: warning: {case.name}: {line}", file=sys.stderr)
-    for line in summary["remarks"]:
-        print(f"navapp: note: {case.name}: {line}", file=sys.stderr)
     if args.json:
         brief: dict = {k: summary[k] for k in ("case", "iterations", "stop_reason", "omega") if k in summary}
         for key in ("tre_rigid", "tre_deformable"):
