@@ -38,6 +38,7 @@ from ..defaults import K
 from .controlpoints import geodesic_tiles, nodal_areas, place_control_points
 from .fem import Material, nodal_strain_operator, stiffness
 from .sparse import Factorisation, backend
+from .supports import held_nodes
 
 BASIS_VERSION = "basis-2"  # bump when the computation changes: it is part of the cache key
 
@@ -58,6 +59,12 @@ class BasisSettings:
         Saint-Venant relaxation of the point-load modes over each control point's tile.
     relax_layers : int or None
         the relaxation subdomain: the tile plus this many node rings (None: the whole mesh).
+    supports : str or None
+        a declared support (``mechanics.supports.Supports``: ligaments, posterior, bare_area):
+        its nodes are held at zero displacement in every mode, and no control point lies on
+        them. None: the free-floating basis of the paper.
+    release : str
+        with ``supports = "ligaments"``: the side released (L, N or R).
     """
 
     k: int = K
@@ -67,6 +74,8 @@ class BasisSettings:
     # Relaxation subdomain: the tile plus this many rings of the node graph (Saint-Venant:
     # the correction decays away from the tile); None solves on the whole mesh (exact).
     relax_layers: int | None = 6
+    supports: str | None = None  # a ``Supports`` name: zero displacement there in every mode
+    release: str = "N"
 
 
 @dataclass
@@ -112,14 +121,16 @@ def _dofs(nodes_idx):
     return (3 * np.asarray(nodes_idx)[:, None] + np.arange(3)).ravel()
 
 
-def point_load_modes(K, control, perturbation):
+def point_load_modes(K, control, perturbation, held=None):
     """Point-load modes U (3M × 3k) and the reactions R (3k × 3k) at the control DOFs.
 
-    Column 3c+d has u = perturbation·e_d at control c, 0 at the other control points.
+    Column 3c+d has u = perturbation·e_d at control c, 0 at the other control points and at
+    the ``held`` nodes (H,) of a declared support.
     """
     n = K.shape[0]
     cd = _dofs(control)
-    free = np.setdiff1d(np.arange(n), cd)
+    fixed = cd if held is None or len(held) == 0 else np.union1d(cd, _dofs(held))
+    free = np.setdiff1d(np.arange(n), fixed)
     U = np.zeros((n, len(cd)))
     U[cd, np.arange(len(cd))] = perturbation
     Kf = K[free]
@@ -146,7 +157,7 @@ def grow(A, mask, layers):
     return mask
 
 
-def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None, layers=None):
+def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None, layers=None, held=None):
     """Saint-Venant relaxation of every point-load mode (choice 2 of the module doc).
 
     K (3M × 3M); U (3M × 3k) point-load modes; R (3k × 3k) their control reactions;
@@ -157,7 +168,8 @@ def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None, layers=No
     Saint-Venant d decays away from the tile. ``layers=None`` solves on the whole mesh
     (exact). ``layers=n`` solves only on the tile plus n rings of the node graph, with
     d = 0 beyond them (and, as in the exact problem, on the held surface nodes).
-    ``on_tile(i)`` is called after each tile (progress).
+    ``on_tile(i)`` is called after each tile (progress). ``held`` (H,): nodes of a declared
+    support, fixed at zero in every solve; a tile's load is spread over its other nodes.
     """
     n = K.shape[0]
     M = n // 3
@@ -165,9 +177,13 @@ def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None, layers=No
     out = U.copy()
     movable = np.ones(M, bool)  # interior nodes and, per tile, the tile's own surface nodes
     movable[surface] = False
+    is_held = np.zeros(M, bool)
+    if held is not None:
+        is_held[held] = True
+    movable &= ~is_held
     A = node_adjacency(K) if layers is not None else None
     for c in range(len(control)):
-        in_tile = tiles == c
+        in_tile = (tiles == c) & ~is_held[surface]
         tile_nodes = surface[in_tile]
         w = areas[in_tile] / areas[in_tile].sum()
         free_nodes = movable.copy()
@@ -211,23 +227,24 @@ def compute_basis(mesh: TetMesh, settings: BasisSettings = BasisSettings(), mate
     t = time.perf_counter()
     faces = mesh.boundary_faces()
     surface = np.unique(faces)
+    held = np.zeros(0, int) if settings.supports is None else held_nodes(mesh, settings.supports, settings.release)
     with progress.stage(f"{label}: assemble"):
         K = stiffness(mesh.nodes, mesh.tets, material)
     timings["assemble"] = time.perf_counter() - t
     t = time.perf_counter()
-    control = place_control_points(mesh.nodes, surface, settings.k, settings.seed)
+    control = place_control_points(mesh.nodes, np.setdiff1d(surface, held), settings.k, settings.seed)
     tiles = geodesic_tiles(mesh.nodes, faces, surface, control)
     areas = nodal_areas(mesh.nodes, faces, surface)
     timings["control_points"] = time.perf_counter() - t
     t = time.perf_counter()
     with progress.stage(f"{label}: point-load modes (factorise + {3 * settings.k} solves, {backend()})"):
-        U, R = point_load_modes(K, control, settings.perturbation)
+        U, R = point_load_modes(K, control, settings.perturbation, held)
     timings["modes"] = time.perf_counter() - t
     t = time.perf_counter()
     if settings.relax:
         with progress.bar(settings.k, f"{label}: relax tiles", "tile") as pb:
             Ju = relax_modes(K, U, R, control, surface, tiles, areas, on_tile=lambda c: pb.update(1),
-                             layers=settings.relax_layers)
+                             layers=settings.relax_layers, held=held)
     else:
         Ju = U
     timings["relax"] = time.perf_counter() - t
@@ -239,7 +256,10 @@ def compute_basis(mesh: TetMesh, settings: BasisSettings = BasisSettings(), mate
 
 
 def basis_key(mesh: TetMesh, settings: BasisSettings, material: Material) -> str:
-    return cache.content_key(BASIS_VERSION, mesh.nodes, mesh.tets, asdict(settings), asdict(material))
+    d = asdict(settings)
+    if d["supports"] is None:  # the free-floating basis keeps the key it had before supports existed
+        del d["supports"], d["release"]
+    return cache.content_key(BASIS_VERSION, mesh.nodes, mesh.tets, d, asdict(material))
 
 
 def load_or_compute_basis(mesh: TetMesh, settings: BasisSettings = BasisSettings(), material: Material = Material(),

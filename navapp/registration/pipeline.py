@@ -184,35 +184,15 @@ class Registration:
             return False
         return self.support is None or self.support.supported or not self.rigid.kept
 
-    def _support_line(self) -> str | None:
-        if self.support is None:
-            return None
-        return self.support.warning_for(shown_rigid=not self.deformed, given=self.pose_choice is None
-                                        or self.pose_choice.given, declared=self.pose_prior is not None)
-
-    @property
-    def _support_remarks(self) -> bool:
-        # with a declared pose, the rigid fit within the prior is the declared method's own simpler
-        # answer: where the deformation is dropped, that answer is shown and nothing is in doubt
-        # beyond what the declaration said — a remark, not a warning (docs/decisions.md, "Pose
-        # prior: warnings")
-        return self.pose_prior is not None and not self.deformed
-
-    @property
-    def remarks(self) -> list[str]:
-        """Lines that say which answer is shown and why where nothing about it is in doubt (the
-        declared pose's rigid fit shown because the data do not support a deformation); the CLI
-        prints them as notes, result.json lists them under ``remarks``."""
-        line = self._support_line()
-        return [line] if line and self._support_remarks else []
-
     @property
     def warnings(self) -> list[str]:
         """Every warning about this answer, one line each (the CLI, result.json and the viewer show them)."""
         lines = list(self.notes)
         for w in (self.pose_choice.warning if self.pose_choice else None,
                   self.determinacy.warning if self.determinacy else None,
-                  None if self._support_remarks else self._support_line(),
+                  self.support.warning_for(shown_rigid=not self.deformed, given=self.pose_choice is None
+                                          or self.pose_choice.given, declared=self.pose_prior is not None)
+                  if self.support else None,
                   self.quality.warning if self.quality else None,
                   self.organ.warning if self.organ is not None and self.deformed else None):
             if w:
@@ -266,7 +246,8 @@ def tre_stats(pred, truth) -> dict:
     return {"mean_mm": float(d.mean()), "sd_mm": float(d.std()), "max_mm": float(d.max()), "n": int(len(d))}
 
 
-def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None) -> tuple[RegistrationModel, dict]:
+def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None, supports: str | None = None,
+            release: str = "N") -> tuple[RegistrationModel, dict]:
     """Mesh, basis and registration model of a case, each cached by content.
 
     Parameters
@@ -280,6 +261,11 @@ def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None) -> tuple[Registratio
         ``defaults.K``).
     cache_root : Path, optional
         cache folder (default ``$NAVAPP_CACHE`` or ``~/.cache/navapp``).
+    supports, release : str, optional
+        where the organ is held (``mechanics.supports.Supports``: ligaments, posterior,
+        bare_area; ``release`` L, N or R for the ligaments): every mode of the basis vanishes
+        there, so the organ moves only as its supports let it, and the rigid parameters are
+        the tracker's. None: the paper's free-floating basis.
 
     Returns
     -------
@@ -296,7 +282,8 @@ def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None) -> tuple[Registratio
     if k > len(np.unique(mesh.boundary_faces())):
         raise InputError(f"--k {k} is more control points than the mesh has surface nodes "
                          f"({len(np.unique(mesh.boundary_faces()))} at {edge:g} mm): use a smaller k or a finer edge")
-    basis, _ = load_or_compute_basis(mesh, BasisSettings(k=k), cache_root=cache_root)
+    basis, _ = load_or_compute_basis(mesh, BasisSettings(k=k, supports=supports, release=release),
+                                     cache_root=cache_root)
     sec["basis"] = time.perf_counter() - t
     t = time.perf_counter()
     model = build_model(basis, case.preop, case.preop.fiducials)
@@ -516,7 +503,7 @@ def _settle_scale(model: RegistrationModel, local: dict, result, options: LMOpti
     continued from its β until σ_F changes by less than a tenth (at most ``SCALE_ROUNDS``):
     the scale and the answer agree, as in an EM estimate of a noise variance. Kept with the
     rigid stage's scale, a declared tracker offset of its true size was held part-way
-    (tool2-e at S: 10.6 mm against 6.9 mm settled; docs/decisions.md, "Pose prior")."""
+    (tool2-e at S: 10.6 mm against 7.05 mm settled; docs/decisions.md, "Pose prior")."""
     prior = options.weights.pose_prior
     assert prior is not None
     floor = min(EXPECTED_NOISE_MM.get(name, 1.0) for name in local)
@@ -808,7 +795,6 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
         summary["fit_quality"] = reg.quality.as_dict(verdict)
     summary["warnings"] = lines
     summary["warning"] = "; ".join(lines) if lines else None
-    summary["remarks"] = reg.remarks
     if case.truth is not None:  # reported, never fitted: the TRE at the truth's points (``anatomy.truth``)
         x0, x1 = case.truth.tre_points(reg.model.basis.nodes)
         pred = reg.transform(x0)

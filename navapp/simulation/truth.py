@@ -31,6 +31,7 @@ from ..anatomy.meshing import TetMesh
 from ..errors import NavappError
 from ..mechanics.fem import Material, shape_gradients, stiffness
 from ..mechanics.sparse import Factorisation
+from ..mechanics.supports import Supports, outward_normals, supported_nodes  # noqa: F401 (the truth's supports)
 
 RHO = 1060.0  # kg/m³, liver density
 
@@ -39,13 +40,6 @@ class ToolLoad(StrEnum):
     """How a tool indents the surface."""
     DISPLACEMENT = "displacement"  # the patch is moved by the profile (Dirichlet; linear truth only)
     PRESSURE = "pressure"  # a dead-load pressure with the profile, scaled until the truth reaches the depth
-
-
-class Supports(StrEnum):
-    """What holds the liver in the truth."""
-    LIGAMENTS = "ligaments"  # bare area + triangular ligaments + falciform (``release`` frees one side)
-    POSTERIOR = "posterior"  # every boundary node whose outward normal faces posterior
-    BARE_AREA = "bare_area"  # the bare area alone (the caval attachment): the lobes swing under a load
 
 
 @dataclass(frozen=True)
@@ -74,19 +68,6 @@ class Loading:
     tool: Tool | None = None
 
 
-def outward_normals(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:
-    """Boundary node indices (S,) and their area-weighted outward unit normals (S, 3)."""
-    faces = mesh.boundary_faces()
-    s = np.unique(faces)
-    tri = mesh.nodes[faces]
-    fn = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    n = np.zeros((len(mesh.nodes), 3))
-    for a in range(3):
-        np.add.at(n, faces[:, a], fn)
-    n = n[s]
-    return s, n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
-
-
 def tool_patch(mesh: TetMesh, tool: Tool) -> tuple[np.ndarray, np.ndarray]:
     """The boundary nodes (P,) the tool touches and their profile weights (P,) in (0, 1]."""
     s, n = outward_normals(mesh)
@@ -98,34 +79,6 @@ def tool_patch(mesh: TetMesh, tool: Tool) -> tuple[np.ndarray, np.ndarray]:
                           f"within {tool.radius_mm:g} mm facing it")
     w = (1 - (r[on] / tool.radius_mm) ** 2) ** 2
     return s[on], w
-
-
-def supported_nodes(mesh: TetMesh, release: str = "N", supports: Supports = Supports.LIGAMENTS) -> dict:
-    """Node sets held fixed, by name: bare area, left/right triangular ligaments,
-    falciform attachment (as geometric regions of the boundary; see module doc), or
-    the posterior-facing boundary (``Supports.POSTERIOR``)."""
-    if supports == Supports.POSTERIOR:
-        s, n = outward_normals(mesh)
-        return {"posterior_bed": s[n[:, 1] < -0.5]}
-    if supports == Supports.BARE_AREA:
-        return {"bare_area": supported_nodes(mesh, release)["bare_area"]}
-    faces = mesh.boundary_faces()
-    s = np.unique(faces)
-    p = mesh.nodes[s]
-    lo, hi = p.min(0), p.max(0)
-    ext = hi - lo
-    rel = (p - lo) / ext
-    sets = {
-        "bare_area": s[(rel[:, 1] < 0.12) & (rel[:, 2] > 0.35)],
-        "left_triangular": s[(rel[:, 0] > 0.82) & (rel[:, 2] > 0.55) & (rel[:, 1] < 0.6)],
-        "right_triangular": s[(rel[:, 0] < 0.12) & (rel[:, 2] > 0.6) & (rel[:, 1] < 0.45)],
-        "falciform": s[(np.abs(rel[:, 0] - 0.6) < 0.05) & (rel[:, 2] > 0.5) & (rel[:, 1] > 0.6)],
-    }
-    if release == "L":
-        sets.pop("left_triangular")
-    elif release == "R":
-        sets.pop("right_triangular")
-    return sets
 
 
 def _body_force(mesh, loading):
