@@ -6,7 +6,9 @@ without and with the rule that keeps a good given pose (``pose.choose_pose``), a
 without the guards (``RobustOptions.unguarded``: the default before local loads were
 handled), with them (the default: kept pose, spatial cross-validation against the
 rigid answer, ``support``), and with them and local modes (``registration.local_modes``,
-not yet the default). One CSV row per registration: mean and max TRE over the truth
+not yet the default); then with the pose declared as the scene made it (``rigid-declared``,
+``libr-declared``: ``registration.prior``), and with the supports declared as well
+(``libr-supported``: the basis held where the scene held the organ, ``mechanics.supports``). One CSV row per registration: mean and max TRE over the truth
 targets, the answer given (deformable or rigid), whether a warning was raised and the
 first one, and the wall time. ``report`` writes ``loads.md`` and ``loads.png``.
 
@@ -35,12 +37,12 @@ from ..registration.prior import PosePrior, declared_pose
 from ..registration.rotation import rotation_angle
 from ..registration.support import SupportOptions
 from ..simulation.levels import data_level
-from ..simulation.scene import DECLARED_POSE
+from ..simulation.scene import DECLARED_POSE, load_scene
 from .distribute import ResultsCSV, run_tasks
 
 LOAD_LEVELS = ("S", "S+all")  # the study's own subset of ``simulation.levels.LEVELS``
 METHODS = ("identity", "rigid-unguarded", "rigid", "libr-unguarded", "libr", "libr-local", "rigid-declared",
-           "libr-declared")
+           "libr-declared", "libr-supported")
 # the pose a pre-aligned case's scene declares when its case.toml says nothing: a fiducial
 # registration's few millimetres and degrees (the issue's 1–2 mm / 1–2°)
 DECLARED_PRE_ALIGNED = PosePrior(*DECLARED_POSE)
@@ -58,6 +60,13 @@ def declared_prior(case_dir: Path, case) -> PosePrior:
         return DECLARED_PRE_ALIGNED
     T = np.array(rep["tracker_offset"], float)
     return PosePrior(max(float(np.linalg.norm(T[:3, 3])), 0.1), max(float(np.degrees(rotation_angle(T[:3, :3]))), 0.1))
+def declared_supports(case) -> dict:
+    """Where the case's scene held the organ (its ``supports`` and ``release``), as ``prepare``'s
+    keyword arguments: what a surgeon declaring the supports would say."""
+    scene = load_scene(case.settings["scene"])
+    return {"supports": scene.supports, "release": scene.release}
+
+
 COLUMNS = ("case", "level", "method", "pre_aligned", "covers", "displacement_mm", "tre_mean_mm", "tre_max_mm",
            "answer", "warned", "warning", "seconds", "pose", "turn_deg")
 
@@ -100,6 +109,7 @@ def run_case(case_dir, methods: tuple[str, ...] = METHODS) -> list[dict]:
     case_dir = Path(case_dir)
     case = read_case(case_dir)
     model, _ = prepare(case)
+    supported = None  # the basis held at the scene's supports, built when a method asks for it
     x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
     facts = _case_facts(case_dir, case, model.basis.nodes)
@@ -116,8 +126,13 @@ def run_case(case_dir, methods: tuple[str, ...] = METHODS) -> list[dict]:
                     pred, answer, lines = x0, "none", []
                 else:
                     guarded = not method.endswith("unguarded")
-                    prior = declared_prior(case_dir, case) if method.endswith("declared") else None
-                    reg = register(model, data, deform=method.startswith("libr"), init=_init(method),
+                    prior = declared_prior(case_dir, case) if method.endswith(("declared", "supported")) else None
+                    used = model
+                    if method == "libr-supported":
+                        if supported is None:
+                            supported = prepare(case, **declared_supports(case))[0]
+                        used = supported
+                    reg = register(used, data, deform=method.startswith("libr"), init=_init(method),
                                    pose_prior=prior)
                     pred = reg.transform(x0, B=B)
                     answer = "deformable" if reg.deformed else "rigid"
@@ -264,7 +279,7 @@ def write_report(results: Path, out_dir: Path) -> Path:
                          f"{np.mean([r['warned'] for r in mr]) * 100:.0f} % | "
                          f"{np.mean([r['answer'] == 'deformable' for r in mr]) * 100:.0f} % | "
                          f"{np.median([r['seconds'] for r in mr]):.2f} |")
-        for m in ("libr-unguarded", "libr", "libr-local", "libr-declared"):
+        for m in ("libr-unguarded", "libr", "libr-local", "libr-declared", "libr-supported"):
             v = verdicts(lv, m)
             if not v:
                 continue
@@ -279,8 +294,8 @@ def write_report(results: Path, out_dir: Path) -> Path:
         lines += [""]
     lines += ["## Per case", "", "| case | aligned | data on the dent | mean displacement | level | identity | "
               "rigid (unguarded / guarded) | LIBR unguarded | LIBR guarded | answer | warning | LIBR local | "
-              "LIBR, pose declared |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "LIBR, pose declared | LIBR, supports and pose declared |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in cases:
         for level in LOAD_LEVELS:
             if (c, level, "libr") not in by:
@@ -293,14 +308,15 @@ def write_report(results: Path, out_dir: Path) -> Path:
                          f"{by[(c, level, 'rigid')]['tre_mean_mm']:.2f} | "
                          f"{by[(c, level, 'libr-unguarded')]['tre_mean_mm']:.2f} | {g['tre_mean_mm']:.2f} | "
                          f"{g['answer']} | {g['warning'][:90]} | {_local(by.get((c, level, 'libr-local')))} | "
-                         f"{_local(by.get((c, level, 'libr-declared')))} |")
+                         f"{_local(by.get((c, level, 'libr-declared')))} | "
+                         f"{_local(by.get((c, level, 'libr-supported')))} |")
     md = out_dir / "loads.md"
     md.write_text("\n".join(lines) + "\n")
 
     fig, axes = plt.subplots(len(LOAD_LEVELS), 1, figsize=(11, 7), sharex=True)
     x = np.arange(len(cases))
     colours = {"identity": "0.6", "rigid": "#4c72b0", "libr-unguarded": "#dd8452", "libr": "#55a868",
-               "libr-local": "#8172b3", "libr-declared": "#c44e52"}
+               "libr-local": "#8172b3", "libr-declared": "#c44e52", "libr-supported": "#937860"}
     for ax, level in zip(np.atleast_1d(axes), LOAD_LEVELS, strict=True):
         for i, m in enumerate(colours):
             vals = [by[(c, level, m)]["tre_mean_mm"] if (c, level, m) in by else np.nan for c in cases]
