@@ -72,6 +72,36 @@ def test_closest_on_surface_matches_trimesh():
     assert np.allclose(np.einsum("ij,ijk->ik", bary, sphere.vertices[sphere.faces[face]]), q)
 
 
+def test_compiled_closest_on_surface_equals_numpy_to_the_bit():
+    """The compiled candidate test (``closest_compiled``) and the NumPy one give the same
+    faces and the same barycentric bits: on a noisy sphere with some triangles made
+    degenerate (a zero edge, collinear), points near and far, and on ties (points at the
+    centre, equidistant from many triangles)."""
+    import pytest
+
+    from navapp.geometry.closest import NEAR_DECIMATED, _closest_on_surface_numpy, nearest_vertices, vertex_tree
+    from navapp.geometry.closest_compiled import surface_candidates
+
+    if surface_candidates is None:
+        pytest.skip("numba is not installed")
+    sphere = trimesh.creation.icosphere(subdivisions=4, radius=50.0)
+    rng = np.random.default_rng(7)
+    v = sphere.vertices + rng.normal(0, 0.8, sphere.vertices.shape)
+    faces = np.asarray(sphere.faces)
+    v[faces[:30, 1]] = v[faces[:30, 0]]  # zero-length edges
+    v[faces[60:90, 2]] = 0.5 * (v[faces[60:90, 0]] + v[faces[60:90, 1]])  # collinear
+    table = incidence(len(v), faces)
+    dirs = rng.normal(size=(3000, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    pts = np.vstack([dirs * (50.0 + rng.normal(0, 4, (3000, 1))), np.zeros((3, 3)), dirs[:50] * 120])
+    for near in (1, 2, NEAR_DECIMATED):
+        vi = nearest_vertices(vertex_tree(v), pts, near)
+        got = closest_on_surface(pts, v, faces, table, near=near, nearest=vi)
+        ref = _closest_on_surface_numpy(pts, v, faces, table, vi)
+        for a, b in zip(got, ref, strict=True):
+            assert a.dtype == b.dtype and np.array_equal(a, b)
+
+
 def test_segment_triangle_hits():
     a, b, c = np.array([[0.0, 0, 0]]), np.array([[1.0, 0, 0]]), np.array([[0.0, 1, 0]])
     hit, t = segment_hits_triangle(np.array([[0.2, 0.2, -1.0]]), np.array([[0.2, 0.2, 1.0]]), a, b, c)

@@ -131,6 +131,17 @@ def nearest_vertices(tree, points, near=NEAR):
     return np.asarray(found, np.int64).reshape(len(points), near)
 
 
+_compiled: list = []  # the compiled candidate test, or None; imported on first use (Numba takes ~1 s to load)
+
+
+def _surface_kernel():
+    if not _compiled:
+        from .closest_compiled import surface_candidates
+
+        _compiled.append(surface_candidates)
+    return _compiled[0]
+
+
 def closest_on_surface(points, vertices, faces, table, near=NEAR, tree=None, nearest=None):
     """Closest surface points. Returns face (N,), barycentric (N, 3), closest (N, 3).
 
@@ -140,6 +151,19 @@ def closest_on_surface(points, vertices, faces, table, near=NEAR, tree=None, nea
     """
     points = np.asarray(points, float)
     vi = nearest if nearest is not None else nearest_vertices(tree or cKDTree(vertices), points, near)
+    if (kernel := _surface_kernel()) is not None and len(points):
+        # compiled: the same arithmetic and choice, without the pairs' temporaries
+        vertices = np.ascontiguousarray(vertices, dtype=float)
+        face, bary = kernel(np.ascontiguousarray(points), vertices, faces, table,
+                                        np.ascontiguousarray(vi, dtype=np.int64))
+        if (face >= 0).all():
+            return face, bary, np.einsum("ij,ijk->ik", bary, vertices[faces[face]])
+    return _closest_on_surface_numpy(points, vertices, faces, table, vi)
+
+
+def _closest_on_surface_numpy(points, vertices, faces, table, vi):
+    """``closest_on_surface`` in NumPy: where Numba is missing, and the reference of its
+    compiled test (``closest_compiled``)."""
     cand = np.sort(table[vi.reshape(len(points), -1)].reshape(len(points), -1), axis=1)  # (N, near*m)
     # test each distinct incident face once: the padding (-1) and the faces the near
     # vertices share are about half of the table's rows
