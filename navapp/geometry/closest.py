@@ -9,8 +9,11 @@ triangles need more vertices: the decimated vessel surfaces use ``NEAR_DECIMATED
 LM rebuilds the tree on the deformed vertices at every evaluation; pykdtree builds and
 queries it in half the time of SciPy's cKDTree (same neighbours), so ``vertex_tree`` uses it
 where installed. Exact bounding-volume hierarchies refit per evaluation were measured and
-lost (docs/decisions.md, "Closest points at the tracker's speed").
+lost (docs/decisions.md, "Closest points at the tracker's speed"). The candidate triangles'
+test is compiled by Numba where installed (``closest_compiled``: the same bits as NumPy's).
 """
+
+from contextlib import contextmanager
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -132,14 +135,29 @@ def nearest_vertices(tree, points, near=NEAR):
 
 
 _compiled: list = []  # the compiled candidate test, or None; imported on first use (Numba takes ~1 s to load)
+_numpy_only = [False]  # ``numpy_test``
 
 
 def _surface_kernel():
+    if _numpy_only[0]:
+        return None
     if not _compiled:
         from .closest_compiled import surface_candidates
 
         _compiled.append(surface_candidates)
     return _compiled[0]
+
+
+@contextmanager
+def numpy_test():
+    """Within it, ``closest_on_surface`` tests the candidates with NumPy, as before the
+    compiled test (``navapp bench live`` runs both in one sitting). Process-wide: for
+    benchmarks, not for code that runs beside other registrations."""
+    _numpy_only[0] = True
+    try:
+        yield
+    finally:
+        _numpy_only[0] = False
 
 
 def closest_on_surface(points, vertices, faces, table, near=NEAR, tree=None, nearest=None):
