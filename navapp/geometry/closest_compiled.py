@@ -112,3 +112,34 @@ def surface_candidates(points, vertices, faces, table, nearest):
         bary[i, 1] = b1
         bary[i, 2] = b2
     return face, bary
+
+
+@_jit
+def surface_normals(points, vertices, faces, face, bary):
+    """(N, 3) unit normals at the closest points (``closest.surface_normals``' rule): p/|p|
+    with p = point − closest point, oriented like the face, where |p| > 1e-9 mm; the face's
+    own normal on the surface. The closest point is summed as a CSR product S·X sums it
+    (w_a x_a + w_b x_b, then + w_c x_c), so the bits are NumPy's."""
+    N = points.shape[0]
+    out = np.empty((N, 3))
+    for i in range(N):
+        f = face[i]
+        ia, ib, ic = faces[f, 0], faces[f, 1], faces[f, 2]
+        a0, a1, a2 = vertices[ia, 0], vertices[ia, 1], vertices[ia, 2]
+        u0, u1, u2 = vertices[ib, 0] - a0, vertices[ib, 1] - a1, vertices[ib, 2] - a2
+        v0, v1, v2 = vertices[ic, 0] - a0, vertices[ic, 1] - a1, vertices[ic, 2] - a2
+        n0, n1, n2 = u1 * v2 - u2 * v1, u2 * v0 - u0 * v2, u0 * v1 - u1 * v0
+        ln = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        ln = max(ln, 1e-300)
+        n0, n1, n2 = n0 / ln, n1 / ln, n2 / ln
+        wa, wb, wc = bary[i, 0], bary[i, 1], bary[i, 2]
+        q0 = wa * a0 + wb * vertices[ib, 0] + wc * vertices[ic, 0]
+        q1 = wa * a1 + wb * vertices[ib, 1] + wc * vertices[ic, 1]
+        q2 = wa * a2 + wb * vertices[ib, 2] + wc * vertices[ic, 2]
+        p0, p1, p2 = points[i, 0] - q0, points[i, 1] - q1, points[i, 2] - q2
+        d = np.sqrt(p0 * p0 + p1 * p1 + p2 * p2)
+        if d > 1e-9:
+            s = -1.0 if p0 * n0 + p1 * n1 + p2 * n2 < 0 else 1.0
+            n0, n1, n2 = s * p0 / d, s * p1 / d, s * p2 / d
+        out[i, 0], out[i, 1], out[i, 2] = n0, n1, n2
+    return out
