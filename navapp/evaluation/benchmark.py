@@ -15,6 +15,8 @@ import subprocess
 import sys
 import tempfile
 import time
+from contextlib import nullcontext
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +27,7 @@ from ..anatomy.meshing import cached_tetmesh
 from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
 from ..errors import NavappError
+from ..geometry.closest import numpy_test
 from ..mechanics.basis import BasisSettings, basis_key, load_or_compute_basis
 from ..mechanics.fem import Material
 from ..registration.libr import LMOptions
@@ -121,7 +124,11 @@ def bench_precompute(edges, ks, volume_ml=None, relax="local"):
 
 def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM):
     """Demo scene, stylus data + the first ``planes`` iUS planes; then one more plane
-    added and the fit warm-started from the previous state."""
+    added and the fit warm-started from the previous state. The fresh registration is also
+    run with the candidate triangles tested by NumPy, as before the compiled test
+    (``geometry.closest.numpy_test``), alternated with it repeat by repeat, each on its own
+    copy of the model's cache: ``before_after`` holds both medians (CPU and wall) and the
+    TREs."""
 
     folder = Path(tempfile.mkdtemp(prefix="navapp-bench-")) / "demo"
     simulate(demo_scene(), folder)
@@ -131,8 +138,18 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM):
     model, _ = prepare(case, edge, k)
     x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     times, rigid_s, support_s, iters = [], [], [], []
-    for _ in range(repeats):
-        reg = register(model, data)
+    before = replace(model, cache=dict(model.cache))
+    paired: dict[str, dict[str, list]] = {v: {"cpu": [], "wall": [], "tre": []} for v in ("before", "after")}
+    for i in range(repeats):
+        for variant in (("before", "after") if i % 2 == 0 else ("after", "before")):
+            with numpy_test() if variant == "before" else nullcontext():
+                c, t = time.process_time(), time.perf_counter()
+                r = register(before if variant == "before" else model, data)
+                paired[variant]["cpu"].append(time.process_time() - c)
+                paired[variant]["wall"].append(time.perf_counter() - t)
+            paired[variant]["tre"].append(round(tre_stats(r.transform(x0), x1)["mean_mm"], 4))
+            if variant == "after":
+                reg = r
         assert reg.libr is not None  # deformable registration
         times.append(reg.seconds["rigid"] + reg.seconds["deformable"])
         rigid_s.append(reg.seconds["rigid"])
@@ -151,6 +168,9 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM):
     cold = register(model, more)
     quick = register(model, data, options=LMOptions(max_iterations=5))
     out = {
+        "before_after": {v: {"median_cpu_seconds": round(statistics.median(d["cpu"]), 3),
+                             "median_wall_seconds": round(statistics.median(d["wall"]), 3),
+                             "tre_mm": sorted(set(d["tre"]))} for v, d in paired.items()},
         "nodes": model.basis.M, "k": model.basis.k, "planes": planes,
         "points": {n: len(p) for n, p in reg.data_model_frame.items()},
         "median_seconds": round(statistics.median(times), 3), "min_seconds": round(min(times), 3),

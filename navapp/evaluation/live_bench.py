@@ -10,7 +10,13 @@ this kind differ 2–3× in speed, and load moves absolute times: compare within
 - ``default``: what the viewer does — one LM iteration per frame, BLAS/OpenMP/MKL limited
   to one thread (the next frame continues from there, so the fit converges across frames);
 - ``converged_one_thread``: LM to convergence on every frame, one thread;
-- ``converged_as_installed``: the same with the thread pools as installed.
+- ``converged_as_installed``: the same with the thread pools as installed;
+- ``default_before``: ``default`` with the candidate triangles tested by NumPy as before
+  the compiled test (``geometry.closest.numpy_test``): before and after side by side, on
+  the same frames under the same load (``before_after``: per-update ratios, per-stage ms).
+
+Each variant has its own copy of the model's cache: variants that reach the same β
+(before and after give the same bits) would otherwise reuse each other's evaluations.
 
 Prints one JSON line: ms per update (median, distribution, share within 33 ms = one frame
 at 30 Hz), LM iterations, where the time goes per iteration (closest points against the
@@ -21,11 +27,14 @@ one-thread / as-installed ratio.
 import json
 import statistics
 import time
+from contextlib import nullcontext
+from dataclasses import replace
 
 import numpy as np
 from threadpoolctl import threadpool_info
 
 from ..defaults import EDGE_MM, K
+from ..geometry.closest import numpy_test
 from ..geometry.interpolation import interpolation_matrix
 from ..registration.live import LiveRegistration
 from ..registration.pipeline import prepare, register, tre_stats
@@ -36,7 +45,9 @@ from ..tracking.replay import interpolate_pose
 
 VARIANTS: dict[str, dict] = {"default": {"threads": 1, "iterations_per_frame": 1},
             "converged_one_thread": {"threads": 1, "iterations_per_frame": None},
-            "converged_as_installed": {"threads": None, "iterations_per_frame": None}}
+            "converged_as_installed": {"threads": None, "iterations_per_frame": None},
+            "default_before": {"threads": 1, "iterations_per_frame": 1}}
+BEFORE = {"default_before": "default"}  # a variant run as before the compiled test → its "after"
 FRAME_MS = 1000.0 / 30  # one frame at 30 Hz
 
 
@@ -73,7 +84,7 @@ def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8):
     cold_s = time.perf_counter() - t
     live = {}
     for name, kw in VARIANTS.items():
-        live[name] = LiveRegistration(model, base, **kw)
+        live[name] = LiveRegistration(replace(model, cache=dict(model.cache)), base, **kw)
         live[name].last = cold
     rows: dict[str, list[dict]] = {name: [] for name in VARIANTS}
     seg_ms, frame_pts = [], []
@@ -86,9 +97,10 @@ def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8):
         frame_pts.append(sum(len(v) for v in feats.values()))
         names = list(VARIANTS) if i % 2 == 0 else list(reversed(VARIANTS))  # interleaved: load hits all alike
         for name in names:
-            t = time.perf_counter()
-            reg = live[name].update(feats)
-            wall = 1000 * (time.perf_counter() - t)
+            with numpy_test() if name in BEFORE else nullcontext():
+                t = time.perf_counter()
+                reg = live[name].update(feats)
+                wall = 1000 * (time.perf_counter() - t)
             rows[name].append({"ms": wall, "iterations": reg.libr.iterations,
                                "stages_ms": {s: 1000 * v for s, v in reg.libr.timings.items()},
                                "outside_lm_ms": wall - 1000 * reg.seconds.get("deformable", wall / 1000)})
@@ -117,6 +129,15 @@ def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8):
     a, b = rows["converged_one_thread"], rows["converged_as_installed"]
     ratios = [x["ms"] / y["ms"] for x, y in zip(a, b, strict=True)]
     out["one_thread_over_installed"] = {"median_of_ratios": round(statistics.median(ratios), 3)}
+    for before, after in BEFORE.items():
+        pairs = [x["ms"] / y["ms"] for x, y in zip(rows[before], rows[after], strict=True)]
+        stages = {s: [out[before]["per_iteration_ms"][s], out[after]["per_iteration_ms"][s]]
+                  for s in out[after]["per_iteration_ms"] if s != "closest_points_share"}
+        tre = [out[v]["tre_after_last_frame_mm"] for v in (before, after)]
+        out["before_after"] = {"variants": [before, after],
+                               "before_over_after_median": round(statistics.median(pairs), 3),
+                               "median_ms": [out[before]["median_ms"], out[after]["median_ms"]],
+                               "per_iteration_ms": stages, "tre_after_last_frame_mm": tre}
     out["thread_pools"] = [{k: p.get(k) for k in ("internal_api", "num_threads")} for p in threadpool_info()]
     print(json.dumps(out), flush=True)
     return out

@@ -9,8 +9,11 @@ triangles need more vertices: the decimated vessel surfaces use ``NEAR_DECIMATED
 LM rebuilds the tree on the deformed vertices at every evaluation; pykdtree builds and
 queries it in half the time of SciPy's cKDTree (same neighbours), so ``vertex_tree`` uses it
 where installed. Exact bounding-volume hierarchies refit per evaluation were measured and
-lost (docs/decisions.md, "Closest points at the tracker's speed").
+lost (docs/decisions.md, "Closest points at the tracker's speed"). The candidate triangles'
+test is compiled by Numba where installed (``closest_compiled``: the same bits as NumPy's).
 """
+
+from contextlib import contextmanager
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -131,6 +134,40 @@ def nearest_vertices(tree, points, near=NEAR):
     return np.asarray(found, np.int64).reshape(len(points), near)
 
 
+_compiled: list = []  # the compiled candidate test, or None; imported on first use (Numba takes ~1 s to load)
+_numpy_only = [False]  # ``numpy_test``
+
+
+def _surface_kernel():
+    if _numpy_only[0]:
+        return None
+    if not _compiled:
+        from .closest_compiled import surface_candidates
+
+        _compiled.append(surface_candidates)
+    return _compiled[0]
+
+
+def _normals_kernel():
+    if _numpy_only[0] or _surface_kernel() is None:
+        return None
+    from .closest_compiled import surface_normals as kernel
+
+    return kernel
+
+
+@contextmanager
+def numpy_test():
+    """Within it, ``closest_on_surface`` tests the candidates with NumPy, as before the
+    compiled test (``navapp bench live`` runs both in one sitting). Process-wide: for
+    benchmarks, not for code that runs beside other registrations."""
+    _numpy_only[0] = True
+    try:
+        yield
+    finally:
+        _numpy_only[0] = False
+
+
 def closest_on_surface(points, vertices, faces, table, near=NEAR, tree=None, nearest=None):
     """Closest surface points. Returns face (N,), barycentric (N, 3), closest (N, 3).
 
@@ -140,6 +177,50 @@ def closest_on_surface(points, vertices, faces, table, near=NEAR, tree=None, nea
     """
     points = np.asarray(points, float)
     vi = nearest if nearest is not None else nearest_vertices(tree or cKDTree(vertices), points, near)
+    if (kernel := _surface_kernel()) is not None and len(points):
+        # compiled: the same arithmetic and choice, without the pairs' temporaries
+        vertices = np.ascontiguousarray(vertices, dtype=float)
+        face, bary = kernel(np.ascontiguousarray(points), vertices, faces, table,
+                                        np.ascontiguousarray(vi, dtype=np.int64))
+        if (face >= 0).all():
+            return face, bary, np.einsum("ij,ijk->ik", bary, vertices[faces[face]])
+    return _closest_on_surface_numpy(points, vertices, faces, table, vi)
+
+
+def surface_normals(points, vertices, faces, face, bary):
+    """Unit normals (N, 3) at the closest points (``closest_on_surface``'s face, bary).
+
+    Where the closest point lies inside a triangle the normal is the face's; where it lies
+    on an edge or vertex (common for data off a convex patch) the face normal is
+    ill-defined and the gradient of the distance field, p/|p| with p the point minus its
+    closest point, is the normal of the surface's offset there. p/|p| oriented like the
+    face covers both (it makes nᵀp the true point–surface distance); the face normal where
+    |p| ≤ 1e-9 mm. Compiled where Numba is (``closest_compiled``, the same bits)."""
+    points = np.asarray(points, float)
+    if (kernel := _normals_kernel()) is not None and len(points):
+        return kernel(np.ascontiguousarray(points), np.ascontiguousarray(vertices, dtype=float), faces,
+                      np.ascontiguousarray(face, dtype=np.int64), np.ascontiguousarray(bary, dtype=float))
+    return _surface_normals_numpy(points, vertices, faces, face, bary)
+
+
+def _surface_normals_numpy(points, vertices, faces, face, bary):
+    tri = faces[face]
+    a, b, c = vertices[tri[:, 0]], vertices[tri[:, 1]], vertices[tri[:, 2]]
+    nrm = np.cross(b - a, c - a)
+    nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+    # the closest point summed as a CSR product S·X sums it (``objective.correspond``'s S)
+    q = bary[:, :1] * a + bary[:, 1:2] * b + bary[:, 2:] * c
+    p = points - q
+    d = np.linalg.norm(p, axis=1)
+    off = d > 1e-9
+    sign = np.where(np.einsum("ij,ij->i", p, nrm) < 0, -1.0, 1.0)
+    nrm[off] = sign[off, None] * p[off] / d[off, None]
+    return nrm
+
+
+def _closest_on_surface_numpy(points, vertices, faces, table, vi):
+    """``closest_on_surface`` in NumPy: where Numba is missing, and the reference of its
+    compiled test (``closest_compiled``)."""
     cand = np.sort(table[vi.reshape(len(points), -1)].reshape(len(points), -1), axis=1)  # (N, near*m)
     # test each distinct incident face once: the padding (-1) and the faces the near
     # vertices share are about half of the table's rows

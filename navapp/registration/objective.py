@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from ..geometry.closest import closest_on_polyline, closest_on_surface, nearest_vertices, vertex_tree
+from ..geometry.closest import closest_on_polyline, closest_on_surface, nearest_vertices, surface_normals, vertex_tree
 from .model import REGION_FEATURES, W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform
 from .prior import PosePrior
 from .rotation import rotation, rotation_derivatives
@@ -188,22 +188,10 @@ def correspond(feat, X, Y, tree=None, nearest=None) -> Correspondence:
     kind = feat.kind
     if kind == "surface":
         face, bary, _ = closest_on_surface(Y, X, feat.cells, feat.table, feat.near, tree=tree, nearest=nearest)
-        tri = feat.cells[face]
-        S = _rows_matrix(bary, tri, len(X))
-        a, b, c = X[tri[:, 0]], X[tri[:, 1]], X[tri[:, 2]]
-        nrm = np.cross(b - a, c - a)
-        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
-        # The normal at the closest point: where that point lies inside a triangle it is the
-        # face normal; where it lies on an edge or vertex (common for data off a convex
-        # patch) the face normal is ill-defined and the gradient of the distance field,
-        # p/|p|, is the normal of the surface's offset there. Using p/|p| (oriented like
-        # the face) covers both, and makes f the true point–surface distance.
-        p = Y - S @ X
-        d = np.linalg.norm(p, axis=1)
-        off = d > 1e-9
-        sign = np.where(np.einsum("ij,ij->i", p, nrm) < 0, -1.0, 1.0)
-        nrm[off] = sign[off, None] * p[off] / d[off, None]
-        return Correspondence(S, nrm)
+        # the normal at the closest point: the face's inside a triangle, p/|p| on an edge or
+        # vertex (``surface_normals``), which makes f the true point–surface distance
+        S = _rows_matrix(bary, feat.cells[face], len(X))
+        return Correspondence(S, surface_normals(Y, X, feat.cells, face, bary))
     if kind == "centerline":
         seg, t, _ = closest_on_polyline(Y, X, feat.cells, feat.table, tree=tree, nearest=nearest)
         ends = feat.cells[seg]
