@@ -8,7 +8,8 @@ handled), with them (the default: kept pose, spatial cross-validation against th
 rigid answer, ``support``), and with them and local modes (``registration.local_modes``,
 not yet the default); then with the pose declared as the scene made it (``rigid-declared``,
 ``libr-declared``: ``registration.prior``), and with the supports declared as well
-(``libr-supported``: the basis held where the scene held the organ, ``mechanics.supports``). One CSV row per registration: mean and max TRE over the truth
+(``libr-supported``: the basis held where the scene held the organ, ``mechanics.supports``).
+One CSV row per registration: mean and max TRE over the truth
 targets, the answer given (deformable or rigid), whether a warning was raised and the
 first one, and the wall time. ``report`` writes ``loads.md`` and ``loads.png``.
 
