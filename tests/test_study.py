@@ -105,18 +105,18 @@ def _same_rows(a, b):
 
 
 def _study_cli(monkeypatch, case, tmp, *extra, chunk=6):
-    """`navapp study table2 --quick` on ``case`` at the small test model (12 mm, k = 12:
-    the CLI's defaults are the 4 mm, k = 45 model), the scenarios still to run in chunks of
-    ``chunk`` (6: the 11 in two, so that two workers both get one). Returns (exit code, CSV path)."""
+    """`navapp study table2 --quick --edge 12 --k 12` on ``case`` (the CLI's defaults are the
+    4 mm, k = 45 model), the scenarios still to run in chunks of ``chunk`` (6: the 11 in two,
+    so that two workers both get one). Returns (exit code, CSV path)."""
     import functools
 
     from navapp import cli
     from navapp.evaluation import table2
 
-    monkeypatch.setattr(table2, "run_table2", functools.partial(table2.run_table2, edge=12.0, k=12, chunk=chunk))
+    monkeypatch.setattr(table2, "run_table2", functools.partial(table2.run_table2, chunk=chunk))
     csv = tmp / "t2.csv"
     code = cli.main(["--quiet", "study", "table2", "--quick", "--cases", str(case), "--results", str(csv),
-                     "--report", str(tmp / "report"), *extra])
+                     "--report", str(tmp / "report"), "--edge", "12", "--k", "12", *extra])
     return code, csv
 
 

@@ -15,6 +15,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -119,12 +120,14 @@ def bench_precompute(edges, ks, volume_ml=None, relax="local"):
     return rows
 
 
-def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM):
+def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     """Demo scene, stylus data + the first ``planes`` iUS planes; then one more plane
-    added and the fit warm-started from the previous state."""
+    added and the fit warm-started from the previous state. ``truth_edge``: the mesh the
+    scene is simulated on, mm (default the scene's)."""
 
     folder = Path(tempfile.mkdtemp(prefix="navapp-bench-")) / "demo"
-    simulate(demo_scene(), folder)
+    scene = demo_scene()
+    simulate(scene if truth_edge is None else replace(scene, mesh_edge_mm=truth_edge), folder)
     case = read_case(folder)
     data = data_level(folder, "S+planes", planes=range(planes), case=case)
     more = data_level(folder, "S+planes", planes=range(planes + 1), case=case)
