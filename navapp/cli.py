@@ -408,7 +408,8 @@ def build_parser():
     s.add_argument("--scheduler", type=address,
                    help="Dask distributed scheduler address (e.g. tcp://host:8786): table2, cost and robustness "
                         "run there")
-    s.add_argument("--quick", action="store_true", help="one case, two scenarios per plane level")
+    s.add_argument("--quick", action="store_true", help="table2: one case, two scenarios per plane level; cost, "
+                   "robustness: a smaller design; error-estimate: one plane combination per level and case")
     s.add_argument("--results", type=Path, default=DEFAULT_TABLE2_CSV,
                    help="results CSV, appended (default results/table2.csv; for cost: <report>/cost.csv)")
     s.add_argument("--report", type=Path, default=Path("results"), help="folder for table2.md and plots")

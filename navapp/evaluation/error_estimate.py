@@ -441,5 +441,7 @@ def study_command(case_dirs, args):
             sets[label] = list(more)
             if only:
                 band_only.append(label)
-    cal, _ = run_study(sets, args.report, band_only=tuple(band_only), edge=args.edge, k=args.k)
+    # --quick: one plane combination per level and case, not three
+    cal, _ = run_study(sets, args.report, combos=1 if getattr(args, "quick", False) else 3,
+                       band_only=tuple(band_only), edge=args.edge, k=args.k)
     print(json.dumps({"report": str(Path(args.report) / "error_estimate.md"), "calibration": cal.__dict__}))
