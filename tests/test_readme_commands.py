@@ -199,3 +199,16 @@ def test_bench_live(capsys):
         assert 0 <= v["within_one_frame_at_30hz"] <= 1
     assert out["default"]["iterations_median"] == 1  # the viewer's one LM iteration per frame
     assert out["one_thread_over_installed"]["median_of_ratios"] > 0
+
+
+def test_bench_precompute(capsys):
+    """``navapp bench precompute --edges 12 --ks 12``: one row from a fresh process and a cold
+    cache, its stage times, peak memory, and a warm reload faster than the cold build."""
+    assert main(["--quiet", "bench", "precompute", "--edges", "12", "--ks", "12"]) == 0
+    row = last_json(capsys.readouterr().out)
+    assert row["edge_mm"] == 12.0 and row["k"] == 12 and row["relax"] == "local"
+    assert 500 < row["nodes"] < 3000 and row["surface_nodes"] < row["nodes"]
+    assert 600 < row["volume_ml"] < 4000 and row["peak_memory_mb"] > 0
+    assert row["seconds"]["mesh"] > 0 and row["total_seconds"] >= row["seconds"]["mesh"]
+    assert 0 < row["cache_load_seconds"]["total"] < row["total_seconds"]
+    assert "basis_file" not in row and "mesh_file" not in row  # the temporary cache is removed
