@@ -208,7 +208,7 @@ def cmd_study(args):
     if args.what == "hard":  # its own phantom model and data: no study cases
         from .evaluation.hard import study_command as hard_command
 
-        return hard_command(args.report)
+        return hard_command(args.report, args.edge, args.k)
     cases = _study_cases(args)
     if args.what == "robustness":
         from .evaluation.robustness_report import run_study
@@ -217,7 +217,8 @@ def cmd_study(args):
         if (args.workers or 1) > 1:
             print(f"navapp: {args.workers} robustness cases at once: the per-registration times compete for the "
                   f"cores", file=sys.stderr)
-        print(json.dumps(run_study(cases, results, args.report, args.workers or 1, args.quick, args.scheduler)))
+        print(json.dumps(run_study(cases, results, args.report, args.workers or 1, args.quick, args.scheduler,
+                                   edge=args.edge, k=args.k)))
         return
     if args.what == "loads":
         from .evaluation.loads import study_command as loads_command
@@ -227,7 +228,8 @@ def cmd_study(args):
     if args.what == "next-plane":
         from .evaluation.next_plane_study import study_command as next_plane_command
 
-        return next_plane_command(cases, args.results, args.report, args.with_cases, args.with_results)
+        return next_plane_command(cases, args.results, args.report, args.with_cases, args.with_results,
+                                  edge=args.edge, k=args.k)
     if args.what == "error-estimate":
         from .evaluation import error_estimate
 
@@ -249,7 +251,8 @@ def cmd_study(args):
                           "report": str(md)}))
         return
     t0 = time.perf_counter()
-    n = run_table2(cases, args.results, workers=args.workers, scheduler=args.scheduler, quick=args.quick)
+    n = run_table2(cases, args.results, workers=args.workers, scheduler=args.scheduler, quick=args.quick,
+                   edge=args.edge, k=args.k)
     md = write_report(args.results, args.report, cases)
     print(json.dumps({"registrations_run": n, "seconds": round(time.perf_counter() - t0, 1),
                       "results": str(args.results), "report": str(md)}))
@@ -304,9 +307,9 @@ def cmd_bench(args):
     elif args.what == "live":
         from .evaluation.live_bench import bench_live
 
-        bench_live(args.frames, args.planes, args.ks[0], args.edges[0])
+        bench_live(args.frames, args.planes, args.ks[0], args.edges[0], truth_edge=args.truth_edge)
     else:
-        benchmark.bench_register(args.repeats, args.planes, args.ks[0], args.edges[0])
+        benchmark.bench_register(args.repeats, args.planes, args.ks[0], args.edges[0], truth_edge=args.truth_edge)
 
 
 def cmd_replay(args):
@@ -405,10 +408,15 @@ def build_parser():
     s.add_argument("--scheduler", type=address,
                    help="Dask distributed scheduler address (e.g. tcp://host:8786): table2, cost and robustness "
                         "run there")
-    s.add_argument("--quick", action="store_true", help="one case, two scenarios per plane level")
+    s.add_argument("--quick", action="store_true", help="table2: one case, two scenarios per plane level; cost, "
+                   "robustness: a smaller design; error-estimate: one plane combination per level and case")
     s.add_argument("--results", type=Path, default=DEFAULT_TABLE2_CSV,
                    help="results CSV, appended (default results/table2.csv; for cost: <report>/cost.csv)")
     s.add_argument("--report", type=Path, default=Path("results"), help="folder for table2.md and plots")
+    s.add_argument("--edge", type=_positive(float), default=EDGE_MM,
+                   help=f"registration mesh element size, mm (default {EDGE_MM:g}; not cost, which sweeps it; "
+                        "12 with --k 12 for a quick look)")
+    s.add_argument("--k", type=_k, default=K, help=f"number of control points (default {K}; not cost, which sweeps it)")
     s.set_defaults(func=cmd_study)
 
     s = sub.add_parser("bench", help="benchmarks that print timings and memory as JSON lines")
@@ -421,6 +429,9 @@ def build_parser():
     s.add_argument("--repeats", type=_positive(int), default=5, help="register, import: repetitions for the median")
     s.add_argument("--planes", type=_positive(int), default=3, help="register: iUS planes (≥ 2); live: planes kept")
     s.add_argument("--frames", type=_positive(int), default=40, help="live: ultrasound frames re-registered")
+    s.add_argument("--truth-edge", type=_positive(float),
+                   help="register, live: element size of the mesh the demo scene's truth is simulated on, mm "
+                        "(default: the scene's, 3.5; 12 with --edges 12 --ks 12 for a quick look)")
     s.set_defaults(func=cmd_bench)
 
     s = sub.add_parser("replay", help="OpenIGTLink server playing a simulated scene as PLUS would (stylus, probe, "

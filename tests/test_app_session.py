@@ -178,3 +178,95 @@ def test_export_writes_ply_vtk_and_csv(scene_data, tmp_path):
     assert np.allclose(ply.vertices, liver.vertices + [1, 2, 3], atol=1e-4)
     assert np.allclose(vtk.points, liver.vertices + [1, 2, 3], atol=1e-4)
     assert np.array_equal(vtk.cells_dict["triangle"], liver.faces)
+
+
+# ---------------------------------------------------------------- session.json, property-based
+
+@pytest.fixture(scope="module")
+def saved_session(scene_data, tmp_path_factory):
+    """A saved session folder holding one of everything session.json records: stylus points,
+    an added plane, a free plane, a contour on it, a live point and an excluded one."""
+    sd = scene_data
+    folder = tmp_path_factory.mktemp("prop") / "s"
+    s, planes = open_session(folder, sd)
+    s.stylus_count = 20
+    s.planes_added.append(0)
+    free = acquire_free_plane(sd, 100, sd.planes[1].probe_to_tracker)
+    planes[100] = free
+    s.free_planes.append({"index": 100, "pose": free.probe_to_tracker.tolist()})
+    s.contours.append(Contour(100, "hepatic_contour", [(100, 100), (140, 100), (140, 150)], closed=True))
+    s.live_points.append([1.0, 2.0, 3.0, "anterior"])
+    s.excluded.append([4.0, 5.0, 6.0, "anterior"])
+    s.save(sd, planes)
+    return folder
+
+
+def _json_values():
+    from hypothesis import strategies as st
+
+    scalar = st.one_of(st.none(), st.booleans(), st.integers(-3, 200), st.integers(), st.text(max_size=4),
+                       st.floats(allow_nan=False, allow_infinity=False), st.sampled_from(["anterior", "live/x.png"]))
+    return st.recursive(scalar, lambda inner: st.lists(inner, max_size=4) | st.dictionaries(
+        st.sampled_from(["index", "pose", "png", "plane", "feature", "vertices", "closed", "time", "x"]), inner,
+        max_size=4), max_leaves=8)
+
+
+def _paths(doc, prefix=()):
+    """Every place in a JSON document: key/index tuples."""
+    yield prefix
+    items = doc.items() if isinstance(doc, dict) else enumerate(doc) if isinstance(doc, list) else ()
+    for k, v in items:
+        yield from _paths(v, (*prefix, k))
+
+
+def _put(doc, path, value):
+    if not path:
+        return value
+    if len(path) == 1:
+        doc[path[0]] = value
+    else:
+        _put(doc[path[0]], path[1:], value)
+    return doc
+
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=list(HealthCheck))
+@given(st.lists(st.tuples(st.integers(0, 10 ** 6), _json_values(), st.booleans()), min_size=1, max_size=3),
+       st.booleans())
+def test_session_json_is_read_or_refused_in_one_line(scene_data, saved_session, changes, keep_key):
+    """Any value at any place of a real session.json (or a key removed): the session opens,
+    or is refused in one line naming session.json or its folder, never a traceback."""
+    import copy
+    import shutil
+    import tempfile
+    from pathlib import Path
+
+    sd = scene_data
+    folder = Path(tempfile.mkdtemp(prefix="navapp-prop-")) / "s"
+    shutil.copytree(saved_session, folder)
+    doc = json.loads((saved_session / "session.json").read_text())
+    key = doc["scene_key"]
+    for pick, value, remove in changes:
+        places = list(_paths(doc))
+        place = places[pick % len(places)]
+        if remove and place:  # a key or an item dropped
+            parent = doc
+            for k in place[:-1]:
+                parent = parent[k]
+            del parent[place[-1]]
+        else:
+            doc = _put(doc, place, copy.deepcopy(value))
+    if keep_key and isinstance(doc, dict):  # mostly this scene's session: the rest is read
+        doc["scene_key"] = key
+    (folder / "session.json").write_text(json.dumps(doc))
+    try:
+        s, planes = open_session(folder, sd)
+    except InputError as exc:
+        text = str(exc)
+        assert "\n" not in text and ("session.json" in text or folder.name in text), text
+        return
+    s.data(sd, planes)  # what the viewer does next with what it read
+    shutil.rmtree(folder.parent, ignore_errors=True)

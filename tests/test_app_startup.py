@@ -56,14 +56,19 @@ def test_each_stage_and_ready_reach_the_terminal_on_lines_of_their_own(tmp_path,
     (tmp_path / "session").mkdir()
     (tmp_path / "session" / "case.toml").write_text('name = "session-apptest"\n')
     # the cache the viewer tests fill, so that a full run of the suite pays for one cold start
-    proc = serve(tmp_path, env={"NAVAPP_CACHE": str(cache_root)})
+    # with --slicer PORT (README: Slicer's OpenIGTLinkIF connector in client mode connects to it)
+    slicer_port = free_port()
+    proc = serve(tmp_path, "--slicer", str(slicer_port), env={"NAVAPP_CACHE": str(cache_root)})
     lines = []
+    slicer_listens = None
     budget = threading.Timer(BUDGET_S, proc.kill)  # ends the read below if "Ready." never comes
     budget.start()
     try:
         for raw in iter(proc.stdout.readline, b""):  # the bars are drawn: no --quiet
             lines += shown(raw)
             if any(line.startswith("navapp: Ready.") for line in lines):
+                with socket.socket() as probe:  # where Slicer would connect
+                    slicer_listens = probe.connect_ex(("127.0.0.1", slicer_port)) == 0
                 break
     finally:
         budget.cancel()
@@ -77,6 +82,9 @@ def test_each_stage_and_ready_reach_the_terminal_on_lines_of_their_own(tmp_path,
     ready = [line for line in said if line.startswith("navapp: Ready.")]
     assert len(ready) == 1 and "nodes, k = 12" in ready[0] and str(tmp_path / "session") in ready[0], lines
     assert not any("Traceback" in line for line in lines), lines
+    assert (f"navapp: registrations go to 3D Slicer over OpenIGTLink on 127.0.0.1:{slicer_port} (Slicer connects)"
+            in said), lines
+    assert slicer_listens, lines
 
 
 def refused(tmp_path, memory_mb: str) -> tuple[str, list[str]]:

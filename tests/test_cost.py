@@ -40,7 +40,7 @@ def test_lm_sweep_more_iterations_never_hurt_much(small_model):
     assert lm_sweep(small_model, data, x0, x1, cancel=stop) == []
 
 
-def test_cost_study_rows_resume_and_report(tmp_path, cache_root, monkeypatch):
+def test_cost_study_rows_resume_and_report(tmp_path, cache_root, monkeypatch, capsys):
     import csv as csvmod
 
     from navapp.evaluation import cost
@@ -67,7 +67,22 @@ def test_cost_study_rows_resume_and_report(tmp_path, cache_root, monkeypatch):
 
     real_prepare = cost.prepare
     monkeypatch.setattr(cost, "prepare", spy)
-    n = run_cost_study([case], csv, **small)
+    # the first run is the README's `navapp study cost --cases CASE --results CSV --report DIR`,
+    # at the small settings above (its --quick sweep still meshes at 6 and 4 mm)
+    import functools
+    import json
+
+    from navapp.cli import main
+
+    monkeypatch.setattr(cost, "run_cost_study", functools.partial(run_cost_study, **small))
+    assert main(["--quiet", "study", "cost", "--cases", str(case), "--results", str(csv),
+                 "--report", str(tmp_path / "rep0")]) == 0
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    n = printed["rows_added"]
+    assert printed["results"] == str(csv) and printed["seconds"] > 0
+    assert printed["report"] == str(tmp_path / "rep0" / "cost.md")
+    assert "| LIBR |" in (tmp_path / "rep0" / "cost.md").read_text()
+    monkeypatch.setattr(cost, "run_cost_study", run_cost_study)
     monkeypatch.setattr(cost, "prepare", real_prepare)
 
     rows = list(csvmod.DictReader(csv.open()))

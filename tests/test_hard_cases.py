@@ -230,3 +230,37 @@ def test_energy_bound_against_random_states(small_model):
         a *= np.sqrt(f_max * 2 * basis.M / (a @ basis.energy @ a))
         worst = max(worst, np.linalg.norm((basis.Ju @ a).reshape(-1, 3), axis=1).max())
     assert worst <= bound and worst > 0.05 * bound
+
+
+def test_study_hard_command(hard_setup, hard_results, tmp_path, monkeypatch, capsys):
+    """``navapp study hard --edge 12 --k 12 --report DIR`` (README's command table): the
+    model it asks for, the table printed, ``hard_cases.md`` written, exit 1 while a case
+    breaks its stated bound. The table's registrations are this module's (the command runs
+    ``run_hard`` on the same setup: computed once, not twice)."""
+    from navapp.cli import main
+    from navapp.evaluation import hard
+
+    asked = []
+
+    def setup(edge, k):
+        asked.append((edge, k))
+        return hard_setup
+
+    monkeypatch.setattr(hard, "make_setup", setup)
+    monkeypatch.setattr(hard, "run_hard", lambda s, on_result=None: [hard_results[c.name] for c in hard.CASES])
+    code = main(["--quiet", "study", "hard", "--edge", "12", "--k", "12", "--report", str(tmp_path / "r")])
+    out, err = capsys.readouterr()
+    assert asked == [(12.0, 12)]
+    assert code == (1 if EXCEEDS_STATED_BOUND else 0)
+    lines = out.strip().splitlines()
+    assert lines[0].split()[:2] == ["case", "outcome"] and len(lines) == 1 + len(hard.CASES)
+    for line, case in zip(lines[1:], hard.CASES, strict=True):
+        assert line.startswith(case.name)
+        assert line.split()[-1] == ("FAIL" if case.name in EXCEEDS_STATED_BOUND else "ok"), line
+    md = (tmp_path / "r" / "hard_cases.md").read_text()
+    assert f"wrote {tmp_path / 'r' / 'hard_cases.md'}" in err
+    n = len(hard.CASES)
+    assert f"{n - len(EXCEEDS_STATED_BOUND)} of {n} cases within their bounds." in md
+    assert "12 mm" in md and "`navapp study hard`" in md
+    for name in EXCEEDS_STATED_BOUND:
+        assert f"- {name}: " in md

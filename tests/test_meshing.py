@@ -38,6 +38,8 @@ def test_open_surface_refused():
 
 # ---------------------------------------------------------------- any liver
 
+import functools  # noqa: E402
+
 import surface_fixtures as sf  # noqa: E402
 
 from navapp.anatomy.meshing import MeshAttempt, mesh_liver  # noqa: E402
@@ -105,7 +107,11 @@ def test_time_limit_ends_in_one_line(sharp):
     assert "\n" not in str(err.value)
 
 
-@pytest.mark.parametrize("make, edge, gmsh_hangs", [(sf.genus_one_liver, 10.0, True), (sf.thin_lobe_liver, 8.0, True),
+# the genus-one and thin-lobe surfaces at 2.5 and 1.5 mm grids, not 1.5 and 1.0 (38,440 and 82,152
+# faces, not 106,880 and 184,968): Gmsh hangs on them the same way, fTetWild meshes them to the
+# same volume (0.28 % and 0.35 % off), in 38 and 48 CPU s, not 50 and 58 (one run each)
+@pytest.mark.parametrize("make, edge, gmsh_hangs", [(functools.partial(sf.genus_one_liver, spacing=2.5), 10.0, True),
+                                                    (functools.partial(sf.thin_lobe_liver, spacing=1.5), 8.0, True),
                                                     (sf.uneven_liver, 10.0, False),
                                                     (sf.other_generator_liver, 10.0, False)])
 def test_other_generators_mesh_above_the_floor(make, edge, gmsh_hangs):

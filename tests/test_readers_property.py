@@ -218,6 +218,87 @@ def test_masks_are_imported_or_refused_in_one_line(mask, fmt, route):
         read_or_refused(lambda: import_case(folder / "case2", **kwargs), path)
 
 
+# ---------------------------------------------------------------- DICOM SEG
+
+SEG_NAMES = {1: "liver", 2: "tumour", 3: "portal"}
+
+
+def _write_seg(labels, A, path) -> bool:
+    """``labels`` written as a DICOM SEG by highdicom (``ctcase``, the import benchmark's
+    writer); False where the writer itself refuses the grid (no file to read then)."""
+    from navapp.anatomy.ctcase import write_dicom_seg
+
+    present = {int(v) for v in np.unique(labels) if v}
+    try:
+        write_dicom_seg(labels, A, path, {v: SEG_NAMES[v] for v in present})
+    except Exception:  # highdicom refuses it (no segment, a singular grid): not a file navapp is given
+        return False
+    return path.is_file()
+
+
+@SLOW
+@given(masks(), st.sampled_from(["read", "labelmap", "liver_and_target"]))
+def test_dicom_segs_are_imported_or_refused_in_one_line(mask, route):
+    """DICOM SEGs of any grid and labels (empty, several pieces, a tumour disjoint from the
+    liver, oblique, 0.5 mm to 25 mm voxels): read, imported or refused in one line."""
+    from navapp.anatomy.importer import import_case, read_labelmap
+
+    labels, A = mask
+    folder = fresh_dir()
+    path = folder / "seg.dcm"
+    if not _write_seg(labels, A, path):
+        return
+    lm = read_or_refused(lambda: read_labelmap(path), path)
+    if lm is None or route == "read":
+        if lm is not None:  # what was written is what is read, segment by segment
+            for v, name in lm.names.items():
+                assert name in SEG_NAMES.values()
+                want = next(k for k, n in SEG_NAMES.items() if n == name)
+                assert lm.mask(v).sum() == (labels == want).sum()
+        return
+    kwargs = {"labelmap": {"labelmap": path}, "liver_and_target": {"liver": f"{path}:liver",
+                                                                 "targets": [f"{path}:tumour"]}}[route]
+    try:
+        import_case(folder / "case", **kwargs)
+    except InputError as exc:
+        text = str(exc)
+        assert "\n" not in text and ("seg.dcm" in text or "case" in text), text
+    except NavappError as exc:  # a refusal of the arguments, not of the file: still one line
+        assert "\n" not in str(exc)
+
+
+@pytest.fixture(scope="module")
+def seg_bytes():
+    """A valid DICOM SEG of a liver and a disjoint tumour (the public sets' convention)."""
+    labels = np.zeros((8, 7, 5), np.uint8)
+    labels[1:-1, 1:-1, 1:-1] = 1
+    labels[1:3, 1:3, 1:-1] = 2
+    path = fresh_dir() / "seg.dcm"
+    assert _write_seg(labels, np.diag([12.0, 12.0, 20.0, 1.0]), path)
+    return path.read_bytes()
+
+
+@FAST
+@given(st.lists(st.tuples(st.floats(0, 1, exclude_max=True), st.binary(min_size=1, max_size=8)), min_size=1,
+                max_size=4), st.one_of(st.none(), st.floats(0, 1)))
+def test_damaged_dicom_segs_are_refused_in_one_line(seg_bytes, patches, cut):
+    """A real DICOM SEG with bytes overwritten anywhere (header, segment sequence, plane
+    positions, pixel data) or cut short: read, or refused in one line naming the file."""
+    from navapp.anatomy.importer import read_labelmap
+
+    data = bytearray(seg_bytes)
+    for where, new in patches:
+        at = int(where * len(data))
+        data[at:at + len(new)] = new
+    if cut is not None:
+        data = data[:int(cut * len(data))]
+    path = fresh_dir() / "seg.dcm"
+    path.write_bytes(bytes(data))
+    lm = read_or_refused(lambda: read_labelmap(path), path)
+    if lm is not None:
+        assert lm.labels.ndim in (3, 4) and np.isfinite(lm.affine).all()
+
+
 # ---------------------------------------------------------------- case.toml, scene TOML
 
 toml_value = st.recursive(st.one_of(st.integers(-5, 5), st.floats(allow_nan=False, width=32), st.booleans(),

@@ -164,3 +164,51 @@ def test_replay_plays_a_scene_to_a_client(tmp_path):
     assert got is not None, err
     assert f"replaying demo on 127.0.0.1:{port} as PLUS would" in err
     assert json.loads(out.strip().splitlines()[-1])["port"] == port
+
+
+SMALL_BENCH = ["--truth-edge", "12", "--edges", "12", "--ks", "12"]
+
+
+def test_bench_register(capsys):
+    """``navapp bench register`` on the demo scene simulated at 12 mm (``--truth-edge``), a
+    12 mm, k = 12 model, one repeat: its timings and TREs are there and sane (the deformable
+    fit beats the rigid one, adding a plane warm-started takes fewer iterations than none)."""
+    assert main(["--quiet", "bench", "register", "--repeats", "1", "--planes", "2", *SMALL_BENCH]) == 0
+    out = last_json(capsys.readouterr().out)
+    assert out["k"] == 12 and out["planes"] == 2 and 500 < out["nodes"] < 3000
+    assert out["points"]["anterior"] > 0 and out["median_seconds"] > 0 and out["iterations"] >= 1
+    assert out["stop_reason"] in ("converged", "stationary", "max_iterations")
+    assert out["per_iteration_ms"] and all(v >= 0 for v in out["per_iteration_ms"].values())
+    tre = out["tre_mm"]
+    assert 0 < tre["deformable"] < tre["rigid"] < 30
+    one = out["add_one_plane"]
+    assert one["warm_median_seconds"] > 0 and one["cold_seconds"] > 0 and 0 < one["tre_warm_mm"] < 30
+
+
+def test_bench_live(capsys):
+    """``navapp bench live --frames 4`` at the same small settings: every variant re-registered
+    each frame that showed a structure, with a per-update time and a TRE after the last frame."""
+    assert main(["--quiet", "bench", "live", "--frames", "4", "--planes", "2", *SMALL_BENCH]) == 0
+    out = last_json(capsys.readouterr().out)
+    assert out["k"] == 12 and out["kept_planes"] == 2 and 1 <= out["updates"] <= 4
+    assert out["segmentation_ms_median"] > 0 and out["cold_start_s"] > 0
+    for name in ("default", "converged_one_thread", "converged_as_installed"):
+        v = out[name]
+        assert 0 < v["min_ms"] <= v["median_ms"] <= v["max_ms"], name
+        assert v["iterations_median"] >= 1 and 0 < v["tre_after_last_frame_mm"] < 30, name
+        assert 0 <= v["within_one_frame_at_30hz"] <= 1
+    assert out["default"]["iterations_median"] == 1  # the viewer's one LM iteration per frame
+    assert out["one_thread_over_installed"]["median_of_ratios"] > 0
+
+
+def test_bench_precompute(capsys):
+    """``navapp bench precompute --edges 12 --ks 12``: one row from a fresh process and a cold
+    cache, its stage times, peak memory, and a warm reload faster than the cold build."""
+    assert main(["--quiet", "bench", "precompute", "--edges", "12", "--ks", "12"]) == 0
+    row = last_json(capsys.readouterr().out)
+    assert row["edge_mm"] == 12.0 and row["k"] == 12 and row["relax"] == "local"
+    assert 500 < row["nodes"] < 3000 and row["surface_nodes"] < row["nodes"]
+    assert 600 < row["volume_ml"] < 4000 and row["peak_memory_mb"] > 0
+    assert row["seconds"]["mesh"] > 0 and row["total_seconds"] >= row["seconds"]["mesh"]
+    assert 0 < row["cache_load_seconds"]["total"] < row["total_seconds"]
+    assert "basis_file" not in row and "mesh_file" not in row  # the temporary cache is removed

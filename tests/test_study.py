@@ -1,4 +1,6 @@
-"""The Table II runner: design size, resumability, report."""
+"""The Table II runner: design size, resumability, report; the README's other study commands."""
+
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -105,18 +107,18 @@ def _same_rows(a, b):
 
 
 def _study_cli(monkeypatch, case, tmp, *extra, chunk=6):
-    """`navapp study table2 --quick` on ``case`` at the small test model (12 mm, k = 12:
-    the CLI's defaults are the 4 mm, k = 45 model), the scenarios still to run in chunks of
-    ``chunk`` (6: the 11 in two, so that two workers both get one). Returns (exit code, CSV path)."""
+    """`navapp study table2 --quick --edge 12 --k 12` on ``case`` (the CLI's defaults are the
+    4 mm, k = 45 model), the scenarios still to run in chunks of ``chunk`` (6: the 11 in two,
+    so that two workers both get one). Returns (exit code, CSV path)."""
     import functools
 
     from navapp import cli
     from navapp.evaluation import table2
 
-    monkeypatch.setattr(table2, "run_table2", functools.partial(table2.run_table2, edge=12.0, k=12, chunk=chunk))
+    monkeypatch.setattr(table2, "run_table2", functools.partial(table2.run_table2, chunk=chunk))
     csv = tmp / "t2.csv"
     code = cli.main(["--quiet", "study", "table2", "--quick", "--cases", str(case), "--results", str(csv),
-                     "--report", str(tmp / "report"), *extra])
+                     "--report", str(tmp / "report"), "--edge", "12", "--k", "12", *extra])
     return code, csv
 
 
@@ -191,3 +193,109 @@ def test_quiet_is_scoped(monkeypatch):
         run_chunk("no-such-case", [])
     assert seen == [True]
     assert progress.QUIET is False and not progress.is_quiet()
+
+
+# ---------------------------------------------------------------- the README's other study commands
+
+
+def _run(argv, capsys):
+    """``navapp --quiet ARGV`` in this process: (exit code, the last stdout line as JSON or
+    None, stderr)."""
+    import json
+
+    from navapp.cli import main
+
+    code = main(["--quiet", *argv])
+    out, err = capsys.readouterr()
+    lines = out.strip().splitlines()
+    return code, (json.loads(lines[-1]) if lines else None), err
+
+
+SMALL = ["--edge", "12", "--k", "12"]
+
+
+def test_study_robustness_command(quick_case, tmp_path, capsys):
+    """``navapp study robustness --quick --cases CASE --edge 12 --k 12``: the quick design
+    (0°, 15°, 20° × three label conditions × one draw × two methods), every row a finite
+    TRE, the report and its plot; a second run resumes with nothing to do."""
+    import csv as csvmod
+
+    argv = ["study", "robustness", "--quick", "--cases", str(quick_case), "--report", str(tmp_path / "r"), *SMALL]
+    code, summary, err = _run(argv, capsys)
+    assert code == 0, err
+    rows = list(csvmod.DictReader((tmp_path / "r" / "robustness.csv").open()))
+    assert summary["registrations_run"] == len(rows) == 3 * 3 * 2
+    assert {r["method"] for r in rows} == {"single-icp", "default"}
+    assert {float(r["angle_deg"]) for r in rows} == {0.0, 15.0, 20.0}
+    assert {r["condition"] for r in rows} == {"clean", "shifted", "mislabelled"}
+    assert all(0 < float(r["tre_mm"]) < 100 and float(r["seconds"]) > 0 for r in rows)
+    clean = [float(r["tre_mm"]) for r in rows if r["condition"] == "clean" and float(r["angle_deg"]) == 0]
+    assert max(clean) < 10  # from the true pose, clean data: a real fit, not a lost one
+    assert summary["report"] == str(tmp_path / "r" / "robustness.md")
+    assert (tmp_path / "r" / "robustness.png").stat().st_size > 0
+    assert "single-icp" in Path(summary["report"]).read_text()
+    code, again, err = _run(argv, capsys)
+    assert code == 0 and again["registrations_run"] == 0, err
+
+
+def test_study_next_plane_command(quick_case, local_rows, tmp_path, capsys):
+    """``navapp study next-plane --cases CASE --results TABLE2.csv --edge 12 --k 12``: three
+    greedy suggestions from S per criterion, each step adding one new recorded plane,
+    ranked against the case's Table II rows; the report with its speed line."""
+    import csv as csvmod
+
+    csv, _ = local_rows
+    code, summary, err = _run(["study", "next-plane", "--cases", str(quick_case), "--results", str(csv),
+                               "--report", str(tmp_path / "r"), *SMALL], capsys)
+    assert code == 0, err
+    assert summary == {"report": str(tmp_path / "r" / "next_plane.md")}
+    rows = list(csvmod.DictReader((tmp_path / "r" / "next_plane.csv").open()))
+    assert len(rows) == 3 * 3 and {r["criterion"] for r in rows} == {"ê (default)", "d only", "σ only"}
+    for crit in {r["criterion"] for r in rows}:
+        steps = [r for r in rows if r["criterion"] == crit]
+        assert [r["level"] for r in steps] == ["S+1", "S+2", "S+3"]
+        planes = [set(r["planes"].split("-")) for r in steps]
+        assert [len(p) for p in planes] == [1, 2, 3] and planes[0] < planes[1] < planes[2]
+        assert all(0 < float(r["tre_mean_mm"]) < 20 for r in steps)
+    md = Path(summary["report"]).read_text()
+    assert "Speed: one suggestion over" in md
+    # without Table II rows to rank against: one line
+    code, _, err = _run(["study", "next-plane", "--cases", str(quick_case), "--results", str(tmp_path / "none.csv"),
+                         "--report", str(tmp_path / "r2"), *SMALL], capsys)
+    assert code == 2 and err.count("\n") == 1 and "no Table II results" in err
+
+
+@pytest.fixture(scope="module")
+def second_liver_case(tmp_path_factory, cache_root):
+    """Phantom 1 simulated like ``quick_case`` (a second liver: error-estimate validates on it)."""
+    from navapp.simulation.scene import parse_scene
+    from navapp.simulation.simulate import simulate
+
+    scene = parse_scene({"name": "q1", "anatomy": {"phantom": 1},
+                         "deformation": {"release": "L", "mesh_edge_mm": 12.0}, "ius": {"planes": 16}})
+    case = tmp_path_factory.mktemp("study1") / "q1"
+    simulate(scene, case, cache_root)
+    return case
+
+
+def test_study_error_estimate_command(quick_case, second_liver_case, tmp_path, capsys):
+    """``navapp study error-estimate --quick --cases A B --edge 12 --k 12`` (one plane
+    combination per level: 6 registrations a case, not 12): ê calibrated on the
+    first case's liver, judged on the other's; the printed calibration is the one in the
+    CSV, its band brackets 1 (ê is a scale), coverage is a fraction. One liver alone is one
+    line."""
+    import csv as csvmod
+
+    code, summary, err = _run(["study", "error-estimate", "--quick", "--cases", str(quick_case),
+                               str(second_liver_case), "--report", str(tmp_path / "r"), *SMALL], capsys)
+    assert code == 0, err
+    cal = summary["calibration"]
+    assert all(np.isfinite(cal[k]) for k in ("a", "b", "c", "e", "lower", "upper"))
+    assert 0 < cal["lower"] < 1 < cal["upper"]
+    rows = list(csvmod.DictReader((tmp_path / "r" / "error_estimate.csv").open()))
+    assert rows and all(0 <= float(r["coverage"]) <= 1 for r in rows)
+    assert all(float(r["upper"]) == pytest.approx(cal["upper"], rel=1e-5) for r in rows)
+    assert "q1" in Path(summary["report"]).read_text()
+    code, _, err = _run(["study", "error-estimate", "--quick", "--cases", str(quick_case), "--report",
+                         str(tmp_path / "r1"), *SMALL], capsys)
+    assert code == 2 and err.count("\n") == 1 and "at least two livers" in err

@@ -31,6 +31,7 @@ from ..simulation.scenedata import SceneData, acquire_free_plane, scene_key
 from ..simulation.ultrasound import PlaneData
 from .actions import FILE as ACTIONS_FILE
 from .contours import Contour, Origin, OriginKind, contour_points
+from .palette import DRAWABLE
 from .state import RunEntry
 
 SESSION_VERSION = 1
@@ -259,16 +260,20 @@ def open_session(folder: Path, sd: SceneData) -> tuple[Session, dict]:
         return s, planes
     try:
         d = json.loads(path.read_text())
+        if not isinstance(d, dict):
+            raise ValueError(f"a JSON {type(d).__name__} where a session's record (an object) belongs")
         if d.get("scene_key") != key:
             raise InputError("this session folder belongs to another scene (pass a different --session)", folder)
-        s = Session(folder, key, int(d["stylus_count"]), [int(i) for i in d["planes_added"]],
-                    [Contour.from_json(c) for c in d["contours"]], list(d["free_planes"]),
-                    [RunEntry.from_json(e) for e in d["log"]],
-                    d.get("result"),
-                    [[float(a), float(b), float(c), str(f)] for a, b, c, f in d.get("live_points", [])],
-                    list(d.get("live_planes", [])),
-                    [[float(a), float(b), float(c), str(f)] for a, b, c, f in d.get("excluded", [])])
-    except (ValueError, KeyError, TypeError) as exc:
+        s = Session(folder, key, _count(d["stylus_count"], "stylus_count"),
+                    [_count(i, "planes_added") for i in _list(d["planes_added"], "planes_added")],
+                    [_contour(c) for c in _list(d["contours"], "contours")],
+                    [_plane(f, "free_planes") for f in _list(d["free_planes"], "free_planes")],
+                    [RunEntry.from_json(e) for e in _list(d["log"], "log")],
+                    _record(d.get("result")),
+                    [_point(p, "live_points", STYLUS_FEATURES) for p in _list(d.get("live_points", []), "live_points")],
+                    [_plane(f, "live_planes", png=True) for f in _list(d.get("live_planes", []), "live_planes")],
+                    [_point(p, "excluded", FEATURE_NAMES) for p in _list(d.get("excluded", []), "excluded")])
+    except (ValueError, KeyError, TypeError, AttributeError) as exc:
         raise InputError(f"damaged session.json ({exc.__class__.__name__}: {exc}); move it away to start afresh",
                          path) from None
     for fp in s.free_planes:
@@ -277,9 +282,17 @@ def open_session(folder: Path, sd: SceneData) -> tuple[Session, dict]:
         from skimage.io import imread
 
         png = folder / lp["png"]
-        if not png.exists():
+        if not png.is_file():
             raise InputError(f"session.json refers to a frozen frame {lp['png']} that is missing", path)
-        planes[lp["index"]] = PlaneData(lp["index"], "live", np.array(lp["pose"]), {}, imread(png))
+        try:
+            image = imread(png)
+        except Exception as exc:  # imageio/PIL raise many types for a file that is not an image
+            raise InputError(f"the frozen frame {lp['png']} is not a readable image ({exc.__class__.__name__})",
+                             path) from None
+        if image.shape != (sd.probe.height_px, sd.probe.width_px):
+            raise InputError(f"the frozen frame {lp['png']} is {image.shape}, not the probe's "
+                             f"{sd.probe.height_px} × {sd.probe.width_px} grey image", path)
+        planes[lp["index"]] = PlaneData(lp["index"], "live", np.array(lp["pose"]), {}, image)
     bad = [i for i in s.planes_added if i not in planes] + [c.plane for c in s.contours if c.plane not in planes]
     if bad:
         raise InputError(f"session.json refers to planes {sorted(set(bad))} that this scene does not have", path)
@@ -290,6 +303,67 @@ def open_session(folder: Path, sd: SceneData) -> tuple[Session, dict]:
         s.note = (f"{folder}: the session folder was incomplete ({listed} missing or cut short): completed from "
                   f"the scene and session.json")
     return s, planes
+
+
+# ---------------------------------------------------------------- session.json's values, checked
+# (a hand-edited or damaged record was a traceback, or silently wrong data: a negative
+# stylus_count took the sweep's points from its end)
+
+def _list(v, what: str) -> list:
+    if not isinstance(v, list):
+        raise ValueError(f"{what} is a {type(v).__name__}, not a list")
+    return v
+
+
+def _count(v, what: str) -> int:
+    if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+        raise ValueError(f"{what}: {v!r} is not a whole number ≥ 0")
+    return v
+
+
+def _point(v, what: str, features) -> list:
+    if not isinstance(v, list) or len(v) != 4 or v[3] not in features:
+        raise ValueError(f"{what}: {v!r} is not [x, y, z, feature]")
+    xyz = [float(a) for a in v[:3]]
+    if not np.all(np.isfinite(xyz)):
+        raise ValueError(f"{what}: {v!r} is not a finite point")
+    return [*xyz, str(v[3])]
+
+
+def _pose(v, what: str) -> list:
+    a = np.asarray(v, float)
+    if a.shape != (4, 4) or not np.all(np.isfinite(a)) or not np.allclose(a[3], [0, 0, 0, 1]) \
+            or not np.allclose(a[:3, :3] @ a[:3, :3].T, np.eye(3), atol=1e-6):
+        raise ValueError(f"{what}: a pose that is not a 4 × 4 rigid transform")
+    return a.tolist()
+
+
+def _plane(v, what: str, png: bool = False) -> dict:
+    if not isinstance(v, dict):
+        raise ValueError(f"{what}: {v!r} is not an object")
+    out = {"index": _count(v["index"], f"{what} index"), "pose": _pose(v["pose"], what)}
+    if png:
+        if not isinstance(v["png"], str) or not v["png"]:
+            raise ValueError(f"{what}: png {v['png']!r} is not a file name")
+        out["png"] = v["png"]
+    return out
+
+
+def _contour(v) -> Contour:
+    if not isinstance(v, dict):
+        raise ValueError(f"contours: {v!r} is not an object")
+    c = Contour.from_json(v)
+    _count(c.plane, "contour plane")
+    if c.feature not in DRAWABLE.values() or not all(len(p) == 2 for p in c.vertices) \
+            or not isinstance(v["closed"], bool):
+        raise ValueError(f"contours: {v!r} is not a drawn contour")
+    return c
+
+
+def _record(v) -> dict | None:
+    if v is not None and not isinstance(v, dict):
+        raise ValueError(f"result is a {type(v).__name__}, not an object")
+    return v
 
 
 SESSION_ENTRIES = {"case.toml", "preop", "truth", "intraop", "session.json.tmp", ACTIONS_FILE}  # what a save writes

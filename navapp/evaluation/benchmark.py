@@ -34,7 +34,7 @@ from ..registration.libr import LMOptions
 from ..registration.pipeline import prepare, register, tre_stats
 from ..simulation.levels import data_level
 from ..simulation.scene import demo_scene
-from ..simulation.simulate import simulate
+from ..simulation.scenedata import simulated_case_dir
 
 
 def peak_memory_mb() -> float:
@@ -122,16 +122,18 @@ def bench_precompute(edges, ks, volume_ml=None, relax="local"):
     return rows
 
 
-def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM):
+def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     """Demo scene, stylus data + the first ``planes`` iUS planes; then one more plane
     added and the fit warm-started from the previous state. The fresh registration is also
     run with the candidate triangles tested by NumPy, as before the compiled test
     (``geometry.closest.numpy_test``), alternated with it repeat by repeat, each on its own
     copy of the model's cache: ``before_after`` holds both medians (CPU and wall) and the
-    TREs."""
+    TREs. ``truth_edge``: the mesh the scene is simulated on, mm (default the scene's)."""
 
-    folder = Path(tempfile.mkdtemp(prefix="navapp-bench-")) / "demo"
-    simulate(demo_scene(), folder)
+    scene = demo_scene()
+    # the simulated scene from navapp's cache (as ``bench live`` and the viewer take it):
+    # the benchmark times registrations, not the simulation
+    folder = simulated_case_dir(scene if truth_edge is None else replace(scene, mesh_edge_mm=truth_edge))
     case = read_case(folder)
     data = data_level(folder, "S+planes", planes=range(planes), case=case)
     more = data_level(folder, "S+planes", planes=range(planes + 1), case=case)

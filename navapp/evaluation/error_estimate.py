@@ -285,25 +285,27 @@ def rotation_markdown(cells: list[RotationCell], coverage=NOMINAL) -> str:
     return "".join(text)
 
 
-def collect_sets(sets: dict, combos=3, seed=0) -> dict:
+def collect_sets(sets: dict, combos=3, seed=0, edge=EDGE_MM, k=K) -> dict:
     """{label: case_dirs} → {label: [Sample]} (``collect_case`` on every case, with progress)."""
     collected: dict = {}
     with progress.bar(sum(len(v) for v in sets.values()), "error estimate: cases", "case") as pb:
         for label, dirs in sets.items():
             collected[label] = []
             for d in dirs:
-                collected[label] += collect_case(d, combos=combos, seed=seed)
+                collected[label] += collect_case(d, combos=combos, seed=seed, edge=edge, k=k)
                 pb.update(1)
     return collected
 
 
-def run_study(sets: dict, out_dir, combos=3, seed=0, band_only=(), collected: dict | None = None):
+def run_study(sets: dict, out_dir, combos=3, seed=0, band_only=(), collected: dict | None = None,
+              edge=EDGE_MM, k=K):
     """Collect every set's cases ({label: case_dirs}; or take ``collected``, as
     ``collect_sets`` returns it), fit on the first case's liver in all sets
     (``split_and_fit``; sets in ``band_only`` widen the band only), validate on the other
-    livers, write ``error_estimate.md`` and ``error_estimate.csv`` in ``out_dir``."""
+    livers, write ``error_estimate.md`` and ``error_estimate.csv`` in ``out_dir``. ``edge``, ``k``:
+    the registration model (mm, control points)."""
     if collected is None:
-        collected = collect_sets(sets, combos, seed)
+        collected = collect_sets(sets, combos, seed, edge, k)
     first = next(iter(sets.values()))[0]
     cal, tables, calib, held = split_and_fit(collected, [liver_id(first)], band_only=band_only)
     secs = [s.seconds for v in collected.values() for s in v]
@@ -439,5 +441,7 @@ def study_command(case_dirs, args):
             sets[label] = list(more)
             if only:
                 band_only.append(label)
-    cal, _ = run_study(sets, args.report, band_only=tuple(band_only))
+    # --quick: one plane combination per level and case, not three
+    cal, _ = run_study(sets, args.report, combos=1 if getattr(args, "quick", False) else 3,
+                       band_only=tuple(band_only), edge=args.edge, k=args.k)
     print(json.dumps({"report": str(Path(args.report) / "error_estimate.md"), "calibration": cal.__dict__}))

@@ -72,9 +72,10 @@ def _last(live: LiveRegistration):
     return live.last
 
 
-def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8):
-
-    sd = load_scene_data(demo_scene(), edge=edge)
+def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8, truth_edge=None):
+    """``truth_edge``: the mesh the demo scene is simulated on, mm (default the scene's)."""
+    scene = demo_scene()
+    sd = load_scene_data(scene if truth_edge is None else replace(scene, mesh_edge_mm=truth_edge), edge=edge)
     if auto_segmentation(sd.scene) is None:
         raise ValueError("the demo scene declares no automatic segmentation of live frames")
     base = data_level(sd.case_dir, "S+planes", planes=range(planes), case=sd.case)

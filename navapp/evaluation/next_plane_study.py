@@ -194,7 +194,7 @@ def benchmark(case_dir, repeats=5, edge=EDGE_MM, k=K) -> dict:
             "surface_nodes": len(model.basis.surface)}
 
 
-def run_study(sets: dict, out_dir, steps=3, bench_case=None, repeats=5):
+def run_study(sets: dict, out_dir, steps=3, bench_case=None, repeats=5, edge=EDGE_MM, k=K):
     """``sets``: {label: (case_dirs, table2 CSV)}. Every criterion of ``criteria()`` on every
     case; writes next_plane.md and next_plane.csv."""
     all_rows: dict = {}  # (set label, criterion) → rows
@@ -203,13 +203,14 @@ def run_study(sets: dict, out_dir, steps=3, bench_case=None, repeats=5):
     with progress.bar(n, "next plane: cases × criteria", "case") as pb:
         for label, (dirs, csv_path) in sets.items():
             table = _table(read_results(csv_path))
-            fresh = {Path(d).name: fresh_single_planes(d) for d in dirs}
+            fresh = {Path(d).name: fresh_single_planes(d, edge, k) for d in dirs}
             for cname, cal in crit.items():
                 all_rows[label, cname] = []
                 for d in dirs:
-                    all_rows[label, cname] += run_case(d, table, steps, calibration=cal, fresh=fresh[Path(d).name])
+                    all_rows[label, cname] += run_case(d, table, steps, edge, k, calibration=cal,
+                                                       fresh=fresh[Path(d).name])
                     pb.update(1)
-    bench = benchmark(bench_case, repeats) if bench_case else None
+    bench = benchmark(bench_case, repeats, edge, k) if bench_case else None
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     with (out / "next_plane.csv").open("w", newline="") as f:
@@ -309,7 +310,7 @@ def markdown(all_rows, sets, bench) -> str:
     return "".join(text)
 
 
-def study_command(case_dirs, results, report, with_cases=None, with_results=None):
+def study_command(case_dirs, results, report, with_cases=None, with_results=None, edge=EDGE_MM, k=K):
     """``navapp study next-plane``: writes <report>/next_plane.md and .csv; ranks from
     ``results`` (Table II CSV of ``case_dirs``) and ``with_results`` for ``with_cases``."""
     sets = {"study cases": (list(case_dirs), Path(results))}
@@ -322,7 +323,7 @@ def study_command(case_dirs, results, report, with_cases=None, with_results=None
         if not csv_path.exists():
 
             raise InputError("no Table II results to rank against (run `navapp study table2` first)", csv_path)
-    run_study(sets, report, bench_case=case_dirs[0])
+    run_study(sets, report, bench_case=case_dirs[0], edge=edge, k=k)
     print(json.dumps({"report": str(Path(report) / "next_plane.md")}))
 
 

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..defaults import EDGE_MM, K
 from .robustness import BASELINE, CONDITIONS, DEFAULT, OFFSETS, SUCCESS_RATIO, read_rows, run_robustness
 
 
@@ -196,7 +197,8 @@ def write_robustness_report(results, out_dir, preamble: str = DESIGN) -> Path:
     return md
 
 
-def run_study(cases, results: Path, report: Path, workers: int = 1, quick: bool = False, scheduler=None) -> dict:
+def run_study(cases, results: Path, report: Path, workers: int = 1, quick: bool = False, scheduler=None,
+              edge: float = EDGE_MM, k: int = K) -> dict:
     """``navapp study robustness``: run (or resume) the design into ``results`` (CSV), then
     write the report into ``report``; returns what it did (printed as JSON by the CLI).
 
@@ -207,7 +209,8 @@ def run_study(cases, results: Path, report: Path, workers: int = 1, quick: bool 
 
     offsets = tuple(o for o in OFFSETS if o[0] in (0.0, 15.0, 20.0)) if quick else OFFSETS
     t0 = time.perf_counter()
-    n = run_robustness(cases, results, draws=1 if quick else 4, workers=workers, offsets=offsets, scheduler=scheduler)
+    n = run_robustness(cases, results, draws=1 if quick else 4, workers=workers, offsets=offsets, scheduler=scheduler,
+                       edge=edge, k=k)
     md = write_robustness_report(results, report)
     return {"registrations_run": n, "seconds": round(time.perf_counter() - t0, 1), "results": str(results),
             "report": str(md)}
