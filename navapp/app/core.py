@@ -139,11 +139,12 @@ class Core:
             sd, session = self.need_scene()
             return session.data(sd, self.planes, surface_only=surface_only)
 
-    def data_with_origins(self, surface_only: bool = False) -> tuple[dict, dict]:
-        """``data`` and each point's ``contours.Origin`` per feature."""
+    def data_with_origins(self, surface_only: bool = False, left_out: list | None = None) -> tuple[dict, dict]:
+        """``data`` and each point's ``contours.Origin`` per feature; ``left_out``: appended the
+        drawn vertices left out before the fit (``contours.StrayVertex``)."""
         with self.lock:
             sd, session = self.need_scene()
-            return session.data_with_origins(sd, self.planes, surface_only=surface_only)
+            return session.data_with_origins(sd, self.planes, surface_only=surface_only, left_out=left_out)
 
     # ------------------------------------------------------------------ browsers
     def new_client_state(self, client_id: int = -1, role: Role = Role.EDITOR) -> ClientState:

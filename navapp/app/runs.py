@@ -21,7 +21,7 @@ from ..registration.coverage import pose_warning
 from ..registration.objective import Weights
 from ..registration.pipeline import Registration
 from ..registration.quality import EXPECTED_NOISE_MM, MARGIN_MM
-from ..registration.residuals import point_residuals
+from ..registration.residuals import point_residual_at, point_residuals
 from .actions import Act
 from .contours import OriginKind
 from .core import Core
@@ -66,7 +66,8 @@ class Runs:
         worker = core.worker
         if worker is None:
             return "Still preparing the registration model."
-        data, origins = core.data_with_origins(surface_only=kind is RunKind.SURFACE)
+        left_out: list = []
+        data, origins = core.data_with_origins(surface_only=kind is RunKind.SURFACE, left_out=left_out)
         npts = sum(len(v) for v in data.values())
         if npts < MIN_POINTS:
             return "Collect data first (stylus sweep or an ultrasound plane)."
@@ -84,7 +85,7 @@ class Runs:
                         "a fresh registration on all data instead.", error=True)
         with self._starting:
             with core.lock:
-                core.run = Run(kind, npts, time.monotonic(), data=data, origins=origins)
+                core.run = Run(kind, npts, time.monotonic(), data=data, origins=origins, left_out=left_out)
             if not worker.start(data, deform=kind.deformable, warm=kind is RunKind.WARM):
                 with core.lock:
                     core.run = None
@@ -155,7 +156,7 @@ class Runs:
             result = RegisteredState(run.kind.label, reg.rigid, beta, err, *shown.predict(reg, checked),
                                      data_model_frame=reg.data_model_frame, pose_warning=pose_warning(reg),
                                      checked=checked)
-            worst = worst_points(reg, run.data, run.origins, viewer_options().weights)
+            worst = worst_points(reg, run.data, run.origins, viewer_options().weights, left_out=run.left_out)
             with core.lock:
                 core.result, core.last_reg, core.worst = result, reg, worst
                 core.need_session().result = result.to_json()
@@ -225,11 +226,12 @@ class Runs:
         if not fitted:
             return
         for surface_only in (False, True):  # the session keeps the fit's data to 0.1 µm: compared to 1 µm
-            data, origins = core.data_with_origins(surface_only=surface_only)
+            left_out: list = []
+            data, origins = core.data_with_origins(surface_only=surface_only, left_out=left_out)
             now = {k: reg.rigid.inverse(v) for k, v in data.items() if len(v)}
             if set(now) == set(fitted) and all(now[k].shape == fitted[k].shape
                                                and np.allclose(now[k], fitted[k], atol=1e-3) for k in now):
-                worst = worst_points(reg, data, origins, viewer_options().weights)
+                worst = worst_points(reg, data, origins, viewer_options().weights, left_out=left_out)
                 with core.lock:
                     if core.last_reg is reg:
                         core.worst = worst
@@ -330,14 +332,30 @@ def plane_name(i: int | None) -> str:
     return f"free {i - FREE_PLANE_BASE + 1}" if i >= FREE_PLANE_BASE else str(i + 1)
 
 
-def worst_points(reg: Registration, data: dict, origins: dict, weights: Weights, n: int = WORST_SHOWN
-                 ) -> list[WorstPoint]:
+def worst_points(reg: Registration, data: dict, origins: dict, weights: Weights, n: int = WORST_SHOWN,
+                 left_out: list | None = None) -> list[WorstPoint]:
     """The ``n`` data points furthest from ``reg``'s answer beyond what their noise allows
     (``quality``: the feature's expected noise + the fit-quality margin), worst first; of a drawn
     contour only its vertices, the clicks (a wrong click rasterises into a spike of points
-    whose every pixel is off, but the click is the one thing to remove)."""
+    whose every pixel is off, but the click is the one thing to remove). ``left_out``: drawn
+    vertices left out before the fit (``contours.StrayVertex``), listed first, as not used."""
     out: list[WorstPoint] = []
-    seen = set()
+    seen: set[tuple] = set()
+    for s in left_out or ():
+        v = s.origin.vertex()
+        if v is None or s.origin.contour is None:
+            continue
+        c, r = s.origin.contour.vertices[v]
+        # its distance from the registered model's feature, said like every other point's
+        res = point_residual_at(reg, s.feature, reg.rigid.inverse(s.point[None, :]))
+        seen.add((id(s.origin.contour), v))
+        x, y, z = (float(t) for t in s.point)
+        out.append(WorstPoint(s.feature, float(res[0]), True, s.origin, (x, y, z),
+                              f"{feature_words(s.feature)}, plane {plane_name(s.origin.plane)}, drawn vertex {v + 1} "
+                              f"at pixel ({c}, {r}), off the vessel it was drawn around", v))
+    out = out[:n]
+    if len(out) == n:
+        return out
     for p in point_residuals(reg, weights):
         if p.residual_mm <= EXPECTED_NOISE_MM.get(p.feature, 1.0) + MARGIN_MM or p.feature not in origins:
             continue

@@ -61,8 +61,10 @@ class Session:
         points the user removed. ``planes``: plane index → PlaneData (presets and free planes)."""
         return self.data_with_origins(sd, planes, surface_only)[0]
 
-    def data_with_origins(self, sd: SceneData, planes: dict, surface_only=False) -> tuple[dict, dict]:
-        """``data`` and, per feature, each point's ``contours.Origin`` (same order)."""
+    def data_with_origins(self, sd: SceneData, planes: dict, surface_only=False,
+                          left_out: list | None = None) -> tuple[dict, dict]:
+        """``data`` and, per feature, each point's ``contours.Origin`` (same order).
+        ``left_out``: appended the drawn vertices left out (``contours.StrayVertex``)."""
         parts: dict[str, list] = {}
         whence: dict[str, list] = {}
         gone = {(str(f), *np.round([x, y, z], 6)) for x, y, z, f in self.excluded}
@@ -86,7 +88,8 @@ class Session:
                     add(name, pts, [Origin(OriginKind.PLANE, plane=i)] * len(pts))
             for c in self.contours:
                 origins: dict = {}
-                for name, pts in contour_points(sd.probe, planes[c.plane].probe_to_tracker, c, origins).items():
+                for name, pts in contour_points(sd.probe, planes[c.plane].probe_to_tracker, c, origins,
+                                                left_out).items():
                     add(name, pts, origins[name])
         return {k: np.vstack(v) for k, v in parts.items()}, whence
 
