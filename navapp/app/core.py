@@ -257,6 +257,10 @@ class Core:
     def notify(self, title: str, body: str, error: bool = False):
         self.each_view(lambda v: v.notify(title, body, error))
 
+    def withdraw(self, title: str):
+        """Take down every tab's red box of this title (its condition no longer holds)."""
+        self.each_view(lambda v: v.withdraw(title))
+
     def set_stage(self, text: str, fraction: float | None = None):
         self.stage, self.stage_fraction = text, fraction
         self.each_view(lambda v: v.refresh(Change.STATUS))

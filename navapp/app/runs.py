@@ -172,17 +172,7 @@ class Runs:
             if entry.error_mean_mm is not None else ""))
         if not stopped:
             self._send(reg, f"row {len(log)}")
-        if stopped:
-            core.notify("Registration", "Cancelled: the previous result is kept.")
-        elif entry.warning and entry.warning.strip() == (result.pose_warning or "").strip():
-            # said already, pinned over the 3D view while the pose is on show (``ClientView._pose_alert``):
-            # a second red box with the same words covered more of the liver at 1366 × 768
-            if any(w.rejected for w in worst):
-                core.notify("Registration", _left_out(worst).strip())
-        elif entry.warning:
-            core.notify("Registration: check the fit", fit_notice(reg.warnings, entry.pose_only, worst), error=True)
-        elif any(w.rejected for w in worst):
-            core.notify("Registration", _left_out(worst).strip())
+        tell(core, entry, None if stopped else result.pose_warning, reg.warnings, worst)
 
     def _send(self, reg: Registration, what: str):
         if self.slicer.sender is not None:
@@ -289,6 +279,29 @@ class Runs:
         core.changed(Change.RUN)
         core.record(cs, Act.ACCURACY, f"{sum(len(v) for v in data.values())} points")
         return None
+
+
+CHECK_THE_FIT = "Registration: check the fit"  # the red box's title after a run that warned
+
+
+def tell(core: Core, entry: RunEntry, pose_warning: str | None, warnings: list[str], worst: list[WorstPoint]):
+    """What the surgeon is told when a run ends (``entry``: its row; ``pose_warning``: the result's
+    pinned one, None when cancelled). The red box of an earlier run that warned goes when a
+    run's result without a warning replaces it: it stayed over the 3D view beside a clean row."""
+    if entry.cancelled:
+        core.notify("Registration", "Cancelled: the previous result is kept.")
+        return
+    if entry.warning and entry.warning.strip() == (pose_warning or "").strip():
+        # said already, pinned over the 3D view while the pose is on show (``ClientView._pose_alert``):
+        # a second red box with the same words covered more of the liver at 1366 × 768
+        core.withdraw(CHECK_THE_FIT)
+    elif entry.warning:
+        core.notify(CHECK_THE_FIT, fit_notice(warnings, entry.pose_only, worst), error=True)
+        return
+    else:
+        core.withdraw(CHECK_THE_FIT)
+    if any(w.rejected for w in worst):
+        core.notify("Registration", _left_out(worst).strip())
 
 
 NOTICE_HEAD = 90

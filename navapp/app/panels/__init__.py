@@ -200,6 +200,12 @@ class ClientView:
         else:
             self.client.add_notification(title, body, auto_close_seconds=6.0)
 
+    def withdraw(self, title):
+        """Remove the red box of this title, if shown (``notify``)."""
+        old = self._errors.pop(title, None)
+        if old is not None:
+            old.remove()
+
     def show_stylus(self, pos):
         self.layers.show_stylus(pos)
         self.stylus.show_tip(pos)
