@@ -25,7 +25,7 @@ def test_a_deformable_run_answered_with_its_pose_says_so_in_a_short_box(small_mo
     assert entry.pose_only and RunEntry.from_json(entry.to_json()).pose_only
     assert not RunEntry.of(RunKind.RIGID, reg, 10, 1.0).pose_only  # a rigid run asked for no deformation
 
-    notice = fit_notice(reg.warnings, entry.pose_only, [])
+    notice = fit_notice(reg.warnings, entry.pose_only)
     whole = "; ".join(reg.warnings)
     assert notice.startswith("⚠ ") and "; deformation not determined by the data." in notice, notice
     assert "Shown: the pose alone" in notice and len(notice) < 300 < len(whole), (notice, whole)

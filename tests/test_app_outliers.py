@@ -75,6 +75,15 @@ def test_a_stray_vertex_is_rejected_listed_first_and_removable(app):
     finally:
         app.core.notify = notify
     assert any("left out of the fit" in s for s in said), said  # the surgeon is told, not only the list
+    # ... and told how many: the spike's pixels the fit gave no weight, not the listed clicks (it
+    # said "1 data point was left out" while the posterior points went from 196 to 417)
+    from navapp.app.worker import viewer_options
+    from navapp.registration.residuals import point_residuals
+
+    res = point_residuals(app.core.last_reg, viewer_options().weights)
+    n_out = sum(p.rejected for p in res)
+    assert n_out > 20 and any(f"{n_out:,} of {len(res):,} data points were left out" in s for s in said), \
+        (n_out, said)
     # measured: +0.7 mm mean with rejection, +4.4 mm without (5.1 -> 9.5 mm)
     assert with_stray.error_mean_mm <= clean.error_mean_mm + 1.0, (clean, with_stray)
     assert with_stray.error_max_mm <= clean.error_max_mm + 3.0, (clean, with_stray)
