@@ -30,9 +30,9 @@ from ..registration.pipeline import Registration, prepare
 from ..simulation.scenedata import SceneData, load_scene_data
 from ..simulation.ultrasound import PlaneData
 from .access import Role
-from .actions import Act, ActionLog
+from .actions import Act, ActionLog, interrupted_run
 from .session import Session, default_folder, open_session
-from .state import Change, ClientState, RegisteredState, Run, WorstPoint
+from .state import Change, ClientState, RegisteredState, Run, RunEntry, WorstPoint
 
 if TYPE_CHECKING:
     from ..registration.model import RegistrationModel
@@ -53,6 +53,9 @@ ON_CONNECT = (Change.STATUS, Change.SCENE, Change.MODEL, Change.DATA, Change.PLA
 
 class NotReady(RuntimeError):
     """Shared state asked for before start-up has made it (a caller's missing check)."""
+
+
+INTERRUPTED = "interrupted"  # the stop of a run the server was killed in
 
 
 @dataclass(frozen=True)
@@ -273,6 +276,28 @@ class Core:
                          name="navapp-startup").start()
         return self.ready
 
+    def _interrupted(self):
+        """A run the last server was killed in leaves its row ("interrupted"), its end in the
+        action log and a word to the surgeon: it had left nothing, and the tab showed the
+        result before it as if nothing had been asked."""
+        actions, session = self.actions, self.session
+        assert actions is not None and session is not None
+        started = interrupted_run(actions.entries())
+        if started is None:
+            return
+        what, _, count = started.detail.rpartition(", ")
+        points = int(count.split()[0]) if count.split() and count.split()[0].isdigit() else 0
+        with self.lock:
+            session.log.append(RunEntry(what or started.detail, points, 0.0, 0, INTERRUPTED, cancelled=True,
+                                        note=INTERRUPTED))
+        self.changed(Change.LOG)
+        self.record(None, Act.FINISHED, f"{INTERRUPTED}: the server stopped during the run started {started.time}")
+        said = (f"The registration started at {started.time[11:19]} UTC ({started.detail}) was interrupted: the "
+                "server stopped while it ran, and it left no result. The result on show is the one before it; "
+                "register again.")
+        self._say(said)
+        self.notify("Session", said, error=True)
+
     def _say(self, line: str):
         if self.log is not None:
             self.log(line)
@@ -311,6 +336,7 @@ class Core:
             actions = ActionLog(folder)
             with self.lock:
                 self.sd, self.session, self.planes, self.actions = sd, session, planes, actions
+            self._interrupted()
             self.changed(Change.SCENE)
             on_loaded(loaded)
             begin(f"Building the registration model (mesh at {self.edge:g} mm, basis of k = {self.k} "

@@ -6,6 +6,7 @@ from html import escape
 
 import numpy as np
 
+from ..core import INTERRUPTED
 from ..runs import WORST_SHOWN
 from ..state import Change, RunKind
 from ..worker import Update
@@ -230,7 +231,8 @@ class RegistrationPanel:
             mx = f"{e.error_max_mm:.2f}" if e.error_max_mm is not None else "–"
             tumours = " / ".join(f"{e.targets_mm[n]:.1f}" for n in names if n in e.targets_mm) if e.targets_mm else "–"
             # "cancelled" in the run's own cell: the last column is narrow and cut it to "cance"
-            run = f"{escape(e.run)}, <b>cancelled</b>" if e.cancelled else escape(e.run)
+            run = f"{escape(e.run)}, <b>{'interrupted' if e.stop == INTERRUPTED else 'cancelled'}</b>" \
+                if e.cancelled else escape(e.run)
             note = "" if e.cancelled else ("⚠ pose only" if e.pose_only else "⚠" if e.warning else e.note)
             rows.append([str(i), run, str(e.points), f"{e.seconds:.1f}", its, mean, mx, tumours, escape(note or "")])
         self.table.content = run_table_html(head, rows)
