@@ -144,7 +144,9 @@ class Drawing:
             here = target == cs.plane
             if here:
                 cs.feature = name
-                cs.left.pop(target, None)  # back on this plane: its next click starts a new contour
+                back = cs.left.pop(target, None)  # back on this plane: the contour left here goes on
+                if cs.drawing is None and open_here(back):
+                    cs.drawing = back
             c = cs.drawing if here else cs.left.get(target)
             if not open_here(c):
                 c = Contour(target, kind)
