@@ -223,6 +223,10 @@ class ClientView:
 
     def show_live_frame(self, frame):
         link = self.app.live.link
+        if frame is None:  # the probe's stream is lost: its plane is not drawn where it was last seen
+            if self.tracking.follow.value:
+                self.layers.lose_live_probe()
+            return
         if self.tracking.follow.value and link is not None:
             plane = link.frozen_plane(-1)
             if plane is not None:
