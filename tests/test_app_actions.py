@@ -214,3 +214,33 @@ def test_back_on_a_plane_left_mid_contour_the_next_click_continues_it(app):
     mine = [x for x in app.core.session.contours if x.plane == 0 and x.feature == "hepatic_contour"]
     assert mine == [c] and c.vertices == [(60, 60), (90, 60), (90, 90)] and c.closed
     assert app.drawing.command(cs, "Clear plane") is None  # leaves the module's scene as it was
+
+
+def test_a_tab_gets_its_plane_contour_and_undo_back_after_a_restart(app, cache_root):
+    """Issue 50, item 5: after a kill -9 and a restart the open tab fell back to plane 1 and lost
+    its unfinished contour and its undo history (they were in memory only). They are written
+    into the session folder (``tabs.json``, atomically) with every change; here a second server
+    opens the folder while the first still runs, as a kill -9 leaves it."""
+    core = app.core
+    cs = core.new_client_state(11)
+    assert app.imaging.show(cs, 1)
+    for col, row in ((50, 200), (80, 200), (80, 230)):
+        assert app.drawing.click(cs, col, row, "PV contour") is None
+    assert app.drawing.command(cs, "Close") is None
+    for col, row in ((150, 200), (180, 200)):
+        assert app.drawing.click(cs, col, row, "HV contour") is None
+    again = start_app(SCENE, cache_root, core.session.folder)
+    try:
+        back = again.core.new_client_state(12)
+        assert again.core.resume(back, cs.token) is None  # the page names the tab it was
+        assert back.plane == 1 and back.feature == "HV contour"
+        assert back.drawing is not None and back.drawing.vertices == [(150, 200), (180, 200)]
+        assert again.drawing.click(back, 180, 230) is None and back.drawing.vertices[-1] == (180, 230)
+        assert len([c for c in again.core.session.contours if c.plane == 1]) == 2  # continued, not a third
+        for _ in range(4):  # the new vertex, the two before the restart, then the close
+            assert again.drawing.command(back, "Undo") is None
+        pv = next(c for c in again.core.session.contours if c.feature == "portal_contour" and c.plane == 1)
+        assert not pv.closed and pv.vertices == [(50, 200), (80, 200), (80, 230)]
+    finally:
+        stop_app(again)
+    assert app.drawing.command(cs, "Clear plane") is None  # leaves the module's scene as it was

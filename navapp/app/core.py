@@ -31,7 +31,7 @@ from ..simulation.scenedata import SceneData, load_scene_data
 from ..simulation.ultrasound import PlaneData
 from .access import Role
 from .actions import Act, ActionLog, interrupted_run
-from .session import Session, default_folder, open_session
+from .session import Session, default_folder, open_session, write_tabs
 from .state import Change, ClientState, RegisteredState, Run, RunEntry, WorstPoint
 
 if TYPE_CHECKING:
@@ -115,6 +115,8 @@ class Core:
         self.states: dict[str, ClientState] = {}  # token → per-browser state
         # tabs gone (closed or reloading), kept so that a reload can take its work back (``resume``)
         self.parked: dict[str, ClientState] = {}
+        # each editing tab's own work as JSON, for the session folder (``drawing.Drawing.tabs_json``)
+        self.tab_state: Callable[[], dict] | None = None
         self.views: dict[int, Any] = {}  # client_id → panels.ClientView
         self._pending: list[Change] = []  # view refreshes not yet done, coalesced
         self._pending_cv = threading.Condition()
@@ -232,6 +234,7 @@ class Core:
             self.version += 1
             if self.session is not None and self.sd is not None and what in SAVED:
                 self.session.save(self.sd, self.planes)
+                self.save_tabs()
         with self._pending_cv:
             if what not in self._pending:
                 self._pending.append(what)
@@ -275,6 +278,13 @@ class Core:
         threading.Thread(target=self._start_up, args=(on_loaded, on_ready), daemon=True,
                          name="navapp-startup").start()
         return self.ready
+
+    def save_tabs(self):
+        """Write each editing tab's own work into the session folder (``session.write_tabs``)."""
+        with self.lock:
+            if self.tab_state is None or self.session is None or not self.session.written:
+                return
+            write_tabs(self.session.folder, self.tab_state())
 
     def _interrupted(self):
         """A run the last server was killed in leaves its row ("interrupted"), its end in the

@@ -85,6 +85,7 @@ class Imaging:
                 # there left the old one as an open line nobody meant to draw)
                 cs.drawing = back
             cs.touch()
+        core.save_tabs()  # the plane the tab shows is its own work too
         core.refresh_view(cs, Change.PLANE)
         return True
 

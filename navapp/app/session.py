@@ -336,3 +336,26 @@ def export(folder: Path, reg, sd: SceneData, data: dict) -> list[Path]:
     (folder / "exported.json").write_text(json.dumps({"time": time.strftime("%Y-%m-%d %H:%M:%S"),
                                                       "files": [p.name for p in written]}, indent=1))
     return written
+
+
+TABS_FILE = "tabs.json"  # each tab's own work (``write_tabs``): its plane, contour in progress, undo
+
+
+def write_tabs(folder: Path, tabs: dict) -> None:
+    """Write ``tabs`` (token → a tab's JSON, ``tabs.Tab``) into the session folder atomically:
+    a server killed mid-contour gives the tab its plane, its unfinished contour and its undo
+    history back when it reconnects (they were in memory only, and the tab fell back to plane 1)."""
+    if not folder.is_dir():
+        return
+    tmp = folder / f".{TABS_FILE}.{os.getpid()}.tmp"
+    tmp.write_text(json.dumps(tabs))
+    os.replace(tmp, folder / TABS_FILE)
+
+
+def read_tabs(folder: Path) -> dict:
+    """``write_tabs``' dict, or {} (none written, or unreadable: the tabs start afresh)."""
+    try:
+        d = json.loads((folder / TABS_FILE).read_text())
+    except (OSError, ValueError):
+        return {}
+    return d if isinstance(d, dict) else {}
