@@ -144,3 +144,103 @@ def test_a_failed_run_is_logged_as_finished_with_its_reason(app):
     last = lines(app.core.session.folder)[-1]
     assert (last["tab"], last["action"], last["detail"]) == ("server", "run finished",
                                                              "failed: the data are degenerate")
+
+
+KILLED_MID_RUN = """
+import sys, time
+from pathlib import Path
+sys.path.insert(0, {tests!r})
+from conftest import start_app
+from navapp.app.state import RunKind
+app = start_app({scene!r}, Path({cache!r}), Path({folder!r}))
+cs = app.core.new_client_state(1)
+app.stylus.collect_now()
+assert app.runs.start(RunKind.ALL, cs) is None
+while app.core.run is None or app.core.run.streamed < 1:
+    time.sleep(0.01)
+print("running", flush=True)
+time.sleep(600)
+"""
+
+
+def test_a_run_the_server_was_killed_in_leaves_an_interrupted_row(cache_root, tmp_path):
+    """Issue 50, item 5: kill -9 of the server while a run went left no row and no message."""
+    from pathlib import Path
+
+    folder = tmp_path / "sess"
+    script = KILLED_MID_RUN.format(tests=str(Path(__file__).parent), scene=SCENE, cache=str(cache_root),
+                                   folder=str(folder))
+    proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.PIPE, text=True)
+    try:
+        for line in proc.stdout:  # viser's banner comes first
+            if line.strip() == "running":
+                break
+        else:
+            pytest.fail("the server never ran the registration")
+    finally:
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(30)
+    said = []
+    again = start_app(SCENE, cache_root, folder)
+    try:
+        last = again.core.session.log[-1]
+        assert last.run == "deformable, all data" and last.stop == "interrupted" and last.cancelled, last
+        assert last.points > 100
+        assert [x["action"] for x in lines(folder)][-2:] == ["run started", "run finished"]
+        assert lines(folder)[-1]["detail"].startswith("interrupted")
+        again.core.notify = lambda title, body, error=False: said.append(body)
+    finally:
+        stop_app(again)
+    # a second restart adds nothing more: the run has its end now
+    third = start_app(SCENE, cache_root, folder)
+    try:
+        assert [e.stop for e in third.core.session.log].count("interrupted") == 1
+    finally:
+        stop_app(third)
+
+
+def test_back_on_a_plane_left_mid_contour_the_next_click_continues_it(app):
+    """Issue 50, item 5: coming back to a plane with an unfinished contour started a new contour
+    and left the old one as an open line."""
+    cs = app.core.new_client_state(7)
+    assert app.imaging.show(cs, 0)
+    for col, row in ((60, 60), (90, 60)):
+        assert app.drawing.click(cs, col, row, "HV contour") is None
+    c = cs.drawing
+    assert app.imaging.show(cs, 1) and cs.drawing is None
+    assert app.imaging.show(cs, 0) and cs.drawing is c
+    assert app.drawing.click(cs, 90, 90, "HV contour") is None
+    assert app.drawing.command(cs, "Close") is None
+    mine = [x for x in app.core.session.contours if x.plane == 0 and x.feature == "hepatic_contour"]
+    assert mine == [c] and c.vertices == [(60, 60), (90, 60), (90, 90)] and c.closed
+    assert app.drawing.command(cs, "Clear plane") is None  # leaves the module's scene as it was
+
+
+def test_a_tab_gets_its_plane_contour_and_undo_back_after_a_restart(app, cache_root):
+    """Issue 50, item 5: after a kill -9 and a restart the open tab fell back to plane 1 and lost
+    its unfinished contour and its undo history (they were in memory only). They are written
+    into the session folder (``tabs.json``, atomically) with every change; here a second server
+    opens the folder while the first still runs, as a kill -9 leaves it."""
+    core = app.core
+    cs = core.new_client_state(11)
+    assert app.imaging.show(cs, 1)
+    for col, row in ((50, 200), (80, 200), (80, 230)):
+        assert app.drawing.click(cs, col, row, "PV contour") is None
+    assert app.drawing.command(cs, "Close") is None
+    for col, row in ((150, 200), (180, 200)):
+        assert app.drawing.click(cs, col, row, "HV contour") is None
+    again = start_app(SCENE, cache_root, core.session.folder)
+    try:
+        back = again.core.new_client_state(12)
+        assert again.core.resume(back, cs.token) is None  # the page names the tab it was
+        assert back.plane == 1 and back.feature == "HV contour"
+        assert back.drawing is not None and back.drawing.vertices == [(150, 200), (180, 200)]
+        assert again.drawing.click(back, 180, 230) is None and back.drawing.vertices[-1] == (180, 230)
+        assert len([c for c in again.core.session.contours if c.plane == 1]) == 2  # continued, not a third
+        for _ in range(4):  # the new vertex, the two before the restart, then the close
+            assert again.drawing.command(back, "Undo") is None
+        pv = next(c for c in again.core.session.contours if c.feature == "portal_contour" and c.plane == 1)
+        assert not pv.closed and pv.vertices == [(50, 200), (80, 200), (80, 230)]
+    finally:
+        stop_app(again)
+    assert app.drawing.command(cs, "Clear plane") is None  # leaves the module's scene as it was

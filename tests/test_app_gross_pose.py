@@ -72,3 +72,21 @@ def test_a_patch_or_one_wall_gives_a_red_pose_warning_and_is_not_continued(app):
     follower._base()
     assert follower.reg.last is app.core.last_reg
     assert run_to_end(app, RunKind.WARM).run == RunKind.WARM.label
+
+
+def test_a_deformable_fit_on_a_pose_nobody_should_believe_gives_no_tumour_figure(app):
+    """Issue 50, item 2: on a gross pose the tumour bands read "predicted error 451.6 mm
+    (48.6–1696.5)" (here 202 and 31 mm beside true 39 and 133 mm): a figure off by more than
+    3× either way. The calibration says nothing at a point whose pose is 100 mm off; the band
+    says what to do instead."""
+    from navapp.app.shown import NO_TARGET_FIGURE
+
+    sd = app.core.sd
+    ant = sd.stylus_path[sd.stylus_labels == "anterior"]
+    only(app, live_points=ant[np.argsort(np.linalg.norm(ant - ant[0], axis=1))[:40]])
+    run_to_end(app, RunKind.SURFACE)
+    res = app.core.result
+    assert res.pose_warning and res.target_bands
+    for b in res.target_bands:
+        assert not np.isfinite(b.predicted_mm) and b.warning == NO_TARGET_FIGURE, b
+        assert "mm" not in b.text() and "register again" in b.text()

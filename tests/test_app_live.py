@@ -184,10 +184,14 @@ class TipRecorder:
         import threading
 
         self.tips = []
+        self.frames = []  # the live frames shown (None: taken away)
         self.lock = threading.RLock()  # as a view's (``ClientView.lock``)
 
     def show_live_tip(self, tip):
         self.tips.append(None if tip is None else np.array(tip))
+
+    def show_live_frame(self, frame):
+        self.frames.append(frame)
 
     def refresh(self, what):
         pass
@@ -196,14 +200,14 @@ class TipRecorder:
 CHROMIUM = "/usr/bin/chromium"
 
 
-def stylus_updates(frame) -> list:
-    """("position", xyz) / ("visible", bool) for the stylus node, in the order one viser
-    websocket frame carries them (layout: test_app_browser.registered_liver_updates)."""
+def stylus_updates(frame, node="/stylus/tool") -> list:
+    """("position", xyz) / ("visible", bool) for the stylus node (or ``node``), in the order one
+    viser websocket frame carries them (layout: test_app_browser.registered_liver_updates)."""
     from conftest import viser_messages
 
     out = []
     for m in viser_messages(frame):
-        if m.get("name") == "/stylus/tool":
+        if m.get("name") == node:
             if m.get("type") == "SetPositionMessage":
                 out.append(("position", tuple(m["position"])))
             elif m.get("type") == "SetSceneNodeVisibilityMessage":
@@ -241,11 +245,20 @@ def test_a_lost_stylus_is_hidden_blanked_and_bannered(live_app, tmp_path):
             page.goto(app.url)
             wait_text(page, r"mm from the stylus tip", deadline)
             page.screenshot(path=shots / "truth_stylus_tracked.png")
+        assert wait_until(lambda: rec.frames and rec.frames[-1] is not None)  # the probe's frames are drawn
+        t0 = time.monotonic()
         server.stop()
         assert wait_until(lambda: app.live.tip is None)
+        t_lost = time.monotonic() - t0
         n_hidden = len(rec.tips)
+        assert wait_until(lambda: app.live.link.lost is not None and "missing" in app.live.link.lost, 10)
+        t_missing = time.monotonic() - t0
+        print(f"stylus lost after {t_lost:.2f} s, 'missing' after {t_missing:.2f} s (stale 0.2, missing 1 s)")
         time.sleep(2.0)  # 40 pump ticks
         assert app.live.tip is None
+        # issue 50, item 3: the probe is not drawn at its last pose with its image once its stream is gone
+        assert rec.frames[-1] is None and app.live.link.frame is None, rec.frames[-3:]
+        assert "probe's stream is lost" in app.live.freeze_frame(app.core.new_client_state(-27))
         assert rec.tips[n_hidden - 1] is None and all(t is None for t in rec.tips[n_hidden:]), \
             "the lost stylus was drawn again"
         assert app.live.link.lost is not None and "no tumour distances" in app.live.link.lost
@@ -264,6 +277,9 @@ def test_a_lost_stylus_is_hidden_blanked_and_bannered(live_app, tmp_path):
             # the tool itself is hidden in the 3D view: the last word on /stylus/tool is "not visible"
             said = [u for _, f in frames for u in stylus_updates(f)]
             assert said and said[-1] == ("visible", False), said[-5:]
+            # ... and so is the probe whose stream went with it (issue 50, item 3)
+            probe = [u for _, f in frames for u in stylus_updates(f, "/probe") if u[0] == "visible"]
+            assert probe and probe[-1] == ("visible", False), probe[-5:]
     finally:
         with app.core.lock:
             app.core.views.pop(-26, None)

@@ -25,7 +25,7 @@ def test_a_deformable_run_answered_with_its_pose_says_so_in_a_short_box(small_mo
     assert entry.pose_only and RunEntry.from_json(entry.to_json()).pose_only
     assert not RunEntry.of(RunKind.RIGID, reg, 10, 1.0).pose_only  # a rigid run asked for no deformation
 
-    notice = fit_notice(reg.warnings, entry.pose_only, [])
+    notice = fit_notice(reg.warnings, entry.pose_only)
     whole = "; ".join(reg.warnings)
     assert notice.startswith("⚠ ") and "; deformation not determined by the data." in notice, notice
     assert "Shown: the pose alone" in notice and len(notice) < 300 < len(whole), (notice, whole)
@@ -177,3 +177,33 @@ def test_the_error_curve_is_the_run_on_show():
     core.result = states[0]
     RegistrationPanel._plot_shown(panel)
     assert list(panel.plot.data[1]) == [0.0]
+
+
+def test_a_clean_run_takes_down_the_red_box_of_a_warned_one():
+    """Issue 50, item 3: "Registration: check the fit … 1 data point was left out" stayed over the
+    3D view after a clean re-run whose row had no ⚠."""
+    from navapp.app.core import Core
+    from navapp.app.runs import CHECK_THE_FIT, tell
+
+    shown = []
+
+    class Box:
+        def __init__(self, title, body, **kw):
+            self.title, self.body, self.red = title, body, kw.get("color") == "red"
+            shown.append(self)
+
+        def remove(self):
+            shown.remove(self)
+
+    view = ClientView.__new__(ClientView)
+    view.client, view._errors = types.SimpleNamespace(add_notification=Box), {}
+    core = Core.__new__(Core)
+    core.each_view = lambda fn: fn(view)
+    warned = types.SimpleNamespace(cancelled=False, warning="poor fit: posterior 6.1 mm RMS", pose_only=False)
+    clean = types.SimpleNamespace(cancelled=False, warning=None, pose_only=False)
+    tell(core, warned, None, ["poor fit: posterior 6.1 mm RMS (expected ≤ 3.0)"], [])
+    assert [b.title for b in shown if b.red] == [CHECK_THE_FIT]
+    tell(core, types.SimpleNamespace(cancelled=True), None, [], [])  # the warned result stays on show
+    assert [b.title for b in shown if b.red] == [CHECK_THE_FIT]
+    tell(core, clean, None, [], [])
+    assert not [b for b in shown if b.red], [(b.title, b.body) for b in shown]

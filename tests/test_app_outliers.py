@@ -49,6 +49,20 @@ def wall(app):
     pytest.fail("no plane of the scene shows enough posterior wall")
 
 
+def believable(app, entry, low=0.5, high=3.0):
+    """Issue 50, item 2: every predicted error of the result on show within [low, high] × the true
+    one — over the organ (the fit's own check, ``Registration.organ``: 17 mm beside a true 5.0 with
+    a stray posterior vertex, as it was made with least-squares weights), at the surface and at
+    each tumour."""
+    res, reg = app.core.result, app.core.last_reg
+    surf = app.core.model.basis.surface
+    ratios = {"organ": reg.organ.mean_mm / entry.error_mean_mm,
+              "surface": float(res.predicted_mm.mean() / res.node_error_mm[surf].mean())}
+    ratios.update({b.name: b.predicted_mm / entry.targets_mm[b.name] for b in res.target_bands})
+    assert all(low <= r <= high for r in ratios.values()), ratios
+    assert not any("predicted error over the organ" in w for w in reg.warnings), reg.warnings
+
+
 def test_a_stray_vertex_is_rejected_listed_first_and_removable(app):
     app.stylus.collect_now()
     plane, verts = wall(app)
@@ -75,12 +89,22 @@ def test_a_stray_vertex_is_rejected_listed_first_and_removable(app):
     finally:
         app.core.notify = notify
     assert any("left out of the fit" in s for s in said), said  # the surgeon is told, not only the list
+    # ... and told how many: the spike's pixels the fit gave no weight, not the listed clicks (it
+    # said "1 data point was left out" while the posterior points went from 196 to 417)
+    from navapp.app.worker import viewer_options
+    from navapp.registration.residuals import point_residuals
+
+    res = point_residuals(app.core.last_reg, viewer_options().weights)
+    n_out = sum(p.rejected for p in res)
+    assert n_out > 20 and any(f"{n_out:,} of {len(res):,} data points were left out" in s for s in said), \
+        (n_out, said)
     # measured: +0.7 mm mean with rejection, +4.4 mm without (5.1 -> 9.5 mm)
     assert with_stray.error_mean_mm <= clean.error_mean_mm + 1.0, (clean, with_stray)
     assert with_stray.error_max_mm <= clean.error_max_mm + 3.0, (clean, with_stray)
     # the predicted error is made with the fit's weights: the rejected spike does not inflate it
     bands = {b.name: b.predicted_mm for b in app.core.result.target_bands}
     assert bands and all(bands[n] <= 1.5 * clean_bands[n] for n in bands), (clean_bands, bands)
+    believable(app, with_stray)
 
     worst = app.core.worst
     assert worst, "the stray vertex is not listed"
@@ -122,3 +146,74 @@ def test_point_residuals_name_every_point(small_model):
     assert res[0].index == 60 and res[0].residual_mm > 12 and res[0].rejected
     assert not any(p.rejected for p in res[1:])
     assert all(a.residual_mm >= b.residual_mm for a, b in zip(res, res[1:], strict=False))
+
+
+def ring(app, plane, feature, n=8):
+    """``n`` vertices around the lumen of ``feature`` (a vessel contour) on ``plane``, as a
+    surgeon clicks them: the simulated contour's pixels nearest n equally spaced angles."""
+    probe = app.core.sd.probe
+    cols, rows, _ = tracker_to_pixels(probe, app.core.planes[plane].probe_to_tracker,
+                                      app.core.planes[plane].features[feature])
+    ang = np.arctan2(rows - rows.mean(), cols - cols.mean())
+    out = []
+    for a in np.linspace(-np.pi, np.pi, n, endpoint=False):
+        j = int(np.argmin(np.abs(np.angle(np.exp(1j * (ang - a))))))
+        out.append((int(round(cols[j])), int(round(rows[j]))))
+    return out
+
+
+def vessel_plane(app):
+    """A plane showing one compact portal and one compact hepatic lumen."""
+    probe = app.core.sd.probe
+    for i, plane in sorted(app.core.planes.items()):
+        ok = True
+        for f in ("portal_contour", "hepatic_contour"):
+            pts = plane.features.get(f)
+            if pts is None or not 40 <= len(pts) <= 200:
+                ok = False
+                break
+            cols, rows, _ = tracker_to_pixels(probe, plane.probe_to_tracker, pts)
+            ok = ok and np.ptp(cols) < 80 and np.ptp(rows) < 80 and rows.min() > STRAY_MM / probe.spacing_mm + 5
+        if ok:
+            return i
+    pytest.fail("no plane of the scene shows a portal and a hepatic lumen")
+
+
+def test_a_stray_vessel_contour_vertex_is_left_out_and_listed(app):
+    """A closed PV or HV contour with one vertex STRAY_MM off its lumen: the vertex is left out
+    before the fit (a vessel tree has a branch near most places, so its spike's residuals stay
+    under the cut: the portal case dragged the fit 5.3 -> 9.3 mm mean without this), listed
+    first as not used, and the surgeon is told."""
+    app.stylus.collect_now()
+    plane = vessel_plane(app)
+    cs = app.core.new_client_state()
+    app.imaging.show(cs, plane)
+    drawn = {}
+    for words, feature in (("PV contour", "portal_contour"), ("HV contour", "hepatic_contour")):
+        for c, r in ring(app, plane, feature):
+            assert app.drawing.click(cs, c, r, words) is None
+        assert app.drawing.command(cs, "Close") is None
+        drawn[feature] = app.core.session.contours[-1]
+    clean = register(app)
+    assert not any(w.origin.contour in drawn.values() for w in app.core.worst)
+    step = int(STRAY_MM / app.core.sd.probe.spacing_mm)
+    for feature, contour in drawn.items():
+        good = contour.vertices[2]
+        stray = (good[0], good[1] - step)  # towards the probe, off the lumen
+        contour.vertices[2] = stray
+        said = []
+        notify = app.core.notify
+        app.core.notify = lambda title, body, error=False, said=said: said.append(body)
+        try:
+            with_stray = register(app)
+        finally:
+            app.core.notify = notify
+        contour.vertices[2] = good
+        assert with_stray.error_mean_mm <= clean.error_mean_mm + 1.0, (feature, clean, with_stray)
+        assert with_stray.error_max_mm <= clean.error_max_mm + 3.0, (feature, clean, with_stray)
+        top = app.core.worst[0]
+        assert top.origin.contour is contour and top.vertex == 2 and top.rejected, (feature, app.core.worst)
+        assert top.residual_mm > 15 and f"({stray[0]}, {stray[1]})" in top.text()
+        assert not any(w.origin.contour is contour and w.vertex != 2 for w in app.core.worst)
+        assert any("left out of the fit" in s for s in said), said
+        believable(app, with_stray)

@@ -130,3 +130,13 @@ class ActionLog:
     def entries(self) -> list[Entry]:
         with self._lock:
             return list(self._entries)
+
+
+def interrupted_run(entries: list[Entry]) -> Entry | None:
+    """The last run started with no end after it (the server was killed while it ran), or None."""
+    for e in reversed(entries):
+        if e.act is Act.FINISHED:
+            return None
+        if e.act is Act.RUN:
+            return e
+    return None

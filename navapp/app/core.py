@@ -30,9 +30,9 @@ from ..registration.pipeline import Registration, prepare
 from ..simulation.scenedata import SceneData, load_scene_data
 from ..simulation.ultrasound import PlaneData
 from .access import Role
-from .actions import Act, ActionLog
-from .session import Session, default_folder, open_session
-from .state import Change, ClientState, RegisteredState, Run, WorstPoint
+from .actions import Act, ActionLog, interrupted_run
+from .session import Session, default_folder, open_session, write_tabs
+from .state import Change, ClientState, RegisteredState, Run, RunEntry, WorstPoint
 
 if TYPE_CHECKING:
     from ..registration.model import RegistrationModel
@@ -53,6 +53,9 @@ ON_CONNECT = (Change.STATUS, Change.SCENE, Change.MODEL, Change.DATA, Change.PLA
 
 class NotReady(RuntimeError):
     """Shared state asked for before start-up has made it (a caller's missing check)."""
+
+
+INTERRUPTED = "interrupted"  # the stop of a run the server was killed in
 
 
 @dataclass(frozen=True)
@@ -112,6 +115,8 @@ class Core:
         self.states: dict[str, ClientState] = {}  # token → per-browser state
         # tabs gone (closed or reloading), kept so that a reload can take its work back (``resume``)
         self.parked: dict[str, ClientState] = {}
+        # each editing tab's own work as JSON, for the session folder (``drawing.Drawing.tabs_json``)
+        self.tab_state: Callable[[], dict] | None = None
         self.views: dict[int, Any] = {}  # client_id → panels.ClientView
         self._pending: list[Change] = []  # view refreshes not yet done, coalesced
         self._pending_cv = threading.Condition()
@@ -139,11 +144,12 @@ class Core:
             sd, session = self.need_scene()
             return session.data(sd, self.planes, surface_only=surface_only)
 
-    def data_with_origins(self, surface_only: bool = False) -> tuple[dict, dict]:
-        """``data`` and each point's ``contours.Origin`` per feature."""
+    def data_with_origins(self, surface_only: bool = False, left_out: list | None = None) -> tuple[dict, dict]:
+        """``data`` and each point's ``contours.Origin`` per feature; ``left_out``: appended the
+        drawn vertices left out before the fit (``contours.StrayVertex``)."""
         with self.lock:
             sd, session = self.need_scene()
-            return session.data_with_origins(sd, self.planes, surface_only=surface_only)
+            return session.data_with_origins(sd, self.planes, surface_only=surface_only, left_out=left_out)
 
     # ------------------------------------------------------------------ browsers
     def new_client_state(self, client_id: int = -1, role: Role = Role.EDITOR) -> ClientState:
@@ -228,6 +234,7 @@ class Core:
             self.version += 1
             if self.session is not None and self.sd is not None and what in SAVED:
                 self.session.save(self.sd, self.planes)
+                self.save_tabs()
         with self._pending_cv:
             if what not in self._pending:
                 self._pending.append(what)
@@ -256,6 +263,10 @@ class Core:
     def notify(self, title: str, body: str, error: bool = False):
         self.each_view(lambda v: v.notify(title, body, error))
 
+    def withdraw(self, title: str):
+        """Take down every tab's red box of this title (its condition no longer holds)."""
+        self.each_view(lambda v: v.withdraw(title))
+
     def set_stage(self, text: str, fraction: float | None = None):
         self.stage, self.stage_fraction = text, fraction
         self.each_view(lambda v: v.refresh(Change.STATUS))
@@ -267,6 +278,35 @@ class Core:
         threading.Thread(target=self._start_up, args=(on_loaded, on_ready), daemon=True,
                          name="navapp-startup").start()
         return self.ready
+
+    def save_tabs(self):
+        """Write each editing tab's own work into the session folder (``session.write_tabs``)."""
+        with self.lock:
+            if self.tab_state is None or self.session is None or not self.session.written:
+                return
+            write_tabs(self.session.folder, self.tab_state())
+
+    def _interrupted(self):
+        """A run the last server was killed in leaves its row ("interrupted"), its end in the
+        action log and a word to the surgeon: it had left nothing, and the tab showed the
+        result before it as if nothing had been asked."""
+        actions, session = self.actions, self.session
+        assert actions is not None and session is not None
+        started = interrupted_run(actions.entries())
+        if started is None:
+            return
+        what, _, count = started.detail.rpartition(", ")
+        points = int(count.split()[0]) if count.split() and count.split()[0].isdigit() else 0
+        with self.lock:
+            session.log.append(RunEntry(what or started.detail, points, 0.0, 0, INTERRUPTED, cancelled=True,
+                                        note=INTERRUPTED))
+        self.changed(Change.LOG)
+        self.record(None, Act.FINISHED, f"{INTERRUPTED}: the server stopped during the run started {started.time}")
+        said = (f"The registration started at {started.time[11:19]} UTC ({started.detail}) was interrupted: the "
+                "server stopped while it ran, and it left no result. The result on show is the one before it; "
+                "register again.")
+        self._say(said)
+        self.notify("Session", said, error=True)
 
     def _say(self, line: str):
         if self.log is not None:
@@ -306,6 +346,7 @@ class Core:
             actions = ActionLog(folder)
             with self.lock:
                 self.sd, self.session, self.planes, self.actions = sd, session, planes, actions
+            self._interrupted()
             self.changed(Change.SCENE)
             on_loaded(loaded)
             begin(f"Building the registration model (mesh at {self.edge:g} mm, basis of k = {self.k} "

@@ -8,11 +8,13 @@ never touches another tab's. No viser here.
 from __future__ import annotations
 
 import re
+import time
 from dataclasses import dataclass
 from enum import Enum
 
 import numpy as np
 
+from .access import Role
 from .actions import Act
 from .contours import Contour
 from .core import Core
@@ -117,6 +119,65 @@ class Command(Enum):
 class Drawing:
     def __init__(self, core: Core):
         self.core = core
+        core.tab_state = self.tabs_json
+
+    # ------------------------------------------------------------------ a tab's work across a restart
+    def tabs_json(self) -> dict:
+        """Each editing tab's own work (under ``Core.lock``): its plane, drawing tool, guide step,
+        the contour it is drawing and those it left unfinished on other planes (indices into the
+        session's contours) and its undo history of vertices and closes (``session.write_tabs``).
+        Other undoable actions (planes added, removals, recordings) are not carried over a restart."""
+        core = self.core
+        session = core.session
+        if session is None:
+            return {}
+
+        def index(c: Contour | None) -> int | None:
+            return next((i for i, x in enumerate(session.contours) if x is c), None)
+
+        out = {}
+        for cs in [*core.parked.values(), *core.states.values()]:
+            if cs.role is not Role.EDITOR or cs.successor is not None:
+                continue
+            undo = [[TAB_UNDO[type(a)], i] for a in cs.undo
+                    if isinstance(a, (VertexAdded, Closed)) and (i := index(a.contour)) is not None]
+            out[cs.token] = {"plane": cs.plane, "feature": cs.feature, "guide_step": cs.guide_step,
+                             "drawing": index(cs.drawing),
+                             "left": {str(p): index(c) for p, c in cs.left.items() if index(c) is not None},
+                             "undo": undo}
+        return out
+
+    def restore_tabs(self, tabs: dict) -> int:
+        """The tabs of ``tabs_json`` as parked tabs, each for its page to take back as a reload
+        (``Core.resume``): after a restart the tab goes on with its plane, its unfinished contour
+        and its undo history. Returns how many."""
+        core = self.core
+        session = core.need_session()
+        n = len(session.contours)
+
+        def contour(i) -> Contour | None:
+            return session.contours[i] if isinstance(i, int) and 0 <= i < n else None
+
+        now = time.monotonic()
+        with core.lock:
+            for token, d in tabs.items():
+                try:
+                    cs = ClientState(-1, str(token))
+                    cs.plane = d["plane"] if isinstance(d.get("plane"), int) and d["plane"] in core.planes else None
+                    cs.feature = d["feature"] if d.get("feature") in DRAWABLE else cs.feature
+                    cs.guide_step = int(d.get("guide_step", 0))
+                    cs.drawing = contour(d.get("drawing"))
+                    cs.left = {int(p): c for p, i in dict(d.get("left", {})).items()
+                               if (c := contour(i)) is not None}
+                    for kind, i in d.get("undo", []):
+                        c = contour(i)
+                        if c is not None and kind in TAB_ACTION:
+                            cs.undo.append(TAB_ACTION[kind](session, c))
+                except (TypeError, ValueError, KeyError, AttributeError):
+                    continue  # a damaged entry: that tab starts afresh
+                cs.parked = now
+                core.parked[cs.token] = cs
+        return len(tabs)
 
     def click(self, cs: ClientState, col: int, row: int, feature: str | None = None,
               plane: int | None = None) -> str | None:
@@ -144,7 +205,9 @@ class Drawing:
             here = target == cs.plane
             if here:
                 cs.feature = name
-                cs.left.pop(target, None)  # back on this plane: its next click starts a new contour
+                back = cs.left.pop(target, None)  # back on this plane: the contour left here goes on
+                if cs.drawing is None and open_here(back):
+                    cs.drawing = back
             c = cs.drawing if here else cs.left.get(target)
             if not open_here(c):
                 c = Contour(target, kind)
@@ -266,3 +329,7 @@ class Drawing:
 def _words(name: str) -> str:
     """An action's class name in the log's words: ``VertexAdded`` -> "vertex added"."""
     return re.sub(r"(?<!^)([A-Z])", r" \1", name).lower()
+
+
+TAB_UNDO = {VertexAdded: "vertex", Closed: "closed"}  # the undo actions a tab keeps over a restart
+TAB_ACTION = {v: k for k, v in TAB_UNDO.items()}

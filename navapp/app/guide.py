@@ -166,7 +166,9 @@ STEPS = (
          "Show plane 1", _plane, _need_scene),
     Step("Draw contours",
          "In the 2D view on the left, choose PV contour, click around the dark portal-vein lumen to place "
-         "vertices (each is confirmed before the next), then Close. Every click becomes an image pixel and "
+         "vertices (click on without waiting: each shows at once, and they reach the server in order, on the "
+         "plane they were clicked on), then Close. A contour left unfinished on another plane goes on when "
+         "you come back to it. Every click becomes an image pixel and "
          "then a 3D point through the probe's calibration and tracking. The guide moves on once a contour "
          "is closed.",
          "Draw in the 2D view", _draw, _need_scene, _drew),

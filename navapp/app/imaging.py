@@ -79,7 +79,13 @@ class Imaging:
             if cs.drawing is not None and cs.drawing.plane != index:
                 cs.left[cs.drawing.plane] = cs.drawing
                 cs.drawing = None  # an unfinished contour stays as drawn (an open line) on its own plane
+            back = cs.left.pop(index, None)
+            if cs.drawing is None and back is not None and not back.closed and back in core.need_session().contours:
+                # back on a plane left mid-contour: the next click continues it (a new contour
+                # there left the old one as an open line nobody meant to draw)
+                cs.drawing = back
             cs.touch()
+        core.save_tabs()  # the plane the tab shows is its own work too
         core.refresh_view(cs, Change.PLANE)
         return True
 

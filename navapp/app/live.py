@@ -133,6 +133,7 @@ class LiveLink:
 
     def _pump(self):
         last_status = last_tip = last_collect = 0.0
+        last_state: str | None = None
         while not self._stop.is_set():
             self._wake.wait(1.0 / PUMP_HZ)
             self._wake.clear()
@@ -140,7 +141,8 @@ class LiveLink:
             s = self.client.latest_stylus
             # the latest sample stays there after the tracker stops: only a tool the watchdog
             # calls seen is drawn or measured from, so a stale pose never comes back
-            st = self.client.status().get(self.config.stylus)
+            status = self.client.status()
+            st = status.get(self.config.stylus)
             fresh = st is not None and st.state == "seen"
             moved = s is not None and (self.tip is None or not np.array_equal(s.tip, self.tip))
             if s is not None and fresh and moved and now - last_tip >= TIP_MIN_S:
@@ -156,18 +158,29 @@ class LiveLink:
                 self.core.each_view(lambda v: v.show_live_tip(None))
                 self.core.each_view(lambda v: v.refresh(Change.LIVE))
             f = self.client.latest_frame
-            if f is not None and f is not self.frame:
+            # the frame's streams: the image, and the probe's pose when the image's comes from it
+            streams = [self.config.image] + ([self.config.probe] if self.config.image_pose == "calibration" else [])
+            imaged = all(status.get(d) is not None and status[d].state == "seen" for d in streams)
+            if f is not None and f is not self.frame and imaged:
                 self.frame = f
                 self.core.each_view(_shows("show_live_frame", f))
                 self.follower.new_frame()
+            elif not imaged and self.frame is not None:
+                # a lost probe is not drawn at its last pose with its last image (nor frozen as a plane)
+                self.frame = None
+                self.core.each_view(_shows("show_live_frame", None))
+                self.core.each_view(lambda v: v.refresh(Change.LIVE))
+            state = st.state if st is not None else None
             if now - last_collect >= 1.0 / PUMP_HZ:
                 last_collect = now
                 self._collect()
-            if now - last_status > 0.5:
+            # at once when the stylus goes from stale to missing, else twice a second (the age grows)
+            if now - last_status > 0.5 or (self.lost is not None and state != last_state):
                 last_status = now
                 if self.lost is not None:
                     self.lost = _lost(self.config.stylus, st)  # stale becomes missing; the age grows
                 self.core.each_view(lambda v: v.refresh(Change.LIVE))
+            last_state = state
 
     def frozen_plane(self, index) -> PlaneData | None:
         """The latest frame as a plane of the session, or None (no frame yet)."""
@@ -456,7 +469,7 @@ class Live:
             plane = link.frozen_plane(index)
             f = link.frame
             if plane is None or f is None or plane.image is None:
-                return "No ultrasound frame received yet."
+                return "No live ultrasound frame now (none received yet, or the probe's stream is lost)."
             probe = sd.probe
             H, W = plane.image.shape[:2]
             spacing = f.spacing_mm

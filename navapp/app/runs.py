@@ -21,7 +21,7 @@ from ..registration.coverage import pose_warning
 from ..registration.objective import Weights
 from ..registration.pipeline import Registration
 from ..registration.quality import EXPECTED_NOISE_MM, MARGIN_MM
-from ..registration.residuals import point_residuals
+from ..registration.residuals import point_residual_at, point_residuals
 from .actions import Act
 from .contours import OriginKind
 from .core import Core
@@ -66,7 +66,8 @@ class Runs:
         worker = core.worker
         if worker is None:
             return "Still preparing the registration model."
-        data, origins = core.data_with_origins(surface_only=kind is RunKind.SURFACE)
+        left_out: list = []
+        data, origins = core.data_with_origins(surface_only=kind is RunKind.SURFACE, left_out=left_out)
         npts = sum(len(v) for v in data.values())
         if npts < MIN_POINTS:
             return "Collect data first (stylus sweep or an ultrasound plane)."
@@ -84,7 +85,7 @@ class Runs:
                         "a fresh registration on all data instead.", error=True)
         with self._starting:
             with core.lock:
-                core.run = Run(kind, npts, time.monotonic(), data=data, origins=origins)
+                core.run = Run(kind, npts, time.monotonic(), data=data, origins=origins, left_out=left_out)
             if not worker.start(data, deform=kind.deformable, warm=kind is RunKind.WARM):
                 with core.lock:
                     core.run = None
@@ -150,12 +151,16 @@ class Runs:
         entry = RunEntry.of(run.kind, reg, run.points, time.monotonic() - run.t0, err, run.streamed, run.trace,
                             checked=checked)
         worst: list[WorstPoint] = []
+        n_out = (0, 0)
         if not stopped:
             entry.targets_mm = shown.target_errors(reg.rigid, beta)
             result = RegisteredState(run.kind.label, reg.rigid, beta, err, *shown.predict(reg, checked),
                                      data_model_frame=reg.data_model_frame, pose_warning=pose_warning(reg),
                                      checked=checked)
-            worst = worst_points(reg, run.data, run.origins, viewer_options().weights)
+            residuals = point_residuals(reg, viewer_options().weights)
+            worst = worst_points(reg, run.data, run.origins, viewer_options().weights, left_out=run.left_out,
+                                 residuals=residuals)
+            n_out = (sum(p.rejected for p in residuals) + len(run.left_out), len(residuals) + len(run.left_out))
             with core.lock:
                 core.result, core.last_reg, core.worst = result, reg, worst
                 core.need_session().result = result.to_json()
@@ -171,17 +176,7 @@ class Runs:
             if entry.error_mean_mm is not None else ""))
         if not stopped:
             self._send(reg, f"row {len(log)}")
-        if stopped:
-            core.notify("Registration", "Cancelled: the previous result is kept.")
-        elif entry.warning and entry.warning.strip() == (result.pose_warning or "").strip():
-            # said already, pinned over the 3D view while the pose is on show (``ClientView._pose_alert``):
-            # a second red box with the same words covered more of the liver at 1366 × 768
-            if any(w.rejected for w in worst):
-                core.notify("Registration", _left_out(worst).strip())
-        elif entry.warning:
-            core.notify("Registration: check the fit", fit_notice(reg.warnings, entry.pose_only, worst), error=True)
-        elif any(w.rejected for w in worst):
-            core.notify("Registration", _left_out(worst).strip())
+        tell(core, entry, None if stopped else result.pose_warning, reg.warnings, worst, n_out)
 
     def _send(self, reg: Registration, what: str):
         if self.slicer.sender is not None:
@@ -225,11 +220,12 @@ class Runs:
         if not fitted:
             return
         for surface_only in (False, True):  # the session keeps the fit's data to 0.1 µm: compared to 1 µm
-            data, origins = core.data_with_origins(surface_only=surface_only)
+            left_out: list = []
+            data, origins = core.data_with_origins(surface_only=surface_only, left_out=left_out)
             now = {k: reg.rigid.inverse(v) for k, v in data.items() if len(v)}
             if set(now) == set(fitted) and all(now[k].shape == fitted[k].shape
                                                and np.allclose(now[k], fitted[k], atol=1e-3) for k in now):
-                worst = worst_points(reg, data, origins, viewer_options().weights)
+                worst = worst_points(reg, data, origins, viewer_options().weights, left_out=left_out)
                 with core.lock:
                     if core.last_reg is reg:
                         core.worst = worst
@@ -289,11 +285,36 @@ class Runs:
         return None
 
 
+CHECK_THE_FIT = "Registration: check the fit"  # the red box's title after a run that warned
+
+
+def tell(core: Core, entry: RunEntry, pose_warning: str | None, warnings: list[str], worst: list[WorstPoint],
+         left_out: tuple[int, int] = (0, 0)):
+    """What the surgeon is told when a run ends (``entry``: its row; ``pose_warning``: the result's
+    pinned one, None when cancelled; ``left_out``: (data points the fit gave no weight, all data
+    points)). The red box of an earlier run that warned goes when a run's result without a
+    warning replaces it: it stayed over the 3D view beside a clean row."""
+    if entry.cancelled:
+        core.notify("Registration", "Cancelled: the previous result is kept.")
+        return
+    if entry.warning and entry.warning.strip() == (pose_warning or "").strip():
+        # said already, pinned over the 3D view while the pose is on show (``ClientView._pose_alert``):
+        # a second red box with the same words covered more of the liver at 1366 × 768
+        core.withdraw(CHECK_THE_FIT)
+    elif entry.warning:
+        core.notify(CHECK_THE_FIT, fit_notice(warnings, entry.pose_only, left_out), error=True)
+        return
+    else:
+        core.withdraw(CHECK_THE_FIT)
+    if left_out[0]:
+        core.notify("Registration", _left_out(left_out).strip())
+
+
 NOTICE_HEAD = 90
 """Characters of a warning's head (its words before the first colon) in the red box."""
 
 
-def fit_notice(warnings: list[str], pose_only: bool, worst: list[WorstPoint]) -> str:
+def fit_notice(warnings: list[str], pose_only: bool, left_out: tuple[int, int] = (0, 0)) -> str:
     """The red box's words after a run that warned: each warning's head, what is shown, and
     where the whole text is. The box is a few lines high over the 3D view (viser clips it at
     200 px, centred): the whole warnings, each a sentence or two, showed only their middles."""
@@ -301,9 +322,8 @@ def fit_notice(warnings: list[str], pose_only: bool, worst: list[WorstPoint]) ->
     text = "⚠ " + "; ".join(heads) + "."
     if pose_only:
         text += " Shown: the pose alone, without deformation."
-    n = sum(w.rejected for w in worst)
-    if n:
-        text += f" {n} data point{'s were' if n > 1 else ' was'} left out of the fit."
+    if left_out[0]:
+        text += f" {_points(left_out)} left out of the fit."
     return text + " The whole text is in the Registration panel."
 
 
@@ -311,14 +331,19 @@ def _clip(text: str, n: int) -> str:
     return text if len(text) <= n else text[:n].rsplit(" ", 1)[0].rstrip(" ,;(") + "…"
 
 
-def _left_out(worst: list[WorstPoint]) -> str:
+def _points(left_out: tuple[int, int]) -> str:
+    """"12 of 1,562 data points were" (the fit's whole count: a wrong click's line is hundreds)."""
+    n, total = left_out
+    return f"{n:,} of {total:,} data point{'s were' if total > 1 else ' was'}" if n > 1 else \
+        f"1 of {total:,} data points was"
+
+
+def _left_out(left_out: tuple[int, int]) -> str:
     """A sentence on data points the fit gave no weight (outliers), or ""."""
-    n = sum(w.rejected for w in worst)
-    if not n:
+    if not left_out[0]:
         return ""
-    what = "a data point lies" if n == 1 else f"{n} of the worst data points lie"
-    return (f" — {what} too far from the model to be trusted and {'was' if n == 1 else 'were'} left out of the fit "
-            "(Worst data points, Registration panel; a poor-fit figure still counts them)")
+    return (f" — {_points(left_out)} too far from the model to be trusted and left out of the fit: the worst are "
+            "listed under Worst data points (Registration panel); remove a wrong click there and register again")
 
 
 def plane_name(i: int | None) -> str:
@@ -330,15 +355,32 @@ def plane_name(i: int | None) -> str:
     return f"free {i - FREE_PLANE_BASE + 1}" if i >= FREE_PLANE_BASE else str(i + 1)
 
 
-def worst_points(reg: Registration, data: dict, origins: dict, weights: Weights, n: int = WORST_SHOWN
-                 ) -> list[WorstPoint]:
+def worst_points(reg: Registration, data: dict, origins: dict, weights: Weights, n: int = WORST_SHOWN,
+                 left_out: list | None = None, residuals: list | None = None) -> list[WorstPoint]:
     """The ``n`` data points furthest from ``reg``'s answer beyond what their noise allows
     (``quality``: the feature's expected noise + the fit-quality margin), worst first; of a drawn
     contour only its vertices, the clicks (a wrong click rasterises into a spike of points
-    whose every pixel is off, but the click is the one thing to remove)."""
+    whose every pixel is off, but the click is the one thing to remove). ``left_out``: drawn
+    vertices left out before the fit (``contours.StrayVertex``), listed first, as not used;
+    ``residuals``: ``point_residuals(reg, weights)`` when known."""
     out: list[WorstPoint] = []
-    seen = set()
-    for p in point_residuals(reg, weights):
+    seen: set[tuple] = set()
+    for s in left_out or ():
+        v = s.origin.vertex()
+        if v is None or s.origin.contour is None:
+            continue
+        c, r = s.origin.contour.vertices[v]
+        # its distance from the registered model's feature, said like every other point's
+        res = point_residual_at(reg, s.feature, reg.rigid.inverse(s.point[None, :]))
+        seen.add((id(s.origin.contour), v))
+        x, y, z = (float(t) for t in s.point)
+        out.append(WorstPoint(s.feature, float(res[0]), True, s.origin, (x, y, z),
+                              f"{feature_words(s.feature)}, plane {plane_name(s.origin.plane)}, drawn vertex {v + 1} "
+                              f"at pixel ({c}, {r}), off the vessel it was drawn around", v))
+    out = out[:n]
+    if len(out) == n:
+        return out
+    for p in residuals if residuals is not None else point_residuals(reg, weights):
         if p.residual_mm <= EXPECTED_NOISE_MM.get(p.feature, 1.0) + MARGIN_MM or p.feature not in origins:
             continue
         o = origins[p.feature][p.index]

@@ -111,6 +111,10 @@ class App:
         return self.core.start(self._loaded, self._ready)
 
     def _loaded(self, loaded: Loaded):
+        from .session import read_tabs
+
+        # the tabs open before a restart (a kill -9 included) take their work back as they reconnect
+        self.drawing.restore_tabs(read_tabs(loaded.session.folder))
         self.live.connect()
 
     def _ready(self, ready: Ready):

@@ -62,8 +62,10 @@ class Session:
         points the user removed. ``planes``: plane index → PlaneData (presets and free planes)."""
         return self.data_with_origins(sd, planes, surface_only)[0]
 
-    def data_with_origins(self, sd: SceneData, planes: dict, surface_only=False) -> tuple[dict, dict]:
-        """``data`` and, per feature, each point's ``contours.Origin`` (same order)."""
+    def data_with_origins(self, sd: SceneData, planes: dict, surface_only=False,
+                          left_out: list | None = None) -> tuple[dict, dict]:
+        """``data`` and, per feature, each point's ``contours.Origin`` (same order).
+        ``left_out``: appended the drawn vertices left out (``contours.StrayVertex``)."""
         parts: dict[str, list] = {}
         whence: dict[str, list] = {}
         gone = {(str(f), *np.round([x, y, z], 6)) for x, y, z, f in self.excluded}
@@ -87,7 +89,8 @@ class Session:
                     add(name, pts, [Origin(OriginKind.PLANE, plane=i)] * len(pts))
             for c in self.contours:
                 origins: dict = {}
-                for name, pts in contour_points(sd.probe, planes[c.plane].probe_to_tracker, c, origins).items():
+                for name, pts in contour_points(sd.probe, planes[c.plane].probe_to_tracker, c, origins,
+                                                left_out).items():
                     add(name, pts, origins[name])
         return {k: np.vstack(v) for k, v in parts.items()}, whence
 
@@ -407,3 +410,26 @@ def export(folder: Path, reg, sd: SceneData, data: dict) -> list[Path]:
     (folder / "exported.json").write_text(json.dumps({"time": time.strftime("%Y-%m-%d %H:%M:%S"),
                                                       "files": [p.name for p in written]}, indent=1))
     return written
+
+
+TABS_FILE = "tabs.json"  # each tab's own work (``write_tabs``): its plane, contour in progress, undo
+
+
+def write_tabs(folder: Path, tabs: dict) -> None:
+    """Write ``tabs`` (token → a tab's JSON, ``tabs.Tab``) into the session folder atomically:
+    a server killed mid-contour gives the tab its plane, its unfinished contour and its undo
+    history back when it reconnects (they were in memory only, and the tab fell back to plane 1)."""
+    if not folder.is_dir():
+        return
+    tmp = folder / f".{TABS_FILE}.{os.getpid()}.tmp"
+    tmp.write_text(json.dumps(tabs))
+    os.replace(tmp, folder / TABS_FILE)
+
+
+def read_tabs(folder: Path) -> dict:
+    """``write_tabs``' dict, or {} (none written, or unreadable: the tabs start afresh)."""
+    try:
+        d = json.loads((folder / TABS_FILE).read_text())
+    except (OSError, ValueError):
+        return {}
+    return d if isinstance(d, dict) else {}

@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry.targets_distance import ImagePlane, plane_distances, tip_distances
+from ..registration.coverage import pose_warning
 from ..registration.libr import LibrResult
 from ..registration.model import deform
 from ..registration.pipeline import Registration
@@ -24,6 +25,9 @@ from .slicer import Slicer
 from .state import CARRIED, ClientState, RegisteredState, StateGeometry, TargetBand
 from .worker import viewer_options
 
+# beside each tumour when the pose is not to be believed: no figure, what to do instead
+NO_TARGET_FIGURE = ("no predicted error here: the pose is not to be believed — digitise more of the liver "
+                    "surface (or add planes) and register again")
 IN_IMAGE_MM = 0.05  # a target this close to the image plane is cut by it
 
 
@@ -91,12 +95,21 @@ class Shown:
             why = reg.support.warning if reg.support is not None else None
             short = why.split(":")[0] if why else None
             return None, [TargetBand(t.name, float("nan"), float("nan"), float("nan"), short) for t in preop.targets]
+        surface_only = pose_warning(reg) is not None
+        if surface_only:
+            # a pose nobody should believe (``coverage.pose_warning``): the calibration was fitted on
+            # answers whose pose was right and says nothing at a point 100 mm off (a 40-point patch:
+            # tumours 39 and 133 mm off, predicted 202 and 31 mm); no figure at the tumours, but what to do
+            bands = [TargetBand(t.name, float("nan"), float("nan"), float("nan"), NO_TARGET_FIGURE)
+                     for t in preop.targets]
         try:
             # with the weights of the fit: points it rejected (a wrong click) do not inflate the
             # residual scale of the prediction (with least squares weights a stray vertex the fit
             # had rightly ignored predicted 31.9 mm at a tumour whose error was 4 mm)
             weights = viewer_options().weights
             surface = estimate_error(reg, nodes=model.basis.surface, weights=weights).predicted_mm
+            if surface_only:
+                return surface, bands
             bands = []
             if preop.targets:
                 est = estimate_error(reg, points=np.array([t.centre for t in preop.targets]), weights=weights)

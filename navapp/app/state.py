@@ -270,6 +270,7 @@ class Run:
     # named from these (the session may change while it runs)
     data: dict = field(default_factory=dict)
     origins: dict = field(default_factory=dict)
+    left_out: list = field(default_factory=list)  # [contours.StrayVertex] drawn vertices left out before the fit
     trace: list[tuple[float, float]] = field(default_factory=list)  # (seconds, mean true error mm) per state
     streamed: int = 0  # states received from the worker
     iteration: int = 0

@@ -44,6 +44,14 @@ class Rejection:
         """The cut for these per-point residuals f (all data points), mm."""
         return max(self.floor_mm, self.k * float(np.median(residuals))) if len(residuals) else float("inf")
 
+    def beyond(self, residuals: np.ndarray) -> np.ndarray:
+        """(N,) bool: the residuals (mm) beyond their own cut. A drawn vessel contour's vertices
+        are judged so before the fit, by their distance from the contour's centre
+        (``app.contours.stray_vertices``): a vessel tree has a branch near most places, so a
+        stray vertex's residual to the model does not show it."""
+        residuals = np.asarray(residuals, float)
+        return residuals > self.cut_mm(residuals)
+
 
 @dataclass
 class Weights:

@@ -745,7 +745,8 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         # every check above compares the answer with simpler ones on the data; this one asks
         # whether it is good enough to navigate by at all (docs/decisions.md, "An answer the data
         # do not determine"). Warm re-registrations skip it, as they skip the cross-validation
-        reg.organ = organ_error(reg)
+        # with the fit's own weights (its robust factors), as the viewer's predicted error is made
+        reg.organ = organ_error(reg, weights=replace(options.weights, pose_prior=None))
         sec["organ_error"] = reg.organ.seconds
     # last, so that it steers nothing above (a note before the pose choice would skip it): too
     # little of the liver covered is said by every caller — the CLI and result.json as the viewer

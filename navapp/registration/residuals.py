@@ -52,3 +52,12 @@ def point_residuals(reg: Registration, weights: Weights | None = None) -> list[P
         out += [PointResidual(name, i, float(f[i]), not kept[i]) for i in range(n)]
     out.sort(key=lambda p: -p.residual_mm)
     return out
+
+
+def point_residual_at(reg: Registration, feature: str, points: np.ndarray) -> np.ndarray:
+    """(N,) residual f (mm) of ``points`` (N, 3), model frame, as data of ``feature`` at ``reg``'s
+    answer: how far a point left out of the fit lies from the registered model."""
+    pts = np.asarray(points, float).reshape(-1, 3)
+    ev = evaluate(reg.model, {feature: pts}, answer_beta(reg), Weights(), jacobian=False)
+    _name, _feat, _S, q, rows, _local = ev.terms[0]
+    return point_distances(ev.f[:len(q)], rows, len(pts))

@@ -375,10 +375,12 @@ def organ_nodes(model: RegistrationModel, count: int = ORGAN_NODES, seed: int = 
     return np.sort(rng.choice(model.basis.M, min(count, model.basis.M), replace=False))
 
 
-def organ_error(reg, calibration: Calibration | None = None) -> OrganError:
+def organ_error(reg, calibration: Calibration | None = None, weights: Weights | None = None) -> OrganError:
     """``OrganError`` of a deformable registration (``reg.libr`` set): the mean of ê
-    (``estimate_error``) over ``organ_nodes``."""
+    (``estimate_error``) over ``organ_nodes``. ``weights``: the ones the fit used (its robust
+    factors: a spike the fit rejected otherwise sets the residual scale — 17 mm predicted over
+    the organ beside a true 5.0 mm with one stray vertex on the test scene)."""
     t0 = time.perf_counter()
     nodes = organ_nodes(reg.model)
-    est = estimate_error(reg, calibration=calibration, nodes=nodes)
+    est = estimate_error(reg, calibration=calibration, nodes=nodes, weights=weights)
     return OrganError(float(est.predicted_mm.mean()), len(nodes), seconds=time.perf_counter() - t0)

@@ -200,6 +200,12 @@ class ClientView:
         else:
             self.client.add_notification(title, body, auto_close_seconds=6.0)
 
+    def withdraw(self, title):
+        """Remove the red box of this title, if shown (``notify``)."""
+        old = self._errors.pop(title, None)
+        if old is not None:
+            old.remove()
+
     def show_stylus(self, pos):
         self.layers.show_stylus(pos)
         self.stylus.show_tip(pos)
@@ -217,6 +223,10 @@ class ClientView:
 
     def show_live_frame(self, frame):
         link = self.app.live.link
+        if frame is None:  # the probe's stream is lost: its plane is not drawn where it was last seen
+            if self.tracking.follow.value:
+                self.layers.lose_live_probe()
+            return
         if self.tracking.follow.value and link is not None:
             plane = link.frozen_plane(-1)
             if plane is not None:

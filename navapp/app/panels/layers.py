@@ -71,6 +71,7 @@ class LayersPanel:
         self.s = client.scene
         g = client.gui
         self.nodes: dict[str, list] = {name: [] for name in LAYERS}
+        self.live_lost = False  # the live probe's stream is lost (``lose_live_probe``)
         self.reg: dict = {}
         # the registered nodes move between a run's states rather than jump (``motion``)
         self.tween = Tween(self._draw, view.lock)
@@ -208,12 +209,20 @@ class LayersPanel:
                 self.probe.visible = False
                 return
             plane = core.planes[cs.plane]
+        self.live_lost = False  # a fresh frame, or a plane the tab chose
         T = plane.probe_to_tracker
         self.probe.wxyz, self.probe.position = wxyz(T[:3, :3]), T[:3, 3]
         self.probe.visible = self.cb["Ultrasound plane"].value and (live or cs.plane is not None)
         img = plane.image if plane.image is not None else np.zeros((sd.probe.height_px, sd.probe.width_px), np.uint8)
         # viser draws an image's first row at the node's −y edge; flipped, row 0 sits at the probe face
         self.image.image = np.repeat(np.flipud(img)[..., None], 3, axis=2)
+
+    def lose_live_probe(self):
+        """The live probe's stream is lost: its plane is hidden until a fresh frame (it stayed at
+        its last pose with its last image)."""
+        self.live_lost = True
+        if hasattr(self, "probe"):
+            self.probe.visible = False
 
     def show_stylus(self, pos):
         if not hasattr(self, "tool"):
@@ -322,7 +331,8 @@ class LayersPanel:
                 if layer == "Stylus":
                     n.visible = on and (self.app.stylus.tip is not None or self.app.live.tip is not None)
                 elif layer == "Ultrasound plane":
-                    n.visible = on and (self.cs.plane is not None or self.app.live.link is not None)
+                    n.visible = on and not self.live_lost and (self.cs.plane is not None
+                                                               or self.app.live.link is not None)
                 else:
                     n.visible = on
 

@@ -2,8 +2,11 @@
 against time (from the starting rigid pose), the run table and the result on show with the
 predicted error at each target."""
 
+from html import escape
+
 import numpy as np
 
+from ..core import INTERRUPTED
 from ..runs import WORST_SHOWN
 from ..state import Change, RunKind
 from ..worker import Update
@@ -34,7 +37,7 @@ class RegistrationPanel:
                                     title="Error against time", aspect=1.6, scales={"x": {"time": False}},
                                     axes=({"label": "time since start (s)"}, {"label": "mean error (mm)"}))
             self.note = g.add_markdown(f"<small>{NOTE}</small>")
-            self.table = g.add_markdown("")
+            self.table = g.add_html("")
             # the data points the last fit left furthest from the model: a wrong click is found here
             self.worst_md = g.add_markdown("")
             self.btn_worst = [g.add_button("Remove", visible=False) for _ in range(WORST_SHOWN)]
@@ -215,9 +218,12 @@ class RegistrationPanel:
             return
         names = [t.name for t in core.preop.targets]
         tum = " / ".join(n.replace("tumour", "") for n in names)
-        # units in the header, not in every cell: nine columns in the panel's 384 px
-        rows = [f"| # | run | points | s | iterations | mean mm | max mm | tumour{'s' if len(names) > 1 else ''} "
-                f"{tum} mm | |", "|---|---|---|---|---|---|---|---|---|"]
+        # units in the header, not in every cell: nine columns in the panel's 384 px. An HTML
+        # table with its own padding: the markdown table's cells had 2 px between them, and
+        # "17.57" beside "2.1 / 5.3" read "17.572.1 / 5.3" at 1366 and 1600 px alike
+        head = ["#", "run", "points", "s", "iterations", "mean mm", "max mm",
+                f"tumour{'s' if len(names) > 1 else ''} {tum} mm", ""]
+        rows = []
         first = max(len(log) - TABLE_ROWS, 0)
         for i, e in enumerate(log[first:], start=first + 1):
             its = "ICP" if e.stop == "rigid" else f"{e.iterations}"
@@ -225,8 +231,27 @@ class RegistrationPanel:
             mx = f"{e.error_max_mm:.2f}" if e.error_max_mm is not None else "–"
             tumours = " / ".join(f"{e.targets_mm[n]:.1f}" for n in names if n in e.targets_mm) if e.targets_mm else "–"
             # "cancelled" in the run's own cell: the last column is narrow and cut it to "cance"
-            run = f"{e.run}, **cancelled**" if e.cancelled else e.run
+            run = f"{escape(e.run)}, <b>{'interrupted' if e.stop == INTERRUPTED else 'cancelled'}</b>" \
+                if e.cancelled else escape(e.run)
             note = "" if e.cancelled else ("⚠ pose only" if e.pose_only else "⚠" if e.warning else e.note)
-            rows.append(f"| {i} | {run} | {e.points} | {e.seconds:.1f} | {its} | {mean} | {mx} | {tumours} "
-                        f"| {note} |")
-        self.table.content = "\n".join(rows)
+            rows.append([str(i), run, str(e.points), f"{e.seconds:.1f}", its, mean, mx, tumours, escape(note or "")])
+        self.table.content = run_table_html(head, rows)
+
+
+TABLE_STYLE = ("border-collapse:collapse;font-size:0.78em;font-variant-numeric:tabular-nums;line-height:1.35;"
+               "width:100%")
+CELL = "padding:1px 4px;border-bottom:1px solid #8883;vertical-align:top"
+TEXT_COLUMNS = (1, 8)  # the run's name and its note read left to right; the numbers align right
+
+
+def run_table_html(head: list[str], rows: list[list[str]]) -> str:
+    """The run table as HTML: ``head`` the column titles (plain text), ``rows`` each row's cells
+    (HTML, escaped by the caller). Every cell keeps 8 px between its text and the next's."""
+    def cell(tag, i, text):
+        align = "left" if i in TEXT_COLUMNS else "right"
+        wrap = "" if tag == "th" or i in TEXT_COLUMNS else ";white-space:nowrap"
+        return f"<{tag} style='{CELL};text-align:{align}{wrap}'>{text}</{tag}>"
+
+    top = "<tr>" + "".join(cell("th", i, escape(h)) for i, h in enumerate(head)) + "</tr>"
+    body = "".join("<tr>" + "".join(cell("td", i, c) for i, c in enumerate(r)) + "</tr>" for r in rows)
+    return f"<table style='{TABLE_STYLE}'>{top}{body}</table>"
