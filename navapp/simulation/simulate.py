@@ -145,7 +145,9 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
             intraop[k] = np.vstack([intraop[k], pts]) if k in intraop else pts
     _check_data(scene, intraop)
 
-    settings: dict = {"name": scene.name, "units": "mm", "scene": str(scene.source) if scene.source else scene.name}
+    # absolute: the case is read later from anywhere (a study's ``declared_supports`` reads the scene again)
+    settings: dict = {"name": scene.name, "units": "mm",
+                      "scene": str(Path(scene.source).resolve()) if scene.source else scene.name}
     if (pose := scene.declared_pose()) is not None:
         settings["intraop"] = {"pose": {"known": True, "sd_mm": float(pose[0]), "sd_deg": float(pose[1])}}
     case = Case(preop=preop, intraop=intraop, truth=truth, settings=settings)
