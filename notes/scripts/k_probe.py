@@ -1,7 +1,7 @@
 """Probe: does a larger k make the dent? Each case at S and at S + all, today's guarded
 registration with each k given; the truth is read after the fit. JSON lines appended to OUT.
 
-    python scripts/k_probe.py OUT 45,90 CASE [CASE ...]
+    python notes/scripts/k_probe.py OUT 45,90 CASE [CASE ...]
 """
 
 import json

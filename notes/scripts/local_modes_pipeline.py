@@ -3,7 +3,7 @@ default, per case and level (S, S + all): mean TRE of both answers and of both d
 fits (shown or not), whether the modes were kept, the held-out RMS either way, the
 warnings, and the seconds. JSON lines appended to OUT.
 
-    python scripts/local_modes_pipeline.py OUT.jsonl CASE [CASE ...]
+    python notes/scripts/local_modes_pipeline.py OUT.jsonl CASE [CASE ...]
 """
 
 import json
