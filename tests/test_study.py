@@ -1,5 +1,8 @@
 """The Table II runner: design size, resumability, report."""
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -191,3 +194,25 @@ def test_quiet_is_scoped(monkeypatch):
         run_chunk("no-such-case", [])
     assert seen == [True]
     assert progress.QUIET is False and not progress.is_quiet()
+
+
+def test_rendering_leaves_matplotlib_global_state_alone(tmp_path):
+    """Importing the figure modules used to switch every caller's backend to Agg; now they
+    draw on their own Figure objects and the PNG is still written."""
+    code = f"""
+import matplotlib
+matplotlib.use("svg")
+from navapp.evaluation import render, report, cost_report, robustness_report
+from navapp.anatomy.model import PreopModel
+import trimesh
+m = PreopModel(liver=trimesh.creation.icosphere(subdivisions=2, radius=60.0), name="ball")
+render.phantom_figure(m, {str(tmp_path / 'ball.png')!r})
+import matplotlib.pyplot as plt
+print(matplotlib.get_backend(), len(plt.get_fignums()))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["svg", "0"]
+    from skimage.io import imread
+
+    img = imread(tmp_path / "ball.png")
+    assert img.shape[0] > 100 and img.std() > 0

@@ -82,8 +82,8 @@ def _case_facts(case_dir: Path, case, nodes: np.ndarray) -> dict:
     return {"pre_aligned": "tracker_offset" not in rep, "covers": covers, "displacement_mm": shown}
 
 
-def _old_warnings(reg) -> list[str]:
-    """The warnings the pipeline raised before the guards: too few points, poor fit."""
+def _fit_warnings(reg) -> list[str]:
+    """The fit's own warnings, the only ones an unguarded method has: too few points, poor fit."""
     return list(reg.notes) + ([reg.quality.warning] if reg.quality is not None and reg.quality.warning else [])
 
 
@@ -121,7 +121,7 @@ def run_case(case_dir, methods: tuple[str, ...] = METHODS) -> list[dict]:
                                    pose_prior=prior)
                     pred = reg.transform(x0, B=B)
                     answer = "deformable" if reg.deformed else "rigid"
-                    lines = reg.warnings if guarded else _old_warnings(reg)
+                    lines = reg.warnings if guarded else _fit_warnings(reg)
                     c = reg.pose_choice
                     if c is not None:  # where the rigid stage's pose came from, and ICP's turn from the given one
                         pose, turn = c.source.value, "" if c.turn_deg is None else round(c.turn_deg, 1)
