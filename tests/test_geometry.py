@@ -98,10 +98,11 @@ def test_plane_section_matches_trimesh():
 
 
 def test_probe_calibration_round_trip():
-    from navapp.simulation.probe import Probe, pixels_to_tracker, pose, ray_to_pixel, tracker_to_pixels
+    from navapp.geometry.transforms import probe_pose
+    from navapp.simulation.probe import Probe, pixels_to_tracker, ray_to_pixel, tracker_to_pixels
 
     probe = Probe(width_px=200, height_px=300, spacing_mm=0.3)
-    T = pose([10.0, 40.0, 5.0], lateral=[1.0, 0.2, 0.0], depth=[0.1, -1.0, 0.3])
+    T = probe_pose([10.0, 40.0, 5.0], lateral=[1.0, 0.2, 0.0], depth=[0.1, -1.0, 0.3])
     rng = np.random.default_rng(3)
     cols, rows = rng.integers(0, 200, 50), rng.integers(0, 300, 50)
     pts = pixels_to_tracker(probe, T, cols, rows)

@@ -28,8 +28,9 @@ from ..anatomy.caseio import read_case
 from ..anatomy.truth import TruthField
 from ..errors import InputError
 from ..geometry.interpolation import interpolation_matrix
+from ..geometry.tre import tre_stats
 from ..registration.local_modes import LocalModeOptions
-from ..registration.pipeline import RobustOptions, prepare, register, tre_stats
+from ..registration.pipeline import RobustOptions, prepare, register
 from ..registration.pose import POSE_RULE
 from ..registration.prior import PosePrior, declared_pose
 from ..registration.rotation import rotation_angle

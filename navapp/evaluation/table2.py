@@ -20,7 +20,8 @@ from .. import progress
 from ..anatomy.caseio import read_case
 from ..defaults import EDGE_MM, N_PLANES, K
 from ..geometry.interpolation import interpolation_matrix
-from ..registration.pipeline import prepare, register, rigid_starts, tre_stats
+from ..geometry.tre import tre_stats
+from ..registration.pipeline import prepare, register, rigid_starts
 from ..simulation.levels import LEVELS, plus_planes, study_data, stylus_only_pose  # noqa: F401 (LEVELS: Table II's rows)
 from .distribute import DASK_CONNECT_S, ResultsCSV, check_scheduler, dask_client, run_tasks  # noqa: F401
 

@@ -14,7 +14,8 @@ from navapp import progress
 from navapp.anatomy.caseio import read_case
 from navapp.defaults import EDGE_MM
 from navapp.geometry.interpolation import interpolation_matrix
-from navapp.registration.pipeline import prepare, register, tre_stats
+from navapp.geometry.tre import tre_stats
+from navapp.registration.pipeline import prepare, register
 from navapp.simulation.levels import data_level
 
 

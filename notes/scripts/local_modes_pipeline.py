@@ -12,8 +12,9 @@ import time
 import warnings
 from pathlib import Path
 
+from navapp.geometry.tre import tre_stats
 from navapp.registration.local_modes import LocalModeOptions
-from navapp.registration.pipeline import RobustOptions, register, tre_stats
+from navapp.registration.pipeline import RobustOptions, register
 
 sys.path.insert(0, str(Path(__file__).parent))
 from local_modes_probe import each_case, each_level  # noqa: E402
