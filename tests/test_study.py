@@ -216,3 +216,18 @@ print(matplotlib.get_backend(), len(plt.get_fignums()))
 
     img = imread(tmp_path / "ball.png")
     assert img.shape[0] > 100 and img.std() > 0
+
+
+def test_fixed_planes_of_a_level():
+    """"S+all" is every plane, the levels without planes none; "S+n" names a count, not the planes:
+    asking it for them is an error, not S alone (report.distance_plot had read any level but
+    "S+all" as no planes)."""
+    from navapp.simulation.levels import LEVELS, fixed_planes
+
+    assert fixed_planes("S+all", 4) == (0, 1, 2, 3)
+    assert {lv: fixed_planes(lv, 4) for lv in ("rigid", "S", "CBCT", "iCT")} == dict.fromkeys(
+        ("rigid", "S", "CBCT", "iCT"), ())
+    for level in LEVELS:
+        if level.startswith("S+") and level != "S+all":
+            with pytest.raises(ValueError, match="how many planes"):
+                fixed_planes(level, 4)

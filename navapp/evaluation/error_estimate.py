@@ -40,7 +40,7 @@ from ..errors import InputError, NavappError
 from ..geometry.tre import target_errors
 from ..registration.pipeline import prepare, register, rigid_starts
 from ..registration.uncertainty import Calibration, estimate_error
-from ..simulation.levels import has_planes, plane_count, study_data, stylus_only_pose
+from ..simulation.levels import fixed_planes, has_planes, plane_count, study_data, stylus_only_pose
 
 # the levels the estimate is calibrated and validated at (module doc), of ``simulation.levels.LEVELS``
 ESTIMATE_LEVELS = ("S", "S+1", "S+2", "S+3", "S+all", "CBCT")
@@ -74,10 +74,8 @@ def liver_id(case_dir) -> str:
 
 
 def plane_choices(level, n_planes, combos, rng):
-    if level == "S+all":
-        return [tuple(range(n_planes))]
-    if not has_planes(level):
-        return [()]
+    if level == "S+all" or not has_planes(level):
+        return [fixed_planes(level, n_planes)]
     m = plane_count(level)
     allc = list(itertools.combinations(range(n_planes), m))
     return [allc[i] for i in sorted(rng.choice(len(allc), min(combos, len(allc)), replace=False))]

@@ -10,7 +10,7 @@ from ..anatomy.caseio import read_case
 from ..defaults import EDGE_MM, N_PLANES, K
 from ..geometry.tre import target_errors
 from ..registration.pipeline import prepare, register
-from ..simulation.levels import LEVELS, study_data
+from ..simulation.levels import LEVELS, fixed_planes, study_data
 from .table2 import PAPER, read_results
 
 
@@ -93,8 +93,7 @@ def distance_plot(case_dirs, path, level="S+all", edge=EDGE_MM, k=K) -> float:
     for d in case_dirs:
         case = read_case(d)
         model, _ = prepare(case, edge, k)
-        planes = range(N_PLANES) if level == "S+all" else ()
-        data = study_data(d, level, planes, case=case)
+        data = study_data(d, level, fixed_planes(level, N_PLANES), case=case)
         reg = register(model, data)
         x0, x1 = case.need_truth().tre_points(model.basis.nodes)
         pts = np.vstack(list(data.values()))
