@@ -143,3 +143,14 @@ def test_closest_on_decimated_vessels_searches_more_vertices(phantoms):
         missed = {near: int(np.sum(e > 1e-9)) for near, e in excess.items()}
         assert missed[NEAR] >= 20, missed  # the case the wider search is for
         assert missed[NEAR_DECIMATED] <= missed[NEAR] / 5 and excess[NEAR_DECIMATED].max() < 0.5, missed
+
+
+def test_tre_by_hand():
+    """The one TRE (navapp.geometry.tre): a 3-4-5 offset and an exact hit."""
+    from navapp.geometry.tre import mean_tre, point_errors, tre_stats
+
+    truth = np.array([[1.0, 2.0, 3.0], [-4.0, 0.0, 7.5]])
+    pred = truth + [[3.0, 4.0, 0.0], [0.0, 0.0, 0.0]]
+    assert point_errors(pred, truth).tolist() == [5.0, 0.0]
+    assert mean_tre(pred, truth) == 2.5
+    assert tre_stats(pred, truth) == {"mean_mm": 2.5, "sd_mm": 2.5, "max_mm": 5.0, "n": 2}

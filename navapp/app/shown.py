@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry.targets_distance import ImagePlane, plane_distances, tip_distances
-from ..geometry.tre import target_errors
+from ..geometry.tre import point_errors
 from ..registration.libr import LibrResult
 from ..registration.model import deform
 from ..registration.pipeline import Registration
@@ -51,7 +51,7 @@ class Shown:
         truth = self.core.truth_nodes
         if truth is None:
             return None
-        return target_errors(self.node_positions(rigid, beta), truth)
+        return point_errors(self.node_positions(rigid, beta), truth)
 
     def target_errors(self, rigid: RigidResult, beta: np.ndarray | None) -> dict[str, float] | None:
         """Each target's (tumour's) true error at its centre, mm: the mesh nodes' error vector
@@ -67,7 +67,7 @@ class Shown:
             self._centre_B = interpolation_matrix(model.basis.nodes, model.basis.tets,
                                                   np.array([t.centre for t in targets]))
         # the error vectors interpolated to the centres, then their lengths
-        d = target_errors(self._centre_B @ (self.node_positions(rigid, beta) - truth), 0.0)
+        d = point_errors(self._centre_B @ (self.node_positions(rigid, beta) - truth), 0.0)
         return {t.name: round(float(e), 3) for t, e in zip(targets, d, strict=True)}
 
     def predict(self, reg: Registration, checked: Registration | None = None) -> tuple[np.ndarray | None,

@@ -37,7 +37,7 @@ from .. import progress
 from ..anatomy.caseio import read_case
 from ..defaults import EDGE_MM, K
 from ..errors import InputError, NavappError
-from ..geometry.tre import target_errors
+from ..geometry.tre import point_errors
 from ..registration.pipeline import prepare, register, rigid_starts
 from ..registration.uncertainty import Calibration, estimate_error
 from ..simulation.levels import fixed_planes, has_planes, plane_count, study_data, stylus_only_pose
@@ -101,7 +101,7 @@ def collect_case(case_dir, levels=ESTIMATE_LEVELS, combos=3, seed=0, edge=EDGE_M
             t = time.perf_counter()
             est = estimate_error(reg)
             sec = time.perf_counter() - t
-            err = target_errors(est.positions, x1)
+            err = point_errors(est.positions, x1)
             out.append(Sample(case_dir.name, level, planes, est.distance_mm, est.sigma_mm, err, sec,
                               liver_id(case_dir), reg.deformed))
     return out

@@ -9,7 +9,7 @@ caller brings it, after the fit, so the solver still never sees it.
 import numpy as np
 
 
-def target_errors(pred, truth) -> np.ndarray:
+def point_errors(pred, truth) -> np.ndarray:
     """Per-target error, mm.
 
     Parameters
@@ -28,8 +28,8 @@ def target_errors(pred, truth) -> np.ndarray:
 
 
 def mean_tre(pred, truth) -> float:
-    """Mean target registration error over the targets, mm (see ``target_errors``)."""
-    return float(target_errors(pred, truth).mean())
+    """Mean target registration error over the targets, mm (see ``point_errors``)."""
+    return float(point_errors(pred, truth).mean())
 
 
 def tre_stats(pred, truth) -> dict:
@@ -48,5 +48,5 @@ def tre_stats(pred, truth) -> dict:
     dict
         ``mean_mm``, ``sd_mm`` (population), ``max_mm`` (floats, mm) and ``n`` (int).
     """
-    d = target_errors(pred, truth)
+    d = point_errors(pred, truth)
     return {"mean_mm": float(d.mean()), "sd_mm": float(d.std()), "max_mm": float(d.max()), "n": int(len(d))}
