@@ -49,7 +49,7 @@ _EXPORTS = {
     "rigid_starts": "navapp.registration.pipeline",
     "deform_points": "navapp.registration.pipeline",
     "write_outputs": "navapp.registration.pipeline",
-    "tre_stats": "navapp.registration.pipeline",
+    "tre_stats": "navapp.geometry.tre",
     "Registration": "navapp.registration.pipeline",
     "RobustOptions": "navapp.registration.pipeline",
     "LocalModeOptions": "navapp.registration.local_modes",

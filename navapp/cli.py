@@ -19,7 +19,6 @@ DEFAULT_TABLE2_CSV = Path("results/table2.csv")
 DASK_STUDIES = ("table2", "cost", "robustness")  # the studies that run on a Dask cluster with --scheduler
 
 
-_positive = positive  # the name this module has always used
 _port = positive(int, most=65535)
 _k = k_count
 
@@ -339,7 +338,7 @@ def build_parser():
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     s = sub.add_parser("phantom", help="write the preop/ part of a case folder for a built-in liver phantom")
-    s.add_argument("--liver", type=_positive(int, least=0), default=0, help="phantom index (0, 1, 2, …; default 0)")
+    s.add_argument("--liver", type=positive(int, least=0), default=0, help="phantom index (0, 1, 2, …; default 0)")
     s.add_argument("--out", type=Path, required=True, help="case folder to write")
     s.set_defaults(func=cmd_phantom)
 
@@ -370,13 +369,13 @@ def build_parser():
 
     s = sub.add_parser("mesh", help="tetrahedralise a case's liver and print mesh statistics as JSON")
     s.add_argument("case", type=Path, help="case folder")
-    s.add_argument("--edge", type=_positive(float), default=EDGE_MM,
+    s.add_argument("--edge", type=positive(float), default=EDGE_MM,
                    help=f"target element size in mm (default {EDGE_MM:g})")
     s.set_defaults(func=cmd_mesh)
 
     s = sub.add_parser("precompute", help="mesh a case and compute (or load) its deformation basis")
     s.add_argument("case", type=Path, help="case folder")
-    s.add_argument("--edge", type=_positive(float), default=EDGE_MM,
+    s.add_argument("--edge", type=positive(float), default=EDGE_MM,
                    help=f"target element size in mm (default {EDGE_MM:g})")
     s.add_argument("--k", type=_k, default=K, help=f"number of control points (default {K})")
     s.set_defaults(func=cmd_precompute)
@@ -402,7 +401,7 @@ def build_parser():
     s.add_argument("--with-results", type=Path, help="next-plane: the second set's Table II CSV (for the ranks)")
     s.add_argument("--cases", type=Path, nargs="+", help="case folders (default: simulate the nine study scenes)")
     s.add_argument("--case-root", type=Path, default=Path("study-cases"), help="where simulated cases go")
-    s.add_argument("--workers", type=_positive(int),
+    s.add_argument("--workers", type=positive(int),
                    help="local worker processes (default: all cores for table2, 1 for cost, "
                         "whose timings would compete)")
     s.add_argument("--scheduler", type=address,
@@ -413,7 +412,7 @@ def build_parser():
     s.add_argument("--results", type=Path, default=DEFAULT_TABLE2_CSV,
                    help="results CSV, appended (default results/table2.csv; for cost: <report>/cost.csv)")
     s.add_argument("--report", type=Path, default=Path("results"), help="folder for table2.md and plots")
-    s.add_argument("--edge", type=_positive(float), default=EDGE_MM,
+    s.add_argument("--edge", type=positive(float), default=EDGE_MM,
                    help=f"registration mesh element size, mm (default {EDGE_MM:g}; not cost, which sweeps it; "
                         "12 with --k 12 for a quick look)")
     s.add_argument("--k", type=_k, default=K, help=f"number of control points (default {K}; not cost, which sweeps it)")
@@ -421,15 +420,15 @@ def build_parser():
 
     s = sub.add_parser("bench", help="benchmarks that print timings and memory as JSON lines")
     s.add_argument("what", choices=("precompute", "register", "live", "import"))
-    s.add_argument("--edges", type=_positive(float), nargs="+", default=[EDGE_MM], help="element sizes, mm")
+    s.add_argument("--edges", type=positive(float), nargs="+", default=[EDGE_MM], help="element sizes, mm")
     s.add_argument("--ks", type=_k, nargs="+", default=[K], help="numbers of control points")
-    s.add_argument("--volume-ml", type=_positive(float), help="precompute: phantom 0 scaled to this volume, ml")
+    s.add_argument("--volume-ml", type=positive(float), help="precompute: phantom 0 scaled to this volume, ml")
     s.add_argument("--relax", choices=("local", "exact", "both"), default="local",
                    help="precompute: relaxation subdomain (both: exact and local, with the local one's error)")
-    s.add_argument("--repeats", type=_positive(int), default=5, help="register, import: repetitions for the median")
-    s.add_argument("--planes", type=_positive(int), default=3, help="register: iUS planes (≥ 2); live: planes kept")
-    s.add_argument("--frames", type=_positive(int), default=40, help="live: ultrasound frames re-registered")
-    s.add_argument("--truth-edge", type=_positive(float),
+    s.add_argument("--repeats", type=positive(int), default=5, help="register, import: repetitions for the median")
+    s.add_argument("--planes", type=positive(int), default=3, help="register: iUS planes (≥ 2); live: planes kept")
+    s.add_argument("--frames", type=positive(int), default=40, help="live: ultrasound frames re-registered")
+    s.add_argument("--truth-edge", type=positive(float),
                    help="register, live: element size of the mesh the demo scene's truth is simulated on, mm "
                         "(default: the scene's, 3.5; 12 with --edges 12 --ks 12 for a quick look)")
     s.set_defaults(func=cmd_bench)
@@ -438,18 +437,18 @@ def build_parser():
                                       "B-mode frames): the demo without hardware")
     s.add_argument("scene", type=Path, nargs="?", help="scene TOML file (default: the built-in demo scene)")
     s.add_argument("--port", type=_port, default=18944, help="port on 127.0.0.1 (default 18944)")
-    s.add_argument("--rate", type=_positive(float), default=25.0, help="messages per second per device (default 25)")
-    s.add_argument("--latency-ms", type=_positive(float, least=0), default=None,
+    s.add_argument("--rate", type=positive(float), default=25.0, help="messages per second per device (default 25)")
+    s.add_argument("--latency-ms", type=positive(float, least=0), default=None,
                    help="send each message this long after its timestamp (default: the scene's declared latency, or 0)")
-    s.add_argument("--seconds", type=_positive(float), help="stop after this long (default: until Ctrl-C)")
+    s.add_argument("--seconds", type=positive(float), help="stop after this long (default: until Ctrl-C)")
     s.set_defaults(func=cmd_replay)
 
     s = sub.add_parser("demo",
                        help="simulate the built-in demo scene (phantom 0, stylus, 16 iUS planes) and register it")
     s.add_argument("--out", type=Path, default=Path("navapp-demo"), help="case folder to write (default ./navapp-demo)")
-    s.add_argument("--truth-edge", type=_positive(float),
+    s.add_argument("--truth-edge", type=positive(float),
                    help="element size of the mesh the truth is simulated on, mm (default: the scene's, 3.5)")
-    s.add_argument("--edge", type=_positive(float), default=EDGE_MM,
+    s.add_argument("--edge", type=positive(float), default=EDGE_MM,
                    help=f"registration mesh element size, mm (default {EDGE_MM:g})")
     s.add_argument("--k", type=_k, default=K, help=f"number of control points (default {K})")
     s.set_defaults(func=cmd_demo)
@@ -461,9 +460,9 @@ def build_parser():
                    help="port (default 8080; if busy the next free one is used and printed)")
     s.add_argument("--session", type=Path,
                    help="session folder (default ~/navapp-sessions/<scene>-<key>, or under $NAVAPP_SESSIONS)")
-    s.add_argument("--edge", type=_positive(float), default=EDGE_MM, help="registration mesh element size, mm")
+    s.add_argument("--edge", type=positive(float), default=EDGE_MM, help="registration mesh element size, mm")
     s.add_argument("--k", type=_k, default=K, help="number of control points")
-    s.add_argument("--view2d-port", type=_positive(int, most=65535, least=0), default=None,
+    s.add_argument("--view2d-port", type=positive(int, most=65535, least=0), default=None,
                    help="port of the 2D ultrasound view's pages (default: the viewer's port + 1 where free, "
                         "else any free port; 0: any free port)")
     s.add_argument("--igtl", metavar="HOST:PORT",

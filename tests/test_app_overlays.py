@@ -5,7 +5,8 @@ import numpy as np
 import trimesh
 
 from navapp.app.view2d.overlays import section_pixels
-from navapp.simulation.probe import Probe, pose, tracker_to_pixels
+from navapp.geometry.transforms import probe_pose
+from navapp.simulation.probe import Probe, tracker_to_pixels
 
 
 def segment_set(px):
@@ -21,7 +22,7 @@ def test_section_pixels_match_trimesh_mesh_plane():
     mesh = trimesh.creation.icosphere(subdivisions=4, radius=25.0)
     mesh.apply_translation([3.0, -2.0, 40.0])
     # a tilted probe above the sphere, looking down into it; its plane cuts the sphere off-centre
-    T = pose([0.0, 4.0, 0.0], lateral=[1.0, 0.1, 0.0], depth=[0.05, 0.1, 1.0])
+    T = probe_pose([0.0, 4.0, 0.0], lateral=[1.0, 0.1, 0.0], depth=[0.05, 0.1, 1.0])
     got = section_pixels(probe, T, mesh.vertices, mesh.faces)
     ref = trimesh.intersections.mesh_plane(mesh, T[:3, 1], T[:3, 3])  # (S, 2, 3) tracker mm
     c, r, off = tracker_to_pixels(probe, T, ref.reshape(-1, 3))
@@ -40,5 +41,5 @@ def test_a_mesh_far_from_the_image_gives_nothing():
     probe = Probe()
     mesh = trimesh.creation.icosphere(subdivisions=2, radius=10.0)
     mesh.apply_translation([0.0, 300.0, 40.0])  # 300 mm in front of the plane
-    T = pose([0.0, 0.0, 0.0], lateral=[1.0, 0.0, 0.0], depth=[0.0, 0.0, 1.0])
+    T = probe_pose([0.0, 0.0, 0.0], lateral=[1.0, 0.0, 0.0], depth=[0.0, 0.0, 1.0])
     assert section_pixels(probe, T, mesh.vertices, mesh.faces).shape == (0, 2, 2)

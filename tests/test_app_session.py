@@ -13,12 +13,13 @@ from navapp.anatomy.caseio import read_case
 from navapp.app.contours import Contour, click_to_pixel, contour_pixels, contour_points
 from navapp.app.session import export, open_session
 from navapp.errors import InputError
-from navapp.simulation.probe import Probe, pixels_to_tracker, pose, tracker_to_pixels
+from navapp.geometry.transforms import probe_pose
+from navapp.simulation.probe import Probe, pixels_to_tracker, tracker_to_pixels
 from navapp.simulation.scene import parse_scene
 from navapp.simulation.scenedata import acquire_free_plane, load_scene_data, sweep_order
 
 PROBE = Probe()
-T = pose([10.0, -20.0, 5.0], [0.3, 0.1, 1.0], [0.2, -1.0, 0.1])
+T = probe_pose([10.0, -20.0, 5.0], [0.3, 0.1, 1.0], [0.2, -1.0, 0.1])
 
 
 def test_click_ray_lands_on_the_pixel_it_was_aimed_at():

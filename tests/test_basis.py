@@ -13,7 +13,7 @@ from navapp.mechanics.basis import (
     point_load_modes,
     relax_modes,
 )
-from navapp.mechanics.controlpoints import geodesic_tiles, nodal_areas, place_control_points
+from navapp.mechanics.controlpoints import geodesic_tiles, nodal_areas, place_control_points, snap_distinct
 from navapp.mechanics.fem import Material, stiffness
 
 
@@ -198,3 +198,24 @@ def test_cache_hit_invalidation_and_corruption(coarse_mesh, tmp_path, capsys):
     d, hit = load_or_compute_basis(coarse_mesh, s, cache_root=tmp_path)
     assert not hit and np.array_equal(d.Ju, a.Ju)
     assert not list(tmp_path.glob("*.tmp"))
+
+
+def test_control_points_when_the_nearest_nodes_are_all_taken():
+    """k-means centres crowding one clump of surface nodes (duplicated nodes: fewer distinct
+    positions than k) once ended in StopIteration; now every centre gets a distinct node."""
+    rng = np.random.default_rng(0)
+    clump = np.zeros((40, 3))  # 40 nodes at one position
+    spread = rng.normal(size=(10, 3)) * 30.0
+    nodes = np.vstack([clump, spread])
+    surface = np.arange(len(nodes))
+    with pytest.warns(Warning):  # scikit-learn: fewer distinct clusters than k
+        chosen = place_control_points(nodes, surface, 45, seed=0)
+    assert len(chosen) == 45 and len(set(chosen.tolist())) == 45
+
+
+def test_snap_distinct_prefers_the_nearest_free_point():
+    pts = np.array([[0.0, 0, 0], [1, 0, 0], [5, 0, 0], [9, 0, 0]])
+    centres = np.array([[0.1, 0, 0], [0.2, 0, 0], [0.3, 0, 0]])
+    assert snap_distinct(pts, centres, near=2).tolist() == [0, 1, 2]  # third: beyond its 2 nearest
+    with pytest.raises(ValueError):
+        snap_distinct(pts, np.zeros((5, 3)))

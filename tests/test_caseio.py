@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from navapp.anatomy.caseio import Case, read_case, write_case
+from navapp.anatomy.caseio import Case, read_case, read_csv, write_case
 from navapp.anatomy.truth import TruthPoints
 from navapp.cli import main
 from navapp.errors import InputError
@@ -143,3 +143,12 @@ def test_phantom_cli_writes_preop(tmp_path, capsys):
     assert main(["--quiet", "phantom", "--liver", "2", "--out", str(tmp_path / "p")]) in (0, None)
     c = read_case(tmp_path / "p")
     assert c.preop.portal is not None and c.preop.regions is not None
+
+
+def test_integer_column_is_checked_and_read_as_numbers(tmp_path):
+    p = tmp_path / "c.csv"
+    p.write_text("x,y,z,branch\n0,0,0,1\n1,0,0,1\n")
+    assert read_csv(p, ("x", "y", "z", "branch"), integer_last=True)[:, 3].tolist() == [1.0, 1.0]
+    p.write_text("x,y,z,branch\n0,0,0,1.5\n")
+    with pytest.raises(InputError, match="whole numbers"):
+        read_csv(p, ("x", "y", "z", "branch"), integer_last=True)

@@ -161,10 +161,11 @@ def test_plane_section_matches_trimesh():
 
 
 def test_probe_calibration_round_trip():
-    from navapp.simulation.probe import Probe, pixels_to_tracker, pose, ray_to_pixel, tracker_to_pixels
+    from navapp.geometry.transforms import probe_pose
+    from navapp.simulation.probe import Probe, pixels_to_tracker, ray_to_pixel, tracker_to_pixels
 
     probe = Probe(width_px=200, height_px=300, spacing_mm=0.3)
-    T = pose([10.0, 40.0, 5.0], lateral=[1.0, 0.2, 0.0], depth=[0.1, -1.0, 0.3])
+    T = probe_pose([10.0, 40.0, 5.0], lateral=[1.0, 0.2, 0.0], depth=[0.1, -1.0, 0.3])
     rng = np.random.default_rng(3)
     cols, rows = rng.integers(0, 200, 50), rng.integers(0, 300, 50)
     pts = pixels_to_tracker(probe, T, cols, rows)
@@ -205,3 +206,14 @@ def test_closest_on_decimated_vessels_searches_more_vertices(phantoms):
         missed = {near: int(np.sum(e > 1e-9)) for near, e in excess.items()}
         assert missed[NEAR] >= 20, missed  # the case the wider search is for
         assert missed[NEAR_DECIMATED] <= missed[NEAR] / 5 and excess[NEAR_DECIMATED].max() < 0.5, missed
+
+
+def test_tre_by_hand():
+    """The one TRE (navapp.geometry.tre): a 3-4-5 offset and an exact hit."""
+    from navapp.geometry.tre import mean_tre, point_errors, tre_stats
+
+    truth = np.array([[1.0, 2.0, 3.0], [-4.0, 0.0, 7.5]])
+    pred = truth + [[3.0, 4.0, 0.0], [0.0, 0.0, 0.0]]
+    assert point_errors(pred, truth).tolist() == [5.0, 0.0]
+    assert mean_tre(pred, truth) == 2.5
+    assert tre_stats(pred, truth) == {"mean_mm": 2.5, "sd_mm": 2.5, "max_mm": 5.0, "n": 2}

@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 import trimesh
 
+from navapp.geometry.transforms import probe_pose
 from navapp.registration.libr import register_libr
 from navapp.registration.next_plane import (
     PIXEL_MM,
     _extra_blocks,
     anterior_surface_mask,
     expected_features,
-    make_pose,
     suggest_planes,
 )
 from navapp.registration.pipeline import Registration
@@ -70,7 +70,7 @@ def test_expected_features_are_the_section_of_the_registered_model(small_model, 
     feat = small_model.features["portal"]
     _, X = small_model.positions(feat, beta)
     c = X.mean(0)
-    pose = make_pose(c + np.array([0.0, 40.0, 0.0]), [1.0, 0.0, 0.0], [0.0, -1.0, 0.0])
+    pose = probe_pose(c + np.array([0.0, 40.0, 0.0]), [1.0, 0.0, 0.0], [0.0, -1.0, 0.0])
     feats, pixels = expected_features(small_model, beta, pose)
     assert "portal_contour" in feats
     ref = trimesh.intersections.mesh_plane(trimesh.Trimesh(X, feat.cells, process=False), pose[:3, 1], pose[:3, 3])

@@ -1,4 +1,5 @@
-"""The README's commands run as a user runs them, in a fresh folder, with their output checked
+"""The documented commands (README.md, docs/commands.md, the Python block of docs/api.md) run as
+a user runs them, in a fresh folder, with their output checked
 (small meshes where the command takes them, so that the suite stays within its budget). One case
 folder, made by ``navapp demo``, serves the commands that read a case."""
 
@@ -89,20 +90,20 @@ def test_register_options(in_demo_folder, capsys):
     assert full["tre_deformable"]["mean_mm"] < full["tre_rigid"]["mean_mm"]
 
 
-README = Path(__file__).resolve().parent.parent / "README.md"
+API_PAGE = Path(__file__).resolve().parent.parent / "docs" / "api.md"  # the Python API page
 
 
 def test_python_api_block(in_demo_folder, capsys):
-    """The README's Python block, run on the demo's case folder at the quick settings (the
+    """The Python API page's block (once the README's), run on the demo's case folder at the quick settings (the
     block's own defaults, a 4 mm mesh and k = 45, take minutes; its last line simulates a
     study scene at 3.5 mm, which ``navapp demo`` already stands for)."""
-    text = README.read_text()
+    text = API_PAGE.read_text()
     block = text.split("```python\n", 1)[1].split("```", 1)[0]
     for old, new in (('"my-case"', '"navapp-demo"'), ("navapp.prepare(case)", "navapp.prepare(case, edge=12, k=12)"),
                      ('navapp.simulate(scene, "phantom0-L")', "assert scene.name == 'phantom0-L'")):
         assert old in block, old  # the block still reads as this test expects
         block = block.replace(old, new)
-    exec(compile(block, str(README), "exec"), {})
+    exec(compile(block, str(API_PAGE), "exec"), {})
     stop, mean = capsys.readouterr().out.split()
     assert stop in ("converged", "stationary", "max_iterations") and 0 < float(mean) < 10
 

@@ -1,4 +1,6 @@
+import ast
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -250,3 +252,17 @@ def test_eq8_one_implementation_agrees_at_features_and_arbitrary_points(small_mo
     assert np.allclose(X, by_hand, atol=1e-9)
     assert np.allclose(deform_points(small_model.basis, small_model.centroid, beta, feat.rest), by_hand, atol=1e-6)
     assert np.allclose(deform(feat.rest, u, beta, small_model.centroid)[0], local, atol=1e-12)
+
+
+def test_every_stop_reason_the_solver_returns_is_documented():
+    """libr's docstring lists the stop reasons; "stationary" was returned but not listed."""
+    import navapp.registration.libr as libr
+
+    src = Path(libr.__file__).read_text()
+    returned = {node.value.value for node in ast.walk(ast.parse(src))
+                if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "reason" for t in node.targets)
+                and isinstance(node.value, ast.Constant)}
+    returned |= {"no_data"}  # returned directly, not through ``reason``
+    assert returned <= set(libr.STOP_REASONS)
+    for r in libr.STOP_REASONS:
+        assert f'"{r}"' in libr.__doc__, r

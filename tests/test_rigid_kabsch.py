@@ -4,7 +4,7 @@ import numpy as np
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from navapp.registration.rigid import weighted_kabsch
+from navapp.geometry.transforms import kabsch
 
 
 def _problem(seed, n=60):
@@ -22,7 +22,7 @@ def _cost(R, t, P, Q, w):
 def test_equal_and_binary_weights_agree_with_trimesh_procrustes():
     P, Q, rng = _problem(1)
     for w in (np.ones(len(P)), (rng.random(len(P)) < 0.6).astype(float)):
-        R, t = weighted_kabsch(P, Q, w)
+        R, t = kabsch(P, Q, w)
         M = trimesh.registration.procrustes(P, Q, weights=w, reflection=False, scale=False, return_cost=False)
         assert np.allclose(R, M[:3, :3], atol=1e-10) and np.allclose(t, M[:3, 3], atol=1e-8)
         assert np.isclose(np.linalg.det(R), 1.0)
@@ -33,7 +33,7 @@ def test_unequal_weights_give_the_weighted_optimum():
     only the centroids, so its rotation has a higher weighted cost."""
     P, Q, rng = _problem(2)
     w = rng.uniform(0.05, 5.0, len(P))
-    R, t = weighted_kabsch(P, Q, w)
+    R, t = kabsch(P, Q, w)
     wn = w / w.sum()
     pc, qc = wn @ P, wn @ Q
     ref, _ = Rotation.align_vectors(Q - qc, P - pc, weights=w)

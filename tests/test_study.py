@@ -1,5 +1,7 @@
 """The Table II runner: design size, resumability, report; the README's other study commands."""
 
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -299,3 +301,40 @@ def test_study_error_estimate_command(quick_case, second_liver_case, tmp_path, c
     code, _, err = _run(["study", "error-estimate", "--quick", "--cases", str(quick_case), "--report",
                          str(tmp_path / "r1"), *SMALL], capsys)
     assert code == 2 and err.count("\n") == 1 and "at least two livers" in err
+
+
+def test_rendering_leaves_matplotlib_global_state_alone(tmp_path):
+    """Importing the figure modules used to switch every caller's backend to Agg; now they
+    draw on their own Figure objects and the PNG is still written."""
+    code = f"""
+import matplotlib
+matplotlib.use("svg")
+from navapp.evaluation import render, report, cost_report, robustness_report
+from navapp.anatomy.model import PreopModel
+import trimesh
+m = PreopModel(liver=trimesh.creation.icosphere(subdivisions=2, radius=60.0), name="ball")
+render.phantom_figure(m, {str(tmp_path / 'ball.png')!r})
+import matplotlib.pyplot as plt
+print(matplotlib.get_backend(), len(plt.get_fignums()))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["svg", "0"]
+    from skimage.io import imread
+
+    img = imread(tmp_path / "ball.png")
+    assert img.shape[0] > 100 and img.std() > 0
+
+
+def test_fixed_planes_of_a_level():
+    """"S+all" is every plane, the levels without planes none; "S+n" names a count, not the planes:
+    asking it for them is an error, not S alone (report.distance_plot had read any level but
+    "S+all" as no planes)."""
+    from navapp.simulation.levels import LEVELS, fixed_planes
+
+    assert fixed_planes("S+all", 4) == (0, 1, 2, 3)
+    assert {lv: fixed_planes(lv, 4) for lv in ("rigid", "S", "CBCT", "iCT")} == dict.fromkeys(
+        ("rigid", "S", "CBCT", "iCT"), ())
+    for level in LEVELS:
+        if level.startswith("S+") and level != "S+all":
+            with pytest.raises(ValueError, match="how many planes"):
+                fixed_planes(level, 4)

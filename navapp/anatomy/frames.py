@@ -11,6 +11,7 @@ reversed with it.
 import numpy as np
 
 from ..errors import NavappError
+from ..geometry.transforms import apply  # noqa: F401  (frames.apply: the importers' name for it)
 
 CASE_FRAME = "LAS"
 FRAMES = ("LAS", "LPS", "RAS")
@@ -23,11 +24,6 @@ def to_case(frame: str) -> np.ndarray:
     if frame not in _SIGNS:
         raise NavappError(f"unknown frame {frame!r}; known: {', '.join(FRAMES)}")
     return np.diag([*_SIGNS[frame], 1]).astype(float)
-
-
-def apply(matrix: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Points (N, 3) mm through a (4, 4) affine."""
-    return np.asarray(points, float) @ matrix[:3, :3].T + matrix[:3, 3]
 
 
 def mirrors(matrix: np.ndarray) -> bool:

@@ -24,6 +24,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..geometry.interpolation import interpolation_matrix
+from ..geometry.transforms import apply
 from .targets import TARGETS_DIR, Target, map_targets, read_targets
 
 FIELD_FILE = "field.npz"  # in truth/
@@ -66,7 +67,7 @@ class TruthField:
         tracker space (the deformation, then the tracker offset)."""
         points = np.atleast_2d(np.asarray(points, float))
         moved = points + self.displacement(points)
-        return moved @ self.offset[:3, :3].T + self.offset[:3, 3]
+        return apply(self.offset, moved)
 
     def tre_points(self, nodes) -> tuple[np.ndarray, np.ndarray]:
         """The points a whole-organ TRE is measured at, and where they truly are: the

@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..geometry.transforms import apply
+
 CONTROL_PANEL_PX = 24 * 16 + 24  # viser's "large" control panel (24 em) and its margins, on the right
 DOCK_2D_PX = (610, 340)  # the 2D view docked at 2× and at 1× (its 256-pixel-wide image, the rulers, a margin)
 NARROW_PX = 1500  # below this window width the 2D view is docked at 1×
@@ -109,5 +111,5 @@ def plane_view(probe_to_tracker, liver, fov_rad: float, screen: Screen | None,
         return centre + direction, centre
     w, t, length = probe_mm
     box = np.array([[sx * w / 2, sy * t / 2, -sz * length] for sx in (-1, 1) for sy in (-1, 1) for sz in (0, 1)])
-    points = np.vstack([np.asarray(liver, float), box @ T[:3, :3].T + T[:3, 3]])
+    points = np.vstack([np.asarray(liver, float), apply(T, box)])
     return frame(points, direction, (0.0, 0.0, 1.0), fov_rad, screen)

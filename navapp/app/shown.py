@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry.targets_distance import ImagePlane, plane_distances, tip_distances
+from ..geometry.tre import point_errors
 from ..registration.coverage import pose_warning
 from ..registration.libr import LibrResult
 from ..registration.model import deform
@@ -54,7 +55,7 @@ class Shown:
         truth = self.core.truth_nodes
         if truth is None:
             return None
-        return np.linalg.norm(self.node_positions(rigid, beta) - truth, axis=1)
+        return point_errors(self.node_positions(rigid, beta), truth)
 
     def target_errors(self, rigid: RigidResult, beta: np.ndarray | None) -> dict[str, float] | None:
         """Each target's (tumour's) true error at its centre, mm: the mesh nodes' error vector
@@ -69,7 +70,8 @@ class Shown:
             model, _ = core.need_model()
             self._centre_B = interpolation_matrix(model.basis.nodes, model.basis.tets,
                                                   np.array([t.centre for t in targets]))
-        d = np.linalg.norm(self._centre_B @ (self.node_positions(rigid, beta) - truth), axis=1)
+        # the error vectors interpolated to the centres, then their lengths
+        d = point_errors(self._centre_B @ (self.node_positions(rigid, beta) - truth), 0.0)
         return {t.name: round(float(e), 3) for t, e in zip(targets, d, strict=True)}
 
     def predict(self, reg: Registration, checked: Registration | None = None) -> tuple[np.ndarray | None,

@@ -28,10 +28,11 @@ from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
 from ..errors import NavappError
 from ..geometry.closest import numpy_test
+from ..geometry.tre import tre_stats
 from ..mechanics.basis import BasisSettings, basis_key, load_or_compute_basis
 from ..mechanics.fem import Material
 from ..registration.libr import LMOptions
-from ..registration.pipeline import prepare, register, tre_stats
+from ..registration.pipeline import prepare, register
 from ..simulation.levels import data_level
 from ..simulation.scene import demo_scene
 from ..simulation.scenedata import simulated_case_dir

@@ -20,8 +20,9 @@ from ..anatomy.caseio import read_case
 from ..anatomy.meshing import cached_tetmesh
 from ..defaults import EDGE_MM, N_PLANES, K
 from ..geometry.interpolation import interpolation_matrix
+from ..geometry.tre import mean_tre, tre_stats
 from ..registration.libr import LMOptions
-from ..registration.pipeline import prepare, register, tre_stats
+from ..registration.pipeline import prepare, register
 from ..simulation.levels import data_level, plus_planes
 from .distribute import ResultsCSV, check_scheduler, run_tasks
 from .peers import cpd_register, icp_register
@@ -214,7 +215,7 @@ def _cost_case(case_dir, todo, caps, rtols, plane_counts, peers, tre_edge) -> li
                     if not missing("peers", level, method, edge, k):
                         continue
                     res = peer(model, data, x0)
-                    tre = float(np.linalg.norm(res.moved - x1, axis=1).mean())
+                    tre = mean_tre(res.moved, x1)
                     row("peers", level, res.method, edge, k, "default", len(SWEEP_LEVELS[level]), nodes, 0.0,
                         res.seconds, tre, 0)
     return rows

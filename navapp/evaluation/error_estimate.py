@@ -37,9 +37,10 @@ from .. import progress
 from ..anatomy.caseio import read_case
 from ..defaults import EDGE_MM, K
 from ..errors import InputError, NavappError
+from ..geometry.tre import point_errors
 from ..registration.pipeline import prepare, register, rigid_starts
 from ..registration.uncertainty import Calibration, estimate_error
-from ..simulation.levels import has_planes, plane_count, study_data, stylus_only_pose
+from ..simulation.levels import fixed_planes, has_planes, plane_count, study_data, stylus_only_pose
 
 # the levels the estimate is calibrated and validated at (module doc), of ``simulation.levels.LEVELS``
 ESTIMATE_LEVELS = ("S", "S+1", "S+2", "S+3", "S+all", "CBCT")
@@ -73,10 +74,8 @@ def liver_id(case_dir) -> str:
 
 
 def plane_choices(level, n_planes, combos, rng):
-    if level == "S+all":
-        return [tuple(range(n_planes))]
-    if not has_planes(level):
-        return [()]
+    if level == "S+all" or not has_planes(level):
+        return [fixed_planes(level, n_planes)]
     m = plane_count(level)
     allc = list(itertools.combinations(range(n_planes), m))
     return [allc[i] for i in sorted(rng.choice(len(allc), min(combos, len(allc)), replace=False))]
@@ -102,7 +101,7 @@ def collect_case(case_dir, levels=ESTIMATE_LEVELS, combos=3, seed=0, edge=EDGE_M
             t = time.perf_counter()
             est = estimate_error(reg)
             sec = time.perf_counter() - t
-            err = np.linalg.norm(est.positions - x1, axis=1)
+            err = point_errors(est.positions, x1)
             out.append(Sample(case_dir.name, level, planes, est.distance_mm, est.sigma_mm, err, sec,
                               liver_id(case_dir), reg.deformed))
     return out

@@ -36,8 +36,9 @@ from threadpoolctl import threadpool_info
 from ..defaults import EDGE_MM, K
 from ..geometry.closest import numpy_test
 from ..geometry.interpolation import interpolation_matrix
+from ..geometry.tre import tre_stats
 from ..registration.live import LiveRegistration
-from ..registration.pipeline import prepare, register, tre_stats
+from ..registration.pipeline import prepare, register
 from ..simulation.levels import data_level
 from ..simulation.scene import demo_scene
 from ..simulation.scenedata import auto_segmentation, load_scene_data, segment_frame

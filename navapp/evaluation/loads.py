@@ -31,8 +31,9 @@ from ..anatomy.caseio import read_case
 from ..anatomy.truth import TruthField
 from ..errors import InputError
 from ..geometry.interpolation import interpolation_matrix
+from ..geometry.tre import tre_stats
 from ..registration.local_modes import LocalModeOptions
-from ..registration.pipeline import RobustOptions, prepare, register, tre_stats
+from ..registration.pipeline import RobustOptions, prepare, register
 from ..registration.pose import POSE_RULE
 from ..registration.prior import PosePrior, declared_pose
 from ..registration.rotation import rotation_angle
@@ -92,8 +93,8 @@ def _case_facts(case_dir: Path, case, nodes: np.ndarray) -> dict:
     return {"pre_aligned": "tracker_offset" not in rep, "covers": covers, "displacement_mm": shown}
 
 
-def _old_warnings(reg) -> list[str]:
-    """The warnings the pipeline raised before the guards: too few points, poor fit."""
+def _fit_warnings(reg) -> list[str]:
+    """The fit's own warnings, the only ones an unguarded method has: too few points, poor fit."""
     return list(reg.notes) + ([reg.quality.warning] if reg.quality is not None and reg.quality.warning else [])
 
 
@@ -137,7 +138,7 @@ def run_case(case_dir, methods: tuple[str, ...] = METHODS) -> list[dict]:
                                    pose_prior=prior)
                     pred = reg.transform(x0, B=B)
                     answer = "deformable" if reg.deformed else "rigid"
-                    lines = reg.warnings if guarded else _old_warnings(reg)
+                    lines = reg.warnings if guarded else _fit_warnings(reg)
                     c = reg.pose_choice
                     if c is not None:  # where the rigid stage's pose came from, and ICP's turn from the given one
                         pose, turn = c.source.value, "" if c.turn_deg is None else round(c.turn_deg, 1)

@@ -24,8 +24,9 @@ from .. import progress
 from ..anatomy.caseio import read_case, read_csv
 from ..defaults import EDGE_MM, K
 from ..errors import InputError, NavappError
+from ..geometry.tre import tre_stats
 from ..registration.next_plane import anterior_surface_mask, suggest_planes
-from ..registration.pipeline import prepare, register, rigid_starts, tre_stats
+from ..registration.pipeline import prepare, register, rigid_starts
 from ..registration.uncertainty import DEFAULT_CALIBRATION as cal
 from ..registration.uncertainty import estimate_error
 from ..simulation.levels import data_level, plus_planes

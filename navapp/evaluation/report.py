@@ -8,8 +8,9 @@ import numpy as np
 
 from ..anatomy.caseio import read_case
 from ..defaults import EDGE_MM, N_PLANES, K
+from ..geometry.tre import point_errors
 from ..registration.pipeline import prepare, register
-from ..simulation.levels import LEVELS, study_data
+from ..simulation.levels import LEVELS, fixed_planes, study_data
 from .table2 import PAPER, read_results
 
 
@@ -92,13 +93,12 @@ def distance_plot(case_dirs, path, level="S+all", edge=EDGE_MM, k=K) -> float:
     for d in case_dirs:
         case = read_case(d)
         model, _ = prepare(case, edge, k)
-        planes = range(N_PLANES) if level == "S+all" else ()
-        data = study_data(d, level, planes, case=case)
+        data = study_data(d, level, fixed_planes(level, N_PLANES), case=case)
         reg = register(model, data)
         x0, x1 = case.need_truth().tre_points(model.basis.nodes)
         pts = np.vstack(list(data.values()))
         dist.append(cKDTree(pts).query(x1)[0])
-        err.append(np.linalg.norm(reg.transform(x0) - x1, axis=1))
+        err.append(point_errors(reg.transform(x0), x1))
     d_all, e_all = np.concatenate(dist), np.concatenate(err)
     r = float(pearsonr(d_all, e_all)[0])
     fig = Figure(figsize=(6, 4.5), dpi=110)

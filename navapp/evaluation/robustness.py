@@ -33,8 +33,10 @@ from ..anatomy.caseio import read_case, read_surface
 from ..defaults import EDGE_MM, N_PLANES, K
 from ..features import SALIENT
 from ..geometry.interpolation import interpolation_matrix
+from ..geometry.transforms import axis_angle
+from ..geometry.tre import tre_stats
 from ..registration import pipeline
-from ..registration.pipeline import prepare, tre_stats
+from ..registration.pipeline import prepare
 from ..simulation.levels import data_level
 from .distribute import ResultsCSV, check_scheduler, run_tasks
 
@@ -72,12 +74,10 @@ def _seed(*parts) -> int:
 
 
 def random_rotation(rng, angle_deg) -> np.ndarray:
-    """(3, 3) rotation by ``angle_deg`` about a uniformly random axis (Rodrigues)."""
+    """(3, 3) rotation by ``angle_deg`` about a uniformly random axis."""
     axis = rng.normal(size=3)
     axis /= np.linalg.norm(axis)
-    a = np.radians(angle_deg)
-    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(a) * K + (1 - np.cos(a)) * K @ K
+    return axis_angle(axis, np.radians(angle_deg))
 
 
 def offset_transform(rng, angle_deg, shift_mm, pivot):

@@ -20,8 +20,9 @@ from .. import progress
 from ..anatomy.caseio import read_case
 from ..defaults import EDGE_MM, N_PLANES, K
 from ..geometry.interpolation import interpolation_matrix
-from ..registration.pipeline import prepare, register, rigid_starts, tre_stats
-from ..simulation.levels import LEVELS, plus_planes, study_data, stylus_only_pose  # noqa: F401 (LEVELS: Table II's rows)
+from ..geometry.tre import tre_stats
+from ..registration.pipeline import prepare, register, rigid_starts
+from ..simulation.levels import LEVELS, fixed_planes, plus_planes, study_data, stylus_only_pose  # noqa: F401 (LEVELS: Table II's rows)
 from .distribute import DASK_CONNECT_S, ResultsCSV, check_scheduler, dask_client, run_tasks  # noqa: F401
 
 PAPER = {"rigid": (13.8, None), "S": (11.4, None), "S+1": (9.0, None), "S+2": (7.4, None), "S+3": (6.4, None),
@@ -38,7 +39,7 @@ def scenarios(n_planes=N_PLANES, quick=False, rng_seed=0):
             rng = np.random.default_rng(rng_seed + m)
             combos = [combos[i] for i in sorted(rng.choice(len(combos), 2, replace=False))]
         out += [(plus_planes(m), c) for c in combos]
-    out += [("S+all", tuple(range(n_planes))), ("CBCT", ()), ("iCT", ())]
+    out += [(level, fixed_planes(level, n_planes)) for level in ("S+all", "CBCT", "iCT")]
     return out
 
 

@@ -29,6 +29,7 @@ from scipy.spatial import cKDTree
 from ..defaults import FAR_WALL_COS, FAR_WALL_MIN_DEPTH_MM, PROBE_HEIGHT_PX, PROBE_SPACING_MM, PROBE_WIDTH_PX
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.planes import plane_section
+from ..geometry.transforms import homogeneous, probe_pose
 from ..threads import limit_threads
 from .objective import evaluate
 from .uncertainty import (
@@ -82,17 +83,6 @@ class Suggestion:
     @property
     def best(self) -> PlaneCandidate:
         return self.candidates[0]
-
-
-def make_pose(origin, lateral, depth) -> np.ndarray:
-    """4×4 probe pose with the image's lateral axis along ``lateral`` (orthogonalised
-    against ``depth``), depth along ``depth`` and the plane normal their cross product."""
-    z = np.asarray(depth, float) / np.linalg.norm(depth)
-    x = np.asarray(lateral, float) - (np.asarray(lateral, float) @ z) * z
-    x /= np.linalg.norm(x)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, np.cross(z, x), z, origin
-    return m
 
 
 def anterior_surface_mask(model, preop) -> np.ndarray:
@@ -153,7 +143,7 @@ def candidate_poses(reg, anterior, count=8) -> list[tuple[str, np.ndarray]]:
     for orientation, lateral in (("vertical", np.array([0.0, 0.0, 1.0])), ("lateral", np.array([1.0, 0.0, 0.0]))):
         for c in centres:
             i = ant[np.argmin(np.linalg.norm(X[ant] - c, axis=1))]
-            out.append((orientation, make_pose(X[i], lateral, -N[i])))
+            out.append((orientation, probe_pose(X[i], lateral, -N[i])))
     return out
 
 
@@ -281,9 +271,7 @@ def suggest_planes(reg, anterior=None, preop=None, poses=None, calibration: Cali
         d0 = nearest_data_distance(x, data)
         e0 = calibration.predict(d0, point_sigma(G, factor=covariance_factor(info)), np.median(d0))
         # rigid map model → tracker, to bring the candidate poses into the model frame
-        Tm = np.eye(4)
-        Tm[:3, :3], Tm[:3, 3] = reg.rigid.R, reg.rigid.t
-        Tinv = np.linalg.inv(Tm)
+        Tinv = np.linalg.inv(homogeneous(reg.rigid.R, reg.rigid.t))
         out = []
         for i, (orientation, pose) in enumerate(poses):
             pose_model = Tinv @ np.asarray(pose, float)

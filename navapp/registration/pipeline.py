@@ -27,6 +27,7 @@ from ..anatomy.model import VESSELS
 from ..defaults import EDGE_MM, K
 from ..errors import CarriedWarning, InputError
 from ..geometry.interpolation import interpolation_matrix
+from ..geometry.tre import tre_stats
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from .coverage import note_coverage
 from .libr import LibrResult, LMOptions, register_libr
@@ -237,13 +238,6 @@ def deform_points(basis: Basis, centroid, beta, points, B=None) -> np.ndarray:
     B = interpolation_matrix(basis.nodes, basis.tets, points) if B is None else B
     u = (basis.Ju @ beta[:n]).reshape(-1, 3)
     return deform(np.asarray(points, float), B @ u, beta, centroid)[1]
-
-
-def tre_stats(pred, truth) -> dict:
-    """Target registration error of predicted (T, 3) against true (T, 3) positions, mm:
-    ``mean_mm``, ``sd_mm``, ``max_mm`` and the count ``n``."""
-    d = np.linalg.norm(pred - truth, axis=1)
-    return {"mean_mm": float(d.mean()), "sd_mm": float(d.std()), "max_mm": float(d.max()), "n": int(len(d))}
 
 
 def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None, supports: str | None = None,

@@ -120,7 +120,7 @@ def trimmed_pose(model: RegistrationModel, data: dict, start: RigidResult, keep:
     of surface points nearest the model (least trimmed squares), so a deformation that
     moves fewer than that fraction of the data does not move the pose. Returns the pose and
     how far it moved the data from ``start`` (RMS, mm)."""
-    from .rigid import _rodrigues
+    from ..geometry.transforms import rotvec_matrix
 
     R, t = start.R.copy(), start.t.copy()
     Y0 = None
@@ -139,7 +139,7 @@ def trimmed_pose(model: RegistrationModel, data: dict, start: RigidResult, keep:
         if not np.isfinite(x).all():
             return start, float("inf")
         w, v = x[:3], x[3:] - np.cross(x[:3], c)  # rotation about c → about the origin
-        Rd = _rodrigues(w[None])[0]
+        Rd = rotvec_matrix(w)
         R = R @ Rd.T
         t = t - R @ v
         if np.linalg.norm(w) * np.linalg.norm(P - c, axis=1).max() + np.linalg.norm(x[3:]) < tol_mm:

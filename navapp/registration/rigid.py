@@ -23,6 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..features import RIGID
+from ..geometry.transforms import kabsch, rotvec_matrix
 from .model import REGION_FEATURES, RegistrationModel
 from .objective import Weights, correspond
 from .rotation import rotation_angle
@@ -47,24 +48,6 @@ class RigidResult:
 
     def inverse(self, y):
         return (np.asarray(y) - self.t) @ self.R
-
-
-def weighted_kabsch(P, Q, w):
-    """R, t minimising Σ w_i |R p_i + t − q_i|² (proper rotation, det R = +1).
-
-    Why not ``trimesh.registration.procrustes(P, Q, weights=w)``: it weights the centroids
-    but not the cross-covariance, so with unequal weights (every feature's w_F / N_F, the
-    Huber factors) its rotation is not the weighted optimum, as its docstring says. The
-    weighted problem has this closed form; with equal or 0/1 weights both agree (a test
-    checks both cases against trimesh and the weighted one against scipy's align_vectors).
-    """
-    w = w / w.sum()
-    pc, qc = w @ P, w @ Q
-    H = (P - pc).T @ ((Q - qc) * w[:, None])
-    U, _, Vt = np.linalg.svd(H)
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0])
-    R = Vt.T @ D @ U.T
-    return R, qc - R @ pc
 
 
 SURFACE_FEATURES = RIGID  # stylus data and fiducials (``navapp.features``)
@@ -103,7 +86,7 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights | None = No
         return RigidResult(R, t, 0, 0.0)
     if "fiducials" in data and len(data["fiducials"]) >= 3 and start is None:
         P = model.features["fiducials"].rest
-        R, t = weighted_kabsch(P, data["fiducials"], np.ones(len(P)))
+        R, t = kabsch(P, data["fiducials"], np.ones(len(P)))
     elif start is None and multi_start:
         # the same points and starts as the pipeline's, so the same poses
         best = basin_representatives(multi_start_icp(model, data, start_poses(model, data), weights,
@@ -126,7 +109,7 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights | None = No
             if robust and name in REGION_FEATURES:
                 Ws[-1] = Ws[-1] * _robust_scale(np.linalg.norm(Ym - Ps[-1], axis=-1), robust)
         P, Q, W = np.vstack(Ps), np.vstack(Qs), np.concatenate(Ws)
-        R, t = weighted_kabsch(P, Q, W)
+        R, t = kabsch(P, Q, W)
         rms = float(np.sqrt(np.average(np.sum((P @ R.T + t - Q) ** 2, 1), weights=W)))
         if abs(prev - rms) < tol_mm:
             break
@@ -241,17 +224,6 @@ def start_poses(model: RegistrationModel, data: dict, angle_deg=15.0, principal_
     return starts
 
 
-def _rodrigues(w: np.ndarray) -> np.ndarray:
-    """(S, 3) rotation vectors → (S, 3, 3) rotation matrices."""
-    a = np.linalg.norm(w, axis=1)
-    k = w / np.maximum(a, 1e-300)[:, None]
-    K = np.zeros((len(w), 3, 3))
-    K[:, 0, 1], K[:, 0, 2], K[:, 1, 2] = -k[:, 2], k[:, 1], -k[:, 0]
-    K[:, 1, 0], K[:, 2, 0], K[:, 2, 1] = k[:, 2], -k[:, 1], k[:, 0]
-    s, c = np.sin(a)[:, None, None], np.cos(a)[:, None, None]
-    return np.eye(3) + s * K + (1 - c) * K @ K
-
-
 def multi_start_icp(model: RegistrationModel, data: dict, starts: list[Start], weights: Weights | None = None,
                     mode="plane", features=SURFACE_FEATURES, max_iterations=30, tol_mm=1e-2,
                     points=SCREEN_POINTS, basin_mm=1.5, merge_mm=0.5,
@@ -347,7 +319,7 @@ def multi_start_icp(model: RegistrationModel, data: dict, starts: list[Start], w
         move = np.linalg.norm(w, axis=1) * radius + np.linalg.norm(v, axis=1)
         # data in the model frame move as y_m ↦ Rd y_m + v, i.e. the pose (model → data)
         # becomes x ↦ R Rdᵀ (x − v) + t
-        R_new = np.einsum("sij,skj->sik", Ra, _rodrigues(w))
+        R_new = np.einsum("sij,skj->sik", Ra, rotvec_matrix(w))
         t[on] = ta - np.einsum("sij,sj->si", R_new, v)
         R[on] = R_new
         iters[on] += 1

@@ -8,6 +8,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..geometry.transforms import axis_angle, homogeneous
+
 
 @dataclass
 class Ledger:
@@ -33,9 +35,7 @@ def calibration_error(probe_to_tracker, rng, ledger: Ledger, rotation_deg: float
     rigid transform of the given magnitudes (rotation about a random axis, shift along a
     random direction), in the probe's own frame."""
     ledger.mark("calibration_error")
-    delta = np.eye(4)
-    delta[:3, :3], delta[:3, 3] = _random_rigid(rng, rotation_deg, translation_mm)
-    return probe_to_tracker @ delta
+    return probe_to_tracker @ homogeneous(*_random_rigid(rng, rotation_deg, translation_mm))
 
 
 def _random_rigid(rng, rotation_deg: float, translation_mm: float) -> tuple[np.ndarray, np.ndarray]:
@@ -45,7 +45,7 @@ def _random_rigid(rng, rotation_deg: float, translation_mm: float) -> tuple[np.n
     axis /= np.linalg.norm(axis)
     shift = rng.normal(size=3)
     shift *= translation_mm / np.linalg.norm(shift)
-    return _axis_angle(axis, np.radians(rotation_deg)), shift
+    return axis_angle(axis, np.radians(rotation_deg)), shift
 
 
 def tracker_offset(pivot, rng, ledger: Ledger, rotation_deg: float, translation_mm: float) -> np.ndarray:
@@ -58,16 +58,6 @@ def tracker_offset(pivot, rng, ledger: Ledger, rotation_deg: float, translation_
     T[:3, :3] = R
     T[:3, 3] = np.asarray(pivot) - R @ np.asarray(pivot) + shift
     return T
-
-
-def apply(T, points) -> np.ndarray:
-    """(P, 3) points moved by a 4 × 4 rigid transform."""
-    return np.asarray(points) @ T[:3, :3].T + T[:3, 3]
-
-
-def _axis_angle(axis, angle):
-    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
 
 
 def probe_compression(points, contact, depth_axis, ledger: Ledger, depth_mm: float, radius_mm: float):

@@ -43,6 +43,17 @@ def plane_count(level: str) -> int:
     return int(level[2:])
 
 
+def fixed_planes(level: str, n_planes: int) -> tuple[int, ...]:
+    """The planes of a level that names them all or none: every one of the case's
+    ``n_planes`` for "S+all", none for "rigid", "S", "CBCT" and "iCT". "S+n" leaves the
+    choice of n planes to the study (``ValueError``)."""
+    if level == "S+all":
+        return tuple(range(n_planes))
+    if has_planes(level):
+        raise ValueError(f"{level!r} names how many planes, not which")
+    return ()
+
+
 def stylus_only_pose(level: str) -> bool:
     """True for the levels whose rigid stage sees only the stylus data (``registration.rigid``
     fits the surface features, which are the stylus's for S and every S + planes), so one

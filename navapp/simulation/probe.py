@@ -29,18 +29,6 @@ class Probe:
         return m
 
 
-def pose(origin, lateral, depth) -> np.ndarray:
-    """ProbeToTracker (4×4) for a probe whose face centre is ``origin``, with the image's
-    lateral axis along ``lateral`` and depth axis along ``depth`` (orthogonalised)."""
-    z = np.asarray(depth, float) / np.linalg.norm(depth)
-    x = np.asarray(lateral, float) - (np.asarray(lateral, float) @ z) * z
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, y, z, origin
-    return m
-
-
 def pixels_to_tracker(probe: Probe, probe_to_tracker, cols, rows) -> np.ndarray:
     """3D tracker positions (N, 3) mm of image pixels (cols u, rows v)."""
     uv = np.column_stack([cols, rows, np.zeros(len(cols)), np.ones(len(cols))]).astype(float)

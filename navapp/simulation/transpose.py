@@ -40,6 +40,7 @@ from scipy.interpolate import RBFInterpolator
 from .. import cache
 from ..anatomy.meshing import TetMesh, cached_tetmesh
 from ..geometry.interpolation import barycentric
+from ..geometry.transforms import kabsch
 from ..threads import limit_threads
 from .truth import solve_linear, solve_neo_hookean
 
@@ -117,18 +118,6 @@ def correspondence(target_vertices, reference_vertices, n_points=CPD_POINTS, bet
     return Correspondence(A, Q, spline, res)
 
 
-def rigid_part(points, moved, weights=None):
-    """Least-squares rigid motion (Kabsch) X ↦ R X + b taking ``points`` (N, 3) to ``moved`` (N, 3)."""
-    w = np.ones(len(points)) if weights is None else np.asarray(weights, float)
-    w = w / w.sum()
-    cp, cm = w @ points, w @ moved
-    H = (points - cp).T @ ((moved - cm) * w[:, None])
-    u, _, vt = np.linalg.svd(H)
-    d = np.sign(np.linalg.det(vt.T @ u.T))
-    R = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
-    return R, cm - R @ cp
-
-
 def sample_field(mesh: TetMesh, field, points) -> np.ndarray:
     """A nodal field (M, 3) at ``points`` (P, 3): barycentric inside the mesh; outside,
     the nearest tet's weights clipped to [0, 1] and renormalised (bounded, never
@@ -143,7 +132,7 @@ def transpose(reference: TetMesh, u_ref, phi: Correspondence, points) -> np.ndar
     """Displacement (P, 3) mm at target ``points`` (P, 3) of the reference deformation
     ``u_ref`` (M, 3) on ``reference``, carried through φ (module doc): x ↦ R x + b + Q r(φ(x))."""
     X = reference.nodes
-    R, b = rigid_part(X, X + u_ref)
+    R, b = kabsch(X, X + u_ref)
     residual = X + u_ref - (X @ R.T + b)
     points = np.asarray(points, float)
     r = sample_field(reference, residual, phi(points)) @ phi.rotation  # Qᵀ: reference frame → target frame

@@ -13,8 +13,9 @@ from ..anatomy.model import VESSELS
 from ..defaults import FAR_WALL_COS, FAR_WALL_MIN_DEPTH_MM, N_PLANES
 from ..geometry.bresenham import line
 from ..geometry.planes import plane_section
+from ..geometry.transforms import probe_pose
 from . import effects as fx
-from .probe import pixels_to_tracker, pose, tracker_to_pixels
+from .probe import pixels_to_tracker, tracker_to_pixels
 
 
 @dataclass
@@ -38,7 +39,7 @@ def plane_poses(liver_vertices, liver_normals, anterior_mask, count=N_PLANES, se
         for c in km.cluster_centers_[order]:
             i = ant[np.argmin(np.linalg.norm(liver_vertices[ant] - c, axis=1))]
             depth = -liver_normals[i]
-            poses.append((orientation, pose(liver_vertices[i], lateral, depth)))
+            poses.append((orientation, probe_pose(liver_vertices[i], lateral, depth)))
     return poses[:count]
 
 

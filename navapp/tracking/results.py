@@ -22,6 +22,7 @@ import numpy as np
 import pyigtl
 
 from ..anatomy.frames import to_case
+from ..geometry.transforms import homogeneous
 
 RIGID = "RigidToReference"
 PREOP_RAS = "PreopRASToReference"
@@ -34,9 +35,7 @@ COLOURS = {TARGETS: (255, 255, 0, 255), "PortalCenterline": (255, 80, 80, 255),
 
 def rigid_matrix(rigid) -> np.ndarray:
     """(4, 4) model → Reference of a ``RigidResult`` (R, t)."""
-    m = np.eye(4)
-    m[:3, :3], m[:3, 3] = rigid.R, rigid.t
-    return m
+    return homogeneous(rigid.R, rigid.t)
 
 
 _ASCII = str.maketrans({"≤": "<=", "≥": ">=", "Ω": "Omega", "°": " deg", "–": "-", "—": "-", "×": "x", "β": "beta",

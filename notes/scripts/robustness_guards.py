@@ -2,7 +2,7 @@
 loads (methods "unguarded" and "default"), on the cases given: one draw, offsets 0°, 15° and
 20°, three label conditions. Rows go to the CSV given (resumable, as the study's own).
 
-    python scripts/robustness_guards.py results/robustness_guards_quick.csv study-cases/phantom*
+    python notes/scripts/robustness_guards.py notes/robustness_guards_quick.csv study-cases/phantom*
 """
 
 import sys

@@ -10,7 +10,7 @@ registered again with today's guards. The placement and the extension are the pa
 (``registration.local_modes``, here with the probe's constants). The truth is read only after both fits.
 The constants were set before the first run and not tuned.
 
-    python scripts/local_modes_probe.py OUT.jsonl CASE [CASE ...]
+    python notes/scripts/local_modes_probe.py OUT.jsonl CASE [CASE ...]
 """
 
 import json

@@ -3,7 +3,7 @@ default, per case and level (S, S + all): mean TRE of both answers and of both d
 fits (shown or not), whether the modes were kept, the held-out RMS either way, the
 warnings, and the seconds. JSON lines appended to OUT.
 
-    python scripts/local_modes_pipeline.py OUT.jsonl CASE [CASE ...]
+    python notes/scripts/local_modes_pipeline.py OUT.jsonl CASE [CASE ...]
 """
 
 import json
@@ -12,8 +12,9 @@ import time
 import warnings
 from pathlib import Path
 
+from navapp.geometry.tre import tre_stats
 from navapp.registration.local_modes import LocalModeOptions
-from navapp.registration.pipeline import RobustOptions, register, tre_stats
+from navapp.registration.pipeline import RobustOptions, register
 
 sys.path.insert(0, str(Path(__file__).parent))
 from local_modes_probe import each_case, each_level  # noqa: E402

@@ -1,6 +1,6 @@
 """The laparoscopic reference deformation, linear against neo-Hookean: one JSON line per release.
 
-    python scripts/lap_reference_nh.py [--E PA] [--pressure PA] [--tilt DEG] [--head-up DEG]
+    python notes/scripts/lap_reference_nh.py [--E PA] [--pressure PA] [--tilt DEG] [--head-up DEG]
 
 Reference phantom 3 at the lap scenes' mesh edge, loads as navapp/scenes/lap0-{L,N,R}.toml
 declare them (each overridable, for calibration); prints per release the neo-Hookean

@@ -3,7 +3,7 @@ from it (T) and at the multi-start ICP's pose (I), with each pose's rigid TRE, a
 TRE from T with the pose fixed and free: the measurements behind ``pose.POSE_RULE``
 (docs/decisions.md, "Local loads").
 
-    python scripts/pose_consensus.py S|S+all CASE [CASE ...]
+    python notes/scripts/pose_consensus.py S|S+all CASE [CASE ...]
 
 f1, f2: fraction of the surface points within 1 and 2 mm of the model; med: their median
 distance (mm); moved: how far the trimmed fit moved the data (RMS mm).

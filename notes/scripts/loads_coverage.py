@@ -7,8 +7,8 @@ deformable answer (``below_upper``) and for the answer shown (``below_upper_show
 rigid pose where the deformation was not supported), and the mean predicted, deformable
 and shown errors (mm).
 
-    python scripts/loads_coverage.py TOOL/tool1-* TOOL/tool2-* > results/loads_coverage.jsonl
-    python scripts/loads_coverage.py --declared TOOL/tool* > results/loads_coverage_declared.jsonl
+    python notes/scripts/loads_coverage.py TOOL/tool1-* TOOL/tool2-* > notes/loads_coverage.jsonl
+    python notes/scripts/loads_coverage.py --declared TOOL/tool* > results/loads_coverage_declared.jsonl
 
 ``--declared``: each case registered with its pose declared as its scene made it
 (``loads.declared_prior``). ``in_band`` is the fraction of targets whose true error lies in

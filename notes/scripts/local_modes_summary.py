@@ -1,9 +1,9 @@
-"""Summary of ``scripts/local_modes_probe.py``'s lines by case set and level, for each rule
+"""Summary of ``notes/scripts/local_modes_probe.py``'s lines by case set and level, for each rule
 that keeps the extended basis: always, or when the cross-validation's held-out RMS of the
 deformable fit drops by more than a margin. The tool set's ratio is to its no-correction
 mean in results/loads.csv.
 
-    python scripts/local_modes_summary.py results/local_modes_probe.jsonl [results/local_modes_folds.jsonl]
+    python notes/scripts/local_modes_summary.py notes/local_modes_probe.jsonl [notes/local_modes_folds.jsonl]
 
 With the second file (``local_modes_folds.py``), the rule reads its held-out RMS, where the
 sources were placed inside each fold, instead of the first probe's.

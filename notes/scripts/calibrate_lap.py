@@ -1,8 +1,8 @@
 """Difficulty of the nine transposed cases at given loads: rigid TRE and true displacement only.
 
-    python scripts/calibrate_lap.py OUT_DIR [--E PA] [--pressure PA] [--tilt DEG] [--head-up DEG]
-                                            [--linear] [--cases lap0-L,lap1-N,...]
-    python scripts/calibrate_lap.py CASES_DIR --existing   # cases simulated already (the loads shown are the scenes')
+    python notes/scripts/calibrate_lap.py OUT_DIR [--E PA] [--pressure PA] [--tilt DEG] [--head-up DEG]
+                                                  [--linear] [--cases lap0-L,lap1-N,...]
+    python notes/scripts/calibrate_lap.py CASES_DIR --existing  # cases simulated already (loads: the scenes')
 
 Each lap scene (navapp/scenes/lap*.toml) with the given loads overriding its own, no iUS
 planes (the rigid level sees only the stylus data, drawn before the planes), simulated into

@@ -3,7 +3,7 @@ on every trial of the robustness design (offsets, label noise), one JSON line pe
 where it says "fitted" the guarded registration is the unguarded one (docs/decisions.md,
 "Local loads").
 
-    python scripts/pose_rule_check.py STUDY_CASE [STUDY_CASE ...] > pose_rule.jsonl
+    python notes/scripts/pose_rule_check.py STUDY_CASE [STUDY_CASE ...] > pose_rule.jsonl
 """
 
 import json

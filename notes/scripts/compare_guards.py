@@ -2,7 +2,7 @@
 paired row by row: what the kept pose and the cross-validated deformation change on the
 study cases (they must not get worse).
 
-    python scripts/compare_guards.py CASE [CASE ...] [--out results/guards_table2.csv]
+    python notes/scripts/compare_guards.py CASE [CASE ...] [--out notes/guards_table2.csv]
 
 Per case: rigid, S, two S + 1/2/3 plane choices (seeded as ``table2.scenarios(quick=True)``),
 S + all, CBCT, iCT. Prints per level the mean TRE both ways and how often the guarded
@@ -22,7 +22,7 @@ from navapp.registration.pipeline import RobustOptions
 
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ap.add_argument("cases", type=Path, nargs="+")
-ap.add_argument("--out", type=Path, default=Path("results/guards_table2.csv"))
+ap.add_argument("--out", type=Path, default=Path("notes/guards_table2.csv"))
 args = ap.parse_args()
 progress.QUIET = True
 rows = []

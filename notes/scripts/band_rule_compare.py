@@ -1,7 +1,7 @@
 """The band's rule, before and after session 28, with each liver in turn as the calibration
 liver: held-out (set, level) cells under the nominal 90 %.
 
-    python scripts/band_rule_compare.py COLLECTED SET=CASE_DIR... [--band-only SET]
+    python notes/scripts/band_rule_compare.py COLLECTED SET=CASE_DIR... [--band-only SET]
 
 COLLECTED holds one pickle per case, ``<set>__<case>.pkl``, each the list of
 ``error_estimate.Sample`` that ``error_estimate.collect_case(case_dir)`` returns. The rule

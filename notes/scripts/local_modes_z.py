@@ -3,7 +3,7 @@ cross-validation alone judges), how large is the correction against its own σ
 (``support.weigh_correction``), beside the TRE of the answer, of the rigid answer and of no
 correction? JSON lines appended to OUT, one per registration whose modes were kept.
 
-    python scripts/local_modes_z.py OUT.jsonl CASE [CASE ...]
+    python notes/scripts/local_modes_z.py OUT.jsonl CASE [CASE ...]
 """
 
 import json

@@ -8,7 +8,7 @@ extended one (sources from the training data's own fit) are fitted to the other 
 and the held-out RMS of each is kept. JSON lines appended to OUT, one per registration:
 ``folds`` = [deformable held-out RMS with today's basis, with the extended one], mm.
 
-    python scripts/local_modes_folds.py OUT.jsonl CASE [CASE ...]
+    python notes/scripts/local_modes_folds.py OUT.jsonl CASE [CASE ...]
 """
 
 import json

@@ -2,7 +2,7 @@
 update's delivery, a large message) against viser reached directly, side by side in one
 process, and one action-log line (written and fsync'd) as a click adds it.
 
-    python scripts/bench_access.py [--repeats 30]
+    python notes/scripts/bench_access.py [--repeats 30]
 
 Prints medians (and the 10th-90th percentiles) in milliseconds. Both websocket clients are
 connected at once and receive the same broadcasts, so the two figures of a row share the

@@ -1,7 +1,7 @@
 """Probe: does a larger k make the dent? Each case at S and at S + all, today's guarded
 registration with each k given; the truth is read after the fit. JSON lines appended to OUT.
 
-    python scripts/k_probe.py OUT 45,90 CASE [CASE ...]
+    python notes/scripts/k_probe.py OUT 45,90 CASE [CASE ...]
 """
 
 import json
@@ -14,7 +14,8 @@ from navapp import progress
 from navapp.anatomy.caseio import read_case
 from navapp.defaults import EDGE_MM
 from navapp.geometry.interpolation import interpolation_matrix
-from navapp.registration.pipeline import prepare, register, tre_stats
+from navapp.geometry.tre import tre_stats
+from navapp.registration.pipeline import prepare, register
 from navapp.simulation.levels import data_level
 
 

@@ -1,6 +1,6 @@
 """Time the live-view target distances on phantom 0's two tumours (median of many calls).
 
-    /work/venv/bin/python scripts/time_target_distances.py
+    /work/venv/bin/python notes/scripts/time_target_distances.py
 
 Random stylus tips within 40 mm of a tumour and random 64 × 80 mm image rectangles
 near them (navapp's probe: 256 × 320 px at 0.25 mm); each call covers both targets.

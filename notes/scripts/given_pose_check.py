@@ -4,7 +4,7 @@ stage is not the shared stylus ICP) and the robustness design's trials of one dr
 offset and label condition). One JSON line per registration: the pose's source and TRE; where
 the rule took the given pose, the TRE with the rule off too (docs/decisions.md, "Local loads").
 
-    python scripts/given_pose_check.py STUDY_CASE [STUDY_CASE ...] > given_pose.jsonl
+    python notes/scripts/given_pose_check.py STUDY_CASE [STUDY_CASE ...] > given_pose.jsonl
 """
 
 import json

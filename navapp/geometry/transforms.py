@@ -1,0 +1,76 @@
+"""Rotations and rigid transforms: the one home of the small pieces every layer needs.
+
+Rotation vectors and axis–angle rotations go through ``scipy.spatial.transform.Rotation``;
+4 × 4 homogeneous transforms act on row-vector point arrays, ``x ↦ R x + t``. The solver's
+own parametrisation, R(θ) = R_x R_y R_z with its derivatives (paper eq. 9), stays in
+``navapp.registration.rotation``: it is the fit's, not a general rotation.
+"""
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+
+def rotvec_matrix(w) -> np.ndarray:
+    """Rotation vectors → rotation matrices: (3,) → (3, 3), (S, 3) → (S, 3, 3); |w| in radians."""
+    return Rotation.from_rotvec(np.asarray(w, float)).as_matrix()
+
+
+def axis_angle(axis, angle_rad: float) -> np.ndarray:
+    """(3, 3) rotation by ``angle_rad`` about the unit vector ``axis`` (3,)."""
+    return rotvec_matrix(np.asarray(axis, float) * angle_rad)
+
+
+def homogeneous(R, t) -> np.ndarray:
+    """(4, 4) transform ``x ↦ R x + t`` from a (3, 3) matrix and a (3,) shift (mm)."""
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = R, t
+    return m
+
+
+def apply(T, points) -> np.ndarray:
+    """Points (N, 3) mm through a (4, 4) affine ``T``."""
+    return np.asarray(points, float) @ T[:3, :3].T + T[:3, 3]
+
+
+def kabsch(P, Q, w=None) -> tuple[np.ndarray, np.ndarray]:
+    """R, t minimising Σ w_i |R p_i + t − q_i|² (proper rotation, det R = +1).
+
+    Parameters
+    ----------
+    P, Q : (N, 3) arrays
+        corresponding points, mm: ``Q ≈ P Rᵀ + t``.
+    w : (N,) array, optional
+        non-negative weights (default all equal).
+
+    Returns
+    -------
+    R : (3, 3) ndarray
+    t : (3,) ndarray, mm
+
+    Why not ``trimesh.registration.procrustes(P, Q, weights=w)``: it weights the centroids
+    but not the cross-covariance, so with unequal weights (every feature's w_F / N_F, the
+    Huber factors) its rotation is not the weighted optimum, as its docstring says. The
+    weighted problem has this closed form; with equal or 0/1 weights both agree (a test
+    checks both cases against trimesh and the weighted one against scipy's align_vectors).
+    """
+    P, Q = np.asarray(P, float), np.asarray(Q, float)
+    w = np.ones(len(P)) if w is None else np.asarray(w, float)
+    w = w / w.sum()
+    pc, qc = w @ P, w @ Q
+    H = (P - pc).T @ ((Q - qc) * w[:, None])
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0])
+    R = Vt.T @ D @ U.T
+    return R, qc - R @ pc
+
+
+def probe_pose(origin, lateral, depth) -> np.ndarray:
+    """(4, 4) ProbeToTracker of an ultrasound probe whose face centre is ``origin`` (3,) mm,
+    the image's lateral axis along ``lateral`` (orthogonalised against ``depth``), its depth
+    axis along ``depth`` and the plane normal ``depth × lateral``: columns x, y, z, origin."""
+    z = np.asarray(depth, float) / np.linalg.norm(depth)
+    x = np.asarray(lateral, float) - (np.asarray(lateral, float) @ z) * z
+    x /= np.linalg.norm(x)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, np.cross(z, x), z, origin
+    return m

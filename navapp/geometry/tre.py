@@ -1,0 +1,52 @@
+"""Target registration error (TRE): the one definition every stage, study and view uses.
+
+The error at a target is the Euclidean distance between where a registration puts a
+preoperative point and where that point truly is (Heiselman & Miga 2020, section III-B);
+a case's TRE summarises those distances over its targets. Nothing here reads a truth: the
+caller brings it, after the fit, so the solver still never sees it.
+"""
+
+import numpy as np
+
+
+def point_errors(pred, truth) -> np.ndarray:
+    """Per-target error, mm.
+
+    Parameters
+    ----------
+    pred : (T, 3) array_like
+        registered positions of the targets, mm.
+    truth : (T, 3) array_like
+        their true positions, same frame, mm.
+
+    Returns
+    -------
+    (T,) ndarray
+        ``|pred - truth|`` row by row, mm.
+    """
+    return np.linalg.norm(np.asarray(pred) - np.asarray(truth), axis=1)
+
+
+def mean_tre(pred, truth) -> float:
+    """Mean target registration error over the targets, mm (see ``point_errors``)."""
+    return float(point_errors(pred, truth).mean())
+
+
+def tre_stats(pred, truth) -> dict:
+    """Target registration error of predicted (T, 3) against true (T, 3) positions, mm:
+    ``mean_mm``, ``sd_mm``, ``max_mm`` and the count ``n``.
+
+    Parameters
+    ----------
+    pred : (T, 3) array_like
+        registered positions of the targets, mm.
+    truth : (T, 3) array_like
+        their true positions, same frame, mm.
+
+    Returns
+    -------
+    dict
+        ``mean_mm``, ``sd_mm`` (population), ``max_mm`` (floats, mm) and ``n`` (int).
+    """
+    d = point_errors(pred, truth)
+    return {"mean_mm": float(d.mean()), "sd_mm": float(d.std()), "max_mm": float(d.max()), "n": int(len(d))}

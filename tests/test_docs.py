@@ -1,0 +1,56 @@
+"""The documentation site builds with warnings as errors (no broken link, no missing page or
+anchor, no unresolved API reference), its generated pages hold every command and every public
+name, and the README stays a front page."""
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import navapp
+from navapp.cli import build_parser
+
+ROOT = Path(__file__).resolve().parent.parent
+README = ROOT / "README.md"
+
+
+def subcommands() -> list[str]:
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.__class__.__name__ == "_SubParsersAction")
+    return sorted(sub.choices)
+
+
+def test_site_builds_strict_with_the_generated_references(tmp_path):
+    site = tmp_path / "site"
+    env = {**os.environ, "NO_MKDOCS_2_WARNING": "1"}  # the theme's notice about its successor
+    run = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(site)],
+                         cwd=ROOT, capture_output=True, text=True, env=env)
+    assert run.returncode == 0, run.stderr[-4000:]
+    commands = (site / "commands/index.html").read_text()
+    for name in subcommands():
+        assert f"navapp {name}" in commands, name
+    assert "--local-modes" in commands and "--pose-sd" in commands  # the options, from the parser
+    api = (site / "api/index.html").read_text()
+    for name in navapp.__all__:
+        target = navapp._EXPORTS[name]
+        module, attr = target if isinstance(target, tuple) else (target, name)
+        assert f'id="{module}.{attr}"' in api, name  # mkdocstrings rendered it
+    assert "Parameters" in api and "Returns" in api  # numpydoc sections parsed
+    front = (site / "index.html").read_text()
+    assert "What to read next" in front and "opens the navigation viewer" in front  # the README is the home page
+
+
+def test_readme_is_a_front_page():
+    lines = README.read_text().splitlines()
+    assert len(lines) <= 200
+    block = README.read_text().split("```bash\n", 1)[1].split("```", 1)[0].splitlines()
+    assert block[:2] == ['pip install -e . && navapp serve', 'pip install -e ".[test]" && python -m pytest -q']
+    assert sum(line.startswith("![") for line in lines) == 1
+
+
+def test_the_commands_page_lists_every_command():
+    """The table of commands (docs/commands.md) names each of the parser's commands, and no other."""
+    text = (ROOT / "docs/commands.md").read_text()
+    listed = set(re.findall(r"^\| `navapp (\w[\w-]*)", text, flags=re.M))
+    assert listed == set(subcommands())
