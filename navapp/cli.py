@@ -302,7 +302,7 @@ def cmd_bench(args):
     elif args.what == "import":
         from .anatomy.importbench import bench_import
 
-        bench_import(args.repeats)
+        bench_import(args.repeats, args.routes)
     elif args.what == "live":
         from .evaluation.live_bench import bench_live
 
@@ -427,6 +427,10 @@ def build_parser():
                    help="precompute: relaxation subdomain (both: exact and local, with the local one's error)")
     s.add_argument("--repeats", type=positive(int), default=5, help="register, import: repetitions for the median")
     s.add_argument("--planes", type=positive(int), default=3, help="register: iUS planes (≥ 2); live: planes kept")
+    s.add_argument("--routes", nargs="+", choices=("nifti masks", "nrrd label map", "dicom seg",
+                                                   "totalsegmentator folder", "stl"), metavar="ROUTE",
+                   help="import: only these routes (quoted names: 'nifti masks', 'nrrd label map', 'dicom seg', "
+                        "'totalsegmentator folder', 'stl'; the STL route alone skips the CT grid); default all")
     s.add_argument("--frames", type=positive(int), default=40, help="live: ultrasound frames re-registered")
     s.add_argument("--truth-edge", type=positive(float),
                    help="register, live: element size of the mesh the demo scene's truth is simulated on, mm "

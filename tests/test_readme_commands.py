@@ -213,3 +213,17 @@ def test_bench_precompute(capsys):
     assert row["seconds"]["mesh"] > 0 and row["total_seconds"] >= row["seconds"]["mesh"]
     assert 0 < row["cache_load_seconds"]["total"] < row["total_seconds"]
     assert "basis_file" not in row and "mesh_file" not in row  # the temporary cache is removed
+
+
+def test_bench_import(capsys):
+    """``navapp bench import --repeats 1 --routes stl``: the STL route alone (the CT grid's five
+    other routes take minutes: the full command is the benchmark's, run by hand), a child
+    process per import with its own peak memory and the import's stage times."""
+    assert main(["--quiet", "bench", "import", "--repeats", "1", "--routes", "stl"]) == 0
+    lines = [json.loads(x) for x in capsys.readouterr().out.strip().splitlines()]
+    assert lines[0]["bench"] == "import" and "no CT grid" in lines[0]["case"] and lines[0]["write_s"] > 0
+    assert [x["route"] for x in lines[1:]] == ["stl"]
+    row = lines[1]
+    assert row["wall_s_median"] > 0 and len(row["wall_s"]) == 1 and 50 < row["peak_mb_max"] < 4000
+    assert {"read", "cleanup", "centerlines", "total"} <= set(row["stages_s"])
+    assert 0 < row["stages_s"]["total"] <= row["wall_s_median"]

@@ -18,13 +18,23 @@ import tempfile
 import time
 from pathlib import Path
 
+ROUTES = ("nifti masks", "nrrd label map", "dicom seg", "totalsegmentator folder", "stl")
+"""The import routes, in the order ``bench import`` runs them."""
 
-def write_routes(folder: Path) -> dict[str, list[str]]:
-    """The phantom written every way; route name → ``navapp import`` arguments."""
+
+def write_routes(folder: Path, routes: list[str] | None = None) -> dict[str, list[str]]:
+    """The phantom written every way (or only for ``routes``: the STL route alone skips the
+    CT grid); route name → ``navapp import`` arguments."""
     from . import ctcase
     from .phantom import make_phantom
 
     model = make_phantom(0)
+    stl = {"stl": ["--liver", str(folder / "liver.stl"), "--portal", str(folder / "portal.stl"),
+                   "--hepatic", str(folder / "hepatic.stl")]}
+    for s in ctcase.STRUCTURES:
+        ctcase.write_stl(getattr(model, s), folder / f"{s}.stl")
+    if routes is not None and set(routes) <= {"stl"}:
+        return stl
     vc = ctcase.ct_case(model)
     names = dict(enumerate(ctcase.STRUCTURES, start=1))  # the label values ``ct_case`` writes
     masks = folder / "masks"
@@ -38,16 +48,13 @@ def write_routes(folder: Path) -> dict[str, list[str]]:
     labels = vc.labels()
     ctcase.write_nrrd(labels, vc.affine, folder / "segmentation.seg.nrrd", names)
     ctcase.write_dicom_seg(labels, vc.affine, folder / "seg.dcm", names)
-    for s in ctcase.STRUCTURES:
-        ctcase.write_stl(getattr(model, s), folder / f"{s}.stl")
     return {
         "nifti masks": ["--liver", str(masks / "liver.nii.gz"), "--portal", str(masks / "portal.nii.gz"),
                         "--hepatic", str(masks / "hepatic.nii.gz")],
         "nrrd label map": ["--labelmap", str(folder / "segmentation.seg.nrrd")],
         "dicom seg": ["--labelmap", str(folder / "seg.dcm")],
         "totalsegmentator folder": ["--labelmap", str(ts)],
-        "stl": ["--liver", str(folder / "liver.stl"), "--portal", str(folder / "portal.stl"),
-                "--hepatic", str(folder / "hepatic.stl")],
+        **stl,
     }
 
 
@@ -73,16 +80,20 @@ def run_import(args: list[str], out: Path) -> dict:
 
 
 def bench_import(repeats: int = 1, routes: list[str] | None = None):
+    """One JSON line for the writing, then one per route (``routes``: some of ``ROUTES``; None: all)."""
     with tempfile.TemporaryDirectory(prefix="navapp-bench-import-") as tmp:
         folder = Path(tmp)
         t0 = time.perf_counter()
         # written by a child: a process's peak memory counts its parent's at the fork
         # (Linux keeps the larger), so this process stays small for the imports' children
         code = ("import json, sys; from pathlib import Path; from navapp.anatomy.importbench import write_routes; "
-                "print(json.dumps(write_routes(Path(sys.argv[1]))))")
-        res = subprocess.run([sys.executable, "-c", code, str(folder)], capture_output=True, text=True, check=True)
+                "print(json.dumps(write_routes(Path(sys.argv[1]), json.loads(sys.argv[2]))))")
+        res = subprocess.run([sys.executable, "-c", code, str(folder), json.dumps(routes)], capture_output=True,
+                             text=True, check=True)
         all_routes = json.loads(res.stdout.strip().splitlines()[-1])
-        print(json.dumps({"bench": "import", "case": "phantom 0 on a 512x512x200 CT grid, 0.7x0.7x2.5 mm, oblique",
+        grid = not (routes and set(routes) <= {"stl"})
+        print(json.dumps({"bench": "import", "case": "phantom 0 on a 512x512x200 CT grid, 0.7x0.7x2.5 mm, oblique"
+                          if grid else "phantom 0's surfaces as STL (no CT grid written)",
                           "write_s": round(time.perf_counter() - t0, 1)}), flush=True)
         for route, args in all_routes.items():
             if routes and route not in routes:
