@@ -33,20 +33,7 @@ def mean_tre(pred, truth) -> float:
 
 
 def tre_stats(pred, truth) -> dict:
-    """Target registration error of predicted (T, 3) against true (T, 3) positions, mm:
-    ``mean_mm``, ``sd_mm``, ``max_mm`` and the count ``n``.
-
-    Parameters
-    ----------
-    pred : (T, 3) array_like
-        registered positions of the targets, mm.
-    truth : (T, 3) array_like
-        their true positions, same frame, mm.
-
-    Returns
-    -------
-    dict
-        ``mean_mm``, ``sd_mm`` (population), ``max_mm`` (floats, mm) and ``n`` (int).
-    """
+    """Summary of ``point_errors(pred, truth)`` (same parameters): a dict of ``mean_mm``,
+    ``sd_mm`` (population), ``max_mm`` (floats, mm) and the count ``n`` (int)."""
     d = point_errors(pred, truth)
     return {"mean_mm": float(d.mean()), "sd_mm": float(d.std()), "max_mm": float(d.max()), "n": int(len(d))}

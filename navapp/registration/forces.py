@@ -89,7 +89,8 @@ class SurfaceForces:
         self.F = Factorisation(K[self.free][:, self.free])
         pos = np.full(self.M, -1)
         pos[free_nodes] = np.arange(len(free_nodes))
-        self._surface_rows = (3 * pos[self.surface][:, None] + np.arange(3)).ravel()
+        self._surface_rows = (3 * pos[self.surface][:, None] + np.arange(3)).ravel()  # in the free DOFs
+        self._surface_dofs = (3 * self.surface[:, None] + np.arange(3)).ravel()  # in all 3M DOFs
         self.volume = float(tet_volumes(basis.nodes, basis.tets).sum())
         self.table = incidence(self.M, self.faces)
         self.solves = 0
@@ -115,15 +116,12 @@ class SurfaceForces:
         u = self.displacement(f_flat.reshape(-1, 3))
         r = c - np.einsum("ij,ij->i", A @ u, normals)
         n = len(r)
-        energy = 0.5 * float(f_flat @ u.ravel()[self._global_surface_dofs()])
+        energy = 0.5 * float(f_flat @ u.ravel()[self._surface_dofs])
         phi = float(r @ r) / n + lam * energy / self.volume
         g_u = -(2.0 / n) * (A.T @ (r[:, None] * normals))  # (M, 3)
         adj = self._solve(g_u.ravel()[self.free])
-        grad = adj[self._surface_rows] + lam / self.volume * u.ravel()[self._global_surface_dofs()]
+        grad = adj[self._surface_rows] + lam / self.volume * u.ravel()[self._surface_dofs]
         return phi, grad
-
-    def _global_surface_dofs(self) -> np.ndarray:
-        return (3 * self.surface[:, None] + np.arange(3)).ravel()
 
     def correspondences(self, points: np.ndarray, u: np.ndarray):
         """A (N, M), normals (N, 3), c (N,) of ``points`` (N, 3) on the surface deformed by u."""

@@ -419,7 +419,7 @@ def _declared_rigid(model: RegistrationModel, data: dict, prior: PosePrior, opti
     (model → data frame), the prior re-centred on where the given pose is from it, and the
     starts searched."""
     n = model.basis.Ju.shape[1]
-    floor = min(EXPECTED_NOISE_MM.get(name, 1.0) for name in data)
+    floor = _noise_floor(data)
     # Huber on every feature (δ = ``HUBER_MM``): where the organ deformed under part of the data
     # (a dent), a rigid fit in least squares shares that misfit out as a pose error; with the
     # pull of the points far off bounded, the prior holds the given pose unless most data move
@@ -478,6 +478,11 @@ def _declared_rigid(model: RegistrationModel, data: dict, prior: PosePrior, opti
     return pose, replace(current, centre=tuple(np.concatenate([-R.T @ tau, -theta]).tolist())), starts
 
 
+def _noise_floor(data: dict) -> float:
+    """The least expected noise (mm) of the features present: the floor of the prior's scale σ_F."""
+    return min(EXPECTED_NOISE_MM.get(name, 1.0) for name in data)
+
+
 def _robust_sd(model: RegistrationModel, data: dict, beta, weights) -> float:
     """σ_F of the prior's scale at β (``prior``, "The scale"): the data's residuals' robust
     standard deviation, 1.4826 × their median absolute value (the normal's MAD factor), so a
@@ -500,7 +505,7 @@ def _settle_scale(model: RegistrationModel, local: dict, result, options: LMOpti
     (tool2-e at S: 10.6 mm against 7.05 mm settled; docs/decisions.md, "Pose prior")."""
     prior = options.weights.pose_prior
     assert prior is not None
-    floor = min(EXPECTED_NOISE_MM.get(name, 1.0) for name in local)
+    floor = _noise_floor(local)
     for _ in range(SCALE_ROUNDS):
         sd = max(_robust_sd(model, local, result.beta, options.weights), floor)
         if abs(sd - prior.feature_sd_mm) < 0.1 * prior.feature_sd_mm:
