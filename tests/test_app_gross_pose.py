@@ -90,3 +90,64 @@ def test_a_deformable_fit_on_a_pose_nobody_should_believe_gives_no_tumour_figure
     for b in res.target_bands:
         assert not np.isfinite(b.predicted_mm) and b.warning == NO_TARGET_FIGURE, b
         assert "mm" not in b.text() and "register again" in b.text()
+
+
+def test_the_surgeon_states_the_pose_and_a_patch_keeps_it(app, tmp_path):
+    """Issue 46, item 1: the viewer lets the surgeon state the pose of the data. A few seconds of
+    digitising searched from scratch give a gross pose; stated "as the tracker gives it" (the
+    data's frame is the preoperative one here), the same patch keeps the pose; stated "the
+    previous registration's", it keeps the pose of the good registration on show. The statement
+    is a line of the action log, in session.json and case.toml (``navapp register SESSION`` fits
+    as the viewer did), and comes back after a restart."""
+    import tomllib
+
+    from navapp.app.session import open_session
+    from navapp.app.state import PoseFrame, StatedPose
+    from navapp.registration.rigid import RigidResult
+    from navapp.registration.rotation import rotation
+
+    sd, core = app.core.sd, app.core
+    ant = sd.stylus_path[sd.stylus_labels == "anterior"]
+    patch = ant[np.argsort(np.linalg.norm(ant - ant[0], axis=1))[:40]]
+    try:
+        only(app, live_points=patch)
+        searched = run_to_end(app, RunKind.RIGID).error_mean_mm
+
+        said = app.runs.set_pose(StatedPose(PoseFrame.GIVEN, 2.0, 2.0))
+        assert said and "tracker" in said and app.runs.set_pose(StatedPose(PoseFrame.GIVEN, 2.0, 2.0)) is None
+        assert tomllib.loads((core.session.folder / "case.toml").read_text())["intraop"]["pose"] == {
+            "known": True, "sd_mm": 2.0, "sd_deg": 2.0}
+        assert "pose of the data stated" in (core.session.folder / "actions.jsonl").read_text()
+        given = run_to_end(app, RunKind.RIGID).error_mean_mm
+        assert given < 0.25 * searched, (given, searched)
+
+        # the previous registration's pose: the whole sweep in a tracker frame off by 12° / 20 mm,
+        # registered (the pose searched), on show; then the patch in that frame
+        G = RigidResult(rotation(np.radians([12.0, -5.0, 4.0])), np.array([20.0, -8.0, 6.0]), 0, 0.0)
+        app.runs.set_pose(StatedPose())
+        n = len(sd.stylus_path)
+        core.session.stylus_count, core.session.contours, core.session.planes_added = 0, [], []
+        core.session.live_points = [[*map(float, G.apply(x)), str(f)] for x, f in
+                                    zip(sd.stylus_path[:n], sd.stylus_labels[:n], strict=True)]
+        core.changed()
+        run_to_end(app, RunKind.RIGID)
+        shown, x = core.result.rigid, core.model.basis.nodes
+        only(app, live_points=G.apply(patch))
+
+        def off(kind_of_pose):
+            app.runs.set_pose(kind_of_pose)
+            run_to_end(app, RunKind.RIGID)
+            return np.linalg.norm(core.result.rigid.apply(x) - shown.apply(x), axis=1).mean()
+
+        about_previous = off(StatedPose(PoseFrame.PREVIOUS, 1.0, 1.0))
+        about_tracker = off(StatedPose(PoseFrame.GIVEN, 1.0, 1.0))
+        assert about_previous < 2.0 < 10.0 < about_tracker, (about_previous, about_tracker)
+        assert "intraop" in tomllib.loads((core.session.folder / "case.toml").read_text())
+        off(StatedPose(PoseFrame.PREVIOUS, 1.0, 1.0))
+        assert "intraop" not in tomllib.loads((core.session.folder / "case.toml").read_text())
+
+        reopened, _ = open_session(core.session.folder, sd)
+        assert reopened.pose == StatedPose(PoseFrame.PREVIOUS, 1.0, 1.0)
+    finally:
+        app.runs.set_pose(StatedPose())
+        only(app)

@@ -187,19 +187,19 @@ def test_jobs_share_the_one_at_a_time_rule_and_report_errors(small_model):
 
 
 def test_a_declared_pose_reaches_the_fresh_run_and_the_warm_one(small_model):
-    """The worker's ``pose_prior`` (the case's [intraop.pose]): a fresh run fits its rigid stage
-    with it (no multi-start search), and a warm run after it carries the prior centred on that
-    run's pose. Without it the viewer's runs are as before."""
+    """A run's ``pose_prior`` (the pose the surgeon stated, or the case's [intraop.pose]): a fresh
+    run fits its rigid stage with it (no multi-start search), and a warm run after it carries the
+    prior centred on that run's pose. Without it the viewer's runs are as before."""
     from navapp.registration.prior import PosePrior
 
     done = []
-    w = RegistrationWorker(small_model, on_done=done.append, max_rate_hz=1e6, pose_prior=PosePrior(1.5, 1.5))
+    w = RegistrationWorker(small_model, on_done=done.append, max_rate_hz=1e6)
     data = data_for(small_model, np.random.default_rng(3))
-    assert w.start(data)
+    assert w.start(data, pose_prior=PosePrior(1.5, 1.5))
     w.join(BUSY_WAIT_S)
     fresh = done[-1]
     assert fresh.pose_prior is not None and fresh.pose_prior.sd_mm == 1.5 and fresh.starts == []
-    assert w.start(data, warm=True)
+    assert w.start(data, warm=True, pose_prior=PosePrior(1.5, 1.5))
     w.join(BUSY_WAIT_S)
     assert done[-1].pose_prior == fresh.pose_prior
     plain = RegistrationWorker(small_model, on_done=done.append, max_rate_hz=1e6)

@@ -199,3 +199,28 @@ def test_a_scene_declares_its_pose_from_its_tracker_offset():
     assert parse_scene({**base, "pose": {"declared": True, "sd_mm": 2.0, "sd_deg": 1.0}}).declared_pose() == (2.0, 1.0)
     with pytest.raises(InputError, match="pose.sd_mm"):
         parse_scene({**base, "pose": {"declared": True, "sd_mm": -1.0}})
+
+
+def test_a_pose_known_from_a_previous_registration_is_the_prior_about_that_pose(small_model):
+    """``register(given=G)``: the pose known from before (the session's previous registration)
+    is what the prior is about. The data moved by G (25°, 40 mm: far beyond the declared 1.5 mm,
+    1.5°) register with ``given=G`` exactly as the unmoved data do about the identity, moved by
+    G (to the fits' tolerances); about the identity instead, the prior holds the organ near the wrong pose."""
+    from scipy.spatial.transform import Rotation
+
+    from navapp.registration.pipeline import register
+    from navapp.registration.rigid import RigidResult
+
+    data, truth = _dented_scan(small_model)
+    nodes = small_model.basis.nodes
+    G = RigidResult(Rotation.from_rotvec(np.radians(25.0) * np.array([0.3, -0.5, 0.81]) /
+                                         np.linalg.norm([0.3, -0.5, 0.81])).as_matrix(),
+                    np.array([40.0, -12.0, 9.0]), 0, 0.0, kept=True)
+    prior = PosePrior(1.5, 1.5)
+    here = register(small_model, data, pose_prior=prior, deform=False)
+    moved = {n: G.apply(p) for n, p in data.items()}
+    there = register(small_model, moved, pose_prior=prior, deform=False, given=G)
+    # the same fit to its tolerances (the moved data's rounding differs)
+    assert np.abs(there.transform(nodes) - G.apply(here.transform(nodes))).max() < 0.1
+    lost = register(small_model, moved, pose_prior=prior, deform=False)
+    assert np.linalg.norm(lost.transform(nodes) - G.apply(here.transform(nodes)), axis=1).mean() > 5.0

@@ -397,8 +397,8 @@ def write_preop(model: PreopModel, folder):
         write_settings(folder, {"name": model.name, "units": "mm"})
 
 
-def write_settings(folder, settings: dict):
-    Path(folder, "case.toml").write_text(tomli_w.dumps(settings))
+def write_settings(folder, settings: dict, name: str = "case.toml"):
+    Path(folder, name).write_text(tomli_w.dumps(settings))
 
 
 def write_case(case: Case, folder):

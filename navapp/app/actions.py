@@ -44,6 +44,7 @@ class Act(Enum):
     FROZEN = "frame frozen"
     RECORDING = "live recording"
     FOLLOW = "live re-registration"
+    POSE = "pose of the data stated"
 
 
 @dataclass(frozen=True)

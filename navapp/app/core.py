@@ -47,8 +47,9 @@ RELOAD_S = 60.0  # a tab whose connection closed this recently may be coming bac
 # the work of the next tab to reload within that minute (its plane, contour and undo)
 CLOSE_LAG_S = 5.0
 WAIT = "wait: the tab before the reload is still connected"
-SAVED = (Change.DATA, Change.RESULT, Change.LOG)  # changes the session file must hold at once
-ON_CONNECT = (Change.STATUS, Change.SCENE, Change.MODEL, Change.DATA, Change.PLANE, Change.RESULT, Change.ACTIONS)
+SAVED = (Change.DATA, Change.RESULT, Change.LOG, Change.POSE)  # changes the session file must hold at once
+ON_CONNECT = (Change.STATUS, Change.SCENE, Change.MODEL, Change.DATA, Change.PLANE, Change.RESULT, Change.ACTIONS,
+              Change.POSE)
 
 
 class NotReady(RuntimeError):

@@ -20,8 +20,10 @@ from ..evaluation.cost import lm_sweep
 from ..registration.coverage import pose_warning
 from ..registration.objective import Weights
 from ..registration.pipeline import Registration
+from ..registration.prior import PosePrior
 from ..registration.quality import EXPECTED_NOISE_MM, MARGIN_MM
 from ..registration.residuals import point_residual_at, point_residuals
+from ..registration.rigid import RigidResult
 from .actions import Act
 from .contours import OriginKind
 from .core import Core
@@ -29,7 +31,18 @@ from .imaging import FREE_PLANE_BASE, LIVE_PLANE_BASE
 from .palette import feature_words
 from .shown import Shown
 from .slicer import Slicer
-from .state import Change, ClientState, RegisteredState, Run, RunEntry, RunKind, WorstPoint, checked_by
+from .state import (
+    Change,
+    ClientState,
+    PoseFrame,
+    RegisteredState,
+    Run,
+    RunEntry,
+    RunKind,
+    StatedPose,
+    WorstPoint,
+    checked_by,
+)
 from .worker import Update, cancelled, viewer_options
 
 MIN_POINTS = 3  # fewer data points than this fix nothing
@@ -83,16 +96,49 @@ class Runs:
             kind = RunKind.ALL
             core.notify("Registration", "Not continued from the result on show (its pose is not to be believed): "
                         "a fresh registration on all data instead.", error=True)
+        prior, given = self._pose(kind)
         with self._starting:
             with core.lock:
                 core.run = Run(kind, npts, time.monotonic(), data=data, origins=origins, left_out=left_out)
-            if not worker.start(data, deform=kind.deformable, warm=kind is RunKind.WARM):
+            if not worker.start(data, deform=kind.deformable, warm=kind is RunKind.WARM, pose_prior=prior,
+                                given=given):
                 with core.lock:
                     core.run = None
                 return BUSY
         core.changed(Change.RUN)
         core.record(cs, Act.RUN, f"{kind.label}, {npts} points")
         return None
+
+    def _pose(self, kind: RunKind) -> tuple[PosePrior | None, RigidResult | None]:
+        """The pose prior a run of ``kind`` starts with, and the pose it is about (None: the data's
+        own frame), from what the surgeon stated (``Session.stated_pose``). The previous
+        registration's pose is the one on show, unless nobody should believe it: then the pose is
+        searched, and the surgeon told."""
+        core = self.core
+        with core.lock:
+            sd, session = core.need_scene()
+            stated, shown = session.stated_pose(sd), core.result
+        if stated.frame is not PoseFrame.PREVIOUS or kind is RunKind.WARM:
+            return stated.prior(), None
+        if shown is None or shown.pose_warning:
+            core.notify("Registration", "The pose of the data is searched for this run: "
+                        + ("no registration is on show yet to take it from." if shown is None else
+                           "the registration on show has a pose not to be believed."))
+            return None, None
+        return stated.prior(), shown.rigid
+
+    def set_pose(self, stated: StatedPose, cs: ClientState | None = None) -> str | None:
+        """State the pose of the data for the runs to come, an action of ``cs``; returns what
+        changed in words, or None where nothing did (a tab's own refresh)."""
+        core = self.core
+        with core.lock:
+            sd, session = core.need_scene()
+            if stated == session.stated_pose(sd):
+                return None
+            session.pose = stated
+        core.changed(Change.POSE)
+        core.record(cs, Act.POSE, stated.words())
+        return f"Pose of the data: {stated.words()}. It applies from the next fresh registration."
 
     def cancel(self, cs: ClientState | None = None) -> str:
         """Stop the registration or the sweep in progress at its next iteration (or setting);

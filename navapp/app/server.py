@@ -31,7 +31,6 @@ from .. import progress
 from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
 from ..errors import NavappError
-from ..registration.prior import declared_pose
 from .access import OPEN, Access, Role
 from .actions import FILE as ACTIONS_FILE
 from .actions import Act
@@ -121,9 +120,8 @@ class App:
         core = self.core
         with core.lock:
             core.model, core.truth_nodes = ready.model, ready.truth_nodes
-            prior = declared_pose(core.sd.case.settings) if core.sd is not None else None
             core.worker = RegistrationWorker(ready.model, self.runs.on_update, self.runs.on_done, self.runs.on_error,
-                                             max_rate_hz=STREAM_HZ, pose_prior=prior)
+                                             max_rate_hz=STREAM_HZ)
             self.shown.restore()
         self.runs.restore_worst()
 

@@ -27,12 +27,13 @@ from ..anatomy.model import VESSELS
 from ..errors import InputError
 from ..features import NAMES as FEATURE_NAMES
 from ..features import STYLUS as STYLUS_FEATURES
+from ..registration.prior import declared_pose
 from ..simulation.scenedata import SceneData, acquire_free_plane, scene_key
 from ..simulation.ultrasound import PlaneData
 from .actions import FILE as ACTIONS_FILE
 from .contours import Contour, Origin, OriginKind, contour_points
 from .palette import DRAWABLE
-from .state import RunEntry
+from .state import PoseFrame, RunEntry, StatedPose
 
 SESSION_VERSION = 1
 
@@ -54,6 +55,8 @@ class Session:
     excluded: list = field(default_factory=list)
     written: bool = False  # the folder holds the whole case (after the first save, or when opened)
     note: str | None = None  # one line on what opening the folder found and did, for the user
+    # what the surgeon stated of the pose of the data (Registration panel); None: the case's own declaration
+    pose: StatedPose | None = None
 
     # ------------------------------------------------------------ data
     def data(self, sd: SceneData, planes: dict, surface_only=False) -> dict:
@@ -94,12 +97,17 @@ class Session:
                     add(name, pts, origins[name])
         return {k: np.vstack(v) for k, v in parts.items()}, whence
 
+    def stated_pose(self, sd: SceneData) -> StatedPose:
+        """The pose of the data as stated in the viewer, else as the case declares it."""
+        return self.pose if self.pose is not None else StatedPose.of_case(declared_pose(sd.case.settings))
+
     # ------------------------------------------------------------ persistence
     def to_json(self) -> dict:
         return {"version": SESSION_VERSION, "scene_key": self.key, "stylus_count": self.stylus_count,
                 "planes_added": self.planes_added, "contours": [c.to_json() for c in self.contours],
                 "free_planes": self.free_planes, "log": [e.to_json() for e in self.log], "result": self.result,
-                "live_points": self.live_points, "live_planes": self.live_planes, "excluded": self.excluded}
+                "live_points": self.live_points, "live_planes": self.live_planes, "excluded": self.excluded,
+                "pose": None if self.pose is None else self.pose.to_json()}
 
     def save(self, sd: SceneData, planes: dict):
         """Write session.json and the case folder's intraop/. The first save writes the whole
@@ -136,14 +144,30 @@ class Session:
 
 def _write_case(folder: Path, sd: SceneData):
     """The case part of a session folder, all from the scene: case.toml, preop/, truth/."""
-    write_settings(folder, {"name": _case_name(sd), "units": "mm"})
+    write_settings(folder, _settings(sd, None))
     write_preop(sd.case.preop, folder)
     if sd.case.truth is not None:
         write_truth(sd.case.truth, folder)
 
 
+def _settings(sd: SceneData, stated: StatedPose | None) -> dict:
+    """case.toml: the name, the units and the pose of the data as stated (the case's own
+    declaration until the viewer states one), so that ``navapp register SESSION`` fits as the
+    viewer does. A pose known from the previous registration has no place there (the command
+    has no previous registration): it is written unknown."""
+    stated = stated or StatedPose.of_case(declared_pose(sd.case.settings))
+    settings: dict = {"name": _case_name(sd), "units": "mm"}
+    if stated.frame is PoseFrame.GIVEN:
+        settings["intraop"] = {"pose": {"known": True, "sd_mm": float(stated.sd_mm), "sd_deg": float(stated.sd_deg)}}
+    return settings
+
+
 def _write_data(s: Session, folder: Path, sd: SceneData, planes: dict):
-    """intraop/ (the registration data the session holds) and session.json, each file atomically."""
+    """intraop/ (the registration data the session holds), case.toml and session.json, each
+    file atomically."""
+    tmp = folder / "case.toml.tmp"
+    write_settings(tmp.parent, _settings(sd, s.pose), name=tmp.name)
+    os.replace(tmp, folder / "case.toml")
     idir = folder / "intraop"
     idir.mkdir(exist_ok=True)
     data = s.data(sd, planes)
@@ -275,7 +299,8 @@ def open_session(folder: Path, sd: SceneData) -> tuple[Session, dict]:
                     _record(d.get("result")),
                     [_point(p, "live_points", STYLUS_FEATURES) for p in _list(d.get("live_points", []), "live_points")],
                     [_plane(f, "live_planes", png=True) for f in _list(d.get("live_planes", []), "live_planes")],
-                    [_point(p, "excluded", FEATURE_NAMES) for p in _list(d.get("excluded", []), "excluded")])
+                    [_point(p, "excluded", FEATURE_NAMES) for p in _list(d.get("excluded", []), "excluded")],
+                    pose=None if d.get("pose") is None else StatedPose.from_json(d["pose"]))
     except (ValueError, KeyError, TypeError, AttributeError) as exc:
         raise InputError(f"damaged session.json ({exc.__class__.__name__}: {exc}); move it away to start afresh",
                          path) from None

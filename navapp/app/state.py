@@ -17,6 +17,7 @@ from enum import Enum
 import numpy as np
 
 from ..registration.pipeline import Registration
+from ..registration.prior import PosePrior
 from ..registration.rigid import RigidResult
 from .access import Role
 from .contours import Contour, Origin
@@ -38,6 +39,7 @@ class Change(Enum):
     LOG = "log"
     LIVE = "live"  # tracker status, recording, live re-registration
     ACTIONS = "actions"  # a line added to the session's action log
+    POSE = "pose"  # what the surgeon states of the pose of the data
 
 
 class Undone(Enum):
@@ -209,6 +211,60 @@ class TargetBand:
     @staticmethod
     def from_json(b: list) -> TargetBand:
         return TargetBand(str(b[0]), float(b[1]), float(b[2]), float(b[3]), str(b[4]) if len(b) > 4 else None)
+
+
+class PoseFrame(Enum):
+    """Where the surgeon says the data's frame stands before the fit (the Registration panel's
+    "Pose of the data"); the value is the session file's word."""
+
+    UNKNOWN = "unknown"  # searched: the multi-start ICP and the pose guards
+    GIVEN = "given"  # the tracker's registration puts the data in the preoperative frame
+    PREVIOUS = "previous"  # the pose of the session's registration on show
+
+
+STATED_SD_MM = 2.0
+"""The spread offered for a pose the surgeon states without the case declaring one (mm per axis):
+a landmark or fiducial registration's error (the issue's 1–2 mm, 1–2°)."""
+STATED_SD_DEG = 2.0
+
+
+@dataclass(frozen=True)
+class StatedPose:
+    """What the surgeon states of the pose: its frame and, unless unknown, its spread per axis."""
+
+    frame: PoseFrame = PoseFrame.UNKNOWN
+    sd_mm: float = STATED_SD_MM
+    sd_deg: float = STATED_SD_DEG
+
+    def __post_init__(self):
+        for name in ("sd_mm", "sd_deg"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (np.isfinite(v) and v > 0):
+                raise ValueError(f"pose {name}: {v!r} is not a positive number")
+
+    @staticmethod
+    def of_case(prior: PosePrior | None) -> StatedPose:
+        """The case's declaration (case.toml ``[intraop.pose]``, a scene's ``[pose]``)."""
+        return StatedPose() if prior is None else StatedPose(PoseFrame.GIVEN, prior.sd_mm, prior.sd_deg)
+
+    def prior(self) -> PosePrior | None:
+        return None if self.frame is PoseFrame.UNKNOWN else PosePrior(float(self.sd_mm), float(self.sd_deg))
+
+    def words(self) -> str:
+        if self.frame is PoseFrame.UNKNOWN:
+            return "unknown: searched"
+        whose = "as the tracker gives it" if self.frame is PoseFrame.GIVEN else "the previous registration's"
+        return f"{whose}, within ±{self.sd_mm:g} mm and ±{self.sd_deg:g}°"
+
+    def to_json(self) -> dict:
+        return {"frame": self.frame.value, "sd_mm": self.sd_mm, "sd_deg": self.sd_deg}
+
+    @staticmethod
+    def from_json(d) -> StatedPose:
+        """Raises ValueError (with what is wrong) for anything but a stated pose's record."""
+        if not isinstance(d, dict) or set(d) != {"frame", "sd_mm", "sd_deg"}:
+            raise ValueError(f"pose: {d!r} is not {{frame, sd_mm, sd_deg}}")
+        return StatedPose(PoseFrame(d["frame"]), d["sd_mm"], d["sd_deg"])
 
 
 class RunKind(Enum):

@@ -17,6 +17,7 @@ from ..anatomy.model import VESSELS
 from ..registration.libr import LMOptions
 from ..registration.objective import robust_weights
 from ..registration.pipeline import Registration, RobustOptions, register
+from ..registration.prior import PosePrior
 from ..registration.rigid import RigidResult
 
 
@@ -47,11 +48,8 @@ def cancelled(reg: Registration) -> bool:
 class RegistrationWorker:
     """Runs ``pipeline.register`` on a registration model in a background thread."""
 
-    def __init__(self, model, on_update=None, on_done=None, on_error=None, max_rate_hz=20.0, pose_prior=None):
+    def __init__(self, model, on_update=None, on_done=None, on_error=None, max_rate_hz=20.0):
         self.model = model
-        # the case's declared pose (case.toml [intraop.pose], a scene's [pose]): a fresh run's rigid
-        # stage fits τ, θ with it, and every run after carries it, centred on that run's pose
-        self.pose_prior = pose_prior
         self.on_update = on_update or (lambda u: None)
         self.on_done = on_done or (lambda r: None)
         self.on_error = on_error or (lambda e: None)
@@ -68,17 +66,21 @@ class RegistrationWorker:
     def busy(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
-    def start(self, data: dict, deform=True, warm=False, options: LMOptions | None = None) -> bool:
+    def start(self, data: dict, deform=True, warm=False, options: LMOptions | None = None,
+              pose_prior: PosePrior | None = None, given: RigidResult | None = None) -> bool:
         """Start a run; returns False, starting nothing, while another run is going.
-        ``warm`` continues from the last result's rigid pose and β (e.g. after adding a plane)."""
+        ``warm`` continues from the last result's rigid pose and β (e.g. after adding a plane).
+        ``pose_prior``: what is known of the pose (``register(pose_prior=)``), about ``given``
+        (the previous registration's pose) or, without it, the data's own frame; a warm run
+        carries the last run's prior, centred on its pose, while one is stated."""
         with self._lock:
             if self.busy:
                 return False
             self._cancel.clear()
             self._decided = not deform  # a rigid registration has no iteration to stop at
             prev = self.last if warm else None
-            self._thread = threading.Thread(target=self._run, args=(data, deform, prev, options or viewer_options()),
-                                            daemon=True)
+            self._thread = threading.Thread(target=self._run, daemon=True, args=(
+                data, deform, prev, options or viewer_options(), pose_prior, given))
             self._thread.start()
             return True
 
@@ -140,14 +142,16 @@ class RegistrationWorker:
             self._thread.start()
             return True
 
-    def _run(self, data, deform, prev, options):
+    def _run(self, data, deform, prev, options, pose_prior, given):
         t0 = time.monotonic()
         last_sent = -np.inf
         try:
             if prev is not None:
-                rigid_run, rigid, prior = None, prev.rigid, prev.pose_prior
+                rigid_run, rigid = None, prev.rigid
+                prior = (prev.pose_prior or pose_prior) if pose_prior is not None else None
             else:
-                rigid_run = register(self.model, data, deform=False, options=options, pose_prior=self.pose_prior)
+                rigid_run = register(self.model, data, deform=False, options=options, pose_prior=pose_prior,
+                                     given=given)
                 rigid, prior = rigid_run.rigid, rigid_run.pose_prior
             if not deform:
                 reg = rigid_run or register(self.model, data, deform=False, options=options, rigid=rigid,

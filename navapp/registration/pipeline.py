@@ -57,6 +57,7 @@ from .rigid import (
     TOL_BEFORE_LIBR,
     RigidResult,
     Start,
+    after,
     basin_representatives,
     multi_start_icp,
     rigid_icp,
@@ -526,7 +527,7 @@ pose may lie and still be a candidate of the declared rigid stage (``_declared_r
 def register(model: RegistrationModel, data: dict, deform=True, options: LMOptions | None = None,
              callback=None, cancel=None, beta0=None, rigid: RigidResult | None = None,
              init: RobustOptions | None = None, starts: list[Start] | None = None,
-             pose_prior: PosePrior | None = None) -> Registration:
+             pose_prior: PosePrior | None = None, given: RigidResult | None = None) -> Registration:
     """Rigid initialisation then (unless ``deform`` is False) LIBR: β minimising Ω of eq. 7
     (data terms of Table I plus the strain-energy term) by Levenberg–Marquardt.
 
@@ -548,6 +549,13 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         ``beta0`` = the previous β (3k + 6,); ICP is then skipped and LM starts from β0.
     init : RobustOptions
         the initialisation and fit guards (default ``RobustOptions()``).
+    pose_prior : PosePrior, optional
+        what is known of the pose before the data (``prior.PosePrior``): the rigid parameters
+        carry a Gaussian prior about the given pose. None: an unknown frame, searched.
+    given : RigidResult, optional
+        the pose ``pose_prior`` is about (model → data frame), e.g. the session's previous
+        registration; default the data's own frame (identity: the data arrive in the
+        preoperative frame). Ignored without ``pose_prior`` or with a warm start.
     starts : list of Start, optional
         the multi-start ICP of these data's rigid features (``rigid_starts``), computed once
         for registrations whose rigid features are the same (a study's S and S + planes
@@ -587,7 +595,15 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     candidates: list[RigidResult] = []
     if declared:
         assert pose_prior is not None
-        rigid, centred, starts = _declared_rigid(model, data, pose_prior, options, init, cancel)
+        if given is None:
+            rigid, centred, starts = _declared_rigid(model, data, pose_prior, options, init, cancel)
+        else:  # the same fit on the data moved into the given pose's frame, then composed with it
+            moved, centred, starts = _declared_rigid(model, {n: given.inverse(p) for n, p in data.items()},
+                                                     pose_prior, options, init, cancel)
+            rigid = after(given, moved)
+            for s in starts:
+                s.R0, s.t0 = given.R @ s.R0, given.R @ s.t0 + given.t
+                s.result = None if s.result is None else after(given, s.result)
         options = replace(options, weights=replace(options.weights, pose_prior=centred))
     elif rigid is not None or not init.multi_start:
         starts = []
@@ -701,13 +717,13 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         held = replace(options, pose=False)
         at_given = fit(data, held)
         fits = PoseFits(pooled_rms(result.features), pooled_rms(at_given.features), shift_mm(rigid, data))
-        given = prefer_given(choice, fits)
-        if given is None and at_given.stop_reason != "cancelled":
+        preferred = prefer_given(choice, fits)
+        if preferred is None and at_given.stop_reason != "cancelled":
             # ICP's pose stays, and its line says how far it moved — unless the only doubt was the
             # cross-validation and the correction outweighs its σ (``Support.outweighs``)
             choice = compared(choice, fits, confirmed=quality.ok and support is not None and support.outweighs)
-        elif given is not None and at_given.stop_reason != "cancelled":
-            choice, options = given, held
+        elif preferred is not None and at_given.stop_reason != "cancelled":
+            choice, options = preferred, held
             rigid = _given(rms_on_model(model, data, _given()))
             local, result, quality = dict(data), at_given, assess_fit(at_given.features)
             determinacy = pose_determinacy(model, data, rigid)

@@ -17,7 +17,7 @@ point-to-plane or point-to-point on the model's vertices, and returns the distin
 it converged to; the pipeline picks among them by the LIBR objective.
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -48,6 +48,12 @@ class RigidResult:
 
     def inverse(self, y):
         return (np.asarray(y) - self.t) @ self.R
+
+
+def after(first: RigidResult, then: RigidResult) -> RigidResult:
+    """The pose ``first`` ∘ ``then`` (x ↦ first(then(x))), with ``then``'s iterations, RMS and
+    ``kept`` (distances are the same in either frame)."""
+    return replace(then, R=first.R @ then.R, t=first.R @ then.t + first.t)
 
 
 SURFACE_FEATURES = RIGID  # stylus data and fiducials (``navapp.features``)

@@ -8,7 +8,7 @@ import numpy as np
 
 from ..core import INTERRUPTED
 from ..runs import WORST_SHOWN
-from ..state import Change, RunKind
+from ..state import STATED_SD_DEG, STATED_SD_MM, Change, PoseFrame, RunKind, StatedPose
 from ..worker import Update
 
 NOTE = ("The solver minimises the misfit to the data, which it can see, not the error, which it "
@@ -18,6 +18,12 @@ BUTTONS = {RunKind.RIGID: "Rigid", RunKind.SURFACE: "Deformable (surface only)",
 TABLE_ROWS = 8  # the newest runs shown
 NOTHING = "—"
 POSE_ONLY = " → the pose alone, without deformation"  # the data did not support the deformation
+# "Pose of the data": what the surgeon knows of it before the fit (``state.PoseFrame``)
+FRAMES = {PoseFrame.UNKNOWN: "Unknown: search for it", PoseFrame.GIVEN: "As the tracker gives it",
+          PoseFrame.PREVIOUS: "The previous registration's"}
+POSE_HELP = ("How well the pose of the data is known before the fit: from a landmark or fiducial registration "
+             "(as the tracker gives it), or from the registration on show. The fit then keeps the pose within "
+             "that spread where the data cannot determine it; unknown, it searches for the pose.")
 
 
 class RegistrationPanel:
@@ -25,6 +31,10 @@ class RegistrationPanel:
         self.view, self.app, self.core = view, view.app, view.app.core
         g = view.client.gui
         with g.add_folder("Registration"):
+            self.frame = g.add_dropdown("Pose of the data", options=tuple(FRAMES.values()),
+                                        initial_value=FRAMES[PoseFrame.UNKNOWN], hint=POSE_HELP)
+            self.sd_mm = g.add_number("Known within (mm)", STATED_SD_MM, min=0.1, max=50.0, step=0.1, disabled=True)
+            self.sd_deg = g.add_number("Known within (°)", STATED_SD_DEG, min=0.1, max=45.0, step=0.1, disabled=True)
             self.btn = {kind: g.add_button(words, disabled=True) for kind, words in BUTTONS.items()}
             # never disabled once the model is ready: see ``runs.Runs.cancel``
             self.btn_cancel = g.add_button("Cancel", color="red", disabled=True)
@@ -48,6 +58,11 @@ class RegistrationPanel:
             b.on_click(view.edits(self._in_order(lambda kind=kind: self.start(kind))))
         self.btn_cancel.on_click(view.edits(self._in_order(self.cancel)))
         self.on_show.on_update(view.edits(lambda e: self.show()))
+        stated = view.edits(lambda e: self.state_pose())
+        for control in (self.frame, self.sd_mm, self.sd_deg):
+            # a value set here (``_pose``, every tab following one) calls back at once, with no
+            # client, half-set: only a person's change is a statement
+            control.on_update(lambda e: None if e.client is None else stated(e))
         self._choices: dict[str, int] = {}  # dropdown words → row of the log
 
     def _in_order(self, action):
@@ -62,6 +77,31 @@ class RegistrationPanel:
 
     def cancel(self):
         self.view.notify("Cancel", self.app.runs.cancel(self.view.cs))
+
+    def state_pose(self):
+        frame = next(f for f, words in FRAMES.items() if words == self.frame.value)
+        try:
+            stated = StatedPose(frame, float(self.sd_mm.value), float(self.sd_deg.value))
+        except (TypeError, ValueError):  # an emptied number field: the stated pose stays as it was
+            self._pose()
+            return
+        said = self.app.runs.set_pose(stated, self.view.cs)
+        if said:
+            self.view.notify("Pose of the data", said)
+
+    def _pose(self):
+        """The controls show the session's stated pose (every tab the same)."""
+        core = self.core
+        with core.lock:
+            if core.sd is None or core.session is None:
+                return
+            stated = core.session.stated_pose(core.sd)
+        if self.frame.value != FRAMES[stated.frame]:
+            self.frame.value = FRAMES[stated.frame]
+        for control, v in ((self.sd_mm, stated.sd_mm), (self.sd_deg, stated.sd_deg)):
+            if control.value != v:
+                control.value = v
+            control.disabled = stated.frame is PoseFrame.UNKNOWN
 
     def show(self):
         row = self._choices.get(self.on_show.value)
@@ -136,6 +176,8 @@ class RegistrationPanel:
         if what is Change.LIVE and live.link is not None and live.following:
             self.md.content = (f"**Live re-registration on**: {live.link.follower.summary()}. The result is kept "
                                f"when it is switched off.")
+        if what in (Change.POSE, Change.SCENE):
+            self._pose()
         if what in (Change.RESULT, Change.DATA, Change.SCENE):
             self._worst()
         if what in (Change.RESULT, Change.SCENE, Change.MODEL, Change.RUN):
