@@ -85,17 +85,25 @@ class RegistrationPanel:
         except (TypeError, ValueError):  # an emptied number field: the stated pose stays as it was
             self._pose()
             return
+        before = self._stated()
         said = self.app.runs.set_pose(stated, self.view.cs)
-        if said:
+        if said and (before is None or before.frame is not stated.frame):
+            # a number box sends each keystroke (1, then 1.5): the panel shows the numbers, and
+            # only a change of frame is worth a notice
             self.view.notify("Pose of the data", said)
 
-    def _pose(self):
-        """The controls show the session's stated pose (every tab the same)."""
+    def _stated(self) -> StatedPose | None:
         core = self.core
         with core.lock:
             if core.sd is None or core.session is None:
-                return
-            stated = core.session.stated_pose(core.sd)
+                return None
+            return core.session.stated_pose(core.sd)
+
+    def _pose(self):
+        """The controls show the session's stated pose (every tab the same)."""
+        stated = self._stated()
+        if stated is None:
+            return
         if self.frame.value != FRAMES[stated.frame]:
             self.frame.value = FRAMES[stated.frame]
         for control, v in ((self.sd_mm, stated.sd_mm), (self.sd_deg, stated.sd_deg)):
