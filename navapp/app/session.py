@@ -152,8 +152,8 @@ def _write_case(folder: Path, sd: SceneData):
 
 def _settings(sd: SceneData, stated: StatedPose | None) -> dict:
     """case.toml: the name, the units and the pose of the data as stated (the case's own
-    declaration until the viewer states one), so that ``navapp register SESSION`` fits as the
-    viewer does. A pose known from the previous registration has no place there (the command
+    declaration until the viewer states one), so that ``navapp register SESSION`` starts from
+    what the viewer knew. A pose known from the previous registration has no place there (the command
     has no previous registration): it is written unknown."""
     stated = stated or StatedPose.of_case(declared_pose(sd.case.settings))
     settings: dict = {"name": _case_name(sd), "units": "mm"}

@@ -169,8 +169,15 @@ class RegistrationWorker:
                 # the starting state (the rigid pose, or the warm start) is always shown first
                 self.on_update(self._state(0, float("nan"), t0, rigid, beta0))
                 last_sent = time.monotonic()
-                reg = register(self.model, data, deform=True, options=options, callback=on_iteration,
-                               cancel=self._cancel, beta0=beta0, rigid=rigid, pose_prior=prior)
+                if prev is None and pose_prior is not None:
+                    # the declared path whole, as ``navapp register`` runs it (the deformable fit's
+                    # own noise scale, ``pipeline._settle_scale``); its rigid stage is the one above
+                    reg = register(self.model, data, deform=True, options=options, callback=on_iteration,
+                                   cancel=self._cancel, pose_prior=pose_prior, given=given)
+                    rigid = reg.rigid
+                else:
+                    reg = register(self.model, data, deform=True, options=options, callback=on_iteration,
+                                   cancel=self._cancel, beta0=beta0, rigid=rigid, pose_prior=prior)
                 lm = reg.libr
                 assert lm is not None  # a deformable run has an LM result
                 final = self._state(lm.iterations, lm.omega, t0, rigid, lm.beta, True)
