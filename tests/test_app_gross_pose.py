@@ -78,7 +78,7 @@ def test_a_deformable_fit_on_a_pose_nobody_should_believe_gives_no_tumour_figure
     """Issue 50, item 2: on a gross pose the tumour bands read "predicted error 451.6 mm
     (48.6–1696.5)" (here 202 and 31 mm beside true 39 and 133 mm): a figure off by more than
     3× either way. The calibration says nothing at a point whose pose is 100 mm off; the band
-    says what to do instead."""
+    says what to do instead. The same holds of the surface's dots and the organ's line."""
     from navapp.app.shown import NO_TARGET_FIGURE
 
     sd = app.core.sd
@@ -90,6 +90,12 @@ def test_a_deformable_fit_on_a_pose_nobody_should_believe_gives_no_tumour_figure
     for b in res.target_bands:
         assert not np.isfinite(b.predicted_mm) and b.warning == NO_TARGET_FIGURE, b
         assert "mm" not in b.text() and "register again" in b.text()
+    # nor over the surface, nor over the organ (the demo's 40-point patch: 535 mm predicted over
+    # the organ, 15 × its true 35 mm; notes/scripts/predicted_demo.py)
+    reg = app.core.last_reg
+    assert res.predicted_mm is None
+    assert reg.deformed and reg.organ is not None
+    assert not any("predicted error over the organ" in w for w in reg.warnings), reg.warnings
 
 
 def test_the_surgeon_states_the_pose_and_a_patch_keeps_it(app, tmp_path):

@@ -97,21 +97,19 @@ class Shown:
             why = reg.support.warning if reg.support is not None else None
             short = why.split(":")[0] if why else None
             return None, [TargetBand(t.name, float("nan"), float("nan"), float("nan"), short) for t in preop.targets]
-        surface_only = pose_warning(reg) is not None
-        if surface_only:
+        if pose_warning(reg) is not None:
             # a pose nobody should believe (``coverage.pose_warning``): the calibration was fitted on
             # answers whose pose was right and says nothing at a point 100 mm off (a 40-point patch:
-            # tumours 39 and 133 mm off, predicted 202 and 31 mm); no figure at the tumours, but what to do
-            bands = [TargetBand(t.name, float("nan"), float("nan"), float("nan"), NO_TARGET_FIGURE)
-                     for t in preop.targets]
+            # tumours 39 and 133 mm off, predicted 202 and 31 mm; the demo's surface 15 × the true
+            # error); no figure at the tumours or on the surface, but what to do
+            return None, [TargetBand(t.name, float("nan"), float("nan"), float("nan"), NO_TARGET_FIGURE)
+                          for t in preop.targets]
         try:
             # with the weights of the fit: points it rejected (a wrong click) do not inflate the
             # residual scale of the prediction (with least squares weights a stray vertex the fit
             # had rightly ignored predicted 31.9 mm at a tumour whose error was 4 mm)
             weights = viewer_options().weights
             surface = estimate_error(reg, nodes=model.basis.surface, weights=weights).predicted_mm
-            if surface_only:
-                return surface, bands
             bands = []
             if preop.targets:
                 est = estimate_error(reg, points=np.array([t.centre for t in preop.targets]), weights=weights)

@@ -170,6 +170,7 @@ class LayersPanel:
                 self._render_legend()
             if core.result is not None and core.model is not None:
                 self.show_registered(shown.geometry(), shown.surface_error(self.cs), animate=True)
+                self._render_legend()  # a result with no prediction says so under the scale
             elif core.result is None:
                 for n in self.reg.values():
                     n.visible = False
@@ -366,6 +367,10 @@ class LayersPanel:
 
     def _render_legend(self):
         vmax = self.cs.error_scale_mm
+        res = self.core.result
+        # a pose not to be believed has no predicted error (``shown.Shown.predict``): grey, and why
+        none = (self.source.value == PREDICTED and res is not None and res.predicted_mm is None
+                and res.pose_warning is not None)
         sw = "".join(
             f"<div><span style='display:inline-block;width:12px;height:12px;background:rgb{c};margin-right:5px;"
             f"opacity:{o}'></span>{t}</div>"
@@ -375,4 +380,6 @@ class LayersPanel:
             f"(dots on the registered surface)</div>"
             f"<div style='height:10px;background:linear-gradient(to right,{TURBO_CSS})'></div>"
             f"<div style='display:flex;justify-content:space-between'><span>0</span><span>{vmax / 2:g}</span>"
-            f"<span>{vmax:g} mm</span></div></div>")
+            f"<span>{vmax:g} mm</span></div>"
+            + ("<div style='margin-top:4px;color:#b00'>none on show: the pose is not to be believed (grey dots)</div>"
+               if none else "") + "</div>")
