@@ -10,6 +10,9 @@ a lock may take it again.
 error the old folder is renamed away, the new one renamed into place, and the old one
 deleted. A run killed while writing leaves ``out`` as it was (its leftovers are removed
 by the next run on that folder).
+
+``write_registered`` writes the registered model's surfaces: the one writer of ``navapp
+register``'s output folder and the viewer's Export.
 """
 
 import fcntl
@@ -77,6 +80,32 @@ def folder_lock(out, kind: str = "folder"):
         f.truncate()
         fcntl.flock(f, fcntl.LOCK_UN)
         f.close()
+
+
+def write_registered(folder, transform, surfaces: dict, prefix: str = "", vtk: bool = False) -> list[Path]:
+    """The registered model's surfaces into ``folder``: each preoperative surface of
+    ``surfaces`` (name → trimesh.Trimesh, or None: skipped) with its vertices (V, 3) mm mapped
+    by ``transform`` ((P, 3) → (P, 3) mm, preoperative → tracker space), as binary PLY
+    ``{prefix}{name}.ply`` and, with ``vtk``, legacy ASCII VTK ``{prefix}{name}.vtk`` (3D
+    Slicer reads it). Returns the files written."""
+    import meshio
+    import numpy as np
+    import trimesh
+
+    folder = Path(folder)
+    written = []
+    for name, mesh in surfaces.items():
+        if mesh is None:
+            continue
+        v = np.asarray(transform(mesh.vertices), float)
+        ply = folder / f"{prefix}{name}.ply"
+        trimesh.Trimesh(v, mesh.faces, process=False).export(ply, encoding="binary")
+        written.append(ply)
+        if vtk:
+            meshio.write(folder / f"{prefix}{name}.vtk", meshio.Mesh(v, [("triangle", np.asarray(mesh.faces))]),
+                         binary=False)
+            written.append(folder / f"{prefix}{name}.vtk")
+    return written
 
 
 def _leftovers(out: Path):

@@ -181,6 +181,29 @@ def test_export_writes_ply_vtk_and_csv(scene_data, tmp_path):
     assert np.array_equal(vtk.cells_dict["triangle"], liver.faces)
 
 
+class Broken(Shift):
+    """A registration that fails half way through an export (on the second surface)."""
+
+    calls = 0
+
+    def transform(self, points):
+        self.calls += 1
+        if self.calls > 1:
+            raise RuntimeError("cut short")
+        return super().transform(points) + 5.0
+
+
+def test_an_export_cut_short_leaves_the_last_one_whole(scene_data, tmp_path):
+    """An export appears whole or not at all: one that fails after its first surface (a
+    kill, a full disk) left its liver beside the last export's vessels and data."""
+    sd = scene_data
+    export(tmp_path / "x", Shift(), sd, {"anterior": sd.stylus_path[:10]})
+    before = {p.name: p.read_bytes() for p in (tmp_path / "x").iterdir()}
+    with pytest.raises(RuntimeError):
+        export(tmp_path / "x", Broken(), sd, {"anterior": sd.stylus_path[:10]})
+    assert {p.name: p.read_bytes() for p in (tmp_path / "x").iterdir()} == before
+
+
 # ---------------------------------------------------------------- session.json, property-based
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import trimesh
 
 from ..anatomy.caseio import write_csv, write_preop, write_settings, write_truth
 from ..anatomy.model import VESSELS
@@ -413,28 +412,22 @@ def _cut_short(folder: Path, sd: SceneData) -> bool:
 
 def export(folder: Path, reg, sd: SceneData, data: dict) -> list[Path]:
     """Write the registered liver and vessels (PLY and legacy VTK, which 3D Slicer reads)
-    and the registration data (CSV per feature) into ``folder``; returns the files."""
-    import meshio
+    and the registration data (CSV per feature) into ``folder``, which appears whole or not
+    at all (``outputs.staged``: an export cut short left half its files beside the last
+    one's); returns the files."""
+    from ..outputs import folder_lock, staged, write_registered
 
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
-    written = []
     preop = sd.case.preop
-    for name, mesh in ((n, getattr(preop, n)) for n in ("liver", *VESSELS)):
-        if mesh is None:
-            continue
-        v = reg.transform(mesh.vertices)
-        out = trimesh.Trimesh(v, mesh.faces, process=False)
-        out.export(folder / f"registered_{name}.ply", encoding="binary")
-        meshio.write(folder / f"registered_{name}.vtk", meshio.Mesh(v, [("triangle", np.asarray(mesh.faces))]),
-                     binary=False)
-        written += [folder / f"registered_{name}.ply", folder / f"registered_{name}.vtk"]
-    for name, pts in data.items():
-        write_csv(folder / f"data_{name}.csv", pts, ("x", "y", "z"))
-        written.append(folder / f"data_{name}.csv")
-    (folder / "exported.json").write_text(json.dumps({"time": time.strftime("%Y-%m-%d %H:%M:%S"),
-                                                      "files": [p.name for p in written]}, indent=1))
-    return written
+    with folder_lock(folder), staged(folder) as tmp:
+        written = write_registered(tmp, reg.transform, {n: getattr(preop, n) for n in ("liver", *VESSELS)},
+                                   prefix="registered_", vtk=True)
+        for name, pts in data.items():
+            write_csv(tmp / f"data_{name}.csv", pts, ("x", "y", "z"))
+            written.append(tmp / f"data_{name}.csv")
+        (tmp / "exported.json").write_text(json.dumps({"time": time.strftime("%Y-%m-%d %H:%M:%S"),
+                                                       "files": [p.name for p in written]}, indent=1))
+    return [folder / p.name for p in written]
 
 
 TABS_FILE = "tabs.json"  # each tab's own work (``write_tabs``): its plane, contour in progress, undo

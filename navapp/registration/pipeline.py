@@ -18,7 +18,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-import trimesh
 from scipy.spatial.transform import Rotation
 
 from ..anatomy.caseio import Case, write_csv
@@ -789,11 +788,10 @@ def write_outputs(case: Case, reg: Registration, out: Path, extra: dict,
 
 
 def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dict:
+    from ..outputs import write_registered
+
     out = Path(out)
-    for name in ("liver", *VESSELS):
-        mesh = getattr(case.preop, name)
-        if mesh is not None:
-            trimesh.Trimesh(reg.transform(mesh.vertices), mesh.faces, process=False).export(out / f"{name}.ply")
+    write_registered(out, reg.transform, {name: getattr(case.preop, name) for name in ("liver", *VESSELS)})
     summary = dict(extra)
     if reg.model.mesher is not None:  # the mesh is part of the answer: which mesher made it, and why
         summary["mesher"] = reg.model.mesher.as_dict()
