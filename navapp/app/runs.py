@@ -23,7 +23,7 @@ from ..registration.pipeline import Registration
 from ..registration.prior import PosePrior
 from ..registration.quality import EXPECTED_NOISE_MM, MARGIN_MM
 from ..registration.residuals import point_residual_at, point_residuals
-from ..registration.rigid import RigidResult
+from ..registration.rigid import RigidResult, after, beta_pose
 from .actions import Act
 from .contours import OriginKind
 from .core import Core
@@ -117,6 +117,7 @@ class Runs:
         core = self.core
         with core.lock:
             sd, session = core.need_scene()
+            model, _ = core.need_model()
             stated, shown = session.stated_pose(sd), core.result
         if stated.frame is not PoseFrame.PREVIOUS or kind is RunKind.WARM:
             return stated.prior(), None
@@ -125,7 +126,9 @@ class Runs:
                         + ("no registration is on show yet to take it from." if shown is None else
                            "the registration on show has a pose not to be believed."))
             return None, None
-        return stated.prior(), shown.rigid
+        # its whole pose: the rigid stage and LM's own τ, θ (the displacement left out)
+        whole = shown.rigid if shown.beta is None else after(shown.rigid, beta_pose(shown.beta, model.centroid))
+        return stated.prior(), whole
 
     def set_pose(self, stated: StatedPose, cs: ClientState | None = None) -> str | None:
         """State the pose of the data for the runs to come, an action of ``cs``; returns what

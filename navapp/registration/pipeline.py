@@ -58,11 +58,11 @@ from .rigid import (
     Start,
     after,
     basin_representatives,
+    beta_pose,
     multi_start_icp,
     rigid_icp,
     start_poses,
 )
-from .rotation import rotation
 from .support import Support, SupportOptions, check_support, check_support_pair, pooled_rms, weigh_correction
 from .uncertainty import OrganError, organ_error
 
@@ -475,11 +475,10 @@ def _declared_rigid(model: RegistrationModel, data: dict, prior: PosePrior, opti
                     st.chosen = st is rep
     beta = best.beta
     tau, theta = beta[n:n + 3], beta[n + 3:]
-    R = rotation(theta)
-    # x ↦ R (x − x̄0) + τ + x̄0: the pose moved from the given one (model → data frame)
-    pose = RigidResult(R, c + tau - R @ c, best.iterations, 0.0, kept=True)
+    # the pose moved from the given one (model → data frame)
+    pose = replace(beta_pose(beta, c), iterations=best.iterations)
     pose = replace(pose, rms_mm=rms_on_model(model, data, pose))
-    return pose, replace(current, centre=tuple(np.concatenate([-R.T @ tau, -theta]).tolist())), starts
+    return pose, replace(current, centre=tuple(np.concatenate([-pose.R.T @ tau, -theta]).tolist())), starts
 
 
 def _noise_floor(data: dict) -> float:

@@ -26,7 +26,7 @@ from ..features import RIGID
 from ..geometry.transforms import kabsch, rotvec_matrix
 from .model import REGION_FEATURES, RegistrationModel
 from .objective import Weights, correspond
-from .rotation import rotation_angle
+from .rotation import rotation, rotation_angle
 
 
 @dataclass
@@ -54,6 +54,17 @@ def after(first: RigidResult, then: RigidResult) -> RigidResult:
     """The pose ``first`` ∘ ``then`` (x ↦ first(then(x))), with ``then``'s iterations, RMS and
     ``kept`` (distances are the same in either frame)."""
     return replace(then, R=first.R @ then.R, t=first.R @ then.t + first.t)
+
+
+def beta_pose(beta, centroid) -> RigidResult:
+    """The rigid part of a LIBR state β = (α, τ, θ) (3k + 6,): x ↦ R(θ) (x − x̄0) + τ + x̄0, eq. 8
+    without the displacement; ``centroid`` x̄0 (3,) mm. A registration's whole pose is
+    ``after(reg.rigid, beta_pose(β, x̄0))``."""
+    beta = np.asarray(beta, float)
+    n = len(beta) - 6
+    R = rotation(beta[n + 3:])
+    c = np.asarray(centroid, float)
+    return RigidResult(R, c + beta[n:n + 3] - R @ c, 0, 0.0, kept=True)
 
 
 SURFACE_FEATURES = RIGID  # stylus data and fiducials (``navapp.features``)
