@@ -103,6 +103,25 @@ def test_a_wide_declared_pose_the_data_cannot_fix_is_warned_about(small_model):
     assert len(reg.warnings) == 1 and "clinical goal" in reg.warnings[0]
 
 
+def test_only_the_given_pose_within_the_clinical_goal_is_silent():
+    """``PoseEvidence``'s line: silent for the given pose whose declared spread keeps its predicted
+    error within the clinical goal; a fitted pose, which the posterior cannot check against a
+    misfit the basis does not make, always has one; either one beyond the goal says so."""
+    from navapp.registration.uncertainty import CLINICAL_GOAL_MM, PoseEvidence
+
+    assert CLINICAL_GOAL_MM == 5.0
+    given = PoseEvidence(moved_mm=1.0, sigma_mm=2.4, prior_sigma_mm=3.6)
+    assert given.kept_given and given.predicted_mm == 3.6 and given.warning is None
+    wide = PoseEvidence(moved_mm=1.0, sigma_mm=2.4, prior_sigma_mm=34.0)
+    assert wide.warning is not None and "given pose is shown" in wide.warning and "clinical goal" in wide.warning
+    fitted = PoseEvidence(moved_mm=2.2, sigma_mm=1.2, prior_sigma_mm=3.6)
+    assert not fitted.kept_given and fitted.predicted_mm == 1.2
+    assert fitted.warning is not None and "2.2 mm from the given pose" in fitted.warning
+    assert "clinical goal" not in fitted.warning
+    far = PoseEvidence(moved_mm=12.4, sigma_mm=7.9, prior_sigma_mm=34.0)
+    assert far.warning is not None and "clinical goal" in far.warning
+
+
 def test_a_fit_rebased_on_the_given_pose_is_the_same_organ(small_model):
     """``_rebased``: β fitted in a pose's model frame, re-expressed about the identity, moves every
     node where the pose and β together did (eq. 8 composed with the pose)."""
