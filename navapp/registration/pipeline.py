@@ -63,8 +63,9 @@ from .rigid import (
     rigid_icp,
     start_poses,
 )
+from .rotation import rotation
 from .support import Support, SupportOptions, check_support, check_support_pair, pooled_rms, weigh_correction
-from .uncertainty import OrganError, organ_error
+from .uncertainty import OrganError, PoseEvidence, organ_error, pose_evidence
 
 
 @dataclass
@@ -173,6 +174,10 @@ class Registration:
     local_modes: LocalModes | None = None
     # the declared pose knowledge the fit used (``register(pose_prior=)``), centred on ``rigid``
     pose_prior: PosePrior | None = None
+    # with a declared pose and no supported deformation: the fitted pose against the given one,
+    # and the shown pose's predicted error (``uncertainty.PoseEvidence``); its line replaces the
+    # cross-validation's and the deformable fit's quality, neither of which is the answer shown
+    pose_evidence: PoseEvidence | None = None
 
     @property
     def deformed(self) -> bool:
@@ -189,6 +194,8 @@ class Registration:
     def warnings(self) -> list[str]:
         """Every warning about this answer, one line each (the CLI, result.json and the viewer show them)."""
         lines = list(self.notes)
+        if self.pose_evidence is not None and not self.deformed:
+            return lines + [w for w in (self.pose_evidence.warning,) if w]
         doubt = bool(lines) or (self.determinacy is not None and self.determinacy.warning is not None)
         for w in (self.pose_choice.warning if self.pose_choice else None,
                   self.determinacy.warning if self.determinacy else None,
@@ -521,6 +528,18 @@ def _settle_scale(model: RegistrationModel, local: dict, result, options: LMOpti
     return result, options
 
 
+def _rebased(model: RegistrationModel, beta: np.ndarray, pose: RigidResult) -> np.ndarray:
+    """β (3k + 6,) fitted to data in ``pose``'s model frame, re-expressed about the given pose
+    (identity): the same deformed organ in the tracker frame. With x(β) = R(θ)(x0 + u − x̄0) + τ + x̄0
+    (eq. 8) and the pose y ↦ R_p y + t_p: R(θ') = R_p R(θ), τ' = R_p (τ + x̄0) + t_p − x̄0."""
+    n = model.basis.Ju.shape[1]
+    out = np.array(beta, float)
+    c = model.centroid
+    out[n:n + 3] = pose.R @ (beta[n:n + 3] + c) + pose.t - c
+    out[n + 3:] = Rotation.from_matrix(pose.R @ rotation(beta[n + 3:])).as_euler("XYZ")
+    return out
+
+
 PRIOR_REACH = 3.0
 """How many declared standard deviations (per axis) from the given pose a multi-start ICP
 pose may lie and still be a candidate of the declared rigid stage (``_declared_rigid``)."""
@@ -595,6 +614,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     sec = {}
     t = time.perf_counter()
     candidates: list[RigidResult] = []
+    centred: PosePrior | None = None  # the declared prior as the rigid stage left it (its pose, its scale)
     if declared:
         assert pose_prior is not None
         if given is None:
@@ -709,6 +729,19 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         support = _cross_validate(model, local, options, init.support, cancel, rigid, result, folds_support,
                                   local_modes=base_model is not None, declared=declared)
         sec["support"] = time.perf_counter() - t
+    evidence: PoseEvidence | None = None
+    if declared and support is not None and not support.supported and result is not None and \
+            result.stop_reason != "cancelled" and centred is not None and options.weights.pose_prior is not None:
+        # the rigid answer with a declared pose: the fitted pose or the given one, by whether the
+        # posterior tells them apart (``PoseEvidence``; docs/decisions.md, "One criterion for the pose")
+        evidence = pose_evidence(model, local, rigid, centred, options.weights)
+        if evidence.kept_given:
+            # the deformable fit re-expressed about the given pose, so that its β and the data's
+            # frame stay one pair (the error estimate and a warm start read them together)
+            result = replace(result, beta=_rebased(model, result.beta, rigid))
+            rigid, local = _given(rms_on_model(model, data, _given())), dict(data)
+            options = replace(options, weights=replace(options.weights, pose_prior=replace(
+                options.weights.pose_prior, centre=(0.0,) * 6)))
     if choice is not None:
         choice = with_turn(choice, rigid)  # ICP's pose is final here
     if fresh and result is not None and quality is not None and choice is not None and \
@@ -757,7 +790,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         result = replace(result, stop_reason="cancelled")
         support = None
     reg = Registration(model, rigid, result, local, sec, starts, quality, choice, determinacy, support, notes,
-                       local_modes=local_modes, pose_prior=options.weights.pose_prior)
+                       local_modes=local_modes, pose_prior=options.weights.pose_prior, pose_evidence=evidence)
     if fresh and reg.deformed and result is not None and result.stop_reason != "cancelled":
         # every check above compares the answer with simpler ones on the data; this one asks
         # whether it is good enough to navigate by at all (docs/decisions.md, "An answer the data
@@ -802,7 +835,8 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
             **({"libr_moved_mm": round(moved["shift_mm"], 3), "libr_turned_deg": round(moved["turn_deg"], 3)}
                if moved else {})}
     for key, part in (("pose", reg.pose_choice), ("pose_determinacy", reg.determinacy), ("support", reg.support),
-                      ("predicted_error", reg.organ), ("local_modes", reg.local_modes)):
+                      ("predicted_error", reg.organ), ("local_modes", reg.local_modes),
+                      ("pose_evidence", reg.pose_evidence)):
         if part is not None:
             summary[key] = part.as_dict()
     lines = reg.warnings + [w for t in summary.get("targets", []) if (w := t.get("warning"))]

@@ -364,6 +364,82 @@ class OrganError:
                 "seconds": round(self.seconds, 3), "exceeds_bound": self.warning is not None}
 
 
+CLINICAL_GOAL_MM = ONCOLOGICAL_MARGIN_MM / 2
+"""The paper's clinical goal for accuracy (§IV, 5 mm): a rigid answer with a declared pose whose
+predicted error over the organ exceeds it is warned about (``PoseEvidence``)."""
+
+
+@dataclass(frozen=True)
+class PoseEvidence:
+    """With a declared pose and no supported deformation: is the rigid fit within the prior told
+    apart from the given pose, and how good is the pose shown? All means over ``organ_nodes``, mm.
+
+    ``moved_mm``: how far the fit moved the organ from the given pose; ``sigma_mm``: the fit's
+    posterior σ_pose (data and prior, ``pose_covariance``); ``prior_sigma_mm``: the prior's alone
+    (the given pose's own predicted error). One criterion, the posterior's: a move within its own
+    σ is not told apart from the given pose, which is then kept (for data in the preoperative
+    frame it is no correction, the answer never worse than its reference); a larger move is the
+    data's, and the fit is shown. One rule for the line: the answer is silent only when it is
+    the given pose — the surgeon's own reference — and that pose's predicted error (the prior's)
+    is within ``bound_mm``, the clinical goal. A fitted pose is always warned about: where the
+    basis cannot make the deformation, the posterior does not see the misfit that moved the
+    pose, and such a fitted pose was worse than its reference, silently, on 5 of the 72 declared
+    local-load registrations (by 0.05–0.44 mm; docs/decisions.md, "One criterion for the pose").
+    """
+    moved_mm: float
+    sigma_mm: float
+    prior_sigma_mm: float
+    bound_mm: float = CLINICAL_GOAL_MM
+
+    @property
+    def kept_given(self) -> bool:
+        return self.moved_mm <= self.sigma_mm
+
+    @property
+    def predicted_mm(self) -> float:
+        """The shown pose's predicted error over the organ (mm)."""
+        return self.prior_sigma_mm if self.kept_given else self.sigma_mm
+
+    @property
+    def warning(self) -> str | None:
+        beyond = self.predicted_mm > self.bound_mm
+        if self.kept_given and not beyond:
+            return None
+        error = (f"its predicted error over the organ is {self.predicted_mm:.1f} mm (mean), more than the "
+                 f"{self.bound_mm:g} mm clinical goal" if beyond else
+                 f"its predicted error over the organ is {self.predicted_mm:.1f} mm (mean)")
+        if self.kept_given:
+            return (f"the pose is not determined: the given pose is shown without deformation (the deformation "
+                    f"is not supported by the data), and {error} — add data where the organ moved and away "
+                    "from the data")
+        return (f"the data moved the organ {self.moved_mm:.1f} mm from the given pose (more than that "
+                f"move's own σ, {self.sigma_mm:.1f} mm) and do not support a deformation: that rigid pose is "
+                f"shown without deformation, {error} — check it against the given pose; add data where the "
+                "organ moved")
+
+    def as_dict(self) -> dict:
+        return {"moved_mm": round(self.moved_mm, 3), "sigma_mm": round(self.sigma_mm, 3),
+                "prior_sigma_mm": round(self.prior_sigma_mm, 3), "kept_given": self.kept_given,
+                "predicted_mm": round(self.predicted_mm, 3), "bound_mm": self.bound_mm}
+
+
+def pose_evidence(model: RegistrationModel, data: dict, pose, prior, weights: Weights) -> PoseEvidence:
+    """``PoseEvidence`` of the rigid fit ``pose`` (``RigidResult``, model → data frame; the given
+    pose is the identity) within ``prior`` (``PosePrior`` centred, as the rigid stage left it, on
+    where the given pose is from ``pose``, at the rigid stage's scale). ``data``: feature → (N, 3)
+    mm in the model frame of ``pose`` (``pose.inverse`` of the tracker's)."""
+    nodes = organ_nodes(model)
+    x = model.basis.nodes[nodes]
+    zero = np.zeros(model.basis.Ju.shape[1] + 6)
+    with limit_threads(1):
+        _, G = point_jacobian(model, zero, nodes=nodes)
+        w = replace(weights, pose_prior=prior)
+        sigma = point_sigma(G[:, :, -6:], cov=pose_covariance(model, data, zero, w))
+        prior_sigma = point_sigma(G[:, :, -6:], cov=pose_covariance(model, {}, zero, w))
+    moved = np.linalg.norm(pose.apply(x) - x, axis=1)
+    return PoseEvidence(float(moved.mean()), float(sigma.mean()), float(prior_sigma.mean()))
+
+
 ORGAN_NODES = 1500
 """Mesh nodes (a fixed random sample, ``organ_nodes``) over which "the predicted error over the
 organ" is a mean: in ``OrganError`` and in the next plane's ranking (σ costs time per node)."""
