@@ -279,3 +279,9 @@ def test_a_pose_known_from_a_previous_registration_is_the_prior_about_that_pose(
     assert np.abs(there.transform(nodes) - G.apply(here.transform(nodes))).max() < 0.1
     lost = register(small_model, moved, pose_prior=prior, deform=False)
     assert np.linalg.norm(lost.transform(nodes) - G.apply(here.transform(nodes)), axis=1).mean() > 5.0
+    # the deformable answer too, where the given pose is the one shown (the dent is not supported:
+    # ``PoseEvidence`` keeps the given pose, here G, not the data's own frame)
+    here = register(small_model, data, pose_prior=prior)
+    there = register(small_model, moved, pose_prior=prior, given=G)
+    assert here.pose_evidence is not None and here.pose_evidence.kept_given
+    assert np.abs(there.transform(nodes) - G.apply(here.transform(nodes))).max() < 0.1

@@ -615,10 +615,12 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     t = time.perf_counter()
     candidates: list[RigidResult] = []
     centred: PosePrior | None = None  # the declared prior as the rigid stage left it (its pose, its scale)
+    moved: RigidResult | None = None  # the declared rigid stage's pose relative to the given one
     if declared:
         assert pose_prior is not None
         if given is None:
             rigid, centred, starts = _declared_rigid(model, data, pose_prior, options, init, cancel)
+            moved = rigid
         else:  # the same fit on the data moved into the given pose's frame, then composed with it
             moved, centred, starts = _declared_rigid(model, {n: given.inverse(p) for n, p in data.items()},
                                                      pose_prior, options, init, cancel)
@@ -731,15 +733,18 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         sec["support"] = time.perf_counter() - t
     evidence: PoseEvidence | None = None
     if declared and support is not None and not support.supported and result is not None and \
-            result.stop_reason != "cancelled" and centred is not None and options.weights.pose_prior is not None:
+            result.stop_reason != "cancelled" and centred is not None and options.weights.pose_prior is not None \
+            and moved is not None:
         # the rigid answer with a declared pose: the fitted pose or the given one, by whether the
         # posterior tells them apart (``PoseEvidence``; docs/decisions.md, "One criterion for the pose")
-        evidence = pose_evidence(model, local, rigid, centred, options.weights)
+        evidence = pose_evidence(model, local, moved, centred, options.weights)
         if evidence.kept_given:
             # the deformable fit re-expressed about the given pose, so that its β and the data's
             # frame stay one pair (the error estimate and a warm start read them together)
-            result = replace(result, beta=_rebased(model, result.beta, rigid))
-            rigid, local = _given(rms_on_model(model, data, _given())), dict(data)
+            result = replace(result, beta=_rebased(model, result.beta, moved))
+            at = given if given is not None else _given()
+            rigid = replace(at, rms_mm=rms_on_model(model, data, at), kept=True)
+            local = {n: rigid.inverse(p) for n, p in data.items()}
             options = replace(options, weights=replace(options.weights, pose_prior=replace(
                 options.weights.pose_prior, centre=(0.0,) * 6)))
     if choice is not None:
