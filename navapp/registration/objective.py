@@ -11,14 +11,25 @@ value: w_F [m⁻²] · (unit_m)² / N_F per squared residual, and w_E [Pa⁻²] 
 
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
 
-from ..geometry.closest import closest_on_polyline, closest_on_surface, nearest_vertices, surface_normals, vertex_tree
+from ..geometry.closest import (
+    closest_on_polyline,
+    closest_on_surface,
+    hierarchy_search,
+    nearest_vertices,
+    surface_normals,
+    vertex_tree,
+)
 from .model import REGION_FEATURES, W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform
 from .prior import PosePrior
 from .rotation import rotation, rotation_derivatives
+
+if TYPE_CHECKING:
+    from ..geometry.bvh import SurfaceHierarchy
 
 
 @dataclass(frozen=True)
@@ -140,8 +151,22 @@ def _stats(f, wF) -> dict:
             "max_abs_mm": float(np.max(np.abs(f))), "omega": float(wF * f @ f)}
 
 
-def _tree(X):
-    # rebuilt on the deformed points at every evaluation (``vertex_tree``: the fastest to build)
+@dataclass(frozen=True)
+class FittedSurface:
+    """A surface's hierarchy (``bvh.SurfaceHierarchy``) with its boxes refitted at one
+    evaluation's deformed points: what ``correspond`` searches instead of a k-d tree."""
+
+    hierarchy: "SurfaceHierarchy"
+    boxes: np.ndarray
+
+
+def _tree(feat, X):
+    """The search structure of a model feature at its deformed points X: a surface's
+    hierarchy refitted (exact closest points; ``geometry.bvh``), else a k-d tree of X rebuilt
+    (``vertex_tree``: the fastest to build)."""
+    if feat.kind == "surface" and hierarchy_search():
+        h = feat.search_tree()
+        return FittedSurface(h, h.refit(X))
     return vertex_tree(X)
 
 
@@ -190,12 +215,20 @@ class Correspondence:
 def correspond(feat, X, Y, tree=None, nearest=None) -> Correspondence:
     """Closest points of data Y (N, 3) mm on the model feature ``feat`` at its current
     geometry X (V, 3) mm: S and the direction data (normals for surfaces, tangents for
-    centerlines). ``tree``/``nearest``: a KD-tree of X, or Y's nearest vertices of X when
-    already found."""
+    centerlines). ``tree``/``nearest``: a surface's ``FittedSurface`` at X (exact closest
+    points), a KD-tree of X, or Y's nearest vertices of X when already found."""
     N = len(Y)
     kind = feat.kind
     if kind == "surface":
-        face, bary, _ = closest_on_surface(Y, X, feat.cells, feat.table, feat.near, tree=tree, nearest=nearest)
+        face = None
+        if isinstance(tree, FittedSurface):
+            face, bary = tree.hierarchy.closest(Y, X, tree.boxes)
+            if not (face >= 0).all():  # a non-finite surface: the candidates' path says what it can
+                face = None
+                tree = None
+        if face is None:
+            face, bary, _ = closest_on_surface(Y, X, feat.cells, feat.table, feat.near,
+                                               tree=tree, nearest=nearest)
         # the normal at the closest point: the face's inside a triangle, p/|p| on an edge or
         # vertex (``surface_normals``), which makes f the true point–surface distance
         S = _rows_matrix(bary, feat.cells[face], len(X))
@@ -292,7 +325,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
                 local, X = model.positions(feat, beta)
                 tim["deform"] += time.perf_counter() - t0
                 t0 = time.perf_counter()
-                tree = _tree(X) if frozen is None and feat.kind != "fiducial" else None
+                tree = _tree(feat, X) if frozen is None and feat.kind != "fiducial" else None
                 tim["kdtree"] += time.perf_counter() - t0
                 geometry[key] = (local, X, tree)
             local, X, tree = geometry[key]
@@ -301,10 +334,12 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
                 c = corr[name] = seen[1]
             else:
                 t0 = time.perf_counter()
-                nearest = nearest_vertices(tree, Y, feat.near) if tree is not None else None
+                kd = tree is not None and not isinstance(tree, FittedSurface)
+                nearest = nearest_vertices(tree, Y, feat.near) if kd else None
                 tim["kdtree"] += time.perf_counter() - t0
                 t0 = time.perf_counter()
-                c = corr[name] = frozen[name] if frozen is not None else correspond(feat, X, Y, nearest=nearest)
+                c = corr[name] = (frozen[name] if frozen is not None
+                                  else correspond(feat, X, Y, tree=None if kd else tree, nearest=nearest))
                 tim["closest"] += time.perf_counter() - t0
             S, direction = c.S, c.direction
             p = Y - S @ X
