@@ -10,6 +10,7 @@ value: w_F [m⁻²] · (unit_m)² / N_F per squared residual, and w_E [Pa⁻²] 
 """
 
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -146,9 +147,13 @@ class Evaluation:
 
 
 def _stats(f, wF) -> dict:
-    """Per-feature statistics of the per-point residuals f (N,), mm."""
-    return {"n": int(len(f)), "rms_mm": float(np.sqrt(np.mean(f ** 2))), "mean_abs_mm": float(np.mean(np.abs(f))),
-            "max_abs_mm": float(np.max(np.abs(f))), "omega": float(wF * f @ f)}
+    """Per-feature statistics of the per-point residuals f (N,), mm. Three reductions (every
+    evaluation makes these for every feature, ~26 a live update; np.mean's wrapper cost more
+    than its sums)."""
+    ff = float(f @ f)
+    a = np.abs(f)
+    return {"n": int(len(f)), "rms_mm": float(np.sqrt(ff / len(f))), "mean_abs_mm": float(a.sum()) / len(f),
+            "max_abs_mm": float(a.max()), "omega": wF * ff}
 
 
 @dataclass(frozen=True)
@@ -405,6 +410,31 @@ def _at(model: RegistrationModel, beta) -> tuple | None:
     return None
 
 
+_jacobian_kernel: list = []  # the compiled α columns, or None (``jacobian_compiled``), imported on first use
+_numpy_jacobian = [False]  # ``numpy_jacobian``
+
+
+def _alpha_kernel():
+    if _numpy_jacobian[0]:
+        return None
+    if not _jacobian_kernel:
+        from .jacobian_compiled import alpha_columns
+
+        _jacobian_kernel.append(alpha_columns)
+    return _jacobian_kernel[0]
+
+
+@contextmanager
+def numpy_jacobian():
+    """Within it, ``add_jacobian`` forms the α columns with SciPy and NumPy, as before the
+    compiled ones (the benches' "before"); process-wide."""
+    _numpy_jacobian[0] = True
+    try:
+        yield
+    finally:
+        _numpy_jacobian[0] = False
+
+
 def add_jacobian(model: RegistrationModel, ev: Evaluation) -> Evaluation:
     """J = ∂f/∂β (R + 1, 3k + 6) of Table I at ``ev``'s state and correspondences, stored
     in ``ev.J``; each correspondence gains S·B·J_u and S·x0 for the held fast path."""
@@ -415,26 +445,33 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation) -> Evaluation:
     R = rotation(beta[n + 3:n + 6])
     dR = rotation_derivatives(beta[n + 3:n + 6])
     t0 = time.perf_counter()
-    Js = []
+    kernel = _alpha_kernel()
+    J = np.empty((len(ev.f), n + 6))  # filled block by block: the data rows, the prior's, f_E's
+    at = 0
     for name, feat, S, q, rows, local in ev.terms:
         if local is None:  # made by the held fast path: the feature's points were never deformed
             local = model.positions(feat, beta)[0]
-        U = np.asarray(S @ feat.BJ.reshape(len(local), 3 * n)).reshape(-1, 3, n)
+        Jf = J[at:at + len(q)]
+        at += len(q)
+        qR = q @ R  # qᵀR, (R, 3)
+        if kernel is not None:
+            U = np.empty((S.shape[0], 3, n))
+            kernel(S.indptr, S.indices, S.data, feat.BJ, np.ascontiguousarray(qR), rows, U, Jf)
+        else:
+            U = np.asarray(S @ feat.BJ.reshape(len(local), 3 * n)).reshape(-1, 3, n)
+            Jf[:, :n] = -np.einsum("ia,iak->ik", qR, U[rows] if len(q) != S.shape[0] else U)
         c = ev.correspondence[name]
         if not c.carries_basis:
             ev.correspondence[name] = Correspondence(c.S, c.direction, U, S @ feat.rest)
-        qR = q @ R  # qᵀR, (R, 3)
-        Jf = np.empty((len(q), n + 6))
-        Jf[:, :n] = -np.einsum("ia,iak->ik", qR, U[rows] if len(q) != S.shape[0] else U)
         Jf[:, n:n + 3] = -q
         xl = (S @ local)[rows]
         for j in range(3):
             Jf[:, n + 3 + j] = -np.einsum("ia,ab,ib->i", q, dR[j], xl)
-        Js.append(Jf)
     if ev.pose_prior is not None:
-        Js.append(ev.pose_prior.jacobian(n))
-    JE = np.zeros((1, n + 6))
-    JE[0, :n] = (basis.energy @ beta[:n]) / basis.M
-    ev.J = np.vstack(Js + [JE])
+        J[at:at + 6] = ev.pose_prior.jacobian(n)
+        at += 6
+    J[at] = 0.0
+    J[at, :n] = (basis.energy @ beta[:n]) / basis.M
+    ev.J = J
     ev.timings["jacobian"] += time.perf_counter() - t0
     return ev
