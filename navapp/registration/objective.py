@@ -179,7 +179,11 @@ def _rows_matrix(weights, columns, n_columns):
     """Sparse S (N × n_columns) with row i = Σ_j weights[i, j] e_{columns[i, j]}, built
     straight in CSR form (every row has the same count, so no COO sort is needed)."""
     N, m = weights.shape
-    return sp.csr_matrix((weights.ravel(), columns.ravel(), np.arange(0, N * m + 1, m)), shape=(N, n_columns))
+    # int32 indices where they fit, as SciPy would store them: handed int64, it scans them to
+    # see whether they fit (half the build's time; ~11 builds a live update)
+    idx = np.int32 if max(n_columns, N * m) < np.iinfo(np.int32).max else np.int64
+    return sp.csr_matrix((weights.ravel(), columns.ravel().astype(idx), np.arange(0, N * m + 1, m, dtype=idx)),
+                         shape=(N, n_columns))
 
 
 @dataclass
