@@ -83,8 +83,8 @@ class LibrResult:
     steps: list  # per accepted step: (Ω before, Ω after with that iteration's correspondences)
     features: dict
     seconds: float
-    # seconds in deform / kdtree (build + nearest-vertex query) / closest (exact points on
-    # the candidate cells, normals, tangents) / jacobian / solve
+    # seconds in deform / kdtree (the surfaces' hierarchy refit; a centerline's k-d tree built
+    # and queried) / closest (the exact points, normals, tangents) / jacobian / solve
     timings: dict
     # 2-norm condition number of the last undamped LM matrix JᵀWJ + C, Jacobi-scaled (unit
     # diagonal, so units of α, τ, θ do not count); inf when singular. Only with LMOptions(condition=True)
