@@ -27,7 +27,6 @@ from ..anatomy.meshing import cached_tetmesh
 from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
 from ..errors import NavappError
-from ..geometry.closest import numpy_test
 from ..geometry.tre import tre_stats
 from ..mechanics.basis import BasisSettings, basis_key, load_or_compute_basis
 from ..mechanics.fem import Material
@@ -36,6 +35,7 @@ from ..registration.pipeline import prepare, register
 from ..simulation.levels import data_level
 from ..simulation.scene import demo_scene
 from ..simulation.scenedata import simulated_case_dir
+from .live_bench import before_path
 
 
 def peak_memory_mb() -> float:
@@ -126,8 +126,8 @@ def bench_precompute(edges, ks, volume_ml=None, relax="local"):
 def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     """Demo scene, stylus data + the first ``planes`` iUS planes; then one more plane
     added and the fit warm-started from the previous state. The fresh registration is also
-    run with the candidate triangles tested by NumPy, as before the compiled test
-    (``geometry.closest.numpy_test``), alternated with it repeat by repeat, each on its own
+    run as before issue 49's hierarchy and compiled Jacobian (``live_bench.before_path``),
+    alternated with it repeat by repeat, each on its own
     copy of the model's cache: ``before_after`` holds both medians (CPU and wall) and the
     TREs. ``truth_edge``: the mesh the scene is simulated on, mm (default the scene's)."""
 
@@ -145,7 +145,7 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     paired: dict[str, dict[str, list]] = {v: {"cpu": [], "wall": [], "tre": []} for v in ("before", "after")}
     for i in range(repeats):
         for variant in (("before", "after") if i % 2 == 0 else ("after", "before")):
-            with numpy_test() if variant == "before" else nullcontext():
+            with before_path() if variant == "before" else nullcontext():
                 c, t = time.process_time(), time.perf_counter()
                 r = register(before if variant == "before" else model, data)
                 paired[variant]["cpu"].append(time.process_time() - c)

@@ -6,11 +6,13 @@ query whose nearest surface point lies on a triangle incident to one of its near
 vertices (always the case for well-shaped meshes and queries near the surface). Skinny
 triangles need more vertices: the decimated vessel surfaces use ``NEAR_DECIMATED``.
 
-LM rebuilds the tree on the deformed vertices at every evaluation; pykdtree builds and
-queries it in half the time of SciPy's cKDTree (same neighbours), so ``vertex_tree`` uses it
-where installed. Exact bounding-volume hierarchies refit per evaluation were measured and
-lost (docs/decisions.md, "Closest points at the tracker's speed"). The candidate triangles'
-test is compiled by Numba where installed (``closest_compiled``: the same bits as NumPy's).
+LM searches the model surfaces with ``bvh``'s hierarchy instead, refitted per evaluation:
+exact everywhere and as fast or faster (docs/decisions.md, "Closest points at the tracker's
+speed"); this k-d path remains where Numba is missing, for the centerlines, and as the
+benches' "before" (``kd_search``). pykdtree builds and queries the tree in half the time of
+SciPy's cKDTree (same neighbours), so ``vertex_tree`` uses it where installed. The candidate
+triangles' test is compiled by Numba where installed (``closest_compiled``: the same bits as
+NumPy's).
 """
 
 from contextlib import contextmanager
@@ -136,6 +138,7 @@ def nearest_vertices(tree, points, near=NEAR):
 
 _compiled: list = []  # the compiled candidate test, or None; imported on first use (Numba takes ~1 s to load)
 _numpy_only = [False]  # ``numpy_test``
+_kd_only = [False]  # ``kd_search``
 
 
 def _surface_kernel():
@@ -166,6 +169,30 @@ def numpy_test():
         yield
     finally:
         _numpy_only[0] = False
+
+
+@contextmanager
+def kd_search():
+    """Within it, LM searches the model surfaces by the k-d tree's candidate triangles
+    (``closest_on_surface``), as before the refitted hierarchy (``bvh``); for the benches'
+    "before", process-wide like ``numpy_test``."""
+    _kd_only[0] = True
+    try:
+        yield
+    finally:
+        _kd_only[0] = False
+
+
+def hierarchy_search() -> bool:
+    """Whether LM searches surfaces with the refitted hierarchy (``bvh``): where Numba is
+    installed and outside ``kd_search`` / ``numpy_test``."""
+    if _kd_only[0] or _numpy_only[0]:
+        return False
+    try:
+        import numba  # noqa: F401
+    except ImportError:  # pragma: no cover - only without numba
+        return False
+    return True
 
 
 def closest_on_surface(points, vertices, faces, table, near=NEAR, tree=None, nearest=None):

@@ -44,6 +44,54 @@ def _clip01(x):  # np.clip(x, 0, 1): NaN stays
 
 
 @_jit
+def pair(p0, p1, p2, vertices, faces, f):
+    """Squared distance from the point (p0, p1, p2) to triangle ``f`` and the barycentric
+    weights (w1, w2) of its closest point: ``closest.triangle_weights``' arithmetic, operation
+    for operation. NaN distance for a triangle with non-finite products."""
+    tiny = 1e-300
+    ia, ib, ic = faces[f, 0], faces[f, 1], faces[f, 2]
+    a0, a1, a2 = vertices[ia, 0], vertices[ia, 1], vertices[ia, 2]
+    ab0, ab1, ab2 = vertices[ib, 0] - a0, vertices[ib, 1] - a1, vertices[ib, 2] - a2
+    ac0, ac1, ac2 = vertices[ic, 0] - a0, vertices[ic, 1] - a1, vertices[ic, 2] - a2
+    aa = ab0 * ab0 + ab1 * ab1 + ab2 * ab2
+    ae = ab0 * ac0 + ab1 * ac1 + ab2 * ac2
+    cc = ac0 * ac0 + ac1 * ac1 + ac2 * ac2
+    bb = aa - 2 * ae + cc
+    det = aa * cc - ae * ae
+    ap0, ap1, ap2 = p0 - a0, p1 - a1, p2 - a2
+    d1 = ab0 * ap0 + ab1 * ap1 + ab2 * ap2
+    d2 = ac0 * ap0 + ac1 * ap1 + ac2 * ap2
+    pp = ap0 * ap0 + ap1 * ap1 + ap2 * ap2
+    bd = d2 - d1 - ae + aa
+    t_ab = _clip01(d1 / max(aa, tiny))
+    t_ac = _clip01(d2 / max(cc, tiny))
+    t_bc = _clip01(bd / max(bb, tiny))
+    D_ab = pp - t_ab * (2 * d1 - t_ab * aa)
+    D_ac = pp - t_ac * (2 * d2 - t_ac * cc)
+    D_bc = pp - 2 * d1 + aa - t_bc * (2 * bd - t_bc * bb)
+    s = (cc * d1 - ae * d2) / det if det != 0.0 else np.nan
+    t = (aa * d2 - ae * d1) / det if det != 0.0 else np.nan
+    r0 = ap0 - s * ab0 - t * ac0
+    r1 = ap1 - s * ab1 - t * ac1
+    r2 = ap2 - s * ab2 - t * ac2
+    D_in = r0 * r0 + r1 * r1 + r2 * r2
+    edge = _min_nan(_min_nan(D_ab, D_ac), D_bc)
+    inside = s >= 0 and t >= 0 and s + t <= 1 and D_in <= edge
+    if inside:
+        d = D_in
+        w1, w2 = s, t
+    else:
+        d = edge if edge != edge else max(edge, 0.0)
+        if D_ab <= D_ac and D_ab <= D_bc:
+            w1, w2 = t_ab, 0.0
+        elif D_ac <= D_bc:
+            w1, w2 = 0.0, t_ac
+        else:
+            w1, w2 = 1.0 - t_bc, t_bc
+    return d, w1, w2
+
+
+@_jit
 def surface_candidates(points, vertices, faces, table, nearest):
     """face (N,) and barycentric weights (N, 3) of each point's closest point among the
     triangles incident to its ``nearest`` vertices; face −1 where no candidate had a
@@ -53,7 +101,6 @@ def surface_candidates(points, vertices, faces, table, nearest):
     m = table.shape[1]
     face = np.full(N, -1, np.int64)
     bary = np.zeros((N, 3))
-    tiny = 1e-300
     for i in range(N):
         p0, p1, p2 = points[i, 0], points[i, 1], points[i, 2]
         best = np.inf
@@ -66,45 +113,7 @@ def surface_candidates(points, vertices, faces, table, nearest):
                 f = table[v, slot]
                 if f < 0:
                     break
-                ia, ib, ic = faces[f, 0], faces[f, 1], faces[f, 2]
-                a0, a1, a2 = vertices[ia, 0], vertices[ia, 1], vertices[ia, 2]
-                ab0, ab1, ab2 = vertices[ib, 0] - a0, vertices[ib, 1] - a1, vertices[ib, 2] - a2
-                ac0, ac1, ac2 = vertices[ic, 0] - a0, vertices[ic, 1] - a1, vertices[ic, 2] - a2
-                aa = ab0 * ab0 + ab1 * ab1 + ab2 * ab2
-                ae = ab0 * ac0 + ab1 * ac1 + ab2 * ac2
-                cc = ac0 * ac0 + ac1 * ac1 + ac2 * ac2
-                bb = aa - 2 * ae + cc
-                det = aa * cc - ae * ae
-                ap0, ap1, ap2 = p0 - a0, p1 - a1, p2 - a2
-                d1 = ab0 * ap0 + ab1 * ap1 + ab2 * ap2
-                d2 = ac0 * ap0 + ac1 * ap1 + ac2 * ap2
-                pp = ap0 * ap0 + ap1 * ap1 + ap2 * ap2
-                bd = d2 - d1 - ae + aa
-                t_ab = _clip01(d1 / max(aa, tiny))
-                t_ac = _clip01(d2 / max(cc, tiny))
-                t_bc = _clip01(bd / max(bb, tiny))
-                D_ab = pp - t_ab * (2 * d1 - t_ab * aa)
-                D_ac = pp - t_ac * (2 * d2 - t_ac * cc)
-                D_bc = pp - 2 * d1 + aa - t_bc * (2 * bd - t_bc * bb)
-                s = (cc * d1 - ae * d2) / det if det != 0.0 else np.nan
-                t = (aa * d2 - ae * d1) / det if det != 0.0 else np.nan
-                r0 = ap0 - s * ab0 - t * ac0
-                r1 = ap1 - s * ab1 - t * ac1
-                r2 = ap2 - s * ab2 - t * ac2
-                D_in = r0 * r0 + r1 * r1 + r2 * r2
-                edge = _min_nan(_min_nan(D_ab, D_ac), D_bc)
-                inside = s >= 0 and t >= 0 and s + t <= 1 and D_in <= edge
-                if inside:
-                    d = D_in
-                    w1, w2 = s, t
-                else:
-                    d = edge if edge != edge else max(edge, 0.0)
-                    if D_ab <= D_ac and D_ab <= D_bc:
-                        w1, w2 = t_ab, 0.0
-                    elif D_ac <= D_bc:
-                        w1, w2 = 0.0, t_ac
-                    else:
-                        w1, w2 = 1.0 - t_bc, t_bc
+                d, w1, w2 = pair(p0, p1, p2, vertices, faces, f)
                 if d < best or (d == best and f < bf):
                     best, bf, b1, b2 = d, f, w1, w2
         face[i] = bf

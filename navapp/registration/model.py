@@ -14,6 +14,7 @@ points on the centerline polylines; fiducials on their preoperative counterparts
 
 import warnings
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
@@ -27,6 +28,9 @@ from ..geometry.closest import NEAR, NEAR_DECIMATED, incidence
 from ..geometry.interpolation import interpolation_matrix
 from ..mechanics.basis import Basis
 from .rotation import rotation
+
+if TYPE_CHECKING:
+    from ..geometry.bvh import SurfaceHierarchy
 
 # the data features' weights (m⁻², paper §II-D), salient features and model targets come
 # from the one feature table, ``navapp.features``
@@ -47,6 +51,16 @@ class ModelFeature:
     rest: np.ndarray  # (V, 3) undeformed points, mm
     BJ: np.ndarray  # (V, 3, 3k): the basis carried to these points, B·J_u (mm per unit α)
     near: int = NEAR  # nearest vertices whose incident cells LM tests (``geometry.closest``)
+    # a surface's bounding-volume tree (``geometry.bvh``), built on first use by ``search_tree``
+    hierarchy: "SurfaceHierarchy | None" = field(default=None, repr=False, compare=False)
+
+    def search_tree(self) -> "SurfaceHierarchy":
+        """The surface's ``bvh.SurfaceHierarchy`` on its undeformed points, built once."""
+        if self.hierarchy is None:
+            from ..geometry.bvh import SurfaceHierarchy as Hierarchy  # imports Numba: only where surfaces are searched
+
+            self.hierarchy = Hierarchy(self.rest, self.cells)
+        return self.hierarchy
 
 
 @dataclass

@@ -10,15 +10,27 @@ value: w_F [m⁻²] · (unit_m)² / N_F per squared residual, and w_E [Pa⁻²] 
 """
 
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import scipy.sparse as sp
 
-from ..geometry.closest import closest_on_polyline, closest_on_surface, nearest_vertices, surface_normals, vertex_tree
+from ..geometry.closest import (
+    closest_on_polyline,
+    closest_on_surface,
+    hierarchy_search,
+    nearest_vertices,
+    surface_normals,
+    vertex_tree,
+)
 from .model import REGION_FEATURES, W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform
 from .prior import PosePrior
 from .rotation import rotation, rotation_derivatives
+
+if TYPE_CHECKING:
+    from ..geometry.bvh import SurfaceHierarchy
 
 
 @dataclass(frozen=True)
@@ -135,13 +147,31 @@ class Evaluation:
 
 
 def _stats(f, wF) -> dict:
-    """Per-feature statistics of the per-point residuals f (N,), mm."""
-    return {"n": int(len(f)), "rms_mm": float(np.sqrt(np.mean(f ** 2))), "mean_abs_mm": float(np.mean(np.abs(f))),
-            "max_abs_mm": float(np.max(np.abs(f))), "omega": float(wF * f @ f)}
+    """Per-feature statistics of the per-point residuals f (N,), mm. Three reductions (every
+    evaluation makes these for every feature, ~26 a live update; np.mean's wrapper cost more
+    than its sums)."""
+    ff = float(f @ f)
+    a = np.abs(f)
+    return {"n": int(len(f)), "rms_mm": float(np.sqrt(ff / len(f))), "mean_abs_mm": float(a.sum()) / len(f),
+            "max_abs_mm": float(a.max()), "omega": wF * ff}
 
 
-def _tree(X):
-    # rebuilt on the deformed points at every evaluation (``vertex_tree``: the fastest to build)
+@dataclass(frozen=True)
+class FittedSurface:
+    """A surface's hierarchy (``bvh.SurfaceHierarchy``) with its boxes refitted at one
+    evaluation's deformed points: what ``correspond`` searches instead of a k-d tree."""
+
+    hierarchy: "SurfaceHierarchy"
+    boxes: np.ndarray
+
+
+def _tree(feat, X):
+    """The search structure of a model feature at its deformed points X: a surface's
+    hierarchy refitted (exact closest points; ``geometry.bvh``), else a k-d tree of X rebuilt
+    (``vertex_tree``: the fastest to build)."""
+    if feat.kind == "surface" and hierarchy_search():
+        h = feat.search_tree()
+        return FittedSurface(h, h.refit(X))
     return vertex_tree(X)
 
 
@@ -149,7 +179,11 @@ def _rows_matrix(weights, columns, n_columns):
     """Sparse S (N × n_columns) with row i = Σ_j weights[i, j] e_{columns[i, j]}, built
     straight in CSR form (every row has the same count, so no COO sort is needed)."""
     N, m = weights.shape
-    return sp.csr_matrix((weights.ravel(), columns.ravel(), np.arange(0, N * m + 1, m)), shape=(N, n_columns))
+    # int32 indices where they fit, as SciPy would store them: handed int64, it scans them to
+    # see whether they fit (half the build's time; ~11 builds a live update)
+    idx = np.int32 if max(n_columns, N * m) < np.iinfo(np.int32).max else np.int64
+    return sp.csr_matrix((weights.ravel(), columns.ravel().astype(idx), np.arange(0, N * m + 1, m, dtype=idx)),
+                         shape=(N, n_columns))
 
 
 @dataclass
@@ -190,12 +224,20 @@ class Correspondence:
 def correspond(feat, X, Y, tree=None, nearest=None) -> Correspondence:
     """Closest points of data Y (N, 3) mm on the model feature ``feat`` at its current
     geometry X (V, 3) mm: S and the direction data (normals for surfaces, tangents for
-    centerlines). ``tree``/``nearest``: a KD-tree of X, or Y's nearest vertices of X when
-    already found."""
+    centerlines). ``tree``/``nearest``: a surface's ``FittedSurface`` at X (exact closest
+    points), a KD-tree of X, or Y's nearest vertices of X when already found."""
     N = len(Y)
     kind = feat.kind
     if kind == "surface":
-        face, bary, _ = closest_on_surface(Y, X, feat.cells, feat.table, feat.near, tree=tree, nearest=nearest)
+        face = None
+        if isinstance(tree, FittedSurface):
+            face, bary = tree.hierarchy.closest(Y, X, tree.boxes)
+            if not (face >= 0).all():  # a non-finite surface: the candidates' path says what it can
+                face = None
+                tree = None
+        if face is None:
+            face, bary, _ = closest_on_surface(Y, X, feat.cells, feat.table, feat.near,
+                                               tree=tree, nearest=nearest)
         # the normal at the closest point: the face's inside a triangle, p/|p| on an edge or
         # vertex (``surface_normals``), which makes f the true point–surface distance
         S = _rows_matrix(bary, feat.cells[face], len(X))
@@ -292,7 +334,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
                 local, X = model.positions(feat, beta)
                 tim["deform"] += time.perf_counter() - t0
                 t0 = time.perf_counter()
-                tree = _tree(X) if frozen is None and feat.kind != "fiducial" else None
+                tree = _tree(feat, X) if frozen is None and feat.kind != "fiducial" else None
                 tim["kdtree"] += time.perf_counter() - t0
                 geometry[key] = (local, X, tree)
             local, X, tree = geometry[key]
@@ -301,10 +343,12 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
                 c = corr[name] = seen[1]
             else:
                 t0 = time.perf_counter()
-                nearest = nearest_vertices(tree, Y, feat.near) if tree is not None else None
+                kd = tree is not None and not isinstance(tree, FittedSurface)
+                nearest = nearest_vertices(tree, Y, feat.near) if kd else None
                 tim["kdtree"] += time.perf_counter() - t0
                 t0 = time.perf_counter()
-                c = corr[name] = frozen[name] if frozen is not None else correspond(feat, X, Y, nearest=nearest)
+                c = corr[name] = (frozen[name] if frozen is not None
+                                  else correspond(feat, X, Y, tree=None if kd else tree, nearest=nearest))
                 tim["closest"] += time.perf_counter() - t0
             S, direction = c.S, c.direction
             p = Y - S @ X
@@ -370,6 +414,31 @@ def _at(model: RegistrationModel, beta) -> tuple | None:
     return None
 
 
+_jacobian_kernel: list = []  # the compiled α columns, or None (``jacobian_compiled``), imported on first use
+_numpy_jacobian = [False]  # ``numpy_jacobian``
+
+
+def _alpha_kernel():
+    if _numpy_jacobian[0]:
+        return None
+    if not _jacobian_kernel:
+        from .jacobian_compiled import alpha_columns
+
+        _jacobian_kernel.append(alpha_columns)
+    return _jacobian_kernel[0]
+
+
+@contextmanager
+def numpy_jacobian():
+    """Within it, ``add_jacobian`` forms the α columns with SciPy and NumPy, as before the
+    compiled ones (the benches' "before"); process-wide."""
+    _numpy_jacobian[0] = True
+    try:
+        yield
+    finally:
+        _numpy_jacobian[0] = False
+
+
 def add_jacobian(model: RegistrationModel, ev: Evaluation) -> Evaluation:
     """J = ∂f/∂β (R + 1, 3k + 6) of Table I at ``ev``'s state and correspondences, stored
     in ``ev.J``; each correspondence gains S·B·J_u and S·x0 for the held fast path."""
@@ -380,26 +449,33 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation) -> Evaluation:
     R = rotation(beta[n + 3:n + 6])
     dR = rotation_derivatives(beta[n + 3:n + 6])
     t0 = time.perf_counter()
-    Js = []
+    kernel = _alpha_kernel()
+    J = np.empty((len(ev.f), n + 6))  # filled block by block: the data rows, the prior's, f_E's
+    at = 0
     for name, feat, S, q, rows, local in ev.terms:
         if local is None:  # made by the held fast path: the feature's points were never deformed
             local = model.positions(feat, beta)[0]
-        U = np.asarray(S @ feat.BJ.reshape(len(local), 3 * n)).reshape(-1, 3, n)
+        Jf = J[at:at + len(q)]
+        at += len(q)
+        qR = q @ R  # qᵀR, (R, 3)
+        if kernel is not None:
+            U = np.empty((S.shape[0], 3, n))
+            kernel(S.indptr, S.indices, S.data, feat.BJ, np.ascontiguousarray(qR), rows, U, Jf)
+        else:
+            U = np.asarray(S @ feat.BJ.reshape(len(local), 3 * n)).reshape(-1, 3, n)
+            Jf[:, :n] = -np.einsum("ia,iak->ik", qR, U[rows] if len(q) != S.shape[0] else U)
         c = ev.correspondence[name]
         if not c.carries_basis:
             ev.correspondence[name] = Correspondence(c.S, c.direction, U, S @ feat.rest)
-        qR = q @ R  # qᵀR, (R, 3)
-        Jf = np.empty((len(q), n + 6))
-        Jf[:, :n] = -np.einsum("ia,iak->ik", qR, U[rows] if len(q) != S.shape[0] else U)
         Jf[:, n:n + 3] = -q
         xl = (S @ local)[rows]
         for j in range(3):
             Jf[:, n + 3 + j] = -np.einsum("ia,ab,ib->i", q, dR[j], xl)
-        Js.append(Jf)
     if ev.pose_prior is not None:
-        Js.append(ev.pose_prior.jacobian(n))
-    JE = np.zeros((1, n + 6))
-    JE[0, :n] = (basis.energy @ beta[:n]) / basis.M
-    ev.J = np.vstack(Js + [JE])
+        J[at:at + 6] = ev.pose_prior.jacobian(n)
+        at += 6
+    J[at] = 0.0
+    J[at, :n] = (basis.energy @ beta[:n]) / basis.M
+    ev.J = J
     ev.timings["jacobian"] += time.perf_counter() - t0
     return ev

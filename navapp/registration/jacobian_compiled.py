@@ -1,0 +1,38 @@
+"""The α columns of LM's Jacobian compiled by Numba (``objective.add_jacobian``).
+
+Each data row's α columns are −(qᵀR)·(S·B·J_u) at its point: S·B·J_u (the basis carried to
+the point, 3 × 3k) is a weighted sum of two or three rows of the feature's B·J_u, and the
+product with qᵀR a sum of three of those rows. With SciPy and NumPy that is a sparse product
+writing (N, 3, 3k), an indexed copy per row and an einsum; compiled, one pass that writes
+S·B·J_u (kept for the held fast path) and the rows of J. S·B·J_u is summed in CSR order as
+SciPy's product sums it, so it is the same to the bit; the three-term product may differ from
+einsum's in the last bit. None where Numba is missing: ``objective`` then uses NumPy.
+"""
+
+try:
+    from numba import njit
+except ImportError:  # pragma: no cover - only without numba
+    njit = None
+
+
+def _alpha_columns(indptr, indices, weights, BJ, qR, rows, U, J):
+    """Fill U (N, 3, n) = S·B·J_u and J[:, :n] = −qR·U[rows] for the R rows (``rows``: the
+    point of each row)."""
+    N, n = U.shape[0], U.shape[2]
+    for i in range(N):
+        for a in range(3):
+            for k in range(n):
+                U[i, a, k] = 0.0
+        for jj in range(indptr[i], indptr[i + 1]):
+            v, w = indices[jj], weights[jj]
+            for a in range(3):
+                for k in range(n):
+                    U[i, a, k] += w * BJ[v, a, k]
+    for r in range(rows.shape[0]):
+        i = rows[r]
+        q0, q1, q2 = qR[r, 0], qR[r, 1], qR[r, 2]
+        for k in range(n):
+            J[r, k] = -(q0 * U[i, 0, k] + q1 * U[i, 1, k] + q2 * U[i, 2, k])
+
+
+alpha_columns = njit(cache=True, nogil=True)(_alpha_columns) if njit is not None else None
