@@ -56,6 +56,14 @@ def pytest_xdist_make_scheduler(config, log):
     return ByModule(config, log)
 
 
+def pytest_configure(config):
+    # NAVAPP_TIMELINE=PREFIX: each test's wall and CPU seconds per worker (``timeline``)
+    if os.environ.get("NAVAPP_TIMELINE"):
+        from timeline import Recorder
+
+        config.pluginmanager.register(Recorder(os.environ["NAVAPP_TIMELINE"]), "navapp-timeline")
+
+
 @pytest.fixture(scope="session")
 def phantoms():
     from navapp.anatomy.phantom import make_phantom
