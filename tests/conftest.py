@@ -30,7 +30,7 @@ BROWSER = "browser"
 def drives_chromium(module: str) -> bool:
     """Whether the test module ``module`` (a path from the test ids) launches Chromium."""
     path = TESTS / Path(module).name
-    return path.suffix == ".py" and "playwright" in path.read_text(encoding="utf-8")
+    return path.suffix == ".py" and path.is_file() and "playwright" in path.read_text(encoding="utf-8")
 
 
 @pytest.hookimpl(optionalhook=True)  # an xdist hook: absent without it
