@@ -137,12 +137,11 @@ def test_a_hidpi_laptop_is_framed_for_its_css_window(server, tmp_path):
         page.goto(server["url"])
         wait_text(page, r"Ready\.", deadline)
         us_frame(page, deadline)
-        page.wait_for_timeout(3000)  # a few of the 2D page's polls: its ratio has reached the server
 
         def dock():
             return page.evaluate("() => document.querySelector('iframe').getBoundingClientRect().width")
 
-        t_end = time.monotonic() + 120  # the dock follows within a poll or two; not the whole budget
+        t_end = time.monotonic() + 120  # the dock follows the 2D page's first poll; not the whole budget
         while dock() > 360 and time.monotonic() < t_end:
             page.wait_for_timeout(500)
         assert dock() <= 360, f"the 2D view docked {dock():.0f} px wide in a 1366 px window"

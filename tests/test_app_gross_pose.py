@@ -157,3 +157,43 @@ def test_the_surgeon_states_the_pose_and_a_patch_keeps_it(app, tmp_path):
     finally:
         app.runs.set_pose(StatedPose())
         only(app)
+
+
+def test_live_following_switched_on_again_registers_at_once(app, monkeypatch):
+    """Issue 48: the live follower continues from a believed result on show, so its fit has a
+    last state before it has registered anything. When that first update raised (the follower
+    switches itself off and says why) and the surgeon switched it on again with the probe held
+    still, it waited for a new frame that never came: on, no error, "Not re-registered on live
+    frames yet" for good, as CI saw. Driven pass by pass (``_step``), so the order is fixed."""
+    from navapp.app.live import LiveFollower
+    from navapp.registration.live import LiveRegistration
+
+    only(app)
+    app.stylus.collect_now()
+    run_to_end(app, RunKind.ALL)
+    assert app.core.result.pose_warning is None and app.core.last_reg is not None
+    link = types.SimpleNamespace(live=app.live, core=app.core, frame=None)  # a still probe: no frame comes
+    follower = LiveFollower(link)  # its thread not started: each pass is called here
+    update, calls = LiveRegistration.update, []
+
+    def fails_once(reg, frame, options=None):
+        calls.append(frame)
+        if len(calls) == 1:
+            raise RuntimeError("the first update failed")
+        return update(reg, frame, options)
+
+    monkeypatch.setattr(LiveRegistration, "update", fails_once)
+    assert follower.set(True) is None
+    follower._step()
+    assert not follower.on and follower.last_error == "RuntimeError: the first update failed"
+    assert follower.summary() == "Stopped: RuntimeError: the first update failed"  # not "Not re-registered…"
+    assert follower.reg.last is app.core.last_reg  # continued from the result on show
+    assert follower.set(True) is None and follower.summary() == "Not re-registered on live frames yet."
+    follower._step()
+    assert len(calls) == 2 and follower.frames == 1, follower.summary()
+    assert follower.summary().startswith("1 frames re-registered")
+    follower._step()  # no new frame: nothing to do until one comes
+    assert len(calls) == 2
+    assert follower.set(False) is None
+    follower._step()  # switched off: converged on the kept data and kept as the result
+    assert app.core.result.run == RunKind.LIVE.label and follower.reg.frame is None

@@ -157,3 +157,55 @@ def test_the_viewer_draws_without_shadows_or_image_based_lighting(app):
     assert "EnableLightsMessage" in seen and "EnvironmentMapMessage" in seen, sorted(seen)
     assert seen["EnableLightsMessage"]["enabled"] and not seen["EnableLightsMessage"]["cast_shadow"]
     assert seen["EnvironmentMapMessage"]["hdri_data"] is None
+
+
+def test_a_tabs_first_reports_made_while_its_view_is_built_are_read(app, monkeypatch):
+    """The flaky HiDPI browser test (issue 48): viser builds a tab's view on a worker thread
+    after the tab's first camera report and runs its camera callbacks at once, before the view
+    has registered its own; the 2D page's first pixel-ratio report can come while the view is
+    built too, and found no view to lay out again (later reports of the same ratio are no
+    change). Nothing more came, and the 2D view stayed docked 610 px wide in a 1366 px window
+    at 2×. The order is forced here: the only camera report (the canvas in device pixels) comes
+    first, the page's ratio right after the view is built and before it is registered."""
+    import time
+
+    import msgspec
+    import viser
+    from websockets.sync.client import connect
+
+    from navapp.app.framing import DOCK_2D_PX
+    from navapp.app.panels import ClientView
+
+    built = []
+    build = ClientView.__init__
+
+    def build_then_report(view, *a, **kw):
+        build(view, *a, **kw)
+        app.view2d_state.view_pixel_ratio(view.cs.token, 2.0)  # the 2D page's first poll
+        built.append(view)
+
+    monkeypatch.setattr(ClientView, "__init__", build_then_report)
+    css_w, css_h = 1366 - DOCK_2D_PX[0], 768  # the canvas beside the wide dock, CSS pixels
+    camera = {"type": "ViewerCameraMessage", "wxyz": (1.0, 0.0, 0.0, 0.0), "position": (0.0, 0.0, 500.0),
+              "fov": 1.3, "near": 1.0, "far": 5000.0, "image_height": 2 * css_h, "image_width": 2 * css_w,
+              "look_at": (0.0, 0.0, 0.0), "up_direction": (0.0, 0.0, 1.0)}
+    with connect(f"ws://127.0.0.1:{app.server.get_port()}", subprotocols=[f"viser-v{viser.__version__}"],
+                 max_size=None, open_timeout=BUSY_WAIT_S) as ws:
+        ws.send(msgspec.msgpack.encode(camera))
+        end = time.monotonic() + BUSY_WAIT_S
+        while not (built and built[0] in list(app.core.views.values())) and time.monotonic() < end:
+            try:
+                ws.recv(timeout=0.2)  # keep the scene flowing in
+            except TimeoutError:
+                pass
+        assert built, "no view was built"
+        view = built[0]
+        end = time.monotonic() + 10.0  # the view is registered: laid out within moments, or never
+        while view._dock != DOCK_2D_PX[1] and time.monotonic() < end:
+            try:
+                ws.recv(timeout=0.2)
+            except TimeoutError:
+                pass
+        assert view.cs.pixel_ratio == 2.0
+        assert view._dock == DOCK_2D_PX[1], f"the 2D view docked {view._dock} px wide in a 1366 px window"
+        assert view.screen is not None and (view.screen.width_px, view.screen.height_px) == (css_w, css_h)

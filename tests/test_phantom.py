@@ -3,7 +3,7 @@ import pytest
 import trimesh
 
 from navapp.anatomy.model import REGION_NAMES
-from navapp.anatomy.phantom import make_phantom
+from navapp.anatomy.phantom import build_phantom, make_phantom
 
 
 def test_surfaces_are_closed_manifolds(phantoms):
@@ -26,10 +26,23 @@ def test_liver_size_and_distinctness(phantoms):
 
 
 def test_deterministic():
-    a, b = make_phantom(1), make_phantom(1)
+    a, b = build_phantom(1), build_phantom(1)  # built afresh twice, not the copy make_phantom keeps
     assert np.array_equal(a.liver.vertices, b.liver.vertices)
     assert np.array_equal(a.portal_centerline.points, b.portal_centerline.points)
     assert np.array_equal(a.regions, b.regions)
+    # make_phantom's copy is the same phantom, and a caller changing it changes nobody else's
+    kept = make_phantom(1)
+    for name in ("liver", "portal", "hepatic"):
+        assert np.array_equal(getattr(kept, name).vertices, getattr(a, name).vertices)
+        assert np.array_equal(getattr(kept, name).faces, getattr(a, name).faces)
+    assert np.array_equal(kept.regions, a.regions) and kept.meta == a.meta
+    assert [t.name for t in kept.targets] == [t.name for t in a.targets]
+    kept.liver.vertices += 5.0
+    kept.regions[:] = 0
+    kept.targets.clear()
+    again = make_phantom(1)
+    assert np.array_equal(again.liver.vertices, a.liver.vertices) and np.array_equal(again.regions, a.regions)
+    assert len(again.targets) == len(a.targets) and again.liver is not kept.liver
 
 
 def test_vessels_inside_liver(phantoms):

@@ -222,6 +222,7 @@ class LiveFollower:
         self._version: int | None = None  # Core.version the kept data were read at
         self._last_frame: ProbeSample | None = None
         self._pending = 0
+        self._first = False  # switched on, nothing registered since (``_step``)
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True, name="navapp-live-registration")
@@ -245,6 +246,8 @@ class LiveFollower:
                 return "Still preparing the registration model."
             if sum(len(v) for v in core.data().values()) < 3 and self.segmentation_px is None:
                 return "Collect data first: the scene declares no automatic segmentation of live frames."
+            self.last_error = None
+            self._first = True  # before ``on``: the thread's next pass registers at once
             self.on = True
             self._wake.set()
             return None
@@ -259,6 +262,10 @@ class LiveFollower:
             self._wake.set()
 
     def summary(self) -> str:
+        if self.last_error is not None and not self.on:
+            # said where the frame count is: the panel said "Not re-registered on live frames
+            # yet" beside a switch gone off, and the red box with the reason could be closed
+            return f"Stopped: {self.last_error}" + (f" (after {self.frames} frames)" if self.frames else "")
         if not self.frames:
             return "Not re-registered on live frames yet."
         ms = list(self.ms)
@@ -288,23 +295,32 @@ class LiveFollower:
             self._wake.clear()
             if self._stop.is_set():
                 return
-            if not self.on:
-                if self.reg is not None and self.reg.frame is not None:
-                    self._settle()
-                continue
-            f = self.link.frame
-            fresh = f is not None and f is not self._last_frame
-            if not fresh and self.reg is not None and self.reg.last is not None:
-                continue  # nothing new; the first pass registers the kept data even without a frame
-            self.skipped += max(self._pending - 1, 0)
-            self._pending = 0
-            self._last_frame = f
-            try:
-                self._update(f)
-            except Exception as exc:  # shown, and the follower switches off
-                self.on = False
-                self.last_error = f"{exc.__class__.__name__}: {exc}"
-                self.core.notify("Live re-registration stopped", self.last_error, error=True)
+            self._step()
+
+    def _step(self):
+        """One pass of the follower's thread: settle once switched off, else register the
+        newest frame; the first pass after switching on registers even without a new frame."""
+        if not self.on:
+            if self.reg is not None and self.reg.frame is not None:
+                self._settle()
+            return
+        f = self.link.frame
+        fresh = f is not None and f is not self._last_frame
+        # not "has the fit a last state": a fit continued from the result on show, or left by
+        # an update that raised, has one before this switch-on registered anything, and the
+        # follower then waited for a frame that a still probe never sends
+        if not fresh and not self._first:
+            return
+        self._first = False
+        self.skipped += max(self._pending - 1, 0)
+        self._pending = 0
+        self._last_frame = f
+        try:
+            self._update(f)
+        except Exception as exc:  # shown, and the follower switches off
+            self.on = False
+            self.last_error = f"{exc.__class__.__name__}: {exc}"
+            self.core.notify("Live re-registration stopped", self.last_error, error=True)
 
     def _update(self, f):
         self._base()

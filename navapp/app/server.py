@@ -147,6 +147,11 @@ class App:
         with core.lock:
             core.views[client.client_id] = view
         view.refresh_all()
+        # viser calls this on a worker thread after the tab's first camera report, and runs the
+        # camera callbacks at once, before the view has registered its own; the 2D page's first
+        # pixel-ratio report may also come while the view is built and find none to lay out.
+        # Both are read now: the view is registered, so every later report reaches it.
+        view.camera_changed()
 
     def _disconnect(self, client):
         core = self.core
