@@ -30,6 +30,7 @@ from ..geometry.interpolation import interpolation_matrix
 from ..geometry.tre import tre_stats
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from .coverage import note_coverage
+from .forces import Answer, ForceChoice, SurfaceForces, choose_deformation, surface_points
 from .libr import LibrResult, LMOptions, register_libr
 from .local_modes import LocalModeOptions, LocalModes, choose_local_modes, fold_model
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
@@ -173,6 +174,10 @@ class Registration:
     local_modes: LocalModes | None = None
     # the declared pose knowledge the fit used (``register(pose_prior=)``), centred on ``rigid``
     pose_prior: PosePrior | None = None
+    # ``register(surface_forces=True)``: no deformation, the basis's fit or surface forces,
+    # whichever predicts held-out surface data best (``forces.choose_deformation``); it decides
+    # the answer in place of ``support``
+    forces: ForceChoice | None = None
 
     @property
     def deformed(self) -> bool:
@@ -181,6 +186,8 @@ class Registration:
         trimmed fit's: most data lay on the undeformed model there, so it is a known-good
         answer). ICP's fitted pose is no such baseline: an unsupported deformation from it
         stays the answer, with its warning (on the study cases it was the better one)."""
+        if self.forces is not None:
+            return self.forces.answer is not Answer.NONE
         if self.libr is None:
             return False
         return self.support is None or self.support.supported or not self.rigid.kept
@@ -193,7 +200,8 @@ class Registration:
                   self.determinacy.warning if self.determinacy else None,
                   self.support.warning_for(shown_rigid=not self.deformed, given=self.pose_choice is None
                                           or self.pose_choice.given, declared=self.pose_prior is not None)
-                  if self.support else None,
+                  if self.support and self.forces is None else None,
+                  self.forces.warning if self.forces is not None else None,
                   self.quality.warning if self.quality else None,
                   self.organ.warning if self.organ is not None and self.deformed else None):
             if w:
@@ -206,9 +214,14 @@ class Registration:
         not supported, ``deformed``). ``beta``: another state than the fit's;
         ``B``: the points' interpolation matrix (``interpolation_matrix``), when the caller
         transforms the same points many times (locating them in the mesh dominates)."""
+        points = np.asarray(points, float)
+        if beta is None and self.forces is not None and self.forces.answer is Answer.FORCES:
+            assert self.forces.u is not None
+            basis = self.model.basis
+            B = interpolation_matrix(basis.nodes, basis.tets, points) if B is None else B
+            return self.rigid.apply(points + B @ self.forces.u)
         b = self.libr.beta if (beta is None and self.deformed and self.libr is not None) else beta
         basis = self.model.basis
-        points = np.asarray(points, float)
         if b is None:
             return self.rigid.apply(points)
         return self.rigid.apply(deform_points(basis, self.model.centroid, b, points, B))
@@ -526,7 +539,7 @@ pose may lie and still be a candidate of the declared rigid stage (``_declared_r
 def register(model: RegistrationModel, data: dict, deform=True, options: LMOptions | None = None,
              callback=None, cancel=None, beta0=None, rigid: RigidResult | None = None,
              init: RobustOptions | None = None, starts: list[Start] | None = None,
-             pose_prior: PosePrior | None = None) -> Registration:
+             pose_prior: PosePrior | None = None, surface_forces: bool = False) -> Registration:
     """Rigid initialisation then (unless ``deform`` is False) LIBR: β minimising Ω of eq. 7
     (data terms of Table I plus the strain-energy term) by Levenberg–Marquardt.
 
@@ -554,6 +567,13 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         rows share the stylus's). Everything after it — the basin screening on all the
         data, the pose rules, the cross-validation — runs here, so the answer equals one
         without ``starts``; the list is not changed.
+    pose_prior : PosePrior, optional
+        the declared pose knowledge (``prior``): the rigid stage fits within it.
+    surface_forces : bool
+        with a basis held at declared supports (``prepare(supports=)``) and a fresh deformable
+        fit: the answer is no deformation, the basis's fit or a force at every surface node,
+        whichever predicts held-out surface data best (``forces.choose_deformation``;
+        ``Registration.forces``). Not the default: it costs one solve per surface data point.
 
     Returns
     -------
@@ -569,6 +589,9 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         # a warm start from a fit whose model carried local modes: its β has their weights too
         raise InputError(f"beta0 has {len(beta0)} entries; this model's state has {model.basis.Ju.shape[1] + 6} "
                          "(a registration with local modes: pass its own reg.model)")
+    if surface_forces and model.basis.settings.supports is None:
+        raise InputError("surface forces need declared supports: prepare the model with supports= "
+                         "(a free-floating organ has no unique displacement under a load)")
     data = usable_data(model, data)
     check_units(model, data)
     notes = []
@@ -740,6 +763,15 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         support = None
     reg = Registration(model, rigid, result, local, sec, starts, quality, choice, determinacy, support, notes,
                        local_modes=local_modes, pose_prior=options.weights.pose_prior)
+    if surface_forces and deform and fresh and result is not None and result.stop_reason != "cancelled" and \
+            surface_points(local).shape[0] >= SupportOptions.min_points:
+        t = time.perf_counter()
+        sf = SurfaceForces(model.basis)
+        try:
+            reg.forces = choose_deformation(sf, model, local, result.beta, options, cancel=cancel)
+        finally:
+            sf.close()
+        sec["forces"] = time.perf_counter() - t
     if fresh and reg.deformed and result is not None and result.stop_reason != "cancelled":
         # every check above compares the answer with simpler ones on the data; this one asks
         # whether it is good enough to navigate by at all (docs/decisions.md, "An answer the data
