@@ -140,3 +140,38 @@ def test_surface_forces_on_a_free_floating_model_is_one_clear_error(small_model)
     with pytest.raises(InputError, match="declared supports"):
         register(small_model, {"anterior": small_model.basis.nodes[small_model.basis.surface[:50]]},
                  surface_forces=True)
+
+
+def test_register_with_surface_forces_shows_the_chosen_answer(held_basis, phantoms, coarse_mesh):
+    """``register(surface_forces=True)`` on a posterior-held model, a dent under the scanned
+    anterior surface in the preoperative frame, the pose declared: the choice is made, its
+    held-out RMS of the shown answer is the least of the three, and ``transform`` moves the
+    organ as that answer does (the forces' nodal field where they are shown)."""
+    from navapp.mechanics.fem import Material
+    from navapp.registration.forces import Answer
+    from navapp.registration.model import build_model
+    from navapp.registration.pipeline import register
+    from navapp.registration.prior import PosePrior
+    from navapp.simulation.truth import Loading, Supports, Tool, ToolLoad, solve_linear
+
+    model = build_model(held_basis, phantoms[0], fiducials=held_basis.nodes[:6])
+    s = held_basis.nodes[held_basis.surface]
+    top = s[np.argmax(s[:, 1])]
+    tool = Tool(tuple(top), (0.0, -1.0, 0.0), 25.0, 15.0, ToolLoad.DISPLACEMENT)
+    u_true = solve_linear(coarse_mesh, Loading(gravity=0.0, supports=Supports.POSTERIOR, tool=tool),
+                          Material()).reshape(-1, 3)
+    scan = held_basis.surface[s[:, 1] > np.percentile(s[:, 1], 60)]
+    pts = held_basis.nodes[scan] + u_true[scan] + np.random.default_rng(6).normal(scale=0.3, size=(len(scan), 3))
+    reg = register(model, {"anterior": pts}, pose_prior=PosePrior(2.0, 2.0), surface_forces=True)
+    fc = reg.forces
+    assert fc is not None and fc.u is not None
+    scores = {Answer.NONE: fc.none_mm, Answer.BASIS: fc.basis_mm, Answer.FORCES: min(fc.forces_mm.values())}
+    assert scores[fc.answer] == min(v for v in scores.values() if v is not None)
+    assert reg.deformed == (fc.answer is not Answer.NONE)
+    x = held_basis.nodes[scan]
+    for shown in Answer:  # each answer as ``transform`` shows it
+        fc.answer = shown
+        expected = {Answer.NONE: reg.rigid.apply(x), Answer.FORCES: reg.rigid.apply(x + fc.u[scan]),
+                    Answer.BASIS: reg.transform(x, beta=reg.libr.beta)}[shown]
+        assert np.allclose(reg.transform(x), expected, atol=1e-6)
+    assert not np.allclose(reg.rigid.apply(x + fc.u[scan]), reg.transform(x, beta=reg.libr.beta), atol=0.1)

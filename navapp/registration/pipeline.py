@@ -810,6 +810,8 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
     if reg.model.mesher is not None:  # the mesh is part of the answer: which mesher made it, and why
         summary["mesher"] = reg.model.mesher.as_dict()
     summary["answer"] = "deformable" if reg.deformed else "rigid"
+    if reg.forces is not None and reg.forces.answer is Answer.FORCES:
+        summary["answer"] = "surface forces"
     if reg.pose_prior is not None:  # declared: how far the answer moved the organ from the given pose
         moved = reg.libr.features.get("pose_prior", {}) if reg.libr is not None and reg.deformed else {}
         summary["pose_prior"] = {**reg.pose_prior.as_dict(), "rigid_stage_moved_mm": round(shift_mm(reg.rigid, {
@@ -817,7 +819,8 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
             **({"libr_moved_mm": round(moved["shift_mm"], 3), "libr_turned_deg": round(moved["turn_deg"], 3)}
                if moved else {})}
     for key, part in (("pose", reg.pose_choice), ("pose_determinacy", reg.determinacy), ("support", reg.support),
-                      ("predicted_error", reg.organ), ("local_modes", reg.local_modes)):
+                      ("predicted_error", reg.organ), ("local_modes", reg.local_modes),
+                      ("surface_forces", reg.forces)):
         if part is not None:
             summary[key] = part.as_dict()
     lines = reg.warnings + [w for t in summary.get("targets", []) if (w := t.get("warning"))]
