@@ -8,7 +8,9 @@ handled), with them (the default: kept pose, spatial cross-validation against th
 rigid answer, ``support``), and with them and local modes (``registration.local_modes``,
 not yet the default); then with the pose declared as the scene made it (``rigid-declared``,
 ``libr-declared``: ``registration.prior``), and with the supports declared as well
-(``libr-supported``: the basis held where the scene held the organ, ``mechanics.supports``).
+(``libr-supported``: the basis held where the scene held the organ, ``mechanics.supports``),
+and with a force at every surface node as a third candidate beside no deformation and that
+basis's fit (``libr-forces``: ``register(surface_forces=True)``, ``registration.forces``).
 One CSV row per registration: mean and max TRE over the truth
 targets, the answer given (deformable or rigid), whether a warning was raised and the
 first one, and the wall time. ``report`` writes ``loads.md`` and ``loads.png``.
@@ -32,6 +34,7 @@ from ..anatomy.truth import TruthField
 from ..errors import InputError
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.tre import tre_stats
+from ..registration.forces import Answer
 from ..registration.local_modes import LocalModeOptions
 from ..registration.pipeline import RobustOptions, prepare, register
 from ..registration.pose import POSE_RULE
@@ -44,7 +47,7 @@ from .distribute import ResultsCSV, run_tasks
 
 LOAD_LEVELS = ("S", "S+all")  # the study's own subset of ``simulation.levels.LEVELS``
 METHODS = ("identity", "rigid-unguarded", "rigid", "libr-unguarded", "libr", "libr-local", "rigid-declared",
-           "libr-declared", "libr-supported")
+           "libr-declared", "libr-supported", "libr-forces")
 # the pose a pre-aligned case's scene declares when its case.toml says nothing: a fiducial
 # registration's few millimetres and degrees (the 1–2 mm / 1–2°)
 DECLARED_PRE_ALIGNED = PosePrior(*DECLARED_POSE)
@@ -128,16 +131,19 @@ def run_case(case_dir, methods: tuple[str, ...] = METHODS) -> list[dict]:
                     pred, answer, lines = x0, "none", []
                 else:
                     guarded = not method.endswith("unguarded")
-                    prior = declared_prior(case_dir, case) if method.endswith(("declared", "supported")) else None
+                    declares = method.endswith(("declared", "supported", "forces"))
+                    prior = declared_prior(case_dir, case) if declares else None
                     used = model
-                    if method == "libr-supported":
+                    if method in ("libr-supported", "libr-forces"):
                         if supported is None:
                             supported = prepare(case, **declared_supports(case))[0]
                         used = supported
                     reg = register(used, data, deform=method.startswith("libr"), init=_init(method),
-                                   pose_prior=prior)
+                                   pose_prior=prior, surface_forces=method == "libr-forces")
                     pred = reg.transform(x0, B=B)
                     answer = "deformable" if reg.deformed else "rigid"
+                    if reg.forces is not None and reg.forces.answer is Answer.FORCES:
+                        answer = "forces"
                     lines = reg.warnings if guarded else _fit_warnings(reg)
                     c = reg.pose_choice
                     if c is not None:  # where the rigid stage's pose came from, and ICP's turn from the given one
@@ -281,7 +287,7 @@ def write_report(results: Path, out_dir: Path) -> Path:
                          f"{np.mean([r['warned'] for r in mr]) * 100:.0f} % | "
                          f"{np.mean([r['answer'] == 'deformable' for r in mr]) * 100:.0f} % | "
                          f"{np.median([r['seconds'] for r in mr]):.2f} |")
-        for m in ("libr-unguarded", "libr", "libr-local", "libr-declared", "libr-supported"):
+        for m in ("libr-unguarded", "libr", "libr-local", "libr-declared", "libr-supported", "libr-forces"):
             v = verdicts(lv, m)
             if not v:
                 continue
@@ -296,8 +302,8 @@ def write_report(results: Path, out_dir: Path) -> Path:
         lines += [""]
     lines += ["## Per case", "", "| case | aligned | data on the dent | mean displacement | level | identity | "
               "rigid (unguarded / guarded) | LIBR unguarded | LIBR guarded | answer | warning | LIBR local | "
-              "LIBR, pose declared | LIBR, supports and pose declared |",
-              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "LIBR, pose declared | LIBR, supports and pose declared | surface forces, supports and pose declared |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for c in cases:
         for level in LOAD_LEVELS:
             if (c, level, "libr") not in by:
@@ -311,18 +317,20 @@ def write_report(results: Path, out_dir: Path) -> Path:
                          f"{by[(c, level, 'libr-unguarded')]['tre_mean_mm']:.2f} | {g['tre_mean_mm']:.2f} | "
                          f"{g['answer']} | {g['warning'][:90]} | {_local(by.get((c, level, 'libr-local')))} | "
                          f"{_local(by.get((c, level, 'libr-declared')))} | "
-                         f"{_local(by.get((c, level, 'libr-supported')))} |")
+                         f"{_local(by.get((c, level, 'libr-supported')))} | "
+                         f"{_local(by.get((c, level, 'libr-forces')))} |")
     md = out_dir / "loads.md"
     md.write_text("\n".join(lines) + "\n")
 
     fig, axes = plt.subplots(len(LOAD_LEVELS), 1, figsize=(11, 7), sharex=True)
     x = np.arange(len(cases))
     colours = {"identity": "0.6", "rigid": "#4c72b0", "libr-unguarded": "#dd8452", "libr": "#55a868",
-               "libr-local": "#8172b3", "libr-declared": "#c44e52", "libr-supported": "#937860"}
+               "libr-local": "#8172b3", "libr-declared": "#c44e52", "libr-supported": "#937860",
+               "libr-forces": "#da8bc3"}
     for ax, level in zip(np.atleast_1d(axes), LOAD_LEVELS, strict=True):
         for i, m in enumerate(colours):
             vals = [by[(c, level, m)]["tre_mean_mm"] if (c, level, m) in by else np.nan for c in cases]
-            ax.bar(x + (i - (len(colours) - 1) / 2) * 0.13, vals, 0.13, label=m, color=colours[m])
+            ax.bar(x + (i - (len(colours) - 1) / 2) * 0.11, vals, 0.11, label=m, color=colours[m])
         for j, c in enumerate(cases):
             if (c, level, "libr") in by and by[(c, level, "libr")]["warned"]:
                 ax.text(x[j] + 0.16, 0.92, "!", color="crimson", fontsize=9, ha="center",

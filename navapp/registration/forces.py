@@ -13,50 +13,73 @@ volume V. For surface points p_i matched to the deformed surface at fixed corres
 
 quadratic in f. Its gradient by the adjoint: with g_u = −(2/N) Σ_i a_iᵀ r_i n_i,
 ∂Φ/∂f = Pᵀ K_ff⁻¹ g_u + (λ / V) Pᵀ u — two solves with one factorisation per evaluation,
-whatever S is (``objective``; a finite-difference test). Its minimiser is found exactly in
-the data's own space (``SurfaceForces.fit``: one normal force per data point, an N × N system
-with the supported body's Green's matrix; the adjoint gradient vanishes there, a test); an
-L-BFGS on the adjoint gradient took 1,400 solves for the same answer on tool0-b (docs/decisions.md).
-The correspondences are then recomputed on the deformed surface (``ForceOptions.rounds``).
+whatever S is (``objective``; a finite-difference test). At fixed correspondences Φ's
+minimiser lies in the data's own span (one normal force per data point: an N × N system with
+the supported body's Green's matrix, where the adjoint gradient vanishes, a test). So the
+forces act at the data's undeformed correspondences along their normals — at ``sites`` of
+them, spread by farthest-point sampling, one solve each (``responses``) — and the
+correspondences are recomputed on the deformed surface by a monotone Levenberg–Marquardt on
+the site weights whose Jacobian comes from the stored responses without a further solve
+(``fit_weights``).
 
-λ (mm² per Pa of mean strain-energy density) is chosen by held-out data, the criterion the
-deformable-or-rigid decision already uses (``support``): the data cut into spatial blocks,
-each predicted by the fit to the others at the full fit's correspondences (a sub-block of the
-same Green's matrix: no further solve), the λ of least held-out RMS taken
-(``choose_energy_weight``). The data are in the model frame (the rigid stage's pose applied).
+The answer is chosen by held-out data (``choose_deformation``): the surface data cut into
+spatial blocks, each predicted by the fits to the others — no deformation, the supported
+basis's LIBR fit, the forces at each λ (mm² per Pa of mean strain-energy density) — as the
+held-out points' distance to the surface each answer makes; the least wins, so the answer
+never predicts the held-out data worse than not deforming. The data are in the model frame
+(the rigid stage's pose applied).
 """
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
+from enum import Enum
 
 import numpy as np
 import scipy.sparse as sp
+from scipy.spatial import cKDTree
 
 from ..anatomy.tets import TetMesh, tet_volumes
 from ..features import LIVER_SURFACE
-from ..geometry.closest import closest_on_surface, incidence
+from ..geometry.closest import NEAR, closest_on_surface, incidence
 from ..mechanics.basis import Basis
 from ..mechanics.fem import stiffness
 from ..mechanics.sparse import Factorisation
 from ..mechanics.supports import held_nodes
-from .support import blocks_of
+from ..threads import limit_threads
+from .libr import LMOptions, register_libr
+from .model import RegistrationModel, deform
+from .support import SupportOptions, blocks_of
+
+MAX_SITES = 150
+"""Force sites at most (``SurfaceForces.responses``): one solve each, and with SuperLU a solve of
+the 4 mm liver costs ~0.1–0.3 s; 150 sites over a scan of 6–10 % of the surface are 3–6 mm apart,
+finer than a tool's dent (docs/decisions.md)."""
 
 ENERGY_WEIGHTS = (1e-3, 1e-2, 1e-1, 1.0, 10.0)
-"""The λ (mm²/Pa) ``choose_energy_weight`` compares by held-out RMS, a decade apart."""
+"""The λ (mm²/Pa) ``choose_deformation`` compares by held-out RMS, a decade apart."""
 
 
 @dataclass(frozen=True)
 class ForceOptions:
-    """``energy_weight`` λ (mm²/Pa); ``rounds`` correspondence updates."""
+    """``energy_weight`` λ (mm²/Pa); the Levenberg–Marquardt of ``fit_weights``: at most
+    ``iterations`` steps (each with the correspondences recomputed), stopped when Φ falls by
+    less than ``tol`` of itself; ``max_damping_tries`` raises of the damping before a step is
+    given up; ``blocks`` the held-out spatial blocks of ``choose_deformation``; ``sites`` the
+    force sites at most (``responses``)."""
 
     energy_weight: float = 0.1
-    rounds: int = 3
+    iterations: int = 15
+    tol: float = 1e-3
+    max_damping_tries: int = 8
+    blocks: int = 5
+    sites: int = MAX_SITES
 
 
 @dataclass
 class ForceFit:
     """u (M, 3) mm at the mesh nodes; f (S, 3) the surface forces (Pa·mm²); ``rms_mm`` the
-    point-to-plane residual RMS at the end; ``solves`` factorised solves used."""
+    point-to-surface RMS at the end; ``solves`` factorised solves used; ``iterations`` of the
+    Levenberg–Marquardt, Φ at its end and at f = 0."""
 
     u: np.ndarray
     f: np.ndarray
@@ -64,6 +87,9 @@ class ForceFit:
     energy_density_pa: float
     solves: int
     seconds: float
+    iterations: int = 0
+    phi: float = 0.0
+    phi0: float = 0.0
 
 
 class SurfaceForces:
@@ -91,6 +117,16 @@ class SurfaceForces:
         pos[free_nodes] = np.arange(len(free_nodes))
         self._surface_rows = (3 * pos[self.surface][:, None] + np.arange(3)).ravel()  # in the free DOFs
         self._surface_dofs = (3 * self.surface[:, None] + np.arange(3)).ravel()  # in all 3M DOFs
+        self._free_pos = np.full(3 * self.M, -1)
+        self._free_pos[self.free] = np.arange(len(self.free))
+        # every surface node, held ones included (their displacement stays 0): the surface a
+        # data point's closest point is found on
+        self.all_surface = np.asarray(basis.surface)
+        self._surface_pos = np.full(self.M, -1)
+        self._surface_pos[self.all_surface] = np.arange(len(self.all_surface))
+        fp = self._free_pos[(3 * self.all_surface[:, None] + np.arange(3)).ravel()]
+        self._all_surface_free_rows = np.flatnonzero(fp >= 0)  # rows of Xs that are free DOFs
+        self._all_surface_free_pos = fp[fp >= 0]
         self.volume = float(tet_volumes(basis.nodes, basis.tets).sum())
         self.table = incidence(self.M, self.faces)
         self.solves = 0
@@ -141,16 +177,7 @@ class SurfaceForces:
         at point j, and D (N, free DOFs): row i = n_iᵀ a_i restricted to the free DOFs. Solved in
         blocks of ``chunk`` right-hand sides (memory: free DOFs × chunk)."""
         n = len(normals)
-        rows = np.repeat(np.arange(n), 3 * 3)
-        A = A.tocsr()
-        A.sort_indices()
-        cols_node = A.indices.reshape(n, 3)
-        vals = (A.data.reshape(n, 3)[:, :, None] * normals[:, None, :])  # (N, 3 nodes, 3 axes)
-        dof = (3 * cols_node[:, :, None] + np.arange(3)).reshape(n, 9)
-        pos = np.full(3 * self.M, -1)
-        pos[self.free] = np.arange(len(self.free))
-        keep = pos[dof.ravel()] >= 0
-        D = sp.csr_matrix((vals.ravel()[keep], (rows[keep], pos[dof.ravel()][keep])), shape=(n, len(self.free)))
+        D = self._normal_rows(A, normals)
         G = np.empty((n, n))
         DT = D.T.tocsc()
         for s0 in range(0, n, chunk):
@@ -159,37 +186,189 @@ class SurfaceForces:
             G[:, s0:s0 + chunk] = D @ X
         return 0.5 * (G + G.T), D
 
-    def fit(self, points: np.ndarray, options: ForceOptions = ForceOptions()) -> ForceFit:
-        """Surface forces fitted to ``points`` (N, 3) mm in the model frame (module doc).
+    def responses(self, points: np.ndarray, sites: int = MAX_SITES) -> "PointForces":
+        """The Green's data of ``points`` (N, 3) mm in the model frame at their correspondences on
+        the undeformed surface, with the forces at ``sites`` of them (all when N ≤ ``sites``;
+        else spread over the data by farthest-point sampling): one solve per site in blocks,
+        the only solves a fit and its held-out choice need (``fit_weights``,
+        ``choose_deformation``)."""
+        points = np.asarray(points, float)
+        A, nrm, c = self.correspondences(points, np.zeros((self.M, 3)))
+        n = len(points)
+        at = spread_sites(points, sites)
+        D = self._normal_rows(A, nrm)
+        Ds = D[at]
+        G = np.empty((n, len(at)))
+        Xs = np.zeros((3 * len(self.all_surface), len(at)))
+        DT = Ds.T.tocsc()
+        for s0 in range(0, len(at), 200):
+            with limit_threads(1):
+                X = self.F.solve(DT[:, s0:s0 + 200].toarray())
+            self.solves += X.shape[1]
+            G[:, s0:s0 + 200] = D @ X
+            Xs[self._all_surface_free_rows, s0:s0 + 200] = X[self._all_surface_free_pos]
+        Gs = G[at]
+        return PointForces(points, Ds, G, 0.5 * (Gs + Gs.T), Xs, c, at)
 
-        At fixed correspondences Φ's minimiser is f = Dₛᵀ w with (G + μ I) w = c, μ = λ N / (2V)
-        (the stationarity of Φ with the energy's metric Pᵀ K_ff⁻¹ P factored out: the forces lie
-        on the data's own points, one per point, along its normal), so each round is N solves in
-        blocks and one N × N system, and u = K_ff⁻¹ Dᵀ w one more solve. ``rounds`` rounds, the
-        correspondences recomputed on the deformed surface before each."""
+    def _normal_rows(self, A: sp.csr_matrix, normals: np.ndarray) -> sp.csr_matrix:
+        """D (N, free DOFs): row i = n_iᵀ a_i restricted to the free DOFs."""
+        n = len(normals)
+        rows = np.repeat(np.arange(n), 3 * 3)
+        A = A.tocsr()
+        A.sort_indices()
+        cols_node = A.indices.reshape(n, 3)
+        vals = (A.data.reshape(n, 3)[:, :, None] * normals[:, None, :])  # (N, 3 nodes, 3 axes)
+        dof = (3 * cols_node[:, :, None] + np.arange(3)).reshape(n, 9)
+        keep = self._free_pos[dof.ravel()] >= 0
+        return sp.csr_matrix((vals.ravel()[keep], (rows[keep], self._free_pos[dof.ravel()][keep])),
+                             shape=(n, len(self.free)))
+
+    def _surface_rows_of(self, A: sp.csr_matrix, normals: np.ndarray) -> sp.csr_matrix:
+        """Row i = n_iᵀ a_i over the DOFs of ``all_surface`` (the Jacobian's left factor)."""
+        n = len(normals)
+        A = A.tocsr()
+        A.sort_indices()
+        node = self._surface_pos[A.indices.reshape(n, 3)]
+        vals = A.data.reshape(n, 3)[:, :, None] * normals[:, None, :]
+        cols = (3 * node[:, :, None] + np.arange(3)).reshape(n, 9)
+        return sp.csr_matrix((vals.ravel(), (np.repeat(np.arange(n), 9), cols.ravel())),
+                             shape=(n, 3 * len(self.all_surface)))
+
+    def distances(self, points: np.ndarray, us: np.ndarray):
+        """Signed distances (N,) of ``points`` to the surface moved by ``us`` (3 S_all,) at the
+        surface nodes, with their normal rows over the surface DOFs (the Jacobian's left factor)."""
+        moved = self.nodes.copy()
+        moved[self.all_surface] += us.reshape(-1, 3)
+        # the nearest vertices among the surface nodes only (an interior node has no face to test)
+        near = cKDTree(moved[self.all_surface]).query(points, k=NEAR)[1].reshape(len(points), NEAR)
+        face, bary, y = closest_on_surface(points, moved, self.faces, self.table, nearest=self.all_surface[near])
+        tri = self.faces[face]
+        nrm = np.cross(moved[tri[:, 1]] - moved[tri[:, 0]], moved[tri[:, 2]] - moved[tri[:, 0]])
+        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+        rows = np.repeat(np.arange(len(points)), 3)
+        A = sp.csr_matrix((bary.ravel(), (rows, tri.ravel())), shape=(len(points), self.M))
+        return np.einsum("ij,ij->i", points - y, nrm), A, nrm
+
+    def fit_weights(self, pf: "PointForces", lam: float, train: np.ndarray | None = None,
+                    options: "ForceOptions | None" = None) -> "WeightFit":
+        """The forces on the points ``train`` (indices into ``pf``; default all) minimising Φ
+        (module doc) with the correspondences recomputed on the deformed surface: Levenberg–
+        Marquardt on the point weights w (forces F = Dᵀw at the points' undeformed
+        correspondences), Jacobian J = D_now K_ff⁻¹ Dᵀ from the stored responses (no solve),
+        a step taken only where Φ at its own closest points falls (monotone), the damping
+        raised until one does; stopped when Φ falls by less than ``tol`` (relative), no step
+        lowers it, or after ``iterations``. The first undamped step from w = 0 is the exact
+        minimiser at the undeformed correspondences."""
+        with limit_threads(1):  # small dense systems: on 2 shared cores threaded BLAS only waits
+            return self._fit_weights(pf, lam, train, options or ForceOptions(energy_weight=lam))
+
+    def _fit_weights(self, pf: "PointForces", lam: float, train, o: "ForceOptions") -> "WeightFit":
+        idx = np.arange(len(pf.points)) if train is None else np.asarray(train)
+        # the force sites among the training points (a held-out point's site is held out too)
+        cols = np.flatnonzero(np.isin(pf.sites, idx))
+        P, X, G = pf.points[idx], pf.Xs[:, cols], pf.Gs[np.ix_(cols, cols)]
+        n, scale = len(idx), lam / self.volume
+
+        def phi(w):
+            d, A, nrm = self.distances(P, X @ w)
+            return float(d @ d) / n + 0.5 * scale * float(w @ G @ w), d, A, nrm
+
+        w = np.zeros(len(cols))
+        cur, d, A, nrm = phi(w)
+        start, nu, iterations, accepted = cur, 0.0, 0, 0
+        while iterations < o.iterations:
+            iterations += 1
+            J = np.asarray(self._surface_rows_of(A, nrm) @ X)
+            H = (2.0 / n) * (J.T @ J) + scale * G
+            g = -(2.0 / n) * (J.T @ d) + scale * (G @ w)
+            diag = np.maximum(np.diag(H), 1e-300)
+            step_taken = False
+            for _ in range(o.max_damping_tries):
+                try:
+                    delta = -np.linalg.solve(H + nu * np.diag(diag), g)
+                except np.linalg.LinAlgError:
+                    delta = None
+                if delta is not None and np.isfinite(delta).all():
+                    trial = phi(w + delta)
+                    if trial[0] < cur:
+                        w, step_taken = w + delta, True
+                        done = cur - trial[0] < o.tol * cur
+                        cur, d, A, nrm = trial
+                        nu = nu / 3.0 if nu > 1e-6 else 0.0
+                        break
+                nu = max(1e-4, 4.0 * nu)
+            if not step_taken:
+                break
+            accepted += 1
+            if done:
+                break
+        return WeightFit(cols, w, cur, start, float(np.sqrt(np.mean(d ** 2))), iterations, accepted)
+
+    def field(self, pf: "PointForces", fit: "WeightFit") -> np.ndarray:
+        """u (M, 3) mm at every node under the fitted forces (one solve)."""
+        u = np.zeros(3 * self.M)
+        u[self.free] = self._solve(pf.D[fit.index].T @ fit.w)
+        return u.reshape(self.M, 3)
+
+    def fit(self, points: np.ndarray, options: "ForceOptions | None" = None) -> ForceFit:
+        """Surface forces fitted to ``points`` (N, 3) mm in the model frame at λ =
+        ``options.energy_weight`` (``responses`` then ``fit_weights``)."""
+        o = options or ForceOptions()
         t0, s0 = time.perf_counter(), self.solves
-        u = np.zeros((self.M, 3))
-        w = np.zeros(len(points))
-        D = None
-        for _ in range(options.rounds):
-            A, nrm, c = self.correspondences(points, u)
-            G, D = self.green(A, nrm)
-            mu = options.energy_weight * len(points) / (2.0 * self.volume)
-            w = np.linalg.solve(G + mu * np.eye(len(points)), c)
-            u = self._field(D, w)
-        A, nrm, c = self.correspondences(points, u)
-        r = c - np.einsum("ij,ij->i", A @ u, nrm)
-        assert D is not None
-        f_free = D.T @ w
+        pf = self.responses(points, o.sites)
+        wf = self.fit_weights(pf, o.energy_weight, options=o)
+        u = self.field(pf, wf)
+        f_free = pf.D[wf.index].T @ wf.w
         energy = 0.5 * float(f_free @ u.ravel()[self.free])
         f = f_free[self._surface_rows].reshape(-1, 3)
-        return ForceFit(u, f, float(np.sqrt(np.mean(r ** 2))), energy / self.volume, self.solves - s0,
-                        time.perf_counter() - t0)
+        return ForceFit(u, f, wf.rms_mm, energy / self.volume, self.solves - s0, time.perf_counter() - t0,
+                        wf.iterations, wf.phi, wf.phi0)
 
-    def _field(self, D: sp.csr_matrix, w: np.ndarray) -> np.ndarray:
-        u = np.zeros(3 * self.M)
-        u[self.free] = self._solve(D.T @ w)
-        return u.reshape(self.M, 3)
+
+@dataclass
+class PointForces:
+    """``SurfaceForces.responses``: the points (N, 3); D (s, free DOFs) the normal rows of the
+    s force sites at their undeformed correspondences; G (N, s) the normal displacement at each
+    point under a unit normal force at each site, Gs (s, s) its rows at the sites (the energy's
+    metric); Xs (3 S_all, s) the displacement of every surface node under each; c (N,) the
+    points' undeformed distances; ``sites`` (s,) the points the forces act at."""
+
+    points: np.ndarray
+    D: sp.csr_matrix
+    G: np.ndarray
+    Gs: np.ndarray
+    Xs: np.ndarray
+    c: np.ndarray
+    sites: np.ndarray
+
+
+@dataclass
+class WeightFit:
+    """``fit_weights``: the force sites used (columns of ``PointForces.Xs``), their weights w,
+    Φ at the end and at w = 0, the RMS distance (mm), iterations and accepted steps."""
+
+    index: np.ndarray
+    w: np.ndarray
+    phi: float
+    phi0: float
+    rms_mm: float
+    iterations: int
+    accepted: int
+
+
+def spread_sites(points: np.ndarray, count: int) -> np.ndarray:
+    """Indices of ``count`` of ``points`` (N, 3) spread over them by farthest-point sampling
+    from the one nearest their centroid (all, in order, when N ≤ count)."""
+    n = len(points)
+    if n <= count:
+        return np.arange(n)
+    chosen = [int(np.argmin(np.linalg.norm(points - points.mean(0), axis=1)))]
+    dist = np.linalg.norm(points - points[chosen[0]], axis=1)
+    for _ in range(count - 1):
+        j = int(np.argmax(dist))
+        chosen.append(j)
+        dist = np.minimum(dist, np.linalg.norm(points - points[j], axis=1))
+    return np.sort(np.array(chosen))
 
 
 def surface_points(data: dict) -> np.ndarray:
@@ -199,26 +378,125 @@ def surface_points(data: dict) -> np.ndarray:
     return np.vstack(parts) if parts else np.zeros((0, 3))
 
 
-def choose_energy_weight(forces: SurfaceForces, points: np.ndarray, weights=ENERGY_WEIGHTS, blocks: int = 5,
-                         options: ForceOptions = ForceOptions()) -> tuple[float, dict]:
-    """The λ of ``weights`` whose fits to all but one spatial block predict that block best
-    (mean over blocks of the held-out point-to-plane RMS, mm), at the correspondences of the
-    fit to all points at the middle λ; returns (λ, {λ: RMS})."""
-    labels = blocks_of({"surface": points}, blocks)["surface"]
-    mid = ForceOptions(weights[len(weights) // 2], options.rounds)
-    fit = forces.fit(points, mid)
-    A, nrm, c = forces.correspondences(points, fit.u)
-    G, _ = forces.green(A, nrm)
-    scores = {}
+class Answer(Enum):
+    """What ``choose_deformation`` shows: no deformation (the rigid pose), the basis's fit
+    (LIBR), or the surface forces."""
+
+    NONE = "none"
+    BASIS = "basis"
+    FORCES = "forces"
+
+
+@dataclass
+class ForceChoice:
+    """``choose_deformation``: the answer, the held-out RMS (mm, point-weighted mean over the
+    blocks) of no deformation, of the basis's fit (None where there was none) and of the
+    forces at each λ; the λ of least held-out RMS and the forces' answer there, u (M, 3) mm
+    (model frame) and its fit (kept whichever answer is shown)."""
+
+    answer: Answer
+    none_mm: float
+    basis_mm: float | None
+    forces_mm: dict[float, float]
+    energy_weight: float | None = None
+    u: np.ndarray | None = None
+    fit: ForceFit | None = None
+    seconds: float = 0.0
+    solves: int = 0
+
+    @property
+    def warning(self) -> str | None:
+        if self.answer is not Answer.NONE:
+            return None
+        return (f"deformation not supported by the data: neither surface forces ({min(self.forces_mm.values()):.2f} "
+                f"mm) nor the basis predict held-out data better than no deformation ({self.none_mm:.2f} mm) — "
+                "the rigid pose fitted within the declared prior without deformation is shown; add data where "
+                "the organ moved")
+
+    def as_dict(self) -> dict:
+        return {"answer": self.answer.value, "heldout_none_mm": round(self.none_mm, 3),
+                "heldout_basis_mm": None if self.basis_mm is None else round(self.basis_mm, 3),
+                "heldout_forces_mm": {f"{k:g}": round(v, 3) for k, v in self.forces_mm.items()},
+                "energy_weight": self.energy_weight, "seconds": round(self.seconds, 2), "solves": self.solves}
+
+
+def _basis_surface(model: RegistrationModel, beta: np.ndarray, surface: np.ndarray) -> np.ndarray:
+    """The displacement (3 S,) of the surface nodes under the basis's state β (x(β) of eq. 8)."""
+    n = model.basis.Ju.shape[1]
+    x = model.basis.nodes[surface]
+    u = (model.basis.Ju @ beta[:n]).reshape(-1, 3)[surface]
+    return (deform(x, u, beta, model.centroid)[1] - x).ravel()
+
+
+def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, local: dict,
+                       basis_beta: np.ndarray | None, libr_options: LMOptions | None,
+                       options: ForceOptions = ForceOptions(),
+                       weights=ENERGY_WEIGHTS, cancel=None) -> ForceChoice:
+    """No deformation, the basis's answer or surface forces: the one whose fits to all but
+    one spatial block of the surface data predict that block best (the points' distance to
+    the surface each fold's answer makes, RMS per block, point-weighted mean over blocks).
+
+    ``local``: feature → (N, 3) mm in the model frame (the rigid pose applied); ``model`` the
+    supported basis's model (``forces`` made from its basis) and ``basis_beta`` its full fit
+    (None: not a candidate), refitted per fold with ``libr_options`` (at most
+    ``SupportOptions.iterations``); the forces at each λ of ``weights`` (``fit_weights``; no
+    solve beyond the N of ``responses``). No deformation is a candidate judged the same way,
+    so the choice is never one that predicts the held-out data worse than not deforming."""
+    t0, s0 = time.perf_counter(), forces.solves
+    names = [k for k in local if k in LIVER_SURFACE and len(local[k])]
+    points = surface_points(local)
+    labels = blocks_of({"surface": points}, options.blocks)["surface"]
+    pf = forces.responses(points, options.sites)
+    held_of = [np.flatnonzero(labels == b) for b in range(options.blocks)]
+    folds = [(h, np.flatnonzero(labels != b)) for b, h in enumerate(held_of) if len(h) and len(h) < len(points)]
+
+    def score(us_of_fold) -> float:
+        err, cnt = [], []
+        for b, (held, train) in enumerate(folds):
+            d = forces.distances(points[held], us_of_fold(b, held, train))[0]
+            err.append(float(np.sqrt(np.mean(d ** 2))))
+            cnt.append(len(held))
+        return float(np.average(err, weights=cnt))
+
+    zero = np.zeros(3 * len(forces.all_surface))
+    none_mm = score(lambda b, h, t: zero)
+    basis_mm = None
+    if basis_beta is not None and libr_options is not None and model is not None:
+        fold_opts = replace(libr_options, max_iterations=min(libr_options.max_iterations, SupportOptions.iterations))
+        sizes = np.cumsum([0] + [len(local[k]) for k in names])
+        others = {k: p for k, p in local.items() if k not in names}
+
+        def basis_fold(b, held, train):
+            keep = labels != b
+            data = {**others, **{k: local[k][keep[sizes[i]:sizes[i + 1]]] for i, k in enumerate(names)
+                                 if keep[sizes[i]:sizes[i + 1]].any()}}
+            fitted = register_libr(model, data, None, fold_opts, None, cancel)
+            return _basis_surface(model, fitted.beta, forces.all_surface)
+
+        basis_mm = score(basis_fold)
+    forces_mm = {}
     for lam in weights:
-        err = []
-        for b in range(blocks):
-            held, train = labels == b, labels != b
-            if not held.any() or not train.any():
-                continue
-            mu = lam * int(train.sum()) / (2.0 * forces.volume)
-            w = np.linalg.solve(G[np.ix_(train, train)] + mu * np.eye(int(train.sum())), c[train])
-            r = c[held] - G[np.ix_(held, train)] @ w
-            err.append(float(np.sqrt(np.mean(r ** 2))))
-        scores[lam] = float(np.mean(err))
-    return min(scores, key=lambda k: scores[k]), scores
+        o = replace(options, energy_weight=lam)
+
+        def force_fold(b, held, train, lam=lam, o=o):
+            fw = forces.fit_weights(pf, lam, train, o)
+            return pf.Xs[:, fw.index] @ fw.w
+
+        forces_mm[lam] = score(force_fold)
+    best = min(forces_mm, key=lambda k: forces_mm[k])
+    scores = {Answer.NONE: none_mm, Answer.FORCES: forces_mm[best]}
+    if basis_mm is not None:
+        scores[Answer.BASIS] = basis_mm
+    answer = min(scores, key=lambda a: (scores[a], a is not Answer.NONE))  # a tie: no deformation
+    choice = ForceChoice(answer, none_mm, basis_mm, forces_mm)
+    # the force answer at its λ is kept whichever is shown: a study compares the three
+    o = replace(options, energy_weight=best)
+    wf = forces.fit_weights(pf, best, None, o)
+    u = forces.field(pf, wf)
+    f_free = pf.D[wf.index].T @ wf.w
+    fit = ForceFit(u, f_free[forces._surface_rows].reshape(-1, 3), wf.rms_mm,
+                   0.5 * float(f_free @ u.ravel()[forces.free]) / forces.volume, 0, 0.0, wf.iterations, wf.phi,
+                   wf.phi0)
+    choice.energy_weight, choice.u, choice.fit = best, u, fit
+    choice.seconds, choice.solves = time.perf_counter() - t0, forces.solves - s0
+    return choice

@@ -29,6 +29,7 @@ from ..geometry.interpolation import interpolation_matrix
 from ..geometry.tre import tre_stats
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from .coverage import note_coverage
+from .forces import Answer, ForceChoice, SurfaceForces, choose_deformation, surface_points
 from .libr import LibrResult, LMOptions, register_libr
 from .local_modes import LocalModeOptions, LocalModes, choose_local_modes, fold_model
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
@@ -178,6 +179,10 @@ class Registration:
     # and the shown pose's predicted error (``uncertainty.PoseEvidence``); its line replaces the
     # cross-validation's and the deformable fit's quality, neither of which is the answer shown
     pose_evidence: PoseEvidence | None = None
+    # ``register(surface_forces=True)``: no deformation, the basis's fit or surface forces,
+    # whichever predicts held-out surface data best (``forces.choose_deformation``); it decides
+    # the answer in place of ``support``
+    forces: ForceChoice | None = None
 
     @property
     def deformed(self) -> bool:
@@ -186,6 +191,8 @@ class Registration:
         trimmed fit's: most data lay on the undeformed model there, so it is a known-good
         answer). ICP's fitted pose is no such baseline: an unsupported deformation from it
         stays the answer, with its warning (on the study cases it was the better one)."""
+        if self.forces is not None:
+            return self.forces.answer is not Answer.NONE
         if self.libr is None:
             return False
         return self.support is None or self.support.supported or not self.rigid.kept
@@ -201,7 +208,8 @@ class Registration:
                   self.determinacy.warning if self.determinacy else None,
                   self.support.warning_for(shown_rigid=not self.deformed, given=self.pose_choice is None
                                           or self.pose_choice.given, declared=self.pose_prior is not None)
-                  if self.support else None,
+                  if self.support and self.forces is None else None,
+                  self.forces.warning if self.forces is not None else None,
                   self.quality.warning if self.quality else None,
                   # no organ figure beside a pose not to be believed (the notes, an undetermined
                   # pose): the estimate's calibration says nothing at a pose 100 mm off (the demo's
@@ -217,9 +225,14 @@ class Registration:
         not supported, ``deformed``). ``beta``: another state than the fit's;
         ``B``: the points' interpolation matrix (``interpolation_matrix``), when the caller
         transforms the same points many times (locating them in the mesh dominates)."""
+        points = np.asarray(points, float)
+        if beta is None and self.forces is not None and self.forces.answer is Answer.FORCES:
+            assert self.forces.u is not None
+            basis = self.model.basis
+            B = interpolation_matrix(basis.nodes, basis.tets, points) if B is None else B
+            return self.rigid.apply(points + B @ self.forces.u)
         b = self.libr.beta if (beta is None and self.deformed and self.libr is not None) else beta
         basis = self.model.basis
-        points = np.asarray(points, float)
         if b is None:
             return self.rigid.apply(points)
         return self.rigid.apply(deform_points(basis, self.model.centroid, b, points, B))
@@ -552,7 +565,8 @@ pose may lie and still be a candidate of the declared rigid stage (``_declared_r
 def register(model: RegistrationModel, data: dict, deform=True, options: LMOptions | None = None,
              callback=None, cancel=None, beta0=None, rigid: RigidResult | None = None,
              init: RobustOptions | None = None, starts: list[Start] | None = None,
-             pose_prior: PosePrior | None = None, given: RigidResult | None = None) -> Registration:
+             pose_prior: PosePrior | None = None, given: RigidResult | None = None,
+             surface_forces: bool = False) -> Registration:
     """Rigid initialisation then (unless ``deform`` is False) LIBR: β minimising Ω of eq. 7
     (data terms of Table I plus the strain-energy term) by Levenberg–Marquardt.
 
@@ -587,6 +601,13 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         rows share the stylus's). Everything after it — the basin screening on all the
         data, the pose rules, the cross-validation — runs here, so the answer equals one
         without ``starts``; the list is not changed.
+    pose_prior : PosePrior, optional
+        the declared pose knowledge (``prior``): the rigid stage fits within it.
+    surface_forces : bool
+        with a basis held at declared supports (``prepare(supports=)``) and a fresh deformable
+        fit: the answer is no deformation, the basis's fit or a force at every surface node,
+        whichever predicts held-out surface data best (``forces.choose_deformation``;
+        ``Registration.forces``). Not the default: it costs one solve per surface data point.
 
     Returns
     -------
@@ -602,6 +623,9 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         # a warm start from a fit whose model carried local modes: its β has their weights too
         raise InputError(f"beta0 has {len(beta0)} entries; this model's state has {model.basis.Ju.shape[1] + 6} "
                          "(a registration with local modes: pass its own reg.model)")
+    if surface_forces and model.basis.settings.supports is None:
+        raise InputError("surface forces need declared supports: prepare the model with supports= "
+                         "(a free-floating organ has no unique displacement under a load)")
     data = usable_data(model, data)
     check_units(model, data)
     notes = []
@@ -800,6 +824,15 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         support = None
     reg = Registration(model, rigid, result, local, sec, starts, quality, choice, determinacy, support, notes,
                        local_modes=local_modes, pose_prior=options.weights.pose_prior, pose_evidence=evidence)
+    if surface_forces and deform and fresh and result is not None and result.stop_reason != "cancelled" and \
+            surface_points(local).shape[0] >= SupportOptions.min_points:
+        t = time.perf_counter()
+        sf = SurfaceForces(model.basis)
+        try:
+            reg.forces = choose_deformation(sf, model, local, result.beta, options, cancel=cancel)
+        finally:
+            sf.close()
+        sec["forces"] = time.perf_counter() - t
     if fresh and reg.deformed and result is not None and result.stop_reason != "cancelled":
         # every check above compares the answer with simpler ones on the data; this one asks
         # whether it is good enough to navigate by at all (docs/decisions.md, "An answer the data
@@ -837,6 +870,8 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
     if reg.model.mesher is not None:  # the mesh is part of the answer: which mesher made it, and why
         summary["mesher"] = reg.model.mesher.as_dict()
     summary["answer"] = "deformable" if reg.deformed else "rigid"
+    if reg.forces is not None and reg.forces.answer is Answer.FORCES:
+        summary["answer"] = "surface forces"
     if reg.pose_prior is not None:  # declared: how far the answer moved the organ from the given pose
         moved = reg.libr.features.get("pose_prior", {}) if reg.libr is not None and reg.deformed else {}
         summary["pose_prior"] = {**reg.pose_prior.as_dict(), "rigid_stage_moved_mm": round(shift_mm(reg.rigid, {
@@ -845,7 +880,7 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
                if moved else {})}
     for key, part in (("pose", reg.pose_choice), ("pose_determinacy", reg.determinacy), ("support", reg.support),
                       ("predicted_error", reg.organ), ("local_modes", reg.local_modes),
-                      ("pose_evidence", reg.pose_evidence)):
+                      ("pose_evidence", reg.pose_evidence), ("surface_forces", reg.forces)):
         if part is not None:
             summary[key] = part.as_dict()
     lines = reg.warnings + [w for t in summary.get("targets", []) if (w := t.get("warning"))]

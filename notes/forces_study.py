@@ -1,0 +1,48 @@
+"""Issue 47: surface forces (``register(surface_forces=True)``, the loads study's ``libr-forces``)
+at S on local-load cases, supports and pose declared as the scene made them.
+
+    python notes/forces_study.py OUT.jsonl CASE_DIR...
+
+One JSON line per case: mean TRE (mm) of no correction (identity), of the three candidates
+(the declared rigid pose without deformation, the supported basis's LIBR fit, the surface
+forces at their held-out λ), of the answer shown, the held-out RMS of each, and seconds."""
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+from navapp.anatomy.caseio import read_case
+from navapp.evaluation.loads import declared_prior, declared_supports
+from navapp.geometry.interpolation import interpolation_matrix
+from navapp.geometry.tre import tre_stats
+from navapp.registration.pipeline import prepare, register
+from navapp.simulation.levels import data_level
+
+out = Path(sys.argv[1])
+for arg in sys.argv[2:]:
+    case_dir = Path(arg)
+    case = read_case(case_dir)
+    model, _ = prepare(case, **declared_supports(case))
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
+    B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
+    data = data_level(case_dir, "S", case=case)
+    t = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        reg = register(model, data, pose_prior=declared_prior(case_dir, case), surface_forces=True)
+    sec = time.perf_counter() - t
+    fc = reg.forces
+
+    def tre(p, x1=x1):
+        return round(tre_stats(p, x1)["mean_mm"], 3)
+
+    row = {"case": case_dir.name, "identity": tre(x0), "none": tre(reg.rigid.apply(x0)),
+           "basis": tre(reg.transform(x0, beta=reg.libr.beta, B=B)),
+           "forces": tre(reg.rigid.apply(x0 + B @ fc.u)), "shown": tre(reg.transform(x0, B=B)),
+           "answer": fc.answer.value, "warned": bool(reg.warnings), **fc.as_dict(),
+           "fit_iterations": fc.fit.iterations, "fit_rms_mm": round(fc.fit.rms_mm, 3), "seconds_total": round(sec, 1),
+           "stage_seconds": {k: round(v, 1) for k, v in reg.seconds.items()}}
+    with out.open("a") as fh:
+        fh.write(json.dumps(row) + "\n")
+    print(json.dumps(row), flush=True)
