@@ -1,7 +1,7 @@
 """Issue 47: surface forces (``register(surface_forces=True)``, the loads study's ``libr-forces``)
 at S on local-load cases, supports and pose declared as the scene made them.
 
-    python notes/forces_study.py OUT.jsonl CASE_DIR...
+    python notes/scripts/forces_study.py OUT.jsonl CASE_DIR...
 
 One JSON line per case: mean TRE (mm) of no correction (identity), of the three candidates
 (the declared rigid pose without deformation, the supported basis's LIBR fit, the surface
