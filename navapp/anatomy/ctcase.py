@@ -170,5 +170,27 @@ def write_dicom_seg(labels: np.ndarray, affine_las: np.ndarray, path, names: dic
         segment_descriptions=descriptions, series_instance_uid=generate_uid(), series_number=2,
         sop_instance_uid=generate_uid(), instance_number=1, manufacturer="navapp",
         manufacturer_model_name="navapp ctcase", software_versions="1", device_serial_number="0")
+    _contiguous_frames(seg, int(stacked.sum()))
     seg.save_as(str(path))
     return Path(path)
+
+
+def _contiguous_frames(seg, voxels: int) -> None:
+    """A 1-bit SEG's frames packed end to end, as the standard has them (PS3.5 §8.1.1) and pydicom
+    and highdicom read them. highdicom 0.28 pads each frame to a whole byte when it holds fewer
+    than 8 pixels, and its own reader then took the second frame's pixels from the first's
+    padding (a one-voxel tumour read back empty, found by the property tests). ``voxels``: the
+    segments' voxels written; the padded layout is taken only when it, and not the standard's,
+    holds that many (a later highdicom that packs correctly is left alone)."""
+    n = int(seg.Rows) * int(seg.Columns)
+    frames = int(getattr(seg, "NumberOfFrames", 1))
+    per = -(-n // 8)
+    raw = np.frombuffer(seg.PixelData, np.uint8)
+    if n % 8 == 0 or frames < 2 or len(raw) < frames * per:
+        return
+    padded = np.unpackbits(raw[:frames * per].reshape(frames, per), axis=1, bitorder="little")[:, :n]
+    flat = np.unpackbits(raw, bitorder="little")[:frames * n]
+    if int(padded.sum()) != voxels or int(flat.sum()) == voxels:
+        return
+    packed = np.packbits(padded.ravel(), bitorder="little").tobytes()
+    seg.PixelData = packed + b"\0" * (len(packed) % 2)
