@@ -13,7 +13,11 @@ const $ = id => document.getElementById(id);
 function url(p){
   return p + (p.includes("?") ? "&" : "?") + "c=" + encodeURIComponent(TOKEN) + (ACCESS ? "&t=" + encodeURIComponent(ACCESS) : "");
 }
-function msg(t){ $("msg").textContent = t || ""; }
+// a refusal or error answered to this page's own click or command stays until its next one: a
+// state poll answered just after it (a plane change asked before the click) had wiped it at once
+let refusal = "";
+function msg(t){ $("msg").textContent = t || refusal; }
+function refused(t){ refusal = t || ""; msg(refusal); }
 
 function toPixel(e){
   const r = cv.getBoundingClientRect();
@@ -137,7 +141,7 @@ async function pump(){
       $("gone").style.display = "none";
       window.navappLatencies.push(performance.now() - p.t);
       pending.shift();
-      if (s.error) { msg(s.error); } else { msg(""); apply(s); }
+      if (s.error) { refused(s.error); } else { msg(""); apply(s); }
     } catch (e) { $("gone").style.display = "block"; await new Promise(r => setTimeout(r, 500)); }
   }
   sending = false; draw();
@@ -146,14 +150,16 @@ async function pump(){
 cv.addEventListener("mousedown", e => {
   if (e.button !== 0) return;
   const p = toPixel(e); if (!p) return;
+  refusal = "";
   // what the click was aimed at, fixed now: the plane may change (3D panel, guide) while it waits
   pending.push({col: p[0], row: p[1], plane: state.plane_index, feature: $("feat").value, t: performance.now()});
   draw(); pump();
 });
 async function command(cmd, extra){
   while (sending || pending.length) await new Promise(r => setTimeout(r, 20));  // after the clicks before it
+  refusal = "";
   const s = await post("/us/command", Object.assign({cmd: cmd, feature: $("feat").value}, extra || {}));
-  if (s.error) msg(s.error); else { msg(s.message || ""); apply(s); }
+  if (s.error) refused(s.error); else { msg(s.message || ""); apply(s); }
 }
 $("close").onclick = () => command("Close");
 $("finish").onclick = () => command("Finish line");
