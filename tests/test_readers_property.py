@@ -366,6 +366,7 @@ SCENE_KEYS = st.sampled_from([("name",), ("seed",), ("anatomy", "phantom"), ("an
                                                                                           "sd_px"]),
                                                                          toml_value, max_size=3), max_size=2))),
                 max_size=3))
+@example([(("effects",), [{"kind": []}])])  # found in CI: an unhashable kind was a TypeError
 def test_scene_toml_is_read_or_refused_in_one_line(changes):
     import tomllib
 

@@ -269,7 +269,7 @@ def parse_scene(data: dict, path=None) -> Scene:
         raise InputError("effects must be an array of tables ([[effects]])", path)
     for i, e in enumerate(effects):
         kind = e.get("kind") if isinstance(e, dict) else None
-        if kind not in EFFECT_PARAMS:
+        if not isinstance(kind, str) or kind not in EFFECT_PARAMS:  # a list or table is no kind (a traceback)
             raise InputError(f"effects[{i}].kind must be one of {', '.join(EFFECT_PARAMS)}, got {kind!r}", path)
         params = {}
         for key, value in e.items():
