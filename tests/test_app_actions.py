@@ -244,3 +244,28 @@ def test_a_tab_gets_its_plane_contour_and_undo_back_after_a_restart(app, cache_r
     finally:
         stop_app(again)
     assert app.drawing.command(cs, "Clear plane") is None  # leaves the module's scene as it was
+
+
+def test_a_sweep_is_logged_before_it_is_seen_over(app):
+    """CI: the guide's next run was logged before the sweep's points, which were written just
+    after the sweep reported itself over. A slow log line makes that order certain."""
+    core = app.core
+    cs = core.new_client_state(5)
+    with core.lock:
+        core.session.stylus_count = 0
+    log = core.actions
+    append = log.append
+
+    def slow_points(tab, role, act, detail=""):
+        if act is Act.POINTS:
+            time.sleep(0.5)
+        append(tab, role, act, detail)
+
+    log.append = slow_points
+    try:
+        n = len(log.entries())
+        assert app.stylus.start(lambda: 100.0, cs)
+        wait(lambda: not app.stylus.sweeping and core.session.stylus_count >= len(core.sd.stylus_path), "sweep")
+        assert [e.act for e in log.entries()[n:]] == [Act.SWEEP, Act.POINTS]
+    finally:
+        log.append = append

@@ -89,12 +89,14 @@ class Stylus:
                 last_saved = time.monotonic()
             time.sleep(FRAME_S)
         self.tip = None
-        self._sweeping = False  # before the last refresh, so the views see the sweep as over
+        # Logged before the sweep is reported over: a run started on seeing it over (the guide's
+        # next step, another tab) must come after its points in the action log.
         self._record_batch(start, self._owner)
-        core.each_view(lambda v: v.show_stylus(None))
-        core.changed(Change.DATA)
         core.record(self._owner, Act.POINTS, f"sweep points {start + 1}-{i} of {len(path)}" if i > start else
                     "none")
+        self._sweeping = False  # before the last refresh, so the views see the sweep as over
+        core.each_view(lambda v: v.show_stylus(None))
+        core.changed(Change.DATA)
 
     def _record_batch(self, start: int, owner: ClientState | None):
         """One undoable action per sweep, in the undo of the tab that made it only: another
@@ -115,8 +117,8 @@ class Stylus:
             start = session.stylus_count
             session.stylus_count = len(sd.stylus_path)
         self._record_batch(start, cs)
-        core.changed(Change.DATA)
         core.record(cs, Act.POINTS, f"whole sweep at once: points {start + 1}-{len(sd.stylus_path)}")
+        core.changed(Change.DATA)
 
 
 def _show_stylus(pos):
