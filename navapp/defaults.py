@@ -22,3 +22,10 @@ next-plane planner expects it so."""
 N_PLANES = 16
 """iUS planes a simulated scene records: 8 vertical + 8 lateral (``ius.planes``' default and
 maximum); a study's "S+all" registers all of them."""
+
+DISPLAY_FACES = 12_000
+"""Triangles the viewer draws at most per preoperative or true surface (liver, each vessel
+tree): quadric decimation, ``app.display``. Every tab redraws its whole scene in software on a
+machine without a GPU (viser's once-a-second heartbeat and every change), and the phantom's
+57,764-triangle liver and 46,256 vessel triangles cost most of a frame; what the registration
+fits is not touched (docs/decisions.md, "What a tab draws")."""

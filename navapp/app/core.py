@@ -31,6 +31,7 @@ from ..simulation.scenedata import SceneData, load_scene_data
 from ..simulation.ultrasound import PlaneData
 from .access import Role
 from .actions import Act, ActionLog, interrupted_run
+from .display import DisplaySurfaces
 from .session import Session, default_folder, open_session, write_tabs
 from .state import Change, ClientState, RegisteredState, Run, RunEntry, WorstPoint
 
@@ -86,6 +87,7 @@ class Core:
         self.scene, self.preop, self.edge, self.k = scene, preop, edge, k
         self.cache_root, self.session_dir = cache_root, session_dir
         self.centre = preop.liver.vertices.mean(0)
+        self.display = DisplaySurfaces()  # the surfaces as the tabs draw them
         self.lock = threading.RLock()
         self.version = 0  # bumped on every change to shared data
         self.sd: SceneData | None = None

@@ -106,13 +106,14 @@ class LayersPanel:
     def _build_preop(self):
         preop = self.core.preop
         s = self.s
-        self._add("Preoperative liver", s.add_mesh_simple("/preop/liver", preop.liver.vertices, preop.liver.faces,
+        shown = self.core.display.of
+        self._add("Preoperative liver", s.add_mesh_simple("/preop/liver", *shown(preop.liver),
                                                           color=LIVER, opacity=0.3, side="double"))
         for name in VESSELS:
             colour = VESSEL[name]
             m = preop.vessel(name)
             if m is not None:
-                self._add("Preoperative vessels", s.add_mesh_simple(f"/preop/{name}", m.vertices, m.faces,
+                self._add("Preoperative vessels", s.add_mesh_simple(f"/preop/{name}", *shown(m),
                                                                     color=colour, opacity=0.45))
             cl = preop.centerline(name)
             if cl is not None:
@@ -131,7 +132,7 @@ class LayersPanel:
         s = self.s
         t = sd.truth.get("liver")
         if t is not None and not self.nodes["True deformed liver (ghost)"]:
-            self._add("True deformed liver (ghost)", s.add_mesh_simple("/truth/liver", t.vertices, t.faces,
+            self._add("True deformed liver (ghost)", s.add_mesh_simple("/truth/liver", *self.core.display.of(t),
                                                                         color=TRUTH, opacity=0.3))
         if not self.nodes["Stylus"]:
             self.tool = self._add("Stylus", s.add_mesh_trimesh("/stylus/tool", stylus_tool()))
