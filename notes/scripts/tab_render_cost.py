@@ -6,10 +6,17 @@ redraws once a second), counted by the WebGL clears the page makes. A probe, not
 Starts ``navapp serve --edge 12 --k 12`` on the demo (cache: $NAVAPP_CACHE or a temporary one),
 opens one 1366 x 768 tab, and twice measures 10 s of idling.
 """
-import os, re, subprocess, sys, time, tempfile
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
 from playwright.sync_api import sync_playwright
+
 env = {**os.environ, "NAVAPP_CACHE": os.environ.get("NAVAPP_CACHE", tempfile.mkdtemp()), "PYTHONUNBUFFERED": "1"}
-w = tempfile.mkdtemp(); logp = w + "/s.log"
+w = tempfile.mkdtemp()
+logp = w + "/s.log"
 proc = subprocess.Popen([sys.executable, "-m", "navapp.cli", "serve", "--port", "8933", "--edge", "12", "--k", "12",
                          "--session", w + "/sess"], stdout=open(logp, "w"), stderr=subprocess.STDOUT, env=env)
 INIT = """
@@ -28,7 +35,8 @@ HTMLCanvasElement.prototype.getContext = function(...a) {
 };
 """
 try:
-    while "viewer at" not in open(logp).read(): time.sleep(0.5)
+    while "viewer at" not in open(logp).read():
+        time.sleep(0.5)
     with sync_playwright() as p:
         b = p.chromium.launch(executable_path="/usr/bin/chromium", args=["--no-sandbox"])
         pg = b.new_page(viewport={"width": 1366, "height": 768})
@@ -37,6 +45,7 @@ try:
         pg.get_by_text("Ready.").first.wait_for(timeout=900_000)
         time.sleep(5)
         import psutil
+
         def idle(what):
             procs = [q for q in psutil.process_iter(["name"]) if "chrom" in (q.info["name"] or "")]
             cpu0 = {q.pid: sum(q.cpu_times()[:2]) for q in procs}
@@ -46,9 +55,11 @@ try:
             n = pg.evaluate("window.__gl") - a
             tot = sum(cpu1[k] - cpu0[k] for k in cpu1)
             print(f"{what}: chromium CPU {tot:.2f} s in 10 s, {n} frames, {tot/max(n,1):.3f} s/frame", flush=True)
+
         idle(os.environ.get("WHICH", "?"))
         time.sleep(1)
         idle(os.environ.get("WHICH", "?"))
         b.close()
 finally:
-    proc.terminate(); proc.wait(20)
+    proc.terminate()
+    proc.wait(20)
