@@ -115,3 +115,30 @@ def test_a_refused_factorisation_gives_its_memory_back():
             refused += 1
     assert refused == 11
     assert rss_mb() - before < 100.0
+
+
+def test_pardiso_found_in_a_venv_that_borrows_the_system_site_packages(tmp_path):
+    """pypardiso looks for libmkl_rt only under ``sys.prefix``; in a virtual environment made
+    with ``--system-site-packages`` (as a developer's is) the MKL wheel lies under the base
+    interpreter's prefix, pypardiso failed to import, and every factorisation fell back to
+    SuperLU without a word. navapp names the library from the wheel's file list."""
+    import os
+    import subprocess
+    import sys
+    import venv
+    from importlib import metadata
+    from pathlib import Path
+
+    try:
+        metadata.distribution("pypardiso")
+        metadata.distribution("mkl")
+    except metadata.PackageNotFoundError:
+        pytest.skip("pypardiso and the mkl wheel are not both installed here")
+    venv.EnvBuilder(system_site_packages=True, with_pip=False).create(tmp_path / "venv")
+    python = tmp_path / "venv" / ("Scripts" if os.name == "nt" else "bin") / "python"
+    root = str(Path(__file__).resolve().parents[1])
+    env = {k: v for k, v in os.environ.items() if k not in ("PYPARDISO_MKL_RT", "NAVAPP_SOLVER")}
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [root, env.get("PYTHONPATH")]))
+    code = "import sys; from navapp.mechanics.sparse import backend; print(sys.prefix != sys.base_prefix, backend())"
+    out = subprocess.run([str(python), "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.split() == ["True", "pardiso"], (out.stdout, out.stderr, sys.prefix)
