@@ -43,7 +43,7 @@ def mkl_rt_path() -> str | None:
     found = []
     if dist is not None:
         for f in dist.files or ():
-            if f.name.startswith(("libmkl_rt.so", "libmkl_rt.dylib", "mkl_rt")) and not f.name.endswith(".lib"):
+            if f.name.startswith(("libmkl_rt.", "mkl_rt.")) and not f.name.endswith(".lib"):
                 path = str(dist.locate_file(f))
                 if os.path.exists(path):
                     found.append(path)
