@@ -115,3 +115,37 @@ def test_a_refused_factorisation_gives_its_memory_back():
             refused += 1
     assert refused == 11
     assert rss_mb() - before < 100.0
+
+
+def test_pardiso_found_in_a_venv_that_borrows_the_system_site_packages(tmp_path):
+    """pypardiso looks for libmkl_rt only under ``sys.prefix``; in a virtual environment that
+    borrows packages from outside its prefix (``--system-site-packages``, as a developer's is,
+    or ``pip install --user``) the MKL wheel's library lies elsewhere, pypardiso failed to
+    import, and every factorisation fell back to SuperLU without a word. navapp names the
+    library from the wheel's file list. The venv here borrows this interpreter's
+    site-packages through a .pth file, so it needs nothing installed outside (CI's own venv)."""
+    import os
+    import subprocess
+    import sys
+    import sysconfig
+    import venv
+    from importlib import metadata
+    from pathlib import Path
+
+    try:
+        metadata.distribution("pypardiso")
+        metadata.distribution("mkl")
+    except metadata.PackageNotFoundError:
+        pytest.skip("pypardiso and the mkl wheel are not both installed here")
+    home = tmp_path / "venv"
+    venv.EnvBuilder(with_pip=False).create(home)
+    borrowed = [p for p in sys.path if p.endswith(("site-packages", "dist-packages")) and os.path.isdir(p)]
+    purelib = Path(sysconfig.get_path("purelib", vars={"base": str(home), "platbase": str(home)}))
+    (purelib / "borrowed.pth").write_text("\n".join(borrowed) + "\n")
+    python = home / ("Scripts" if os.name == "nt" else "bin") / "python"
+    root = str(Path(__file__).resolve().parents[1])
+    env = {k: v for k, v in os.environ.items() if k not in ("PYPARDISO_MKL_RT", "NAVAPP_SOLVER", "PYTHONHOME")}
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [root, env.get("PYTHONPATH")]))
+    code = "import sys; from navapp.mechanics.sparse import backend; print(sys.prefix != sys.base_prefix, backend())"
+    out = subprocess.run([str(python), "-c", code], capture_output=True, text=True, env=env, check=True)
+    assert out.stdout.split() == ["True", "pardiso"], (out.stdout, out.stderr, sys.prefix)

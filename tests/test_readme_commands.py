@@ -213,6 +213,7 @@ def test_bench_precompute(capsys):
     assert row["seconds"]["mesh"] > 0 and row["total_seconds"] >= row["seconds"]["mesh"]
     assert 0 < row["cache_load_seconds"]["total"] < row["total_seconds"]
     assert "basis_file" not in row and "mesh_file" not in row  # the temporary cache is removed
+    assert row["solver"] in ("pardiso", "superlu") and row["mesher"].startswith(("gmsh", "ftetwild"))
 
 
 def test_bench_import(capsys):

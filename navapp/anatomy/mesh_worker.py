@@ -80,7 +80,7 @@ def main(src: str, dst: str, parent: int | None = None, watch_fd: int | None = N
         threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
     import numpy as np
 
-    from .meshing import ftetwild_mesh, gmsh_mesh
+    from .mesh_engines import ftetwild_mesh, gmsh_mesh
 
     with np.load(src) as a:
         v, f, edge, seed = a["vertices"], a["faces"], float(a["edge"]), int(a["seed"])

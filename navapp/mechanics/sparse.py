@@ -17,6 +17,7 @@ import scipy.sparse.linalg as spla
 def backend() -> str:
     if os.environ.get("NAVAPP_SOLVER", "").lower() == "superlu":
         return "superlu"
+    _name_mkl_rt()
     try:
         import pypardiso  # noqa: F401
     except ImportError:
@@ -24,18 +25,48 @@ def backend() -> str:
     return "pardiso"
 
 
+def mkl_rt_path() -> str | None:
+    """Where the installed ``mkl`` wheel put libmkl_rt, or None.
+
+    pypardiso looks for it only under ``sys.prefix`` and fails at import when it is not
+    there. In a virtual environment made with ``--system-site-packages``, or with MKL
+    installed by ``pip install --user``, the library lies outside ``sys.prefix``: pypardiso
+    then did not import and every factorisation fell back to SuperLU (the 4 mm liver's
+    point-load modes 7 CPU s → 50+, the demo's truth solve minutes). The wheel's own file
+    list says where it is, wherever pip installed it."""
+    from importlib import metadata
+
+    try:
+        dist = metadata.distribution("mkl")
+    except metadata.PackageNotFoundError:
+        dist = None
+    found = []
+    if dist is not None:
+        for f in dist.files or ():
+            if f.name.startswith(("libmkl_rt.", "mkl_rt.")) and not f.name.endswith(".lib"):
+                path = str(dist.locate_file(f))
+                if os.path.exists(path):
+                    found.append(path)
+    for prefix in (sys.prefix, sys.base_prefix):  # a wheel without a file list (RECORD)
+        found += glob.glob(os.path.join(prefix, "lib", "libmkl_rt.so*"))
+    return min(found, key=len) if found else None
+
+
+def _name_mkl_rt():
+    """Name libmkl_rt to pypardiso through its environment variable, unless already named:
+    without it pypardiso walks the whole of ``sys.prefix`` for it on every solver it creates
+    (about a second here, once per tile of the relaxation), and finds nothing outside it."""
+    if "PYPARDISO_MKL_RT" not in os.environ:
+        path = mkl_rt_path()
+        if path is not None:
+            os.environ["PYPARDISO_MKL_RT"] = path
+
+
 def _pardiso_solver():
-    """A new PyPardisoSolver for a real SPD matrix. Unless told where libmkl_rt is,
-    pypardiso looks for it by walking the whole of sys.prefix on every solver it creates
-    (about a second here, once per tile of the relaxation); after the first search the
-    library it loaded is named to it through its own environment variable."""
+    """A new PyPardisoSolver for a real SPD matrix (libmkl_rt named to it first)."""
+    _name_mkl_rt()
     import pypardiso
 
-    if "PYPARDISO_MKL_RT" not in os.environ:
-        # the pip wheel puts it in sys.prefix/lib: look there before pypardiso's tree walk
-        near = sorted(glob.glob(os.path.join(sys.prefix, "lib", "libmkl_rt.so*")), key=len)
-        if near:
-            os.environ["PYPARDISO_MKL_RT"] = near[0]
     s = pypardiso.PyPardisoSolver(mtype=2)  # real symmetric positive definite
     os.environ.setdefault("PYPARDISO_MKL_RT", s.libmkl._name)
     return s
