@@ -211,6 +211,41 @@ def test_the_pose_covariance_is_the_priors_without_data_and_tighter_with_them(sm
     assert np.linalg.eigvalsh(unknown).max() > np.linalg.eigvalsh(with_data).max()
 
 
+def test_the_error_estimate_counts_a_declared_pose_once(small_model):
+    """With a declared pose the estimate's pose is its posterior's, counted once: the calibrated
+    term takes the deformation's σ given the pose and σ_pose carries the pose. As the declared
+    spread goes to nothing (the pose known) the estimate must be the full posterior's — data,
+    strain energy and the prior's rows in one H (analytic: its pose block vanishes) — and its
+    pose term nothing. Here a noisy 7 % patch leaves τ, θ weakly fixed: the data-only covariance
+    the estimate used kept them in σ whatever was declared (14.1 against 12.3 mm; fails without)."""
+    from navapp.registration.pipeline import register
+    from navapp.registration.uncertainty import (
+        covariance_factor,
+        estimate_error,
+        information,
+        point_jacobian,
+        point_sigma,
+    )
+
+    rest = small_model.features["liver"].rest
+    scan = rest[np.linalg.norm(rest - rest[np.argmax(rest[:, 1])], axis=1) < 40.0]
+    data = {"anterior": scan + np.random.default_rng(1).normal(0, 0.5, scan.shape)}
+    reg = register(small_model, data, pose_prior=PosePrior(0.01, 0.01))
+    est = estimate_error(reg)
+    n = small_model.basis.Ju.shape[1]
+    info = information(reg.model, reg.data_model_frame, reg.libr.beta)
+    Jp = reg.pose_prior.jacobian(n)
+    # the prior's rows at the data's own scale s, so that they say exactly the declared σ
+    posterior = info.matrix() + info.scale * Jp.T @ Jp
+    _, G = point_jacobian(reg.model, reg.libr.beta)
+    sigma = point_sigma(G, factor=covariance_factor(info, posterior))
+    assert est.sigma_mm.mean() > 1.0  # the patch leaves the deformation far from it loose
+    assert np.allclose(est.sigma_mm, sigma, rtol=1e-3)
+    assert est.pose_sigma_mm is not None and est.pose_sigma_mm.max() < 0.1
+    assert np.allclose(est.predicted_mm, np.hypot(est.calibration.predict(est.distance_mm, sigma, est.spread_mm),
+                                                  est.pose_sigma_mm), rtol=1e-3)
+
+
 def test_register_reads_the_declared_pose_from_case_toml_and_from_the_command(tmp_path, capsys):
     """``[intraop.pose]`` in case.toml and ``--pose-sd`` reach ``register``: result.json says
     which prior the fit used; ``--pose-sd none`` overrides the case's; a bad value is one line."""

@@ -294,13 +294,21 @@ def estimate_error(reg, points=None, calibration: Calibration | None = None, B=N
     with limit_threads(1):  # small matrices: threaded BLAS only synchronises (see libr.py)
         info = information(model, data, reg.libr.beta, weights)
         x, G = point_jacobian(model, reg.libr.beta, B, nodes=None if B is not None else nodes)
-        sigma = point_sigma(G, factor=covariance_factor(info))
         # the pose's own uncertainty, where a pose is declared: the calibrated ê was fitted on
         # answers whose pose was right, so it leaves out how far the declared pose may be off.
         # Undeclared it is not joined: on a smooth cap the data leave turns free, and σ_pose put a
         # right answer's predicted error over the organ at 21 mm (docs/decisions.md, "Pose prior")
         pose_sigma = np.zeros(len(x))
-        if reg.pose_prior is not None:
+        if reg.pose_prior is None:
+            sigma = point_sigma(G, factor=covariance_factor(info))
+        else:
+            # declared: the pose is counted once, by its posterior (data and prior, σ_pose below);
+            # the calibrated term takes the deformation's σ given the pose (α's block of H). The
+            # data-only σ of every β also carried the τ, θ a partial scan leaves weakly fixed,
+            # unbounded by the prior and then × c: tooldraw3_0-a at S, σ 5.99 → 4.41 mm given the
+            # pose (docs/decisions.md, "The declared pose counted once in the error estimate")
+            n = G.shape[-1] - 6
+            sigma = point_sigma(G[:, :, :n], factor=covariance_factor(info, info.matrix()[:n, :n]))
             w = weights or default_weights()
             if w.pose_prior is None:
                 w = replace(w, pose_prior=reg.pose_prior)
