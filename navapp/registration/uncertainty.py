@@ -20,6 +20,10 @@ m the median of d over the mesh nodes (how sparse the data are: with a complete 
 alone was anti-correlated with the error), and a band [ê · q_lo, ê · q_hi] holding the
 true error for ``coverage`` of the points of each kind of calibration case (quantiles of
 true / ê).
+
+With a declared pose (``prior``) the pose is counted once: σ is the deformation's given the pose
+(α's block of H) and the pose's posterior σ_pose (data and the declared prior) joins ê in
+quadrature (``estimate_error``).
 """
 
 import time
@@ -78,7 +82,8 @@ class ErrorEstimate:
     lower_mm: np.ndarray  # (P,) band
     upper_mm: np.ndarray  # (P,)
     distance_mm: np.ndarray  # (P,) d: registered position → nearest data point
-    sigma_mm: np.ndarray  # (P,) σ: LM covariance propagated to the point
+    # (P,) σ: LM covariance propagated to the point; with a declared pose, α's alone given the pose
+    sigma_mm: np.ndarray
     spread_mm: float  # m: median over the mesh nodes of their distance to the data
     positions: np.ndarray  # (P, 3) registered positions, tracker frame
     calibration: Calibration = field(default_factory=Calibration)
