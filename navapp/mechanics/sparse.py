@@ -129,9 +129,11 @@ class Factorisation:
         else:
             p = nested_dissection(A)
             self._p = np.arange(self.n) if p is None else p
-            # the ordering is the factor's: SuperLU keeps it (NATURAL) and pivots on the diagonal (SPD)
+            # the ordering is the factor's (NATURAL); SuperLU's own threshold pivoting stays, so an
+            # indefinite matrix (the neo-Hookean truth's Newton steps) is factorised as before — on
+            # the SPD stiffness it took every diagonal pivot (the same 52 M entries with or without)
             self._lu = spla.splu(A[self._p][:, self._p].tocsc(), permc_spec="MMD_AT_PLUS_A" if p is None else "NATURAL",
-                                 diag_pivot_thresh=None if p is None else 0.0, options={"SymmetricMode": True})
+                                 options={"SymmetricMode": True})
 
     def solve(self, B: np.ndarray) -> np.ndarray:
         B = np.asarray(B, float)
