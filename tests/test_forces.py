@@ -21,6 +21,20 @@ def forces(held_basis):
     sf.close()
 
 
+ROUNDING_SHIFTS_MM = (0.0, 1e-9, 2e-9)
+"""A force at every data point makes the fit's Levenberg–Marquardt path depend on rounding (the
+closest faces of points at the mesh's vertices): one fit's residual moved 0.19–0.42 mm with the
+data moved by 10⁻⁹ mm or the factorisation's ordering changed (notes/forces_rounding.txt). The
+dent tests judge the median of the fits to the data moved by these, not one draw of rounding."""
+
+
+def _median_fit(sf, pts, options, u_true):
+    """The median over ``ROUNDING_SHIFTS_MM`` of the fit's RMS (mm) and of its nodes' mean error (mm)."""
+    fits = [sf.fit(pts + d, options) for d in ROUNDING_SHIFTS_MM]
+    return (float(np.median([f.rms_mm for f in fits])),
+            float(np.median([np.linalg.norm(f.u - u_true, axis=1).mean() for f in fits])))
+
+
 def _scan(basis):
     """The anterior-facing surface nodes (y above its 60th percentile), (N, 3)."""
     s = basis.nodes[basis.surface]
@@ -54,7 +68,8 @@ def test_a_dent_under_the_data_is_fitted_by_surface_forces(forces, held_basis, c
     """A 15 mm dent of 25 mm radius pressed into the anterior surface of the posterior-held
     organ (the organ's own linear response to a tool: ``simulation.truth``), seen by points on
     the anterior surface: the surface forces fit the points to under half a millimetre and the
-    nodes' displacement to within 40 % of its mean (no correction: 100 %)."""
+    nodes' displacement to within half its mean (no correction: all of it); the median of
+    ``ROUNDING_SHIFTS_MM``'s fits."""
     from navapp.mechanics.fem import Material
     from navapp.registration.forces import ForceOptions
     from navapp.simulation.truth import Loading, Supports, Tool, ToolLoad, solve_linear
@@ -66,9 +81,8 @@ def test_a_dent_under_the_data_is_fitted_by_surface_forces(forces, held_basis, c
     u_true = u_true.reshape(-1, 3)
     scan = held_basis.surface[s[:, 1] > np.percentile(s[:, 1], 60)]
     pts = held_basis.nodes[scan] + u_true[scan]
-    fit = forces.fit(pts, ForceOptions(energy_weight=0.1, sites=len(pts)))
-    err = np.linalg.norm(fit.u - u_true, axis=1).mean()
-    assert fit.rms_mm < 0.5 and err < np.linalg.norm(u_true, axis=1).mean() / 2  # measured 0.39, 0.24 of 0.60
+    rms, err = _median_fit(forces, pts, ForceOptions(energy_weight=0.1, sites=len(pts)), u_true)
+    assert rms < 0.5 and err < np.linalg.norm(u_true, axis=1).mean() / 2  # measured 0.38, 0.27 of 0.60
 
 
 def test_the_data_space_solve_is_the_minimiser_the_adjoint_gradient_finds(forces, held_basis):
@@ -90,7 +104,8 @@ def test_a_4cm_dent_the_k45_basis_cannot_fit_is_fitted_by_surface_forces_within_
     """The issue's test: a dent 4 cm across and 20 mm deep pressed into the posterior-held
     organ, seen by the anterior surface with noise of σ 0.29 mm along the normal (0.5 mm in
     3-D). LIBR with the k = 45 basis held at the same supports leaves its residual at over
-    twice the noise (measured 0.80 mm); the surface forces fit the points within it (0.22)."""
+    twice the noise (measured 0.80 mm); the surface forces fit the points within it (the median
+    of ``ROUNDING_SHIFTS_MM``'s fits: 0.24 mm; one fit 0.19–0.34)."""
     from navapp.mechanics.fem import Material
     from navapp.registration.forces import ForceOptions, SurfaceForces
     from navapp.registration.libr import LMOptions, register_libr
@@ -110,11 +125,11 @@ def test_a_4cm_dent_the_k45_basis_cannot_fit_is_fitted_by_surface_forces_within_
                          LMOptions())
     sf = SurfaceForces(basis)
     try:
-        fit = sf.fit(pts, ForceOptions(energy_weight=1e-2, sites=len(pts)))
+        rms, _ = _median_fit(sf, pts, ForceOptions(energy_weight=1e-2, sites=len(pts)), u_true)
     finally:
         sf.close()
     assert libr.features["anterior"]["rms_mm"] > 2 * sigma  # the k = 45 basis cannot make the dent
-    assert fit.rms_mm < sigma  # the forces fit it within the noise
+    assert rms < sigma  # the forces fit it within the noise
 
 
 def test_no_deformation_is_chosen_where_forces_predict_held_out_data_worse(forces, held_basis):
@@ -175,3 +190,65 @@ def test_register_with_surface_forces_shows_the_chosen_answer(held_basis, phanto
                     Answer.BASIS: reg.transform(x, beta=reg.libr.beta)}[shown]
         assert np.allclose(reg.transform(x), expected, atol=1e-6)
     assert not np.allclose(reg.rigid.apply(x + fc.u[scan]), reg.transform(x, beta=reg.libr.beta), atol=0.1)
+
+
+def _supports_case(coarse_mesh, supports: str, gravity: float, seed: int = 0):
+    """A pressure tool (15 mm deep, 25 mm radius) on the anterior surface of an organ held at
+    ``supports``, 30 mm from them at least, with ``gravity`` (m/s²) toward the posterior; the
+    anterior 40 % of the surface seen with 0.3 mm noise. Returns the true displacement (M, 3)
+    and the points."""
+    from scipy.spatial import cKDTree
+
+    from navapp.mechanics.fem import Material
+    from navapp.mechanics.supports import held_nodes
+    from navapp.simulation.truth import Loading, Supports, Tool, ToolLoad, solve_linear
+
+    rng = np.random.default_rng(seed)
+    surface = np.unique(coarse_mesh.boundary_faces())
+    s = coarse_mesh.nodes[surface]
+    away = cKDTree(coarse_mesh.nodes[held_nodes(coarse_mesh, supports)]).query(s)[0] > 30
+    centre = s[rng.choice(np.flatnonzero((s[:, 1] > np.percentile(s[:, 1], 75)) & away))]
+    tool = Tool(tuple(centre), (0.0, -1.0, 0.0), 25.0, 15.0, ToolLoad.PRESSURE)
+    u = solve_linear(coarse_mesh, Loading(gravity=gravity, supports=Supports(supports), tool=tool),
+                     Material()).reshape(-1, 3)
+    scan = surface[s[:, 1] > np.percentile(s[:, 1], 60)]
+    return u, coarse_mesh.nodes[scan] + u[scan] + rng.normal(scale=0.3, size=(len(scan), 3))
+
+
+@pytest.mark.parametrize("truth, declared, contradicted", [("ligaments", "posterior", True),
+                                                          ("posterior", "posterior", False)])
+def test_declared_supports_the_data_contradict_are_warned(coarse_mesh, held_basis, small_basis, phantoms,
+                                                          truth, declared, contradicted):
+    """The issue's wrong supports: an organ held at its ligaments sagging under gravity (19 mm
+    mean) with a tool on it, registered with a posterior support declared. Its answer is worse
+    than the undeclared one (the free-floating basis, the same declared pose: measured 11.9
+    against 8.5 mm mean over the nodes), and the free basis's fits predict the held-out blocks
+    better (4.4 against 7.5 mm), so the answer says the supports are not borne out. Declared as
+    the scene held it (posterior, a tool, no gravity: 0.48 against 1.71 mm), no such line."""
+    from navapp.registration.model import build_model
+    from navapp.registration.pipeline import free_model, register
+    from navapp.registration.prior import PosePrior
+
+    assert declared == "posterior"  # the held_basis fixture's
+    fid = held_basis.nodes[:6]
+    held = build_model(held_basis, phantoms[0], fiducials=fid)
+    free = build_model(small_basis, phantoms[0], fiducials=fid)
+    u, pts = _supports_case(coarse_mesh, truth, 9.81 if contradicted else 0.0)
+    undeclared = register(free, {"anterior": pts}, pose_prior=PosePrior(2.0, 2.0))
+    reg = register(held, {"anterior": pts}, pose_prior=PosePrior(2.0, 2.0), surface_forces=True, undeclared=free)
+    x0, x1 = held_basis.nodes, held_basis.nodes + u
+
+    def err(r):
+        return float(np.linalg.norm(r.transform(x0) - x1, axis=1).mean())
+
+    fc = reg.forces
+    assert fc is not None and fc.free_mm is not None
+    said = [w for w in reg.warnings if "declared supports" in w]
+    if contradicted:
+        assert err(reg) > err(undeclared)  # the premise: the wrong supports made the answer worse
+        assert fc.free_mm < fc.shown_mm and len(said) == 1
+    else:
+        assert err(reg) < err(undeclared) and fc.free_mm > fc.shown_mm and not said
+    assert fc.as_dict()["supports_contradicted"] is contradicted
+    # the default free model is the same mesh's free basis from the cache
+    assert np.allclose(free_model(held).basis.Ju, small_basis.Ju, rtol=0, atol=1e-12)

@@ -139,7 +139,8 @@ def run_case(case_dir, methods: tuple[str, ...] = METHODS) -> list[dict]:
                             supported = prepare(case, **declared_supports(case))[0]
                         used = supported
                     reg = register(used, data, deform=method.startswith("libr"), init=_init(method),
-                                   pose_prior=prior, surface_forces=method == "libr-forces")
+                                   pose_prior=prior, surface_forces=method == "libr-forces",
+                                   undeclared=model if method == "libr-forces" else None)
                     pred = reg.transform(x0, B=B)
                     answer = "deformable" if reg.deformed else "rigid"
                     if reg.forces is not None and reg.forces.answer is Answer.FORCES:

@@ -403,6 +403,30 @@ class ForceChoice:
     fit: ForceFit | None = None
     seconds: float = 0.0
     solves: int = 0
+    free_mm: float | None = None  # the free-floating basis's held-out RMS (mm) on the same folds
+
+    @property
+    def shown_mm(self) -> float:
+        """The held-out RMS (mm) of the answer shown."""
+        if self.answer is Answer.BASIS and self.basis_mm is not None:
+            return self.basis_mm
+        if self.answer is Answer.FORCES and self.forces_mm:
+            return min(self.forces_mm.values())
+        return self.none_mm
+
+    @property
+    def supports_contradicted(self) -> bool:
+        """The free-floating basis predicts the held-out blocks better than the answer shown
+        with the declared supports (the same criterion the choice uses: no margin)."""
+        return self.free_mm is not None and self.free_mm < self.shown_mm
+
+    @property
+    def supports_warning(self) -> str | None:
+        if not self.supports_contradicted:
+            return None
+        return (f"the declared supports are not borne out by the data: the free-floating model predicts held-out "
+                f"surface data better ({self.free_mm:.2f} mm) than the answer held at them ({self.shown_mm:.2f} mm)"
+                " — check where the organ is held (or register without declared supports)")
 
     @property
     def warning(self) -> str | None:
@@ -417,6 +441,8 @@ class ForceChoice:
         return {"answer": self.answer.value, "heldout_none_mm": round(self.none_mm, 3),
                 "heldout_basis_mm": None if self.basis_mm is None else round(self.basis_mm, 3),
                 "heldout_forces_mm": {f"{k:g}": round(v, 3) for k, v in self.forces_mm.items()},
+                "heldout_free_mm": None if self.free_mm is None else round(self.free_mm, 3),
+                "supports_contradicted": self.supports_contradicted,
                 "energy_weight": self.energy_weight, "seconds": round(self.seconds, 2), "solves": self.solves}
 
 
@@ -431,7 +457,7 @@ def _basis_surface(model: RegistrationModel, beta: np.ndarray, surface: np.ndarr
 def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, local: dict,
                        basis_beta: np.ndarray | None, libr_options: LMOptions | None,
                        options: ForceOptions = ForceOptions(),
-                       weights=ENERGY_WEIGHTS, cancel=None) -> ForceChoice:
+                       weights=ENERGY_WEIGHTS, cancel=None, free: RegistrationModel | None = None) -> ForceChoice:
     """No deformation, the basis's answer or surface forces: the one whose fits to all but
     one spatial block of the surface data predict that block best (the points' distance to
     the surface each fold's answer makes, RMS per block, point-weighted mean over blocks).
@@ -441,7 +467,13 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
     (None: not a candidate), refitted per fold with ``libr_options`` (at most
     ``SupportOptions.iterations``); the forces at each λ of ``weights`` (``fit_weights``; no
     solve beyond the N of ``responses``). No deformation is a candidate judged the same way,
-    so the choice is never one that predicts the held-out data worse than not deforming."""
+    so the choice is never one that predicts the held-out data worse than not deforming.
+
+    ``free``: the same mesh's free-floating model (``pipeline.free_model``), whose basis's fits
+    to the same folds are scored the same way (``ForceChoice.free_mm``): not a candidate (its
+    answer is another model's), but the test of the declared supports — where it predicts the
+    held-out data better than the answer shown, the supports are contradicted by the data
+    (``ForceChoice.supports_warning``)."""
     t0, s0 = time.perf_counter(), forces.solves
     names = [k for k in local if k in LIVER_SURFACE and len(local[k])]
     points = surface_points(local)
@@ -460,20 +492,23 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
 
     zero = np.zeros(3 * len(forces.all_surface))
     none_mm = score(lambda b, h, t: zero)
-    basis_mm = None
-    if basis_beta is not None and libr_options is not None and model is not None:
+    basis_mm = free_mm = None
+    if libr_options is not None:
         fold_opts = replace(libr_options, max_iterations=min(libr_options.max_iterations, SupportOptions.iterations))
         sizes = np.cumsum([0] + [len(local[k]) for k in names])
         others = {k: p for k, p in local.items() if k not in names}
 
-        def basis_fold(b, held, train):
+        def basis_fold(b, held, train, on: RegistrationModel):
             keep = labels != b
             data = {**others, **{k: local[k][keep[sizes[i]:sizes[i + 1]]] for i, k in enumerate(names)
                                  if keep[sizes[i]:sizes[i + 1]].any()}}
-            fitted = register_libr(model, data, None, fold_opts, None, cancel)
-            return _basis_surface(model, fitted.beta, forces.all_surface)
+            fitted = register_libr(on, data, None, fold_opts, None, cancel)
+            return _basis_surface(on, fitted.beta, forces.all_surface)
 
-        basis_mm = score(basis_fold)
+        if basis_beta is not None and model is not None:
+            basis_mm = score(lambda b, h, t: basis_fold(b, h, t, model))
+        if free is not None:
+            free_mm = score(lambda b, h, t: basis_fold(b, h, t, free))
     forces_mm = {}
     for lam in weights:
         o = replace(options, energy_weight=lam)
@@ -488,7 +523,7 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
     if basis_mm is not None:
         scores[Answer.BASIS] = basis_mm
     answer = min(scores, key=lambda a: (scores[a], a is not Answer.NONE))  # a tie: no deformation
-    choice = ForceChoice(answer, none_mm, basis_mm, forces_mm)
+    choice = ForceChoice(answer, none_mm, basis_mm, forces_mm, free_mm=free_mm)
     # the force answer at its λ is kept whichever is shown: a study compares the three
     o = replace(options, energy_weight=best)
     wf = forces.fit_weights(pf, best, None, o)

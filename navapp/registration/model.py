@@ -183,6 +183,16 @@ def extended_model(model: RegistrationModel, basis: Basis) -> RegistrationModel:
     return RegistrationModel(basis=basis, features=feats, centroid=model.centroid, mesher=model.mesher)
 
 
+def rebased_model(model: RegistrationModel, basis: Basis) -> RegistrationModel:
+    """``model`` on another ``basis`` of the same mesh (e.g. the free-floating one of a model
+    held at declared supports): every feature keeps its points and cells and carries the new
+    basis's modes. The cache starts empty."""
+    if basis.nodes.shape != model.basis.nodes.shape or not np.array_equal(basis.tets, model.basis.tets):
+        raise ValueError("rebased_model: the basis is of another mesh")
+    feats = {name: replace(f, BJ=basis.modes_at(f.B)) for name, f in model.features.items()}
+    return RegistrationModel(basis=basis, features=feats, centroid=model.centroid, mesher=model.mesher)
+
+
 def usable_data(model: RegistrationModel, data: dict) -> dict:
     """The data features the model can match, as float64 arrays; warns about the rest and
     raises for non-finite input (before any solving)."""

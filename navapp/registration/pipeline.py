@@ -23,6 +23,7 @@ from scipy.spatial.transform import Rotation
 from ..anatomy.caseio import Case, write_csv
 from ..anatomy.meshing import MeshProvenance, cached_tetmesh
 from ..anatomy.model import VESSELS
+from ..anatomy.tets import TetMesh
 from ..defaults import EDGE_MM, K
 from ..errors import CarriedWarning, InputError
 from ..geometry.interpolation import interpolation_matrix
@@ -32,7 +33,7 @@ from .coverage import note_coverage
 from .forces import Answer, ForceChoice, SurfaceForces, choose_deformation, surface_points
 from .libr import LibrResult, LMOptions, register_libr
 from .local_modes import LocalModeOptions, LocalModes, choose_local_modes, fold_model
-from .model import REGION_FEATURES, RegistrationModel, build_model, deform, usable_data
+from .model import REGION_FEATURES, RegistrationModel, build_model, deform, rebased_model, usable_data
 from .objective import HUBER_MM, evaluate
 from .pose import (
     Determinacy,
@@ -210,6 +211,7 @@ class Registration:
                                           or self.pose_choice.given, declared=self.pose_prior is not None)
                   if self.support and self.forces is None else None,
                   self.forces.warning if self.forces is not None else None,
+                  self.forces.supports_warning if self.forces is not None else None,
                   self.quality.warning if self.quality else None,
                   # no organ figure beside a pose not to be believed (the notes, an undetermined
                   # pose): the estimate's calibration says nothing at a pose 100 mm off (the demo's
@@ -557,6 +559,17 @@ def _rebased(model: RegistrationModel, beta: np.ndarray, pose: RigidResult) -> n
     return out
 
 
+def free_model(model: RegistrationModel, cache_root=None) -> RegistrationModel:
+    """The free-floating model of a model held at declared supports: the same mesh, features and
+    k, the basis without supports (from the basis cache; computed and cached when absent)."""
+    basis = model.basis
+    if basis.settings.supports is None:
+        return model
+    free, _ = load_or_compute_basis(TetMesh(basis.nodes, basis.tets), replace(basis.settings, supports=None),
+                                    basis.material, cache_root=cache_root)
+    return rebased_model(model, free)
+
+
 PRIOR_REACH = 3.0
 """How many declared standard deviations (per axis) from the given pose a multi-start ICP
 pose may lie and still be a candidate of the declared rigid stage (``_declared_rigid``)."""
@@ -566,7 +579,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
              callback=None, cancel=None, beta0=None, rigid: RigidResult | None = None,
              init: RobustOptions | None = None, starts: list[Start] | None = None,
              pose_prior: PosePrior | None = None, given: RigidResult | None = None,
-             surface_forces: bool = False) -> Registration:
+             surface_forces: bool = False, undeclared: RegistrationModel | None = None) -> Registration:
     """Rigid initialisation then (unless ``deform`` is False) LIBR: β minimising Ω of eq. 7
     (data terms of Table I plus the strain-energy term) by Levenberg–Marquardt.
 
@@ -607,7 +620,13 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         with a basis held at declared supports (``prepare(supports=)``) and a fresh deformable
         fit: the answer is no deformation, the basis's fit or a force at every surface node,
         whichever predicts held-out surface data best (``forces.choose_deformation``;
-        ``Registration.forces``). Not the default: it costs one solve per surface data point.
+        ``Registration.forces``). Not the default: it costs one solve per force site. The
+        free-floating basis's fits are held out on the same blocks beside it: where they predict
+        the data better than the answer shown, the declared supports are contradicted and a
+        warning says so (``ForceChoice.supports_warning``).
+    undeclared : RegistrationModel, optional
+        with ``surface_forces``: the same mesh's free-floating model for that check (default
+        ``free_model(model)``, the free basis from the cache).
 
     Returns
     -------
@@ -829,7 +848,8 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         t = time.perf_counter()
         sf = SurfaceForces(model.basis)
         try:
-            reg.forces = choose_deformation(sf, model, local, result.beta, options, cancel=cancel)
+            reg.forces = choose_deformation(sf, model, local, result.beta, options, cancel=cancel,
+                                            free=undeclared if undeclared is not None else free_model(model))
         finally:
             sf.close()
         sec["forces"] = time.perf_counter() - t
