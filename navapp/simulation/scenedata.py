@@ -51,6 +51,8 @@ class SceneData:
 def _scene_params(scene: Scene) -> dict:
     d = dataclasses.asdict(scene)
     d.pop("source", None)
+    if not d["sources"]:  # a scene enabling no data source keeps the key it had before sources were rooms
+        d.pop("sources")
     return d
 
 
