@@ -86,8 +86,12 @@ STYLUS: tuple[str, ...] = tuple(f.name for f in TABLE if f.source == "stylus")
 """Digitised with the tracked stylus: anterior, falciform, ridges (the paper's data level S)."""
 SALIENT: tuple[str, ...] = tuple(f.name for f in TABLE if f.salient)
 """Salient features: each slides on its own labelled region."""
-SEEN: tuple[str, ...] = tuple(f.name for f in TABLE if f.source not in ("stylus", "ius", "fiducial")
-                               and f.kind == "surface" and f.target == "liver")
+HAND_WIRED = ("stylus", "ius", "fiducial")
+"""The sources wired by hand through the simulator, the tracker and the viewer; every other
+``source`` is a module of ``navapp/simulation/sources``, simulated, kept and received alike."""
+SOURCED: tuple[str, ...] = tuple(f.name for f in TABLE if f.source not in HAND_WIRED)
+"""The features of those sources: live, an OpenIGTLink POINT message of this device name."""
+SEEN: tuple[str, ...] = tuple(n for n in SOURCED if BY_NAME[n].kind == "surface" and BY_NAME[n].target == "liver")
 """Liver-surface points a registered source sees from outside the liver (the laparoscope's)."""
 RIGID: tuple[str, ...] = STYLUS + ("fiducials",) + SEEN
 """The features that steer the rigid ICP (iUS data join only in the deformable stage)."""

@@ -447,6 +447,7 @@ def worst_points(reg: Registration, data: dict, origins: dict, weights: Weights,
             where = f"segmentation of plane {plane_name(o.plane)}"
         else:
             where = {OriginKind.STYLUS: "stylus sweep", OriginKind.LIVE: "tracked stylus",
+                     OriginKind.SOURCE: "simulated acquisition",
                      OriginKind.CONTOUR: f"centre of a contour on plane {plane_name(o.plane)}"}[o.kind]
         x, y, z = (float(t) for t in data[p.feature][p.index])
         out.append(WorstPoint(p.feature, p.residual_mm, p.rejected, o, (x, y, z),

@@ -26,6 +26,8 @@ Example::
     [[effects]]
     kind = "tracking_noise"
     sd_mm = 0.5
+    [laparoscope]            # a registered data source's own table (``sources``): enables it
+    distance_mm = 120.0
 """
 
 import tomllib

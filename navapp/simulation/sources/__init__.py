@@ -5,9 +5,9 @@ A source is one module here, ``navapp/simulation/sources/<name>.py``, defining `
 (a ``SimulatedSource``), plus the rows of ``features.TABLE`` whose ``source`` is ``<name>``.
 Nothing else lists it: the registry finds the module from the table, the scene parser
 reads the source's own ``[<name>]`` table through it, the simulator asks it for its points,
-the viewer's session keeps them (``SceneData.sourced``) and draws them by their feature's
-colour, and live points arrive as an OpenIGTLink POINT or POLYDATA message whose device
-name is the feature's name (``tracking.client``). Its points enter the registration as
+the viewer's session keeps them (``SceneData.sourced``, ``features.SOURCED``) and draws them by their feature's
+colour, and live points arrive as an OpenIGTLink POINT message whose device name is the
+feature's name (``tracking.client``; pyigtl 0.3 decodes no POLYDATA). Its points enter the registration as
 the data of its features, by the feature's kind, target and weight.
 
 The stylus and the ultrasound planes predate this protocol and are still wired by hand
@@ -83,8 +83,3 @@ def registered() -> dict[str, SimulatedSource]:
         if importlib.util.find_spec(module) is not None:
             out[name] = importlib.import_module(module).SOURCE
     return out
-
-
-def sourced_features() -> tuple[str, ...]:
-    """Every feature fed by a registered source (kept in the viewer's session as simulated)."""
-    return tuple(f for name in registered() for f in features_of(name))
