@@ -2,6 +2,7 @@
 a data source on the source protocol (``simulation/sources``)."""
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -143,7 +144,7 @@ def test_depth_noise_grows_with_depth_as_stated():
     assert np.std(err[far]) > 3 * np.std(err[near])  # the growth is seen, not only modelled
 
 
-SCENE = {"name": "lap", "seed": 2, "anatomy": {"phantom": 0},
+SCENE = {"name": "lap", "seed": 0, "anatomy": {"phantom": 0},
          "deformation": {"release": "L", "mesh_edge_mm": 10.0, "truth_E_pa": 5000.0},
          "stylus": {"coverage": 0.05}, "ius": {"planes": 0},
          "laparoscope": {"instrument_radius_mm": 6.0}}
@@ -208,13 +209,81 @@ def test_laparoscope_points_lie_on_the_deformed_surface_within_their_noise(lap_c
     assert np.median(off) > 0.01  # noisy, not on the surface exactly
 
 
-def test_a_scene_with_a_laparoscope_registers_and_corrects_the_deformation(lap_case, capsys):
-    out, report = lap_case
-    code = main(["--quiet", "register", str(out), "--edge", "14", "--k", "10", "--json"])
-    assert code == 0
+def _register(case, capsys) -> dict:
+    assert main(["--quiet", "register", str(case), "--edge", "12", "--k", "12", "--json"]) == 0
     capsys.readouterr()
-    result = json.loads((out / "registration" / "result.json").read_text())
-    assert "laparoscope" in result["features"]
+    return json.loads((case / "registration" / "result.json").read_text())
+
+
+def test_a_scene_with_a_laparoscope_registers_and_corrects_the_deformation(lap_case, capsys, tmp_path):
+    out, report = lap_case
+    result = _register(out, capsys)
+    assert "laparoscope" in result["features"] and result["answer"] == "deformable"
     uncorrected = report["displacement_mm"]["mean"]  # the preoperative model left where it was
     tre = result["tre_deformable"]["mean_mm"]
     assert tre < 0.6 * uncorrected and tre < result["tre_rigid"]["mean_mm"]
+    # the same case without the camera's points: the few stylus points alone do not correct it
+    shutil.copytree(out, tmp_path / "stylus", ignore=shutil.ignore_patterns("registration"))
+    (tmp_path / "stylus" / "intraop" / "laparoscope.csv").unlink()
+    alone = _register(tmp_path / "stylus", capsys)["tre_deformable"]["mean_mm"]
+    assert tre < alone - 2.0
+
+
+def test_live_laparoscope_points_arrive_as_a_point_message():
+    import socket
+    import time
+
+    import pyigtl
+
+    from navapp.tracking.client import TrackingClient
+    from navapp.tracking.config import TrackingConfig
+    from navapp.tracking.events import Skipped, SourcePoints
+
+    listener = socket.create_server(("127.0.0.1", 0))
+    listener.settimeout(5.0)
+    events: list = []
+    client = TrackingClient(TrackingConfig(port=listener.getsockname()[1], reconnect_s=0.05),
+                            on_event=events.append).start()
+    sent = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.5], [-7.0, 8.0, 9.25]])
+    try:
+        conn, _ = listener.accept()
+        stamp = time.time()
+        conn.sendall(pyigtl.PointMessage(positions=sent, device_name="laparoscope", timestamp=stamp).pack()
+                     # another device's points (a fiducial list from Slicer) are not a source's
+                     + pyigtl.PointMessage(positions=sent, device_name="F", timestamp=stamp).pack()
+                     + pyigtl.PointMessage(positions=[[np.nan, 0.0, 0.0]], device_name="laparoscope",
+                                           timestamp=stamp + 1).pack()
+                     + pyigtl.PointMessage(positions=sent[:1] + 1, device_name="laparoscope",
+                                           timestamp=stamp + 2).pack())
+        end = time.monotonic() + 5.0
+        while sum(isinstance(e, SourcePoints) for e in events) < 2 and time.monotonic() < end:
+            time.sleep(0.01)
+    finally:
+        client.stop()
+        listener.close()
+    got = [e for e in events if isinstance(e, SourcePoints)]
+    assert [e.feature for e in got] == ["laparoscope", "laparoscope"]
+    np.testing.assert_array_equal(got[0].points, sent)
+    np.testing.assert_array_equal(got[1].points, sent[:1] + 1)
+    assert [e.kind for e in events if isinstance(e, Skipped)] == ["malformed"]
+    assert client.counts["ignored:POINT"] == 1
+    conn.close()
+
+
+def test_the_session_keeps_and_draws_the_laparoscope_points(cache_root, tmp_path):
+    from navapp.app.palette import FEATURE_COLOURS
+    from navapp.app.session import Session, open_session
+    from navapp.simulation.scenedata import load_scene_data, scene_key
+
+    sd = load_scene_data(parse_scene(SCENE), cache_root, edge=14.0)
+    pts = sd.case.intraop["laparoscope"]
+    np.testing.assert_array_equal(sd.sourced["laparoscope"], pts)
+    s = Session(tmp_path / "s", scene_key(sd.scene, 14.0))
+    s.live_points.append([1.0, 2.0, 3.0, "laparoscope"])  # a live POINT message's point
+    data = s.data(sd, {})
+    assert set(data) == {"laparoscope"}  # no stylus sweep yet: the camera's points are there at once
+    np.testing.assert_array_equal(data["laparoscope"], np.vstack([pts, [[1.0, 2.0, 3.0]]]))
+    s.save(sd, {})
+    again, _ = open_session(tmp_path / "s", sd)
+    assert again.live_points == s.live_points
+    assert FEATURE_COLOURS["laparoscope"] == (255, 120, 200)  # drawn in its own colour, as every feature

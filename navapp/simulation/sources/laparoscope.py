@@ -19,6 +19,21 @@ whose depth error grows with z² at a fixed baseline and focal length:
 drawn along each ray. ``[[effects]]`` tracking noise and dropout then apply to these
 points as to the stylus's (``simulate.py``).
 
+In a scene (every key optional; these are the defaults)::
+
+    [laparoscope]
+    distance_mm = 120.0          # camera from the anterior face's centre
+    tilt_deg = 30.0              # toward inferior
+    fov_deg = 70.0
+    rays = 32                    # a 32 × 32 grid of rays
+    keep = 0.5                   # of which this fraction return a depth
+    far_mm = 250.0
+    max_incidence_deg = 80.0
+    sd_mm = 0.2
+    sd_growth_mm = 0.8
+    instrument_radius_mm = 0.0   # > 0: an instrument in view
+    instrument_at = [0.3, 0.0]
+
 First hits are found by projecting every triangle into the image and testing it, by
 Möller–Trumbore, only against the rays whose pixel lies in its projected bounding box (a
 z-buffer over rays, not over pixels): the whole grid costs one pass over the triangles.
