@@ -287,3 +287,40 @@ def test_the_session_keeps_and_draws_the_laparoscope_points(cache_root, tmp_path
     again, _ = open_session(tmp_path / "s", sd)
     assert again.live_points == s.live_points
     assert FEATURE_COLOURS["laparoscope"] == (255, 120, 200)  # drawn in its own colour, as every feature
+
+
+def test_the_viewer_takes_live_laparoscope_points_into_its_session(cache_root, tmp_path):
+    """``navapp serve --igtl`` against a server that sends a POINT message named ``laparoscope``:
+    the points join the session's data beside the simulated camera's."""
+    import time
+
+    import pyigtl
+    from conftest import BUSY_WAIT_S, free_port
+
+    from navapp.app.server import App
+    from navapp.tracking.config import TrackingConfig
+    from navapp.tracking.replay import quiet_server
+
+    server = quiet_server(0)
+    server.start()
+    app = App(parse_scene(SCENE), port=free_port(), session_dir=tmp_path / "s", edge=12.0, k=12,
+              cache_root=cache_root, tracking=TrackingConfig(port=server.server_address[1]))
+    sent = np.array([[10.0, 20.0, 30.0], [11.0, 21.0, 31.5]])
+    try:
+        assert app.start().wait(600) and app.core.failed is None, app.core.failed
+        end = time.monotonic() + BUSY_WAIT_S
+        while not server.is_connected() and time.monotonic() < end:
+            time.sleep(0.02)
+        server.send_message(pyigtl.PointMessage(positions=sent, device_name="laparoscope", timestamp=time.time()),
+                            wait=True)
+        while len(app.core.session.live_points) < 2 and time.monotonic() < end:
+            time.sleep(0.02)
+        assert [p[3] for p in app.core.session.live_points] == ["laparoscope", "laparoscope"]
+        data = app.core.data()["laparoscope"]
+        simulated = app.core.sd.sourced["laparoscope"]
+        np.testing.assert_array_equal(data, np.vstack([simulated, sent]))
+    finally:
+        app.live.stop()
+        app.server.stop()
+        app.view2d.stop()
+        server.stop()
