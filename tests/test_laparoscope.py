@@ -324,3 +324,20 @@ def test_the_viewer_takes_live_laparoscope_points_into_its_session(cache_root, t
         app.server.stop()
         app.view2d.stop()
         server.stop()
+
+
+def test_a_laparoscope_point_far_off_is_named_by_its_source():
+    from navapp.app.contours import Origin, OriginKind
+    from navapp.app.runs import worst_points
+    from navapp.registration.objective import Weights
+    from navapp.registration.residuals import PointResidual
+
+    data = {"laparoscope": np.zeros((2, 3)), "anterior": np.ones((1, 3))}
+    origins = {"laparoscope": [Origin(OriginKind.SOURCE), Origin(OriginKind.LIVE)],
+               "anterior": [Origin(OriginKind.LIVE)]}
+    residuals = [PointResidual("laparoscope", 0, 30.0, True), PointResidual("laparoscope", 1, 20.0, True),
+                 PointResidual("anterior", 0, 10.0, True)]
+    worst = worst_points(None, data, origins, Weights(), n=3, residuals=residuals)  # type: ignore[arg-type]
+    assert [w.where for w in worst] == ["the laparoscope's depth points, simulated laparoscope",
+                                        "the laparoscope's depth points, live laparoscope",
+                                        "the anterior surface, tracked stylus"]
