@@ -30,7 +30,8 @@ class Feature:
         w_F of eq. 7, m⁻² (paper §II-D).
     source : str
         ``"stylus"`` (digitised on the anterior surface), ``"ius"`` (segmented from a tracked
-        ultrasound plane) or ``"fiducial"``.
+        ultrasound plane), ``"fiducial"``, or the name of a source module in
+        ``navapp/simulation/sources`` (``"laparoscope"``), which simulates and receives it.
     colour : tuple of int
         RGB 0–255 of its points in the viewer.
     noise_mm : float
@@ -72,6 +73,9 @@ TABLE: tuple[Feature, ...] = (
     Feature("hepatic_centerline", "centerline", "hepatic_centerline", 1.0, "ius", (0, 60, 255), 1.0,
             "hepatic-vein centres"),
     Feature("fiducials", "fiducial", "fiducials", 1.0, "fiducial", (255, 255, 0), 0.5, "fiducials"),
+    # depth noise grows with depth (sd 0.2 mm + 0.8 mm at 100 mm: simulation/sources/laparoscope.py)
+    Feature("laparoscope", "surface", "liver", 1.0, "laparoscope", (255, 120, 200), 1.0,
+            "the laparoscope's depth points"),
 )
 """Every data feature, in the order files and tables list them."""
 
@@ -82,7 +86,14 @@ STYLUS: tuple[str, ...] = tuple(f.name for f in TABLE if f.source == "stylus")
 """Digitised with the tracked stylus: anterior, falciform, ridges (the paper's data level S)."""
 SALIENT: tuple[str, ...] = tuple(f.name for f in TABLE if f.salient)
 """Salient features: each slides on its own labelled region."""
-RIGID: tuple[str, ...] = STYLUS + ("fiducials",)
+HAND_WIRED = ("stylus", "ius", "fiducial")
+"""The sources wired by hand through the simulator, the tracker and the viewer; every other
+``source`` is a module of ``navapp/simulation/sources``, simulated, kept and received alike."""
+SOURCED: tuple[str, ...] = tuple(f.name for f in TABLE if f.source not in HAND_WIRED)
+"""The features of those sources: live, an OpenIGTLink POINT message of this device name."""
+SEEN: tuple[str, ...] = tuple(n for n in SOURCED if BY_NAME[n].kind == "surface" and BY_NAME[n].target == "liver")
+"""Liver-surface points a registered source sees from outside the liver (the laparoscope's)."""
+RIGID: tuple[str, ...] = STYLUS + ("fiducials",) + SEEN
 """The features that steer the rigid ICP (iUS data join only in the deformable stage)."""
 LIVER_SURFACE: tuple[str, ...] = tuple(f.name for f in TABLE if f.kind == "surface" and
                                        (f.target == "liver" or f.salient))

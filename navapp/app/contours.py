@@ -45,6 +45,7 @@ class OriginKind(Enum):
     LIVE = "live"  # digitised with a tracked stylus
     PLANE = "plane"  # an added plane's segmentation
     CONTOUR = "contour"  # a contour drawn by hand
+    SOURCE = "source"  # a simulated data source's acquisition (``simulation.sources``)
 
 
 @dataclass(frozen=True, eq=False)

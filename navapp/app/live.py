@@ -17,7 +17,9 @@ re-registration on every frame.
   model is re-registered warm-started from the last state (``registration.live``),
   in a thread of its own so the tip never waits for it; frames that arrive while an update
   runs are skipped, the newest one is taken next.
-- The pump wakes on every stylus or frame message (not on a timer), so a tracker message
+- A data source's POINT messages (``features.SOURCED``: a laparoscope's depth points) join
+  the session's data as they arrive.
+- The pump wakes on every stylus, frame or source message (not on a timer), so a tracker message
   reaches the browsers within milliseconds.
 """
 
@@ -38,7 +40,7 @@ from ..simulation.scenedata import auto_segmentation, segment_frame
 from ..simulation.ultrasound import PlaneData
 from ..tracking.client import TrackingClient
 from ..tracking.config import TrackingConfig
-from ..tracking.events import ProbeSample, StylusSample
+from ..tracking.events import ProbeSample, SourcePoints, StylusSample
 from .core import Core
 from .imaging import LIVE_PLANE_BASE, Imaging
 from .shown import Shown
@@ -81,6 +83,7 @@ class LiveLink:
         self.recorded = 0  # digitiser points already moved into the session
         self._stop = threading.Event()
         self._collect_lock = threading.Lock()
+        self._sourced: list[SourcePoints] = []  # received from a data source, not yet in the session
         self._thread: threading.Thread | None = None
 
     def start(self) -> LiveLink:
@@ -97,7 +100,10 @@ class LiveLink:
         self.client.stop()
 
     def _on_event(self, ev):
-        if isinstance(ev, (StylusSample, ProbeSample)):  # called in the client thread: only a wake-up
+        if isinstance(ev, SourcePoints):  # the pump moves them into the session
+            with self._collect_lock:
+                self._sourced.append(ev)
+        if isinstance(ev, (StylusSample, ProbeSample, SourcePoints)):  # called in the client thread: only a wake-up
             self._wake.set()
 
     @property
@@ -130,6 +136,9 @@ class LiveLink:
                 new, new_labels = pts[self.recorded:], labels[self.recorded:len(pts)]
                 self.recorded = len(pts)
                 self.live.add_points(new, new_labels)
+            got, self._sourced = self._sourced, []
+            for ev in got:
+                self.live.add_points(ev.points, [ev.feature] * len(ev.points))
 
     def _pump(self):
         last_status = last_tip = last_collect = 0.0

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..errors import NavappError
 from ..evaluation.cost import lm_sweep
+from ..features import BY_NAME
 from ..registration.coverage import pose_warning
 from ..registration.objective import Weights
 from ..registration.pipeline import Registration
@@ -446,7 +447,9 @@ def worst_points(reg: Registration, data: dict, origins: dict, weights: Weights,
         elif o.kind is OriginKind.PLANE:
             where = f"segmentation of plane {plane_name(o.plane)}"
         else:
-            where = {OriginKind.STYLUS: "stylus sweep", OriginKind.LIVE: "tracked stylus",
+            live = "tracked stylus" if BY_NAME[p.feature].source == "stylus" else f"live {BY_NAME[p.feature].source}"
+            where = {OriginKind.STYLUS: "stylus sweep", OriginKind.LIVE: live,
+                     OriginKind.SOURCE: f"simulated {BY_NAME[p.feature].source}",
                      OriginKind.CONTOUR: f"centre of a contour on plane {plane_name(o.plane)}"}[o.kind]
         x, y, z = (float(t) for t in data[p.feature][p.index])
         out.append(WorstPoint(p.feature, p.residual_mm, p.rejected, o, (x, y, z),

@@ -25,6 +25,7 @@ from ..anatomy.caseio import write_csv, write_preop, write_settings, write_truth
 from ..anatomy.model import VESSELS
 from ..errors import InputError
 from ..features import NAMES as FEATURE_NAMES
+from ..features import SOURCED
 from ..features import STYLUS as STYLUS_FEATURES
 from ..registration.prior import declared_pose
 from ..simulation.scenedata import SceneData, acquire_free_plane, scene_key
@@ -35,6 +36,7 @@ from .palette import DRAWABLE
 from .state import PoseFrame, RunEntry, StatedPose
 
 SESSION_VERSION = 1
+LIVE_FEATURES = STYLUS_FEATURES + SOURCED  # a live point's: the tracked stylus's, or a source's (``app.live``)
 
 
 @dataclass
@@ -47,7 +49,8 @@ class Session:
     free_planes: list = field(default_factory=list)  # [{"index": i, "pose": 4×4 list}]
     log: list[RunEntry] = field(default_factory=list)  # one row per registration run
     result: dict | None = None  # the registered model on show (RegisteredState.to_json), restored on restart
-    live_points: list = field(default_factory=list)  # [[x, y, z, feature]] digitised with a tracked stylus
+    # [[x, y, z, feature]] digitised with a tracked stylus, or received from a source (``features.SOURCED``)
+    live_points: list = field(default_factory=list)
     live_planes: list = field(default_factory=list)  # [{"index", "pose", "png"}] frozen tracked frames
     # [[x, y, z, feature]] data points the user removed (a stylus or segmentation point the fit
     # left far off); a drawn contour's point is removed as its vertex instead
@@ -83,6 +86,8 @@ class Session:
         for name in STYLUS_FEATURES:
             pts = sd.stylus_path[:n][sd.stylus_labels[:n] == name]
             add(name, pts, [Origin(OriginKind.STYLUS)] * len(pts))
+        for name, pts in sd.sourced.items():  # a source's points are data as soon as it sees them
+            add(name, pts, [Origin(OriginKind.SOURCE)] * len(pts))
         for x, y, z, name in self.live_points:
             add(name, [x, y, z], [Origin(OriginKind.LIVE)])
         if not surface_only:
@@ -296,7 +301,7 @@ def open_session(folder: Path, sd: SceneData) -> tuple[Session, dict]:
                     [_plane(f, "free_planes") for f in _list(d["free_planes"], "free_planes")],
                     [RunEntry.from_json(e) for e in _list(d["log"], "log")],
                     _record(d.get("result")),
-                    [_point(p, "live_points", STYLUS_FEATURES) for p in _list(d.get("live_points", []), "live_points")],
+                    [_point(p, "live_points", LIVE_FEATURES) for p in _list(d.get("live_points", []), "live_points")],
                     [_plane(f, "live_planes", png=True) for f in _list(d.get("live_planes", []), "live_planes")],
                     [_point(p, "excluded", FEATURE_NAMES) for p in _list(d.get("excluded", []), "excluded")],
                     pose=None if d.get("pose") is None else StatedPose.from_json(d["pose"]))

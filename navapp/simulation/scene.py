@@ -26,6 +26,8 @@ Example::
     [[effects]]
     kind = "tracking_noise"
     sd_mm = 0.5
+    [laparoscope]            # a registered data source's own table (``sources``): enables it
+    distance_mm = 120.0
 """
 
 import tomllib
@@ -35,6 +37,7 @@ from pathlib import Path
 
 from ..defaults import N_PLANES
 from ..errors import InputError
+from .sources import registered
 
 EFFECT_PARAMS = {
     "tracking_noise": {"sd_mm": float},
@@ -122,6 +125,8 @@ class Scene:
     pose_declared: bool = False
     pose_sd_mm: float | None = None
     pose_sd_deg: float | None = None
+    # the registered data sources it enables (``sources``): source name → its parsed table
+    sources: dict = field(default_factory=dict)
 
     def declared_pose(self) -> tuple[float, float] | None:
         """(sd_mm, sd_deg) the case declares (``[pose]``), or None (an unknown frame)."""
@@ -205,7 +210,7 @@ def _tool(table, path) -> ToolSpec:
 
 def parse_scene(data: dict, path=None) -> Scene:
     """Validate a scene dictionary (as loaded from TOML)."""
-    known = {"name", "seed", "effects", "tool", *_SECTIONS}
+    known = {"name", "seed", "effects", "tool", *_SECTIONS, *registered()}
     for key in data:
         if key not in known:
             raise InputError(f"unknown key {key!r} (known: {', '.join(sorted(known))})", path)
@@ -231,6 +236,9 @@ def parse_scene(data: dict, path=None) -> Scene:
             setattr(scene, attr, Path(value) if key == "case" else value)
     if "tool" in data:
         scene.tool = _tool(data["tool"], path)
+    for name, source in registered().items():
+        if name in data:
+            scene.sources[name] = source.parse(data[name], path)
     if scene.supports not in SUPPORTS:
         raise InputError(f"deformation.supports must be one of {', '.join(SUPPORTS)}, got {scene.supports!r}", path)
     if scene.tool is not None and scene.transpose_from is not None:

@@ -11,7 +11,7 @@ server both read scenes through it).
 import dataclasses
 import json
 import shutil
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +21,7 @@ from ..anatomy.caseio import Case, read_case, read_csv
 from ..anatomy.model import VESSELS
 from ..cache import cache_dir, content_key
 from ..defaults import EDGE_MM
-from ..features import STYLUS
+from ..features import SOURCED, STYLUS
 from ..simulation.effects import Ledger
 from .probe import Probe
 from .scene import Effect, Scene
@@ -46,11 +46,14 @@ class SceneData:
     planes: list  # [PlaneData] of the scene's plane presets
     probe: Probe
     truth: dict  # "liver" / "portal" / "hepatic" → deformed trimesh (tracker space)
+    sourced: dict = field(default_factory=dict)  # feature → (N, 3) mm of the scene's sources (``sources``)
 
 
 def _scene_params(scene: Scene) -> dict:
     d = dataclasses.asdict(scene)
     d.pop("source", None)
+    if not d["sources"]:  # a scene enabling no data source keeps the key it had before sources were rooms
+        d.pop("sources")
     return d
 
 
@@ -133,7 +136,8 @@ def load_scene_data(scene: Scene, cache_root=None, edge: float = EDGE_MM) -> Sce
         p = case_dir / "truth" / f"{name}.ply"
         if p.exists():
             truth[name] = trimesh.load(p, process=False)
-    return SceneData(scene, edge, case_dir, case, stylus, allpts[order], labels[order], planes, probe, truth)
+    sourced = {k: case.intraop[k] for k in SOURCED if k in case.intraop}
+    return SceneData(scene, edge, case_dir, case, stylus, allpts[order], labels[order], planes, probe, truth, sourced)
 
 
 def acquire_free_plane(sd: SceneData, index: int, probe_to_tracker: np.ndarray) -> PlaneData:

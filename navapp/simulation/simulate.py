@@ -37,6 +37,7 @@ from ..outputs import folder_lock, staged
 from . import effects as fx
 from .probe import Probe
 from .scene import Scene
+from .sources import Sight, registered
 from .stylus import surface_patch, swath_pattern, thin
 from .tool import place_tool
 from .transpose import correspondence, reference_deformation, transpose
@@ -129,6 +130,22 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
         if len(pts):
             intraop[label] = pts
 
+    # the registered sources the scene enables (``sources``), each on its own random stream:
+    # enabling one leaves every other draw of the scene as it was
+    sourced = {}
+    for i, (name, spec) in enumerate(sorted(scene.sources.items())):
+        srng = np.random.default_rng([scene.seed, 11, i])
+        got = registered()[name].acquire(spec, Sight(liver_d, preop, ledger), srng)
+        for label, pts in got.points.items():
+            if "tracking_noise" in eff and len(pts):
+                pts = fx.tracking_noise(pts, srng, ledger, **eff["tracking_noise"])
+            if "dropout" in eff and len(pts):
+                pts = fx.dropout(pts, srng, ledger, **eff["dropout"])
+            got.report.setdefault("kept", {})[label] = int(len(pts))
+            if len(pts):
+                intraop[label] = np.vstack([intraop[label], pts]) if label in intraop else pts
+        sourced[name] = got.report
+
     # iUS
     probe = Probe()
     planes = []
@@ -178,6 +195,7 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
             "seconds": {"truth": round(t_truth, 2), "total": round(time.perf_counter() - t0, 2)},
             "ran": sorted(set(ledger.ran)),
         }
+        report.update(sourced)
         if transposed is not None:
             report["transposed"] = transposed
         if loading.tool is not None:

@@ -1,5 +1,6 @@
-"""OpenIGTLink client: TRANSFORM and IMAGE messages from a PLUS server (or 3D Slicer)
-turned into typed events (``events.py``), with per-device watchdog status, reconnection,
+"""OpenIGTLink client: TRANSFORM and IMAGE messages from a PLUS server (or 3D Slicer), and
+POINT messages of a data source (``features.SOURCED``, device named as its
+feature), turned into typed events (``events.py``), with per-device watchdog status, reconnection,
 and a stylus digitiser fed on the way.
 
 Built on pyigtl's ``OpenIGTLinkClient`` (its thread, start/stop and outgoing queue, and
@@ -31,6 +32,7 @@ import numpy as np
 import pyigtl
 from pyigtl.messages import CRC64, MessageBase
 
+from ..features import SOURCED
 from .config import TrackingConfig
 from .digitiser import Digitiser
 from .events import (
@@ -38,6 +40,7 @@ from .events import (
     ProbePose,
     ProbeSample,
     Skipped,
+    SourcePoints,
     StylusSample,
     TransformSample,
     as_matrix,
@@ -292,7 +295,8 @@ class TrackingClient:
         except Exception as exc:  # pyigtl raises whatever struct/numpy raise
             return self._skip("malformed", device, f"{mtype}: {type(exc).__name__}: {exc}")
         c = self.config
-        if mtype not in ("TRANSFORM", "IMAGE") or (mtype == "IMAGE" and device != c.image):
+        points = mtype == "POINT" and device in SOURCED  # pyigtl 0.3 decodes no POLYDATA
+        if not points and (mtype not in ("TRANSFORM", "IMAGE") or (mtype == "IMAGE" and device != c.image)):
             self.counts[f"ignored:{mtype}"] += 1  # STRING, POINT, … or another image stream
             log.debug("ignored %s message from %r", mtype, device)
             return None
@@ -325,6 +329,11 @@ class TrackingClient:
 
     def _decode(self, mtype, device, msg, ts, now):
         c = self.config
+        if mtype == "POINT":
+            pts = np.asarray(msg.positions, float).reshape(-1, 3)
+            if not np.isfinite(pts).all():
+                raise ValueError("points not finite")
+            return SourcePoints(now, ts, device, pts)
         if mtype == "TRANSFORM":
             m = as_matrix(msg.matrix)
             if not np.isfinite(m).all() or not np.allclose(m[3], [0, 0, 0, 1]):

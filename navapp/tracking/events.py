@@ -41,6 +41,16 @@ class ProbeSample:
 
 
 @dataclass(frozen=True)
+class SourcePoints:
+    """Points of a data source (``features.SOURCED``: a laparoscope's depth points), from an
+    OpenIGTLink POINT message whose device name is the feature's."""
+    t: float
+    t_sent: float
+    feature: str
+    points: np.ndarray  # (N, 3) mm, Reference
+
+
+@dataclass(frozen=True)
 class TransformSample:
     """Any other TRANSFORM the server sends (the app may show it; nothing uses it)."""
     t: float

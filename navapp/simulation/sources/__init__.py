@@ -1,0 +1,85 @@
+"""Intraoperative data sources as rooms: the protocol a source implements and the registry
+that finds it.
+
+A source is one module here, ``navapp/simulation/sources/<name>.py``, defining ``SOURCE``
+(a ``SimulatedSource``), plus the rows of ``features.TABLE`` whose ``source`` is ``<name>``.
+Nothing else lists it: the registry finds the module from the table, the scene parser
+reads the source's own ``[<name>]`` table through it, the simulator asks it for its points,
+the viewer's session keeps them (``SceneData.sourced``, ``features.SOURCED``) and draws them by their feature's
+colour, and live points arrive as an OpenIGTLink POINT message whose device name is the
+feature's name (``tracking.client``; pyigtl 0.3 decodes no POLYDATA). Its points enter the registration as
+the data of its features, by the feature's kind, target and weight.
+
+The stylus and the ultrasound planes predate this protocol and are still wired by hand
+(``simulate.py``, ``scenedata.py``, ``app/live.py``); see docs/decisions.md, "Data sources
+as rooms".
+"""
+
+import importlib
+import importlib.util
+from dataclasses import dataclass, field
+from functools import cache
+from typing import Any, Protocol
+
+import numpy as np
+import trimesh
+
+from ...anatomy.model import PreopModel
+from ...features import TABLE
+from ..effects import Ledger
+
+
+@dataclass(frozen=True)
+class Sight:
+    """What a simulated source may see of the truth: the deformed liver surface in tracker
+    space (mm), its preoperative model (the same vertices and faces, its regions) and the
+    ledger the simulation marks what ran in."""
+
+    liver: trimesh.Trimesh
+    preop: PreopModel
+    ledger: Ledger
+
+
+@dataclass
+class Acquired:
+    """A source's simulated acquisition: points per feature (tracker mm, (N, 3) each) and
+    what the simulation report says of it (JSON-able)."""
+
+    points: dict[str, np.ndarray]
+    report: dict[str, Any] = field(default_factory=dict)
+
+
+class SimulatedSource(Protocol):
+    """An intraoperative data source the simulator can acquire from the truth.
+
+    ``name`` is both the ``features.TABLE`` ``source`` of the features it feeds and the
+    scene TOML table that enables it; a scene without that table simulates nothing of it.
+    """
+
+    name: str
+
+    def parse(self, table: dict, path) -> Any:
+        """The source's settings from its scene table (a frozen dataclass of plain values,
+        hashed into the scene's cache key). A bad table raises ``InputError`` in one line
+        naming the key."""
+        ...
+
+    def acquire(self, spec: Any, sight: Sight, rng: np.random.Generator) -> Acquired:
+        """Simulate the acquisition on the deformed truth."""
+        ...
+
+
+def features_of(source: str) -> tuple[str, ...]:
+    """The features ``source`` feeds (its rows of ``features.TABLE``)."""
+    return tuple(f.name for f in TABLE if f.source == source)
+
+
+@cache
+def registered() -> dict[str, SimulatedSource]:
+    """Source name → its ``SOURCE``, for every ``features.TABLE`` source that has a module here."""
+    out: dict[str, SimulatedSource] = {}
+    for name in dict.fromkeys(f.source for f in TABLE):
+        module = f"{__name__}.{name}"
+        if importlib.util.find_spec(module) is not None:
+            out[name] = importlib.import_module(module).SOURCE
+    return out

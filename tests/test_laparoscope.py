@@ -1,0 +1,343 @@
+"""The tracked laparoscope's sparse depth points (``simulation/sources/laparoscope.py``),
+a data source on the source protocol (``simulation/sources``)."""
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import trimesh
+
+from navapp.anatomy.caseio import read_case
+from navapp.cli import main
+from navapp.errors import InputError
+from navapp.simulation.scene import parse_scene
+from navapp.simulation.simulate import simulate
+from navapp.simulation.sources import features_of, registered
+from navapp.simulation.sources.laparoscope import (
+    LaparoscopeSpec,
+    cylinder_entry,
+    depth_sd,
+    first_hits,
+    look_at,
+    sense,
+)
+
+
+def trimesh_first_hits(mesh, origin, d):
+    """trimesh's own (pure numpy) ray caster's first hit per ray: distance, inf for none."""
+    loc, ray, _ = trimesh.ray.ray_triangle.RayMeshIntersector(mesh).intersects_location(
+        np.repeat(np.asarray(origin, float)[None], len(d), 0), d, multiple_hits=False)
+    t = np.full(len(d), np.inf)
+    t[ray] = np.linalg.norm(loc - origin, axis=1)
+    return t
+
+
+def two_spheres():
+    """A small sphere in front of a large one, seen from the origin along +y: the small one
+    hides part of the large one."""
+    front = trimesh.creation.icosphere(subdivisions=3, radius=15.0)
+    front.apply_translation([5.0, 80.0, 0.0])
+    back = trimesh.creation.icosphere(subdivisions=4, radius=40.0)
+    back.apply_translation([0.0, 160.0, 0.0])
+    return front, back, trimesh.util.concatenate([front, back])
+
+
+def test_first_hits_agree_with_trimesh_on_the_liver_phantom(phantoms):
+    liver = trimesh.Trimesh(phantoms[0].liver.vertices, phantoms[0].liver.faces, process=False)
+    target = liver.vertices.mean(0)
+    cam = look_at(target + [20.0, 140.0, -50.0], target, fov_deg=80.0)
+    t, tri = first_hits(cam, 12, liver.vertices, liver.faces)
+    _, d = cam.grid(12)
+    ref = trimesh_first_hits(liver, cam.centre, d)
+    assert 20 < np.isfinite(ref).sum() < len(d)  # some rays miss the liver, many hit it
+    np.testing.assert_array_equal(np.isfinite(t), np.isfinite(ref))
+    hit = np.isfinite(t)
+    np.testing.assert_allclose(t[hit], ref[hit], atol=1e-6)
+    assert (tri[hit] >= 0).all() and (tri[~hit] == -1).all()
+
+
+def test_first_hits_agree_with_trimesh_where_one_surface_hides_another():
+    front, back, both = two_spheres()
+    cam = look_at([0.0, 0.0, 0.0], [0.0, 1.0, 0.0], fov_deg=40.0)
+    t, _ = first_hits(cam, 24, both.vertices, both.faces)
+    _, d = cam.grid(24)
+    ref = trimesh_first_hits(both, cam.centre, d)
+    np.testing.assert_array_equal(np.isfinite(t), np.isfinite(ref))
+    hit = np.isfinite(t)
+    np.testing.assert_allclose(t[hit], ref[hit], atol=1e-6)
+
+
+def _segment_distance(a, b, p):
+    """Distance of point ``p`` (3,) from the segments a → b (P, 3) each, by projection."""
+    ab = b - a
+    s = np.clip(np.einsum("ij,ij->i", p - a, ab) / np.einsum("ij,ij->i", ab, ab), 0.0, 1.0)
+    return np.linalg.norm(a + s[:, None] * ab - p, axis=1)
+
+
+def test_a_hidden_surface_gives_no_points():
+    front, back, both = two_spheres()
+    cam = look_at([0.0, 0.0, 0.0], [0.0, 1.0, 0.0], fov_deg=40.0)
+    spec = LaparoscopeSpec(rays=48, keep=1.0, sd_mm=0.0, sd_growth_mm=0.0, max_incidence_deg=90.0)
+    pts = sense(cam, spec, both, np.random.default_rng(0)).points["laparoscope"]
+    on_back = np.abs(np.linalg.norm(pts - [0.0, 160.0, 0.0], axis=1) - 40.0) < 0.5
+    assert on_back.sum() > 100 and (~on_back).sum() > 20
+    # the line of sight to every point on the large sphere misses the small one (whose
+    # triangles lie within its radius, outside 0.98 of it)
+    sight = _segment_distance(np.repeat(cam.centre[None], on_back.sum(), 0), pts[on_back], np.array([5.0, 80.0, 0.0]))
+    assert sight.min() > 15.0 * 0.98
+    # and the large sphere's far side is never seen
+    assert (pts[on_back, 1] < 160.0 + 1e-6).all()
+
+
+def test_the_instrument_hides_what_is_behind_it(phantoms):
+    liver = trimesh.Trimesh(phantoms[0].liver.vertices, phantoms[0].liver.faces, process=False)
+    target = liver.vertices.mean(0)
+    cam = look_at(target + [0.0, 150.0, -40.0], target, fov_deg=70.0)
+    base = LaparoscopeSpec(rays=40, keep=1.0, sd_mm=0.0, sd_growth_mm=0.0, max_incidence_deg=90.0)
+    spec = LaparoscopeSpec(rays=40, keep=1.0, sd_mm=0.0, sd_growth_mm=0.0, max_incidence_deg=90.0,
+                           instrument_radius_mm=8.0, instrument_at=(0.1, 0.05))
+    free = sense(cam, base, liver, np.random.default_rng(0))
+    got = sense(cam, spec, liver, np.random.default_rng(0))
+    tip, port = (np.array(got.report["instrument"][k]) for k in ("tip_mm", "port_mm"))
+    pts, all_pts = got.points["laparoscope"], free.points["laparoscope"]
+    assert got.report["instrument"]["hidden_rays"] > 10
+    assert len(all_pts) - len(pts) == got.report["instrument"]["hidden_rays"]
+    # no kept point's line of sight passes through the instrument: sampled along each line,
+    # a sample between its two ends stays farther from its axis than its radius (the
+    # report's tip and port are rounded to 0.01 mm)
+    s = np.linspace(0.0, 1.0, 400)[:, None, None]
+    along = (cam.centre + s * (pts - cam.centre)).reshape(-1, 3)
+    axis = port - tip
+    w = (along - tip) @ axis / (axis @ axis)
+    between = (w > 0) & (w < 1)
+    dist = np.linalg.norm(along[between] - (tip + w[between, None] * axis), axis=1)
+    assert between.sum() > 1000 and dist.min() > 8.0 - 0.05
+    # the analytic entry agrees with sampling on the rays it hides
+    d = (all_pts - cam.centre) / np.linalg.norm(all_pts - cam.centre, axis=1, keepdims=True)
+    entry = cylinder_entry(cam.centre, d, tip, port, 8.0)
+    hidden = np.isfinite(entry)
+    assert hidden.sum() >= got.report["instrument"]["hidden_rays"]
+    p = cam.centre + entry[hidden, None] * d[hidden]
+    w = np.clip((p - tip) @ axis / (axis @ axis), 0.0, 1.0)
+    np.testing.assert_allclose(np.linalg.norm(p - (tip + w[:, None] * axis), axis=1), 8.0, atol=1e-6)
+
+
+def test_depth_noise_grows_with_depth_as_stated():
+    # a floor seen obliquely: depths from about 60 to 260 mm
+    floor = trimesh.creation.box(extents=[800.0, 800.0, 2.0])
+    cam = look_at([0.0, 0.0, 60.0], [0.0, 200.0, 1.0], fov_deg=90.0)
+    spec = LaparoscopeSpec(rays=200, keep=1.0, sd_mm=0.2, sd_growth_mm=0.8, far_mm=2000.0, max_incidence_deg=90.0)
+    pts = sense(cam, spec, floor, np.random.default_rng(3)).points["laparoscope"]
+    # the true depth of each noisy point: its ray meets the floor's top (z = 1)
+    d = pts - cam.centre
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    true_pts = cam.centre + d * ((1.0 - cam.centre[2]) / d[:, 2])[:, None]
+    z_true = (true_pts - cam.centre) @ cam.forward
+    err = (pts - cam.centre) @ cam.forward - z_true
+    near, far = (z_true > 60) & (z_true < 90), (z_true > 180) & (z_true < 260)
+    assert near.sum() > 500 and far.sum() > 500
+    for band in (near, far):
+        # the sample sd of the errors, normalised by the model's sd at each point: 1 ± 8 %
+        assert abs(np.std(err[band] / depth_sd(z_true[band], spec)) - 1.0) < 0.08
+        assert abs(np.mean(err[band] / depth_sd(z_true[band], spec))) < 0.1
+    assert np.std(err[far]) > 3 * np.std(err[near])  # the growth is seen, not only modelled
+
+
+SCENE = {"name": "lap", "seed": 0, "anatomy": {"phantom": 0},
+         "deformation": {"release": "L", "mesh_edge_mm": 10.0, "truth_E_pa": 5000.0},
+         "stylus": {"coverage": 0.05}, "ius": {"planes": 0},
+         "laparoscope": {"instrument_radius_mm": 6.0}}
+
+
+@pytest.mark.parametrize("table, words", [
+    ({"rays": 0}, "laparoscope.rays = 0 is out of range"),
+    ({"rays": 8.5}, "laparoscope.rays must be an int"),
+    ({"fov_deg": "wide"}, "laparoscope.fov_deg must be a float"),
+    ({"sd_growth_mm": -1.0}, "laparoscope.sd_growth_mm = -1.0 is out of range"),
+    ({"keep": 0.0}, "laparoscope.keep = 0.0 is out of range"),
+    ({"distance_mm": float("nan")}, "laparoscope.distance_mm = nan is out of range"),
+    ({"zoom": 2}, "unknown key laparoscope.zoom"),
+    ({"instrument_at": [2.0, 0.0]}, "laparoscope.instrument_at must be two image coordinates"),
+    ({"instrument_at": "left"}, "laparoscope.instrument_at must be two image coordinates"),
+    (3, "[laparoscope] must be a table"),
+])
+def test_a_bad_laparoscope_table_is_one_line(table, words):
+    with pytest.raises(InputError, match=None) as e:
+        parse_scene({**SCENE, "laparoscope": table})
+    assert words in str(e.value) and "\n" not in str(e.value)
+
+
+def test_a_bad_laparoscope_table_on_the_command_line_is_one_line(tmp_path, capsys):
+    scene = tmp_path / "bad.toml"
+    scene.write_text('name = "bad"\n[anatomy]\nphantom = 0\n[laparoscope]\nfov_deg = 500.0\n')
+    assert main(["simulate", str(scene), "--out", str(tmp_path / "out")]) != 0
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "laparoscope.fov_deg = 500.0 is out of range" in err
+    assert "Traceback" not in err and "bad.toml" in err
+
+
+def test_the_laparoscope_is_a_registered_source_of_one_feature():
+    assert "laparoscope" in registered() and features_of("laparoscope") == ("laparoscope",)
+
+
+@pytest.fixture(scope="module")
+def lap_case(tmp_path_factory, cache_root):
+    out = tmp_path_factory.mktemp("lap") / "case"
+    return out, simulate(parse_scene(SCENE), out, cache_root)
+
+
+def test_only_a_scene_with_a_laparoscope_simulates_one(lap_case, cache_root, tmp_path):
+    out, report = lap_case
+    assert "laparoscope" in report["ran"] and "laparoscope_instrument" in report["ran"]
+    plain = simulate(parse_scene({k: v for k, v in SCENE.items() if k != "laparoscope"}), tmp_path / "p", cache_root)
+    assert "laparoscope" not in plain["ran"] and "laparoscope" not in plain
+    assert not (tmp_path / "p" / "intraop" / "laparoscope.csv").exists()
+    # its own random stream: the stylus data are drawn as without it
+    a, b = read_case(out).intraop, read_case(tmp_path / "p").intraop
+    np.testing.assert_array_equal(a["anterior"], b["anterior"])
+
+
+def test_laparoscope_points_lie_on_the_deformed_surface_within_their_noise(lap_case):
+    out, report = lap_case
+    pts = read_case(out).intraop["laparoscope"]
+    assert len(pts) == report["laparoscope"]["points"] > 50
+    liver = trimesh.load(out / "truth" / "liver.ply", process=False)
+    off = np.abs(trimesh.proximity.signed_distance(liver, pts))
+    spec = LaparoscopeSpec(instrument_radius_mm=6.0)
+    assert off.max() < 5 * depth_sd(report["laparoscope"]["depth_mm"]["max"], spec)
+    assert np.median(off) > 0.01  # noisy, not on the surface exactly
+
+
+def _register(case, capsys) -> dict:
+    assert main(["--quiet", "register", str(case), "--edge", "12", "--k", "12", "--json"]) == 0
+    capsys.readouterr()
+    return json.loads((case / "registration" / "result.json").read_text())
+
+
+def test_a_scene_with_a_laparoscope_registers_and_corrects_the_deformation(lap_case, capsys, tmp_path):
+    out, report = lap_case
+    result = _register(out, capsys)
+    assert "laparoscope" in result["features"] and result["answer"] == "deformable"
+    uncorrected = report["displacement_mm"]["mean"]  # the preoperative model left where it was
+    tre = result["tre_deformable"]["mean_mm"]
+    assert tre < 0.6 * uncorrected and tre < result["tre_rigid"]["mean_mm"]
+    # the same case without the camera's points: the few stylus points alone do not correct it
+    shutil.copytree(out, tmp_path / "stylus", ignore=shutil.ignore_patterns("registration"))
+    (tmp_path / "stylus" / "intraop" / "laparoscope.csv").unlink()
+    alone = _register(tmp_path / "stylus", capsys)["tre_deformable"]["mean_mm"]
+    assert tre < alone - 2.0
+
+
+def test_live_laparoscope_points_arrive_as_a_point_message():
+    import socket
+    import time
+
+    import pyigtl
+
+    from navapp.tracking.client import TrackingClient
+    from navapp.tracking.config import TrackingConfig
+    from navapp.tracking.events import Skipped, SourcePoints
+
+    listener = socket.create_server(("127.0.0.1", 0))
+    listener.settimeout(5.0)
+    events: list = []
+    client = TrackingClient(TrackingConfig(port=listener.getsockname()[1], reconnect_s=0.05),
+                            on_event=events.append).start()
+    sent = np.array([[1.0, 2.0, 3.0], [4.0, 5.0, 6.5], [-7.0, 8.0, 9.25]])
+    try:
+        conn, _ = listener.accept()
+        stamp = time.time()
+        conn.sendall(pyigtl.PointMessage(positions=sent, device_name="laparoscope", timestamp=stamp).pack()
+                     # another device's points (a fiducial list from Slicer) are not a source's
+                     + pyigtl.PointMessage(positions=sent, device_name="F", timestamp=stamp).pack()
+                     + pyigtl.PointMessage(positions=[[np.nan, 0.0, 0.0]], device_name="laparoscope",
+                                           timestamp=stamp + 1).pack()
+                     + pyigtl.PointMessage(positions=sent[:1] + 1, device_name="laparoscope",
+                                           timestamp=stamp + 2).pack())
+        end = time.monotonic() + 5.0
+        while sum(isinstance(e, SourcePoints) for e in events) < 2 and time.monotonic() < end:
+            time.sleep(0.01)
+    finally:
+        client.stop()
+        listener.close()
+    got = [e for e in events if isinstance(e, SourcePoints)]
+    assert [e.feature for e in got] == ["laparoscope", "laparoscope"]
+    np.testing.assert_array_equal(got[0].points, sent)
+    np.testing.assert_array_equal(got[1].points, sent[:1] + 1)
+    assert [e.kind for e in events if isinstance(e, Skipped)] == ["malformed"]
+    assert client.counts["ignored:POINT"] == 1
+    conn.close()
+
+
+def test_the_session_keeps_and_draws_the_laparoscope_points(cache_root, tmp_path):
+    from navapp.app.palette import FEATURE_COLOURS
+    from navapp.app.session import Session, open_session
+    from navapp.simulation.scenedata import load_scene_data, scene_key
+
+    sd = load_scene_data(parse_scene(SCENE), cache_root, edge=14.0)
+    pts = sd.case.intraop["laparoscope"]
+    np.testing.assert_array_equal(sd.sourced["laparoscope"], pts)
+    s = Session(tmp_path / "s", scene_key(sd.scene, 14.0))
+    s.live_points.append([1.0, 2.0, 3.0, "laparoscope"])  # a live POINT message's point
+    data = s.data(sd, {})
+    assert set(data) == {"laparoscope"}  # no stylus sweep yet: the camera's points are there at once
+    np.testing.assert_array_equal(data["laparoscope"], np.vstack([pts, [[1.0, 2.0, 3.0]]]))
+    s.save(sd, {})
+    again, _ = open_session(tmp_path / "s", sd)
+    assert again.live_points == s.live_points
+    assert FEATURE_COLOURS["laparoscope"] == (255, 120, 200)  # drawn in its own colour, as every feature
+
+
+def test_the_viewer_takes_live_laparoscope_points_into_its_session(cache_root, tmp_path):
+    """``navapp serve --igtl`` against a server that sends a POINT message named ``laparoscope``:
+    the points join the session's data beside the simulated camera's."""
+    import time
+
+    import pyigtl
+    from conftest import BUSY_WAIT_S, free_port
+
+    from navapp.app.server import App
+    from navapp.tracking.config import TrackingConfig
+    from navapp.tracking.replay import quiet_server
+
+    server = quiet_server(0)
+    server.start()
+    app = App(parse_scene(SCENE), port=free_port(), session_dir=tmp_path / "s", edge=12.0, k=12,
+              cache_root=cache_root, tracking=TrackingConfig(port=server.server_address[1]))
+    sent = np.array([[10.0, 20.0, 30.0], [11.0, 21.0, 31.5]])
+    try:
+        assert app.start().wait(600) and app.core.failed is None, app.core.failed
+        end = time.monotonic() + BUSY_WAIT_S
+        while not server.is_connected() and time.monotonic() < end:
+            time.sleep(0.02)
+        server.send_message(pyigtl.PointMessage(positions=sent, device_name="laparoscope", timestamp=time.time()),
+                            wait=True)
+        while len(app.core.session.live_points) < 2 and time.monotonic() < end:
+            time.sleep(0.02)
+        assert [p[3] for p in app.core.session.live_points] == ["laparoscope", "laparoscope"]
+        data = app.core.data()["laparoscope"]
+        simulated = app.core.sd.sourced["laparoscope"]
+        np.testing.assert_array_equal(data, np.vstack([simulated, sent]))
+    finally:
+        app.live.stop()
+        app.server.stop()
+        app.view2d.stop()
+        server.stop()
+
+
+def test_a_laparoscope_point_far_off_is_named_by_its_source():
+    from navapp.app.contours import Origin, OriginKind
+    from navapp.app.runs import worst_points
+    from navapp.registration.objective import Weights
+    from navapp.registration.residuals import PointResidual
+
+    data = {"laparoscope": np.zeros((2, 3)), "anterior": np.ones((1, 3))}
+    origins = {"laparoscope": [Origin(OriginKind.SOURCE), Origin(OriginKind.LIVE)],
+               "anterior": [Origin(OriginKind.LIVE)]}
+    residuals = [PointResidual("laparoscope", 0, 30.0, True), PointResidual("laparoscope", 1, 20.0, True),
+                 PointResidual("anterior", 0, 10.0, True)]
+    worst = worst_points(None, data, origins, Weights(), n=3, residuals=residuals)  # type: ignore[arg-type]
+    assert [w.where for w in worst] == ["the laparoscope's depth points, simulated laparoscope",
+                                        "the laparoscope's depth points, live laparoscope",
+                                        "the anterior surface, tracked stylus"]
