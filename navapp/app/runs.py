@@ -347,12 +347,13 @@ def tell(core: Core, entry: RunEntry, pose_warning: str | None, warnings: list[s
     if entry.cancelled:
         core.notify("Registration", "Cancelled: the previous result is kept.")
         return
-    if entry.warning and entry.warning.strip() == (pose_warning or "").strip():
-        # said already, pinned over the 3D view while the pose is on show (``ClientView._pose_alert``):
-        # a second red box with the same words covered more of the liver at 1366 × 768
+    # a line said already, pinned over the 3D view while the pose is on show (``ClientView._pose_alert``),
+    # is not said again in a second red box: it covered more of the liver at 1366 × 768
+    unsaid = [w for w in warnings if w not in (pose_warning or "")]
+    if entry.warning and pose_warning and not unsaid:
         core.withdraw(CHECK_THE_FIT)
     elif entry.warning:
-        core.notify(CHECK_THE_FIT, fit_notice(warnings, entry.pose_only, left_out), error=True)
+        core.notify(CHECK_THE_FIT, fit_notice(unsaid, entry.pose_only, left_out), error=True)
         return
     else:
         core.withdraw(CHECK_THE_FIT)

@@ -110,8 +110,12 @@ def pose_warning(reg: "Registration") -> str | None:
     """Everything that says ``reg``'s pose is not to be believed, one line (None: nothing):
     the notes (too few or collinear points: ``pipeline.undetermined_pose``; too little coverage,
     which ``register`` notes on every registration it returns, and a restored result carries
-    in its saved line) and an undetermined pose."""
+    in its saved line) and an undetermined pose; with either, the pose search's own line."""
     lines = list(reg.notes)
     if reg.determinacy is not None and reg.determinacy.warning:
         lines.append(reg.determinacy.warning)
+    if lines and reg.pose_choice is not None and reg.pose_choice.warning:
+        # what the pose search says of that same pose (ICP turned the organ further than a
+        # tracker errs) belongs beside it: said once, pinned, not in a second red box
+        lines.append(reg.pose_choice.warning)
     return "; ".join(dict.fromkeys(lines)) or None
