@@ -96,11 +96,14 @@ def test_a_live_session_from_the_replay_server(tmp_path):
             wait_text(page, r"Image_Reference: \*?\*?seen", deadline)
 
             # digitise while the switch is on
+            # (until ten points are shown, not for a fixed time: on a loaded machine the switch
+            # reached the server late, and the count read after it was switched off was 0)
             toggle(page, "Digitise (record while on)", True, deadline)
-            page.wait_for_timeout(2500)
+            count = r"(\d+) points digitised with the tracked stylus"
+            while int(wait_text(page, count, deadline).group(1)) < 10:
+                page.wait_for_timeout(500)
             toggle(page, "Digitise (record while on)", False, deadline)
-            n = int(wait_text(page, r"(\d+) points digitised with the tracked stylus", deadline).group(1))
-            assert n >= 10
+            assert int(wait_text(page, count, deadline).group(1)) >= 10
 
             # freeze the live frame: it becomes a plane shown in the 2D view
             page.get_by_role("button", name="Freeze this frame as a plane (to draw on)").click(timeout=deadline.ms())

@@ -25,6 +25,7 @@ re-registration on every frame.
 
 from __future__ import annotations
 
+import logging
 import statistics
 import threading
 import time
@@ -47,6 +48,8 @@ from .shown import Shown
 from .slicer import Slicer
 from .state import Action, Change, ClientState, RegisteredState, RunEntry, RunKind, Undone, checked_by
 from .worker import viewer_options
+
+log = logging.getLogger(__name__)
 
 PUMP_HZ = 20.0  # status refresh and digitiser collection; tip and frames go out as they arrive
 TIP_MIN_S = 1.0 / 60  # at most this often per browser: a 100 Hz tracker would flood the websockets
@@ -327,6 +330,7 @@ class LiveFollower:
         try:
             self._update(f)
         except Exception as exc:  # shown, and the follower switches off
+            log.error("live re-registration stopped", exc_info=True)  # the developer's trace, in the server's log
             self.on = False
             self.last_error = f"{exc.__class__.__name__}: {exc}"
             self.core.notify("Live re-registration stopped", self.last_error, error=True)
