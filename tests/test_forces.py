@@ -94,7 +94,7 @@ def test_the_force_fit_is_a_continuous_function_of_its_data(forces, held_basis, 
     at most ~30 on the shift; 10⁻⁶ leaves room for a gain of 1000. With the face's own normal at
     an edge or vertex, a point there took the normal of whichever incident face won the tie,
     its distance jumped (by 0.09 mm at w = 0 for 6 of 293 points), and the nodes moved by up to
-    0.53 mm (15 mm dent) and 4.1 mm (4 cm dent) (notes/forces_rounding.txt)."""
+    0.53 mm (15 mm dent) and 4.1 mm (4 cm dent) (docs/decisions.md)."""
     from navapp.mechanics import sparse
     from navapp.registration.forces import ForceOptions, SurfaceForces
 

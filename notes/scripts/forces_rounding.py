@@ -3,8 +3,8 @@ dents on the 12 mm phantom: 15 mm deep under a 25 mm tool, λ = 0.1, and the 4 c
 noise, λ = 0.01) depend on rounding: each fit with the factorisation's nested-dissection
 ordering and with SuperLU's minimum-degree ordering, for the data as they are and moved by
 10⁻⁹ mm and 2 × 10⁻⁹ mm (a change no measurement could see). The "before" in
-notes/forces_rounding.txt is commit c459ce2 (a face's own normal at an edge or vertex, and
-SuperLU with nested dissection as the default); "after" the distance field's gradient there.
+notes/forces_rounding.txt is commit c459ce2 (a face's own normal at an edge or vertex); "after"
+the distance field's gradient there.
 
     python notes/scripts/forces_rounding.py
 """
