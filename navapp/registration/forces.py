@@ -13,9 +13,12 @@ volume V. For surface points p_i matched to the deformed surface at fixed corres
 
 quadratic in f. Its gradient by the adjoint: with g_u = −(2/N) Σ_i a_iᵀ r_i n_i,
 ∂Φ/∂f = Pᵀ K_ff⁻¹ g_u + (λ / V) Pᵀ u — two solves with one factorisation per evaluation,
-whatever S is (``objective``; a finite-difference test). At fixed correspondences Φ's
-minimiser lies in the data's own span (one normal force per data point: an N × N system with
-the supported body's Green's matrix, where the adjoint gradient vanishes, a test). So the
+whatever S is (``objective``; a finite-difference test). The normal n_i is the face's where
+the closest point lies inside a triangle and the distance field's gradient where it lies on an
+edge or vertex, so n_iᵀ(p_i − y_i) is the true distance, continuous in the data and the forces
+(``correspondences``). At fixed correspondences Φ's minimiser lies in the data's own span
+(one normal force per data point: an N × N system with the supported body's Green's matrix,
+where the adjoint gradient vanishes, a test). So the
 forces act at the data's undeformed correspondences along their normals — at ``sites`` of
 them, spread by farthest-point sampling, one solve each (``responses``) — and the
 correspondences are recomputed on the deformed surface by a monotone Levenberg–Marquardt on
@@ -40,7 +43,7 @@ from scipy.spatial import cKDTree
 
 from ..anatomy.tets import TetMesh, tet_volumes
 from ..features import LIVER_SURFACE
-from ..geometry.closest import NEAR, closest_on_surface, incidence
+from ..geometry.closest import NEAR, closest_on_surface, incidence, surface_normals
 from ..mechanics.basis import Basis
 from ..mechanics.fem import stiffness
 from ..mechanics.sparse import Factorisation
@@ -160,13 +163,17 @@ class SurfaceForces:
         return phi, grad
 
     def correspondences(self, points: np.ndarray, u: np.ndarray):
-        """A (N, M), normals (N, 3), c (N,) of ``points`` (N, 3) on the surface deformed by u."""
+        """A (N, M), normals (N, 3), c (N,) of ``points`` (N, 3) on the surface deformed by u.
+
+        The normals are ``surface_normals``': the face's inside a triangle, the distance field's
+        gradient where the closest point is on an edge or vertex, so c is the true distance and
+        continuous in the points. A face's own normal there was the normal of whichever
+        incident face won a tie of equal distances (rounding decides it), and the fit's answer
+        moved by up to 4 mm with the data moved by 10⁻⁹ mm (docs/decisions.md)."""
         moved = self.nodes + u
         face, bary, _ = closest_on_surface(points, moved, self.faces, self.table)
         tri = self.faces[face]
-        e1, e2 = moved[tri[:, 1]] - moved[tri[:, 0]], moved[tri[:, 2]] - moved[tri[:, 0]]
-        nrm = np.cross(e1, e2)
-        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+        nrm = surface_normals(points, moved, self.faces, face, bary)
         rows = np.repeat(np.arange(len(points)), 3)
         A = sp.csr_matrix((bary.ravel(), (rows, tri.ravel())), shape=(len(points), self.M))
         y = A @ self.nodes
@@ -236,15 +243,15 @@ class SurfaceForces:
 
     def distances(self, points: np.ndarray, us: np.ndarray):
         """Signed distances (N,) of ``points`` to the surface moved by ``us`` (3 S_all,) at the
-        surface nodes, with their normal rows over the surface DOFs (the Jacobian's left factor)."""
+        surface nodes (the true distances: ``correspondences``' normals), with their barycentric
+        rows and normals (the Jacobian's left factor)."""
         moved = self.nodes.copy()
         moved[self.all_surface] += us.reshape(-1, 3)
         # the nearest vertices among the surface nodes only (an interior node has no face to test)
         near = cKDTree(moved[self.all_surface]).query(points, k=NEAR)[1].reshape(len(points), NEAR)
         face, bary, y = closest_on_surface(points, moved, self.faces, self.table, nearest=self.all_surface[near])
         tri = self.faces[face]
-        nrm = np.cross(moved[tri[:, 1]] - moved[tri[:, 0]], moved[tri[:, 2]] - moved[tri[:, 0]])
-        nrm /= np.maximum(np.linalg.norm(nrm, axis=1, keepdims=True), 1e-300)
+        nrm = surface_normals(points, moved, self.faces, face, bary)
         rows = np.repeat(np.arange(len(points)), 3)
         A = sp.csr_matrix((bary.ravel(), (rows, tri.ravel())), shape=(len(points), self.M))
         return np.einsum("ij,ij->i", points - y, nrm), A, nrm
