@@ -177,6 +177,34 @@ def test_live_re_registration_follows_the_frames_and_reaches_slicer(live_app):
     assert segment_frame(sd, 0, sd.planes[0].probe_to_tracker)
 
 
+def test_a_live_update_that_raises_stops_the_follower_and_is_said_once(live_app, monkeypatch):
+    """CI saw the follower's first update raise, and the same error in two red boxes: once as
+    it stopped, again when it tried to settle the same data. Said once, and its trace goes to
+    the server's log."""
+    from navapp.registration.live import LiveRegistration
+
+    app, server, sd = live_app
+    follower = app.live.link.follower
+    said = []
+    monkeypatch.setattr(app.core, "notify", lambda title, body, error=False: said.append((title, body)))
+
+    def raises(self, frame, options=None):
+        self.frame = frame
+        raise IndexError("index -1 is out of bounds for axis 0 with size 0")
+
+    monkeypatch.setattr(LiveRegistration, "update", raises)
+    follower.reg = None
+    try:
+        assert app.live.set_follow(True) is None
+        assert wait_until(lambda: not follower.on)
+        assert follower.summary().startswith("Stopped: IndexError")
+        follower._step()  # the thread's next pass, now: switched off, it settles what it holds
+        assert [t for t, body in said if "IndexError" in body] == ["Live re-registration stopped"], said
+    finally:
+        app.live.set_follow(False)
+        follower.reg = None
+
+
 class TipRecorder:
     """A stand-in browser view: what the pump told it to show."""
 

@@ -332,6 +332,8 @@ class LiveFollower:
         except Exception as exc:  # shown, and the follower switches off
             log.error("live re-registration stopped", exc_info=True)  # the developer's trace, in the server's log
             self.on = False
+            if self.reg is not None:  # nothing to settle: converging on the same data raised the same again
+                self.reg.frame = None
             self.last_error = f"{exc.__class__.__name__}: {exc}"
             self.core.notify("Live re-registration stopped", self.last_error, error=True)
 
