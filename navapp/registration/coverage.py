@@ -47,12 +47,12 @@ def data_coverage(model: RegistrationModel, data_model_frame: dict) -> Coverage:
     if not pts or "liver" not in model.features:
         return Coverage(0.0)
     nodes = model.features["liver"].rest
-    last = model.cache.get("coverage", {})
+    last = model.cache.coverage
     kept, covered = {}, np.zeros(len(nodes), bool)
     for name, Y in pts.items():
         kept[name] = entry = _feature_cover(nodes, Y, last.get(name))
         covered |= entry[3]
-    model.cache["coverage"] = kept  # replaced whole: a registration in another thread reads either
+    model.cache.coverage = kept  # replaced whole: a registration in another thread reads either
     return Coverage(float(np.mean(covered)))
 
 

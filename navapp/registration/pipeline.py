@@ -353,9 +353,9 @@ def check_units(model: RegistrationModel, data: dict) -> None:
         return
     span = float(np.ptp(np.vstack(pts), axis=0).max())
     # the model's extent once, not per live update (keyed by the nodes: a replaced model shares the cache)
-    hit = model.cache.get("extent_mm")
+    hit = model.cache.extent_mm
     if hit is None or hit[0] is not model.basis.nodes:
-        hit = model.cache["extent_mm"] = (model.basis.nodes, float(np.ptp(model.basis.nodes, axis=0).max()))
+        hit = model.cache.extent_mm = (model.basis.nodes, float(np.ptp(model.basis.nodes, axis=0).max()))
     size = hit[1]
     if span < size / UNIT_RATIO:
         raise InputError(f"the data points span {span:.3g} mm against a {size:.0f} mm model: are they in metres? "
