@@ -33,7 +33,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..registration.coverage import pose_warning
+from ..fitwarning import one_line
 from ..registration.live import LiveRegistration, merge
 from ..registration.pipeline import Registration
 from ..simulation.scenedata import auto_segmentation, segment_frame
@@ -459,7 +459,7 @@ class Live:
         checked = checked_by(core.result, reg, warm=True)
         predicted = shown.predict(reg, checked) if final else (None, [])  # ~0.1 s: not on every frame
         state = RegisteredState(RunKind.LIVE.label, reg.rigid, beta, err, *predicted,
-                                data_model_frame=reg.data_model_frame, pose_warning=pose_warning(reg),
+                                data_model_frame=reg.data_model_frame, pose_warning=one_line(reg.pose_doubts),
                                 checked=checked)
         flipped = (core.result.pose_warning if core.result is not None else None) != state.pose_warning
         with core.lock:
