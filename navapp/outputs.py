@@ -129,10 +129,24 @@ def staged(out):
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    if out.exists():
-        old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-        os.replace(out, old / "content")
-        os.replace(tmp, out)
+    old = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+    try:
+        replace_folder(tmp, out, old / "content")
+    finally:
         shutil.rmtree(old, ignore_errors=True)
-    else:
-        os.replace(tmp, out)
+
+
+def replace_folder(new: Path, folder: Path, aside: Path) -> None:
+    """Put the finished folder ``new`` where ``folder`` is, whole: the one way navapp swaps a
+    folder in (``staged``, the viewer's first session save). ``new`` and ``aside`` lie beside
+    ``folder`` (the same file system: renames are atomic); ``aside`` does not exist. An absent
+    or empty ``folder`` is replaced by one rename (rename(2) replaces an empty folder);
+    otherwise the old one is renamed to ``aside``, ``new`` renamed in, and ``aside`` deleted,
+    so that a kill at any point leaves ``folder`` either old or new, never half of each (the
+    caller names ``new`` and ``aside`` so that its next start removes what a kill left)."""
+    if not folder.exists() or not any(folder.iterdir()):
+        os.replace(new, folder)
+        return
+    os.replace(folder, aside)
+    os.replace(new, folder)
+    shutil.rmtree(aside, ignore_errors=True)

@@ -95,7 +95,7 @@ def test_a_deformable_fit_on_a_pose_nobody_should_believe_gives_no_tumour_figure
     reg = app.core.last_reg
     assert res.predicted_mm is None
     assert reg.deformed and reg.organ is not None
-    assert not any("predicted error over the organ" in w for w in reg.warnings), reg.warnings
+    assert not any("predicted error over the organ" in w.text for w in reg.warnings), reg.warnings
 
 
 def test_the_surgeon_states_the_pose_and_a_patch_keeps_it(app, tmp_path):
@@ -214,5 +214,5 @@ def test_a_pose_not_to_be_believed_is_said_once_with_all_its_reasons(app, monkey
         app.core.settle()
         pinned = app.core.result.pose_warning
         assert pinned, plane
-        assert all(w in pinned for w in app.core.last_reg.warnings), (plane, app.core.last_reg.warnings)
+        assert all(w.text in pinned for w in app.core.last_reg.warnings), (plane, app.core.last_reg.warnings)
     assert CHECK_THE_FIT not in told, told

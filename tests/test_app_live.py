@@ -408,3 +408,21 @@ def test_a_switch_toggled_in_the_browser_is_not_undone_by_a_refresh_before_its_c
     follower.on = False  # the follower switched itself off (its error): the switch follows
     panel.refresh(Change.LIVE)
     assert panel.live_reg.value is False and calls[-1] == ("record", True)
+
+
+def test_a_frames_image_to_reference_gives_back_the_probe_pose_and_spacing():
+    """``probe_pose_from_image`` inverts ``Probe.image_to_probe``: a tracked frame's
+    ImageToReference (scipy's rotation, a shift, a 0.27 mm pixel) gives back the rigid
+    ProbeToTracker and the spacing."""
+    from scipy.spatial.transform import Rotation
+
+    from navapp.app.live import probe_pose_from_image
+    from navapp.simulation.probe import Probe
+
+    probe = Probe(width_px=301, height_px=200, spacing_mm=0.27)
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("zyx", [40.0, -25.0, 110.0], degrees=True).as_matrix()
+    T[:3, 3] = [12.5, -80.0, 33.0]
+    got, spacing = probe_pose_from_image(T @ probe.image_to_probe(), probe.width_px, probe.height_px)
+    assert spacing == pytest.approx(0.27, abs=1e-12)
+    np.testing.assert_allclose(got, T, atol=1e-9)

@@ -13,6 +13,7 @@ from navapp.app.panels import ClientView
 from navapp.app.panels.registration import POSE_ONLY, RegistrationPanel
 from navapp.app.runs import fit_notice
 from navapp.app.state import RegisteredState, Run, RunEntry, RunKind
+from navapp.fitwarning import FitWarning, WarningKind
 
 
 def test_a_deformable_run_answered_with_its_pose_says_so_in_a_short_box(small_model, phantoms):
@@ -26,7 +27,7 @@ def test_a_deformable_run_answered_with_its_pose_says_so_in_a_short_box(small_mo
     assert not RunEntry.of(RunKind.RIGID, reg, 10, 1.0).pose_only  # a rigid run asked for no deformation
 
     notice = fit_notice(reg.warnings, entry.pose_only)
-    whole = "; ".join(reg.warnings)
+    whole = "; ".join(w.text for w in reg.warnings)
     assert notice.startswith("⚠ ") and "; deformation not determined by the data." in notice, notice
     assert "Shown: the pose alone" in notice and len(notice) < 300 < len(whole), (notice, whole)
 
@@ -201,9 +202,9 @@ def test_a_clean_run_takes_down_the_red_box_of_a_warned_one():
     core.each_view = lambda fn: fn(view)
     warned = types.SimpleNamespace(cancelled=False, warning="poor fit: posterior 6.1 mm RMS", pose_only=False)
     clean = types.SimpleNamespace(cancelled=False, warning=None, pose_only=False)
-    tell(core, warned, None, ["poor fit: posterior 6.1 mm RMS (expected ≤ 3.0)"], [])
+    tell(core, warned, [], [FitWarning(WarningKind.POOR_FIT, "poor fit: posterior 6.1 mm RMS (expected ≤ 3.0)")], [])
     assert [b.title for b in shown if b.red] == [CHECK_THE_FIT]
-    tell(core, types.SimpleNamespace(cancelled=True), None, [], [])  # the warned result stays on show
+    tell(core, types.SimpleNamespace(cancelled=True), [], [], [])  # the warned result stays on show
     assert [b.title for b in shown if b.red] == [CHECK_THE_FIT]
-    tell(core, clean, None, [], [])
+    tell(core, clean, [], [], [])
     assert not [b for b in shown if b.red], [(b.title, b.body) for b in shown]

@@ -60,7 +60,7 @@ def believable(app, entry, low=0.5, high=3.0):
               "surface": float(res.predicted_mm.mean() / res.node_error_mm[surf].mean())}
     ratios.update({b.name: b.predicted_mm / entry.targets_mm[b.name] for b in res.target_bands})
     assert all(low <= r <= high for r in ratios.values()), ratios
-    assert not any("predicted error over the organ" in w for w in reg.warnings), reg.warnings
+    assert not any("predicted error over the organ" in w.text for w in reg.warnings), reg.warnings
 
 
 def test_a_stray_vertex_is_rejected_listed_first_and_removable(app):

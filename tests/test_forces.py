@@ -267,7 +267,7 @@ def test_declared_supports_the_data_contradict_are_warned(coarse_mesh, held_basi
 
     fc = reg.forces
     assert fc is not None and fc.free_mm is not None
-    said = [w for w in reg.warnings if "declared supports" in w]
+    said = [w for w in reg.warnings if "declared supports" in w.text]
     if contradicted:
         assert err(reg) > err(undeclared)  # the premise: the wrong supports made the answer worse
         assert fc.free_mm < fc.shown_mm and len(said) == 1

@@ -2,6 +2,8 @@
 determinacy, the last evaluation's geometry and correspondences) gives the answers computed
 afresh, whatever the data do between calls."""
 
+from dataclasses import replace
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -96,7 +98,7 @@ def test_evaluation_at_the_last_state_equals_a_fresh_one(small_model):
     anterior = _surface_sample(model, rng, 50, 0.5)
     posterior = _surface_sample(model, rng, 20, 0.5)
     first = evaluate(model, {"anterior": anterior, "posterior": posterior}, beta, Weights())
-    assert "evaluation" in model.cache
+    assert model.cache.evaluation is not None
     posterior[:5] += 2.0  # the caller's array changed in place: not the points of the last call
     for data in ({"anterior": anterior, "posterior": posterior},
                  {"anterior": anterior, "posterior": posterior[:7], "ridge_right": _surface_sample(model, rng, 9)},
@@ -128,3 +130,17 @@ def test_a_fits_end_is_found_again_after_other_fits(small_model):
         assert _at(model, b) is not None
         got, fresh = (evaluate(m, data, b, Weights()) for m in (model, _bare(model)))
         assert np.array_equal(got.f, fresh.f) and np.array_equal(got.J, fresh.J)
+
+
+def test_cache_copy_is_written_apart(small_model):
+    """``ModelCache.copy`` (the benchmarks' ``replace(model, cache=model.cache.copy())``): the
+    copy starts with the same entries, and an evaluation on one model warms only that one."""
+    model = _bare(small_model)
+    rng = np.random.default_rng(7)
+    beta = np.zeros(model.basis.Ju.shape[1] + 6)
+    evaluate(model, {"anterior": _surface_sample(model, rng, 30, 0.5)}, beta, Weights())
+    other = replace(model, cache=model.cache.copy())
+    assert other.cache is not model.cache and other.cache.evaluation is model.cache.evaluation
+    evaluate(other, {"anterior": _surface_sample(model, rng, 30, 0.5)}, beta + 0.1, Weights())
+    assert not np.array_equal(other.cache.evaluation[0], model.cache.evaluation[0])
+    assert np.array_equal(model.cache.evaluation[0], beta)

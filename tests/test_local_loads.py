@@ -6,6 +6,7 @@ import pytest
 import trimesh
 
 from navapp.errors import InputError, NavappError
+from navapp.fitwarning import WarningKind
 from navapp.mechanics.fem import Material
 from navapp.simulation.scene import parse_scene
 from navapp.simulation.truth import (
@@ -185,7 +186,7 @@ def test_a_partial_sphere_keeps_its_given_pose_and_names_its_sliding_motions(sph
     rotations = [r for r, _, _ in reg.determinacy.weak if r is not None]
     assert len(rotations) == 3  # a ball turns freely about its centre
     assert "rotation about" in reg.determinacy.warning
-    assert reg.determinacy.warning in reg.warnings
+    assert reg.determinacy.warning in [w.text for w in reg.warnings]
     # Slicer hears it too: the status line carries every warning, and no "fit ok"
     from navapp.tracking.results import ascii_text, status_line
 
@@ -225,7 +226,7 @@ def test_the_warning_fires_where_the_data_cannot_determine_the_answer(small_mode
     assert not reg.deformed
     probe = small_model.basis.nodes
     assert np.array_equal(reg.transform(probe), probe)  # exactly the given pose
-    assert any(w.startswith("deformation not supported by the data") for w in reg.warnings)
+    assert any(w.text.startswith("deformation not supported by the data") for w in reg.warnings)
 
     n = small_model.basis.Ju.shape[1]
     alpha = np.zeros(n)
@@ -234,7 +235,7 @@ def test_the_warning_fires_where_the_data_cannot_determine_the_answer(small_mode
         rest[:, 1] > np.percentile(rest[:, 1], 40)]
     good = register(small_model, {"anterior": moved})
     assert good.support is not None and good.support.supported and good.deformed
-    assert not any(w.startswith("deformation not supported") for w in good.warnings)
+    assert not any(w.text.startswith("deformation not supported") for w in good.warnings)
 
 
 def test_the_pose_most_of_a_dented_scan_agrees_on_is_taken_not_icps_compromise(small_model):
@@ -327,7 +328,7 @@ def test_a_pose_the_fit_does_not_pay_for_is_not_taken_over_the_given_one(small_m
     assert choice.source is PoseSource.GIVEN_FITS and reg.rigid.kept
     assert choice.fits.given_rms_mm <= POSE_RULE.given_ratio * choice.fits.fitted_rms_mm
     assert np.allclose(reg.rigid.apply(nodes), nodes)
-    assert any(w.startswith("ICP's pose is not earned by the fit: it moved") for w in reg.warnings)
+    assert any(w.text.startswith("ICP's pose is not earned by the fit: it moved") for w in reg.warnings)
     assert far_motion(reg) < 2.0
 
     monkeypatch.setattr(pipeline, "prefer_given", lambda *a, **k: None)
@@ -336,7 +337,8 @@ def test_a_pose_the_fit_does_not_pay_for_is_not_taken_over_the_given_one(small_m
     assert far_motion(before) > 15.0
     # where ICP's pose stays the answer (its fit here is taken as better by more than the
     # margin), the answer from it still in doubt: one line says how far it moved the organ
-    line = next(w for w in before.warnings if w.startswith("ICP's pose is kept, though the answer from it is in doubt"))
+    line = next(w.text for w in before.warnings
+                if w.text.startswith("ICP's pose is kept, though the answer from it is in doubt"))
     moved = float(line.split("it moved the organ ")[1].split(" mm")[0])
     assert moved == round(before.pose_choice.fits.shift_mm) and moved > 5.0, line
     assert before.pose_choice.as_dict()["fitted_shift_mm"] > 5.0
@@ -345,13 +347,13 @@ def test_a_pose_the_fit_does_not_pay_for_is_not_taken_over_the_given_one(small_m
     s = before.support
     assert s.correction_mm is not None and s.correction_mm < s.z_strong * s.sigma_mm and not s.outweighs
     assert not before.pose_choice.confirmed
-    assert any(w.startswith("deformation not supported by the data") for w in before.warnings)
+    assert any(w.text.startswith("deformation not supported by the data") for w in before.warnings)
 
     # were the correction to outweigh its σ, the same answer would be shown without either line
     strong = pipeline.register(small_model, data, init=RobustOptions(support=SupportOptions(z_strong=0.0)))
     assert strong.support.outweighs and strong.pose_choice.confirmed and strong.deformed
     assert np.array_equal(strong.transform(nodes), before.transform(nodes))  # the answer is not changed
-    assert not any(w.startswith("deformation not supported") or "in doubt" in w for w in strong.warnings)
+    assert not any(w.text.startswith("deformation not supported") or "in doubt" in w.text for w in strong.warnings)
     assert strong.pose_choice.as_dict()["confirmed"] is True
 
 
@@ -405,7 +407,7 @@ def test_a_turn_no_tracker_makes_is_not_taken_when_the_answer_from_it_is_in_doub
     assert choice.turn_deg > POSE_RULE.tracker_turn_deg
     assert choice.fits.given_rms_mm > POSE_RULE.given_ratio * choice.fits.fitted_rms_mm  # not the other rule
     assert choice.on_model[PoseSource.FITTED] < POSE_RULE.consensus
-    line = next(w for w in reg.warnings if w.startswith("ICP's pose is not taken: it moved the organ"))
+    line = next(w.text for w in reg.warnings if w.text.startswith("ICP's pose is not taken: it moved the organ"))
     assert f"turned it {choice.turn_deg:.0f}°" in line and "further than a tracker's registration errs" in line
     assert choice.as_dict()["source"] == "given-turn" and choice.as_dict()["fitted_turn_deg"] > 45.0
 
@@ -428,14 +430,14 @@ def test_a_turn_no_tracker_makes_is_not_taken_when_the_answer_from_it_is_in_doub
     assert offset.pose_choice.source is PoseSource.FITTED
     assert offset.pose_choice.on_model[PoseSource.FITTED] > 0.9
     assert np.allclose(offset.rigid.R, R, atol=1e-2)
-    assert any("turn" in w and "check the tracker's registration" in w for w in offset.warnings)
+    assert any("turn" in w.text and "check the tracker's registration" in w.text for w in offset.warnings)
 
     lifted, rest_motion = _lifted_lobe(liver, 60.0, 30.0)
     explained = pipeline.register(small_model, lifted)
     assert explained.pose_choice.source is PoseSource.GIVEN_TURN, explained.pose_choice.as_dict()
     fits = explained.pose_choice.fits  # the fit from ICP's pose was the better one by far: not the ratio rule
     assert fits.given_rms_mm > 2 * POSE_RULE.given_ratio * fits.fitted_rms_mm, fits
-    assert any(w.startswith("ICP's pose is not taken") for w in explained.warnings)
+    assert any(w.text.startswith("ICP's pose is not taken") for w in explained.warnings)
     monkeypatch.setattr(pipeline, "prefer_given",
                         lambda c, f: prefer_given(c, f, replace(POSE_RULE, tracker_turn_deg=180.0)))
     assert rest_motion(explained) < 0.5 * rest_motion(pipeline.register(small_model, lifted))
@@ -477,7 +479,8 @@ def test_a_small_dent_the_basis_cannot_make_is_not_shown_as_a_correction(small_m
     assert s.predicts  # the cross-validation alone would have shown it
     assert s.correction_mm < s.z * s.sigma_mm and not s.supported and not reg.deformed
     assert far_motion(reg) == 0.0
-    assert any(w.startswith("deformation not determined by the data: the correction it makes") for w in reg.warnings)
+    assert any(w.text.startswith("deformation not determined by the data: the correction it makes")
+               for w in reg.warnings)
     assert s.as_dict()["significant"] is False
 
     unweighed = register(small_model, data, init=RobustOptions(support=SupportOptions(z=0.0)))
@@ -515,13 +518,14 @@ def test_an_answer_whose_predicted_error_exceeds_the_margin_says_so(small_model,
     assert reg.deformed and not reg.rigid.kept
     assert rest_motion(reg) > 20.0  # the answer is wrong by tens of mm where nothing moved
     assert isinstance(reg.organ, OrganError) and reg.organ.mean_mm > ONCOLOGICAL_MARGIN_MM
-    lines = [w for w in reg.warnings if w.startswith("the data do not determine this answer")]
+    lines = [w for w in reg.warnings if w.text.startswith("the data do not determine this answer")]
     assert lines == reg.warnings, reg.warnings  # the only line: without it the answer is silent
-    assert f"{reg.organ.mean_mm:.0f} mm (mean), more than the 10 mm oncological margin" in lines[0]
+    assert lines[0].kind is WarningKind.ORGAN_ERROR  # said by the predicted error over the organ
+    assert f"{reg.organ.mean_mm:.0f} mm (mean), more than the 10 mm oncological margin" in lines[0].text
     assert reg.organ.as_dict()["exceeds_bound"] and reg.organ.nodes > 100
 
     front = liver[liver[:, 1] > np.percentile(liver[:, 1], 40)]
     sample = front[rng.choice(len(front), 150, replace=False)]
     whole = register(small_model, {"anterior": sample + [4.0, -3.0, 2.0]})
     assert whole.organ is not None and whole.organ.mean_mm < ONCOLOGICAL_MARGIN_MM
-    assert not any(w.startswith("the data do not determine this answer") for w in whole.warnings)
+    assert not any(w.text.startswith("the data do not determine this answer") for w in whole.warnings)

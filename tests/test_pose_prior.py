@@ -100,7 +100,7 @@ def test_a_wide_declared_pose_the_data_cannot_fix_is_warned_about(small_model):
     reg = register(small_model, data, pose_prior=PosePrior(15.0, 10.0))
     ev = reg.pose_evidence
     assert not reg.deformed and ev is not None and ev.predicted_mm > ev.bound_mm
-    assert len(reg.warnings) == 1 and "clinical goal" in reg.warnings[0]
+    assert len(reg.warnings) == 1 and "clinical goal" in reg.warnings[0].text
 
 
 def test_only_the_given_pose_within_the_clinical_goal_is_silent():

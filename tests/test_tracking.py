@@ -252,6 +252,8 @@ class _Registration:
     """Stands in for ``registration.pipeline.Registration`` (rigid + a deformation)."""
     libr = None
     quality = None
+    deformed = False
+    warnings: list = []
 
     def __init__(self):
         self.rigid = _Rigid()

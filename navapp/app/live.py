@@ -34,7 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..registration.coverage import pose_warning
+from ..fitwarning import one_line
+from ..geometry.transforms import probe_pose
 from ..registration.live import LiveRegistration, merge
 from ..registration.pipeline import Registration
 from ..simulation.scenedata import auto_segmentation, segment_frame
@@ -62,15 +63,8 @@ def probe_pose_from_image(image_to_reference, width_px, height_px) -> tuple[np.n
     the centre of the probe face) and the pixel spacing (mm) of a frame whose
     ImageToReference maps (col, row, 0, 1) to mm; inverse of ``Probe.image_to_probe``."""
     m = np.asarray(image_to_reference, float)
-    a, b, o = m[:3, 0], m[:3, 1], m[:3, 3]
-    s = float(np.linalg.norm(a))
-    x = a / s
-    z = b / np.linalg.norm(b)
-    y = np.cross(z, x)
-    T = np.eye(4)
-    T[:3, 0], T[:3, 1], T[:3, 2] = x, y, z
-    T[:3, 3] = o + a * (width_px - 1) / 2.0
-    return T, s
+    a, b, o = m[:3, 0], m[:3, 1], m[:3, 3]  # a column step, a row step (mm), pixel (0, 0)
+    return probe_pose(o + a * (width_px - 1) / 2.0, a, b), float(np.linalg.norm(a))
 
 
 class LiveLink:
@@ -465,7 +459,7 @@ class Live:
         checked = checked_by(core.result, reg, warm=True)
         predicted = shown.predict(reg, checked) if final else (None, [])  # ~0.1 s: not on every frame
         state = RegisteredState(RunKind.LIVE.label, reg.rigid, beta, err, *predicted,
-                                data_model_frame=reg.data_model_frame, pose_warning=pose_warning(reg),
+                                data_model_frame=reg.data_model_frame, pose_warning=one_line(reg.pose_doubts),
                                 checked=checked)
         flipped = (core.result.pose_warning if core.result is not None else None) != state.pose_warning
         with core.lock:

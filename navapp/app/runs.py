@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import NavappError
 from ..evaluation.cost import lm_sweep
 from ..features import BY_NAME
-from ..registration.coverage import pose_warning
+from ..fitwarning import FitWarning, one_line
 from ..registration.objective import Weights
 from ..registration.pipeline import Registration
 from ..registration.prior import PosePrior
@@ -205,7 +205,7 @@ class Runs:
         if not stopped:
             entry.targets_mm = shown.target_errors(reg.rigid, beta)
             result = RegisteredState(run.kind.label, reg.rigid, beta, err, *shown.predict(reg, checked),
-                                     data_model_frame=reg.data_model_frame, pose_warning=pose_warning(reg),
+                                     data_model_frame=reg.data_model_frame, pose_warning=one_line(reg.pose_doubts),
                                      checked=checked)
             residuals = point_residuals(reg, viewer_options().weights)
             worst = worst_points(reg, run.data, run.origins, viewer_options().weights, left_out=run.left_out,
@@ -226,7 +226,7 @@ class Runs:
             if entry.error_mean_mm is not None else ""))
         if not stopped:
             self._send(reg, f"row {len(log)}")
-        tell(core, entry, None if stopped else result.pose_warning, reg.warnings, worst, n_out)
+        tell(core, entry, [] if stopped else reg.pose_doubts, reg.warnings, worst, n_out)
 
     def _send(self, reg: Registration, what: str):
         if self.slicer.sender is not None:
@@ -338,19 +338,20 @@ class Runs:
 CHECK_THE_FIT = "Registration: check the fit"  # the red box's title after a run that warned
 
 
-def tell(core: Core, entry: RunEntry, pose_warning: str | None, warnings: list[str], worst: list[WorstPoint],
-         left_out: tuple[int, int] = (0, 0)):
-    """What the surgeon is told when a run ends (``entry``: its row; ``pose_warning``: the result's
-    pinned one, None when cancelled; ``left_out``: (data points the fit gave no weight, all data
-    points)). The red box of an earlier run that warned goes when a run's result without a
-    warning replaces it: it stayed over the 3D view beside a clean row."""
+def tell(core: Core, entry: RunEntry, pinned: list[FitWarning], warnings: list[FitWarning],
+         worst: list[WorstPoint], left_out: tuple[int, int] = (0, 0)):
+    """What the surgeon is told when a run ends (``entry``: its row; ``pinned``: the result's
+    pose doubts, pinned over the 3D view, empty when cancelled; ``warnings``: the run's;
+    ``left_out``: (data points the fit gave no weight, all data points)). The red box of an
+    earlier run that warned goes when a run's result without a warning replaces it: it stayed
+    over the 3D view beside a clean row."""
     if entry.cancelled:
         core.notify("Registration", "Cancelled: the previous result is kept.")
         return
     # a line said already, pinned over the 3D view while the pose is on show (``ClientView._pose_alert``),
     # is not said again in a second red box: it covered more of the liver at 1366 × 768
-    unsaid = [w for w in warnings if w not in (pose_warning or "")]
-    if entry.warning and pose_warning and not unsaid:
+    unsaid = [w for w in warnings if w not in pinned]
+    if entry.warning and pinned and not unsaid:
         core.withdraw(CHECK_THE_FIT)
     elif entry.warning:
         core.notify(CHECK_THE_FIT, fit_notice(unsaid, entry.pose_only, left_out), error=True)
@@ -365,11 +366,11 @@ NOTICE_HEAD = 90
 """Characters of a warning's head (its words before the first colon) in the red box."""
 
 
-def fit_notice(warnings: list[str], pose_only: bool, left_out: tuple[int, int] = (0, 0)) -> str:
+def fit_notice(warnings: list[FitWarning], pose_only: bool, left_out: tuple[int, int] = (0, 0)) -> str:
     """The red box's words after a run that warned: each warning's head, what is shown, and
     where the whole text is. The box is a few lines high over the 3D view (viser clips it at
     200 px, centred): the whole warnings, each a sentence or two, showed only their middles."""
-    heads = [_clip(w.split(":", 1)[0].strip(), NOTICE_HEAD) for w in warnings]
+    heads = [_clip(w.head, NOTICE_HEAD) for w in warnings]
     text = "⚠ " + "; ".join(heads) + "."
     if pose_only:
         text += " Shown: the pose alone, without deformation."

@@ -27,6 +27,7 @@ from ..errors import InputError
 from ..features import NAMES as FEATURE_NAMES
 from ..features import SOURCED
 from ..features import STYLUS as STYLUS_FEATURES
+from ..outputs import replace_folder
 from ..registration.prior import declared_pose
 from ..simulation.scenedata import SceneData, acquire_free_plane, scene_key
 from ..simulation.ultrasound import PlaneData
@@ -199,16 +200,11 @@ def _sibling(folder: Path, what: str) -> Path:
 
 
 def _into_place(tmp: Path, folder: Path):
-    if not folder.exists() or not any(folder.iterdir()):
-        os.replace(tmp, folder)  # rename(2) also replaces an empty folder
-        return
-    # an interrupted first save found at start (open_session): it held nothing session.json
-    # recorded, so it is set aside, the new folder renamed in, and the old one removed
+    # a non-empty folder here is an interrupted first save found at start (open_session): it
+    # held nothing session.json recorded, so the new folder replaces it whole
     old = _sibling(folder, "old")
     shutil.rmtree(old, ignore_errors=True)
-    os.replace(folder, old)
-    os.replace(tmp, folder)
-    shutil.rmtree(old, ignore_errors=True)
+    replace_folder(tmp, folder, old)
 
 
 def _remove_dead_siblings(folder: Path):

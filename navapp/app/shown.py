@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..fitwarning import FitWarning, WarningKind
 from ..geometry.targets_distance import ImagePlane, plane_distances, tip_distances
 from ..geometry.tre import point_errors
-from ..registration.coverage import pose_warning
 from ..registration.libr import LibrResult
 from ..registration.model import deform
 from ..registration.pipeline import Registration
@@ -97,8 +97,8 @@ class Shown:
             why = reg.support.warning if reg.support is not None else None
             short = why.split(":")[0] if why else None
             return None, [TargetBand(t.name, float("nan"), float("nan"), float("nan"), short) for t in preop.targets]
-        if pose_warning(reg) is not None:
-            # a pose nobody should believe (``coverage.pose_warning``): the calibration was fitted on
+        if reg.pose_doubts:
+            # a pose nobody should believe (``Registration.pose_doubts``): the calibration was fitted on
             # answers whose pose was right and says nothing at a point 100 mm off (a 40-point patch:
             # tumours 39 and 133 mm off, predicted 202 and 31 mm; the demo's surface 15 × the true
             # error); no figure at the tumours or on the surface, but what to do
@@ -218,7 +218,7 @@ class Shown:
         # prediction is shown, and a suggestion asks for a new registration
         inv = {k: np.asarray(v, float).reshape(-1, 3) for k, v in (d.get("data_model_frame") or {}).items()}
         doubt = d.get("pose_warning")
-        reg = Registration(model, rigid, libr, inv, notes=[doubt] if doubt else [])
+        reg = Registration(model, rigid, libr, inv, notes=[FitWarning(WarningKind.SAVED, doubt)] if doubt else [])
         core.last_reg = worker.last = reg
         predicted = self.predict(reg)
         saved = d.get("predicted_mm")

@@ -16,6 +16,7 @@ from enum import Enum
 
 import numpy as np
 
+from ..fitwarning import FitWarning, WarningKind, one_line
 from ..registration.pipeline import Registration
 from ..registration.prior import PosePrior
 from ..registration.rigid import RigidResult
@@ -136,8 +137,8 @@ class RegisteredState:
     # session's data may have changed since (a plane added, not yet registered; a live fit's
     # frames): the LM covariance is scaled by the fit's own residuals
     data_model_frame: dict | None = field(default=None, kw_only=True)
-    # why its pose is not to be believed (``coverage.pose_warning``: undetermined, too little of
-    # the liver covered), shown in red; a warm start or live re-registration never continues from it
+    # why its pose is not to be believed (``Registration.pose_doubts`` in one line: undetermined,
+    # too little of the liver covered), shown in red; a warm start or live re-registration never continues from it
     pose_warning: str | None = field(default=None, kw_only=True)
     # the fresh registration whose checks (the cross-validation, the predicted error over the
     # organ) this result's warnings come from: itself when fresh; for a warm start or a live
@@ -164,14 +165,14 @@ CARRIED = ("at the last full registration — a warm start or a live frame does 
            "\"Deformable (all data)\" does")
 
 
-def carried_warnings(reg: Registration, checked: Registration | None) -> list[str]:
+def carried_warnings(reg: Registration, checked: Registration | None) -> list[FitWarning]:
     """The warning of the predicted error over the organ made at ``checked``, for ``reg``, a warm
     re-registration from it (which skips that check): kept, and said to be from then. Without
     it the line vanished from a warm start's row as if the data now determined the answer."""
     if checked is None or checked is reg or reg.organ is not None or not reg.deformed:
         return []
     line = checked.organ.warning if checked.organ is not None and checked.deformed else None
-    return [f"{line} ({CARRIED})"] if line else []
+    return [FitWarning(WarningKind.ORGAN_ERROR, f"{line} ({CARRIED})", carried=True)] if line else []
 
 
 def checked_by(previous: RegisteredState | None, reg: Registration, warm: bool) -> Registration | None:
@@ -370,7 +371,7 @@ class RunEntry:
         e = RunEntry(kind.label, int(points), round(float(seconds), 3), lm.iterations if lm else 0,
                      lm.stop_reason if lm else "rigid", streamed, stopped,
                      [[round(t, 3), round(v, 3)] for t, v in trace],
-                     "; ".join(reg.warnings + carried_warnings(reg, checked)) or None)
+                     one_line(reg.warnings + carried_warnings(reg, checked)))
         if error is not None and not stopped:
             e.error_mean_mm, e.error_max_mm = round(float(error.mean()), 3), round(float(error.max()), 3)
         e.pose_only = kind.deformable and not stopped and lm is not None and not reg.deformed

@@ -144,7 +144,7 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     model, _ = prepare(case, edge, k)
     x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     times, rigid_s, support_s, iters = [], [], [], []
-    before = replace(model, cache=dict(model.cache))
+    before = replace(model, cache=model.cache.copy())
     paired: dict[str, dict[str, list]] = {v: {"cpu": [], "wall": [], "tre": []} for v in ("before", "after")}
     for i in range(repeats):
         for variant in (("before", "after") if i % 2 == 0 else ("after", "before")):

@@ -97,7 +97,7 @@ def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8, truth_edge
     cold_s = time.perf_counter() - t
     live = {}
     for name, kw in VARIANTS.items():
-        live[name] = LiveRegistration(replace(model, cache=dict(model.cache)), base, **kw)
+        live[name] = LiveRegistration(replace(model, cache=model.cache.copy()), base, **kw)
         live[name].last = cold
     rows: dict[str, list[dict]] = {name: [] for name in VARIANTS}
     seg_ms, frame_pts = [], []

@@ -96,11 +96,6 @@ def _case_facts(case_dir: Path, case, nodes: np.ndarray) -> dict:
     return {"pre_aligned": "tracker_offset" not in rep, "covers": covers, "displacement_mm": shown}
 
 
-def _fit_warnings(reg) -> list[str]:
-    """The fit's own warnings, the only ones an unguarded method has: too few points, poor fit."""
-    return list(reg.notes) + ([reg.quality.warning] if reg.quality is not None and reg.quality.warning else [])
-
-
 def _init(method: str) -> RobustOptions:
     if method == "libr-local":
         return RobustOptions(local_modes=LocalModeOptions())
@@ -145,7 +140,7 @@ def run_case(case_dir, methods: tuple[str, ...] = METHODS) -> list[dict]:
                     answer = "deformable" if reg.deformed else "rigid"
                     if reg.forces is not None and reg.forces.answer is Answer.FORCES:
                         answer = "forces"
-                    lines = reg.warnings if guarded else _fit_warnings(reg)
+                    lines = reg.warnings if guarded else reg.fit_warnings  # unguarded: the fit's own only
                     c = reg.pose_choice
                     if c is not None:  # where the rigid stage's pose came from, and ICP's turn from the given one
                         pose, turn = c.source.value, "" if c.turn_deg is None else round(c.turn_deg, 1)
@@ -153,7 +148,7 @@ def run_case(case_dir, methods: tuple[str, ...] = METHODS) -> list[dict]:
             st = tre_stats(pred, x1)
             rows.append({"case": case_dir.name, "level": level, "method": method, **facts,
                          "tre_mean_mm": round(st["mean_mm"], 3), "tre_max_mm": round(st["max_mm"], 2),
-                         "answer": answer, "warned": bool(lines), "warning": lines[0] if lines else "",
+                         "answer": answer, "warned": bool(lines), "warning": lines[0].text if lines else "",
                          "seconds": round(sec, 3), "pose": pose, "turn_deg": turn})
     return rows
 

@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..fitwarning import WarningKind, found
 from .model import RegistrationModel
 
 if TYPE_CHECKING:  # the pipeline applies this check to every registration: it imports this module
@@ -47,12 +48,12 @@ def data_coverage(model: RegistrationModel, data_model_frame: dict) -> Coverage:
     if not pts or "liver" not in model.features:
         return Coverage(0.0)
     nodes = model.features["liver"].rest
-    last = model.cache.get("coverage", {})
+    last = model.cache.coverage
     kept, covered = {}, np.zeros(len(nodes), bool)
     for name, Y in pts.items():
         kept[name] = entry = _feature_cover(nodes, Y, last.get(name))
         covered |= entry[3]
-    model.cache["coverage"] = kept  # replaced whole: a registration in another thread reads either
+    model.cache.coverage = kept  # replaced whole: a registration in another thread reads either
     return Coverage(float(np.mean(covered)))
 
 
@@ -100,22 +101,7 @@ def note_coverage(reg: "Registration") -> Coverage:
     Slicer's NavappStatus — carries it); idempotent. ``pipeline.register`` calls it on every
     registration it returns."""
     cov = data_coverage(reg.model, reg.data_model_frame)
-    w = cov.warning
-    if w is not None and w not in reg.notes:
-        reg.notes.append(w)
+    for w in found(WarningKind.COVERAGE, cov.warning):
+        if w not in reg.notes:
+            reg.notes.append(w)
     return cov
-
-
-def pose_warning(reg: "Registration") -> str | None:
-    """Everything that says ``reg``'s pose is not to be believed, one line (None: nothing):
-    the notes (too few or collinear points: ``pipeline.undetermined_pose``; too little coverage,
-    which ``register`` notes on every registration it returns, and a restored result carries
-    in its saved line) and an undetermined pose; with either, the pose search's own line."""
-    lines = list(reg.notes)
-    if reg.determinacy is not None and reg.determinacy.warning:
-        lines.append(reg.determinacy.warning)
-    if lines and reg.pose_choice is not None and reg.pose_choice.warning:
-        # what the pose search says of that same pose (ICP turned the organ further than a
-        # tracker errs) belongs beside it: said once, pinned, not in a second red box
-        lines.append(reg.pose_choice.warning)
-    return "; ".join(dict.fromkeys(lines)) or None

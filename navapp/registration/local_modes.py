@@ -109,10 +109,10 @@ def with_sources(model: RegistrationModel, nodes: np.ndarray, sources: np.ndarra
                  opts: LocalModeOptions = LocalModeOptions()) -> RegistrationModel:
     """``model`` with three Kelvin modes per source (s, 3) mm appended (``mechanics.local_modes``)."""
     b = model.basis
-    if "strain_operator" not in model.cache:  # the same mesh in every fold and registration (≈ 28 MB at 18.5k nodes)
-        model.cache["strain_operator"] = nodal_strain_operator(b.nodes, b.tets)
+    if model.cache.strain_operator is None:  # the same mesh in every fold and registration (≈ 28 MB at 18.5k nodes)
+        model.cache.strain_operator = nodal_strain_operator(b.nodes, b.tets)
     cols = np.hstack([kelvin_modes(b.nodes, s, b.material.nu, opts.eps_mm, opts.scale_mm) for s in sources])
-    return extended_model(model, with_modes(b, cols, nodes, model.cache["strain_operator"]))
+    return extended_model(model, with_modes(b, cols, nodes, model.cache.strain_operator))
 
 
 def choose_local_modes(model: RegistrationModel, data: dict, beta: np.ndarray, options: LMOptions,

@@ -14,7 +14,7 @@ points on the centerline polylines; fiducials on their preoperative counterparts
 
 import warnings
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import scipy.sparse as sp
@@ -64,6 +64,44 @@ class ModelFeature:
 
 
 @dataclass
+class ModelCache:
+    """What registration derives from a model and keeps with it, one typed entry each.
+
+    Thread-safety: the viewer's live follower, the next-plane suggestion and other fits run
+    on the same model in other threads, without a lock. So an entry is only ever replaced
+    whole (``cache.x = new``, a keyed map by a new dict ``{**cache.x, key: value}``), never
+    mutated in place: a reader holds the old value or the new one, never half of each. Two
+    threads writing at once may lose one entry, which is then computed again."""
+
+    # multi-start ICP (``rigid``): id(ModelFeature) → (KD-tree of its rest vertices, the
+    # vertices (V, 3) mm, their normals (V, 3) or None)
+    screen: dict[int, tuple] = field(default_factory=dict)
+    # ``coverage.data_coverage``: data feature → (its points Y (N, 3), rows L kept from the
+    # last call, nodes covered by Y[:L] (V,) bool, nodes covered by Y (V,) bool)
+    coverage: dict[str, tuple] = field(default_factory=dict)
+    # ``pose.pose_determinacy``'s last answer: (R (3, 3), t (3,), surface data, Determinacy)
+    determinacy: tuple | None = None
+    # ``objective.evaluate``'s most recent evaluation (beta, geometry, data and correspondence),
+    # and fits' last ones (``objective.keep_end``), newest first
+    evaluation: tuple | None = None
+    ends: tuple = ()
+    # ``local_modes.with_sources``: the mesh's nodal strain operator (sparse, ≈ 28 MB at 18.5k nodes)
+    strain_operator: Any = None
+    # ``pipeline.undetermined_pose``: (the nodes it was measured on, the model's extent mm)
+    extent_mm: tuple[np.ndarray, float] | None = None
+    # ``next_plane.anterior_surface_mask``: (regions' hash, vertex count) → (S,) bool
+    anterior: dict[tuple, np.ndarray] = field(default_factory=dict)
+    # ``uncertainty.surface_estimate``: (vertices' shape, sum) → nearest surface node (V,)
+    surface_map: dict[tuple, np.ndarray] = field(default_factory=dict)
+
+    def copy(self) -> "ModelCache":
+        """A cache holding the same entries, written to apart from this one (a benchmark's
+        model that must not warm, or be warmed by, another's); entries are shared, which is
+        safe as none is mutated in place."""
+        return replace(self)
+
+
+@dataclass
 class RegistrationModel:
     """The preoperative geometry carried by the basis' mesh: each model feature (liver
     surface, labelled regions, vessel surfaces, centerlines, fiducials) deforms by eq. 8;
@@ -72,8 +110,8 @@ class RegistrationModel:
     basis: Basis
     features: dict  # model feature name → ModelFeature
     centroid: np.ndarray  # x̄0 (3,), centroid of the mesh nodes
-    # derived data kept with the model (e.g. the multi-start ICP's vertex KD-trees)
-    cache: dict = field(default_factory=dict, repr=False, compare=False)
+    # derived data kept with the model (``ModelCache``: e.g. the multi-start ICP's vertex KD-trees)
+    cache: ModelCache = field(default_factory=ModelCache, repr=False, compare=False)
     # which mesher made the basis' mesh and why (``prepare`` sets it; results report it)
     mesher: MeshProvenance | None = field(default=None, compare=False)
 

@@ -91,11 +91,13 @@ def anterior_surface_mask(model, preop) -> np.ndarray:
     liver = model.features["liver"]
     if preop is None or preop.regions is None:
         return np.ones(len(liver.rest), bool)
-    key = ("next_plane.anterior", hash(np.asarray(preop.regions).tobytes()), len(preop.liver.vertices))
-    if key not in model.cache:
+    key = (hash(np.asarray(preop.regions).tobytes()), len(preop.liver.vertices))
+    mask = model.cache.anterior.get(key)
+    if mask is None:
         _, near = cKDTree(np.asarray(preop.liver.vertices)).query(liver.rest)
-        model.cache[key] = np.asarray(preop.regions)[near] == 0
-    return model.cache[key]
+        mask = np.asarray(preop.regions)[near] == 0
+        model.cache.anterior = {**model.cache.anterior, key: mask}
+    return mask
 
 
 def _vertex_normals(X, faces):

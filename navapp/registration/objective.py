@@ -364,7 +364,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
         tim["jacobian"] += time.perf_counter() - t0
     reusable = None
     if frozen is None:  # replaced whole: an evaluation in another thread reads the old or the new
-        reusable = model.cache["evaluation"] = (np.array(beta, float), geometry, {
+        reusable = model.cache.evaluation = (np.array(beta, float), geometry, {
             name: (np.array(Y, float), corr[name]) for name, Y in data.items()})
     # robust weight factors (Huber, outlier rejection): held when given, so that with held
     # correspondences Ω is one fixed weighted least-squares problem
@@ -402,13 +402,13 @@ def keep_end(model: RegistrationModel, ev: Evaluation) -> None:
     runs three variants on one model, frame by frame)."""
     if ev.reusable is None:
         return
-    ends = [e for e in model.cache.get("ends", ()) if not np.array_equal(e[0], ev.beta)]
-    model.cache["ends"] = [ev.reusable, *ends[:KEPT_ENDS - 1]]
+    ends = [e for e in model.cache.ends if not np.array_equal(e[0], ev.beta)]
+    model.cache.ends = (ev.reusable, *ends[:KEPT_ENDS - 1])
 
 
 def _at(model: RegistrationModel, beta) -> tuple | None:
     """A kept evaluation at exactly ``beta`` (the most recent, or a fit's end), if any."""
-    for e in (model.cache.get("evaluation"), *model.cache.get("ends", ())):
+    for e in (model.cache.evaluation, *model.cache.ends):
         if e is not None and np.array_equal(e[0], beta):
             return e
     return None

@@ -26,6 +26,7 @@ from ..anatomy.model import VESSELS
 from ..anatomy.tets import TetMesh
 from ..defaults import EDGE_MM, K
 from ..errors import CarriedWarning, InputError
+from ..fitwarning import FitWarning, WarningKind, found, texts
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.tre import tre_stats
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
@@ -167,7 +168,8 @@ class Registration:
     pose_choice: PoseChoice | None = None  # given, trimmed-fit or ICP's pose (``pose.choose_pose``)
     determinacy: Determinacy | None = None  # the pose's sliding directions (``pose.pose_determinacy``)
     support: Support | None = None  # the deformation's held-out prediction against rigid (``support``)
-    notes: list[str] = field(default_factory=list)  # warnings raised before the fit (e.g. too few points)
+    # warnings raised before the fit (too few points) and about its data (too little coverage)
+    notes: list[FitWarning] = field(default_factory=list)
     # the deformable answer's predicted error over the organ against the oncological margin
     # (``uncertainty.organ_error``); fresh deformable answers only
     organ: OrganError | None = None
@@ -199,27 +201,49 @@ class Registration:
         return self.support is None or self.support.supported or not self.rigid.kept
 
     @property
-    def warnings(self) -> list[str]:
-        """Every warning about this answer, one line each (the CLI, result.json and the viewer show them)."""
+    def warnings(self) -> list[FitWarning]:
+        """Every warning about this answer, in the order said (the CLI, result.json, the viewer
+        and Slicer show them): the one rule for which checks stand for the answer shown."""
         lines = list(self.notes)
         if self.pose_evidence is not None and not self.deformed:
-            return lines + [w for w in (self.pose_evidence.warning,) if w]
+            return lines + found(WarningKind.POSE_EVIDENCE, self.pose_evidence.warning)
         doubt = bool(lines) or (self.determinacy is not None and self.determinacy.warning is not None)
-        for w in (self.pose_choice.warning if self.pose_choice else None,
-                  self.determinacy.warning if self.determinacy else None,
-                  self.support.warning_for(shown_rigid=not self.deformed, given=self.pose_choice is None
-                                          or self.pose_choice.given, declared=self.pose_prior is not None)
-                  if self.support and self.forces is None else None,
-                  self.forces.warning if self.forces is not None else None,
-                  self.forces.supports_warning if self.forces is not None else None,
-                  self.quality.warning if self.quality else None,
-                  # no organ figure beside a pose not to be believed (the notes, an undetermined
-                  # pose): the estimate's calibration says nothing at a pose 100 mm off (the demo's
-                  # 40-point patch: 535 mm predicted, 35 true); the pose's own line says what to do
-                  self.organ.warning if self.organ is not None and self.deformed and not doubt else None):
-            if w:
-                lines.append(w)
-        return lines
+        return lines + [w for kind, text in (
+            (WarningKind.POSE_SEARCH, self.pose_choice.warning if self.pose_choice else None),
+            (WarningKind.UNDETERMINED_POSE, self.determinacy.warning if self.determinacy else None),
+            (WarningKind.UNSUPPORTED, self.support.warning_for(
+                shown_rigid=not self.deformed, given=self.pose_choice is None or self.pose_choice.given,
+                declared=self.pose_prior is not None) if self.support and self.forces is None else None),
+            (WarningKind.SURFACE_FORCES, self.forces.warning if self.forces is not None else None),
+            (WarningKind.SUPPORTS, self.forces.supports_warning if self.forces is not None else None),
+            (WarningKind.POOR_FIT, self.quality.warning if self.quality else None),
+            # no organ figure beside a pose not to be believed (the notes, an undetermined
+            # pose): the estimate's calibration says nothing at a pose 100 mm off (the demo's
+            # 40-point patch: 535 mm predicted, 35 true); the pose's own line says what to do
+            (WarningKind.ORGAN_ERROR,
+             self.organ.warning if self.organ is not None and self.deformed and not doubt else None))
+            for w in found(kind, text)]
+
+    @property
+    def pose_doubts(self) -> list[FitWarning]:
+        """Everything that says this answer's pose is not to be believed (empty: nothing), each
+        once: the notes (too few or collinear points, ``undetermined_pose``; too little coverage,
+        which ``register`` notes on every registration it returns, and a restored result carries
+        in its saved line) and an undetermined pose; with either, the pose search's own line (ICP
+        turned the organ further than a tracker errs), which belongs beside it: said once, pinned
+        over the viewer's 3D view, not in a second red box."""
+        lines = list(self.notes)
+        if self.determinacy is not None:
+            lines += found(WarningKind.UNDETERMINED_POSE, self.determinacy.warning)
+        if lines and self.pose_choice is not None:
+            lines += found(WarningKind.POSE_SEARCH, self.pose_choice.warning)
+        return list(dict.fromkeys(lines))
+
+    @property
+    def fit_warnings(self) -> list[FitWarning]:
+        """The fit's own warnings, the only ones a method without the pose and deformation
+        checks has: the notes (too few points, too little coverage) and a poor fit."""
+        return list(self.notes) + found(WarningKind.POOR_FIT, self.quality.warning if self.quality else None)
 
     def transform(self, points, beta=None, B=None) -> np.ndarray:
         """Preoperative points (P, 3) mm → registered positions in tracker space (P, 3) mm:
@@ -353,9 +377,9 @@ def check_units(model: RegistrationModel, data: dict) -> None:
         return
     span = float(np.ptp(np.vstack(pts), axis=0).max())
     # the model's extent once, not per live update (keyed by the nodes: a replaced model shares the cache)
-    hit = model.cache.get("extent_mm")
+    hit = model.cache.extent_mm
     if hit is None or hit[0] is not model.basis.nodes:
-        hit = model.cache["extent_mm"] = (model.basis.nodes, float(np.ptp(model.basis.nodes, axis=0).max()))
+        hit = model.cache.extent_mm = (model.basis.nodes, float(np.ptp(model.basis.nodes, axis=0).max()))
     size = hit[1]
     if span < size / UNIT_RATIO:
         raise InputError(f"the data points span {span:.3g} mm against a {size:.0f} mm model: are they in metres? "
@@ -650,7 +674,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     notes = []
     if rigid is None and (why := undetermined_pose(data)):
         warnings.warn(why, CarriedWarning, stacklevel=2)
-        notes.append(why)
+        notes.append(FitWarning(WarningKind.FEW_POINTS, why))
     warm = rigid is not None  # the pose is given: no choice of pose
     fresh = beta0 is None  # a deformable fit from β = 0 (not a warm re-registration): cross-validated
     options, init = _settings(options, init)
@@ -903,7 +927,7 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
                       ("pose_evidence", reg.pose_evidence), ("surface_forces", reg.forces)):
         if part is not None:
             summary[key] = part.as_dict()
-    lines = reg.warnings + [w for t in summary.get("targets", []) if (w := t.get("warning"))]
+    lines = texts(reg.warnings) + [w for t in summary.get("targets", []) if (w := t.get("warning"))]
     verdict = Verdict(tuple(lines))  # one rule: ok only with no warning (fit_quality.ok says the same)
     summary["ok"] = verdict.ok
     if reg.quality is not None:

@@ -403,12 +403,12 @@ def pose_determinacy(model: RegistrationModel, data: dict, pose: RigidResult) ->
     # stylus data (frames add iUS features, which this does not use): the last answer is kept
     # on the model and given again when pose and surface data are equal, element for element
     surface = {n: np.array(y, float) for n, y in data.items() if n in SURFACE_FEATURES and len(y)}
-    last = model.cache.get("determinacy")
+    last = model.cache.determinacy
     if last is not None and np.array_equal(last[0], pose.R) and np.array_equal(last[1], pose.t) and \
             last[2].keys() == surface.keys() and all(np.array_equal(last[2][n], y) for n, y in surface.items()):
         return _copy(last[3])
     found = _determinacy(model, data, pose)
-    model.cache["determinacy"] = (np.array(pose.R, float), np.array(pose.t, float), surface, _copy(found))
+    model.cache.determinacy = (np.array(pose.R, float), np.array(pose.t, float), surface, _copy(found))
     return found
 
 

@@ -188,11 +188,13 @@ def _screen_geometry(model: RegistrationModel, name: str):
     """(KD-tree, vertices, vertex normals) of a data feature's model feature, kept on the
     model: the multi-start ICP matches to vertices of the rest geometry, which never changes."""
     feat = model.feature_for(name)
-    key = ("screen", id(feat))
-    if key not in model.cache:
+    key = id(feat)
+    hit = model.cache.screen.get(key)
+    if hit is None:
         normals = _vertex_normals(feat) if feat.kind == "surface" else None
-        model.cache[key] = (cKDTree(feat.rest), feat.rest, normals)
-    return model.cache[key]
+        hit = (cKDTree(feat.rest), feat.rest, normals)
+        model.cache.screen = {**model.cache.screen, key: hit}
+    return hit
 
 
 def start_poses(model: RegistrationModel, data: dict, angle_deg=15.0, principal_axes=True) -> list[Start]:

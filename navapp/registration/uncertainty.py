@@ -338,11 +338,11 @@ def surface_estimate(reg, vertices, calibration: Calibration | None = None) -> E
     surface nodes' registered positions carried the same way."""
     model = reg.model
     vertices = np.asarray(vertices, float)
-    key = ("uncertainty.surface_map", vertices.shape, float(vertices.sum()))
-    near = model.cache.get(key)
+    key = (vertices.shape, float(vertices.sum()))
+    near = model.cache.surface_map.get(key)
     if near is None:
         near = cKDTree(model.basis.nodes[model.basis.surface]).query(vertices)[1]
-        model.cache[key] = near
+        model.cache.surface_map = {**model.cache.surface_map, key: near}
     est = estimate_error(reg, calibration=calibration, nodes=model.basis.surface)
     return ErrorEstimate(est.predicted_mm[near], est.lower_mm[near], est.upper_mm[near], est.distance_mm[near],
                          est.sigma_mm[near], est.spread_mm, est.positions[near], est.calibration, est.noise_scale,

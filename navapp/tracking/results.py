@@ -18,11 +18,17 @@ by PLUS, so e.g. 18945): ``ResultsSender.connect("slicer-host", 18945)``; connec
 while nobody is connected are delivered on connection (the latest 100).
 """
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 import pyigtl
 
 from ..anatomy.frames import to_case
+from ..fitwarning import texts
 from ..geometry.transforms import homogeneous
+
+if TYPE_CHECKING:  # tracking registers nothing: it only shows a registration's answer and warnings
+    from ..registration.pipeline import Registration
 
 RIGID = "RigidToReference"
 PREOP_RAS = "PreopRASToReference"
@@ -48,21 +54,19 @@ def ascii_text(text: str) -> str:
     return text.translate(_ASCII).encode("ascii", "replace").decode()
 
 
-def status_line(reg) -> str:
+def status_line(reg: "Registration") -> str:
     """One line about a ``Registration``: which answer it is, and every warning it carries
     (an undetermined pose, a deformation the data do not support, a poor fit) — "fit ok"
     only when there is none, so Slicer is never told a doubtful answer is fine."""
     parts = []
-    libr = getattr(reg, "libr", None)
-    if libr is not None and getattr(reg, "deformed", True):
+    libr = reg.libr
+    if libr is not None and reg.deformed:
         parts.append(f"deformable: {libr.iterations} iterations, {libr.stop_reason}, Ω {libr.omega:.3g}")
     elif libr is not None:
         parts.append(f"rigid pose shown (deformation not used): residual RMS {reg.rigid.rms_mm:.2f} mm")
     else:
         parts.append(f"rigid: residual RMS {reg.rigid.rms_mm:.2f} mm")
-    warnings = list(getattr(reg, "warnings", None) or [])
-    if not warnings and (q := getattr(reg, "quality", None)) is not None and not q.ok:
-        warnings = [f"poor fit: {q.warning}"]
+    warnings = texts(reg.warnings)
     parts.append("WARNING: " + " | ".join(warnings) if warnings else "fit ok")
     return ascii_text("; ".join(parts))
 
