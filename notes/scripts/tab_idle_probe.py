@@ -109,7 +109,7 @@ try:
                 pg.get_by_label(name, exact=True).first.uncheck(force=True)
         time.sleep(8)
         print("visibility:", pg.evaluate("document.visibilityState"), "dpr:", pg.evaluate("window.devicePixelRatio"))
-        for it in range(2):
+        for _ in range(2):
             procs = [q for q in psutil.Process().children(recursive=True) if "chrom" in q.name()]
             cpu0 = {q.pid: sum(q.cpu_times()[:2]) for q in procs}
             a = pg.evaluate("({...window.__n})")
@@ -132,7 +132,7 @@ try:
         time.sleep(2.5)
         print("  one frame's draw calls (call, mode, count):", pg.evaluate("window.__calls"))
         t = pg.evaluate("window.__t.slice(-40)")
-        print("  last frames at (ms apart):", [b - a for a, b in zip(t, t[1:])])
+        print("  last frames at (ms apart):", [b - a for a, b in zip(t, t[1:], strict=False)])
         if os.environ.get("SHOT"):
             pg.screenshot(path=os.environ["SHOT"])
         for ms, where in pg.evaluate("window.__intervals"):
