@@ -40,7 +40,7 @@ ERROR_DOT_MM = 0.5
 # outward: the imported surface by ``anatomy.cleanup``, the registered one as the mesh's outward
 # boundary). Two-sided, three.js draws a translucent mesh twice, inner faces then outer, and every
 # tab redraws once a second in software where there is no GPU: the back half of the liver was
-# about a third of an idle tab's frame (docs/decisions.md, "What a tab draws").
+# about a third of an idle tab's frame (docs/decisions.md, "What makes an idle tab redraw").
 LIVER_SIDE: Final = "front"
 TRUE, PREDICTED = "true error", "predicted error"
 ERROR_SOURCES = {TRUE: "true error", PREDICTED: "predicted error, no truth needed"}  # choice → legend label
