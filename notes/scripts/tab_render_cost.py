@@ -47,7 +47,8 @@ try:
         import psutil
 
         def idle(what):
-            procs = [q for q in psutil.process_iter(["name"]) if "chrom" in (q.info["name"] or "")]
+            # this browser's processes only: other Chromiums on a shared machine are not this tab's
+            procs = [q for q in psutil.Process().children(recursive=True) if "chrom" in q.name()]
             cpu0 = {q.pid: sum(q.cpu_times()[:2]) for q in procs}
             a = pg.evaluate("window.__gl")
             time.sleep(10)

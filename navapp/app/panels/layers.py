@@ -2,6 +2,8 @@
 here (per browser: hiding the liver in one tab hides it in no other), standard views, the
 error colour scale and a legend floating over the 3D view."""
 
+from typing import Final
+
 import numpy as np
 import trimesh
 import viser.transforms as vtf
@@ -34,6 +36,12 @@ LAYERS = ("Preoperative liver", "Preoperative vessels", "Targets", "Collected da
 # the error dots' point_size: viser draws a point of size s about 2 s wide (mm); at 1.0 they hid
 # a third of the registered vessels' pixels (docs/decisions.md, "Error dots")
 ERROR_DOT_MM = 0.5
+# The translucent livers are drawn one-sided, their outer faces only (both are closed and wound
+# outward: the imported surface by ``anatomy.cleanup``, the registered one as the mesh's outward
+# boundary). Two-sided, three.js draws a translucent mesh twice, inner faces then outer, and every
+# tab redraws once a second in software where there is no GPU: the back half of the liver was
+# about a third of an idle tab's frame (docs/decisions.md, "What makes an idle tab redraw").
+LIVER_SIDE: Final = "front"
 TRUE, PREDICTED = "true error", "predicted error"
 ERROR_SOURCES = {TRUE: "true error", PREDICTED: "predicted error, no truth needed"}  # choice → legend label
 
@@ -108,7 +116,7 @@ class LayersPanel:
         s = self.s
         shown = self.core.display.of
         self._add("Preoperative liver", s.add_mesh_simple("/preop/liver", *shown(preop.liver),
-                                                          color=LIVER, opacity=0.3, side="double"))
+                                                          color=LIVER, opacity=0.3, side=LIVER_SIDE))
         for name in VESSELS:
             colour = VESSEL[name]
             m = preop.vessel(name)
@@ -253,7 +261,8 @@ class LayersPanel:
                 arrays[name] = v
                 continue
             if name == "liver":
-                node = s.add_mesh_simple("/registered/liver", v, f, color=REGISTERED, opacity=0.4, side="double")
+                node = s.add_mesh_simple("/registered/liver", v, f, color=REGISTERED, opacity=0.4,
+                                        side=LIVER_SIDE)
                 self._add("Registered liver", node)
             else:
                 self._add("Registered vessels", s.add_mesh_simple(f"/registered/{name}", v, f,
