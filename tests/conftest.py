@@ -4,7 +4,16 @@ import os
 import tempfile
 from pathlib import Path
 
-import numpy as np
+# Each of the two xdist workers holds its BLAS / OpenMP pools at one thread: two workers on
+# two cores already fill the machine, and a pool of two threads per worker only added waits
+# (OpenBLAS's threads spin after each call; tests ran with more CPU seconds than wall seconds
+# beside the other worker). Set before NumPy loads; children (CLI runs, Dask workers) inherit
+# it. A single-process run (-n 0) keeps the installed pools.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
 import pytest
 
 # keep the suite's cache entries out of the user's ~/.cache/navapp
