@@ -4,7 +4,16 @@ import os
 import tempfile
 from pathlib import Path
 
-import numpy as np
+# Each of the two xdist workers holds its BLAS / OpenMP pools at one thread: two workers on
+# two cores already fill the machine, and a pool of two threads per worker only added waits
+# (OpenBLAS's threads spin after each call; tests ran with more CPU seconds than wall seconds
+# beside the other worker). Set before NumPy loads; children (CLI runs, Dask workers) inherit
+# it. A single-process run (-n 0) keeps the installed pools.
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+        os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
 import pytest
 
 # keep the suite's cache entries out of the user's ~/.cache/navapp
@@ -56,7 +65,42 @@ def pytest_xdist_make_scheduler(config, log):
     return ByModule(config, log)
 
 
+def compile_once():
+    """Compile navapp's Numba kernels into their on-disk cache (``cache=True``), with the
+    argument types registration gives them (a real registration's signatures: C-contiguous
+    float64 and int64 arrays, SciPy's int32 CSR index arrays). In a fresh clone every
+    process compiled them for itself until one had written the cache: both workers at once
+    (13.8 CPU s in one worker's first registration), and CLI children started meanwhile;
+    done once here, before the workers start, each of them loads the cache instead. Types
+    missed here only mean that a process compiles what is missing, as before."""
+    try:
+        import numba  # noqa: F401
+    except ImportError:  # pragma: no cover - only without numba
+        return
+    import trimesh
+
+    from navapp.geometry.bvh import SurfaceHierarchy
+    from navapp.geometry.closest import closest_on_surface, incidence, surface_normals
+    from navapp.registration.jacobian_compiled import alpha_columns
+
+    ball = trimesh.creation.icosphere(subdivisions=1)
+    v = np.ascontiguousarray(ball.vertices, dtype=float)
+    f = np.ascontiguousarray(ball.faces, dtype=np.int64)
+    p = v[:5] * 1.1
+    h = SurfaceHierarchy(v, f)
+    h.closest(p, v, h.refit(v))
+    face, bary, _ = closest_on_surface(p, v, f, incidence(len(v), f))
+    surface_normals(p, v, f, face, bary)
+    n = 2
+    alpha_columns(np.array([0, 1], np.int32), np.array([0], np.int32), np.ones(1), np.zeros((1, 3, n)),
+                  np.zeros((1, 3)), np.zeros(1, np.int64), np.zeros((1, 3, n)), np.zeros((1, 3 * n + 6)))
+
+
 def pytest_configure(config):
+    # the two-worker run's controller compiles the Numba kernels once for both workers
+    if not hasattr(config, "workerinput") and config.pluginmanager.hasplugin("xdist") and \
+            getattr(config.option, "numprocesses", None):
+        compile_once()
     # NAVAPP_TIMELINE=PREFIX: each test's wall and CPU seconds per worker (``timeline``)
     if os.environ.get("NAVAPP_TIMELINE"):
         from timeline import Recorder

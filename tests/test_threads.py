@@ -12,15 +12,21 @@ def pools():
 
 
 def test_limit_threads_holds_one_thread_inside_and_restores_after():
+    from threadpoolctl import threadpool_limits
+
     np.ones((4, 4)) @ np.ones((4, 4))  # BLAS loaded
-    before = pools()
-    with limit_threads(1):
-        inside = pools()
-        with limit_threads(1):  # nested, as the LM loop inside a live update
-            pass
-        assert pools() == inside
-    assert all(n == 1 for n in inside.values()), inside
-    assert pools() == before
+    # pools of two threads to begin with: the suite's workers run theirs at one (conftest),
+    # where holding them at one and giving them back would show nothing
+    with threadpool_limits(2):
+        before = pools()
+        assert all(n == 2 for n in before.values()), before
+        with limit_threads(1):
+            inside = pools()
+            with limit_threads(1):  # nested, as the LM loop inside a live update
+                pass
+            assert pools() == inside
+        assert all(n == 1 for n in inside.values()), inside
+        assert pools() == before
 
 
 def test_a_thread_pool_loaded_after_the_first_limit_is_held_too():
