@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 import trimesh
 from skimage.draw import line as sk_line
 
@@ -70,6 +71,25 @@ def test_closest_on_surface_matches_trimesh():
     assert np.allclose(np.linalg.norm(q - pts, axis=1), dist, atol=1e-9)
     assert np.allclose(q, ref, atol=1e-6)
     assert np.allclose(np.einsum("ij,ijk->ik", bary, sphere.vertices[sphere.faces[face]]), q)
+
+
+def test_a_point_too_far_to_measure_is_one_line_not_a_read_past_the_arrays():
+    """A point whose squared distance overflows (a pose gone to 1e200 mm) has no nearest
+    vertex: the k-d tree answers with the vertex count, which the compiled candidate test
+    read as an index (a crash of the process; in NumPy an IndexError). Said in one line."""
+    from scipy.spatial import cKDTree
+
+    from navapp.geometry.closest import closest_on_surface, incidence, nearest_vertices, vertex_tree
+
+    ball = trimesh.creation.icosphere(subdivisions=2)
+    v, f = np.asarray(ball.vertices, float), np.asarray(ball.faces)
+    pts = np.array([[1e200, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    with pytest.raises(ValueError, match="1 of 2 points lie too far from the surface"):
+        closest_on_surface(pts, v, f, incidence(len(v), f))
+    for tree in (vertex_tree(v), cKDTree(v)):
+        with pytest.raises(ValueError, match="too far"):
+            nearest_vertices(tree, pts)
+    assert nearest_vertices(vertex_tree(v), pts[1:]).shape == (1, 2)
 
 
 def test_compiled_closest_on_surface_equals_numpy_to_the_bit():

@@ -46,6 +46,27 @@ def test_collinear(small_model):
         check(register(small_model, {"anterior": line}))
 
 
+def test_a_stylus_line_with_one_contour_point_on_each_vessel(small_model):
+    """The live follower's first update that raised in CI (issue 48, item 5): a short line of
+    digitised stylus points and a frame whose segmentation left one contour point on each
+    vessel. The trimmed fit solved its six motions whole, so it stepped without bound along
+    the ones such data leave free, until the pose stood ~1e221 mm off and the closest-point
+    search read past its arrays (an IndexError, or the process crashed)."""
+    from navapp.fitwarning import WarningKind
+    from navapp.registration.pose import trimmed_pose
+    from navapp.registration.rigid import RigidResult
+
+    line = np.array([-17.601, 21.365, -27.552]) + np.outer(np.arange(10), [0.505, 0.203, -0.8005])
+    data = {"anterior": line, "portal_contour": np.array([[-97.789, -13.645, 7.532]]),
+            "hepatic_contour": np.array([[-63.944, -20.055, 21.058]])}
+    pose, moved = trimmed_pose(small_model, data, RigidResult(np.eye(3), np.zeros(3), 0, 0.0))
+    extent = float(np.ptp(small_model.basis.nodes, axis=0).max())
+    assert np.isfinite(pose.t).all() and np.linalg.norm(pose.t) < extent and np.isfinite(moved)
+    reg = register(small_model, data)
+    check(reg)
+    assert WarningKind.UNDETERMINED_POSE in {w.kind for w in reg.warnings}
+
+
 def test_coplanar(small_model):
     g = np.stack(np.meshgrid(np.linspace(-50, 50, 8), np.linspace(-30, 30, 8)), -1).reshape(-1, 2)
     check(register(small_model, {"anterior": np.column_stack([g[:, 0], np.full(len(g), 45.0), g[:, 1]])}))

@@ -133,7 +133,17 @@ def nearest_vertices(tree, points, near=NEAR):
     # registration: 2.2 s CPU with two threads, 1.8 s with one; docs/decisions.md)
     with limit_threads(1):
         found = tree.query(points, k=near)[1]
-    return np.asarray(found, np.int64).reshape(len(points), near)
+    found = np.asarray(found, np.int64).reshape(len(points), near)
+    # a k-d tree answers "none" (the vertex count) for a point whose distance is not finite:
+    # the compiled candidate test would read past its arrays with it (a crash of the process)
+    n = getattr(tree, "n", None)
+    if n is None:
+        n = len(tree.data)
+    if len(found) and int(found.max()) >= n:
+        far = points[(found >= n).any(axis=1)]
+        raise ValueError(f"closest points: {len(far)} of {len(points)} points lie too far from the surface to "
+                         f"measure (up to {np.abs(far).max():.3g} mm from the origin, or not finite)")
+    return found
 
 
 _compiled: list = []  # the compiled candidate test, or None; imported on first use (Numba takes ~1 s to load)

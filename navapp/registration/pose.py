@@ -134,8 +134,17 @@ def trimmed_pose(model: RegistrationModel, data: dict, start: RigidResult, keep:
         r = np.einsum("ij,ij->i", N, P - Q)
         best = np.argsort(np.abs(r))[: max(6, int(keep * len(r)))]
         c = P[best].mean(0)
-        a = np.hstack([np.cross(P[best] - c, N[best]), N[best]])
-        x = np.linalg.lstsq(a, -r[best], rcond=None)[0]
+        # each step moves the pose only along the motions the kept points determine: the
+        # rotation columns scaled by the points' extent (``_determinacy``'s normal matrix), and
+        # the singular values below √WEAK_RATIO of the largest (its eigenvalues below
+        # WEAK_RATIO, the sliding directions) left out of the solve. With all six kept this is
+        # the least-squares step; a line of stylus points with a point or two elsewhere, solved
+        # whole, took steps along the slides without bound until the pose stood 1e221 mm off
+        # and the closest-point search read past its arrays (docs/decisions.md)
+        L = max(float(np.linalg.norm(P[best] - c, axis=1).max()), 1.0)
+        a = np.hstack([np.cross(P[best] - c, N[best]) / L, N[best]])
+        x = np.linalg.lstsq(a, -r[best], rcond=np.sqrt(WEAK_RATIO))[0]
+        x[:3] /= L
         if not np.isfinite(x).all():
             return start, float("inf")
         w, v = x[:3], x[3:] - np.cross(x[:3], c)  # rotation about c → about the origin
