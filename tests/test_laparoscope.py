@@ -363,7 +363,7 @@ def _shipped_scene_small():
 def test_the_shipped_laparoscopic_case_uses_the_laparoscope_and_joins_no_study_set():
     path = scene_dir() / "scope0-L.toml"
     scene = load_scene(path)
-    assert scene.sources["laparoscope"].instrument_radius_mm > 0 and scene.coverage <= 0.05
+    assert scene.sources["laparoscope"].instrument_radius_mm > 0 and scene.sources["stylus"].coverage <= 0.05
     assert scene.transpose_from is not None and scene.pressure_pa > 0  # insufflated, as the lap* cases
     # the default study sets (and so Table II's and the other studies' defaults) stay as they were
     assert all(path not in study_scenes(which) for which in SCENE_SETS)
