@@ -106,7 +106,7 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
     # its own stream, so that enabling one leaves every other draw of the scene as it was
     intraop: dict = {}
     sourced: dict = {}
-    always = [n for n, spec in scene.sources.items() if registered()[n].always]
+    always = [n for n in scene.sources if registered()[n].always]
     others = sorted(n for n in scene.sources if n not in always)
     streams = [(n, rng) for n in always] + [(n, np.random.default_rng([scene.seed, 11, i]))
                                              for i, n in enumerate(others)]
