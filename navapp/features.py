@@ -87,8 +87,10 @@ STYLUS: tuple[str, ...] = tuple(f.name for f in TABLE if f.source == "stylus")
 SALIENT: tuple[str, ...] = tuple(f.name for f in TABLE if f.salient)
 """Salient features: each slides on its own labelled region."""
 HAND_WIRED = ("stylus", "ius", "fiducial")
-"""The sources wired by hand through the simulator, the tracker and the viewer; every other
-``source`` is a module of ``navapp/simulation/sources``, simulated, kept and received alike."""
+"""The sources received, kept and shown by hand (the stylus's tracked tip and sweep, the iUS
+planes' frames, fiducials); the stylus is simulated as a module of ``navapp/simulation/sources``
+(in every scene), the iUS planes still by hand. Every other ``source`` is a module there,
+simulated, kept and received alike."""
 SOURCED: tuple[str, ...] = tuple(f.name for f in TABLE if f.source not in HAND_WIRED)
 """The features of those sources: live, an OpenIGTLink POINT message of this device name."""
 SEEN: tuple[str, ...] = tuple(n for n in SOURCED if BY_NAME[n].kind == "surface" and BY_NAME[n].target == "liver")

@@ -3,6 +3,7 @@ a data source on the source protocol (``simulation/sources``)."""
 
 import json
 import shutil
+import tomllib
 
 import numpy as np
 import pytest
@@ -11,7 +12,12 @@ import trimesh
 from navapp.anatomy.caseio import read_case
 from navapp.cli import main
 from navapp.errors import InputError
-from navapp.simulation.scene import parse_scene
+from navapp.evaluation.table2 import read_results
+from navapp.features import STYLUS
+from navapp.geometry.tre import tre_stats
+from navapp.registration.pipeline import prepare, register
+from navapp.simulation.levels import case_source_levels, data_level, study_data
+from navapp.simulation.scene import SCENE_SETS, load_scene, parse_scene, scene_dir, study_scenes
 from navapp.simulation.simulate import simulate
 from navapp.simulation.sources import features_of, registered
 from navapp.simulation.sources.laparoscope import (
@@ -342,3 +348,62 @@ def test_a_laparoscope_point_far_off_is_named_by_its_source():
     assert [w.where for w in worst] == ["the laparoscope's depth points, simulated laparoscope",
                                         "the laparoscope's depth points, live laparoscope",
                                         "the anterior surface, tracked stylus"]
+
+
+def _shipped_scene_small():
+    """The shipped laparoscopic case (``navapp/scenes/scope0-L.toml``) as shipped, but for
+    its truth (gravity on phantom 0's own 10 mm mesh, linear, instead of the transposed
+    neo-Hookean insufflation) and no iUS planes: its stylus, camera and effects are the file's."""
+    table = tomllib.loads((scene_dir() / "scope0-L.toml").read_text())
+    table["deformation"] = {"release": "L", "mesh_edge_mm": 10.0, "truth_E_pa": 5000.0}
+    table["ius"] = {"planes": 0}
+    return parse_scene(table, "scope0-L.toml")
+
+
+def test_the_shipped_laparoscopic_case_uses_the_laparoscope_and_joins_no_study_set():
+    path = scene_dir() / "scope0-L.toml"
+    scene = load_scene(path)
+    assert scene.sources["laparoscope"].instrument_radius_mm > 0 and scene.sources["stylus"].coverage <= 0.05
+    assert scene.transpose_from is not None and scene.pressure_pa > 0  # insufflated, as the lap* cases
+    # the default study sets (and so Table II's and the other studies' defaults) stay as they were
+    assert all(path not in study_scenes(which) for which in SCENE_SETS)
+
+
+@pytest.fixture(scope="module")
+def scope_case(tmp_path_factory, cache_root):
+    out = tmp_path_factory.mktemp("scope") / "scope0-L"
+    simulate(_shipped_scene_small(), out, cache_root)
+    return out
+
+
+def test_table2_has_a_laparoscope_row_that_measures_what_it_adds(scope_case, tmp_path, capsys):
+    csv, report = tmp_path / "t2.csv", tmp_path / "report"
+    assert main(["--quiet", "study", "table2", "--cases", str(scope_case), "--quick", "--edge", "12", "--k", "12",
+                 "--workers", "1", "--results", str(csv), "--report", str(report)]) == 0
+    capsys.readouterr()
+    rows = read_results(csv)
+    tre = {r["level"]: float(r["tre_mean_mm"]) for r in rows}
+    # no planes in this case: no plane level; its source's level beside S
+    assert sorted(tre) == sorted(["rigid", "S", "S+laparoscope", "CBCT", "iCT"]) and len(rows) == 5
+    assert tre["S+laparoscope"] < tre["S"] - 2.0  # the few stylus swaths alone do not correct it
+    head = (report / "table2.md").read_text().splitlines()[2]
+    assert "| S+laparoscope |" in head
+    # the row is the registration of S and the camera's points, as `register` gives it alone
+    case = read_case(scope_case)
+    model, _ = prepare(case, 12.0, 12)
+    data = study_data(scope_case, "S+laparoscope", case=case)
+    assert set(data) == set(STYLUS) | {"laparoscope"}
+    x0, x1 = case.need_truth().tre_points(model.basis.nodes)
+    alone = tre_stats(register(model, data).transform(x0), x1)["mean_mm"]
+    assert alone == pytest.approx(tre["S+laparoscope"], abs=1e-4)
+
+
+def test_a_case_without_the_camera_has_no_laparoscope_level(lap_case, tmp_path):
+    out, _ = lap_case
+    assert case_source_levels(out) == ("S+laparoscope",)
+    plain = tmp_path / "plain"
+    shutil.copytree(out, plain, ignore=shutil.ignore_patterns("registration"))
+    (plain / "intraop" / "laparoscope.csv").unlink()
+    assert case_source_levels(plain) == ()
+    with pytest.raises(InputError, match="no laparoscope points in this case"):
+        data_level(plain, "S+laparoscope")

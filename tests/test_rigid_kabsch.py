@@ -41,3 +41,19 @@ def test_unequal_weights_give_the_weighted_optimum():
     assert np.allclose(t, qc - ref.as_matrix() @ pc, atol=1e-8)
     M = trimesh.registration.procrustes(P, Q, weights=w, reflection=False, scale=False, return_cost=False)
     assert _cost(R, t, P, Q, w) < _cost(M[:3, :3], M[:3, 3], P, Q, w)
+
+
+def test_the_hard_study_removes_the_rigid_part_as_trimesh_does():
+    # nonrigid_max (evaluation/hard.py) fits its rigid part with the one Kabsch; the answer is
+    # the one trimesh's Procrustes gave it before, and a rigid motion leaves nothing
+    from navapp.evaluation.hard import nonrigid_max
+
+    P, _, rng = _problem(7, n=200)
+    R = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix()
+    rigid = P @ R.T + [4.0, 1.0, -2.0] - P
+    assert nonrigid_max(P, rigid) < 1e-9
+    u = rigid + 5.0 * np.exp(-np.sum((P - P[0]) ** 2, axis=1) / 400.0)[:, None] * [0.0, 1.0, 0.0]
+    T = trimesh.registration.procrustes(P, P + u, reflection=False, translation=True, scale=False, return_cost=False)
+    expected = np.linalg.norm(P + u - trimesh.transform_points(P, T), axis=1).max()
+    assert nonrigid_max(P, u) > 1.0
+    np.testing.assert_allclose(nonrigid_max(P, u), expected, rtol=1e-9)

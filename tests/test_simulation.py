@@ -35,8 +35,9 @@ def test_builtin_demo_scene_equals_the_shipped_file():
 
 def test_shipped_scenes_parse():
     names = sorted(p.stem for p in SCENES.glob("*.toml"))
-    # demo, nine direct-gravity, nine transposed (lap) and 24 local-load (tool) scenes
-    assert "demo" in names and len(names) == 1 + 9 + 9 + 24
+    # demo, nine direct-gravity, nine transposed (lap) and 24 local-load (tool) scenes, and the
+    # laparoscopic case with the laparoscope's depth points (scope0-L, in no study set)
+    assert "demo" in names and "scope0-L" in names and len(names) == 1 + 9 + 9 + 24 + 1
     assert [len(study_scenes(s)) for s in ("direct", "lap", "tool")] == [9, 9, 24]
     for p in SCENES.glob("*.toml"):
         s = load_scene(p)

@@ -40,6 +40,7 @@ from ..anatomy.meshing import TetMesh, cached_tetmesh, dihedral_angles, tet_volu
 from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
 from ..errors import NavappError
+from ..geometry.transforms import apply, homogeneous, kabsch
 from ..geometry.tre import mean_tre
 from ..mechanics.basis import BasisSettings, load_or_compute_basis
 from ..mechanics.fem import Material
@@ -339,12 +340,9 @@ def energy_bound(model, omega0: float, w_energy: float) -> float:
 
 def nonrigid_max(nodes, u) -> float:
     """Largest |u_n − (R x_n + t − x_n)| over the nodes (mm): the displacement left once the
-    rigid motion that best fits x → x + u (least squares, trimesh's Procrustes) is removed."""
-    import trimesh
-
-    T = trimesh.registration.procrustes(nodes, nodes + u, reflection=False, translation=True, scale=False,
-                                        return_cost=False)
-    return float(np.linalg.norm(nodes + u - trimesh.transform_points(nodes, T), axis=1).max())
+    rigid motion that best fits x → x + u (least squares, ``geometry.transforms.kabsch``) is removed."""
+    R, t = kabsch(nodes, nodes + u)
+    return float(np.linalg.norm(nodes + u - apply(homogeneous(R, t), nodes), axis=1).max())
 
 
 def _register_once(case: HardCase, setup: Setup):

@@ -1,7 +1,8 @@
 """The paper's Table II design on simulated cases (§III): every case registered at every
 data level — rigid, S, S + 1 plane (16 choices), S + 2 (120), S + 3 (560), S + all 16,
-CBCT, iCT — with one CSV row per registration, appended as results arrive so that a rerun
-skips what is done.
+CBCT, iCT — and, for a case with a registered data source's points (``simulation.sources``),
+S + that source ("S+laparoscope"), with one CSV row per registration, appended as results
+arrive so that a rerun skips what is done.
 
 Work is cut into chunks of scenarios of one case (a chunk loads that case's cached basis
 once); chunks run on local processes, or on a Dask distributed cluster with
@@ -22,7 +23,15 @@ from ..defaults import EDGE_MM, N_PLANES, K
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.tre import tre_stats
 from ..registration.pipeline import prepare, register, rigid_starts
-from ..simulation.levels import LEVELS, fixed_planes, plus_planes, study_data, stylus_only_pose  # noqa: F401 (LEVELS: Table II's rows)
+from ..simulation.levels import (  # noqa: F401 (LEVELS: Table II's rows)
+    LEVELS,
+    case_planes,
+    case_source_levels,
+    fixed_planes,
+    plus_planes,
+    study_data,
+    stylus_only_pose,
+)
 from .distribute import DASK_CONNECT_S, ResultsCSV, check_scheduler, dask_client, run_tasks  # noqa: F401
 
 PAPER = {"rigid": (13.8, None), "S": (11.4, None), "S+1": (9.0, None), "S+2": (7.4, None), "S+3": (6.4, None),
@@ -30,16 +39,20 @@ PAPER = {"rigid": (13.8, None), "S": (11.4, None), "S+1": (9.0, None), "S+2": (7
 COLUMNS = ("case", "level", "planes", "tre_mean_mm", "tre_sd_mm", "tre_max_mm", "iterations", "stop_reason", "seconds")
 
 
-def scenarios(n_planes=N_PLANES, quick=False, rng_seed=0):
-    """(level, planes) pairs of the design; ``quick`` keeps two choices per plane level."""
+def scenarios(n_planes=N_PLANES, quick=False, rng_seed=0, sources=()):
+    """(level, planes) pairs of the design; ``quick`` keeps two choices per plane level;
+    ``sources``: the source levels of a case that has their data (``case_source_levels``).
+    A case with fewer planes than ``N_PLANES`` (a laparoscopic case without ultrasound) has
+    the plane levels it can: none of them without planes."""
     out: list[tuple[str, tuple[int, ...]]] = [("rigid", ()), ("S", ())]
     for m in (1, 2, 3):
         combos = list(itertools.combinations(range(n_planes), m))
-        if quick:
+        if quick and len(combos) > 2:
             rng = np.random.default_rng(rng_seed + m)
             combos = [combos[i] for i in sorted(rng.choice(len(combos), 2, replace=False))]
         out += [(plus_planes(m), c) for c in combos]
-    out += [(level, fixed_planes(level, n_planes)) for level in ("S+all", "CBCT", "iCT")]
+    last = ("S+all",) * (n_planes > 0) + tuple(sources) + ("CBCT", "iCT")
+    out += [(level, fixed_planes(level, n_planes)) for level in last]
     return out
 
 
@@ -97,7 +110,8 @@ def run_table2(case_dirs, results, workers=None, scheduler=None, quick=False, ch
             for r in read_results(results)}
     todo = []
     for d in case_dirs:
-        items = [s for s in scenarios(quick=quick) if _key(Path(d).name, *s) not in done]
+        design = scenarios(case_planes(d), quick=quick, sources=case_source_levels(d))
+        items = [s for s in design if _key(Path(d).name, *s) not in done]
         todo += [(str(d), items[i:i + chunk], edge, k) for i in range(0, len(items), chunk)]
     total = sum(len(t[1]) for t in todo)
     if not total:

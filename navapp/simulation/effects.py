@@ -54,10 +54,7 @@ def tracker_offset(pivot, rng, ledger: Ledger, rotation_deg: float, translation_
     ``translation_mm`` along a random direction."""
     ledger.mark("tracker_offset")
     R, shift = _random_rigid(rng, rotation_deg, translation_mm)
-    T = np.eye(4)
-    T[:3, :3] = R
-    T[:3, 3] = np.asarray(pivot) - R @ np.asarray(pivot) + shift
-    return T
+    return homogeneous(R, np.asarray(pivot) - R @ np.asarray(pivot) + shift)
 
 
 def probe_compression(points, contact, depth_axis, ledger: Ledger, depth_mm: float, radius_mm: float):

@@ -19,7 +19,7 @@ Example::
     # transpose_from = {phantom = 3, mesh_edge_mm = 5.0}
     #   the loads above deform reference phantom 3 instead, and its displacement is carried
     #   onto this liver through an inexact correspondence (transpose.py)
-    [stylus]
+    [stylus]                 # a source in every scene (``sources/stylus.py``)
     coverage = 0.2           # fraction of the anterior surface the swaths cover
     [ius]
     planes = 16              # 8 vertical + 8 lateral; 0 for none
@@ -95,7 +95,8 @@ class Scene:
     """What to simulate (a scene TOML, ``navapp/scenes/*.toml``): the anatomy (a phantom
     index or a case folder), the true deformation (ligament release, gravity tilt, linear or
     neo-Hookean, truth mesh edge mm, E Pa, pressure Pa, or a transposition), the
-    stylus coverage, the number of iUS planes and the acquisition effects."""
+    number of iUS planes, the data sources (``sources``: the stylus in every scene) and the
+    acquisition effects."""
 
     name: str
     phantom: int | None = 0
@@ -111,10 +112,6 @@ class Scene:
     gravity: bool = True
     supports: str = "ligaments"
     tool: "ToolSpec | None" = None
-    coverage: float = 0.2
-    pattern: str = "swaths"
-    points: int = 500
-    patch_at: tuple | None = None
     planes: int = N_PLANES
     effects: list = field(default_factory=list)
     seed: int = 0
@@ -125,7 +122,8 @@ class Scene:
     pose_declared: bool = False
     pose_sd_mm: float | None = None
     pose_sd_deg: float | None = None
-    # the registered data sources it enables (``sources``): source name → its parsed table
+    # the registered data sources it enables (``sources``): source name → its parsed table;
+    # the sources in every scene (``always``: the stylus) are here whether or not it has their table
     sources: dict = field(default_factory=dict)
 
     def declared_pose(self) -> tuple[float, float] | None:
@@ -147,7 +145,6 @@ _SECTIONS: dict[str, dict[str, type]] = {
     "deformation": {"release": str, "gravity_tilt_deg": float, "large": bool, "mesh_edge_mm": float,
                     "truth_E_pa": float, "pressure_pa": float, "head_up_deg": float,
                     "transpose_from": dict, "gravity": bool, "supports": str},
-    "stylus": {"coverage": float, "pattern": str, "points": int, "at": list},
     "ius": {"planes": int},
     "pose": {"declared": bool, "sd_mm": float, "sd_deg": float},
 }
@@ -227,18 +224,15 @@ def parse_scene(data: dict, path=None) -> Scene:
                 if not isinstance(value, dict):
                     raise InputError(f"{section}.{key} must be a table, e.g. {{phantom = 3}}", path)
                 value = _transposition(value, path)
-            elif keys[key] is list:
-                value = _point(value, f"{section}.{key}", path)
             else:
                 value = _typed(value, keys[key], f"{section}.{key}", path)
-            attr = "patch_at" if (section, key) == ("stylus", "at") else \
-                f"pose_{key}" if section == "pose" else key
+            attr = f"pose_{key}" if section == "pose" else key
             setattr(scene, attr, Path(value) if key == "case" else value)
     if "tool" in data:
         scene.tool = _tool(data["tool"], path)
     for name, source in registered().items():
-        if name in data:
-            scene.sources[name] = source.parse(data[name], path)
+        if name in data or source.always:
+            scene.sources[name] = source.parse(data.get(name, {}), path)
     if scene.supports not in SUPPORTS:
         raise InputError(f"deformation.supports must be one of {', '.join(SUPPORTS)}, got {scene.supports!r}", path)
     if scene.tool is not None and scene.transpose_from is not None:
@@ -247,18 +241,10 @@ def parse_scene(data: dict, path=None) -> Scene:
     if scene.tool is not None and scene.tool.load == "displacement" and scene.large:
         raise InputError("tool.load = \"displacement\" needs the linear truth (large = false); "
                          "use load = \"pressure\"", path)
-    if scene.pattern not in ("swaths", "patch"):
-        raise InputError(f"stylus.pattern must be \"swaths\" or \"patch\", got {scene.pattern!r}", path)
-    if scene.pattern == "patch" and scene.patch_at is None:
-        raise InputError("stylus.pattern = \"patch\" needs stylus.at = [x, y, z] (the patch centre, mm)", path)
-    if not 10 <= scene.points <= 100000:
-        raise InputError(f"stylus.points must be between 10 and 100000, got {scene.points}", path)
     if "case" in data.get("anatomy", {}):
         scene.phantom = None
     if scene.release not in ("L", "N", "R"):
         raise InputError(f"deformation.release must be \"L\", \"N\" or \"R\", got {scene.release!r}", path)
-    if not 0.0 < scene.coverage <= 1.0:
-        raise InputError("stylus.coverage must be in (0, 1]", path)
     if not 0 <= scene.planes <= N_PLANES:
         raise InputError(f"ius.planes must be between 0 and {N_PLANES}", path)
     if any(v is not None and v <= 0 for v in (scene.pose_sd_mm, scene.pose_sd_deg)):

@@ -26,6 +26,7 @@ from ..simulation.effects import Ledger
 from .probe import Probe
 from .scene import Effect, Scene
 from .simulate import simulate
+from .sources import registered
 from .ultrasound import PlaneData, acquire_plane
 
 STYLUS_FEATURES = STYLUS  # (``navapp.features``)
@@ -52,7 +53,11 @@ class SceneData:
 def _scene_params(scene: Scene) -> dict:
     d = dataclasses.asdict(scene)
     d.pop("source", None)
-    if not d["sources"]:  # a scene enabling no data source keeps the key it had before sources were rooms
+    # a source in every scene (the stylus) keys by its settings' own names, as when they were
+    # the scene's fields; a scene enabling no other source keeps the key it had before sources were rooms
+    for name in [n for n in d["sources"] if registered()[n].always]:
+        d.update(d["sources"].pop(name))
+    if not d["sources"]:
         d.pop("sources")
     return d
 

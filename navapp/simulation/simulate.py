@@ -30,15 +30,12 @@ from ..anatomy.phantom import make_phantom
 from ..anatomy.targets import TARGETS_DIR, map_targets, write_targets
 from ..anatomy.truth import TruthField
 from ..errors import InputError
-from ..features import STYLUS
-from ..mechanics.controlpoints import nodal_areas
 from ..mechanics.fem import NU_LIVER, Material
 from ..outputs import folder_lock, staged
 from . import effects as fx
 from .probe import Probe
 from .scene import Scene
 from .sources import Sight, registered
-from .stylus import surface_patch, swath_pattern, thin
 from .tool import place_tool
 from .transpose import correspondence, reference_deformation, transpose
 from .truth import Loading, Supports, solve_linear, solve_neo_hookean, supported_nodes
@@ -104,46 +101,30 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
     portal_d, hepatic_d = (None if m is None else trimesh.Trimesh(moved(m.vertices), m.faces, process=False)
                            for m in (preop.portal, preop.hepatic))
 
-    # stylus
-    ledger.mark("stylus")
-    v = preop.liver.vertices
-    areas = nodal_areas(v, preop.liver.faces, np.arange(len(v)))
-    intraop = {}
-    stylus_regions = np.any([preop.region_mask(n) for n in STYLUS], axis=0)
-    if scene.pattern == "patch":
-        ledger.mark("surface_patch")
-        if scene.patch_at is None:
-            raise ValueError("a patch pattern needs stylus.at")
-        _, pick, bary, covered = surface_patch(v, preop.liver.faces, scene.patch_at, scene.coverage,
-                                               float(areas[stylus_regions].sum()), scene.points, rng)
-        coverage = covered / float(areas[stylus_regions].sum())
-        clouds = {"anterior": np.einsum("pk,pkj->pj", bary, liver_d.vertices[preop.liver.faces[pick]])}
-    else:
-        # the stylus features are named after the liver-surface regions they are digitised on
-        idx, coverage, _ = swath_pattern(v, areas, stylus_regions, scene.coverage, rng)
-        clouds = {label: thin(liver_d.vertices[idx[preop.region_mask(label)[idx]]]) for label in STYLUS}
-    for label, pts in clouds.items():
-        if "tracking_noise" in eff and len(pts):
-            pts = fx.tracking_noise(pts, rng, ledger, **eff["tracking_noise"])
-        if "dropout" in eff and len(pts):
-            pts = fx.dropout(pts, rng, ledger, **eff["dropout"])
-        if len(pts):
-            intraop[label] = pts
-
-    # the registered sources the scene enables (``sources``), each on its own random stream:
-    # enabling one leaves every other draw of the scene as it was
-    sourced = {}
-    for i, (name, spec) in enumerate(sorted(scene.sources.items())):
-        srng = np.random.default_rng([scene.seed, 11, i])
-        got = registered()[name].acquire(spec, Sight(liver_d, preop, ledger), srng)
+    # the data sources (``sources``): the stylus, in every scene, on the scene's own stream
+    # before the planes (as before sources were rooms); each other source the scene enables on
+    # its own stream, so that enabling one leaves every other draw of the scene as it was
+    intraop: dict = {}
+    sourced: dict = {}
+    always = [n for n in scene.sources if registered()[n].always]
+    others = sorted(n for n in scene.sources if n not in always)
+    streams = [(n, rng) for n in always] + [(n, np.random.default_rng([scene.seed, 11, i]))
+                                             for i, n in enumerate(others)]
+    for name, srng in streams:
+        got = registered()[name].acquire(scene.sources[name], Sight(liver_d, preop, ledger), srng)
+        kept = {}
         for label, pts in got.points.items():
             if "tracking_noise" in eff and len(pts):
                 pts = fx.tracking_noise(pts, srng, ledger, **eff["tracking_noise"])
             if "dropout" in eff and len(pts):
                 pts = fx.dropout(pts, srng, ledger, **eff["dropout"])
-            got.report.setdefault("kept", {})[label] = int(len(pts))
+            kept[label] = int(len(pts))
             if len(pts):
                 intraop[label] = np.vstack([intraop[label], pts]) if label in intraop else pts
+        if name in always:  # the stylus's entry reads as it always has: points of the features that have any
+            got.report["points"] = {k: n for k, n in kept.items() if n}
+        else:
+            got.report["kept"] = kept
         sourced[name] = got.report
 
     # iUS
@@ -189,8 +170,7 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
         report = {
             "scene": scene.name, "truth_nodes": int(len(truth_mesh.nodes)),
             "displacement_mm": {"mean": round(float(d.mean()), 2), "max": round(float(d.max()), 2)},
-            "stylus": {"coverage_of_anterior": round(coverage, 3),
-                       "points": {k: int(len(intraop[k])) for k in STYLUS if k in intraop}},
+            **{n: sourced.pop(n) for n in always},  # the stylus's entry where it always was
             "planes": [{k: int(len(p)) for k, p in pl.features.items()} for pl in planes],
             "seconds": {"truth": round(t_truth, 2), "total": round(time.perf_counter() - t0, 2)},
             "ran": sorted(set(ledger.ran)),

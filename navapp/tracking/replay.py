@@ -37,6 +37,7 @@ import pyigtl
 from scipy.spatial.transform import Rotation, Slerp
 
 from ..errors import InputError, NavappError
+from ..geometry.transforms import homogeneous
 from .config import TrackingConfig, full_image_matrix
 
 log = logging.getLogger("navapp.tracking")
@@ -109,10 +110,7 @@ class ReplayScript:
 
 def interpolate_pose(a, b, f) -> np.ndarray:
     rots = Rotation.from_matrix(np.stack([a[:3, :3], b[:3, :3]]))
-    m = np.eye(4)
-    m[:3, :3] = Slerp([0.0, 1.0], rots)(float(f)).as_matrix()
-    m[:3, 3] = (1 - f) * a[:3, 3] + f * b[:3, 3]
-    return m
+    return homogeneous(Slerp([0.0, 1.0], rots)(float(f)).as_matrix(), (1 - f) * a[:3, 3] + f * b[:3, 3])
 
 
 def script_from_scene(scene, transit_frames: int = 6, dwell_s: float = 2.0, move_s: float = 1.0,
@@ -254,8 +252,7 @@ class ReplayServer:
 
     def _send_tick(self, t, stamp):
         s, n = self.script, self.names
-        tip = np.eye(4)
-        tip[:3, 3] = s.stylus_at(t)
+        tip = homogeneous(np.eye(3), s.stylus_at(t))
         probe = s.probe_at(t)
         frame = s.frame_at(t)
         image_pose = frame.pose

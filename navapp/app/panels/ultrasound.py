@@ -7,6 +7,7 @@ import threading
 import numpy as np
 import viser.transforms as vtf
 
+from ...geometry.transforms import homogeneous
 from ..drawing import Command
 from ..framing import DOCK_2D_PX
 from ..palette import DRAWABLE
@@ -166,10 +167,7 @@ class UltrasoundPanel:
     def _gizmo_pose(self):
         gizmo = self.gizmo
         assert gizmo is not None  # called from the gizmo's own callbacks
-        T = np.eye(4)
-        T[:3, :3] = vtf.SO3(np.asarray(gizmo.wxyz)).as_matrix()
-        T[:3, 3] = gizmo.position
-        return T
+        return homogeneous(vtf.SO3(np.asarray(gizmo.wxyz)).as_matrix(), gizmo.position)
 
     def _preview(self):
         """Simulate the image under the moving probe, latest pose wins."""

@@ -10,9 +10,15 @@ colour, and live points arrive as an OpenIGTLink POINT message whose device name
 feature's name (``tracking.client``; pyigtl 0.3 decodes no POLYDATA). Its points enter the registration as
 the data of its features, by the feature's kind, target and weight.
 
-The stylus and the ultrasound planes predate this protocol and are still wired by hand
-(``simulate.py``, ``scenedata.py``, ``app/live.py``); see docs/decisions.md, "Data sources
-as rooms".
+A source is either in every scene (``always``: the stylus; its table optional, its defaults
+otherwise), drawing on the scene's own random stream in the order it always has, or enabled
+by its table and drawing on a stream of its own (the laparoscope), so that enabling it
+leaves every other draw of the scene as it was.
+
+The stylus is simulated through this protocol, but received, kept and shown by hand (its
+tracked tip, the digitiser, the viewer's sweep: ``features.HAND_WIRED``); the ultrasound
+planes are still wired by hand throughout (``simulate.py``, ``scenedata.py``,
+``app/live.py``); see docs/decisions.md, "Data sources as rooms" and "session 34".
 """
 
 import importlib
@@ -57,6 +63,8 @@ class SimulatedSource(Protocol):
     """
 
     name: str
+    always: bool
+    """True: in every scene (its table optional), on the scene's own random stream."""
 
     def parse(self, table: dict, path) -> Any:
         """The source's settings from its scene table (a frozen dataclass of plain values,

@@ -330,6 +330,7 @@ class Laparoscope:
     """The ``SimulatedSource`` of the laparoscope."""
 
     name = NAME
+    always = False
 
     def parse(self, table: dict, path) -> LaparoscopeSpec:
         return parse(table, path)
