@@ -32,7 +32,7 @@ sd = load_scene_data(demo_scene(), edge=EDGE_MM)
 base = data_level(sd.case_dir, "S+planes", planes=range(3), case=sd.case)
 model, _ = prepare(sd.case, EDGE_MM, K)
 cold = register(model, base)
-live = LiveRegistration(replace(model, cache=dict(model.cache)), base, threads=1, iterations_per_frame=1)
+live = LiveRegistration(replace(model, cache=model.cache.copy()), base, threads=1, iterations_per_frame=1)
 live.last = cold
 frames = [f for f in (segment_frame(sd, 5000 + i, p) for i, p in enumerate(_poses(sd, 3, args.frames, 8))) if f]
 live.update(frames[0])  # the first update loads the compiled code
