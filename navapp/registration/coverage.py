@@ -96,8 +96,8 @@ def _cover(nodes, Y, skip=None) -> np.ndarray:
 
 
 def _kept_covers_enough(model: RegistrationModel, data_model_frame: dict) -> bool:
-    """True when the rows these data share with the last call's (``_feature_cover``'s kept
-    start) already cover ``MIN_COVERAGE``: coverage only grows with points, so the whole data
+    """True when the rows these data share with the last call's (all of them, or
+    ``_feature_cover``'s kept start) already cover ``MIN_COVERAGE``: coverage only grows with points, so the whole data
     cover at least that and no warning can follow. A live update changes only the newest
     frame's rows, whose nodes then need no search (~1 ms a frame)."""
     if "liver" not in model.features:
@@ -108,11 +108,15 @@ def _kept_covers_enough(model: RegistrationModel, data_model_frame: dict) -> boo
         entry = last.get(name)
         if entry is None:
             continue
-        old, L, head, _ = entry
+        old, L, head, whole = entry
         Y = np.asarray(Y, float).reshape(-1, 3)
-        if len(Y) < L or not np.array_equal(old[:L], Y[:L]):
+        if len(Y) >= len(old) and np.array_equal(old, Y[:len(old)]):
+            known = whole  # the last call's rows, all of them, start these
+        elif len(Y) >= L and np.array_equal(old[:L], Y[:L]):
+            known = head
+        else:
             continue
-        covered = head.copy() if covered is None else covered | head
+        covered = known.copy() if covered is None else covered | known
     return covered is not None and float(np.mean(covered)) >= MIN_COVERAGE
 
 
