@@ -7,7 +7,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from navapp.registration.coverage import COVER_MM, data_coverage
+from navapp.registration.coverage import COVER_MM, MIN_COVERAGE, data_coverage, note_coverage
 from navapp.registration.model import RegistrationModel
 from navapp.registration.objective import KEPT_ENDS, Weights, _at, evaluate, keep_end
 from navapp.registration.pose import _determinacy, pose_determinacy
@@ -56,6 +56,35 @@ def test_coverage_reused_between_frames_equals_the_fresh_rule(small_model):
         seen.add(round(got.fraction, 3))
     assert len(seen) > 3  # the frames did change the answer
     assert data_coverage(model, {}).fraction == 0.0
+
+
+def test_coverage_note_skips_a_frame_only_when_the_kept_rows_cover_enough(small_model):
+    """``note_coverage`` leaves the newest frame's rows unsearched when the rows kept from the
+    last call already cover enough: its warning must still be the exact rule's, frame by frame,
+    whether the kept rows cover enough (skipped), fall short while the frame brings the data over
+    the line, or fall short with the frame too."""
+    from types import SimpleNamespace
+
+    from navapp.fitwarning import WarningKind
+
+    model = _bare(small_model)
+    rest = model.features["liver"].rest
+    rng = np.random.default_rng(11)
+    near0 = np.argsort(np.linalg.norm(rest - rest[0], axis=1))
+    small = rest[near0[:max(3, len(rest) // 40)]]  # a patch under MIN_COVERAGE
+    wide = rest[::3]  # far over it
+    cases = [(small, 8), (small, 8), (wide, 8), (wide, 5), (small, 2), (small, len(rest) // 4), (small, 3)]
+    skipped = 0
+    for i, (base, m) in enumerate(cases):
+        frame = rest[rng.choice(len(rest), m, replace=False)] + rng.normal(0.0, 0.5, (m, 3))
+        local = {"anterior": base, "posterior": frame}
+        reg = SimpleNamespace(model=model, data_model_frame=local, notes=[])
+        cached = model.cache.coverage
+        note_coverage(reg)
+        skipped += model.cache.coverage is cached and bool(cached)
+        warned = any(w.kind is WarningKind.COVERAGE for w in reg.notes)
+        assert warned == (_fresh(model, local) < MIN_COVERAGE), i
+    assert skipped >= 1  # the wide base's second frame needed no search
 
 
 def test_coverage_warning_comes_and_goes_with_the_data(small_model):

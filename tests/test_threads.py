@@ -48,3 +48,22 @@ def test_a_thread_pool_loaded_after_the_first_limit_is_held_too():
                          env={**__import__("os").environ, "OMP_NUM_THREADS": "2", "OPENBLAS_NUM_THREADS": "2"})
     assert out.returncode == 0, out.stderr
     assert all(n == 1 for n in json.loads(out.stdout.strip().splitlines()[-1])), out.stdout
+
+
+def test_a_nested_limit_of_another_count_still_applies_and_gives_back():
+    """A limit inside one of the same count is free (the outer holds the pools); one of another
+    count is applied and undone as before."""
+    from threadpoolctl import threadpool_limits
+
+    np.ones((4, 4)) @ np.ones((4, 4))
+    with threadpool_limits(2):
+        with limit_threads(1):
+            inside = pools()
+            with limit_threads(2):
+                assert all(n == 2 for n in pools().values()), pools()
+                with limit_threads(2):
+                    assert all(n == 2 for n in pools().values())
+            assert pools() == inside
+            with limit_threads(1):
+                assert pools() == inside
+        assert all(n == 2 for n in pools().values())

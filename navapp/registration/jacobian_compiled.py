@@ -6,8 +6,12 @@ product with qᵀR a sum of three of those rows. With SciPy and NumPy that is a 
 writing (N, 3, 3k), an indexed copy per row and an einsum; compiled, one pass that writes
 S·B·J_u (kept for the held fast path) and the rows of J. S·B·J_u is summed in CSR order as
 SciPy's product sums it, so it is the same to the bit; the three-term product may differ from
-einsum's in the last bit. None where Numba is missing: ``objective`` then uses NumPy.
+einsum's in the last bit. ``pose_columns`` does the rest of the row in the same spirit: τ's
+columns −q, θ's −qᵀ(∂R/∂θ_j)(S·local), and S·x0 for the held fast path (S·local and S·x0
+in CSR order, as SciPy). None where Numba is missing: ``objective`` then uses NumPy.
 """
+
+import numpy as np
 
 try:
     from numba import njit
@@ -35,4 +39,44 @@ def _alpha_columns(indptr, indices, weights, BJ, qR, rows, U, J):
             J[r, k] = -(q0 * U[i, 0, k] + q1 * U[i, 1, k] + q2 * U[i, 2, k])
 
 
+def _pose_columns(indptr, indices, weights, rest, local, q, dR, rows, S_rest, J):
+    """Fill S_rest (N, 3) = S·x0 and J's six pose columns (the last six): −q for τ and
+    −qᵀ(∂R/∂θ_j)(S·local)[rows] for θ, for the R rows (``rows``: the point of each row)."""
+    N, n = S_rest.shape[0], J.shape[1] - 6
+    xl = np.zeros((N, 3))
+    for i in range(N):
+        for a in range(3):
+            S_rest[i, a] = 0.0
+        for jj in range(indptr[i], indptr[i + 1]):
+            v, w = indices[jj], weights[jj]
+            for a in range(3):
+                S_rest[i, a] += w * rest[v, a]
+                xl[i, a] += w * local[v, a]
+    for r in range(rows.shape[0]):
+        i = rows[r]
+        for a in range(3):
+            J[r, n + a] = -q[r, a]
+        for j in range(3):
+            acc = 0.0
+            for a in range(3):
+                for b in range(3):
+                    acc += q[r, a] * dR[j, a, b] * xl[i, b]
+            J[r, n + 3 + j] = -acc
+
+
+def _apply(indptr, indices, weights, X, out):
+    """out (N, c) = S·X for S in CSR form and a dense X (V, c), summed in CSR order from zero
+    as SciPy's product sums it (the same bits), without its dispatch (~40 µs a call, ~11
+    calls an LM evaluation)."""
+    for i in range(out.shape[0]):
+        for a in range(out.shape[1]):
+            out[i, a] = 0.0
+        for jj in range(indptr[i], indptr[i + 1]):
+            v, w = indices[jj], weights[jj]
+            for a in range(out.shape[1]):
+                out[i, a] += w * X[v, a]
+
+
 alpha_columns = njit(cache=True, nogil=True)(_alpha_columns) if njit is not None else None
+apply = njit(cache=True, nogil=True)(_apply) if njit is not None else None
+pose_columns = njit(cache=True, nogil=True)(_pose_columns) if njit is not None else None

@@ -51,6 +51,11 @@ class ModelFeature:
     rest: np.ndarray  # (V, 3) undeformed points, mm
     BJ: np.ndarray  # (V, 3, 3k): the basis carried to these points, B·J_u (mm per unit α)
     near: int = NEAR  # nearest vertices whose incident cells LM tests (``geometry.closest``)
+    # a labelled region's points are some of the liver surface's: the model feature they belong
+    # to and their rows there (``rest`` and ``BJ`` are those rows'), so that an evaluation that
+    # deforms the liver takes them from it instead of reading their B·J_u again
+    part_of: str | None = None
+    part_rows: np.ndarray | None = field(default=None, repr=False, compare=False)
     # a surface's bounding-volume tree (``geometry.bvh``), built on first use by ``search_tree``
     hierarchy: "SurfaceHierarchy | None" = field(default=None, repr=False, compare=False)
 
@@ -192,7 +197,8 @@ def build_model(basis: Basis, preop: PreopModel, fiducials: np.ndarray | None = 
                 verts = np.unique(faces[keep])  # the region as its own compact surface patch
                 remap = np.full(len(surf), -1)
                 remap[verts] = np.arange(len(verts))
-                feats[name] = _feature("surface", sel[verts], remap[faces[keep]], basis, feats["liver"].BJ[verts])
+                feats[name] = replace(_feature("surface", sel[verts], remap[faces[keep]], basis,
+                                               feats["liver"].BJ[verts]), part_of="liver", part_rows=verts)
     for v in VESSELS:
         mesh = preop.vessel(v)
         if mesh is not None:

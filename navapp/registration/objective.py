@@ -165,6 +165,24 @@ class FittedSurface:
     boxes: np.ndarray
 
 
+def _place(model, feat, beta, geometry, placed) -> tuple[np.ndarray, np.ndarray]:
+    """(local, x) of eq. 8 at a model feature's points at β within one evaluation: from
+    ``geometry`` (id → (local, X, tree)) when searched already, a region's rows of the
+    feature it is part of (``ModelFeature.part_of``: the liver's product read once), or
+    ``model.positions``; kept in ``placed`` (id → (local, X))."""
+    key = id(feat)
+    if key in geometry:
+        return geometry[key][0], geometry[key][1]
+    if key not in placed:
+        whole = model.features.get(feat.part_of) if feat.part_of is not None else None
+        if whole is not None and feat.part_rows is not None:
+            local, X = _place(model, whole, beta, geometry, placed)
+            placed[key] = (local[feat.part_rows], X[feat.part_rows])
+        else:
+            placed[key] = model.positions(feat, beta)
+    return placed[key]
+
+
 def _tree(feat, X):
     """The search structure of a model feature at its deformed points X: a surface's
     hierarchy refitted (exact closest points; ``geometry.bvh``), else a k-d tree of X rebuilt
@@ -184,6 +202,16 @@ def _rows_matrix(weights, columns, n_columns):
     idx = np.int32 if max(n_columns, N * m) < np.iinfo(np.int32).max else np.int64
     return sp.csr_matrix((weights.ravel(), columns.ravel().astype(idx), np.arange(0, N * m + 1, m, dtype=idx)),
                          shape=(N, n_columns))
+
+
+def _apply(S, X):
+    """S @ X for a dense X (V, 3): compiled where Numba is (the same bits as SciPy's product)."""
+    kernel = _alpha_kernel()
+    if kernel is None:
+        return np.asarray(S @ X)
+    out = np.empty((S.shape[0], X.shape[1]))
+    kernel[2](S.indptr, S.indices, S.data, np.ascontiguousarray(X, dtype=float), out)
+    return out
 
 
 @dataclass
@@ -307,6 +335,8 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     tim = {"deform": 0.0, "kdtree": 0.0, "closest": 0.0, "jacobian": 0.0}
     fs, ws, stats, corr, terms = [], [], {}, {}, []
     dists, row_of = {}, {}  # feature → per-point residual f (N,), the point of each row (R,)
+    made = {}  # feature → (r, q, rows, dist)
+    placed: dict[int, tuple] = {}  # model features deformed without a search structure (``_place``)
     geometry = {}  # model feature → (local, X, KD-tree): anterior and posterior share the liver
     # a warm re-registration per frame starts at the β the last one ended at, where the model
     # was just deformed and searched, and most of its data (the kept stylus points and planes)
@@ -319,6 +349,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
         feat = model.feature_for(name)
         key = id(feat)
         local = None
+        held = None  # (r, q, rows, dist) kept from an evaluation at the same β and data
         if frozen is not None and frozen[name].carries_basis and not jacobian:
             # held correspondences carry S·B·J_u and S·x0 from the evaluation that made them:
             # x at the corresponded points costs N·3·3k instead of deforming the whole
@@ -331,7 +362,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
         else:
             if key not in geometry:
                 t0 = time.perf_counter()
-                local, X = model.positions(feat, beta)
+                local, X = _place(model, feat, beta, geometry, placed)
                 tim["deform"] += time.perf_counter() - t0
                 t0 = time.perf_counter()
                 tree = _tree(feat, X) if frozen is None and feat.kind != "fiducial" else None
@@ -340,7 +371,9 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
             local, X, tree = geometry[key]
             seen = last[2].get(name) if last is not None else None
             if seen is not None and seen[0].shape == np.shape(Y) and np.array_equal(seen[0], Y):
+                # the same β, the same data: the same correspondence and residual rows
                 c = corr[name] = seen[1]
+                held = seen[2]
             else:
                 t0 = time.perf_counter()
                 kd = tree is not None and not isinstance(tree, FittedSurface)
@@ -351,11 +384,14 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
                                   else correspond(feat, X, Y, tree=None if kd else tree, nearest=nearest))
                 tim["closest"] += time.perf_counter() - t0
             S, direction = c.S, c.direction
-            p = Y - S @ X
+            if held is None:
+                p = Y - _apply(S, X)
         t0 = time.perf_counter()
-        r, q, rows = residuals(feat.kind, p, direction)
+        if held is None:
+            r, q, rows = residuals(feat.kind, p, direction)
+            held = (r, q, rows, point_distances(r, rows, len(Y)))
+        r, q, rows, dist = made[name] = held
         wF = weights.features[name] * weights.unit_m ** 2 / len(Y)
-        dist = point_distances(r, rows, len(Y))
         fs.append(r)
         ws.append(np.full(len(r), wF))
         dists[name], row_of[name] = dist, rows
@@ -365,7 +401,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     reusable = None
     if frozen is None:  # replaced whole: an evaluation in another thread reads the old or the new
         reusable = model.cache.evaluation = (np.array(beta, float), geometry, {
-            name: (np.array(Y, float), corr[name]) for name, Y in data.items()})
+            name: (np.array(Y, float), corr[name], made[name]) for name, Y in data.items()})
     # robust weight factors (Huber, outlier rejection): held when given, so that with held
     # correspondences Ω is one fixed weighted least-squares problem
     robust = dict(scales) if scales is not None else weights.robust_factors(dists, row_of)
@@ -414,7 +450,8 @@ def _at(model: RegistrationModel, beta) -> tuple | None:
     return None
 
 
-_jacobian_kernel: list = []  # the compiled α columns, or None (``jacobian_compiled``), imported on first use
+# the compiled (α columns, pose columns, S·X), or None (``jacobian_compiled``), imported on first use
+_jacobian_kernel: list = []
 _numpy_jacobian = [False]  # ``numpy_jacobian``
 
 
@@ -422,9 +459,9 @@ def _alpha_kernel():
     if _numpy_jacobian[0]:
         return None
     if not _jacobian_kernel:
-        from .jacobian_compiled import alpha_columns
+        from .jacobian_compiled import alpha_columns, apply, pose_columns
 
-        _jacobian_kernel.append(alpha_columns)
+        _jacobian_kernel.append(None if alpha_columns is None else (alpha_columns, pose_columns, apply))
     return _jacobian_kernel[0]
 
 
@@ -458,13 +495,18 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation) -> Evaluation:
         Jf = J[at:at + len(q)]
         at += len(q)
         qR = q @ R  # qᵀR, (R, 3)
+        c = ev.correspondence[name]
         if kernel is not None:
             U = np.empty((S.shape[0], 3, n))
-            kernel(S.indptr, S.indices, S.data, feat.BJ, np.ascontiguousarray(qR), rows, U, Jf)
+            kernel[0](S.indptr, S.indices, S.data, feat.BJ, np.ascontiguousarray(qR), rows, U, Jf)
+            S_rest = np.empty((S.shape[0], 3))
+            kernel[1](S.indptr, S.indices, S.data, feat.rest, local, np.ascontiguousarray(q), dR, rows, S_rest, Jf)
+            if not c.carries_basis:
+                ev.correspondence[name] = Correspondence(c.S, c.direction, U, S_rest)
+            continue
         else:
             U = np.asarray(S @ feat.BJ.reshape(len(local), 3 * n)).reshape(-1, 3, n)
             Jf[:, :n] = -np.einsum("ia,iak->ik", qR, U[rows] if len(q) != S.shape[0] else U)
-        c = ev.correspondence[name]
         if not c.carries_basis:
             ev.correspondence[name] = Correspondence(c.S, c.direction, U, S @ feat.rest)
         Jf[:, n:n + 3] = -q

@@ -34,9 +34,21 @@ def _drz(a):
     return np.array([[-s, -c, 0], [c, -s, 0], [0, 0, 0]])
 
 
+_last: tuple = (b"", None)  # the last angles asked and their R, replaced whole (threads read either)
+
+
 def rotation(theta) -> np.ndarray:
+    """R(θ) (3, 3). The last angles' R is kept (and a copy handed out): one LM evaluation asks
+    for it once per feature and again in the Jacobian (17 times a live update)."""
+    theta = np.asarray(theta, float)
+    key = theta.tobytes()  # bits, so that −0.0 is not taken for 0.0
+    last = _last
+    if last[0] == key:
+        return last[1].copy()
     tx, ty, tz = theta
-    return _rx(tx) @ _ry(ty) @ _rz(tz)
+    R = _rx(tx) @ _ry(ty) @ _rz(tz)
+    globals()["_last"] = (key, R)
+    return R.copy()
 
 
 def rotation_derivatives(theta) -> np.ndarray:
