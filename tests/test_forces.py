@@ -208,7 +208,9 @@ def test_register_with_surface_forces_shows_the_chosen_answer(held_basis, phanto
     """``register(surface_forces=True)`` on a posterior-held model, a dent under the scanned
     anterior surface in the preoperative frame, the pose declared: the choice is made, its
     held-out RMS of the shown answer is the least of the three, and ``transform`` moves the
-    organ as that answer does (the forces' nodal field where they are shown)."""
+    organ as that answer does (the forces' nodal field where they are shown); a warm
+    re-registration shows the basis's answer with a line that says so."""
+    from navapp.fitwarning import WarningKind
     from navapp.mechanics.fem import Material
     from navapp.registration.forces import Answer, one_standard_error
     from navapp.registration.model import build_model
@@ -238,6 +240,14 @@ def test_register_with_surface_forces_shows_the_chosen_answer(held_basis, phanto
                     Answer.BASIS: reg.transform(x, beta=reg.libr.beta)}[shown]
         assert np.allclose(reg.transform(x), expected, atol=1e-6)
     assert not np.allclose(reg.rigid.apply(x + fc.u[scan]), reg.transform(x, beta=reg.libr.beta), atol=0.1)
+    # a warm re-registration (a live update) does not refit the forces: it shows the basis's
+    # answer and says so, once; the fresh one has no such line
+    warm = register(model, {"anterior": pts}, pose_prior=PosePrior(2.0, 2.0), surface_forces=True,
+                    rigid=reg.rigid, beta0=reg.libr.beta)
+    said = [w for w in warm.warnings if w.kind is WarningKind.SURFACE_FORCES]
+    assert warm.forces is None and len(said) == 1 and "the basis's answer is shown" in said[0].text
+    assert np.allclose(warm.transform(x), warm.transform(x, beta=warm.libr.beta))
+    assert not any("warm re-registration" in w.text for w in reg.warnings)
 
 
 def _supports_case(coarse_mesh, supports: str, gravity: float, seed: int = 0):

@@ -59,6 +59,12 @@ MAX_SITES = 150
 the 4 mm liver costs ~0.1–0.3 s; 150 sites over a scan of 6–10 % of the surface are 3–6 mm apart,
 finer than a tool's dent (docs/decisions.md)."""
 
+WARM_WITHOUT_FORCES = ("surface forces are not refitted in a warm re-registration: the basis's answer is shown "
+                       "(LIBR's modes held at the declared supports) — register afresh to choose among no "
+                       "deformation, the basis and the forces again")
+"""The line of a warm re-registration asked for surface forces (``Registration.warm_without_forces``):
+a live update must not switch from the forces to the basis silently."""
+
 ENERGY_WEIGHTS = (1e-3, 1e-2, 1e-1, 1.0, 10.0)
 """The λ (mm²/Pa) ``choose_deformation`` compares by held-out RMS, a decade apart."""
 
