@@ -78,8 +78,9 @@ def one_standard_error(block_mm: dict[float, np.ndarray], counts: np.ndarray) ->
     Paired because every λ is judged on the same blocks, which differ in how hard they are to
     predict (a block over the dent against a flat one) far more than the λ do on any one
     block; the spread of the blocks' own RMS would accept every λ. Why not the least alone: 5
-    blocks, neighbouring λ held out within rounding of each other, and a smaller λ lets the
-    forces grow where no datum checks them (docs/decisions.md, session 34)."""
+    blocks, neighbouring λ held out within the blocks' noise of each other, and a smaller λ
+    lets the forces grow where no datum checks them (on the study set and draw 3 the least's
+    λ = 10⁻³ gave three answers 2–4 mm worse than any other λ; docs/decisions.md, session 34)."""
     p = np.asarray(counts, float) / np.sum(counts)
     mean = {k: float(p @ np.asarray(v)) for k, v in block_mm.items()}
     best = min(mean, key=lambda k: (mean[k], -k))
