@@ -172,6 +172,29 @@ def test_no_deformation_is_chosen_where_forces_predict_held_out_data_worse(force
     assert choice.warning is not None and "rigid pose" in choice.warning
 
 
+def test_the_energy_weight_is_the_largest_within_one_paired_standard_error_of_the_best():
+    """Breiman's one-standard-error rule on the blocks' paired errors (``one_standard_error``):
+    the least held-out RMS at λ = 10⁻³ (session 34's tool1-g kind: neighbours within the
+    blocks' noise) gives way to the largest λ whose excess over it lies within one standard
+    error of that excess; an excess the same in every block (a standard error of ~0) is
+    real, however small, and is not taken, although the blocks' own spread would hide it."""
+    from navapp.registration.forces import one_standard_error
+
+    counts = np.array([100, 120, 80, 100, 100])
+    base = np.array([1.0, 5.0, 2.5, 0.6, 1.5])  # blocks of unequal difficulty
+    noisy = {1e-3: base, 1e-2: base + [0.3, -0.2, 0.1, 0.0, 0.1], 1e-1: base + [0.4, -0.3, 0.3, -0.1, 0.0],
+             1.0: base + [0.6, 0.5, 0.4, 0.7, 0.6]}
+    # by hand: λ = 0.1's excess, its paired standard error (weights p = counts / 500)
+    p = counts / counts.sum()
+    d = noisy[1e-1] - base
+    se = np.sqrt(5 / 4 * np.sum(p ** 2 * (d - p @ d) ** 2))
+    assert 0 < p @ d <= se
+    assert one_standard_error(noisy, counts) == 1e-1
+    steady = {1e-3: base, 1e-2: base + 0.02}  # 0.02 mm worse in every block
+    assert one_standard_error(steady, counts) == 1e-3
+    assert one_standard_error({1e-3: base}, counts) == 1e-3
+
+
 def test_surface_forces_on_a_free_floating_model_is_one_clear_error(small_model):
     from navapp.errors import InputError
     from navapp.registration.pipeline import register
@@ -185,9 +208,11 @@ def test_register_with_surface_forces_shows_the_chosen_answer(held_basis, phanto
     """``register(surface_forces=True)`` on a posterior-held model, a dent under the scanned
     anterior surface in the preoperative frame, the pose declared: the choice is made, its
     held-out RMS of the shown answer is the least of the three, and ``transform`` moves the
-    organ as that answer does (the forces' nodal field where they are shown)."""
+    organ as that answer does (the forces' nodal field where they are shown); a warm
+    re-registration shows the basis's answer with a line that says so."""
+    from navapp.fitwarning import WarningKind
     from navapp.mechanics.fem import Material
-    from navapp.registration.forces import Answer
+    from navapp.registration.forces import Answer, one_standard_error
     from navapp.registration.model import build_model
     from navapp.registration.pipeline import register
     from navapp.registration.prior import PosePrior
@@ -204,7 +229,8 @@ def test_register_with_surface_forces_shows_the_chosen_answer(held_basis, phanto
     reg = register(model, {"anterior": pts}, pose_prior=PosePrior(2.0, 2.0), surface_forces=True)
     fc = reg.forces
     assert fc is not None and fc.u is not None
-    scores = {Answer.NONE: fc.none_mm, Answer.BASIS: fc.basis_mm, Answer.FORCES: min(fc.forces_mm.values())}
+    assert fc.energy_weight == one_standard_error(fc.forces_blocks_mm, fc.block_points)
+    scores = {Answer.NONE: fc.none_mm, Answer.BASIS: fc.basis_mm, Answer.FORCES: fc.forces_mm[fc.energy_weight]}
     assert scores[fc.answer] == min(v for v in scores.values() if v is not None)
     assert reg.deformed == (fc.answer is not Answer.NONE)
     x = held_basis.nodes[scan]
@@ -214,6 +240,14 @@ def test_register_with_surface_forces_shows_the_chosen_answer(held_basis, phanto
                     Answer.BASIS: reg.transform(x, beta=reg.libr.beta)}[shown]
         assert np.allclose(reg.transform(x), expected, atol=1e-6)
     assert not np.allclose(reg.rigid.apply(x + fc.u[scan]), reg.transform(x, beta=reg.libr.beta), atol=0.1)
+    # a warm re-registration (a live update) does not refit the forces: it shows the basis's
+    # answer and says so, once; the fresh one has no such line
+    warm = register(model, {"anterior": pts}, pose_prior=PosePrior(2.0, 2.0), surface_forces=True,
+                    rigid=reg.rigid, beta0=reg.libr.beta)
+    said = [w for w in warm.warnings if w.kind is WarningKind.SURFACE_FORCES]
+    assert warm.forces is None and len(said) == 1 and "the basis's answer is shown" in said[0].text
+    assert np.allclose(warm.transform(x), warm.transform(x, beta=warm.libr.beta))
+    assert not any("warm re-registration" in w.text for w in reg.warnings)
 
 
 def _supports_case(coarse_mesh, supports: str, gravity: float, seed: int = 0):

@@ -27,14 +27,15 @@ the site weights whose Jacobian comes from the stored responses without a furthe
 
 The answer is chosen by held-out data (``choose_deformation``): the surface data cut into
 spatial blocks, each predicted by the fits to the others — no deformation, the supported
-basis's LIBR fit, the forces at each λ (mm² per Pa of mean strain-energy density) — as the
-held-out points' distance to the surface each answer makes; the least wins, so the answer
-never predicts the held-out data worse than not deforming. The data are in the model frame
+basis's LIBR fit, the forces at the λ (mm² per Pa of mean strain-energy density) the
+one-standard-error rule takes from their path (``one_standard_error``) — as the held-out
+points' distance to the surface each answer makes; the least wins, so the answer never
+predicts the held-out data worse than not deforming. The data are in the model frame
 (the rigid stage's pose applied).
 """
 
 import time
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from enum import Enum
 
 import numpy as np
@@ -58,8 +59,40 @@ MAX_SITES = 150
 the 4 mm liver costs ~0.1–0.3 s; 150 sites over a scan of 6–10 % of the surface are 3–6 mm apart,
 finer than a tool's dent (docs/decisions.md)."""
 
+WARM_WITHOUT_FORCES = ("surface forces are not refitted in a warm re-registration: the basis's answer is shown "
+                       "(LIBR's modes held at the declared supports) — register afresh to choose among no "
+                       "deformation, the basis and the forces again")
+"""The line of a warm re-registration asked for surface forces (``Registration.warm_without_forces``):
+a live update must not switch from the forces to the basis silently."""
+
 ENERGY_WEIGHTS = (1e-3, 1e-2, 1e-1, 1.0, 10.0)
 """The λ (mm²/Pa) ``choose_deformation`` compares by held-out RMS, a decade apart."""
+
+
+def one_standard_error(block_mm: dict[float, np.ndarray], counts: np.ndarray) -> float:
+    """The largest λ whose held-out RMS exceeds the least by no more than one standard error of
+    that excess (Breiman's one-standard-error rule, the error paired block by block: the most
+    regularised fit the held-out blocks cannot tell from the best). ``block_mm``: λ → the RMS
+    (mm) of each held-out block; ``counts`` the blocks' points (the weights of their mean).
+
+    Paired because every λ is judged on the same blocks, which differ in how hard they are to
+    predict (a block over the dent against a flat one) far more than the λ do on any one
+    block; the spread of the blocks' own RMS would accept every λ. Why not the least alone: 5
+    blocks, neighbouring λ held out within the blocks' noise of each other, and a smaller λ
+    lets the forces grow where no datum checks them (on the study set and draw 3 the least's
+    λ = 10⁻³ gave three answers 2–4 mm worse than any other λ; docs/decisions.md, session 34)."""
+    p = np.asarray(counts, float) / np.sum(counts)
+    mean = {k: float(p @ np.asarray(v)) for k, v in block_mm.items()}
+    best = min(mean, key=lambda k: (mean[k], -k))
+    n = len(p)
+    ok = []
+    for k, v in block_mm.items():
+        d = np.asarray(v) - np.asarray(block_mm[best])
+        excess = float(p @ d)
+        se = float(np.sqrt(n / max(n - 1, 1) * np.sum(p ** 2 * (d - excess) ** 2)))
+        if excess <= se:
+            ok.append(k)
+    return max(ok)
 
 
 @dataclass(frozen=True)
@@ -398,14 +431,17 @@ class Answer(Enum):
 class ForceChoice:
     """``choose_deformation``: the answer, the held-out RMS (mm, point-weighted mean over the
     blocks) of no deformation, of the basis's fit (None where there was none) and of the
-    forces at each λ; the λ of least held-out RMS and the forces' answer there, u (M, 3) mm
-    (model frame) and its fit (kept whichever answer is shown)."""
+    forces at each λ (and each block's); the λ the one-standard-error
+    rule takes (``one_standard_error``) and the forces' answer there, u (M, 3) mm (model
+    frame) and its fit (kept whichever answer is shown)."""
 
     answer: Answer
     none_mm: float
     basis_mm: float | None
     forces_mm: dict[float, float]
     energy_weight: float | None = None
+    forces_blocks_mm: dict[float, np.ndarray] = field(default_factory=dict)  # λ → each block's held-out RMS
+    block_points: np.ndarray | None = None  # the points of each held-out block (the blocks' weights)
     u: np.ndarray | None = None
     fit: ForceFit | None = None
     seconds: float = 0.0
@@ -418,7 +454,8 @@ class ForceChoice:
         if self.answer is Answer.BASIS and self.basis_mm is not None:
             return self.basis_mm
         if self.answer is Answer.FORCES and self.forces_mm:
-            return min(self.forces_mm.values())
+            return self.forces_mm[self.energy_weight] if self.energy_weight in self.forces_mm \
+                else min(self.forces_mm.values())
         return self.none_mm
 
     @property
@@ -448,6 +485,8 @@ class ForceChoice:
         return {"answer": self.answer.value, "heldout_none_mm": round(self.none_mm, 3),
                 "heldout_basis_mm": None if self.basis_mm is None else round(self.basis_mm, 3),
                 "heldout_forces_mm": {f"{k:g}": round(v, 3) for k, v in self.forces_mm.items()},
+                "heldout_forces_blocks_mm": {f"{k:g}": [round(float(x), 3) for x in v]
+                                             for k, v in self.forces_blocks_mm.items()},
                 "heldout_free_mm": None if self.free_mm is None else round(self.free_mm, 3),
                 "supports_contradicted": self.supports_contradicted,
                 "energy_weight": self.energy_weight, "seconds": round(self.seconds, 2), "solves": self.solves}
@@ -489,13 +528,15 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
     held_of = [np.flatnonzero(labels == b) for b in range(options.blocks)]
     folds = [(h, np.flatnonzero(labels != b)) for b, h in enumerate(held_of) if len(h) and len(h) < len(points)]
 
+    counts = np.array([len(held) for held, _ in folds])
+
+    def blocks(us_of_fold) -> np.ndarray:
+        """The held-out RMS of each block (mm)."""
+        return np.array([float(np.sqrt(np.mean(forces.distances(points[held], us_of_fold(b, held, train))[0] ** 2)))
+                         for b, (held, train) in enumerate(folds)])
+
     def score(us_of_fold) -> float:
-        err, cnt = [], []
-        for b, (held, train) in enumerate(folds):
-            d = forces.distances(points[held], us_of_fold(b, held, train))[0]
-            err.append(float(np.sqrt(np.mean(d ** 2))))
-            cnt.append(len(held))
-        return float(np.average(err, weights=cnt))
+        return float(np.average(blocks(us_of_fold), weights=counts))
 
     zero = np.zeros(3 * len(forces.all_surface))
     none_mm = score(lambda b, h, t: zero)
@@ -516,7 +557,7 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
             basis_mm = score(lambda b, h, t: basis_fold(b, h, t, model))
         if free is not None:
             free_mm = score(lambda b, h, t: basis_fold(b, h, t, free))
-    forces_mm = {}
+    forces_blocks = {}
     for lam in weights:
         o = replace(options, energy_weight=lam)
 
@@ -524,13 +565,15 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
             fw = forces.fit_weights(pf, lam, train, o)
             return pf.Xs[:, fw.index] @ fw.w
 
-        forces_mm[lam] = score(force_fold)
-    best = min(forces_mm, key=lambda k: forces_mm[k])
+        forces_blocks[lam] = blocks(force_fold)
+    forces_mm = {k: float(np.average(v, weights=counts)) for k, v in forces_blocks.items()}
+    best = one_standard_error(forces_blocks, counts)
     scores = {Answer.NONE: none_mm, Answer.FORCES: forces_mm[best]}
     if basis_mm is not None:
         scores[Answer.BASIS] = basis_mm
     answer = min(scores, key=lambda a: (scores[a], a is not Answer.NONE))  # a tie: no deformation
-    choice = ForceChoice(answer, none_mm, basis_mm, forces_mm, free_mm=free_mm)
+    choice = ForceChoice(answer, none_mm, basis_mm, forces_mm, forces_blocks_mm=forces_blocks, block_points=counts,
+                         free_mm=free_mm)
     # the force answer at its λ is kept whichever is shown: a study compares the three
     o = replace(options, energy_weight=best)
     wf = forces.fit_weights(pf, best, None, o)

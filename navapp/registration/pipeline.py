@@ -31,7 +31,7 @@ from ..geometry.interpolation import interpolation_matrix
 from ..geometry.tre import tre_stats
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from .coverage import note_coverage
-from .forces import Answer, ForceChoice, SurfaceForces, choose_deformation, surface_points
+from .forces import WARM_WITHOUT_FORCES, Answer, ForceChoice, SurfaceForces, choose_deformation, surface_points
 from .libr import LibrResult, LMOptions, register_libr
 from .local_modes import LocalModeOptions, LocalModes, choose_local_modes, fold_model
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, rebased_model, usable_data
@@ -186,6 +186,9 @@ class Registration:
     # whichever predicts held-out surface data best (``forces.choose_deformation``); it decides
     # the answer in place of ``support``
     forces: ForceChoice | None = None
+    # ``register(surface_forces=True)`` warm (``beta0``): the forces are not refitted (one solve
+    # per force site is no live update), so the basis's answer is shown and a line says so
+    warm_without_forces: bool = False
 
     @property
     def deformed(self) -> bool:
@@ -216,6 +219,7 @@ class Registration:
                 declared=self.pose_prior is not None) if self.support and self.forces is None else None),
             (WarningKind.SURFACE_FORCES, self.forces.warning if self.forces is not None else None),
             (WarningKind.SUPPORTS, self.forces.supports_warning if self.forces is not None else None),
+            (WarningKind.SURFACE_FORCES, WARM_WITHOUT_FORCES if self.warm_without_forces else None),
             (WarningKind.POOR_FIT, self.quality.warning if self.quality else None),
             # no organ figure beside a pose not to be believed (the notes, an undetermined
             # pose): the estimate's calibration says nothing at a pose 100 mm off (the demo's
@@ -647,7 +651,9 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         ``Registration.forces``). Not the default: it costs one solve per force site. The
         free-floating basis's fits are held out on the same blocks beside it: where they predict
         the data better than the answer shown, the declared supports are contradicted and a
-        warning says so (``ForceChoice.supports_warning``).
+        warning says so (``ForceChoice.supports_warning``). A warm re-registration (``beta0``)
+        does not refit the forces: it shows the basis's answer, with a line saying so
+        (``Registration.warm_without_forces``).
     undeclared : RegistrationModel, optional
         with ``surface_forces``: the same mesh's free-floating model for that check (default
         ``free_model(model)``, the free basis from the cache).
@@ -877,6 +883,8 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         finally:
             sf.close()
         sec["forces"] = time.perf_counter() - t
+    elif surface_forces and deform and not fresh:
+        reg.warm_without_forces = True
     if fresh and reg.deformed and result is not None and result.stop_reason != "cancelled":
         # every check above compares the answer with simpler ones on the data; this one asks
         # whether it is good enough to navigate by at all (docs/decisions.md, "An answer the data

@@ -5,8 +5,12 @@ at S on local-load cases, supports and pose declared as the scene made them.
 
 One JSON line per case: mean TRE (mm) of no correction (identity), of the three candidates
 (the declared rigid pose without deformation, the supported basis's LIBR fit, the surface
-forces at their held-out λ), of the answer shown, the held-out RMS of each, and seconds."""
+forces at their held-out λ), of the answer shown, the held-out RMS of each, and seconds.
+With NAVAPP_FORCES_BY_LAMBDA=1 also the forces fitted to all the data at every λ
+(``forces_by_lambda``: a second factorisation, outside ``seconds_total``), from which the
+answer of another rule for λ can be read off the same run."""
 import json
+import os
 import sys
 import time
 import warnings
@@ -16,6 +20,7 @@ from navapp.anatomy.caseio import read_case
 from navapp.evaluation.loads import declared_prior, declared_supports
 from navapp.geometry.interpolation import interpolation_matrix
 from navapp.geometry.tre import tre_stats
+from navapp.registration.forces import ENERGY_WEIGHTS, SurfaceForces, surface_points
 from navapp.registration.pipeline import prepare, register
 from navapp.simulation.levels import data_level
 
@@ -43,6 +48,12 @@ for arg in sys.argv[2:]:
            "answer": fc.answer.value, "warned": bool(reg.warnings), **fc.as_dict(),
            "fit_iterations": fc.fit.iterations, "fit_rms_mm": round(fc.fit.rms_mm, 3), "seconds_total": round(sec, 1),
            "stage_seconds": {k: round(v, 1) for k, v in reg.seconds.items()}}
+    if os.environ.get("NAVAPP_FORCES_BY_LAMBDA") == "1":
+        sf = SurfaceForces(model.basis)
+        pf = sf.responses(surface_points(reg.data_model_frame))
+        row["forces_by_lambda"] = {f"{lam:g}": tre(reg.rigid.apply(x0 + B @ sf.field(pf, sf.fit_weights(pf, lam))))
+                                   for lam in ENERGY_WEIGHTS}
+        sf.close()
     with out.open("a") as fh:
         fh.write(json.dumps(row) + "\n")
     print(json.dumps(row), flush=True)
