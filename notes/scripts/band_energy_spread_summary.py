@@ -24,6 +24,7 @@ for level in ("S", "S+all"):
             b = np.mean([r["before"][key] for r in group])
             a = np.mean([r["after"][key] for r in group])
             line.append(f"{key} {b:.3f}→{a:.3f}")
+        line.append("≥ 90 %: {}→{}".format(*(sum(r[k]["in_band"] >= 0.9 for r in group) for k in ("before", "after"))))
         print("  ".join(line))
     flips = [(r["case"], r["before"]["organ_warning"], r["after"]["organ_warning"]) for r in at
              if r["before"]["organ_warning"] != r["after"]["organ_warning"]]
