@@ -242,6 +242,7 @@ def test_the_error_estimate_counts_a_declared_pose_once(small_model):
     from navapp.registration.pipeline import register
     from navapp.registration.uncertainty import (
         covariance_factor,
+        energy_spread,
         estimate_error,
         information,
         point_jacobian,
@@ -257,7 +258,8 @@ def test_the_error_estimate_counts_a_declared_pose_once(small_model):
     info = information(reg.model, reg.data_model_frame, reg.libr.beta)
     Jp = reg.pose_prior.jacobian(n)
     # the prior's rows at the data's own scale s, so that they say exactly the declared σ
-    posterior = info.matrix() + info.scale * Jp.T @ Jp
+    # (and the strain energy over its own posterior spread, ``energy_spread``, as every estimate)
+    posterior = info.matrix() + energy_spread(reg.model, info) + info.scale * Jp.T @ Jp
     _, G = point_jacobian(reg.model, reg.libr.beta)
     sigma = point_sigma(G, factor=covariance_factor(info, posterior))
     assert est.sigma_mm.mean() > 1.0  # the patch leaves the deformation far from it loose

@@ -9,7 +9,9 @@ Two things the registration knows about a point of the organ:
   eq. 8, G = ∂x/∂β:
       Σ_β = s · H⁻¹,  H = JᵀWJ + w_E f_E ∇²f_E,   σ² = tr(G Σ_β Gᵀ),
   with s = Ω / (R − p) the reduced χ² of the fit (so that each residual's implied noise
-  variance is s / w_i) and H the same matrix the LM step uses (``libr.py``).
+  variance is s / w_i) and H the same matrix the LM step uses (``libr.py``), plus the strain
+  energy's curvature over its own posterior spread (``energy_spread``: the quartic energy's
+  Laplace curvature vanishes with the deformation, and held σ far from the data by nothing).
 
 The predicted error combines them with a calibration fitted on the study cases of one
 liver (direct and transposed deformations) and validated on the other livers' cases
@@ -106,6 +108,7 @@ class Information:
     prior: np.ndarray
     scale: float  # s = Ω / (R − p)
     beta: np.ndarray
+    energy_weight: float = 0.0  # w_E of Ω's energy term (Pa⁻²), for ``energy_spread``
 
     def matrix(self, extra: dict | None = None) -> np.ndarray:
         """H with ``extra`` (feature → (n_new, (p, p) unnormalised Σ J_iᵀ J_i · w_F·unit²))
@@ -146,7 +149,53 @@ def information(model: RegistrationModel, data: dict, beta, weights: Weights | N
     # the pose prior's rows (``prior``) are no data: Σ_β here is the data's (the prior's share of
     # the error estimate is ``pose_error``)
     dof = max(len(ev.f) - 1 - (6 if ev.pose_prior is not None else 0) - len(beta), 1)
-    return Information(blocks, counts, prior, float(ev.omega / dof), beta)
+    return Information(blocks, counts, prior, float(ev.omega / dof), beta, float(wE))
+
+
+SPREAD_ROUNDS = 50  # most fixed-point rounds of ``energy_spread`` (it settles in 4–8)
+SPREAD_TOL = 1e-3  # relative change of tr(Ê Σ_αα) at which it has settled
+
+
+def energy_spread(model: RegistrationModel, info: Information) -> np.ndarray:
+    """The strain energy's curvature over its own posterior spread, beyond the Laplace one (p, p).
+
+    Ω's energy term w_E f_E², f_E = ½ αᵀ Ê α (Ê = energy / M), is quartic in α: its Laplace
+    curvature at the fit, w_E (Ê α αᵀ Ê + f_E Ê) (``information``), vanishes with the
+    deformation, and where the data do not reach σ is held by nothing. The Gaussian q = N(α, Σ)
+    closest to the posterior (variational, KL(q‖p)) has Σ⁻¹ = E_q[∇²(−log p)]: the energy's
+    curvature averaged over α ~ q, exactly (its Hessian is a polynomial in α):
+
+        E_q[½∇²(w_E f_E²)] = w_E (Ê (α αᵀ + Σ_αα) Ê + (f_E + ½ tr(Ê Σ_αα)) Ê),
+
+    Σ_αα the α block of s H⁻¹ with H = the data's blocks + that curvature: a fixed point. It
+    starts from above, the prior alone without its Ê Σ Ê part (t = ½ tr(Ê Σ_αα) = sqrt(s n / 2 w_E),
+    n the rank of Ê), and each round averages the curvature with the last (the map Σ → Σ is
+    decreasing, so plain rounds oscillate). Returns the curvature beyond the Laplace one, to add
+    to ``info.matrix()``: w_E (Ê Σ_αα Ê + ½ tr(Ê Σ_αα) Ê). Without data it is the quartic prior's
+    own spread, finite; where the data fix α it is a small part of H."""
+    basis = model.basis
+    n = basis.Ju.shape[1]
+    p = len(info.beta)
+    E = basis.energy / basis.M
+    wE = info.energy_weight
+    out = np.zeros((p, p))
+    if wE <= 0.0 or not np.isfinite(info.scale) or info.scale <= 0.0:
+        return out
+    rank = int(np.sum(np.linalg.eigvalsh(E) > 1e-10 * max(float(np.abs(E).max()), 1e-300)))
+    t = float(np.sqrt(info.scale * rank / (2.0 * wE)))
+    extra = wE * t * E
+    H0 = info.matrix()
+    for _ in range(SPREAD_ROUNDS):
+        out[:n, :n] = extra
+        S = covariance(info, H0 + out)[:n, :n]
+        new = wE * (E @ S @ E + 0.5 * float(np.trace(E @ S)) * E)
+        t_new = 0.5 * float(np.trace(E @ S))
+        extra = 0.5 * (extra + new)
+        if abs(t_new - t) <= SPREAD_TOL * max(t, 1e-300):
+            break
+        t = t_new
+    out[:n, :n] = extra
+    return out
 
 
 def point_jacobian(model: RegistrationModel, beta, B=None, nodes=None) -> tuple[np.ndarray, np.ndarray]:
@@ -304,8 +353,11 @@ def estimate_error(reg, points=None, calibration: Calibration | None = None, B=N
         # Undeclared it is not joined: on a smooth cap the data leave turns free, and σ_pose put a
         # right answer's predicted error over the organ at 21 mm (docs/decisions.md, "Pose prior")
         pose_sigma = np.zeros(len(x))
+        # the strain energy over its own posterior spread, not its Laplace curvature alone, which
+        # vanishes with the deformation and left σ far from a partial scan held by nothing
+        H = info.matrix() + energy_spread(model, info)
         if reg.pose_prior is None:
-            sigma = point_sigma(G, factor=covariance_factor(info))
+            sigma = point_sigma(G, factor=covariance_factor(info, H))
         else:
             # declared: the pose is counted once, by its posterior (data and prior, σ_pose below);
             # the calibrated term takes the deformation's σ given the pose (α's block of H). The
@@ -313,7 +365,7 @@ def estimate_error(reg, points=None, calibration: Calibration | None = None, B=N
             # unbounded by the prior and then × c: tooldraw3_0-a at S, σ 5.99 → 4.41 mm given the
             # pose (docs/decisions.md, "The declared pose counted once in the error estimate")
             n = G.shape[-1] - 6
-            sigma = point_sigma(G[:, :, :n], factor=covariance_factor(info, info.matrix()[:n, :n]))
+            sigma = point_sigma(G[:, :, :n], factor=covariance_factor(info, H[:n, :n]))
             w = weights or default_weights()
             if w.pose_prior is None:
                 w = replace(w, pose_prior=reg.pose_prior)
