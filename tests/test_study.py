@@ -329,12 +329,12 @@ def test_fixed_planes_of_a_level():
     """"S+all" is every plane, the levels without planes none; "S+n" names a count, not the planes:
     asking it for them is an error, not S alone (report.distance_plot had read any level but
     "S+all" as no planes)."""
-    from navapp.simulation.levels import LEVELS, fixed_planes
+    from navapp.simulation.levels import LEVELS, SOURCE_LEVELS, fixed_planes
 
     assert fixed_planes("S+all", 4) == (0, 1, 2, 3)
-    assert {lv: fixed_planes(lv, 4) for lv in ("rigid", "S", "CBCT", "iCT")} == dict.fromkeys(
-        ("rigid", "S", "CBCT", "iCT"), ())
+    planeless = ("rigid", "S", *SOURCE_LEVELS, "CBCT", "iCT")  # a source level ("S+laparoscope") has none
+    assert {lv: fixed_planes(lv, 4) for lv in planeless} == dict.fromkeys(planeless, ())
     for level in LEVELS:
-        if level.startswith("S+") and level != "S+all":
+        if level.startswith("S+") and level != "S+all" and level not in SOURCE_LEVELS:
             with pytest.raises(ValueError, match="how many planes"):
                 fixed_planes(level, 4)

@@ -124,6 +124,7 @@ def trimmed_pose(model: RegistrationModel, data: dict, start: RigidResult, keep:
 
     R, t = start.R.copy(), start.t.copy()
     Y0 = None
+    kept, last = np.inf, (R, t)  # the trimmed objective at the pose the last step left, and that pose
     for _ in range(iterations):
         pose = RigidResult(R, t, 0, 0.0)
         P, Q, N = _surface_points(model, data, pose)
@@ -133,18 +134,19 @@ def trimmed_pose(model: RegistrationModel, data: dict, start: RigidResult, keep:
             Y0 = P.copy()
         r = np.einsum("ij,ij->i", N, P - Q)
         best = np.argsort(np.abs(r))[: max(6, int(keep * len(r)))]
+        # a descent method: a step that raised the trimmed objective (the kept points' squared
+        # distances, searched afresh) is the linearisation failing, not a better pose, and is
+        # undone. A line of stylus points leaves a rotation about it and a slide along it
+        # nearly free; solved whole, the steps along them grew until the pose stood 1e221 mm
+        # off and the closest-point search read past its arrays (docs/decisions.md)
+        objective = float(np.sum(r[best] ** 2))
+        if not objective <= kept:
+            R, t = last
+            break
+        kept, last = objective, (R, t)
         c = P[best].mean(0)
-        # each step moves the pose only along the motions the kept points determine: the
-        # rotation columns scaled by the points' extent (``_determinacy``'s normal matrix), and
-        # the singular values below √WEAK_RATIO of the largest (its eigenvalues below
-        # WEAK_RATIO, the sliding directions) left out of the solve. With all six kept this is
-        # the least-squares step; a line of stylus points with a point or two elsewhere, solved
-        # whole, took steps along the slides without bound until the pose stood 1e221 mm off
-        # and the closest-point search read past its arrays (docs/decisions.md)
-        L = max(float(np.linalg.norm(P[best] - c, axis=1).max()), 1.0)
-        a = np.hstack([np.cross(P[best] - c, N[best]) / L, N[best]])
-        x = np.linalg.lstsq(a, -r[best], rcond=np.sqrt(WEAK_RATIO))[0]
-        x[:3] /= L
+        a = np.hstack([np.cross(P[best] - c, N[best]), N[best]])
+        x = np.linalg.lstsq(a, -r[best], rcond=None)[0]
         if not np.isfinite(x).all():
             return start, float("inf")
         w, v = x[:3], x[3:] - np.cross(x[:3], c)  # rotation about c → about the origin
