@@ -66,10 +66,21 @@ def command(frame, body: dict):
 
 
 def choose_plane(frame, index: int, deadline: Deadline):
-    frame.wait_for_selector(f"#plane option[value='{index}']", state="attached", timeout=deadline.ms())
+    """Show plane ``index`` in the tab's 2D view; returns the view's frame. Right after the page
+    loads, the docked panel settling its width may mount the view's frame again (CI saw the
+    first frame detached while its plane list loaded): the page's new frame is then taken."""
+    while True:
+        try:
+            frame.wait_for_selector(f"#plane option[value='{index}']", state="attached", timeout=deadline.ms())
+            break
+        except playwright.Error as exc:
+            if "detached" not in str(exc) or not deadline.left():
+                raise
+            frame = us_frame(frame.page, deadline)
     frame.select_option("#plane", value=str(index), timeout=deadline.ms())
     wait_until(frame.page, lambda: f"Plane {index + 1} (" in frame.inner_text("#title"), deadline,
                f"plane {index + 1} shown")
+    return frame
 
 
 def test_queued_clicks_land_on_the_plane_they_were_aimed_at(server, tmp_path):
@@ -80,7 +91,7 @@ def test_queued_clicks_land_on_the_plane_they_were_aimed_at(server, tmp_path):
         page = deadline.open(browser.new_page(viewport=VIEW))
         page.goto(server["url"])
         us = us_frame(page, deadline)
-        choose_plane(us, 0, deadline)
+        us = choose_plane(us, 0, deadline)
         before = len(saved(server["session"])["contours"]) if (server["session"] / "session.json").exists() else 0
         # the server is slow to answer (a loaded machine): the first click's request is held,
         # the others wait in the page's queue
@@ -104,7 +115,7 @@ def test_queued_clicks_land_on_the_plane_they_were_aimed_at(server, tmp_path):
                    "every click acknowledged")
         new = saved(server["session"])["contours"][before:]
         assert [(c["plane"], [tuple(v) for v in c["vertices"]]) for c in new] == [(0, aimed)], new
-        choose_plane(us, 0, deadline)
+        us = choose_plane(us, 0, deadline)
         page.wait_for_timeout(500)
         canvas.screenshot(path=out / "truth_queued_landed.png")  # back on plane 1: all six, one open line
         for _ in aimed:  # leave the session as it was
@@ -151,7 +162,7 @@ def test_undo_stays_in_its_tab_and_survives_a_reload(own_server, tmp_path):
         # tab A draws two vertices of a contour, reloads, and can still undo them
         ua = us_frame(a, deadline)
         old = token_of(ua)
-        choose_plane(ua, 1, deadline)  # not the plane a new tab starts on: its return proves the resume
+        ua = choose_plane(ua, 1, deadline)  # not the plane a new tab starts on: its return proves the resume
         n0 = len(saved(session)["contours"])
         for c, r in ((70, 100), (90, 110)):
             x, y = canvas_xy(c, r)
