@@ -2,7 +2,8 @@
 that finds it.
 
 A source is one module here, ``navapp/simulation/sources/<name>.py``, defining ``SOURCE``
-(a ``SimulatedSource``), plus the rows of ``features.TABLE`` whose ``source`` is ``<name>``.
+(a ``SimulatedSource``: its name and its two functions), plus the rows of ``features.TABLE``
+whose ``source`` is ``<name>``.
 Nothing else lists it: the registry finds the module from the table, the scene parser
 reads the source's own ``[<name>]`` table through it, the simulator asks it for its points,
 the viewer's session keeps them (``SceneData.sourced``, ``features.SOURCED``) and draws them by their feature's
@@ -23,9 +24,10 @@ planes are still wired by hand throughout (``simulate.py``, ``scenedata.py``,
 
 import importlib
 import importlib.util
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cache
-from typing import Any, Protocol
+from typing import Any
 
 import numpy as np
 import trimesh
@@ -55,26 +57,23 @@ class Acquired:
     report: dict[str, Any] = field(default_factory=dict)
 
 
-class SimulatedSource(Protocol):
+@dataclass(frozen=True)
+class SimulatedSource:
     """An intraoperative data source the simulator can acquire from the truth.
 
     ``name`` is both the ``features.TABLE`` ``source`` of the features it feeds and the
     scene TOML table that enables it; a scene without that table simulates nothing of it.
+    ``always``: in every scene (its table optional), on the scene's own random stream.
+    ``parse(table, path)``: the source's settings from its scene table (a frozen dataclass of
+    plain values, hashed into the scene's cache key); a bad table raises ``InputError`` in one
+    line naming the key. ``acquire(spec, sight, rng)``: the ``Acquired`` points on the deformed
+    truth (``Sight``).
     """
 
     name: str
     always: bool
-    """True: in every scene (its table optional), on the scene's own random stream."""
-
-    def parse(self, table: dict, path) -> Any:
-        """The source's settings from its scene table (a frozen dataclass of plain values,
-        hashed into the scene's cache key). A bad table raises ``InputError`` in one line
-        naming the key."""
-        ...
-
-    def acquire(self, spec: Any, sight: Sight, rng: np.random.Generator) -> Acquired:
-        """Simulate the acquisition on the deformed truth."""
-        ...
+    parse: Callable[[dict, Any], Any]
+    acquire: Callable[[Any, Sight, np.random.Generator], Acquired]
 
 
 def features_of(source: str) -> tuple[str, ...]:

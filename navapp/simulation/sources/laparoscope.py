@@ -45,7 +45,7 @@ import numpy as np
 
 from ...errors import InputError
 from ...features import STYLUS
-from . import Acquired, Sight
+from . import Acquired, Sight, SimulatedSource
 
 NAME = "laparoscope"
 FEATURE = "laparoscope"
@@ -326,17 +326,4 @@ def parse(table, path) -> LaparoscopeSpec:
     return LaparoscopeSpec(**values)
 
 
-class Laparoscope:
-    """The ``SimulatedSource`` of the laparoscope."""
-
-    name = NAME
-    always = False
-
-    def parse(self, table: dict, path) -> LaparoscopeSpec:
-        return parse(table, path)
-
-    def acquire(self, spec: LaparoscopeSpec, sight: Sight, rng: np.random.Generator) -> Acquired:
-        return acquire(spec, sight, rng)
-
-
-SOURCE = Laparoscope()
+SOURCE = SimulatedSource(NAME, always=False, parse=parse, acquire=acquire)

@@ -23,7 +23,7 @@ from ...errors import InputError
 from ...features import STYLUS
 from ...mechanics.controlpoints import nodal_areas
 from ..stylus import surface_patch, swath_pattern, thin
-from . import Acquired, Sight
+from . import Acquired, Sight, SimulatedSource
 
 NAME = "stylus"
 PATTERNS = ("swaths", "patch")
@@ -103,17 +103,4 @@ def acquire(spec: StylusSpec, sight: Sight, rng: np.random.Generator) -> Acquire
     return Acquired(clouds, {"coverage_of_anterior": round(coverage, 3)})
 
 
-class Stylus:
-    """The ``SimulatedSource`` of the tracked stylus."""
-
-    name = NAME
-    always = True
-
-    def parse(self, table: dict, path) -> StylusSpec:
-        return parse(table, path)
-
-    def acquire(self, spec: StylusSpec, sight: Sight, rng: np.random.Generator) -> Acquired:
-        return acquire(spec, sight, rng)
-
-
-SOURCE = Stylus()
+SOURCE = SimulatedSource(NAME, always=True, parse=parse, acquire=acquire)
