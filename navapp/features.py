@@ -86,12 +86,15 @@ STYLUS: tuple[str, ...] = tuple(f.name for f in TABLE if f.source == "stylus")
 """Digitised with the tracked stylus: anterior, falciform, ridges (the paper's data level S)."""
 SALIENT: tuple[str, ...] = tuple(f.name for f in TABLE if f.salient)
 """Salient features: each slides on its own labelled region."""
-HAND_WIRED = ("stylus", "ius", "fiducial")
-"""The sources received, kept and shown by hand (the stylus's tracked tip and sweep, the iUS
-planes' frames, fiducials); the stylus is simulated as a module of ``navapp/simulation/sources``
-(in every scene), the iUS planes still by hand. Every other ``source`` is a module there,
-simulated, kept and received alike."""
-SOURCED: tuple[str, ...] = tuple(f.name for f in TABLE if f.source not in HAND_WIRED)
+HAND_WIRED = ("fiducial",)
+"""Sources with no module of ``navapp/simulation/sources``: fiducials, declared in a case,
+neither simulated nor received. Every other ``source`` is a module there, simulated through
+the protocol (the stylus, the iUS planes and their frames at a chosen pose, the laparoscope)."""
+TRACKED = ("stylus", "ius")
+"""Sources received as a tracked tool's pose stream and kept and shown by the viewer's own
+paths (the stylus's tip, the digitiser and the sweep; the probe's tracked frames, frozen and
+segmented, and the plane list), not as points a POINT message carries."""
+SOURCED: tuple[str, ...] = tuple(f.name for f in TABLE if f.source not in HAND_WIRED + TRACKED)
 """The features of those sources: live, an OpenIGTLink POINT message of this device name."""
 SEEN: tuple[str, ...] = tuple(n for n in SOURCED if BY_NAME[n].kind == "surface" and BY_NAME[n].target == "liver")
 """Liver-surface points a registered source sees from outside the liver (the laparoscope's)."""

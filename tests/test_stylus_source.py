@@ -12,6 +12,7 @@ from navapp.simulation.scene import demo_scene, parse_scene
 from navapp.simulation.scenedata import case_key, scene_key
 from navapp.simulation.simulate import simulate
 from navapp.simulation.sources import features_of, registered
+from navapp.simulation.sources.ius import IusSpec
 from navapp.simulation.sources.stylus import StylusSpec
 
 SMALL = {"name": "small", "seed": 4, "anatomy": {"phantom": 0},
@@ -25,7 +26,7 @@ def test_the_stylus_is_a_source_in_every_scene():
     assert stylus.always and not registered()["laparoscope"].always
     assert features_of("stylus") == STYLUS
     plain = parse_scene({"name": "p", "anatomy": {"phantom": 0}})  # no [stylus] table: its defaults
-    assert plain.sources == {"stylus": StylusSpec()}
+    assert plain.sources == {"stylus": StylusSpec(), "ius": IusSpec()}
     patch = parse_scene({"name": "p", "stylus": {"pattern": "patch", "at": [1, 2, 3], "points": 50}})
     assert patch.sources["stylus"] == StylusSpec(pattern="patch", points=50, patch_at=(1.0, 2.0, 3.0))
 

@@ -11,6 +11,15 @@ import numpy as np
 from ..geometry.transforms import axis_angle, homogeneous
 
 
+@dataclass(frozen=True)
+class Effect:
+    """One declared acquisition effect of a scene (``[[effects]]``): its kind and its
+    parameters (``scene.EFFECT_PARAMS``)."""
+
+    kind: str
+    params: dict
+
+
 @dataclass
 class Ledger:
     """Names of the stages and effects that ran, in order, with how often."""

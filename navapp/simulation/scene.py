@@ -37,6 +37,7 @@ from pathlib import Path
 
 from ..defaults import N_PLANES
 from ..errors import InputError
+from .effects import Effect
 from .sources import registered
 
 EFFECT_PARAMS = {
@@ -52,12 +53,6 @@ EFFECT_PARAMS = {
     "latency": {"ms": float},  # every tracker/image message sent this late after the moment it describes
     "auto_segmentation": {"sd_px": float},  # live frames' contours designated automatically, with this error
 }
-
-
-@dataclass(frozen=True)
-class Effect:
-    kind: str
-    params: dict
 
 
 @dataclass(frozen=True)
@@ -95,7 +90,7 @@ class Scene:
     """What to simulate (a scene TOML, ``navapp/scenes/*.toml``): the anatomy (a phantom
     index or a case folder), the true deformation (ligament release, gravity tilt, linear or
     neo-Hookean, truth mesh edge mm, E Pa, pressure Pa, or a transposition), the
-    number of iUS planes, the data sources (``sources``: the stylus in every scene) and the
+    data sources (``sources``: the stylus and the iUS planes in every scene) and the
     acquisition effects."""
 
     name: str
@@ -112,7 +107,6 @@ class Scene:
     gravity: bool = True
     supports: str = "ligaments"
     tool: "ToolSpec | None" = None
-    planes: int = N_PLANES
     effects: list = field(default_factory=list)
     seed: int = 0
     source: Path | None = None
@@ -125,6 +119,12 @@ class Scene:
     # the registered data sources it enables (``sources``): source name → its parsed table;
     # the sources in every scene (``always``: the stylus) are here whether or not it has their table
     sources: dict = field(default_factory=dict)
+
+    @property
+    def planes(self) -> int:
+        """The number of preset iUS planes (``[ius] planes``; ``sources/ius.py``)."""
+        spec = self.sources.get("ius")
+        return 0 if spec is None else int(spec.planes)
 
     def declared_pose(self) -> tuple[float, float] | None:
         """(sd_mm, sd_deg) the case declares (``[pose]``), or None (an unknown frame)."""
@@ -145,7 +145,6 @@ _SECTIONS: dict[str, dict[str, type]] = {
     "deformation": {"release": str, "gravity_tilt_deg": float, "large": bool, "mesh_edge_mm": float,
                     "truth_E_pa": float, "pressure_pa": float, "head_up_deg": float,
                     "transpose_from": dict, "gravity": bool, "supports": str},
-    "ius": {"planes": int},
     "pose": {"declared": bool, "sd_mm": float, "sd_deg": float},
 }
 
@@ -245,8 +244,6 @@ def parse_scene(data: dict, path=None) -> Scene:
         scene.phantom = None
     if scene.release not in ("L", "N", "R"):
         raise InputError(f"deformation.release must be \"L\", \"N\" or \"R\", got {scene.release!r}", path)
-    if not 0 <= scene.planes <= N_PLANES:
-        raise InputError(f"ius.planes must be between 0 and {N_PLANES}", path)
     if any(v is not None and v <= 0 for v in (scene.pose_sd_mm, scene.pose_sd_deg)):
         raise InputError("pose.sd_mm and pose.sd_deg must be positive (standard deviations, mm and degrees)", path)
     if scene.mesh_edge_mm <= 0 or scene.truth_E_pa <= 0:

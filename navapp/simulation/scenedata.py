@@ -9,7 +9,6 @@ server both read scenes through it).
 """
 
 import dataclasses
-import json
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,17 +16,19 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from ..anatomy.caseio import Case, read_case, read_csv
+from ..anatomy.caseio import Case, read_case
 from ..anatomy.model import VESSELS
 from ..cache import cache_dir, content_key
 from ..defaults import EDGE_MM
 from ..features import SOURCED, STYLUS
 from ..simulation.effects import Ledger
 from .probe import Probe
-from .scene import Effect, Scene
+from .scene import Scene
 from .simulate import simulate
-from .sources import registered
-from .ultrasound import PlaneData, acquire_plane
+from .sources import Sight, registered
+from .sources.ius import auto_segmentation as _auto_segmentation
+from .sources.ius import read_frames
+from .ultrasound import PlaneData
 
 STYLUS_FEATURES = STYLUS  # (``navapp.features``)
 # bump when the simulator's output changes (2: the truth as a field, no registration mesh)
@@ -105,27 +106,6 @@ def sweep_order(points: np.ndarray) -> np.ndarray:
     return np.array(order)
 
 
-def read_planes(case_dir: Path) -> tuple[list, Probe]:
-    """The plane presets written by the simulator: poses, features and images."""
-    from skimage.io import imread
-
-    udir = Path(case_dir) / "intraop" / "us"
-    meta_path = udir / "planes.json"
-    if not meta_path.exists():
-        return [], Probe()
-    meta = json.loads(meta_path.read_text())
-    probe = Probe(meta["width_px"], meta["height_px"], meta["spacing_mm"])
-    planes = []
-
-    for p in meta["planes"]:
-        pdir = udir / f"plane_{p['index']:02d}"
-        feats = {f: read_csv(pdir / f"{f}.csv", ("x", "y", "z")) for f in p["features"]}
-        img_path = udir / f"plane_{p['index']:02d}.png"
-        image = imread(img_path) if img_path.exists() else None
-        planes.append(PlaneData(p["index"], p["orientation"], np.array(p["probe_to_tracker"]), feats, image))
-    return planes, probe
-
-
 def load_scene_data(scene: Scene, cache_root=None, edge: float = EDGE_MM) -> SceneData:
     """The scene simulated (or read from the cache) for a viewer whose registration mesh
     has edge ``edge`` mm."""
@@ -135,7 +115,7 @@ def load_scene_data(scene: Scene, cache_root=None, edge: float = EDGE_MM) -> Sce
     allpts = np.vstack(list(stylus.values())) if stylus else np.zeros((0, 3))
     labels = np.concatenate([[k] * len(v) for k, v in stylus.items()]) if stylus else np.zeros(0, str)
     order = sweep_order(allpts)
-    planes, probe = read_planes(case_dir)
+    planes, probe = read_frames(case_dir)
     truth = {}
     for name in ("liver", *VESSELS):
         p = case_dir / "truth" / f"{name}.ply"
@@ -145,24 +125,32 @@ def load_scene_data(scene: Scene, cache_root=None, edge: float = EDGE_MM) -> Sce
     return SceneData(scene, edge, case_dir, case, stylus, allpts[order], labels[order], planes, probe, truth, sourced)
 
 
+def _sight(sd: SceneData) -> Sight:
+    """What a frame chosen after the simulation sees: the scene's true deformed anatomy."""
+    vessels = {k: sd.truth[k] for k in VESSELS if k in sd.truth}
+    return Sight(sd.truth["liver"], sd.case.preop, Ledger(), vessels, tuple(sd.scene.effects), sd.scene.seed)
+
+
+def _frame(sd: SceneData, index: int, probe_to_tracker: np.ndarray, live: bool) -> PlaneData:
+    """One frame of the scene's tracked imaging source (the source whose ``frame`` is set:
+    the iUS probe) at a pose chosen after the simulation."""
+    name, source = next((n, s) for n, s in registered().items() if s.frame is not None)
+    assert source.frame is not None
+    return source.frame(sd.scene.sources.get(name), _sight(sd), index, np.asarray(probe_to_tracker, float), live)
+
+
 def acquire_free_plane(sd: SceneData, index: int, probe_to_tracker: np.ndarray) -> PlaneData:
     """Simulate a plane at a pose the user chose (same anatomy and effects as the presets;
-    the random stream is seeded by scene seed and plane index, so it is reproducible)."""
-
-    rng = np.random.default_rng([sd.scene.seed, index])
-    return acquire_plane(index, "free", np.asarray(probe_to_tracker, float), sd.probe, sd.truth["liver"],
-                         sd.truth.get("portal"), sd.truth.get("hepatic"), sd.scene.effects, rng, Ledger(),
-                         want_image=True)
+    the random stream is seeded by scene seed and plane index, so it is reproducible;
+    ``sources/ius.frame``)."""
+    return _frame(sd, index, probe_to_tracker, live=False)
 
 
 def auto_segmentation(scene: Scene) -> float | None:
     """The contour error (px) of the scene's declared automatic segmentation of live
     frames, or None when the scene declares none (then live frames carry no features
     until the user draws on a frozen one)."""
-    for e in scene.effects:
-        if e.kind == "auto_segmentation":
-            return float(e.params["sd_px"])
-    return None
+    return _auto_segmentation(scene.effects)
 
 
 def segment_frame(sd: SceneData, index: int, probe_to_tracker: np.ndarray) -> dict:
@@ -170,15 +158,5 @@ def segment_frame(sd: SceneData, index: int, probe_to_tracker: np.ndarray) -> di
     ``probe_to_tracker``: the true anatomy cut by the frame's plane (the simulated
     segmentation), its contours perturbed by the declared ``auto_segmentation`` error in
     place of any ``contour_jitter``, and the scene's other effects as for any plane. Empty
-    when the scene declares no automatic segmentation."""
-
-    sd_px = auto_segmentation(sd.scene)
-    if sd_px is None:
-        return {}
-    effects = [e for e in sd.scene.effects if e.kind not in ("contour_jitter", "auto_segmentation")]
-    if sd_px > 0:
-        effects.append(Effect("contour_jitter", {"sd_px": sd_px}))
-    rng = np.random.default_rng([sd.scene.seed, 7, index])
-    return acquire_plane(index, "live", np.asarray(probe_to_tracker, float), sd.probe, sd.truth["liver"],
-                         sd.truth.get("portal"), sd.truth.get("hepatic"), effects, rng, Ledger(),
-                         want_image=False).features
+    when the scene declares no automatic segmentation (``sources/ius.frame``)."""
+    return _frame(sd, index, probe_to_tracker, live=True).features

@@ -33,13 +33,12 @@ from ..errors import InputError
 from ..mechanics.fem import NU_LIVER, Material
 from ..outputs import folder_lock, staged
 from . import effects as fx
-from .probe import Probe
 from .scene import Scene
 from .sources import Sight, registered
+from .sources.ius import write_frames
 from .tool import place_tool
 from .transpose import correspondence, reference_deformation, transpose
 from .truth import Loading, Supports, solve_linear, solve_neo_hookean, supported_nodes
-from .ultrasound import acquire_plane, plane_poses
 
 
 def gravity_direction(release: str, tilt_deg: float, head_up_deg: float = 0.0) -> tuple:
@@ -101,46 +100,38 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
     portal_d, hepatic_d = (None if m is None else trimesh.Trimesh(moved(m.vertices), m.faces, process=False)
                            for m in (preop.portal, preop.hepatic))
 
-    # the data sources (``sources``): the stylus, in every scene, on the scene's own stream
-    # before the planes (as before sources were rooms); each other source the scene enables on
-    # its own stream, so that enabling one leaves every other draw of the scene as it was
+    # the data sources (``sources``): those in every scene (the stylus, then the iUS planes) on
+    # the scene's own stream, in the order they always drew; each other source the scene enables
+    # on its own stream, so that enabling one leaves every other draw of the scene as it was
     intraop: dict = {}
     sourced: dict = {}
+    frames: list = []
     always = [n for n in scene.sources if registered()[n].always]
     others = sorted(n for n in scene.sources if n not in always)
     streams = [(n, rng) for n in always] + [(n, np.random.default_rng([scene.seed, 11, i]))
                                              for i, n in enumerate(others)]
+    vessels = {k: m for k, m in (("portal", portal_d), ("hepatic", hepatic_d)) if m is not None}
+    sight = Sight(liver_d, preop, ledger, vessels, tuple(scene.effects), scene.seed)
     for name, srng in streams:
-        got = registered()[name].acquire(scene.sources[name], Sight(liver_d, preop, ledger), srng)
+        source = registered()[name]
+        got = source.acquire(scene.sources[name], sight, srng)
+        frames += got.frames
         kept = {}
         for label, pts in got.points.items():
-            if "tracking_noise" in eff and len(pts):
+            if not source.acquires_effects and "tracking_noise" in eff and len(pts):
                 pts = fx.tracking_noise(pts, srng, ledger, **eff["tracking_noise"])
-            if "dropout" in eff and len(pts):
+            if not source.acquires_effects and "dropout" in eff and len(pts):
                 pts = fx.dropout(pts, srng, ledger, **eff["dropout"])
             kept[label] = int(len(pts))
             if len(pts):
                 intraop[label] = np.vstack([intraop[label], pts]) if label in intraop else pts
-        if name in always:  # the stylus's entry reads as it always has: points of the features that have any
+        if source.acquires_effects:  # its report is whole (the planes': points per plane)
+            pass
+        elif name in always:  # the stylus's entry reads as it always has: points of the features that have any
             got.report["points"] = {k: n for k, n in kept.items() if n}
         else:
             got.report["kept"] = kept
-        sourced[name] = got.report
-
-    # iUS
-    probe = Probe()
-    planes = []
-    if scene.planes:
-        poses = plane_poses(liver_d.vertices, liver_d.vertex_normals, preop.region_mask("anterior"), scene.planes,
-                            scene.seed)
-        with progress.bar(len(poses), "iUS planes", "plane") as pb:
-            for i, (orientation, T) in enumerate(poses):
-                planes.append(acquire_plane(i, orientation, T, probe, liver_d, portal_d, hepatic_d, scene.effects,
-                                            rng, ledger, want_image=True))
-                pb.update(1)
-    for pl in planes:
-        for k, pts in pl.features.items():
-            intraop[k] = np.vstack([intraop[k], pts]) if k in intraop else pts
+        sourced[source.report_as] = got.report
     _check_data(scene, intraop)
 
     # absolute: the case is read later from anywhere (a study's ``declared_supports`` reads the scene again)
@@ -154,7 +145,7 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
     # report, and register would have used them; a run stopped half way leaves the old case whole
     with folder_lock(out), staged(out) as folder:
         write_case(case, folder)
-        _write_planes(folder, planes, probe)
+        write_frames(folder, frames)
         tdir = Path(folder) / "truth"
         liver_d.export(tdir / "liver.ply", encoding="binary")
         for name, mesh in (("portal", portal_d), ("hepatic", hepatic_d)):
@@ -170,8 +161,8 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
         report = {
             "scene": scene.name, "truth_nodes": int(len(truth_mesh.nodes)),
             "displacement_mm": {"mean": round(float(d.mean()), 2), "max": round(float(d.max()), 2)},
-            **{n: sourced.pop(n) for n in always},  # the stylus's entry where it always was
-            "planes": [{k: int(len(p)) for k, p in pl.features.items()} for pl in planes],
+            # the stylus's entry and the planes' where they always were
+            **{k: sourced.pop(k) for k in [registered()[n].report_as for n in always]},
             "seconds": {"truth": round(t_truth, 2), "total": round(time.perf_counter() - t0, 2)},
             "ran": sorted(set(ledger.ran)),
         }
@@ -286,25 +277,3 @@ def transposed_truth(scene: Scene, preop, truth_mesh, ledger=None, cache_root=No
                "reference_displacement_mm": stats(u_ref), "correspondence_residual_mm": round(phi.residual_mm, 2),
                # the target's own supports are not re-clamped (transpose.py): how far they move
                "support_displacement_mm": stats(u[held])}
-
-
-def _write_planes(out, planes, probe):
-    if not planes:
-        return
-    from skimage.io import imsave
-
-    udir = Path(out) / "intraop" / "us"
-    udir.mkdir(parents=True, exist_ok=True)
-    meta = {"image_to_probe": probe.image_to_probe().tolist(), "width_px": probe.width_px,
-            "height_px": probe.height_px, "spacing_mm": probe.spacing_mm, "planes": []}
-    for pl in planes:
-        pdir = udir / f"plane_{pl.index:02d}"
-        pdir.mkdir(exist_ok=True)
-        for k, pts in pl.features.items():
-            write_csv(pdir / f"{k}.csv", pts, ("x", "y", "z"))
-        if pl.image is not None:
-            imsave(udir / f"plane_{pl.index:02d}.png", pl.image, check_contrast=False)
-        meta["planes"].append({"index": pl.index, "orientation": pl.orientation,
-                               "probe_to_tracker": np.asarray(pl.probe_to_tracker).tolist(),
-                               "features": sorted(pl.features)})
-    (udir / "planes.json").write_text(json.dumps(meta, indent=1))

@@ -21,6 +21,7 @@ from navapp import progress
 from navapp.evaluation.table2 import run_chunk
 from navapp.simulation.scene import load_scene, study_scenes
 from navapp.simulation.simulate import simulate
+from navapp.simulation.sources.ius import IusSpec
 
 ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
 ap.add_argument("out", type=Path)
@@ -41,7 +42,9 @@ rows = []
 for path in study_scenes("lap"):
     if want is not None and path.stem not in want:
         continue
-    scene = dataclasses.replace(load_scene(path), planes=0, **{k: v for k, v in over.items() if v is not None})
+    scene = load_scene(path)
+    scene = dataclasses.replace(scene, sources={**scene.sources, "ius": IusSpec(planes=0)},
+                                **{k: v for k, v in over.items() if v is not None})
     if args.existing:
         report = json.loads((args.out / path.stem / "truth" / "report.json").read_text())
     else:

@@ -2,7 +2,7 @@
 that finds it.
 
 A source is one module here, ``navapp/simulation/sources/<name>.py``, defining ``SOURCE``
-(a ``SimulatedSource``: its name and its two functions), plus the rows of ``features.TABLE``
+(a ``SimulatedSource``: its name and its functions), plus the rows of ``features.TABLE``
 whose ``source`` is ``<name>``.
 Nothing else lists it: the registry finds the module from the table, the scene parser
 reads the source's own ``[<name>]`` table through it, the simulator asks it for its points,
@@ -11,15 +11,19 @@ colour, and live points arrive as an OpenIGTLink POINT message whose device name
 feature's name (``tracking.client``; pyigtl 0.3 decodes no POLYDATA). Its points enter the registration as
 the data of its features, by the feature's kind, target and weight.
 
-A source is either in every scene (``always``: the stylus; its table optional, its defaults
-otherwise), drawing on the scene's own random stream in the order it always has, or enabled
-by its table and drawing on a stream of its own (the laparoscope), so that enabling it
-leaves every other draw of the scene as it was.
+A source is either in every scene (``always``: the stylus, then the iUS planes; its table
+optional, its defaults otherwise), drawing on the scene's own random stream in the order it
+always has, or enabled by its table and drawing on a stream of its own (the laparoscope), so
+that enabling it leaves every other draw of the scene as it was.
 
-The stylus is simulated through this protocol, but received, kept and shown by hand (its
-tracked tip, the digitiser, the viewer's sweep: ``features.HAND_WIRED``); the ultrasound
-planes are still wired by hand throughout (``simulate.py``, ``scenedata.py``,
-``app/live.py``); see docs/decisions.md, "Data sources as rooms" and "session 34".
+A tracked imaging source (the iUS probe) also simulates one ``frame`` at a pose chosen after
+the simulation: a free plane the user placed, or a live frame's automatic segmentation
+(``scenedata.acquire_free_plane``, ``scenedata.segment_frame``).
+
+The stylus and the iUS planes are simulated through this protocol but received, kept and
+shown by hand (a tracked tip's sweep, a tracked probe's frames: ``features.TRACKED``);
+fiducials have no module (``features.HAND_WIRED``); see docs/decisions.md, "Data sources
+as rooms" and sessions 34 and 35.
 """
 
 import importlib
@@ -46,15 +50,20 @@ class Sight:
     liver: trimesh.Trimesh
     preop: PreopModel
     ledger: Ledger
+    vessels: dict[str, trimesh.Trimesh] = field(default_factory=dict)  # "portal", "hepatic", deformed, if any
+    effects: tuple = ()  # the scene's declared acquisition effects (``effects.Effect``)
+    seed: int = 0  # the scene's seed (a tracked frame's own stream, the planes' placement)
 
 
 @dataclass
 class Acquired:
-    """A source's simulated acquisition: points per feature (tracker mm, (N, 3) each) and
-    what the simulation report says of it (JSON-able)."""
+    """A source's simulated acquisition: points per feature (tracker mm, (N, 3) each), what
+    the simulation report says of it (JSON-able) and, for a tracked imaging source, the frames
+    it acquired (``ultrasound.PlaneData``: pose, features, image; written by the source)."""
 
     points: dict[str, np.ndarray]
-    report: dict[str, Any] = field(default_factory=dict)
+    report: Any = field(default_factory=dict)
+    frames: list = field(default_factory=list)
 
 
 @dataclass(frozen=True)
@@ -68,12 +77,27 @@ class SimulatedSource:
     plain values, hashed into the scene's cache key); a bad table raises ``InputError`` in one
     line naming the key. ``acquire(spec, sight, rng)``: the ``Acquired`` points on the deformed
     truth (``Sight``).
+    ``acquires_effects``: the source applies the scene's tracking noise and dropout itself (a
+    tracked frame: per frame, through its pose); otherwise the simulator applies them to its
+    points and reports how many each feature kept.
+    ``frame(spec, sight, index, probe_to_tracker, live)``: a tracked imaging source's one frame
+    at a pose chosen after the simulation (``PlaneData``), or None.
+    ``report_key``: its entry's key in ``truth/report.json`` (its name unless it had another
+    before sources were rooms: the iUS planes' ``planes``).
     """
 
     name: str
     always: bool
     parse: Callable[[dict, Any], Any]
     acquire: Callable[[Any, Sight, np.random.Generator], Acquired]
+    acquires_effects: bool = False
+    frame: Callable[..., Any] | None = None
+    report_key: str = ""
+
+    @property
+    def report_as(self) -> str:
+        """Its entry's key in ``truth/report.json``."""
+        return self.report_key or self.name
 
 
 def features_of(source: str) -> tuple[str, ...]:
