@@ -57,3 +57,21 @@ def test_the_hard_study_removes_the_rigid_part_as_trimesh_does():
     expected = np.linalg.norm(P + u - trimesh.transform_points(P, T), axis=1).max()
     assert nonrigid_max(P, u) > 1.0
     np.testing.assert_allclose(nonrigid_max(P, u), expected, rtol=1e-9)
+
+
+def test_a_rigid_transform_is_undone_as_numpy_and_scipy_undo_it():
+    from navapp.geometry.transforms import apply, apply_inverse, homogeneous, inverse
+    from navapp.registration.rigid import RigidResult
+
+    rng = np.random.default_rng(5)
+    rot = Rotation.from_rotvec(rng.normal(size=3))
+    R, t = rot.as_matrix(), np.array([12.0, -40.0, 7.5])
+    T = homogeneous(R, t)
+    P = rng.normal(size=(50, 3)) * 60.0
+    assert np.allclose(inverse(T), np.linalg.inv(T), atol=1e-12)
+    assert np.allclose(inverse(T) @ T, np.eye(4), atol=1e-12)
+    Y = apply(T, P)
+    expected = rot.inv().apply(Y - t)  # scipy's inverse rotation of the shifted points
+    assert np.allclose(apply_inverse(R, t, Y), expected, atol=1e-9)
+    assert np.allclose(apply(inverse(T), Y), expected, atol=1e-9)
+    assert np.array_equal(RigidResult(R, t, 0, 0.0).inverse(Y), apply_inverse(R, t, Y))

@@ -33,6 +33,7 @@ from ..anatomy.caseio import read_case
 from ..anatomy.truth import TruthField
 from ..errors import InputError
 from ..geometry.interpolation import interpolation_matrix
+from ..geometry.transforms import apply_inverse
 from ..geometry.tre import tre_stats
 from ..registration.forces import Answer
 from ..registration.local_modes import LocalModeOptions
@@ -88,7 +89,7 @@ def _case_facts(case_dir: Path, case, nodes: np.ndarray) -> dict:
     if tool is not None:
         pts = np.vstack([p for k, p in case.intraop.items() if k in ("anterior", "posterior", "falciform",
                                                                          "ridge_left", "ridge_right")])
-        pre = (pts - T[:3, 3]) @ T[:3, :3]  # back to the preoperative frame
+        pre = apply_inverse(T[:3, :3], T[:3, 3], pts)  # back to the preoperative frame
         covers = bool(np.linalg.norm(pre - np.array(tool["centre_mm"]), axis=1).min() < tool["radius_mm"] + 10.0)
     truth = case.need_truth()
     shown = round(float(np.linalg.norm(truth.displacement(nodes), axis=1).mean()), 2) \

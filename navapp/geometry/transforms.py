@@ -32,6 +32,20 @@ def apply(T, points) -> np.ndarray:
     return np.asarray(points, float) @ T[:3, :3].T + T[:3, 3]
 
 
+def apply_inverse(R, t, points) -> np.ndarray:
+    """Points (N, 3) mm through the inverse of the rigid ``x ↦ R x + t`` (R (3, 3) a rotation,
+    t (3,) mm): ``(y − t) R``, since R⁻¹ = Rᵀ; no matrix is inverted."""
+    return (np.asarray(points, float) - t) @ R
+
+
+def inverse(T) -> np.ndarray:
+    """(4, 4) inverse of a rigid (4, 4) ``T`` (rotation and shift), in closed form:
+    ``x ↦ Rᵀ x − Rᵀ t``. Not for an affine with scale or shear (a voxel grid's: use
+    ``numpy.linalg.inv``)."""
+    R, t = np.asarray(T, float)[:3, :3], np.asarray(T, float)[:3, 3]
+    return homogeneous(R.T, -(R.T @ t))
+
+
 def kabsch(P, Q, w=None) -> tuple[np.ndarray, np.ndarray]:
     """R, t minimising Σ w_i |R p_i + t − q_i|² (proper rotation, det R = +1).
 

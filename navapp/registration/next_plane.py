@@ -29,7 +29,7 @@ from scipy.spatial import cKDTree
 from ..defaults import FAR_WALL_COS, FAR_WALL_MIN_DEPTH_MM, PROBE_HEIGHT_PX, PROBE_SPACING_MM, PROBE_WIDTH_PX
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.planes import plane_section
-from ..geometry.transforms import homogeneous, probe_pose
+from ..geometry.transforms import homogeneous, inverse, probe_pose
 from ..threads import limit_threads
 from .objective import evaluate
 from .uncertainty import (
@@ -273,7 +273,7 @@ def suggest_planes(reg, anterior=None, preop=None, poses=None, calibration: Cali
         d0 = nearest_data_distance(x, data)
         e0 = calibration.predict(d0, point_sigma(G, factor=covariance_factor(info)), np.median(d0))
         # rigid map model → tracker, to bring the candidate poses into the model frame
-        Tinv = np.linalg.inv(homogeneous(reg.rigid.R, reg.rigid.t))
+        Tinv = inverse(homogeneous(reg.rigid.R, reg.rigid.t))
         out = []
         for i, (orientation, pose) in enumerate(poses):
             pose_model = Tinv @ np.asarray(pose, float)

@@ -23,7 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..features import RIGID
-from ..geometry.transforms import kabsch, rotvec_matrix
+from ..geometry.transforms import apply_inverse, kabsch, rotvec_matrix
 from .model import REGION_FEATURES, RegistrationModel
 from .objective import Weights, correspond
 from .rotation import rotation, rotation_angle
@@ -47,7 +47,7 @@ class RigidResult:
         return np.asarray(x) @ self.R.T + self.t
 
     def inverse(self, y):
-        return (np.asarray(y) - self.t) @ self.R
+        return apply_inverse(self.R, self.t, y)
 
 
 def after(first: RigidResult, then: RigidResult) -> RigidResult:
@@ -118,7 +118,7 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights | None = No
         Ps, Qs, Ws = [], [], []
         for name, Y in data.items():
             feat = model.feature_for(name)
-            Ym = (Y - t) @ R  # data in the model frame
+            Ym = apply_inverse(R, t, Y)  # data in the model frame
             S = correspond(feat, feat.rest, Ym, trees.get(name)).S
             Ps.append(S @ feat.rest)
             Qs.append(Y)

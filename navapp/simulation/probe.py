@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..defaults import PROBE_HEIGHT_PX, PROBE_SPACING_MM, PROBE_WIDTH_PX
+from ..geometry.transforms import inverse
 
 
 @dataclass(frozen=True)
@@ -40,7 +41,7 @@ def tracker_to_pixels(probe: Probe, probe_to_tracker, points) -> tuple[np.ndarra
     """Continuous pixel coordinates (cols, rows) of points projected onto the image
     plane, and their out-of-plane distance (mm)."""
     p = np.column_stack([np.asarray(points, float), np.ones(len(points))])
-    local = (np.linalg.inv(probe_to_tracker) @ p.T).T
+    local = (inverse(probe_to_tracker) @ p.T).T
     s = probe.spacing_mm
     cols = local[:, 0] / s + (probe.width_px - 1) / 2.0
     rows = local[:, 2] / s
