@@ -58,3 +58,22 @@ def test_a_frame_at_a_chosen_pose_is_what_it_was_before_it_was_a_source(cache_ro
                                atol=1e-6)
     sd.scene.effects[:] = [e for e in sd.scene.effects if e.kind != "auto_segmentation"]
     assert segment_frame(sd, 5000, T) == {}  # no segmentation declared: the surgeon draws
+
+
+def test_a_scene_simulation_stopped_half_way_leaves_no_case_in_the_cache(cache_root, tmp_path, monkeypatch):
+    # the viewer's cache swaps a simulated case in whole through ``outputs.staged`` (its one home)
+    from navapp.simulation import simulate as sim
+    from navapp.simulation.scenedata import case_key, simulated_case_dir
+
+    scene = parse_scene({**SMALL, "name": "halfway", "ius": {"planes": 1}})
+
+    def stop(*a, **k):
+        raise RuntimeError("stopped while writing the planes")
+
+    monkeypatch.setattr(sim, "write_frames", stop)
+    with pytest.raises(RuntimeError):
+        simulated_case_dir(scene, tmp_path)
+    out = tmp_path / "scenes" / f"halfway-{case_key(scene)}"
+    assert not out.exists() and [p.name for p in out.parent.iterdir()] == []
+    monkeypatch.undo()
+    assert simulated_case_dir(scene, tmp_path) == out and (out / "intraop" / "us" / "planes.json").is_file()

@@ -9,7 +9,6 @@ server both read scenes through it).
 """
 
 import dataclasses
-import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -81,11 +80,9 @@ def simulated_case_dir(scene: Scene, cache_root=None) -> Path:
     out = root / "scenes" / f"{scene.name}-{case_key(scene)}"
     if (out / "truth" / "report.json").exists():
         return out
-    tmp = out.with_name(out.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    simulate(scene, tmp, cache_root=cache_root)
-    shutil.rmtree(out, ignore_errors=True)
-    tmp.rename(out)  # atomic: a half-written simulation is never mistaken for a finished one
+    # written aside and swapped in whole (``outputs.staged``), under the folder's lock: a
+    # half-written simulation is never mistaken for a finished one
+    simulate(scene, out, cache_root=cache_root)
     return out
 
 
