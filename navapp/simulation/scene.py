@@ -21,7 +21,7 @@ Example::
     #   onto this liver through an inexact correspondence (transpose.py)
     [stylus]                 # a source in every scene (``sources/stylus.py``)
     coverage = 0.2           # fraction of the anterior surface the swaths cover
-    [ius]
+    [ius]                    # a source in every scene (``sources/ius.py``)
     planes = 16              # 8 vertical + 8 lateral; 0 for none
     [[effects]]
     kind = "tracking_noise"
