@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 QUIET = False  # set by the CLI's --quiet and by tests (application-wide); library code uses quiet()
 _scoped_quiet = contextvars.ContextVar("navapp_progress_quiet", default=False)
+_scoped_aside = contextvars.ContextVar("navapp_progress_aside", default=False)
 _listeners: list = []  # callables (desc, fraction or None) — e.g. the viewer's status panel
 
 
@@ -38,6 +39,19 @@ def quiet(on: bool = True):
         yield
     finally:
         _scoped_quiet.reset(token)
+
+
+@contextmanager
+def aside():
+    """Work done beside the task being reported (e.g. a mesh made ahead while a scene is
+    simulated): no bars, and nothing told to the listeners, whose one status line belongs
+    to the main task (this thread / context only)."""
+    token, quiet_token = _scoped_aside.set(True), _scoped_quiet.set(True)
+    try:
+        yield
+    finally:
+        _scoped_quiet.reset(quiet_token)
+        _scoped_aside.reset(token)
 
 
 def add_listener(fn):
@@ -94,6 +108,8 @@ def _stderr():
 
 
 def _notify(desc, fraction):
+    if _scoped_aside.get():
+        return
     for fn in list(_listeners):
         try:
             fn(desc, fraction)

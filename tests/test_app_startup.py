@@ -173,3 +173,54 @@ def test_a_tab_closing_mid_response_leaves_no_traceback(capfd, caplog):
     assert "Traceback" not in err and "Error" not in err, err
     # nor through the log (its last-resort handler prints to the terminal when nothing is configured)
     assert not [r for r in caplog.records if r.exc_info], caplog.text
+
+
+def test_work_aside_draws_no_bar_and_tells_no_listener(capsys):
+    """The mesh made ahead reports nothing: the one status line belongs to the simulation
+    it runs beside (before ``aside``, its bar and its percentages flipped with the other's)."""
+    from navapp import progress
+
+    heard = []
+    listener = progress.add_listener(lambda desc, fraction: heard.append(desc))
+    try:
+        def ahead():
+            with progress.aside(), progress.bar(3, "made ahead") as bar, progress.stage("staged ahead"):
+                bar.update(3)
+
+        thread = threading.Thread(target=ahead)
+        thread.start()
+        thread.join()
+        with progress.bar(2, "the main task") as bar:
+            bar.update(2)
+    finally:
+        progress.remove_listener(listener)
+    assert "the main task" in heard and "made ahead" not in heard and "staged ahead" not in heard, heard
+    assert "made ahead" not in capsys.readouterr().err
+
+
+def test_a_first_start_meshes_the_registration_model_beside_the_simulation(tmp_path, phantoms, monkeypatch):
+    """From an empty cache, the registration mesh is made on its own thread while the scene is
+    simulated, from the very surface ``prepare`` reads (so it finds it cached); a second start,
+    the scene cached, makes nothing ahead."""
+    from navapp.anatomy import meshing
+    from navapp.app import core
+    from navapp.simulation.scene import parse_scene
+
+    made = []
+    real = meshing.mesh_liver
+
+    def recording(surface, edge, **kw):
+        made.append((edge, threading.current_thread().name))
+        return real(surface, edge, **kw)
+
+    monkeypatch.setattr(meshing, "mesh_liver", recording)
+    scene = parse_scene(SCENE)
+    for start in (1, 2):
+        c = core.Core(scene, phantoms[0], 12.0, 12, cache_root=tmp_path / "cache", session_dir=tmp_path / "s")
+        assert c.start(lambda loaded: None, lambda ready: None).wait(BUDGET_S) and c.failed is None, c.failed
+        if start == 1:
+            assert (12.0, "navapp-mesh-ahead") in made, made  # the registration mesh, ahead
+            assert (10.0, "navapp-startup") in made, made  # the scene's truth mesh, in the start-up
+            assert sum(edge == 12.0 for edge, _ in made) == 1, made  # prepare found it cached
+            made.clear()
+    assert made == [], made

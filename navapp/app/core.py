@@ -23,11 +23,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from .. import progress
-from ..anatomy.meshing import check_size
+from ..anatomy.meshing import cached_tetmesh, check_size
 from ..anatomy.truth import TruthField
 from ..errors import NavappError
 from ..registration.pipeline import Registration, prepare
-from ..simulation.scenedata import SceneData, load_scene_data
+from ..simulation.scenedata import SceneData, is_simulated, load_scene_data
 from ..simulation.ultrasound import PlaneData
 from .access import Role
 from .actions import Act, ActionLog, interrupted_run
@@ -339,6 +339,11 @@ class Core:
         try:
             begin("Simulating the intraoperative scene (true deformation, stylus sweep, ultrasound; "
                   "cached after the first start)")
+            ahead = None
+            if not is_simulated(self.scene, self.cache_root):
+                # the registration mesh needs only the preoperative liver: it is made on the
+                # second core while the scene is simulated (docs/decisions.md, "The first start")
+                ahead = mesh_ahead(self.preop.liver, self.edge, self.cache_root)
             sd = load_scene_data(self.scene, self.cache_root, self.edge)
             folder = Path(self.session_dir) if self.session_dir else default_folder(sd)
             session, planes = open_session(folder, sd)
@@ -354,6 +359,9 @@ class Core:
             on_loaded(loaded)
             begin(f"Building the registration model (mesh at {self.edge:g} mm, basis of k = {self.k} "
                   f"control points; cached after the first start)")
+            if ahead is not None and ahead.is_alive():
+                with progress.stage(f"meshing the liver at {self.edge:g} mm (begun beside the simulation)"):
+                    ahead.join()
             model, _ = prepare(sd.case, self.edge, self.k, self.cache_root)
             ready = Ready(model, truth_at_nodes(sd, model))
             on_ready(ready)
@@ -383,6 +391,24 @@ class _Stage:
     what: str = ""
     name: str = ""
     t0: float = field(default_factory=time.monotonic)
+
+
+def mesh_ahead(surface, edge: float, cache_root) -> threading.Thread:
+    """Mesh ``surface`` at ``edge`` mm into the mesh cache on a thread of its own (the mesher
+    runs in a child process, so this uses the other core), silently: ``prepare`` reads the
+    mesh from the cache afterwards. Returns the started thread. A failure is left for
+    ``prepare``, which meshes again and says what went wrong in its one line."""
+
+    def run():
+        with progress.aside():
+            try:
+                cached_tetmesh(surface, edge, cache_root)
+            except Exception:  # prepare repeats the work and reports it
+                pass
+
+    thread = threading.Thread(target=run, name="navapp-mesh-ahead", daemon=True)
+    thread.start()
+    return thread
 
 
 def truth_at_nodes(sd: SceneData, model) -> np.ndarray | None:
