@@ -21,6 +21,8 @@ from tqdm import tqdm
 
 QUIET = False  # set by the CLI's --quiet and by tests (application-wide); library code uses quiet()
 _scoped_quiet = contextvars.ContextVar("navapp_progress_quiet", default=False)
+_scoped_aside: contextvars.ContextVar[threading.Event | None] = contextvars.ContextVar("navapp_progress_aside",
+                                                                                      default=None)
 _listeners: list = []  # callables (desc, fraction or None) — e.g. the viewer's status panel
 
 
@@ -38,6 +40,21 @@ def quiet(on: bool = True):
         yield
     finally:
         _scoped_quiet.reset(token)
+
+
+@contextmanager
+def aside(heard: threading.Event):
+    """Work done beside the task being reported (e.g. a basis made ahead while a scene is
+    simulated), in this thread / context: no bars, and nothing told to the listeners, whose
+    one status line belongs to the main task, until ``heard`` is set — when the main task
+    waits for this work, which is then the task (its steps and estimates reach the
+    listeners; the terminal shows the steps' names through them)."""
+    token, quiet_token = _scoped_aside.set(heard), _scoped_quiet.set(True)
+    try:
+        yield
+    finally:
+        _scoped_quiet.reset(quiet_token)
+        _scoped_aside.reset(token)
 
 
 def add_listener(fn):
@@ -94,6 +111,9 @@ def _stderr():
 
 
 def _notify(desc, fraction):
+    heard = _scoped_aside.get()
+    if heard is not None and not heard.is_set():
+        return
     for fn in list(_listeners):
         try:
             fn(desc, fraction)

@@ -173,3 +173,73 @@ def test_a_tab_closing_mid_response_leaves_no_traceback(capfd, caplog):
     assert "Traceback" not in err and "Error" not in err, err
     # nor through the log (its last-resort handler prints to the terminal when nothing is configured)
     assert not [r for r in caplog.records if r.exc_info], caplog.text
+
+
+def test_work_aside_is_heard_only_once_the_main_task_waits_for_it(capsys):
+    """A basis made ahead reports nothing while the simulation it runs beside holds the one
+    status line (its steps flipped with the other's), and its steps once the start-up waits
+    for it; its bars never reach the terminal."""
+    from navapp import progress
+
+    heard_of, heard, first_done = [], threading.Event(), threading.Event()
+    listener = progress.add_listener(lambda desc, fraction: heard_of.append(desc))
+    try:
+        def ahead():
+            with progress.aside(heard):
+                with progress.bar(3, "before the wait") as bar, progress.stage("staged before"):
+                    bar.update(3)
+                first_done.set()
+                heard.wait()
+                with progress.bar(2, "after the wait") as bar:
+                    bar.update(2)
+
+        thread = threading.Thread(target=ahead)
+        thread.start()
+        first_done.wait(BUDGET_S)
+        with progress.bar(2, "the main task") as bar:
+            bar.update(2)
+        heard.set()
+        thread.join()
+    finally:
+        progress.remove_listener(listener)
+    assert "the main task" in heard_of and "after the wait" in heard_of, heard_of
+    assert "before the wait" not in heard_of and "staged before" not in heard_of, heard_of
+    err = capsys.readouterr().err
+    assert "before the wait" not in err and "after the wait" not in err
+
+
+def test_a_first_start_builds_the_registration_model_beside_the_simulation(tmp_path, phantoms, monkeypatch):
+    """From an empty cache, the registration mesh and basis are made on their own thread while
+    the scene is simulated, from the very surface and settings ``prepare`` asks for (so it
+    finds both cached); a second start, the scene cached, makes nothing ahead."""
+    from navapp.anatomy import meshing
+    from navapp.app import core
+    from navapp.registration import pipeline
+    from navapp.simulation.scene import parse_scene
+
+    made = []
+    mesh_liver, load_basis = meshing.mesh_liver, pipeline.load_or_compute_basis
+
+    def meshed(surface, edge, **kw):
+        made.append(("mesh", edge, threading.current_thread().name))
+        return mesh_liver(surface, edge, **kw)
+
+    def based(mesh, settings, **kw):
+        basis, cached = load_basis(mesh, settings, **kw)
+        made.append(("basis", cached, threading.current_thread().name))
+        return basis, cached
+
+    monkeypatch.setattr(meshing, "mesh_liver", meshed)
+    monkeypatch.setattr(pipeline, "load_or_compute_basis", based)
+    scene = parse_scene(SCENE)
+    for start in (1, 2):
+        c = core.Core(scene, phantoms[0], 12.0, 12, cache_root=tmp_path / "cache", session_dir=tmp_path / "s")
+        assert c.start(lambda loaded: None, lambda ready: None).wait(BUDGET_S) and c.failed is None, c.failed
+        if start == 1:
+            assert made.count(("mesh", 12.0, "navapp-model-ahead")) == 1, made  # ahead, and only there
+            assert ("mesh", 10.0, "navapp-startup") in made, made  # the scene's truth mesh, in the start-up
+            assert ("basis", False, "navapp-model-ahead") in made, made  # computed ahead ...
+            assert ("basis", True, "navapp-startup") in made, made  # ... and found by prepare
+            assert len(made) == 4, made
+            made.clear()
+    assert made == [("basis", True, "navapp-startup")], made  # a second start: nothing ahead

@@ -158,6 +158,17 @@ def hard_results(hard_setup):
 # and an almost unregularised fit bends where no data are. All stay within the energy
 # bound the solver guarantees. Listed so that a change either way is seen.
 EXCEEDS_STATED_BOUND = {"collinear", "coplanar", "soft"}
+# Known defects the study shows since it judges the answer shown against navapp's own
+# rigid-only answer and counts the lines the answer carries (docs/decisions.md, "Hard cases
+# judged by the answer shown"), listed so that a change either way is seen (issue 46):
+# - consistent data whose good answer (TRE better than rigid) still carries warnings: ICP's
+#   5° / 11 mm correct move from the frame's identity is called "in doubt";
+WARNED_ON_A_GOOD_ANSWER = {"baseline", "duplicated", "far", "weights x 1e-6", "weights x 1e6"}
+# - answers worse than the rigid-only answer to the same data: the pose choice keeps the
+#   data's own frame (identity, 11 mm / 5° and 90° off) over ICP's right pose; a pooled RMS
+#   dominated by the contradictory points (3.95 against 3.96 mm), and the 45° turn rule.
+WORSE_THAN_RIGID = {"contradictory", "90 deg"}
+FAILING = EXCEEDS_STATED_BOUND | WARNED_ON_A_GOOD_ANSWER | WORSE_THAN_RIGID
 
 
 def _case_names():
@@ -172,7 +183,10 @@ def test_hard_case_within_its_bounds(hard_results, name):
 
     case = next(c for c in CASES if c.name == name)
     r = hard_results[name]
-    assert r.outcome in case.allowed, r.message
+    if name in WARNED_ON_A_GOOD_ANSWER:
+        assert r.outcome == "warned" and r.tre_mm < r.tre_rigid_mm, r
+    else:
+        assert r.outcome in case.allowed, r.message
     assert r.identical  # bit-identical β, pose and TRE from the same input
     assert "\n" not in r.message
     if r.outcome == "refused":  # said, and nothing registered: no pose, no deformation, no error claimed
@@ -183,10 +197,14 @@ def test_hard_case_within_its_bounds(hard_results, name):
         assert r.displacement_mm > r.bound_mm
     else:
         assert r.displacement_mm <= r.bound_mm
-    if case.margin_mm is not None:
+    if name in WORSE_THAN_RIGID:
+        assert r.tre_mm > r.tre_rigid_mm + case.margin_mm and r.outcome == "warned", r
+    elif case.margin_mm is not None:
         assert r.tre_mm <= r.tre_rigid_mm + case.margin_mm
     assert r.iterations is not None and r.condition is not None and r.condition > 0
-    others = [f for f in r.failures if "bound" not in f or name not in EXCEEDS_STATED_BOUND]
+    others = [f for f in r.failures if not (("bound" in f and name in EXCEEDS_STATED_BOUND) or
+                                            (f.startswith("outcome") and name in WARNED_ON_A_GOOD_ANSWER) or
+                                            (f.startswith("TRE") and name in WORSE_THAN_RIGID))]
     assert not others
 
 
@@ -195,7 +213,7 @@ def test_far_data_frame_registers_like_the_aligned_one(hard_results):
     data to the model's vertices from the model's centroid (before: a wrong basin, TRE
     59.8 mm, flagged as a poor fit)."""
     base, far = hard_results["baseline"], hard_results["far"]
-    assert far.outcome == "registered"
+    assert far.outcome == base.outcome
     assert abs(far.tre_mm - base.tre_mm) < 0.05 and abs(far.tre_rigid_mm - base.tre_rigid_mm) < 0.05
 
 
@@ -272,16 +290,16 @@ def test_study_hard_command(hard_setup, hard_results, tmp_path, monkeypatch, cap
     code = main(["--quiet", "study", "hard", "--edge", "12", "--k", "12", "--report", str(tmp_path / "r")])
     out, err = capsys.readouterr()
     assert asked == [(12.0, 12)]
-    assert code == (1 if EXCEEDS_STATED_BOUND else 0)
+    assert code == (1 if FAILING else 0)
     lines = out.strip().splitlines()
     assert lines[0].split()[:2] == ["case", "outcome"] and len(lines) == 1 + len(hard.CASES)
     for line, case in zip(lines[1:], hard.CASES, strict=True):
         assert line.startswith(case.name)
-        assert line.split()[-1] == ("FAIL" if case.name in EXCEEDS_STATED_BOUND else "ok"), line
+        assert line.split()[-1] == ("FAIL" if case.name in FAILING else "ok"), line
     md = (tmp_path / "r" / "hard_cases.md").read_text()
     assert f"wrote {tmp_path / 'r' / 'hard_cases.md'}" in err
     n = len(hard.CASES)
-    assert f"{n - len(EXCEEDS_STATED_BOUND)} of {n} cases within their bounds." in md
+    assert f"{n - len(FAILING)} of {n} cases within their bounds." in md
     assert "12 mm" in md and "`navapp study hard`" in md
-    for name in EXCEEDS_STATED_BOUND:
+    for name in FAILING:
         assert f"- {name}: " in md

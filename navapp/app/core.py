@@ -26,8 +26,8 @@ from .. import progress
 from ..anatomy.meshing import check_size
 from ..anatomy.truth import TruthField
 from ..errors import NavappError
-from ..registration.pipeline import Registration, prepare
-from ..simulation.scenedata import SceneData, load_scene_data
+from ..registration.pipeline import Registration, mesh_and_basis, prepare
+from ..simulation.scenedata import SceneData, is_simulated, load_scene_data
 from ..simulation.ultrasound import PlaneData
 from .access import Role
 from .actions import Act, ActionLog, interrupted_run
@@ -320,12 +320,13 @@ class Core:
 
         def on_progress(desc, fraction):
             if desc != stage.name:
-                stage.name, stage.t0 = desc, time.monotonic()
+                stage.name, stage.t0, stage.f0 = desc, time.monotonic(), fraction or 0.0
                 self._say(f"  {desc}")  # a step's percentage stays on its bar: the terminal gets its name once
             eta = ""
             elapsed = time.monotonic() - stage.t0
-            if fraction is not None and 0.02 < fraction < 1 and elapsed > 1.0:
-                eta = f", about {_duration(elapsed * (1 - fraction) / fraction)} left"
+            # the rate since this step was first heard of: a step made ahead is first heard part-way
+            if fraction is not None and fraction - stage.f0 > 0.02 and fraction < 1 and elapsed > 1.0:
+                eta = f", about {_duration(elapsed * (1 - fraction) / (fraction - stage.f0))} left"
             pct = f" — {100 * fraction:.0f} %" if fraction is not None else ""
             self.set_stage(f"{stage.what}: {desc}{pct}{eta}", fraction)
 
@@ -339,6 +340,11 @@ class Core:
         try:
             begin("Simulating the intraoperative scene (true deformation, stylus sweep, ultrasound; "
                   "cached after the first start)")
+            ahead = None
+            if not is_simulated(self.scene, self.cache_root):
+                # the registration mesh and basis need only the preoperative liver: they are made
+                # beside the scene's simulation (docs/decisions.md, "The first start")
+                ahead = Ahead(self.preop.liver, self.edge, self.k, self.cache_root)
             sd = load_scene_data(self.scene, self.cache_root, self.edge)
             folder = Path(self.session_dir) if self.session_dir else default_folder(sd)
             session, planes = open_session(folder, sd)
@@ -354,6 +360,8 @@ class Core:
             on_loaded(loaded)
             begin(f"Building the registration model (mesh at {self.edge:g} mm, basis of k = {self.k} "
                   f"control points; cached after the first start)")
+            if ahead is not None:
+                ahead.wait()  # its remaining steps are the ones reported now
             model, _ = prepare(sd.case, self.edge, self.k, self.cache_root)
             ready = Ready(model, truth_at_nodes(sd, model))
             on_ready(ready)
@@ -383,6 +391,33 @@ class _Stage:
     what: str = ""
     name: str = ""
     t0: float = field(default_factory=time.monotonic)
+    f0: float = 0.0  # the step's fraction when it was first heard of
+
+
+class Ahead:
+    """The registration model's mesh and basis (``mesh_and_basis``, as ``prepare`` asks for
+    them) made on a thread of their own, into the cache: the mesher runs in a child process
+    and the basis mostly in PARDISO, so they use the core the simulation leaves. Silent
+    (``progress.aside``) until ``wait``; a failure is left for ``prepare``, which does the
+    work again and says what went wrong in its one line."""
+
+    def __init__(self, liver, edge: float, k: int, cache_root):
+        self.heard = threading.Event()
+
+        def run():
+            with progress.aside(self.heard):
+                try:
+                    mesh_and_basis(liver, edge, k, cache_root)
+                except Exception:  # prepare repeats the work and reports it
+                    pass
+
+        self.thread = threading.Thread(target=run, name="navapp-model-ahead", daemon=True)
+        self.thread.start()
+
+    def wait(self):
+        """Report the work's remaining steps from now on, and wait for it to end."""
+        self.heard.set()
+        self.thread.join()
 
 
 def truth_at_nodes(sd: SceneData, model) -> np.ndarray | None:

@@ -28,9 +28,9 @@ import time
 import viser
 
 from .. import progress
-from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
 from ..errors import NavappError
+from ..simulation.simulate import scene_preop
 from .access import OPEN, Access, Role
 from .actions import FILE as ACTIONS_FILE
 from .actions import Act
@@ -60,7 +60,7 @@ class App:
     def __init__(self, scene, host="127.0.0.1", port=8080, session_dir=None, edge=EDGE_MM, k=K, cache_root=None,
                  view2d_port: int | None = 0, tracking=None, results=None, access: Access = OPEN,
                  tls: ssl.SSLContext | None = None):
-        preop = make_phantom(scene.phantom) if scene.phantom is not None else _read_case_preop(scene)
+        preop = scene_preop(scene)
         core = self.core = Core(scene, preop, edge, k, cache_root, session_dir)
         # the rooms, each given what it uses; none knows the App
         def following():
@@ -195,12 +195,6 @@ def _front(access: Access, backend_port: int, host: str, port: int, tls) -> Fron
         except OSError:
             continue
     raise NavappError(f"no free port from {port} to {min(port + 99, 65535)} on {host}")
-
-
-def _read_case_preop(scene):
-    from ..anatomy.caseio import read_case
-
-    return read_case(scene.case).preop
 
 
 def _other_site(host: str) -> str:

@@ -322,9 +322,23 @@ def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None, supports: str | None
     seconds : dict
         ``mesh``, ``basis``, ``model``: wall time of each stage (a cache hit is fast).
     """
+    basis, report, sec = mesh_and_basis(case.preop.liver, edge, k, cache_root, supports, release)
+    t = time.perf_counter()
+    model = build_model(basis, case.preop, case.preop.fiducials)
+    model.mesher = MeshProvenance.from_report(report)
+    sec["model"] = time.perf_counter() - t
+    return model, sec
+
+
+def mesh_and_basis(liver, edge=EDGE_MM, k=K, cache_root=None, supports: str | None = None,
+                   release: str = "N") -> tuple[Basis, dict, dict]:
+    """``prepare``'s first two stages: the tetrahedral mesh of ``liver`` (a closed surface,
+    mm) and its deformation basis, each cached by content. Needs the preoperative liver only,
+    so a viewer makes it ahead while its scene is simulated. Returns the basis, the mesher's
+    report and the wall seconds of ``mesh`` and ``basis``."""
     sec = {}
     t = time.perf_counter()
-    mesh, report = cached_tetmesh(case.preop.liver, edge, cache_root)
+    mesh, report = cached_tetmesh(liver, edge, cache_root)
     sec["mesh"] = time.perf_counter() - t
     t = time.perf_counter()
     if k > len(np.unique(mesh.boundary_faces())):
@@ -333,11 +347,7 @@ def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None, supports: str | None
     basis, _ = load_or_compute_basis(mesh, BasisSettings(k=k, supports=supports, release=release),
                                      cache_root=cache_root)
     sec["basis"] = time.perf_counter() - t
-    t = time.perf_counter()
-    model = build_model(basis, case.preop, case.preop.fiducials)
-    model.mesher = MeshProvenance.from_report(report)
-    sec["model"] = time.perf_counter() - t
-    return model, sec
+    return basis, report, sec
 
 
 # data this many times smaller than the model: metres read as millimetres (a 250 mm organ's

@@ -74,11 +74,19 @@ def case_key(scene: Scene) -> str:
     return content_key(SCENE_CACHE_VERSION, _scene_params(scene))[:16]
 
 
+def _case_dir(scene: Scene, cache_root=None) -> Path:
+    return (Path(cache_root) if cache_root else cache_dir()) / "scenes" / f"{scene.name}-{case_key(scene)}"
+
+
+def is_simulated(scene: Scene, cache_root=None) -> bool:
+    """True when ``scene``'s simulation is in the cache (``simulated_case_dir`` only reads it)."""
+    return (_case_dir(scene, cache_root) / "truth" / "report.json").exists()
+
+
 def simulated_case_dir(scene: Scene, cache_root=None) -> Path:
     """Simulate ``scene`` into the cache unless already there; returns the case folder."""
-    root = Path(cache_root) if cache_root else cache_dir()
-    out = root / "scenes" / f"{scene.name}-{case_key(scene)}"
-    if (out / "truth" / "report.json").exists():
+    out = _case_dir(scene, cache_root)
+    if is_simulated(scene, cache_root):
         return out
     # written aside and swapped in whole (``outputs.staged``), under the folder's lock: a
     # half-written simulation is never mistaken for a finished one

@@ -55,6 +55,12 @@ def gravity_direction(release: str, tilt_deg: float, head_up_deg: float = 0.0) -
     return tuple(g)
 
 
+def scene_preop(scene: Scene):
+    """The preoperative anatomy ``scene`` is simulated on (``PreopModel``): its phantom, or
+    its case folder's ``preop``."""
+    return make_phantom(scene.phantom) if scene.phantom is not None else read_case(scene.case).preop
+
+
 def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
     """Simulate ``scene`` into case folder ``out``; returns the report (``truth/report.json``).
     The truth is written as a field on the truth mesh (``scene.mesh_edge_mm``), apart from
@@ -63,7 +69,7 @@ def simulate(scene: Scene, out: Path, cache_root=None) -> dict:
     t0 = time.perf_counter()
     ledger = fx.Ledger()
     rng = np.random.default_rng(scene.seed)
-    preop = make_phantom(scene.phantom) if scene.phantom is not None else read_case(scene.case).preop
+    preop = scene_preop(scene)
     if preop.regions is None:
 
         raise InputError("the scene's anatomy needs preop/regions.csv (anterior surface for the stylus and probe)")
