@@ -37,7 +37,7 @@ for case_dir in sys.argv[2:]:
         s = reg.support
         tre = lambda p: round(float(np.linalg.norm(p - x1, axis=1).mean()), 3)  # noqa: E731
         print(json.dumps({"case": case_dir.rstrip("/").split("/")[-1], "N": N, "shown": tre(reg.transform(x0, B=B)),
-                          "deformable": tre(reg.transform(x0, beta=reg.libr.beta, B=B)), "deformed": reg.deformed,
+                          "deformable": tre(reg.transform(x0, beta=reg.libr.beta, B=B)), "deformed": reg.deformed, "warned": bool(reg.warnings),
                           "heldout": None if s is None else [round(s.rigid_mm, 3), round(s.deformable_mm, 3)],
                           "blocks": None if s is None else [[round(b.rigid_mm, 3), round(b.deformable_mm, 3), b.points]
                                                             for b in s.blocks]}), flush=True)
