@@ -343,3 +343,29 @@ def test_a_pose_known_from_a_previous_registration_is_the_prior_about_that_pose(
     there = register(small_model, moved, pose_prior=prior, given=G)
     assert here.pose_evidence is not None and here.pose_evidence.kept_given
     assert np.abs(there.transform(nodes) - G.apply(here.transform(nodes))).max() < 0.1
+
+
+def test_a_declared_pose_is_judged_by_its_posterior_not_by_the_coverage_rule(small_model):
+    """A patch under the coverage rule's 10 % of the surface: searched, the pose is not to be
+    believed and the coverage note says so; declared, the pose's posterior says how far it may be
+    off (``PoseEvidence``, against the clinical goal), and the coverage note is not said beside it
+    — silent where the declared spread keeps the given pose within the goal, one line (the
+    posterior's) where it does not (docs/decisions.md, "issue 46, session 35")."""
+    from navapp.fitwarning import WarningKind
+    from navapp.registration.coverage import MIN_COVERAGE, data_coverage
+    from navapp.registration.pipeline import register
+
+    rest = small_model.features["liver"].rest
+    c0 = rest[np.argmax(rest[:, 1])]
+    patch = {"anterior": rest[np.linalg.norm(rest - c0, axis=1) < 35.0]}
+    assert 0.0 < data_coverage(small_model, patch).fraction < MIN_COVERAGE
+
+    def kinds(reg):
+        return [w.kind for w in reg.warnings]
+
+    assert WarningKind.COVERAGE in kinds(register(small_model, patch))
+    held = register(small_model, patch, pose_prior=PosePrior(1.5, 1.5))
+    assert held.pose_evidence is not None and held.pose_evidence.kept_given
+    assert held.warnings == [], held.warnings
+    wide = register(small_model, patch, pose_prior=PosePrior(15.0, 10.0))
+    assert wide.pose_evidence is not None and kinds(wide) == [WarningKind.POSE_EVIDENCE], wide.warnings

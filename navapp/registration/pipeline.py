@@ -903,8 +903,13 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         reg.organ = organ_error(reg, weights=replace(options.weights, pose_prior=None))
         sec["organ_error"] = reg.organ.seconds
     # last, so that it steers nothing above (a note before the pose choice would skip it): too
-    # little of the liver covered is said by every caller — the CLI and result.json as the viewer
-    note_coverage(reg)
+    # little of the liver covered is said by every caller — the CLI and result.json as the viewer.
+    # Not where a declared pose's posterior already says how far the pose may be off (the rigid
+    # answer's ``PoseEvidence``, the deformable answer's ``OrganError.pose_mm``, each against the
+    # clinical goal): the coverage rule (10 % of the surface) stands for a pose the data must find
+    # alone, and said twice it also hid the organ's own line (docs/decisions.md, "issue 46, session 35")
+    if not (declared and (reg.pose_evidence is not None or reg.organ is not None)):
+        note_coverage(reg)
     return reg
 
 
