@@ -128,9 +128,12 @@ def _register(model, data, beta0, options, callback, cancel):
     if not options.pose:
         free[n:] = False
     tim = {"deform": 0.0, "kdtree": 0.0, "closest": 0.0, "jacobian": 0.0, "solve": 0.0}
+    # a fit that holds α at zero (a rigid fit from β = 0) needs only J's pose columns
+    alpha_columns = options.deform or bool(beta[:n].any())
 
     def run(b, jac=True, frozen=None, scales=None):
-        ev = evaluate(model, data, b, options.weights, jacobian=jac, frozen=frozen, scales=scales)
+        ev = evaluate(model, data, b, options.weights, jacobian=jac, frozen=frozen, scales=scales,
+                      alpha_columns=alpha_columns)
         for k, v in ev.timings.items():
             tim[k] += v
         return ev
@@ -154,7 +157,7 @@ def _register(model, data, beta0, options, callback, cancel):
             break
         t0 = time.perf_counter()
         if ev.J is None:
-            add_jacobian(model, ev)
+            add_jacobian(model, ev, alpha_columns)
             tim["jacobian"] += time.perf_counter() - t0
             t0 = time.perf_counter()
         J = ev.J if free.all() else ev.J[:, free]

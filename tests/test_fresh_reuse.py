@@ -1,0 +1,85 @@
+"""A fresh registration's fits computing nothing twice (issue 49): each shortcut gives the
+same bits as the full computation it replaces (no timing here: ``navapp bench register``)."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from navapp.registration import libr, objective
+from navapp.registration.libr import LMOptions, register_libr
+from navapp.registration.objective import Weights, add_jacobian, evaluate
+
+
+def _data(model, rng):
+    """Noisy points of every feature kind off the undeformed model, moved by a small pose."""
+    out = {}
+    for name, feat, count in (("anterior", "liver", 150), ("portal_contour", "portal", 60),
+                              ("portal_centerline", "portal_centerline", 20)):
+        X = model.features[feat].rest
+        out[name] = X[rng.choice(len(X), count, replace=False)] + rng.normal(size=(count, 3)) + [2.0, -1.0, 1.5]
+    return out
+
+
+def test_positions_at_rest_do_not_read_the_basis(small_model):
+    """At α = 0 a feature's displacement is zero without reading B·J_u: the same points, to the
+    bit, as the product with α = 0 gives (fails if B·J_u is read: NaN in it shows)."""
+    rng = np.random.default_rng(3)
+    n = small_model.basis.Ju.shape[1]
+    beta = np.concatenate([np.zeros(n), [1.0, -2.0, 0.5], [0.05, -0.03, 0.04]])
+    feat = small_model.features["liver"]
+    poisoned = replace(feat, BJ=np.full_like(feat.BJ, np.nan))
+    local, x = small_model.positions(poisoned, beta)
+    ref_local, ref_x = objective.deform(feat.rest, (feat.BJ.reshape(-1, n) @ beta[:n]).reshape(-1, 3), beta,
+                                        small_model.centroid)
+    assert np.array_equal(local, ref_local) and np.array_equal(x, ref_x)
+    beta[:n] = rng.normal(size=n) * 0.1  # away from rest the basis is read
+    assert np.isnan(small_model.positions(poisoned, beta)[1]).all()
+
+
+def test_pose_only_jacobian_is_the_full_one_without_alpha(small_model):
+    """``add_jacobian(alpha_columns=False)`` at α = 0: the pose columns, f and S·x0 of the full
+    Jacobian to the bit, the α columns zero; refused away from α = 0."""
+    rng = np.random.default_rng(5)
+    n = small_model.basis.Ju.shape[1]
+    data = _data(small_model, rng)
+    beta = np.concatenate([np.zeros(n), [1.0, -2.0, 0.5], [0.05, -0.03, 0.04]])
+    full = add_jacobian(small_model, evaluate(small_model, data, beta, Weights(), jacobian=False))
+    pose = add_jacobian(small_model, evaluate(small_model, data, beta, Weights(), jacobian=False), alpha_columns=False)
+    assert np.array_equal(full.f, pose.f)
+    assert np.array_equal(full.J[:, n:], pose.J[:, n:])
+    assert not pose.J[:, :n].any()
+    for name, c in pose.correspondence.items():
+        assert c.SBJ is None and np.array_equal(c.S_rest, full.correspondence[name].S_rest)
+    beta[0] = 0.1
+    with pytest.raises(ValueError):
+        add_jacobian(small_model, evaluate(small_model, data, beta, Weights(), jacobian=False), alpha_columns=False)
+
+
+def test_rigid_fit_from_rest_is_the_same_without_the_alpha_columns(small_model, monkeypatch):
+    """A rigid fit from β = 0 (the cross-validation's rigid folds) forms no α column and no
+    S·B·J_u, and ends at the same β, Ω and history, to the bit, as the fit that forms the whole
+    Jacobian (fails if the α kernel runs or a step changes)."""
+    rng = np.random.default_rng(11)
+    data = _data(small_model, rng)
+    rigid = LMOptions(deform=False, max_iterations=8)
+    small_model.cache.evaluation, small_model.cache.ends = None, ()
+    kernel = objective._alpha_kernel()
+    calls = [0]
+    if kernel is not None:
+        def counted(*a):
+            calls[0] += 1
+            return kernel[0](*a)
+
+        monkeypatch.setattr(objective, "_jacobian_kernel", [(counted, kernel[1], kernel[2])])
+    fast = register_libr(small_model, data, None, rigid)
+    assert calls[0] == 0
+    monkeypatch.undo()
+    small_model.cache.evaluation, small_model.cache.ends = None, ()
+    whole = {"evaluate": libr.evaluate, "add_jacobian": libr.add_jacobian}
+    monkeypatch.setattr(libr, "evaluate", lambda *a, alpha_columns=True, **k: whole["evaluate"](*a, **k))
+    monkeypatch.setattr(libr, "add_jacobian", lambda m, ev, alpha_columns=True: whole["add_jacobian"](m, ev))
+    reference = register_libr(small_model, data, None, rigid)
+    assert fast.iterations == reference.iterations >= 2
+    assert np.array_equal(fast.beta, reference.beta)
+    assert fast.omega == reference.omega and fast.history == reference.history
