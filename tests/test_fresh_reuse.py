@@ -83,3 +83,31 @@ def test_rigid_fit_from_rest_is_the_same_without_the_alpha_columns(small_model, 
     assert fast.iterations == reference.iterations >= 2
     assert np.array_equal(fast.beta, reference.beta)
     assert fast.omega == reference.omega and fast.history == reference.history
+
+
+def test_stage_clock_laps_add_up_and_repeat_into_one_stage(monkeypatch):
+    """``StageClock``: each mark takes the time since the previous one, a stage marked twice
+    sums its laps, and the laps add up to the whole (clocks replaced: nothing timed here)."""
+    from navapp.registration import stages
+
+    ticks = iter([0.0, 1.0, 3.0, 6.0, 10.0])
+    cpu = iter([0.0, 0.5, 0.5, 2.0, 2.5])
+    monkeypatch.setattr(stages.time, "perf_counter", lambda: next(ticks))
+    monkeypatch.setattr(stages.time, "process_time", lambda: next(cpu))
+    clock = stages.StageClock()
+    for name in ("rigid", "support", "rigid", "organ_error"):
+        clock.mark(name)
+    assert clock.times == {"rigid": stages.StageTime(1.0 + 3.0, 0.5 + 1.5), "support": stages.StageTime(2.0, 0.0),
+                           "organ_error": stages.StageTime(4.0, 0.5)}
+    assert sum(t.wall for t in clock.times.values()) == 10.0
+
+
+def test_bench_register_stage_table_lists_every_stage_and_the_sum():
+    from navapp.evaluation.benchmark import stage_table
+
+    text = stage_table({"before": {"support": {"cpu": 0.5, "wall": 1.0}, "icp": {"cpu": 0.01, "wall": 0.02}},
+                        "after": {"support": {"cpu": 0.25, "wall": 0.5}}})
+    lines = text.splitlines()
+    assert [ln.split()[0] for ln in lines[1:]] == ["support", "icp", "sum"]
+    assert lines[1].split()[1:] == ["500.0", "1000.0", "250.0", "500.0"]
+    assert lines[3].split()[1:] == ["510.0", "1020.0", "250.0", "500.0"]
