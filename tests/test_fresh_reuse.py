@@ -111,3 +111,83 @@ def test_bench_register_stage_table_lists_every_stage_and_the_sum():
     assert [ln.split()[0] for ln in lines[1:]] == ["support", "icp", "sum"]
     assert lines[1].split()[1:] == ["500.0", "1000.0", "250.0", "500.0"]
     assert lines[3].split()[1:] == ["510.0", "1020.0", "250.0", "500.0"]
+
+
+def _all_kinds(model, rng):
+    """Noisy points of every feature kind, fiducials included (three rows a point)."""
+    data = _data(model, rng)
+    data["fiducials"] = model.features["fiducials"].rest + rng.normal(size=model.features["fiducials"].rest.shape)
+    falx = model.features["falciform"].rest
+    data["falciform"] = falx + rng.normal(size=falx.shape) * 3.0
+    return data
+
+
+def test_points_of_is_the_evaluation_of_the_kept_points_to_the_bit(small_model):
+    """``points_of``: the rows of the kept points of an evaluation of all points equal, bit for
+    bit, the evaluation of the kept points alone (f, w with w_F / N_F of the kept count, the
+    robust factors with an outlier cut from the kept points' median, J, Ω, statistics,
+    correspondences); a feature with no point kept is dropped."""
+    from navapp.registration.objective import Rejection, points_of
+
+    rng = np.random.default_rng(7)
+    n = small_model.basis.Ju.shape[1]
+    data = _all_kinds(small_model, rng)
+    data["anterior"][:10] += 30.0  # beyond the cut of every subset below
+    weights = Weights(huber_mm={"falciform": 1.0, "portal_contour": 2.0}, reject=Rejection(floor_mm=3.0, k=2.0))
+    zero = np.zeros(n + 6)
+    whole = evaluate(small_model, data, zero, weights, jacobian=True)
+    keep = {k: rng.random(len(p)) < 0.7 for k, p in data.items()}
+    keep["portal_centerline"][:] = False
+    keep["fiducials"][:] = True  # paired row by row: whole or not at all
+    part = points_of(whole, keep, weights)
+    kept = {k: p[keep[k]] for k, p in data.items() if keep[k].any()}
+    small_model.cache.evaluation, small_model.cache.ends = None, ()
+    alone = evaluate(small_model, kept, zero, weights, jacobian=True)
+    assert list(part.correspondence) == list(alone.correspondence) == list(kept)
+    for name in ("f", "w", "J"):
+        assert np.array_equal(getattr(part, name), getattr(alone, name)), name
+    assert part.omega == alone.omega and part.features == alone.features
+    assert part.scales.keys() == alone.scales.keys()
+    assert all(np.array_equal(part.scales[k], alone.scales[k]) for k in part.scales)
+    for k, c in part.correspondence.items():
+        a = alone.correspondence[k]
+        assert (c.S != a.S).nnz == 0 and np.array_equal(c.S.indices, a.S.indices)
+        assert (c.direction is None) == (a.direction is None)
+        assert c.direction is None or np.array_equal(c.direction, a.direction)
+        assert np.array_equal(c.SBJ, a.SBJ) and np.array_equal(c.S_rest, a.S_rest)
+    keep["fiducials"][0] = False
+    with pytest.raises(ValueError):
+        points_of(whole, keep, weights)
+
+
+def test_cross_validation_folds_start_from_one_evaluation(small_model, monkeypatch):
+    """The cross-validation evaluates all its points at β = 0 once, and every fold's fits start
+    from their rows: the same held-out RMS per block, to the bit, as folds that each evaluate
+    their own start (fails with a start evaluated per fit: eleven evaluations at β = 0)."""
+    from navapp.registration import support
+
+    rng = np.random.default_rng(13)
+    n = small_model.basis.Ju.shape[1]
+    data = _data(small_model, rng)
+    settings = support.SupportOptions(iterations=6)
+    options = LMOptions(weights=Weights(huber_mm={"falciform": 1.0}))
+    at_rest = [0]
+    plain = support.evaluate
+
+    def counted(model, data, beta, *a, **k):
+        at_rest[0] += not np.asarray(beta).any() and k.get("frozen") is None
+        return plain(model, data, beta, *a, **k)
+
+    monkeypatch.setattr(libr, "evaluate", counted)
+    monkeypatch.setattr(support, "evaluate", counted)
+    small_model.cache.evaluation, small_model.cache.ends = None, ()
+    shared = support.check_support(small_model, data, options, settings)
+    assert at_rest[0] == 1
+    fit = support.register_libr
+    monkeypatch.setattr(support, "register_libr", lambda *a, first=None: fit(*a))
+    small_model.cache.evaluation, small_model.cache.ends = None, ()
+    apart = support.check_support(small_model, data, options, settings)
+    assert at_rest[0] == 1 + 1 + 2 * settings.blocks
+    assert shared is not None and apart is not None
+    assert [(b.rigid_mm, b.deformable_mm, b.points) for b in shared.blocks] == \
+        [(b.rigid_mm, b.deformable_mm, b.points) for b in apart.blocks]

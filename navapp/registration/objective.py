@@ -435,6 +435,79 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     return add_jacobian(model, ev, alpha_columns) if jacobian else ev
 
 
+def points_of(ev: Evaluation, keep: dict, weights: Weights) -> Evaluation:
+    """``ev`` restricted to some of its data points: the evaluation ``evaluate`` would make of
+    the kept points at the same β, to the bit, without searching or deforming again.
+
+    Every residual row, its Jacobian row, correspondence, normal and per-point distance belongs
+    to one point and is computed from it alone, so a subset's are the same rows. What depends
+    on the set is made again as ``evaluate`` makes it: w_F / N_F with the kept count, the robust
+    factors from the kept points' distances (an outlier cut's median over them), the statistics
+    and Ω. The cross-validation's folds start from one evaluation at β = 0 of all the data
+    (``support.check_support_pair``), each from its training points' rows.
+
+    Parameters
+    ----------
+    ev : Evaluation
+        with its Jacobian (``add_jacobian``), of data feature → (N, 3) points.
+    keep : dict
+        feature → (N,) bool, the points kept; a feature with none kept, or absent, is dropped.
+        Fiducials are kept whole or not at all (they pair with the model's row by row; the
+        cross-validation keeps them in every fold).
+    weights : Weights
+        the weights ``ev`` was made with.
+
+    Returns
+    -------
+    Evaluation of the kept points (no ``reusable`` entry: nothing is kept for a warm start).
+    """
+    J = ev.jacobian
+    fs, ws, Js, stats, corr, terms = [], [], [], {}, {}, []
+    dists, row_of, counts = {}, {}, {}
+    at = 0
+    for name, feat, S, q, rows, local in ev.terms:
+        block = slice(at, at + len(q))
+        at += len(q)
+        mask = keep.get(name)
+        if mask is None or not mask.any():
+            continue
+        if feat.kind == "fiducial" and not mask.all():
+            # fiducials pair with the model's row by row: a subset evaluated apart would pair anew
+            raise ValueError("points_of: fiducials are kept whole or not at all")
+        idx = np.flatnonzero(mask)
+        on = mask[rows]
+        new_rows = (np.cumsum(mask) - 1)[rows[on]]
+        c = ev.correspondence[name]
+        S_kept = S[idx]
+        corr[name] = Correspondence(S_kept, None if c.direction is None else c.direction[idx],
+                                    None if c.SBJ is None else c.SBJ[idx],
+                                    None if c.S_rest is None else c.S_rest[idx])
+        q_kept = q[on]
+        dist = point_distances(ev.f[block][on], new_rows, len(idx))
+        wF = weights.features[name] * weights.unit_m ** 2 / len(idx)
+        fs.append(ev.f[block][on])
+        ws.append(np.full(len(q_kept), wF))
+        Js.append(J[block][on])
+        dists[name], row_of[name], counts[name] = dist, new_rows, len(idx)
+        stats[name] = _stats(dist, wF)
+        terms.append((name, feat, S_kept, q_kept, new_rows, local))
+    robust = weights.robust_factors(dists, row_of)
+    for i, (name, *_rest) in enumerate(terms):
+        if name in robust:
+            ws[i] = ws[i] * robust[name]
+    tail = slice(at, len(ev.f))  # the pose prior's rows and f_E's, which no point owns
+    fs.append(ev.f[tail])
+    ws.append(ev.w[tail])
+    Js.append(J[tail])
+    for key in ("pose_prior", "strain_energy"):
+        if key in ev.features:
+            stats[key] = ev.features[key]
+    f, w = np.concatenate(fs), np.concatenate(ws)
+    return Evaluation(omega=float(w @ (f * f)), f=f, w=w, J=np.concatenate(Js), features=stats,
+                      timings={k: 0.0 for k in ev.timings}, correspondence=corr, beta=ev.beta.copy(), terms=terms,
+                      scales=robust, pose_prior=ev.pose_prior)
+
+
 KEPT_ENDS = 4  # fits' last evaluations kept per model (``keep_end``)
 
 
