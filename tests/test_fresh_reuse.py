@@ -167,7 +167,6 @@ def test_cross_validation_folds_start_from_one_evaluation(small_model, monkeypat
     from navapp.registration import support
 
     rng = np.random.default_rng(13)
-    n = small_model.basis.Ju.shape[1]
     data = _data(small_model, rng)
     settings = support.SupportOptions(iterations=6)
     options = LMOptions(weights=Weights(huber_mm={"falciform": 1.0}))
