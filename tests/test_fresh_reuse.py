@@ -190,3 +190,21 @@ def test_cross_validation_folds_start_from_one_evaluation(small_model, monkeypat
     assert shared is not None and apart is not None
     assert [(b.rigid_mm, b.deformable_mm, b.points) for b in shared.blocks] == \
         [(b.rigid_mm, b.deformable_mm, b.points) for b in apart.blocks]
+
+
+def test_cross_validation_leaves_the_answers_kept_evaluation(small_model):
+    """The folds' fits do not push the answer's last evaluation out of the model's kept fit ends:
+    the error estimate and the first warm start after a fresh registration find it (fails
+    with the folds' ends kept: ten fits against four places)."""
+    from navapp.registration import support
+    from navapp.registration.objective import _at
+
+    rng = np.random.default_rng(19)
+    data = _data(small_model, rng)
+    small_model.cache.evaluation, small_model.cache.ends = None, ()
+    answer = register_libr(small_model, data, None, LMOptions(max_iterations=6))
+    before = small_model.cache.ends
+    assert support.check_support(small_model, data, LMOptions(), support.SupportOptions(iterations=4)) is not None
+    assert small_model.cache.ends is before
+    kept = _at(small_model, answer.beta)
+    assert kept is not None and all(np.array_equal(kept[2][k][0], data[k]) for k in data)

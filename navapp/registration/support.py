@@ -199,11 +199,23 @@ def check_support_pair(model: RegistrationModel, data: dict, options: LMOptions,
     from its own training data: ``extend(train, beta)`` (the training data, feature →
     (N, 3) mm, and the fit of ``model`` to them, (3k + 6,)) returns the extended model or None
     (the fold keeps ``model``'s prediction). So no held-out point has a say in what its fold's
-    model can do (``local_modes``). Without ``extend`` both Supports are the same."""
-    t0 = time.perf_counter()
+    model can do (``local_modes``). Without ``extend`` both Supports are the same.
+
+    The folds' fits leave the model's kept fit ends (``objective.keep_end``) as they found them:
+    no later fit starts where a fold ended, and ten of them would push out the answer's own,
+    which the error estimate and the first warm start after a fresh registration evaluate at."""
     total = sum(len(p) for k, p in data.items() if k != "fiducials")
     if total < support.min_points:
         return None
+    kept = model.cache.ends
+    try:
+        return _folds(model, data, options, support, cancel, extend)
+    finally:
+        model.cache.ends = kept
+
+
+def _folds(model, data, options, support, cancel, extend) -> tuple[Support, Support] | None:
+    t0 = time.perf_counter()
     labels = blocks_of(data, support.blocks)
     fold = replace(options, max_iterations=min(options.max_iterations, support.iterations))
     n = model.basis.Ju.shape[1]

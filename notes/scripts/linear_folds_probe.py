@@ -23,6 +23,7 @@ deformable), verdict (``predicts``) and CPU seconds.
 import json
 import sys
 import time
+import warnings
 from dataclasses import replace
 from pathlib import Path
 
@@ -31,14 +32,16 @@ import numpy as np
 from navapp import progress
 from navapp.anatomy.caseio import read_case
 from navapp.defaults import EDGE_MM, K
+from navapp.evaluation.loads import LOAD_LEVELS
 from navapp.evaluation.table2 import scenarios
 from navapp.features import SALIENT
+from navapp.geometry.tre import tre_stats
 from navapp.registration.libr import _solve, register_libr
 from navapp.registration.model import DATA_TO_MODEL
 from navapp.registration.objective import evaluate
 from navapp.registration.pipeline import _settings, prepare, register
 from navapp.registration.support import Block, SupportOptions, _summary, blocks_of, pooled_rms
-from navapp.simulation.levels import case_planes, case_source_levels, study_data
+from navapp.simulation.levels import case_planes, case_source_levels, data_level, study_data
 from navapp.threads import limit_threads
 
 
@@ -123,17 +126,29 @@ def cheap_supports(model, data, options, beta_hat, settings: SupportOptions | No
     return linear, warm
 
 
+def _rows(case_dir, case):
+    """(level, planes, data) of a case: Table II's quick design, or a tool case's two load levels
+    (the local-load study's stylus swath "S" and the case's own intraoperative data)."""
+    if (Path(case_dir) / "truth").is_dir() and Path(case_dir).name.startswith("tool"):
+        for level in LOAD_LEVELS:
+            yield level, (), data_level(case_dir, "S", case=case) if level == "S" else case.intraop
+        return
+    for level, planes in scenarios(case_planes(case_dir), quick=True, sources=case_source_levels(case_dir)):
+        if level != "rigid":
+            yield level, planes, study_data(case_dir, level, planes, case=case)
+
+
 def main(out_path, case_dirs):
     progress.QUIET = True
     with open(out_path, "a") as out:
         for case_dir in case_dirs:
             case = read_case(case_dir)
             model, _ = prepare(case, EDGE_MM, K)
-            for level, planes in scenarios(case_planes(case_dir), quick=True, sources=case_source_levels(case_dir)):
-                if level == "rigid":
-                    continue
-                data = study_data(case_dir, level, planes, case=case)
-                reg = register(model, data)
+            x0, x1 = case.need_truth().tre_points(model.basis.nodes)
+            for level, planes, data in _rows(case_dir, case):
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    reg = register(model, data)
                 if reg.libr is None or reg.support is None:
                     continue
                 options, _init = _settings(None, None)
@@ -142,11 +157,18 @@ def main(out_path, case_dirs):
                 local = reg.data_model_frame
                 exact, exact_s = reg.support, reg.stages["support"].cpu  # the register's own
                 (lin, lin_s), (warm, warm_s) = cheap_supports(model, local, options, reg.libr.beta)
+                # the TRE each verdict would show: from a kept pose an unsupported deformation shows
+                # the pose alone (``Registration.deformed``); the σ weighing does not depend on the folds
+                tre = {"deformable": tre_stats(reg.transform(x0, beta=reg.libr.beta), x1)["mean_mm"],
+                       "rigid": tre_stats(reg.rigid.apply(x0), x1)["mean_mm"]}
                 row = {"case": Path(case_dir).name, "level": level,
-                       "planes": "-".join(map(str, planes)), "kept_pose": reg.rigid.kept}
+                       "planes": "-".join(map(str, planes)), "kept_pose": reg.rigid.kept,
+                       "shown_tre_mm": round(tre_stats(reg.transform(x0), x1)["mean_mm"], 4)}
                 for tag, s, sec in (("exact", exact, exact_s), ("linear", lin, lin_s), ("warm", warm, warm_s)):
+                    deformed = not reg.rigid.kept or (s.predicts and exact.significant)
                     row[tag] = {"rigid_mm": round(s.rigid_mm, 4), "deformable_mm": round(s.deformable_mm, 4),
                                 "predicts": s.predicts, "cpu_s": round(sec, 3),
+                                "tre_mm": round(tre["deformable" if deformed else "rigid"], 4),
                                 "blocks": [[round(b.rigid_mm, 3), round(b.deformable_mm, 3)] for b in s.blocks]}
                 print(json.dumps(row), file=out, flush=True)
                 print(json.dumps({k: (v if not isinstance(v, dict) else {kk: vv for kk, vv in v.items()
