@@ -37,15 +37,21 @@ def test_positions_at_rest_do_not_read_the_basis(small_model):
     assert np.isnan(small_model.positions(poisoned, beta)[1]).all()
 
 
-def test_pose_only_jacobian_is_the_full_one_without_alpha(small_model):
-    """``add_jacobian(alpha_columns=False)`` at α = 0: the pose columns, f and S·x0 of the full
-    Jacobian to the bit, the α columns zero; refused away from α = 0."""
+@pytest.mark.parametrize("numpy_path", [False, True])
+def test_pose_only_jacobian_is_the_full_one_without_alpha(small_model, numpy_path):
+    """``add_jacobian(alpha_columns=False)`` at α = 0, compiled and by NumPy (the benches'
+    "before"): the pose columns, f and S·x0 of the full Jacobian to the bit, the α columns zero;
+    refused away from α = 0."""
+    from contextlib import nullcontext
+
     rng = np.random.default_rng(5)
     n = small_model.basis.Ju.shape[1]
     data = _data(small_model, rng)
     beta = np.concatenate([np.zeros(n), [1.0, -2.0, 0.5], [0.05, -0.03, 0.04]])
-    full = add_jacobian(small_model, evaluate(small_model, data, beta, Weights(), jacobian=False))
-    pose = add_jacobian(small_model, evaluate(small_model, data, beta, Weights(), jacobian=False), alpha_columns=False)
+    with objective.numpy_jacobian() if numpy_path else nullcontext():
+        full = add_jacobian(small_model, evaluate(small_model, data, beta, Weights(), jacobian=False))
+        pose = add_jacobian(small_model, evaluate(small_model, data, beta, Weights(), jacobian=False),
+                            alpha_columns=False)
     assert np.array_equal(full.f, pose.f)
     assert np.array_equal(full.J[:, n:], pose.J[:, n:])
     assert not pose.J[:, :n].any()

@@ -596,6 +596,7 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation, alpha_columns: bool =
             if not c.carries_basis:
                 ev.correspondence[name] = Correspondence(c.S, c.direction, U, S_rest)
             continue
+        U = None
         if alpha_columns:
             U = np.asarray(S @ feat.BJ.reshape(len(local), 3 * n)).reshape(-1, 3, n)
             Jf[:, :n] = -np.einsum("ia,iak->ik", qR, U[rows] if len(q) != S.shape[0] else U)
