@@ -214,3 +214,28 @@ def test_cross_validation_leaves_the_answers_kept_evaluation(small_model):
     assert small_model.cache.ends is before
     kept = _at(small_model, answer.beta)
     assert kept is not None and all(np.array_equal(kept[2][k][0], data[k]) for k in data)
+
+
+def test_pose_choice_searches_the_given_pose_once(small_model, monkeypatch):
+    """``choose_pose`` hands its search at the given pose to the trimmed fit, which searched it
+    again before: the same choice, to the bit (fails with two searches at the given pose)."""
+    from navapp.registration import pose
+    from navapp.registration.rigid import RigidResult
+
+    rng = np.random.default_rng(29)
+    data = _data(small_model, rng)
+    given = RigidResult(np.eye(3), np.zeros(3), 0, 0.0, kept=True)
+    at_given = [0]
+    plain = pose._surface_points
+
+    def counted(model, data, p, *a, **k):
+        at_given[0] += bool(np.array_equal(p.R, given.R) and np.array_equal(p.t, given.t))
+        return plain(model, data, p, *a, **k)
+
+    monkeypatch.setattr(pose, "_surface_points", counted)
+    choice = pose.choose_pose(small_model, data, given)
+    assert at_given[0] == 1
+    again = pose.trimmed_pose(small_model, data, given, pose.POSE_RULE.keep)  # searching from scratch
+    assert choice.moved_mm == again[1]
+    assert choice.local is None or (np.array_equal(choice.local.R, again[0].R)
+                                    and np.array_equal(choice.local.t, again[0].t))
