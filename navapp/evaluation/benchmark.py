@@ -144,6 +144,7 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     model, _ = prepare(case, edge, k)
     x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     times, rigid_s, support_s, iters = [], [], [], []
+    stages: dict[str, dict[str, dict[str, list]]] = {"before": {}, "after": {}}  # variant → stage → cpu, wall
     before = replace(model, cache=model.cache.copy())
     paired: dict[str, dict[str, list]] = {v: {"cpu": [], "wall": [], "tre": []} for v in ("before", "after")}
     for i in range(repeats):
@@ -154,6 +155,10 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
                 paired[variant]["cpu"].append(time.process_time() - c)
                 paired[variant]["wall"].append(time.perf_counter() - t)
             paired[variant]["tre"].append(round(tre_stats(r.transform(x0), x1)["mean_mm"], 4))
+            for name, st in r.stages.items():
+                lap = stages[variant].setdefault(name, {"cpu": [], "wall": []})
+                lap["cpu"].append(st.cpu)
+                lap["wall"].append(st.wall)
             if variant == "after":
                 reg = r
         assert reg.libr is not None  # deformable registration
@@ -177,6 +182,10 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
         "before_after": {v: {"median_cpu_seconds": round(statistics.median(d["cpu"]), 3),
                              "median_wall_seconds": round(statistics.median(d["wall"]), 3),
                              "tre_mm": sorted(set(d["tre"]))} for v, d in paired.items()},
+        # the fresh registration's stages (``Registration.stages``), median CPU and wall seconds
+        "stages": {v: {name: {"cpu": round(statistics.median(lap["cpu"]), 4),
+                              "wall": round(statistics.median(lap["wall"]), 4)} for name, lap in st.items()}
+                   for v, st in stages.items()},
         "nodes": model.basis.M, "k": model.basis.k, "planes": planes,
         "points": {n: len(p) for n, p in reg.data_model_frame.items()},
         "median_seconds": round(statistics.median(times), 3), "min_seconds": round(min(times), 3),
@@ -193,8 +202,29 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
                    "deformable": round(tre_stats(reg.transform(x0), x1)["mean_mm"], 2),
                    "deformable_5_iterations": round(tre_stats(quick.transform(x0), x1)["mean_mm"], 2)},
     }
+    print(stage_table(out["stages"]), flush=True)
     print(json.dumps(out), flush=True)
     return out
+
+
+def stage_table(stages: dict) -> str:
+    """The fresh registration's stages as a text table: median CPU and wall ms per stage for
+    each variant, and the sum of those medians (about the whole ``register`` call)."""
+    variants = list(stages)
+    names = list(dict.fromkeys(n for v in variants for n in stages[v]))
+    head = "stage (median ms)".ljust(20) + "".join(f"{v + ' cpu':>14}{v + ' wall':>14}" for v in variants)
+    lines = [head]
+    for name in [*names, "sum"]:
+        cells = []
+        for v in variants:
+            if name == "sum":
+                cpu, wall = (sum(s[k] for s in stages[v].values()) for k in ("cpu", "wall"))
+            else:
+                s = stages[v].get(name, {"cpu": 0.0, "wall": 0.0})
+                cpu, wall = s["cpu"], s["wall"]
+            cells.append(f"{1000 * cpu:14.1f}{1000 * wall:14.1f}")
+        lines.append(name.ljust(20) + "".join(cells))
+    return "\n".join(lines)
 
 
 if __name__ == "__main__" and len(sys.argv) in (6, 7) and sys.argv[1] == "precompute-one":

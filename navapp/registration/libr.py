@@ -31,7 +31,7 @@ import scipy.linalg as sla
 from ..defaults import LM_MAX_ITERATIONS
 from ..threads import limit_threads
 from .model import RegistrationModel
-from .objective import Weights, add_jacobian, evaluate, keep_end
+from .objective import Evaluation, Weights, add_jacobian, evaluate, keep_end
 
 
 @dataclass
@@ -104,19 +104,22 @@ def _solve(A, g):
 
 
 def register_libr(model: RegistrationModel, data: dict, beta0=None, options: LMOptions | None = None,
-                  callback=None, cancel: threading.Event | None = None) -> LibrResult:
+                  callback=None, cancel: threading.Event | None = None, first: Evaluation | None = None) -> LibrResult:
     """Fit β to ``data`` (feature → (N, 3) mm, in the model's frame).
 
     ``callback(Progress)`` is called after every iteration (accepted or not); setting
     ``cancel`` stops the fit at the next iteration boundary with the best β so far.
+    ``first``: the evaluation at β0 of these data with its Jacobian, when the caller has it
+    (``objective.points_of``: a cross-validation fold's rows of one evaluation of all data);
+    the fit is then the one it would be without it, that evaluation not made again.
     BLAS is pinned to one thread inside: the matrices here are small (≈141 columns) and
     threaded BLAS spent ~20× longer synchronising than computing on a 2-core machine.
     """
     with limit_threads(1):
-        return _register(model, data, beta0, options or LMOptions(), callback, cancel)
+        return _register(model, data, beta0, options or LMOptions(), callback, cancel, first)
 
 
-def _register(model, data, beta0, options, callback, cancel):
+def _register(model, data, beta0, options, callback, cancel, first=None):
     n = model.basis.Ju.shape[1]
     start = time.perf_counter()
     beta = np.zeros(n + 6) if beta0 is None else np.array(beta0, float)
@@ -128,14 +131,20 @@ def _register(model, data, beta0, options, callback, cancel):
     if not options.pose:
         free[n:] = False
     tim = {"deform": 0.0, "kdtree": 0.0, "closest": 0.0, "jacobian": 0.0, "solve": 0.0}
+    # a fit that holds α at zero (a rigid fit from β = 0) needs only J's pose columns
+    alpha_columns = options.deform or bool(beta[:n].any())
 
     def run(b, jac=True, frozen=None, scales=None):
-        ev = evaluate(model, data, b, options.weights, jacobian=jac, frozen=frozen, scales=scales)
+        ev = evaluate(model, data, b, options.weights, jacobian=jac, frozen=frozen, scales=scales,
+                      alpha_columns=alpha_columns)
         for k, v in ev.timings.items():
             tim[k] += v
         return ev
 
-    ev = run(beta)
+    if first is not None and not (first.J is not None and np.array_equal(first.beta, beta)
+                                  and list(first.correspondence) == list(data)):
+        raise ValueError("register_libr: first must be an evaluation of these data at beta0, with its Jacobian")
+    ev = run(beta) if first is None else first
     history = [ev.omega]
     prev_omega = ev.omega
     best = (ev.omega, beta.copy(), ev.features)
@@ -154,7 +163,7 @@ def _register(model, data, beta0, options, callback, cancel):
             break
         t0 = time.perf_counter()
         if ev.J is None:
-            add_jacobian(model, ev)
+            add_jacobian(model, ev, alpha_columns)
             tim["jacobian"] += time.perf_counter() - t0
             t0 = time.perf_counter()
         J = ev.J if free.all() else ev.J[:, free]

@@ -131,7 +131,19 @@ class RegistrationModel:
     def positions(self, feat: ModelFeature, beta) -> tuple[np.ndarray, np.ndarray]:
         """Eq. 8 at a feature's points: (x0 − x̄0 + J_u α) and x(β), both (V, 3) mm."""
         n = len(beta) - 6
-        return deform(feat.rest, (feat.BJ.reshape(-1, n) @ beta[:n]).reshape(-1, 3), beta, self.centroid)
+        return deform(feat.rest, displacement(feat.BJ, beta[:n]), beta, self.centroid)
+
+
+def displacement(BJ: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """J_u α carried to a feature's points, (V, 3) mm, from its B·J_u (V, 3, 3k) or S·B·J_u.
+
+    At α = 0 (every fit from β = 0 starts there: the continuation's first fit, the basin
+    screening's, each cross-validation fold's deformable and rigid fits, and a rigid fit
+    never leaves it) the product is zero without reading B·J_u (the liver's is 20 MB): the
+    same bits, as x0 + 0 is x0 and ``deform`` then subtracts x̄0."""
+    if not alpha.any():
+        return np.zeros((BJ.shape[0] * BJ.shape[1] // 3, 3))
+    return (BJ.reshape(-1, len(alpha)) @ alpha).reshape(-1, 3)
 
 
 def deform(rest, u, beta, centroid) -> tuple[np.ndarray, np.ndarray]:

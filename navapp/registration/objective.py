@@ -25,7 +25,7 @@ from ..geometry.closest import (
     surface_normals,
     vertex_tree,
 )
-from .model import REGION_FEATURES, W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform
+from .model import REGION_FEATURES, W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform, displacement
 from .prior import PosePrior
 from .rotation import rotation, rotation_derivatives
 
@@ -232,6 +232,8 @@ class Correspondence:
     S_rest : (N, 3) array or None
         S·x0 (mm): both added with the Jacobian (``add_jacobian``). When present, x(β) at the
         closest points costs N·3·3k instead of deforming the whole feature (the held fast path).
+        A pose-only Jacobian (``add_jacobian(alpha=False)``, at α = 0) adds S·x0 alone: the
+        held fast path then applies at α = 0, where S·B·J_u α is zero.
     """
 
     S: sp.csr_matrix
@@ -243,6 +245,10 @@ class Correspondence:
     def carries_basis(self) -> bool:
         """S·B·J_u and S·x0 are known: the held fast path applies."""
         return self.SBJ is not None
+
+    def held_fast(self, alpha: np.ndarray) -> bool:
+        """x(β) at the closest points can be made from S·x0 (and S·B·J_u) at this α."""
+        return self.S_rest is not None and (self.SBJ is not None or not alpha.any())
 
     def without_basis(self) -> "Correspondence":
         """The same correspondence without S·B·J_u and S·x0 (x(β) then from the whole feature)."""
@@ -316,7 +322,7 @@ def point_distances(r, rows, n_points):
 
 
 def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: Weights, jacobian=True,
-             frozen: dict | None = None, scales: dict | None = None) -> Evaluation:
+             frozen: dict | None = None, scales: dict | None = None, alpha_columns: bool = True) -> Evaluation:
     """Ω(β) with residuals, per-feature statistics and (optionally) the Jacobian J = ∂f/∂β.
 
     Correspondences S_i and their normals/tangents are recomputed at β unless ``frozen``
@@ -327,7 +333,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     ``scales``: robust weight factors to hold (a previous evaluation's ``scales``), so that
     with held correspondences Ω is one fixed weighted least-squares problem; otherwise
     they are computed here from the residuals (``Weights.robust_factors``: Huber δ,
-    outlier rejection).
+    outlier rejection). ``alpha_columns``: as for ``add_jacobian``.
     """
     basis = model.basis
     n = basis.Ju.shape[1]
@@ -350,14 +356,15 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
         key = id(feat)
         local = None
         held = None  # (r, q, rows, dist) kept from an evaluation at the same β and data
-        if frozen is not None and frozen[name].carries_basis and not jacobian:
+        if frozen is not None and frozen[name].held_fast(alpha) and not jacobian:
             # held correspondences carry S·B·J_u and S·x0 from the evaluation that made them:
             # x at the corresponded points costs N·3·3k instead of deforming the whole
             # feature (S's rows sum to one, so S commutes with the rigid part of eq. 8)
             t0 = time.perf_counter()
             c = corr[name] = frozen[name]
             S, direction = c.S, c.direction
-            p = Y - deform(c.S_rest, (c.SBJ.reshape(-1, n) @ alpha).reshape(-1, 3), beta, model.centroid)[1]
+            u = displacement(c.SBJ, alpha) if c.SBJ is not None else np.zeros((len(c.S_rest), 3))
+            p = Y - deform(c.S_rest, u, beta, model.centroid)[1]
             tim["deform"] += time.perf_counter() - t0
         else:
             if key not in geometry:
@@ -425,7 +432,80 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     ev = Evaluation(omega=float(w @ (f * f)), f=f, w=w, J=None, features=stats, timings=tim, correspondence=corr,
                     beta=np.array(beta, float), terms=terms, scales=robust, reusable=reusable,
                     pose_prior=weights.pose_prior)
-    return add_jacobian(model, ev) if jacobian else ev
+    return add_jacobian(model, ev, alpha_columns) if jacobian else ev
+
+
+def points_of(ev: Evaluation, keep: dict, weights: Weights) -> Evaluation:
+    """``ev`` restricted to some of its data points: the evaluation ``evaluate`` would make of
+    the kept points at the same β, to the bit, without searching or deforming again.
+
+    Every residual row, its Jacobian row, correspondence, normal and per-point distance belongs
+    to one point and is computed from it alone, so a subset's are the same rows. What depends
+    on the set is made again as ``evaluate`` makes it: w_F / N_F with the kept count, the robust
+    factors from the kept points' distances (an outlier cut's median over them), the statistics
+    and Ω. The cross-validation's folds start from one evaluation at β = 0 of all the data
+    (``support.check_support_pair``), each from its training points' rows.
+
+    Parameters
+    ----------
+    ev : Evaluation
+        with its Jacobian (``add_jacobian``), of data feature → (N, 3) points.
+    keep : dict
+        feature → (N,) bool, the points kept; a feature with none kept, or absent, is dropped.
+        Fiducials are kept whole or not at all (they pair with the model's row by row; the
+        cross-validation keeps them in every fold).
+    weights : Weights
+        the weights ``ev`` was made with.
+
+    Returns
+    -------
+    Evaluation of the kept points (no ``reusable`` entry: nothing is kept for a warm start).
+    """
+    J = ev.jacobian
+    fs, ws, Js, stats, corr, terms = [], [], [], {}, {}, []
+    dists, row_of, counts = {}, {}, {}
+    at = 0
+    for name, feat, S, q, rows, local in ev.terms:
+        block = slice(at, at + len(q))
+        at += len(q)
+        mask = keep.get(name)
+        if mask is None or not mask.any():
+            continue
+        if feat.kind == "fiducial" and not mask.all():
+            # fiducials pair with the model's row by row: a subset evaluated apart would pair anew
+            raise ValueError("points_of: fiducials are kept whole or not at all")
+        idx = np.flatnonzero(mask)
+        on = mask[rows]
+        new_rows = (np.cumsum(mask) - 1)[rows[on]]
+        c = ev.correspondence[name]
+        S_kept = S[idx]
+        corr[name] = Correspondence(S_kept, None if c.direction is None else c.direction[idx],
+                                    None if c.SBJ is None else c.SBJ[idx],
+                                    None if c.S_rest is None else c.S_rest[idx])
+        q_kept = q[on]
+        dist = point_distances(ev.f[block][on], new_rows, len(idx))
+        wF = weights.features[name] * weights.unit_m ** 2 / len(idx)
+        fs.append(ev.f[block][on])
+        ws.append(np.full(len(q_kept), wF))
+        Js.append(J[block][on])
+        dists[name], row_of[name], counts[name] = dist, new_rows, len(idx)
+        stats[name] = _stats(dist, wF)
+        terms.append((name, feat, S_kept, q_kept, new_rows, local))
+    robust = weights.robust_factors(dists, row_of)
+    for i, (name, *_rest) in enumerate(terms):
+        if name in robust:
+            ws[i] = ws[i] * robust[name]
+    tail = slice(at, len(ev.f))  # the pose prior's rows and f_E's, which no point owns
+    fs.append(ev.f[tail])
+    ws.append(ev.w[tail])
+    Js.append(J[tail])
+    for key in ("pose_prior", "strain_energy"):
+        if key in ev.features:
+            stats[key] = ev.features[key]
+    f, w = np.concatenate(fs), np.concatenate(ws)
+    return Evaluation(omega=float(w @ (f * f)), f=f, w=w, J=np.concatenate(Js), features=stats,
+                      timings={k: 0.0 for k in ev.timings}, correspondence=corr, beta=ev.beta.copy(), terms=terms,
+                      scales=robust, pose_prior=ev.pose_prior)
 
 
 KEPT_ENDS = 4  # fits' last evaluations kept per model (``keep_end``)
@@ -476,13 +556,21 @@ def numpy_jacobian():
         _numpy_jacobian[0] = False
 
 
-def add_jacobian(model: RegistrationModel, ev: Evaluation) -> Evaluation:
+def add_jacobian(model: RegistrationModel, ev: Evaluation, alpha_columns: bool = True) -> Evaluation:
     """J = ∂f/∂β (R + 1, 3k + 6) of Table I at ``ev``'s state and correspondences, stored
-    in ``ev.J``; each correspondence gains S·B·J_u and S·x0 for the held fast path."""
+    in ``ev.J``; each correspondence gains S·B·J_u and S·x0 for the held fast path.
+
+    ``alpha_columns=False`` at α = 0: a fit that holds α (``LMOptions(deform=False)``: the
+    cross-validation's rigid folds, the declared rigid stage) uses only the six pose columns,
+    so the α columns are left zero and S·B·J_u unmade (the same pose columns, the same LM
+    steps: J·Δ over columns whose Δ is zero adds exact zeros); each correspondence gains
+    S·x0 alone, which at α = 0 is the held fast path's whole input."""
     if ev.J is not None:
         return ev
     basis, beta = model.basis, ev.beta
     n = basis.Ju.shape[1]
+    if not alpha_columns and beta[:n].any():
+        raise ValueError("add_jacobian: the α columns can be left out only at α = 0")
     R = rotation(beta[n + 3:n + 6])
     dR = rotation_derivatives(beta[n + 3:n + 6])
     t0 = time.perf_counter()
@@ -496,15 +584,20 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation) -> Evaluation:
         at += len(q)
         qR = q @ R  # qᵀR, (R, 3)
         c = ev.correspondence[name]
+        if not alpha_columns:
+            Jf[:, :n] = 0.0
         if kernel is not None:
-            U = np.empty((S.shape[0], 3, n))
-            kernel[0](S.indptr, S.indices, S.data, feat.BJ, np.ascontiguousarray(qR), rows, U, Jf)
+            U = None
+            if alpha_columns:
+                U = np.empty((S.shape[0], 3, n))
+                kernel[0](S.indptr, S.indices, S.data, feat.BJ, np.ascontiguousarray(qR), rows, U, Jf)
             S_rest = np.empty((S.shape[0], 3))
             kernel[1](S.indptr, S.indices, S.data, feat.rest, local, np.ascontiguousarray(q), dR, rows, S_rest, Jf)
             if not c.carries_basis:
                 ev.correspondence[name] = Correspondence(c.S, c.direction, U, S_rest)
             continue
-        else:
+        U = None
+        if alpha_columns:
             U = np.asarray(S @ feat.BJ.reshape(len(local), 3 * n)).reshape(-1, 3, n)
             Jf[:, :n] = -np.einsum("ia,iak->ik", qR, U[rows] if len(q) != S.shape[0] else U)
         if not c.carries_basis:

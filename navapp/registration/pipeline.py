@@ -67,6 +67,7 @@ from .rigid import (
     start_poses,
 )
 from .rotation import rotation
+from .stages import StageClock, StageTime
 from .support import Support, SupportOptions, check_support, check_support_pair, pooled_rms, weigh_correction
 from .uncertainty import OrganError, PoseEvidence, organ_error, pose_evidence
 
@@ -189,6 +190,8 @@ class Registration:
     # ``register(surface_forces=True)`` warm (``beta0``): the forces are not refitted (one solve
     # per force site is no live update), so the basis's answer is shown and a line says so
     warm_without_forces: bool = False
+    # wall and CPU seconds per stage, in the order run (``stages``): every guard's cost apart
+    stages: dict[str, StageTime] = field(default_factory=dict)
 
     @property
     def deformed(self) -> bool:
@@ -699,6 +702,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         options = replace(options, weights=replace(options.weights, pose_prior=pose_prior))
     features = _rigid_features(init)
     sec = {}
+    clock = StageClock()
     t = time.perf_counter()
     candidates: list[RigidResult] = []
     centred: PosePrior | None = None  # the declared prior as the rigid stage left it (its pose, its scale)
@@ -722,6 +726,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         starts = _multi_start(model, data, options, init)
     else:
         starts = [replace(s) for s in starts]  # this registration marks its own (omega, chosen)
+    clock.mark("declared_rigid" if declared else "multi_start")
     if rigid is None:
         if init.multi_start:
             candidates = [s.fitted for s in basin_representatives(starts)[:init.max_candidates]]
@@ -743,6 +748,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         rigid = screened[0][1]
         for s in starts:
             s.omega = next((o for o, c, _ in screened if c is s.result), None)
+    clock.mark("screening")
     if not declared:  # the declared rigid stage marked its own choice and finished its pose
         for s in starts:
             s.chosen = s.result is rigid
@@ -753,6 +759,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         # the basin's pose, not the tracker's, keeps the result independent of the offset
         rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,
                           start=rigid, features=features, robust=init.rigid_robust)
+    clock.mark("icp")
     choice = None
     if not warm and not declared and init.keep_given_pose and "fiducials" not in data and not notes:
         choice = choose_pose(model, data, _given(), rigid)
@@ -765,7 +772,9 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     if rigid.kept and options.weights.pose_prior is None:
         options = replace(options, pose=False)
     # with a declared pose the prior fixes what the data leave free: no sliding direction to report
+    clock.mark("pose_choice")
     determinacy = None if declared else pose_determinacy(model, data, rigid)
+    clock.mark("determinacy")
     sec["rigid"] = time.perf_counter() - t
     local = {name: rigid.inverse(p) for name, p in data.items()}
     result, quality = None, None
@@ -803,6 +812,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
                         s.chosen = s.result is cand
                     rigid, local, result, quality = cand, other_local, other, other_quality
         sec["deformable"] = time.perf_counter() - t
+        clock.mark("deformable")
         if fresh and init.local_modes is not None and result.stop_reason != "cancelled":
             t = time.perf_counter()
             extended, local_modes, folds_support = choose_local_modes(
@@ -812,12 +822,14 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
                 result = fit(local, options)
                 quality = assess_fit(result.features)
             sec["local_modes"] = time.perf_counter() - t
+            clock.mark("local_modes")
     support = None
     if deform and fresh and init.support is not None and result is not None and result.stop_reason != "cancelled":
         t = time.perf_counter()
         support = _cross_validate(model, local, options, init.support, cancel, rigid, result, folds_support,
                                   local_modes=base_model is not None, declared=declared)
         sec["support"] = time.perf_counter() - t
+        clock.mark("support")
     evidence: PoseEvidence | None = None
     if declared and support is not None and not support.supported and result is not None and \
             result.stop_reason != "cancelled" and centred is not None and options.weights.pose_prior is not None \
@@ -875,6 +887,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
                 support = _cross_validate(model, local, options, init.support, cancel, rigid, result, refolded,
                                           local_modes=base_model is not None)
         sec["given_pose"] = time.perf_counter() - t
+        clock.mark("given_pose")
     if cancel is not None and cancel.is_set() and result is not None and result.stop_reason != "cancelled":
         # asked to stop after LM had converged, during the cross-validation or the given-pose fit: the
         # checks were cut short, so the answer is unfinished — cancelled, as one stopped mid-fit (the
@@ -893,6 +906,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         finally:
             sf.close()
         sec["forces"] = time.perf_counter() - t
+        clock.mark("forces")
     elif surface_forces and deform and not fresh:
         reg.warm_without_forces = True
     if fresh and reg.deformed and result is not None and result.stop_reason != "cancelled":
@@ -902,6 +916,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         # with the fit's own weights (its robust factors), as the viewer's predicted error is made
         reg.organ = organ_error(reg, weights=replace(options.weights, pose_prior=None))
         sec["organ_error"] = reg.organ.seconds
+        clock.mark("organ_error")
     # last, so that it steers nothing above (a note before the pose choice would skip it): too
     # little of the liver covered is said by every caller — the CLI and result.json as the viewer.
     # Not where a declared pose's posterior already says how far the pose may be off (the rigid
@@ -910,6 +925,8 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     # alone, and said twice it also hid the organ's own line (docs/decisions.md, "issue 46, session 35")
     if not (declared and (reg.pose_evidence is not None or reg.organ is not None)):
         note_coverage(reg)
+    clock.mark("coverage")
+    reg.stages = clock.times
     return reg
 
 

@@ -115,19 +115,21 @@ def _surface_points(model: RegistrationModel, data: dict, pose: RigidResult, fea
 
 
 def trimmed_pose(model: RegistrationModel, data: dict, start: RigidResult, keep: float = POSE_RULE.keep,
-                 iterations: int = 30, tol_mm: float = 1e-3) -> tuple[RigidResult, float]:
+                 iterations: int = 30, tol_mm: float = 1e-3,
+                 at_start: tuple | None = None) -> tuple[RigidResult, float]:
     """Trimmed point-to-plane ICP from ``start``: each step fits only the ``keep`` fraction
     of surface points nearest the model (least trimmed squares), so a deformation that
     moves fewer than that fraction of the data does not move the pose. Returns the pose and
-    how far it moved the data from ``start`` (RMS, mm)."""
+    how far it moved the data from ``start`` (RMS, mm). ``at_start``: ``_surface_points`` at
+    ``start``, when the caller has it (``choose_pose``), not searched again."""
     from ..geometry.transforms import rotvec_matrix
 
     R, t = start.R.copy(), start.t.copy()
     Y0 = None
     kept, last = np.inf, (R, t)  # the trimmed objective at the pose the last step left, and that pose
-    for _ in range(iterations):
+    for i in range(iterations):
         pose = RigidResult(R, t, 0, 0.0)
-        P, Q, N = _surface_points(model, data, pose)
+        P, Q, N = at_start if i == 0 and at_start is not None else _surface_points(model, data, pose)
         if len(P) < 6:
             return start, 0.0
         if Y0 is None:
@@ -311,13 +313,13 @@ def choose_pose(model: RegistrationModel, data: dict, given: RigidResult, fitted
     trimmed fit's own pose when it stayed near (``rule.local_mm``) and most data are on the
     model there, clearly more than at ``fitted`` (ICP's); else ``fitted`` (module doc).
     The pose returned as ``local`` is marked ``kept``."""
-    P, _, _ = _surface_points(model, data, given)
-    if len(P) < 6:
+    at_given = _surface_points(model, data, given)
+    if len(at_given[0]) < 6:
         return PoseChoice(PoseSource.FITTED, None)
     # a rigid offset smaller than the margin is kept too (and LIBR cannot take it out): a
     # clause that also refused poses whose trimmed fit halved the median distance caught a
     # 2 mm shift but kept no tool case's pose either (docs/decisions.md, "Local loads")
-    local, moved = trimmed_pose(model, data, given, rule.keep)
+    local, moved = trimmed_pose(model, data, given, rule.keep, at_start=at_given)
     d = _distances(model, data, local)
     on = {PoseSource.LOCAL: float(np.mean(d < rule.on_mm))}
     if moved < rule.moved_mm and on[PoseSource.LOCAL] >= rule.aligned:

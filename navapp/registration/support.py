@@ -47,7 +47,7 @@ from ..features import SALIENT
 from ..threads import limit_threads
 from .libr import LMOptions, register_libr
 from .model import DATA_TO_MODEL, RegistrationModel
-from .objective import evaluate
+from .objective import evaluate, points_of
 from .uncertainty import covariance_factor, information, point_jacobian, point_sigma
 
 
@@ -199,16 +199,33 @@ def check_support_pair(model: RegistrationModel, data: dict, options: LMOptions,
     from its own training data: ``extend(train, beta)`` (the training data, feature →
     (N, 3) mm, and the fit of ``model`` to them, (3k + 6,)) returns the extended model or None
     (the fold keeps ``model``'s prediction). So no held-out point has a say in what its fold's
-    model can do (``local_modes``). Without ``extend`` both Supports are the same."""
-    t0 = time.perf_counter()
+    model can do (``local_modes``). Without ``extend`` both Supports are the same.
+
+    The folds' fits leave the model's kept fit ends (``objective.keep_end``) as they found them:
+    no later fit starts where a fold ended, and ten of them would push out the answer's own,
+    which the error estimate and the first warm start after a fresh registration evaluate at."""
     total = sum(len(p) for k, p in data.items() if k != "fiducials")
     if total < support.min_points:
         return None
+    kept = model.cache.ends
+    try:
+        return _folds(model, data, options, support, cancel, extend)
+    finally:
+        model.cache.ends = kept
+
+
+def _folds(model, data, options, support, cancel, extend) -> tuple[Support, Support] | None:
+    t0 = time.perf_counter()
     labels = blocks_of(data, support.blocks)
     fold = replace(options, max_iterations=min(options.max_iterations, support.iterations))
     n = model.basis.Ju.shape[1]
     zero = np.zeros(n + 6)
     out, out_ext = [], []
+    # every fold's fits start at β = 0, on some of these points: one evaluation of all of them
+    # there, and each fit starts from its training points' rows (``objective.points_of``: the
+    # same bits as evaluating them apart, ten searches and Jacobians fewer)
+    with limit_threads(1):
+        start = evaluate(model, data, zero, options.weights, jacobian=True)
     for b in range(support.blocks):
         if cancel is not None and cancel.is_set():
             return None  # cut short: folds stopped before they were fitted say nothing about the data
@@ -216,10 +233,12 @@ def check_support_pair(model: RegistrationModel, data: dict, options: LMOptions,
         held = {k: p[labels[k] == b] for k, p in data.items() if (labels[k] == b).any()}
         if not held or not train:
             continue
-        fit = register_libr(model, train, None, fold, None, cancel)
-        # the rigid answer fitted to the same training data (τ, θ alone; a kept pose stays)
+        first = points_of(start, {k: labels[k] != b for k in train}, options.weights)
+        fit = register_libr(model, train, None, fold, None, cancel, first=first)
+        # the rigid answer fitted to the same training data (τ, θ alone; a kept pose stays); its
+        # LM steps read only the pose columns of the shared start's Jacobian
         pose = zero if not options.pose else register_libr(model, train, None, replace(fold, deform=False), None,
-                                                           cancel).beta
+                                                           cancel, first=first).beta
         rigid = pooled_rms(evaluate(model, held, pose, options.weights, jacobian=False).features, held)
         deformed = pooled_rms(evaluate(model, held, fit.beta, options.weights, jacobian=False).features, held)
         pts = np.vstack(list(held.values()))
