@@ -1,7 +1,7 @@
 """The preoperative and true surfaces as the viewer draws them: a liver at most
 ``defaults.DISPLAY_FACES`` triangles, a vessel tree at most ``defaults.DISPLAY_VESSEL_FACES``
-(quadric decimation), each made once and shared by every tab. Only the picture: the registration, the error colours and the exports use the
-surfaces themselves. No viser here.
+(quadric decimation), each made once and shared by every tab. Only the picture: the
+registration, the error colours and the exports use the surfaces themselves. No viser here.
 """
 
 from __future__ import annotations

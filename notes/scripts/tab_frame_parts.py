@@ -12,7 +12,8 @@ applied, settled 2 s, and measured over 6 s idle: this browser's CPU seconds per
 (WebGL clears; viser redraws once a second) and the GPU process's share. Prints medians.
 
 Variants: ``base``; ``hide:LAYER`` (a Layers-panel layer's nodes hidden; ``hide:all`` every
-layer); ``dec:N[:LAYER]`` (meshes of more than N triangles decimated to N, of one layer or all); ``far:F`` (the camera F times as far from what it looks at); ``toon5``/``toon3``/
+layer); ``dec:N[:LAYER]`` (meshes of more than N triangles decimated to N, of one layer
+or all); ``far:F`` (the camera F times as far from what it looks at); ``toon5``/``toon3``/
 ``flat`` (every mesh's material); ``lights:none``/``lights:ambient``/``lights:hemi``/
 ``lights:one`` (viser's default lights replaced); ``opaque`` (the preoperative vessels and
 targets opaque); ``square`` (the point clouds drawn as squares); ``noshadow`` (meshes neither
