@@ -12,7 +12,7 @@ import pytest
 import trimesh
 from conftest import BUSY_WAIT_S, run_to_end, start_app, stop_app
 
-from navapp.app.display import DisplaySurfaces, follower
+from navapp.app.display import DisplaySurfaces
 from navapp.app.state import RunKind
 from navapp.defaults import DISPLAY_FACES, DISPLAY_VESSEL_FACES
 
@@ -38,33 +38,6 @@ def test_a_drawn_surface_is_small_and_stays_on_the_surface(phantoms):
     small = trimesh.creation.icosphere(2)
     v, f = shown.of(small)  # a surface within the budget is drawn as it is
     assert np.array_equal(v, small.vertices.astype(np.float32)) and np.array_equal(f, small.faces)
-
-
-def test_a_moving_surface_is_drawn_decimated_and_follows_the_surface():
-    """A registered surface moves with every state: its drawn copy's vertices are fixed
-    barycentric combinations of the surface's, so a deformed surface is drawn deformed alike."""
-    sphere = trimesh.creation.icosphere(subdivisions=5, radius=60.0)  # 20,480 triangles
-    drawn = follower(sphere.vertices, sphere.faces, 2000)
-    assert len(drawn.faces) <= 2000 and drawn.weights is not None
-    assert np.allclose(drawn.weights.sum(axis=1), 1.0)
-    # a smooth deformation of some millimetres, far from a scaling of the sphere
-    v = sphere.vertices
-    moved = v + np.column_stack([8 * np.sin(v[:, 1] / 25), 5 * np.cos(v[:, 2] / 30), 0.05 * v[:, 0]])
-    whole = trimesh.Trimesh(moved, sphere.faces, process=False)
-    at = trimesh.Trimesh(drawn.at(moved), drawn.faces, process=False)
-    _, out, _ = trimesh.proximity.closest_point(whole, at.vertices)
-    _, back, _ = trimesh.proximity.closest_point(at, moved[::5])
-    rest = trimesh.Trimesh(drawn.at(v), drawn.faces, process=False)
-    _, back_at_rest, _ = trimesh.proximity.closest_point(rest, v[::5])
-    # the drawn vertices stay on the deformed surface, and what lies between them departs
-    # from it about as much as the decimation at rest (chords of a 60 mm sphere: ~0.3 mm)
-    assert out.max() < 1e-3, out.max()
-    assert back.max() < 1.5 * back_at_rest.max() < 0.75, (back.max(), back_at_rest.max())
-    assert at.is_winding_consistent and at.volume > 0  # still wound outward: drawn one-sided
-    small = trimesh.creation.icosphere(2)
-    assert follower(small.vertices, small.faces, 2000).weights is None  # within the budget: whole
-    assert np.array_equal(follower(small.vertices, small.faces, 2000).at(small.vertices),
-                          small.vertices.astype(np.float32))
 
 
 @pytest.fixture(scope="module")
@@ -174,20 +147,3 @@ def test_the_translucent_livers_are_drawn_one_sided_and_face_out(app):
         assert drawn.volume > 0
         reg = trimesh.Trimesh(registered.vertices, registered.faces, process=False)
         assert reg.is_winding_consistent and reg.volume > 0
-
-
-def test_the_registered_vessels_are_drawn_decimated_on_the_registered_surface(app):
-    with headless_tab(app) as (_, view):
-        app.stylus.collect_now()
-        run_to_end(app, RunKind.RIGID)
-        assert app.core.settle()
-        surfaces = app.shown.geometry().surfaces
-        for node in view.layers.nodes["Registered vessels"]:
-            name = node.name.rsplit("/", 1)[-1]
-            v, f = surfaces[name]
-            assert len(node.faces) <= DISPLAY_VESSEL_FACES < len(f)
-            whole = trimesh.Trimesh(v, f, process=False)
-            _, out, _ = trimesh.proximity.closest_point(whole, node.vertices)
-            _, back, _ = trimesh.proximity.closest_point(trimesh.Trimesh(node.vertices, node.faces, process=False),
-                                                         np.asarray(v)[::3])
-            assert out.max() < 1e-3 and back.max() < 0.4, (name, out.max(), back.max())  # 0.32 mm seen

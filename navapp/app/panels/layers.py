@@ -256,18 +256,16 @@ class LayersPanel:
         surfaces = geom.surfaces
         arrays: dict[str, np.ndarray] = {}  # the new positions of nodes already on screen
         for name, (v, f) in surfaces.items():
-            # drawn decimated, its vertices following the surface's (``display.Follower``)
-            drawn = self.core.display.follower(v, f, vessel=name != "liver")
-            v = drawn.at(v)
+            v = np.asarray(v, np.float32)
             if name in self.reg:
                 arrays[name] = v
                 continue
             if name == "liver":
-                node = s.add_mesh_simple("/registered/liver", v, drawn.faces, color=REGISTERED, opacity=0.4,
+                node = s.add_mesh_simple("/registered/liver", v, f, color=REGISTERED, opacity=0.4,
                                         side=LIVER_SIDE)
                 self._add("Registered liver", node)
             else:
-                self._add("Registered vessels", s.add_mesh_simple(f"/registered/{name}", v, drawn.faces,
+                self._add("Registered vessels", s.add_mesh_simple(f"/registered/{name}", v, f,
                                                                   color=REG_VESSEL[name]))
             self.reg[name] = node if name == "liver" else self.nodes["Registered vessels"][-1]
             self.tween.note(name, v)
