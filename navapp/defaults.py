@@ -23,9 +23,13 @@ N_PLANES = 16
 """iUS planes a simulated scene records: 8 vertical + 8 lateral (``ius.planes``' default and
 maximum); a study's "S+all" registers all of them."""
 
-DISPLAY_FACES = 12_000
-"""Triangles the viewer draws at most per preoperative or true surface (liver, each vessel
-tree): quadric decimation, ``app.display``. Every tab redraws its whole scene in software on a
-machine without a GPU (viser's once-a-second heartbeat and every change), and the phantom's
-57,764-triangle liver and 46,256 vessel triangles cost most of a frame; what the registration
-fits is not touched (docs/decisions.md, "What a tab draws")."""
+DISPLAY_FACES = 4_000
+"""Triangles the viewer draws at most for a preoperative or true liver: quadric decimation,
+``app.display``. Every tab redraws its whole scene in software on a machine without a GPU
+(viser's once-a-second heartbeat and every change), and an idle frame's cost follows the
+triangles drawn, whatever their size on screen; what the registration fits is not touched. On
+the phantoms the drawn liver lies within 0.25 mm of the surface both ways (docs/decisions.md,
+"What a tab draws" and "issue 50 item 7, session 35")."""
+DISPLAY_VESSEL_FACES = 2_000
+"""Triangles the viewer draws at most for a preoperative vessel tree (``DISPLAY_FACES``' reason):
+within 0.25 mm of the vessel's surface both ways on the phantoms."""

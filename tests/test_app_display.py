@@ -1,7 +1,7 @@
 """What a tab draws (issue 50, item 7): every tab redraws its scene in software on a machine
 without a GPU, once a second and on every change, so the preoperative and true surfaces are
-drawn decimated to ``DISPLAY_FACES`` triangles each, close to the surfaces themselves; the
-registration keeps the surfaces whole."""
+drawn decimated (a liver to ``DISPLAY_FACES`` triangles, a vessel tree to ``DISPLAY_VESSEL_FACES``),
+close to the surfaces themselves; the registration keeps the surfaces whole."""
 
 import contextlib
 import threading
@@ -14,7 +14,7 @@ from conftest import BUSY_WAIT_S, run_to_end, start_app, stop_app
 
 from navapp.app.display import DisplaySurfaces
 from navapp.app.state import RunKind
-from navapp.defaults import DISPLAY_FACES
+from navapp.defaults import DISPLAY_FACES, DISPLAY_VESSEL_FACES
 
 SCENE = {"name": "display", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
          "stylus": {"coverage": 0.2}, "ius": {"planes": 2}}
@@ -23,17 +23,18 @@ SCENE = {"name": "display", "anatomy": {"phantom": 0}, "deformation": {"release"
 def test_a_drawn_surface_is_small_and_stays_on_the_surface(phantoms):
     shown = DisplaySurfaces()
     for p in phantoms[:2]:
-        for mesh in (p.liver, p.portal, p.hepatic):
-            v, f = shown.of(mesh)
-            assert len(f) <= DISPLAY_FACES < len(mesh.faces)
+        for mesh, vessel in ((p.liver, False), (p.portal, True), (p.hepatic, True)):
+            v, f = shown.of(mesh, vessel=vessel)
+            assert len(f) <= (DISPLAY_VESSEL_FACES if vessel else DISPLAY_FACES) < len(mesh.faces)
             drawn = trimesh.Trimesh(v, f, process=False)
             # both ways, by trimesh's own closest points: the drawn vertices lie on the surface,
-            # and the surface's vertices on what is drawn, within a fifth of a millimetre
+            # and the surface's vertices on what is drawn, within 0.3 mm (about a pixel at the
+            # home view; the vessels' and the fit's errors are millimetres)
             _, out, _ = trimesh.proximity.closest_point(mesh, v)
             _, back, _ = trimesh.proximity.closest_point(drawn, np.asarray(mesh.vertices)[::5])
-            assert out.max() < 0.2 and back.max() < 0.2, (p.name, out.max(), back.max())
-            assert abs(drawn.volume - mesh.volume) / mesh.volume < 0.01
-            assert shown.of(mesh)[0] is v  # made once, for every tab
+            assert out.max() < 0.3 and back.max() < 0.3, (p.name, out.max(), back.max())
+            assert abs(drawn.volume - mesh.volume) / mesh.volume < 0.015
+            assert shown.of(mesh, vessel=vessel)[0] is v  # made once, for every tab
     small = trimesh.creation.icosphere(2)
     v, f = shown.of(small)  # a surface within the budget is drawn as it is
     assert np.array_equal(v, small.vertices.astype(np.float32)) and np.array_equal(f, small.faces)
@@ -100,8 +101,10 @@ def test_a_tab_is_sent_the_drawn_surfaces_and_the_fit_keeps_the_whole_ones(app):
         drawn = [*nodes["Preoperative liver"], *nodes["True deformed liver (ghost)"],
                  *[n for n in nodes["Preoperative vessels"] if hasattr(n, "faces")]]
         assert len(drawn) == 4  # the liver, its true deformed ghost, two vessel trees
-        assert all(len(n.faces) <= DISPLAY_FACES for n in drawn)
-        assert sum(len(n.faces) for n in drawn) < 0.4 * (2 * len(app.core.preop.liver.faces)
+        assert all(len(n.faces) <= DISPLAY_FACES for n in drawn[:2])
+        assert all(len(n.faces) <= DISPLAY_VESSEL_FACES for n in drawn[2:])
+        # an idle frame's cost in software follows the triangles drawn: a tenth of the surfaces'
+        assert sum(len(n.faces) for n in drawn) < 0.1 * (2 * len(app.core.preop.liver.faces)
                                                          + len(app.core.preop.portal.faces)
                                                          + len(app.core.preop.hepatic.faces))
 

@@ -121,7 +121,7 @@ class LayersPanel:
             colour = VESSEL[name]
             m = preop.vessel(name)
             if m is not None:
-                self._add("Preoperative vessels", s.add_mesh_simple(f"/preop/{name}", *shown(m),
+                self._add("Preoperative vessels", s.add_mesh_simple(f"/preop/{name}", *shown(m, vessel=True),
                                                                     color=colour, opacity=0.45))
             cl = preop.centerline(name)
             if cl is not None:
