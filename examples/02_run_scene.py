@@ -27,7 +27,7 @@ def main(argv=None) -> dict:
     args = ap.parse_args(argv)
 
     scene = navapp.load_scene(args.scene or navapp.scene_dir() / "phantom0-L.toml")
-    scene = replace(scene, planes=max(scene.planes, args.planes))
+    scene = scene.with_planes(max(scene.planes, args.planes))
     if args.truth_edge:
         scene = replace(scene, mesh_edge_mm=args.truth_edge)
     report = navapp.simulate(scene, args.out)  # its truth: a field on its own mesh

@@ -31,7 +31,7 @@ Example::
 """
 
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib import resources
 from pathlib import Path
 
@@ -125,6 +125,12 @@ class Scene:
         """The number of preset iUS planes (``[ius] planes``; ``sources/ius.py``)."""
         spec = self.sources.get("ius")
         return 0 if spec is None else int(spec.planes)
+
+    def with_planes(self, planes: int) -> "Scene":
+        """This scene with ``planes`` preset iUS planes (its ``[ius] planes``), every other
+        setting as it was."""
+        return replace(self, sources={**self.sources, "ius": registered()["ius"].parse({"planes": planes},
+                                                                                      self.source)})
 
     def declared_pose(self) -> tuple[float, float] | None:
         """(sd_mm, sd_deg) the case declares (``[pose]``), or None (an unknown frame)."""
