@@ -179,6 +179,9 @@ class _Provider:
     def view_resume(self, token, previous):
         return None
 
+    def view_going(self, token):
+        pass
+
 
 @pytest.fixture()
 def view2d():

@@ -197,6 +197,36 @@ def test_undo_stays_in_its_tab_and_comes_back_after_a_reload(app):
     assert app.core.resume(back, None) is None and back.plane == 1 and worker.current() is back
 
 
+def test_a_reload_is_matched_though_its_old_connection_closes_late(app):
+    """CI (a loaded 2-core machine): the reloaded tab's new page asked for its work back more
+    than ``CLOSE_LAG_S`` before the server heard the old connection close, and came back on
+    plane 1 without its contour. The old page says it is going (a beacon as it is left), and
+    that is what matches the reload; a tab taken over once is not taken again."""
+    from navapp.app.core import CLOSE_LAG_S
+
+    old = app.core.new_client_state()
+    app.imaging.show(old, 1)
+    assert app.drawing.click(old, 40, 50, "PV contour", plane=1) is None
+    drawn = old.drawing
+    app.core.going(old)  # the page is left: its beacon arrives, its connection is still open
+    new = app.core.new_client_state()
+    assert app.core.resume(new, None) is None
+    assert new.plane == 1 and new.drawing is drawn and old.current() is new
+    new.resume_asked -= CLOSE_LAG_S + 1.0  # the old connection closes long after
+    app.core.park(old.token)
+    assert old.token not in app.core.parked  # taken already: nobody else's to take
+    other = app.core.new_client_state()  # a tab opened now takes nothing
+    assert app.core.resume(other, None).startswith("wait")
+    other.resume_asked -= CLOSE_LAG_S + 1.0
+    assert app.core.resume(other, None) is None and other.drawing is None and other.current() is other
+    # a page that is only redrawn in its tab (same token) and asks again is not "going" any more
+    app.core.going(new)
+    assert app.core.resume(new, None) is None and new.going is None
+    third = app.core.new_client_state()
+    third.resume_asked = None
+    assert app.core.resume(third, None).startswith("wait") and new.current() is new
+
+
 def test_cancel_keeps_the_previous_result(app):
     wait_idle(app)
     before = app.core.result

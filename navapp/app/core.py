@@ -166,21 +166,29 @@ class Core:
         """A tab disconnected: its state is kept aside (the newest ``PARKED`` tabs) for its reload."""
         with self.lock:
             cs = self.states.pop(token, None)
-            if cs is not None:
+            if cs is not None and cs.successor is None:  # not one a reload has taken over already
                 cs.parked = time.monotonic()
                 self.parked[token] = cs
                 while len(self.parked) > PARKED:
                     self.parked.pop(next(iter(self.parked)))
 
+    def going(self, cs: ClientState):
+        """The 2D view's page of ``cs`` is being left (reloaded or closed): heard at once, while
+        the viewer's own connection may be closed many seconds later on a loaded server (a
+        reload's new page had asked for its work back before then, and been refused)."""
+        with self.lock:
+            cs.going = time.monotonic()
+
     def resume(self, cs: ClientState, previous: str | None) -> str | None:
         """The tab ``cs`` may be a reload: it takes the work of the tab it was back. Its page
         names that tab (``previous``) from the browser's per-tab session storage where the
         browser lets the 2D view's frame keep one (Chromium refuses it to a frame of another
-        site when third-party storage is blocked); else (None) the one tab whose connection
-        closed within ``RELOAD_S`` (and no later than ``CLOSE_LAG_S`` after this tab first
-        asked) is taken, and none when there are several. ``WAIT`` while the old connection
-        may not have closed yet (``CLOSE_LAG_S``)."""
+        site when third-party storage is blocked); else (None) the one tab that left within
+        ``RELOAD_S`` (its page said so, ``going``, or its connection closed) and no later than
+        ``CLOSE_LAG_S`` after this tab first asked is taken, and none when there are several.
+        ``WAIT`` while the old tab may not have left yet (``CLOSE_LAG_S``)."""
         with self.lock:
+            cs.going = None  # asking again: this page is here (its frame was only redrawn)
             if previous is not None:
                 old = self.parked.pop(previous, None)
                 if old is None:
@@ -190,12 +198,18 @@ class Core:
                 if cs.resume_asked is None:
                     cs.resume_asked = now
                 asked = cs.resume_asked
-                recent = [t for t, p in self.parked.items() if p.parked is not None and now - p.parked < RELOAD_S
-                          and p.parked - asked < CLOSE_LAG_S]
-                if len(recent) != 1:
-                    # a loaded server may close the old connection seconds after the new one opened
-                    return WAIT if not recent and now - asked < CLOSE_LAG_S else None
-                old = self.parked.pop(recent[0])
+
+                def left(p: ClientState) -> float | None:
+                    return p.going if p.going is not None else p.parked
+
+                gone = [p for p in (*self.parked.values(), *self.states.values())
+                        if p is not cs and p.successor is None and (t := left(p)) is not None
+                        and now - t < RELOAD_S and t - asked < CLOSE_LAG_S]
+                if len(gone) != 1:
+                    # a loaded server may hear the old tab leave seconds after the new one asked
+                    return WAIT if not gone and now - asked < CLOSE_LAG_S else None
+                old = gone[0]
+                self.parked.pop(old.token, None)  # else still connected: parked no more (``park``)
             cs.take_over(old)
         self.refresh_view(cs, Change.PLANE)
         return None

@@ -83,6 +83,9 @@ class ClientState:
     successor: ClientState | None = None  # the same tab after a reload, which took over this state's work
     resume_asked: float | None = None  # when its page first asked to take a reloaded tab's work back
     parked: float | None = None  # when its connection closed (``Core.park``)
+    # when its 2D view's page said it was going (a reload or a close: ``Core.going``), which a
+    # loaded server hears before the closed connection, and in the order the browser did it
+    going: float | None = None
 
     def touch(self):
         self.version += 1

@@ -92,6 +92,7 @@ class Provider(Protocol):
     def view_command(self, token: str, cmd: str, feature: str, plane: int | None = None) -> str | None: ...
     def view_pixel_ratio(self, token: str, ratio: float) -> None: ...
     def view_resume(self, token: str, previous: str | None) -> str | None: ...
+    def view_going(self, token: str) -> None: ...
 
 
 @cache
@@ -217,6 +218,9 @@ class _Handler(BaseHTTPRequestHandler):
             elif path == "/us/command":
                 err = self.provider.view_command(token, _str(body, "cmd", required=True), _str(body, "feature"),
                                                  _int(body, "plane", required=False))
+            elif path == "/us/going":  # the page's last word (a beacon): nothing to answer
+                self.provider.view_going(token)
+                return self._send(204, b"", "text/plain")
             elif path == "/us/resume":
                 previous = _str(body, "previous")
                 err = self.provider.view_resume(token, previous if TOKEN.fullmatch(previous) else None)

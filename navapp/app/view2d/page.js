@@ -169,12 +169,17 @@ $("plane").onchange = () => { if ($("plane").value !== "") command("Plane", {pla
 // a reload is the same tab: its page takes back the work of the page before (undo history,
 // contour in progress, plane). sessionStorage is per tab, so it names that page exactly; a
 // browser that refuses storage to this frame (another site than the viewer) names none, and
-// the server takes the one tab that has just gone, if there is exactly one
+// the server takes the one tab that has just gone, if there is exactly one. A page being left
+// says so at once (a beacon is sent as the page goes): the viewer's connection of a reloaded tab
+// can close many seconds after its new page asked, on a loaded server
+window.addEventListener("pagehide", () => {
+  try { navigator.sendBeacon(url("/us/going"), "{}"); } catch (e) {}
+});
 async function resume(){
   let prev = null;
   try { prev = sessionStorage.getItem("navapp-view"); sessionStorage.setItem("navapp-view", TOKEN); } catch (e) {}
   if (prev === TOKEN) return;
-  for (let i = 0; i < 60; i++){  // the old page's connection may close a little after this one opened
+  for (let i = 0; i < 240; i++){  // the old page's connection may close a while after this one opened
     try {
       const s = await post("/us/resume", {previous: prev || ""});
       if (!s.error) { apply(s); return; }

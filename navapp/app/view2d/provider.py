@@ -145,6 +145,11 @@ class View2D:
         if view is not None:
             view.camera_changed()
 
+    def view_going(self, token: str) -> None:
+        cs = self.core.state_for(token)
+        if cs is not None:
+            self.core.going(cs)
+
     def view_resume(self, token: str, previous: str | None) -> str | None:
         cs = self.core.state_for(token)
         if cs is None:
