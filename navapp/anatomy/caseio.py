@@ -57,7 +57,8 @@ CASE_SETTINGS: dict = {
     "frame": {"case": str, "source": str, "source_to_case": list, "files": dict, "file_frames": dict},  # navapp import
     # the intraoperative data's frame is registered to the preoperative one, to within these
     # standard deviations per axis (``registration.prior.PosePrior``); absent or known = false: unknown
-    "intraop": {"pose": {"known": bool, "sd_mm": Real, "sd_deg": Real}},
+    # where the organ is held (``mechanics.supports.HeldSupports``): the registration's basis vanishes there
+    "intraop": {"pose": {"known": bool, "sd_mm": Real, "sd_deg": Real}, "supports": {"held": str, "release": str}},
 }
 """Every key case.toml may hold, with its type; a table's keys are listed in a dict. Keys
 navapp does not read are refused: a setting that is silently ignored looks honoured."""

@@ -35,6 +35,7 @@ from ..errors import InputError
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.transforms import apply_inverse
 from ..geometry.tre import tre_stats
+from ..mechanics.supports import case_supports
 from ..registration.forces import Answer
 from ..registration.local_modes import LocalModeOptions
 from ..registration.pipeline import RobustOptions, prepare, register
@@ -67,8 +68,12 @@ def declared_prior(case_dir: Path, case) -> PosePrior:
     T = np.array(rep["tracker_offset"], float)
     return PosePrior(max(float(np.linalg.norm(T[:3, 3])), 0.1), max(float(np.degrees(rotation_angle(T[:3, :3]))), 0.1))
 def declared_supports(case) -> dict:
-    """Where the case's scene held the organ (its ``supports`` and ``release``), as ``prepare``'s
-    keyword arguments: what a surgeon declaring the supports would say."""
+    """Where the case says its organ is held (case.toml ``[intraop.supports]``), else where its
+    scene held it (its ``supports`` and ``release``: what a surgeon declaring the supports would
+    say), as ``prepare``'s keyword arguments."""
+    held = case_supports(case.settings)
+    if held is not None:
+        return held.prepare_args()
     scene = load_scene(case.settings["scene"])
     return {"supports": scene.supports, "release": scene.release}
 

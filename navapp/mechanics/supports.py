@@ -10,11 +10,13 @@ ligaments and the falciform attachment, one side released by ``release`` (L, N o
 bounding box in the preoperative frame (x left–right, y posterior–anterior, z inferior–superior).
 """
 
+from dataclasses import dataclass
 from enum import StrEnum
 
 import numpy as np
 
 from ..anatomy.meshing import TetMesh
+from ..errors import InputError
 
 
 class Supports(StrEnum):
@@ -22,6 +24,43 @@ class Supports(StrEnum):
     LIGAMENTS = "ligaments"  # bare area + triangular ligaments + falciform (``release`` frees one side)
     POSTERIOR = "posterior"  # every boundary node whose outward normal faces posterior
     BARE_AREA = "bare_area"  # the bare area alone (the caval attachment): the lobes swing under a load
+
+
+RELEASES = ("L", "N", "R")  # the ligament released on the left, none, or on the right
+
+
+@dataclass(frozen=True)
+class HeldSupports:
+    """Where a case says its organ is held: case.toml's ``[intraop.supports]`` (``held``,
+    ``release``) or ``navapp register --supports``. The registration's basis then vanishes
+    there in every mode (``BasisSettings.supports``)."""
+
+    held: Supports
+    release: str = "N"  # with ``held = ligaments``: the side released (L, N or R)
+
+    @classmethod
+    def parse(cls, held: str, release: str = "N", where=None) -> "HeldSupports":
+        """From the words a user wrote; ``where``: the file or option named in the one-line error."""
+        if held not in {s.value for s in Supports}:
+            raise InputError(f"supports must be one of {', '.join(s.value for s in Supports)}, got {held!r}", where)
+        if release not in RELEASES:
+            raise InputError(f"the released side must be \"L\", \"N\" or \"R\", got {release!r}", where)
+        return cls(Supports(held), release)
+
+    def prepare_args(self) -> dict:
+        """``registration.pipeline.prepare``'s keyword arguments."""
+        return {"supports": self.held.value, "release": self.release}
+
+
+def case_supports(settings: dict, where=None) -> HeldSupports | None:
+    """A case's declared supports (case.toml ``[intraop.supports]``), None when it declares none
+    (the paper's free-floating basis)."""
+    table = settings.get("intraop", {}).get("supports")
+    if table is None:
+        return None
+    if "held" not in table:
+        raise InputError("[intraop.supports] needs held = \"ligaments\", \"posterior\" or \"bare_area\"", where)
+    return HeldSupports.parse(table["held"], table.get("release", "N"), where)
 
 
 def outward_normals(mesh: TetMesh) -> tuple[np.ndarray, np.ndarray]:

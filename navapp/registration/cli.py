@@ -28,8 +28,39 @@ def add_register_parser(sub):
                    help="the data arrive in a frame registered to the preoperative one, to within MM and DEG "
                         "(standard deviations per axis): a pose prior holds what the data cannot determine; "
                         "'none': an unknown frame (the multi-start search). Default: the case's [intraop.pose]")
+    s.add_argument("--supports", metavar="HELD",
+                   help="where the organ is held (ligaments, posterior or bare_area; 'none': free-floating, the "
+                        "paper's basis): every mode of the basis vanishes there. Default: the case's "
+                        "[intraop.supports]")
+    s.add_argument("--release", metavar="SIDE",
+                   help="with --supports ligaments: the ligament released, L, N (none) or R. Default: the case's, "
+                        "else N")
+    s.add_argument("--surface-forces", action="store_true",
+                   help="with declared supports: no deformation, the basis's fit or a force at every surface node, "
+                        "whichever predicts held-out surface data best (a local dent; 15-35 s; docs/robustness.md)")
     s.add_argument("--json", action="store_true", help="print a one-line JSON summary on stdout")
     s.set_defaults(func=cmd_register)
+
+
+def held_supports(args, case):
+    """The supports a registration holds its basis at: ``--supports``/``--release`` where given,
+    else the case's ``[intraop.supports]``; None: free-floating."""
+    from ..mechanics.supports import HeldSupports, case_supports
+
+    declared = case_supports(case.settings, Path(args.case) / "case.toml")
+    held = getattr(args, "supports", None)
+    release = getattr(args, "release", None)
+    if held is None:
+        if declared is None:
+            if release is not None:
+                raise InputError("--release needs --supports ligaments (or [intraop.supports] in case.toml)")
+            return None
+        return declared if release is None else HeldSupports.parse(declared.held.value, release, "--release")
+    if held == "none":
+        if release is not None:
+            raise InputError("--release with --supports none: a free-floating organ has no ligaments to release")
+        return None
+    return HeldSupports.parse(held, release or (declared.release if declared is not None else "N"), "--supports")
 
 
 def cmd_register(args):
@@ -50,7 +81,12 @@ def cmd_register(args):
         prior = declared_pose(case.settings)
     if not case.intraop:
         raise InputError("no intraoperative data (intraop/*.csv): nothing to register to", args.case)
-    model, sec = prepare(case, args.edge, args.k)
+    held = held_supports(args, case)
+    forces = getattr(args, "surface_forces", False)
+    if forces and held is None:
+        raise InputError("--surface-forces needs declared supports (--supports HELD, or [intraop.supports] in "
+                         "case.toml): a free-floating organ has no unique displacement under a load")
+    model, sec = prepare(case, args.edge, args.k, **(held.prepare_args() if held is not None else {}))
     bar = progress.bar(args.max_iterations, "LIBR", "iter")
 
     def on_iteration(p):
@@ -60,12 +96,13 @@ def cmd_register(args):
     reg = register(model, case.intraop, deform=not args.no_deform,
                    options=LMOptions(max_iterations=args.max_iterations), callback=on_iteration,
                    init=RobustOptions(local_modes=LocalModeOptions() if args.local_modes else None),
-                   pose_prior=prior)
+                   pose_prior=prior, surface_forces=forces)
     bar.close()
     sec.update(reg.seconds)
     summary: dict = {"case": case.name, "nodes": model.basis.M, "k": model.basis.k,
                "features": {n: len(p) for n, p in reg.data_model_frame.items()},
-               "rigid": {"iterations": reg.rigid.iterations, "rms_mm": reg.rigid.rms_mm}}
+               "rigid": {"iterations": reg.rigid.iterations, "rms_mm": reg.rigid.rms_mm},
+               "supports": None if held is None else {"held": held.held.value, "release": held.release}}
     if reg.libr is not None:
         r = reg.libr
         summary.update(iterations=r.iterations, stop_reason=r.stop_reason, omega=r.omega,
