@@ -43,6 +43,8 @@ _EXPORTS = {
     # mechanics
     "Basis": "navapp.mechanics.basis",
     "BasisSettings": "navapp.mechanics.basis",
+    "HeldSupports": "navapp.mechanics.supports",
+    "case_supports": "navapp.mechanics.supports",
     # registration
     "prepare": "navapp.registration.pipeline",
     "register": "navapp.registration.pipeline",
@@ -76,11 +78,12 @@ _EXPORTS = {
 }
 
 __all__ = [
-    "Basis", "BasisSettings", "Case", "Correspondence", "EDGE_MM", "FEATURES", "Feature", "FitQuality", "InputError",
-    "K", "LMOptions", "LibrResult", "LocalModeOptions", "NavappError", "PosePrior", "PreopModel", "Registration",
-    "RegistrationModel", "RigidResult", "RobustOptions", "Scene", "Weights", "data_level", "declared_pose",
-    "deform_points", "demo_scene", "load_scene", "make_phantom", "prepare", "read_case", "register", "rigid_starts",
-    "scene_dir", "simulate", "study_scenes", "tre_stats", "write_case", "write_outputs",
+    "Basis", "BasisSettings", "Case", "Correspondence", "EDGE_MM", "FEATURES", "Feature", "FitQuality",
+    "HeldSupports", "InputError", "K", "LMOptions", "LibrResult", "LocalModeOptions", "NavappError", "PosePrior",
+    "PreopModel", "Registration", "RegistrationModel", "RigidResult", "RobustOptions", "Scene", "Weights",
+    "case_supports", "data_level", "declared_pose", "deform_points", "demo_scene", "load_scene", "make_phantom",
+    "prepare", "read_case", "register", "rigid_starts", "scene_dir", "simulate", "study_scenes", "tre_stats",
+    "write_case", "write_outputs",
 ]  # the keys of _EXPORTS (a test checks)
 
 if TYPE_CHECKING:  # what type checkers and editors see; at run time ``__getattr__`` imports on first use
@@ -92,6 +95,7 @@ if TYPE_CHECKING:  # what type checkers and editors see; at run time ``__getattr
     from .features import TABLE as FEATURES
     from .features import Feature
     from .mechanics.basis import Basis, BasisSettings
+    from .mechanics.supports import HeldSupports, case_supports
     from .registration.libr import LibrResult, LMOptions
     from .registration.local_modes import LocalModeOptions
     from .registration.model import RegistrationModel

@@ -52,7 +52,7 @@ from ..mechanics.supports import held_nodes
 from ..threads import limit_threads
 from .libr import LMOptions, register_libr
 from .model import RegistrationModel, deform
-from .support import SupportOptions, blocks_of
+from .support import SupportOptions, blocks_of, supports_not_borne_out
 
 MAX_SITES = 150
 """Force sites at most (``SurfaceForces.responses``): one solve each, and with SuperLU a solve of
@@ -468,9 +468,8 @@ class ForceChoice:
     def supports_warning(self) -> str | None:
         if not self.supports_contradicted:
             return None
-        return (f"the declared supports are not borne out by the data: the free-floating model predicts held-out "
-                f"surface data better ({self.free_mm:.2f} mm) than the answer held at them ({self.shown_mm:.2f} mm)"
-                " — check where the organ is held (or register without declared supports)")
+        assert self.free_mm is not None
+        return supports_not_borne_out(self.free_mm, self.shown_mm, "the answer held at them is shown")
 
     @property
     def warning(self) -> str | None:

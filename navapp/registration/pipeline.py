@@ -68,7 +68,15 @@ from .rigid import (
 )
 from .rotation import rotation
 from .stages import StageClock, StageTime
-from .support import Support, SupportOptions, check_support, check_support_pair, pooled_rms, weigh_correction
+from .support import (
+    HeldCheck,
+    Support,
+    SupportOptions,
+    check_support,
+    check_support_pair,
+    pooled_rms,
+    weigh_correction,
+)
 from .uncertainty import OrganError, PoseEvidence, organ_error, pose_evidence
 
 
@@ -190,6 +198,10 @@ class Registration:
     # ``register(surface_forces=True)`` warm (``beta0``): the forces are not refitted (one solve
     # per force site is no live update), so the basis's answer is shown and a line says so
     warm_without_forces: bool = False
+    # a model held at declared supports, fresh and guarded: its answer against the free-floating
+    # basis on the same held-out blocks (``support.HeldCheck``); contradicted, the registration
+    # returned is the free-floating model's, carrying this check and its line
+    held: HeldCheck | None = None
     # wall and CPU seconds per stage, in the order run (``stages``): every guard's cost apart
     stages: dict[str, StageTime] = field(default_factory=dict)
 
@@ -222,6 +234,7 @@ class Registration:
                 declared=self.pose_prior is not None) if self.support and self.forces is None else None),
             (WarningKind.SURFACE_FORCES, self.forces.warning if self.forces is not None else None),
             (WarningKind.SUPPORTS, self.forces.supports_warning if self.forces is not None else None),
+            (WarningKind.SUPPORTS, self.held.warning if self.held is not None else None),
             (WarningKind.SURFACE_FORCES, WARM_WITHOUT_FORCES if self.warm_without_forces else None),
             (WarningKind.POOR_FIT, self.quality.warning if self.quality else None),
             # no organ figure beside a pose not to be believed (the notes, an undetermined
@@ -681,6 +694,30 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     InputError
         for data that are not (N, 3), not finite, or of an unknown feature.
     """
+    reg = _register(model, data, deform, options, callback, cancel, beta0, rigid, init, starts, pose_prior, given,
+                    surface_forces, undeclared)
+    if reg.held is not None and reg.held.contradicted and not (cancel is not None and cancel.is_set()):
+        # the data contradict the declared supports: the free-floating model's registration,
+        # every check its own, with the line that says why it is the one shown (docs/decisions.md,
+        # "Declared supports tested by the data")
+        free = undeclared if undeclared is not None else free_model(model)
+        alt = _register(free, data, deform, options, callback, cancel, beta0, rigid, init, starts, pose_prior,
+                        given, False, None)
+        if alt.deformed or reg.deformed:
+            alt.held = replace(reg.held, replaced=True)
+            alt.seconds["held_model"] = sum(reg.seconds.values())  # the registration it replaces, its check included
+            return alt
+        # two rigid answers, which the supports do not shape: the held one stays, with no line
+        # (on the local-load cases this halved the lines and changed no answer's TRE)
+    return reg
+
+
+def _register(model: RegistrationModel, data: dict, deform, options: LMOptions | None, callback, cancel, beta0,
+              rigid: RigidResult | None, init: RobustOptions | None, starts: list[Start] | None,
+              pose_prior: PosePrior | None, given: RigidResult | None, surface_forces: bool,
+              undeclared: RegistrationModel | None) -> Registration:
+    """``register`` with the model as given (the answer held at declared supports is checked
+    against the free-floating basis, ``Registration.held``, and not replaced here)."""
     if beta0 is not None and len(beta0) != model.basis.Ju.shape[1] + 6:
         # a warm start from a fit whose model carried local modes: its β has their weights too
         raise InputError(f"beta0 has {len(beta0)} entries; this model's state has {model.basis.Ju.shape[1] + 6} "
@@ -909,6 +946,18 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         clock.mark("forces")
     elif surface_forces and deform and not fresh:
         reg.warm_without_forces = True
+    elif model.basis.settings.supports is not None and deform and fresh and support is not None and \
+            init.support is not None and result is not None and result.stop_reason != "cancelled":
+        # declared supports are a hypothesis the data can contradict: the free-floating basis's
+        # fits to the same held-out blocks (docs/decisions.md, "Declared supports tested by the data")
+        t = time.perf_counter()
+        free = check_support(undeclared if undeclared is not None else free_model(model), local, options,
+                             init.support, cancel)
+        if free is not None and not (cancel is not None and cancel.is_set()):
+            reg.held = HeldCheck(str(model.basis.settings.supports),
+                                 support.deformable_mm if reg.deformed else support.rigid_mm, free.deformable_mm)
+        sec["supports_check"] = time.perf_counter() - t
+        clock.mark("supports_check")
     if fresh and reg.deformed and result is not None and result.stop_reason != "cancelled":
         # every check above compares the answer with simpler ones on the data; this one asks
         # whether it is good enough to navigate by at all (docs/decisions.md, "An answer the data
@@ -964,7 +1013,8 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
                if moved else {})}
     for key, part in (("pose", reg.pose_choice), ("pose_determinacy", reg.determinacy), ("support", reg.support),
                       ("predicted_error", reg.organ), ("local_modes", reg.local_modes),
-                      ("pose_evidence", reg.pose_evidence), ("surface_forces", reg.forces)):
+                      ("pose_evidence", reg.pose_evidence), ("surface_forces", reg.forces),
+                      ("supports_check", reg.held)):
         if part is not None:
             summary[key] = part.as_dict()
     lines = texts(reg.warnings) + [w for t in summary.get("targets", []) if (w := t.get("warning"))]

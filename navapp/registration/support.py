@@ -163,6 +163,43 @@ class Support:
                     "outweighs": self.outweighs})}
 
 
+def supports_not_borne_out(free_mm: float, held_mm: float, shown: str) -> str:
+    """The one line for declared supports the data contradict (``HeldCheck``,
+    ``forces.ForceChoice``): ``shown`` says which answer is shown."""
+    return (f"the declared supports are not borne out by the data: the free-floating model predicts held-out "
+            f"surface data better ({free_mm:.2f} mm) than the answer held at them ({held_mm:.2f} mm) — {shown}; "
+            "check where the organ is held")
+
+
+@dataclass(frozen=True)
+class HeldCheck:
+    """Declared supports tested by the data (a model held at them, ``prepare(supports=)``): the
+    held-out RMS (mm) of the answer the held model gives, and of the free-floating basis's fits
+    to the same folds. Where the free basis predicts the held-out data better (no margin: the
+    same criterion as the surface forces' test of the supports), the supports are contradicted,
+    and the free-floating model's registration is the answer (``replaced``) unless neither
+    answer deforms: two rigid answers the supports do not shape (``pipeline.register``)."""
+
+    held: str  # the declared supports' name
+    held_mm: float
+    free_mm: float
+    replaced: bool = False  # the answer is the free-floating model's registration
+
+    @property
+    def contradicted(self) -> bool:
+        return self.free_mm < self.held_mm
+
+    @property
+    def warning(self) -> str | None:
+        if not self.replaced:
+            return None
+        return supports_not_borne_out(self.free_mm, self.held_mm, "the free-floating model's answer is shown")
+
+    def as_dict(self) -> dict:
+        return {"held": self.held, "heldout_held_mm": round(self.held_mm, 3), "heldout_free_mm": round(self.free_mm, 3),
+                "contradicted": self.contradicted, "replaced": self.replaced}
+
+
 def pooled_rms(features: dict, names=None) -> float:
     """RMS residual (mm) over the points of the features ``names`` (default: every data
     feature) of an ``objective.evaluate`` / ``LibrResult`` feature table."""
