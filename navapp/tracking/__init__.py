@@ -4,7 +4,11 @@ data is ``registration.live``, its benchmark ``evaluation.live_bench``).
 - ``config``: TOML config (PLUS device names, ImageToProbe, watchdog timeouts, digitising rate);
 - ``events``: the typed events the app receives (StylusSample, ProbePose, ProbeSample, ToolStatus,
   ConnectionStatus, Skipped, TransformSample);
-- ``client``: ``TrackingClient``, an OpenIGTLink client thread (pyigtl) producing those events;
+- ``client``: ``TrackingClient``, an OpenIGTLink client thread (pyigtl) checking every message
+  and handing it to its source's receiver;
+- ``receivers``: the receiving side of each tracked data source, found from ``features.TABLE``
+  (the stylus's tip stream, the probe's pose and frames, a source's POINT messages, in
+  Reference or placed by the tool's own pose);
 - ``watchdog``: per-device seen / stale / missing;
 - ``digitiser``: ``Digitiser``, stylus points at a set rate while recording;
 - ``replay``: ``ReplayServer``, a PLUS-like server playing a simulated scene (``navapp replay``);
