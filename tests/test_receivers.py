@@ -149,3 +149,33 @@ def test_the_viewer_takes_a_tracked_laparoscopes_points_into_its_session_in_refe
         app.server.stop()
         app.view2d.stop()
         server.stop()
+
+
+def test_points_are_placed_by_the_pose_at_their_own_time_not_the_latest():
+    """A depth matcher sends its points after the images it matched: the camera has moved
+    since. They are placed by the pose interpolated at their timestamp (slerp, here checked
+    against the rotation composed by hand: Ra · (Raᵀ Rb)^f)."""
+    from navapp.tracking.receivers import Message
+
+    a = _camera_to_reference()
+    b = a.copy()
+    b[:3, :3] = Rotation.from_euler("zy", [25.0, -10.0], degrees=True).as_matrix() @ a[:3, :3]
+    b[:3, 3] += [8.0, -6.0, 4.0]
+    rx = PointsReceiver("laparoscope", ("laparoscope",), POSE, max_pose_age_s=0.2)
+    t = 1000.0
+    for stamp, m in ((t, a), (t + 0.1, b)):
+        ev = rx.receive(Message("TRANSFORM", POSE, 0.0, stamp, pyigtl.TransformMessage(m, device_name=POSE)))
+        rx.keep(ev)
+    in_camera = np.array([[1.0, -2.0, 95.0], [30.0, 5.0, 140.0]])
+    got = rx.receive(Message("POINT", "laparoscope", 0.0, t + 0.04,
+                             pyigtl.PointMessage(positions=in_camera, device_name="laparoscope")))
+    assert isinstance(got, SourcePoints)
+    Ra = Rotation.from_matrix(a[:3, :3])
+    R = (Ra * Rotation.from_rotvec(0.4 * (Ra.inv() * Rotation.from_matrix(b[:3, :3])).as_rotvec())).as_matrix()
+    shift = 0.6 * a[:3, 3] + 0.4 * b[:3, 3]
+    np.testing.assert_allclose(got.points, in_camera @ R.T + shift, atol=1e-9)
+    latest = in_camera @ b[:3, :3].T + b[:3, 3]
+    assert np.linalg.norm(got.points - latest, axis=1).min() > 5.0  # the latest pose would be centimetres off
+    with pytest.raises(ValueError, match="first kept CameraToReference is 0.50 s from the points"):
+        rx.receive(Message("POINT", "laparoscope", 0.0, t - 0.5,
+                           pyigtl.PointMessage(positions=in_camera, device_name="laparoscope")))

@@ -19,12 +19,13 @@ preoperative model is in navapp's LAS frame; registration's rigid part maps mode
 space and so absorbs the tracker-to-patient transform, whatever the tracker's axes are.
 """
 
-from .config import TrackingConfig, load_config
+from .config import ToolDevices, TrackingConfig, load_config
 from .digitiser import Digitiser
 from .events import ConnectionStatus, ProbePose, ProbeSample, Skipped, StylusSample, ToolStatus, TransformSample
 
-__all__ = ["TrackingConfig", "load_config", "Digitiser", "ConnectionStatus", "ProbePose", "ProbeSample", "Skipped",
-           "StylusSample", "ToolStatus", "TransformSample", "TrackingClient", "ReplayServer", "ResultsSender"]
+__all__ = ["TrackingConfig", "ToolDevices", "load_config", "Digitiser", "ConnectionStatus", "ProbePose",
+           "ProbeSample", "Skipped", "StylusSample", "ToolStatus", "TransformSample", "TrackingClient", "ReplayServer",
+           "ResultsSender"]
 
 
 def __getattr__(name):  # the networking modules load on first use

@@ -4,20 +4,29 @@
 Its points arrive as OpenIGTLink POINT messages whose device name is the feature's (pyigtl
 0.3 decodes no POLYDATA). Untracked, they are in Reference already. Tracked (the config's
 ``[tools.<source>] pose``), they are in the tool's own frame — a tracked laparoscope's depth
-points in its camera frame — and the tool's TRANSFORM (ToolToReference) places them: the
-latest pose, if the watchdog's ``stale_s`` or less apart from the points on the sender's
-clock; points without such a pose are refused, not placed where the tool was before.
+points in its camera frame — and the tool's TRANSFORM (ToolToReference) places them at the
+points' own time (their OpenIGTLink timestamp, the sender's clock): the pose interpolated
+between the two kept poses around it (slerp), as PLUS places a tracked frame; a depth
+matcher sends its points some tens of ms after the images it matched, by when the camera
+has moved on. Points newer or older than every kept pose take the nearest one if it is the
+watchdog's ``stale_s`` or less away, and are refused otherwise: never placed where the tool
+was a while before.
 """
 
+from bisect import bisect_left
+from collections import deque
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from ...features import TABLE
+from ...geometry.transforms import apply, interpolate_pose
 from ..config import TrackingConfig
 from ..events import SourcePoints, ToolStatus, TransformSample
 from .base import Event, Message, pose_matrix, seen
+
+POSES_KEPT = 256  # ~2.5 s of a 100 Hz tracker: a depth matcher's points are far younger
 
 
 @dataclass
@@ -25,8 +34,12 @@ class PointsReceiver:
     source: str
     features: tuple[str, ...]  # its POINT devices: its features' names
     pose: str | None = None  # the tool's TRANSFORM placing its points (tracked), or None (in Reference)
-    max_pose_age_s: float = 0.2  # points and pose at most this far apart (sender's clock)
-    latest_pose: TransformSample | None = None
+    max_pose_age_s: float = 0.2  # points and the nearest pose at most this far apart (sender's clock)
+    poses: deque[TransformSample] = field(default_factory=lambda: deque(maxlen=POSES_KEPT))  # in time order
+
+    @property
+    def latest_pose(self) -> TransformSample | None:
+        return self.poses[-1] if self.poses else None
 
     @property
     def devices(self) -> tuple[str, ...]:
@@ -42,19 +55,30 @@ class PointsReceiver:
         if not np.isfinite(pts).all():
             raise ValueError("points not finite")
         if self.pose is not None:
-            p = self.latest_pose
-            if p is None:
-                raise ValueError(f"no {self.pose} yet to place the points")
-            gap = abs(message.t_sent - p.t_sent)
-            if gap > self.max_pose_age_s:
-                raise ValueError(f"the last {self.pose} is {gap:.2f} s from the points "
-                                 f"(more than {self.max_pose_age_s:g} s): not placed")
-            pts = pts @ p.matrix[:3, :3].T + p.matrix[:3, 3]
+            pts = apply(self.pose_at(message.t_sent), pts)
         return SourcePoints(message.t, message.t_sent, message.device, pts)
+
+    def pose_at(self, t: float) -> np.ndarray:
+        """ToolToReference (4, 4) at ``t`` (the sender's clock), or ``ValueError`` saying why not."""
+        if not self.poses:
+            raise ValueError(f"no {self.pose} yet to place the points")
+        times = [p.t_sent for p in self.poses]
+        i = bisect_left(times, t)
+        if 0 < i < len(times):
+            a, b = self.poses[i - 1], self.poses[i]
+            f = (t - a.t_sent) / (b.t_sent - a.t_sent) if b.t_sent > a.t_sent else 1.0
+            return interpolate_pose(a.matrix, b.matrix, f)
+        nearest = self.poses[min(i, len(times) - 1)]
+        gap = abs(t - nearest.t_sent)
+        if gap > self.max_pose_age_s:
+            side = "last" if i == len(times) else "first kept"
+            raise ValueError(f"the {side} {self.pose} is {gap:.2f} s from the points "
+                             f"(more than {self.max_pose_age_s:g} s): not placed")
+        return nearest.matrix
 
     def keep(self, event: Event) -> None:
         if isinstance(event, TransformSample):
-            self.latest_pose = event
+            self.poses.append(event)  # the client keeps each device's messages in time order
 
     def fresh(self, status: Mapping[str, ToolStatus]) -> bool:
         return self.pose is None or seen(status, self.pose)
