@@ -176,6 +176,17 @@ def test_points_are_placed_by_the_pose_at_their_own_time_not_the_latest():
     np.testing.assert_allclose(got.points, in_camera @ R.T + shift, atol=1e-9)
     latest = in_camera @ b[:3, :3].T + b[:3, 3]
     assert np.linalg.norm(got.points - latest, axis=1).min() > 5.0  # the latest pose would be centimetres off
+    def place(stamp):
+        return rx.receive(Message("POINT", "laparoscope", 0.0, stamp,
+                                  pyigtl.PointMessage(positions=in_camera, device_name="laparoscope")))
+
+    np.testing.assert_allclose(place(t + 0.1).points, latest, atol=1e-9)  # at a pose's own time: that pose
     with pytest.raises(ValueError, match="first kept CameraToReference is 0.50 s from the points"):
-        rx.receive(Message("POINT", "laparoscope", 0.0, t - 0.5,
-                           pyigtl.PointMessage(positions=in_camera, device_name="laparoscope")))
+        place(t - 0.5)
+    # a gap in the pose stream (the camera out of view: PLUS's invalid poses are dropped) is not bridged
+    c = b.copy()
+    c[:3, 3] += [40.0, 0.0, 0.0]
+    rx.keep(rx.receive(Message("TRANSFORM", POSE, 0.0, t + 1.1, pyigtl.TransformMessage(c, device_name=POSE))))
+    with pytest.raises(ValueError, match=r"poses -0.40 s and \+0.60 s from them"):
+        place(t + 0.5)
+    assert isinstance(place(t + 1.2), SourcePoints)  # the newest pose, 0.1 s before

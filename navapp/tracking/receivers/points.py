@@ -8,9 +8,10 @@ points in its camera frame — and the tool's TRANSFORM (ToolToReference) places
 points' own time (their OpenIGTLink timestamp, the sender's clock): the pose interpolated
 between the two kept poses around it (slerp), as PLUS places a tracked frame; a depth
 matcher sends its points some tens of ms after the images it matched, by when the camera
-has moved on. Points newer or older than every kept pose take the nearest one if it is the
-watchdog's ``stale_s`` or less away, and are refused otherwise: never placed where the tool
-was a while before.
+has moved on. Both poses must be the watchdog's ``stale_s`` or less from the points (a gap
+in the stream, the tool out of view, is not bridged); points newer or older than every kept
+pose take the nearest one if it is that close. Others are refused: never placed where the
+tool was a while before.
 """
 
 from bisect import bisect_left
@@ -64,10 +65,15 @@ class PointsReceiver:
             raise ValueError(f"no {self.pose} yet to place the points")
         times = [p.t_sent for p in self.poses]
         i = bisect_left(times, t)
+        if i < len(times) and times[i] == t:
+            return self.poses[i].matrix
         if 0 < i < len(times):
             a, b = self.poses[i - 1], self.poses[i]
-            f = (t - a.t_sent) / (b.t_sent - a.t_sent) if b.t_sent > a.t_sent else 1.0
-            return interpolate_pose(a.matrix, b.matrix, f)
+            gap = max(t - a.t_sent, b.t_sent - t)
+            if gap > self.max_pose_age_s:  # the tool went untracked (PLUS's invalid poses are dropped)
+                raise ValueError(f"no {self.pose} within {self.max_pose_age_s:g} s on each side of the points "
+                                 f"(poses {a.t_sent - t:+.2f} s and {b.t_sent - t:+.2f} s from them): not placed")
+            return interpolate_pose(a.matrix, b.matrix, (t - a.t_sent) / (b.t_sent - a.t_sent))
         nearest = self.poses[min(i, len(times) - 1)]
         gap = abs(t - nearest.t_sent)
         if gap > self.max_pose_age_s:
