@@ -149,7 +149,7 @@ class LiveLink:
             # calls seen is drawn or measured from, so a stale pose never comes back
             status = self.client.status()
             st = status.get(self.config.stylus)
-            fresh = st is not None and st.state == "seen"
+            fresh = self.client.fresh("stylus", status)
             moved = s is not None and (self.tip is None or not np.array_equal(s.tip, self.tip))
             if s is not None and fresh and moved and now - last_tip >= TIP_MIN_S:
                 last_tip = now
@@ -164,9 +164,7 @@ class LiveLink:
                 self.core.each_view(lambda v: v.show_live_tip(None))
                 self.core.each_view(lambda v: v.refresh(Change.LIVE))
             f = self.client.latest_frame
-            # the frame's streams: the image, and the probe's pose when the image's comes from it
-            streams = [self.config.image] + ([self.config.probe] if self.config.image_pose == "calibration" else [])
-            imaged = all(status.get(d) is not None and status[d].state == "seen" for d in streams)
+            imaged = self.client.fresh("ius", status)  # the image's stream, and the probe's pose when it places it
             if f is not None and f is not self.frame and imaged:
                 self.frame = f
                 self.core.each_view(_shows("show_live_frame", f))

@@ -37,6 +37,7 @@ from threadpoolctl import threadpool_info
 from ..defaults import EDGE_MM, K
 from ..geometry.closest import kd_search
 from ..geometry.interpolation import interpolation_matrix
+from ..geometry.transforms import interpolate_pose
 from ..geometry.tre import tre_stats
 from ..registration.live import LiveRegistration
 from ..registration.objective import numpy_jacobian
@@ -44,7 +45,6 @@ from ..registration.pipeline import prepare, register
 from ..simulation.levels import data_level
 from ..simulation.scene import demo_scene
 from ..simulation.scenedata import auto_segmentation, load_scene_data, segment_frame
-from ..tracking.replay import interpolate_pose
 
 VARIANTS: dict[str, dict] = {"default": {"threads": 1, "iterations_per_frame": 1},
             "converged_one_thread": {"threads": 1, "iterations_per_frame": None},

@@ -7,7 +7,7 @@ own parametrisation, R(θ) = R_x R_y R_z with its derivatives (paper eq. 9), sta
 """
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 
 def rotvec_matrix(w) -> np.ndarray:
@@ -25,6 +25,14 @@ def homogeneous(R, t) -> np.ndarray:
     m = np.eye(4)
     m[:3, :3], m[:3, 3] = R, t
     return m
+
+
+def interpolate_pose(a, b, f) -> np.ndarray:
+    """(4, 4) rigid pose a fraction ``f`` (0 → ``a``, 1 → ``b``) of the way from ``a`` to ``b``
+    (each (4, 4) rigid): rotation by slerp, translation linearly."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    rots = Rotation.from_matrix(np.stack([a[:3, :3], b[:3, :3]]))
+    return homogeneous(Slerp([0.0, 1.0], rots)(float(f)).as_matrix(), (1 - f) * a[:3, 3] + f * b[:3, 3])
 
 
 def apply(T, points) -> np.ndarray:

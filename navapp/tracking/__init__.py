@@ -4,7 +4,11 @@ data is ``registration.live``, its benchmark ``evaluation.live_bench``).
 - ``config``: TOML config (PLUS device names, ImageToProbe, watchdog timeouts, digitising rate);
 - ``events``: the typed events the app receives (StylusSample, ProbePose, ProbeSample, ToolStatus,
   ConnectionStatus, Skipped, TransformSample);
-- ``client``: ``TrackingClient``, an OpenIGTLink client thread (pyigtl) producing those events;
+- ``client``: ``TrackingClient``, an OpenIGTLink client thread (pyigtl) checking every message
+  and handing it to its source's receiver;
+- ``receivers``: the receiving side of each tracked data source, found from ``features.TABLE``
+  (the stylus's tip stream, the probe's pose and frames, a source's POINT messages, in
+  Reference or placed by the tool's own pose);
 - ``watchdog``: per-device seen / stale / missing;
 - ``digitiser``: ``Digitiser``, stylus points at a set rate while recording;
 - ``replay``: ``ReplayServer``, a PLUS-like server playing a simulated scene (``navapp replay``);
@@ -15,12 +19,13 @@ preoperative model is in navapp's LAS frame; registration's rigid part maps mode
 space and so absorbs the tracker-to-patient transform, whatever the tracker's axes are.
 """
 
-from .config import TrackingConfig, load_config
+from .config import ToolDevices, TrackingConfig, load_config
 from .digitiser import Digitiser
 from .events import ConnectionStatus, ProbePose, ProbeSample, Skipped, StylusSample, ToolStatus, TransformSample
 
-__all__ = ["TrackingConfig", "load_config", "Digitiser", "ConnectionStatus", "ProbePose", "ProbeSample", "Skipped",
-           "StylusSample", "ToolStatus", "TransformSample", "TrackingClient", "ReplayServer", "ResultsSender"]
+__all__ = ["TrackingConfig", "ToolDevices", "load_config", "Digitiser", "ConnectionStatus", "ProbePose",
+           "ProbeSample", "Skipped", "StylusSample", "ToolStatus", "TransformSample", "TrackingClient", "ReplayServer",
+           "ResultsSender"]
 
 
 def __getattr__(name):  # the networking modules load on first use

@@ -1,7 +1,7 @@
 """OpenIGTLink client: TRANSFORM and IMAGE messages from a PLUS server (or 3D Slicer), and
 POINT messages of a data source (``features.SOURCED``, device named as its
-feature), turned into typed events (``events.py``), with per-device watchdog status, reconnection,
-and a stylus digitiser fed on the way.
+feature), turned into typed events (``events.py``) by each source's receiver (``receivers``),
+with per-device watchdog status, reconnection, and a stylus digitiser fed on the way.
 
 Built on pyigtl's ``OpenIGTLinkClient`` (its thread, start/stop and outgoing queue, and
 its message classes for decoding), with the receive loop replaced, because pyigtl 0.3's
@@ -28,23 +28,16 @@ import threading
 import time
 from collections import Counter, deque
 
-import numpy as np
 import pyigtl
 from pyigtl.messages import CRC64, MessageBase
 
-from ..features import SOURCED
 from .config import TrackingConfig
 from .digitiser import Digitiser
-from .events import (
-    ConnectionStatus,
-    ProbePose,
-    ProbeSample,
-    Skipped,
-    SourcePoints,
-    StylusSample,
-    TransformSample,
-    as_matrix,
-)
+from .events import ConnectionStatus, ProbePose, ProbeSample, Skipped, StylusSample, TransformSample
+from .receivers import Message, Receiver, build
+from .receivers.base import pose_matrix
+from .receivers.ius import ProbeReceiver
+from .receivers.stylus import StylusReceiver
 from .watchdog import Watchdog
 
 log = logging.getLogger("navapp.tracking")
@@ -169,10 +162,12 @@ class TrackingClient:
     """Connects to ``config.host:config.port`` (PLUS or Slicer as server) in its own thread.
 
     Events (``events.py``) go to ``on_event`` (called in the client thread: keep it short)
-    and/or to the ``events`` queue (bounded; the oldest is dropped when full). The latest of
-    each kind is also kept (``latest_stylus``, ``latest_probe_pose``, ``latest_frame``).
-    ``digitiser`` is fed every stylus sample in the client thread, so recording does not
-    depend on anybody draining the queue.
+    and/or to the ``events`` queue (bounded; the oldest is dropped when full). Each source's
+    receiver (``receivers``: ``receiver(source)``) makes them and keeps its latest
+    (``latest_stylus``, ``latest_probe_pose``, ``latest_frame`` read them); the stylus's
+    feeds ``digitiser`` every sample in the client thread, so recording does not depend on
+    anybody draining the queue. A TRANSFORM no receiver takes is passed on as a
+    ``TransformSample``; any other message no receiver takes is ignored (counted).
     """
 
     def __init__(self, config: TrackingConfig | None = None, on_event=None, queue_size: int = 2000,
@@ -182,10 +177,8 @@ class TrackingClient:
         self.on_event = on_event
         self.events: queue.Queue = queue.Queue(maxsize=queue_size)
         self.digitiser = digitiser or Digitiser(c.rate_hz)
-        self.watchdog = Watchdog([c.stylus, c.probe, c.image], c.stale_s, c.missing_s)
-        self.latest_stylus: StylusSample | None = None
-        self.latest_probe_pose: ProbePose | None = None
-        self.latest_frame: ProbeSample | None = None
+        self.receivers: tuple[Receiver, ...] = build(c, self.digitiser)
+        self.watchdog = Watchdog([d for r in self.receivers for d in r.devices], c.stale_s, c.missing_s)
         self.counts: Counter[str] = Counter()  # "TRANSFORM", "IMAGE", … received; "skipped:<kind>"
         self.connects = 0
         self.connection = ConnectionStatus(False, f"{c.host}:{c.port}", 0)
@@ -215,6 +208,36 @@ class TrackingClient:
     def status(self) -> dict:
         """device → ToolStatus (seen / stale / missing) now."""
         return self.watchdog.status()
+
+    def receiver(self, source: str) -> Receiver:
+        """The receiver of ``source`` (a ``features.TABLE`` source: "stylus", "ius", …)."""
+        for r in self.receivers:
+            if r.source == source:
+                return r
+        raise KeyError(f"no receiver for source {source!r}")
+
+    def fresh(self, source: str, status: dict | None = None) -> bool:
+        """What ``source``'s receiver keeps may be shown and used (its streams are seen) by
+        ``status`` (the watchdog's, ``status()``; default now)."""
+        return self.receiver(source).fresh(self.status() if status is None else status)
+
+    @property
+    def latest_stylus(self) -> StylusSample | None:
+        r = self.receiver("stylus")
+        assert isinstance(r, StylusReceiver)
+        return r.latest
+
+    @property
+    def latest_probe_pose(self) -> ProbePose | None:
+        r = self.receiver("ius")
+        assert isinstance(r, ProbeReceiver)
+        return r.latest_pose
+
+    @property
+    def latest_frame(self) -> ProbeSample | None:
+        r = self.receiver("ius")
+        assert isinstance(r, ProbeReceiver)
+        return r.latest_frame
 
     def rate_hz(self, device: str) -> float:
         """Messages per second of ``device`` over its last (up to) 50 arrivals."""
@@ -294,10 +317,9 @@ class TrackingClient:
             msg.unpack(fields, body)
         except Exception as exc:  # pyigtl raises whatever struct/numpy raise
             return self._skip("malformed", device, f"{mtype}: {type(exc).__name__}: {exc}")
-        c = self.config
-        points = mtype == "POINT" and device in SOURCED  # pyigtl 0.3 decodes no POLYDATA
-        if not points and (mtype not in ("TRANSFORM", "IMAGE") or (mtype == "IMAGE" and device != c.image)):
-            self.counts[f"ignored:{mtype}"] += 1  # STRING, POINT, … or another image stream
+        receiver = next((r for r in self.receivers if r.takes(mtype, device)), None)
+        if receiver is None and mtype != "TRANSFORM":
+            self.counts[f"ignored:{mtype}"] += 1  # STRING, another device's POINT, another image stream, …
             log.debug("ignored %s message from %r", mtype, device)
             return None
         if msg.metadata.get("TransformStatus", "OK").upper() == "INVALID":  # PLUS: tool out of view
@@ -307,8 +329,10 @@ class TrackingClient:
         last = self._last_ts.get(device)
         if last is not None and ts < last:
             return self._skip("out_of_order", device, f"timestamp {ts:.6f} before {last:.6f}")
+        message = Message(mtype, device, now, ts, msg)
         try:
-            ev = self._decode(mtype, device, msg, ts, now)
+            ev = receiver.receive(message) if receiver is not None else \
+                TransformSample(now, ts, device, pose_matrix(message))
         except ValueError as exc:
             return self._skip("malformed", device, f"{mtype}: {exc}")
         if ev is None:
@@ -317,51 +341,7 @@ class TrackingClient:
         self.counts[mtype] += 1
         self.watchdog.seen(device, now)
         self._arrivals.setdefault(device, deque(maxlen=50)).append(now)
-        if isinstance(ev, StylusSample):
-            self.latest_stylus = ev
-            self.digitiser.feed(ev)
-        elif isinstance(ev, ProbePose):
-            self.latest_probe_pose = ev
-        elif isinstance(ev, ProbeSample):
-            self.latest_frame = ev
+        if receiver is not None:
+            receiver.keep(ev)
         self._emit(ev)
         return None
-
-    def _decode(self, mtype, device, msg, ts, now):
-        c = self.config
-        if mtype == "POINT":
-            pts = np.asarray(msg.positions, float).reshape(-1, 3)
-            if not np.isfinite(pts).all():
-                raise ValueError("points not finite")
-            return SourcePoints(now, ts, device, pts)
-        if mtype == "TRANSFORM":
-            m = as_matrix(msg.matrix)
-            if not np.isfinite(m).all() or not np.allclose(m[3], [0, 0, 0, 1]):
-                raise ValueError("not a finite homogeneous 4×4 matrix")
-            if device == c.stylus:
-                return StylusSample(now, ts, m[:3, 3].copy(), m)
-            if device == c.probe:
-                return ProbePose(now, ts, m)
-            return TransformSample(now, ts, device, m)
-        image = np.asarray(msg.image)
-        if image.ndim == 4:  # colour (k, j, i, components): luminance
-            image = image[..., :3].mean(-1).astype(np.uint8) if image.shape[-1] >= 3 else image[..., 0]
-        if image.ndim == 3:
-            if image.shape[0] != 1:
-                raise ValueError(f"a volume of {image.shape[0]} slices, not an ultrasound frame")
-            image = image[0]
-        if image.ndim != 2 or image.size == 0:
-            raise ValueError(f"image of shape {msg.image.shape}")
-        image = np.ascontiguousarray(image.astype(image.dtype.newbyteorder("=")))
-        M = as_matrix(msg.ijk_to_world_matrix)
-        if not np.isfinite(M).all():
-            raise ValueError("image matrix not finite")
-        if c.image_pose == "embedded":
-            pose, source, age = M, "embedded", 0.0
-        else:
-            pp = self.latest_probe_pose
-            if pp is None:
-                raise ValueError(f"no {c.probe} yet to place the image (image_pose = \"calibration\")")
-            pose, source, age = pp.probe_to_reference @ c.image_to_probe, "calibration", max(0.0, ts - pp.t_sent)
-        spacing = (float(np.linalg.norm(pose[:3, 0])), float(np.linalg.norm(pose[:3, 1])))
-        return ProbeSample(now, ts, pose, image, spacing, source, age)

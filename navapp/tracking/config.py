@@ -21,6 +21,10 @@ as ``<Image Name="Image" EmbeddedTransformToFrame="Reference"/>`` arrives as the
     missing_s = 1.0              # older than this, or never seen: "missing"
     [digitiser]
     rate_hz = 10.0               # stylus points recorded per second while recording
+    [tools.laparoscope]          # a tracked data source (``features.SOURCED``), optional
+    pose = "CameraToReference"     # its points arrive in its own frame, placed by this TRANSFORM
+
+Without a ``[tools.<source>]`` table a source's POINT messages are in Reference already.
 
 A bad file ends in one line naming the file and the key (``InputError``).
 """
@@ -28,10 +32,12 @@ A bad file ends in one line naming the file and the key (``InputError``).
 import tomllib
 from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from ..errors import InputError
+from ..features import SOURCED, TABLE
 from ..simulation.probe import Probe
 
 DEFAULT_PORT = 18944  # OpenIGTLink's registered port, PLUS's and Slicer's default
@@ -53,6 +59,17 @@ def _default_image_to_probe():
 
 
 @dataclass(frozen=True)
+class ToolDevices:
+    """A tracked data source's own devices (``[tools.<source>]``): ``pose`` is the TRANSFORM
+    (ToolToReference, mm) that places its POINT messages, which then arrive in the tool's
+    own frame (a tracked laparoscope's camera frame); a source without one sends them in
+    Reference."""
+
+    source: str  # a ``features.TABLE`` source with features in ``features.SOURCED``
+    pose: str  # its TRANSFORM's device name
+
+
+@dataclass(frozen=True)
 class TrackingConfig:
     host: str = "127.0.0.1"
     port: int = DEFAULT_PORT
@@ -65,7 +82,12 @@ class TrackingConfig:
     missing_s: float = 1.0
     rate_hz: float = 10.0
     reconnect_s: float = 0.25  # pause between connection attempts
+    tools: tuple[ToolDevices, ...] = ()  # tracked data sources' devices (``[tools.<source>]``)
     source: Path | None = None
+
+    def tool(self, source: str) -> ToolDevices | None:
+        """``source``'s own devices, or None (its points arrive in Reference)."""
+        return next((t for t in self.tools if t.source == source), None)
 
     def with_address(self, host=None, port=None) -> "TrackingConfig":
         return replace(self, host=host or self.host, port=port or self.port)
@@ -77,7 +99,27 @@ _KEYS: dict[str, dict[str, type]] = {  # section → key → type
     "calibration": {"image_to_probe": list},
     "watchdog": {"stale_s": float, "missing_s": float},
     "digitiser": {"rate_hz": float},
+    "tools": {},  # one table per tracked data source: ``_tools``
 }
+_TOOL_KEYS: dict[str, type] = {"pose": str}
+_TRACKABLE = tuple(dict.fromkeys(f.source for f in TABLE if f.name in SOURCED))  # sources sending POINT messages
+
+
+def _tools(table: dict, path) -> tuple[ToolDevices, ...]:
+    out = []
+    for source, keys in table.items():
+        if source not in _TRACKABLE:
+            raise InputError(f"unknown tool [tools.{source}] (known: {', '.join(_TRACKABLE) or 'none'})", path)
+        if not isinstance(keys, dict):
+            raise InputError(f"[tools.{source}] must be a table", path)
+        for key, value in keys.items():
+            if key not in _TOOL_KEYS:
+                raise InputError(f"unknown key tools.{source}.{key} (known: {', '.join(_TOOL_KEYS)})", path)
+            _typed(value, _TOOL_KEYS[key], f"tools.{source}.{key}", path)
+        if "pose" not in keys:
+            raise InputError(f"tools.{source}.pose is missing (the TRANSFORM that places its points)", path)
+        out.append(ToolDevices(source, keys["pose"]))
+    return tuple(out)
 
 
 def _typed(value, kind, key, path):
@@ -89,12 +131,15 @@ def _typed(value, kind, key, path):
 
 
 def parse_config(data: dict, path=None) -> TrackingConfig:
-    values = {}
+    values: dict[str, Any] = {}
     for section, table in data.items():
         if section not in _KEYS:
             raise InputError(f"unknown section [{section}] (known: {', '.join(_KEYS)})", path)
         if not isinstance(table, dict):
             raise InputError(f"[{section}] must be a table", path)
+        if section == "tools":
+            values["tools"] = _tools(table, path)
+            continue
         for key, value in table.items():
             if key not in _KEYS[section]:
                 raise InputError(f"unknown key {section}.{key} (known: {', '.join(_KEYS[section])})", path)
@@ -116,6 +161,13 @@ def parse_config(data: dict, path=None) -> TrackingConfig:
         v = getattr(cfg, name)
         if not v or len(v.encode()) > 20:
             raise InputError(f"devices.{name} must be 1–20 bytes (an OpenIGTLink device name), got {v!r}", path)
+    for t in cfg.tools:
+        if not t.pose or len(t.pose.encode()) > 20:
+            raise InputError(f"tools.{t.source}.pose must be 1–20 bytes (an OpenIGTLink device name), got {t.pose!r}",
+                             path)
+        taken = {cfg.stylus, cfg.probe, cfg.image, *SOURCED} | {o.pose for o in cfg.tools if o is not t}
+        if t.pose in taken:
+            raise InputError(f"tools.{t.source}.pose {t.pose!r} is another device's name", path)
     if not 0 < cfg.stale_s < cfg.missing_s:
         raise InputError("watchdog: need 0 < stale_s < missing_s", path)
     if cfg.rate_hz <= 0 or cfg.reconnect_s <= 0:

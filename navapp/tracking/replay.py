@@ -34,10 +34,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 import pyigtl
-from scipy.spatial.transform import Rotation, Slerp
 
 from ..errors import InputError, NavappError
-from ..geometry.transforms import homogeneous
+from ..geometry.transforms import homogeneous, interpolate_pose
 from .config import TrackingConfig, full_image_matrix
 
 log = logging.getLogger("navapp.tracking")
@@ -106,11 +105,6 @@ class ReplayScript:
         tc = t % self.cycle_s
         i = int(np.clip(np.searchsorted(self._kf_t, tc, side="right") - 1, 0, len(self.keyframes) - 1))
         return self.keyframes[i]
-
-
-def interpolate_pose(a, b, f) -> np.ndarray:
-    rots = Rotation.from_matrix(np.stack([a[:3, :3], b[:3, :3]]))
-    return homogeneous(Slerp([0.0, 1.0], rots)(float(f)).as_matrix(), (1 - f) * a[:3, 3] + f * b[:3, 3])
 
 
 def script_from_scene(scene, transit_frames: int = 6, dwell_s: float = 2.0, move_s: float = 1.0,

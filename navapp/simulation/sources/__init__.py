@@ -20,8 +20,10 @@ A tracked imaging source (the iUS probe) also simulates one ``frame`` at a pose 
 the simulation: a free plane the user placed, or a live frame's automatic segmentation
 (``scenedata.acquire_free_plane``, ``scenedata.segment_frame``).
 
-The stylus and the iUS planes are simulated through this protocol but received, kept and
-shown by hand (a tracked tip's sweep, a tracked probe's frames: ``features.TRACKED``);
+Received, every source has one home too, ``navapp/tracking/receivers`` (a tracked source's
+points may arrive in its own frame, placed by its pose: ``[tools.<source>]`` in the tracking
+config). The stylus and the iUS planes are kept and shown by hand (a tracked tip's sweep, a
+tracked probe's frames: ``features.TRACKED``);
 fiducials have no module (``features.HAND_WIRED``); see docs/decisions.md, "Data sources
 as rooms" and sessions 34 and 35.
 """

@@ -1,0 +1,192 @@
+"""The receiving side of a tracked data source, one home (``navapp.tracking.receivers``):
+the registry finds each source's receiver from ``features.TABLE``; a tracked laparoscope's
+depth points, sent in its camera frame, arrive in Reference placed by its own TRANSFORM —
+with no code of its own in ``tracking`` or the viewer, only its ``[tools.laparoscope]``."""
+
+import socket
+import time
+
+import numpy as np
+import pyigtl
+import pytest
+from conftest import BUSY_WAIT_S
+from scipy.spatial.transform import Rotation
+
+from navapp.errors import InputError
+from navapp.tracking.client import TrackingClient
+from navapp.tracking.config import ToolDevices, TrackingConfig, load_config
+from navapp.tracking.digitiser import Digitiser
+from navapp.tracking.events import Skipped, SourcePoints, TransformSample
+from navapp.tracking.receivers import PointsReceiver, build
+from navapp.tracking.receivers.ius import ProbeReceiver
+from navapp.tracking.receivers.stylus import StylusReceiver
+
+POSE = "CameraToReference"
+
+
+def _camera_to_reference():
+    m = np.eye(4)
+    m[:3, :3] = Rotation.from_euler("xyz", [30.0, -50.0, 110.0], degrees=True).as_matrix()
+    m[:3, 3] = [-40.0, 125.5, 310.0]
+    return m
+
+
+def test_each_source_has_one_receiver_found_from_the_feature_table():
+    cfg = TrackingConfig(image_pose="calibration", tools=(ToolDevices("laparoscope", POSE),))
+    got = build(cfg, Digitiser())
+    assert [r.source for r in got] == ["stylus", "ius", "laparoscope"]  # fiducials: not received
+    stylus, ius, lap = got
+    assert isinstance(stylus, StylusReceiver) and isinstance(ius, ProbeReceiver) and isinstance(lap, PointsReceiver)
+    assert (lap.features, lap.pose, lap.max_pose_age_s) == (("laparoscope",), POSE, cfg.stale_s)
+    # the watchdog's devices, in the order the viewer lists them: as before receivers, then the tool's pose
+    client = TrackingClient(cfg)
+    assert list(client.status()) == [cfg.stylus, cfg.probe, cfg.image, POSE]
+    assert list(TrackingClient(TrackingConfig()).status()) == [cfg.stylus, cfg.probe, cfg.image]
+
+
+def test_tools_in_the_config_are_read_and_bad_ones_refused_in_one_line(tmp_path):
+    good = tmp_path / "tracking.toml"
+    good.write_text(f'[tools.laparoscope]\npose = "{POSE}"\n')
+    cfg = load_config(good)
+    assert cfg.tools == (ToolDevices("laparoscope", POSE),) and cfg.tool("laparoscope") == cfg.tools[0]
+    assert TrackingConfig().tool("laparoscope") is None
+    for text, problem in [('[tools.stylus]\npose = "X"\n', "unknown tool [tools.stylus] (known: laparoscope)"),
+                          ('[tools.laparoscope]\nposes = "X"\n', "unknown key tools.laparoscope.poses"),
+                          ('[tools.laparoscope]\n', "tools.laparoscope.pose is missing"),
+                          ('[tools.laparoscope]\npose = 3\n', "tools.laparoscope.pose must be a str"),
+                          ('[tools.laparoscope]\npose = "ProbeToReference"\n', "another device's name"),
+                          ('[tools.laparoscope]\npose = "ALaparoscopeCameraToReference"\n', "1–20 bytes"),
+                          ('[tools]\nlaparoscope = 1\n', "[tools.laparoscope] must be a table")]:
+        bad = tmp_path / "bad.toml"
+        bad.write_text(text)
+        with pytest.raises(InputError) as err:
+            load_config(bad)
+        msg = str(err.value)
+        assert msg.startswith(str(bad)) and problem in msg and "\n" not in msg, msg
+
+
+def test_a_tracked_laparoscopes_camera_points_arrive_in_reference_placed_by_its_pose():
+    listener = socket.create_server(("127.0.0.1", 0))
+    listener.settimeout(5.0)
+    events: list = []
+    cfg = TrackingConfig(port=listener.getsockname()[1], reconnect_s=0.05, tools=(ToolDevices("laparoscope", POSE),))
+    client = TrackingClient(cfg, on_event=events.append).start()
+    in_camera = np.array([[1.0, -2.0, 95.0], [4.0, 5.0, 110.5], [-7.0, 8.0, 130.25]])
+    pose = _camera_to_reference()
+    moved = pose.copy()
+    moved[:3, 3] += [5.0, 0.0, -3.0]
+    try:
+        conn, _ = listener.accept()
+        t = time.time()
+
+        def points(stamp, positions=in_camera):
+            return pyigtl.PointMessage(positions=positions, device_name="laparoscope", timestamp=stamp).pack()
+
+        def transform(m, stamp):
+            return pyigtl.TransformMessage(m, timestamp=stamp, device_name=POSE).pack()
+
+        conn.sendall(points(t)  # before any pose: not placed, refused
+                     + transform(pose, t + 0.05) + points(t + 0.1)  # placed by the pose 0.05 s before
+                     + transform(moved, t + 0.2) + points(t + 0.6)  # the pose 0.4 s old (stale_s 0.2): refused
+                     + transform(moved, t + 0.7) + points(t + 0.7, in_camera[:1]))
+        end = time.monotonic() + 10.0
+        while sum(isinstance(e, SourcePoints) for e in events) < 2 and time.monotonic() < end:
+            time.sleep(0.01)
+    finally:
+        client.stop()
+        listener.close()
+    got = [e for e in events if isinstance(e, SourcePoints)]
+    assert [e.feature for e in got] == ["laparoscope", "laparoscope"]
+    # float32 on the wire (OpenIGTLink's TRANSFORM and POINT): placed as received, to 1e-4 mm
+    expected = in_camera @ pose[:3, :3].T + pose[:3, 3]
+    np.testing.assert_allclose(got[0].points, expected, atol=1e-4)
+    np.testing.assert_allclose(got[1].points, in_camera[:1] @ moved[:3, :3].T + moved[:3, 3], atol=1e-4)
+    assert np.abs(got[0].points - in_camera).max() > 50.0  # not passed through in the camera's frame
+    skipped = [e for e in events if isinstance(e, Skipped)]
+    assert [e.kind for e in skipped] == ["malformed", "malformed"]
+    assert f"no {POSE} yet" in skipped[0].detail and "0.40 s from the points" in skipped[1].detail
+    assert sum(isinstance(e, TransformSample) and e.name == POSE for e in events) == 3
+    assert client.counts["POINT"] == 2
+    conn.close()
+
+
+def test_the_viewer_takes_a_tracked_laparoscopes_points_into_its_session_in_reference(cache_root, tmp_path):
+    """``navapp serve --igtl`` with ``[tools.laparoscope]``: the camera-frame points join the
+    session's data placed by the camera's pose, through the same path as untracked ones."""
+    from conftest import free_port
+    from test_laparoscope import SCENE
+
+    from navapp.app.server import App
+    from navapp.simulation.scene import parse_scene
+    from navapp.tracking.replay import quiet_server
+
+    server = quiet_server(0)
+    server.start()
+    cfg = TrackingConfig(port=server.server_address[1], tools=(ToolDevices("laparoscope", POSE),))
+    app = App(parse_scene(SCENE), port=free_port(), session_dir=tmp_path / "s", edge=12.0, k=12,
+              cache_root=cache_root, tracking=cfg)
+    in_camera = np.array([[10.0, 20.0, 90.0], [11.0, 21.0, 101.5]])
+    pose = _camera_to_reference()
+    try:
+        assert app.start().wait(600) and app.core.failed is None, app.core.failed
+        end = time.monotonic() + BUSY_WAIT_S
+        while not server.is_connected() and time.monotonic() < end:
+            time.sleep(0.02)
+        t = time.time()
+        server.send_message(pyigtl.TransformMessage(pose, timestamp=t, device_name=POSE), wait=True)
+        server.send_message(pyigtl.PointMessage(positions=in_camera, device_name="laparoscope", timestamp=t + 0.01),
+                            wait=True)
+        while len(app.core.session.live_points) < 2 and time.monotonic() < end:
+            time.sleep(0.02)
+        assert [p[3] for p in app.core.session.live_points] == ["laparoscope", "laparoscope"]
+        data = app.core.data()["laparoscope"]
+        simulated = app.core.sd.sourced["laparoscope"]
+        np.testing.assert_array_equal(data[:len(simulated)], simulated)
+        np.testing.assert_allclose(data[len(simulated):], in_camera @ pose[:3, :3].T + pose[:3, 3], atol=1e-4)
+        assert any(line.startswith(f"{POSE}: ") for line in app.live.link.status_lines())  # its pose is watched
+    finally:
+        app.live.stop()
+        app.server.stop()
+        app.view2d.stop()
+        server.stop()
+
+
+def test_points_are_placed_by_the_pose_at_their_own_time_not_the_latest():
+    """A depth matcher sends its points after the images it matched: the camera has moved
+    since. They are placed by the pose interpolated at their timestamp (slerp, here checked
+    against the rotation composed by hand: Ra · (Raᵀ Rb)^f)."""
+    from navapp.tracking.receivers import Message
+
+    a = _camera_to_reference()
+    b = a.copy()
+    b[:3, :3] = Rotation.from_euler("zy", [25.0, -10.0], degrees=True).as_matrix() @ a[:3, :3]
+    b[:3, 3] += [8.0, -6.0, 4.0]
+    rx = PointsReceiver("laparoscope", ("laparoscope",), POSE, max_pose_age_s=0.2)
+    t = 1000.0
+    for stamp, m in ((t, a), (t + 0.1, b)):
+        ev = rx.receive(Message("TRANSFORM", POSE, 0.0, stamp, pyigtl.TransformMessage(m, device_name=POSE)))
+        rx.keep(ev)
+    in_camera = np.array([[1.0, -2.0, 95.0], [30.0, 5.0, 140.0]])
+    got = rx.receive(Message("POINT", "laparoscope", 0.0, t + 0.04,
+                             pyigtl.PointMessage(positions=in_camera, device_name="laparoscope")))
+    assert isinstance(got, SourcePoints)
+    Ra = Rotation.from_matrix(a[:3, :3])
+    R = (Ra * Rotation.from_rotvec(0.4 * (Ra.inv() * Rotation.from_matrix(b[:3, :3])).as_rotvec())).as_matrix()
+    shift = 0.6 * a[:3, 3] + 0.4 * b[:3, 3]
+    np.testing.assert_allclose(got.points, in_camera @ R.T + shift, atol=1e-9)
+    latest = in_camera @ b[:3, :3].T + b[:3, 3]
+    assert np.linalg.norm(got.points - latest, axis=1).min() > 5.0  # the latest pose would be centimetres off
+    def place(stamp):
+        return rx.receive(Message("POINT", "laparoscope", 0.0, stamp,
+                                  pyigtl.PointMessage(positions=in_camera, device_name="laparoscope")))
+
+    np.testing.assert_allclose(place(t + 0.1).points, latest, atol=1e-9)  # at a pose's own time: that pose
+    with pytest.raises(ValueError, match="first kept CameraToReference is 0.50 s from the points"):
+        place(t - 0.5)
+    # a gap in the pose stream (the camera out of view: PLUS's invalid poses are dropped) is not bridged
+    c = b.copy()
+    c[:3, 3] += [40.0, 0.0, 0.0]
+    rx.keep(rx.receive(Message("TRANSFORM", POSE, 0.0, t + 1.1, pyigtl.TransformMessage(c, device_name=POSE))))
+    with pytest.raises(ValueError, match=r"poses -0.40 s and \+0.60 s from them"):
+        place(t + 0.5)
+    assert isinstance(place(t + 1.2), SourcePoints)  # the newest pose, 0.1 s before
