@@ -31,7 +31,6 @@ from .rotation import rotation
 
 if TYPE_CHECKING:
     from ..geometry.bvh import SurfaceHierarchy
-    from .reach import ChunkBounds
 
 # the data features' weights (m⁻², paper §II-D), salient features and model targets come
 # from the one feature table, ``navapp.features``
@@ -59,9 +58,6 @@ class ModelFeature:
     part_rows: np.ndarray | None = field(default=None, repr=False, compare=False)
     # a surface's bounding-volume tree (``geometry.bvh``), built on first use by ``search_tree``
     hierarchy: "SurfaceHierarchy | None" = field(default=None, repr=False, compare=False)
-    # (B·J_u, x̄0, its ``reach.ChunkBounds``), made by ``reach_bounds`` on first use; kept with the
-    # B·J_u and centroid it was made from, so a copy of the feature with other modes makes its own
-    bounds: tuple | None = field(default=None, repr=False, compare=False)
 
     def search_tree(self) -> "SurfaceHierarchy":
         """The surface's ``bvh.SurfaceHierarchy`` on its undeformed points, built once."""
@@ -70,17 +66,6 @@ class ModelFeature:
 
             self.hierarchy = Hierarchy(self.rest, self.cells)
         return self.hierarchy
-
-    def reach_bounds(self, centroid: np.ndarray) -> "ChunkBounds":
-        """The bounds of the surface's deformed boxes (``reach.chunk_bounds``) about x̄0
-        ``centroid`` (3,) mm, made once per B·J_u."""
-        kept = self.bounds
-        if kept is None or kept[0] is not self.BJ or not np.array_equal(kept[1], centroid):
-            from .reach import chunk_bounds
-
-            kept = self.bounds = (self.BJ, np.array(centroid, float), chunk_bounds(self.search_tree(), self.rest,
-                                                                                   self.BJ, centroid))
-        return kept[2]
 
 
 @dataclass
@@ -113,9 +98,6 @@ class ModelCache:
     anterior: dict[tuple, np.ndarray] = field(default_factory=dict)
     # ``uncertainty.surface_estimate``: (vertices' shape, sum) → nearest surface node (V,)
     surface_map: dict[tuple, np.ndarray] = field(default_factory=dict)
-    # ``objective.evaluate``: id(ModelFeature) → its surface as last searched (``reach.ReachedSurface``),
-    # whose boxes bound the next state's
-    reached: dict[int, Any] = field(default_factory=dict)
 
     def copy(self) -> "ModelCache":
         """A cache holding the same entries, written to apart from this one (a benchmark's

@@ -27,7 +27,6 @@ from ..geometry.closest import (
 )
 from .model import REGION_FEATURES, W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform, displacement
 from .prior import PosePrior
-from .reach import ReachedSurface
 from .rotation import rotation, rotation_derivatives
 
 if TYPE_CHECKING:
@@ -184,16 +183,6 @@ def _place(model, feat, beta, geometry, placed) -> tuple[np.ndarray, np.ndarray]
     return placed[key]
 
 
-def _reopened(entry: tuple) -> tuple:
-    """A kept evaluation's geometry entry (local, X, tree) to search again: a surface deformed
-    where searched (``ReachedSurface``) is copied, as the kept one is never written to."""
-    tree = entry[2]
-    if isinstance(tree, ReachedSurface):
-        tree = tree.copy()
-        return tree.local, tree.X, tree
-    return entry
-
-
 def _tree(feat, X):
     """The search structure of a model feature at its deformed points X: a surface's
     hierarchy refitted (exact closest points; ``geometry.bvh``), else a k-d tree of X rebuilt
@@ -269,20 +258,13 @@ class Correspondence:
 def correspond(feat, X, Y, tree=None, nearest=None) -> Correspondence:
     """Closest points of data Y (N, 3) mm on the model feature ``feat`` at its current
     geometry X (V, 3) mm: S and the direction data (normals for surfaces, tangents for
-    centerlines). ``tree``/``nearest``: a surface's ``ReachedSurface`` (X its array, deformed
-    where searched) or ``FittedSurface`` at X (exact closest points), a KD-tree of X, or Y's
-    nearest vertices of X when already found."""
+    centerlines). ``tree``/``nearest``: a surface's ``FittedSurface`` at X (exact closest
+    points), a KD-tree of X, or Y's nearest vertices of X when already found."""
     N = len(Y)
     kind = feat.kind
     if kind == "surface":
         face = None
-        if isinstance(tree, ReachedSurface):
-            face, bary = tree.closest(Y)
-            if not (face >= 0).all():  # a non-finite surface: the candidates' path, on the whole of it
-                tree.deform_all()
-                face = None
-                tree = None
-        elif isinstance(tree, FittedSurface):
+        if isinstance(tree, FittedSurface):
             face, bary = tree.hierarchy.closest(Y, X, tree.boxes)
             if not (face >= 0).all():  # a non-finite surface: the candidates' path says what it can
                 face = None
@@ -368,7 +350,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     # for element are the ones this one would compute
     last = _at(model, beta) if frozen is None else None
     if last is not None:
-        geometry = {k: _reopened(v) for k, v in last[1].items()}
+        geometry = dict(last[1])
     for name, Y in data.items():
         feat = model.feature_for(name)
         key = id(feat)
@@ -385,13 +367,6 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
             p = Y - deform(c.S_rest, u, beta, model.centroid)[1]
             tim["deform"] += time.perf_counter() - t0
         else:
-            if key not in geometry and frozen is None and feat.kind == "surface" and hierarchy_search():
-                # deformed only where the search reaches (``reach``): the bound of its boxes here
-                t0 = time.perf_counter()
-                st = ReachedSurface(feat.search_tree(), feat.reach_bounds(model.centroid), feat.rest, feat.BJ, beta,
-                                    model.centroid, previous=model.cache.reached.get(key))
-                tim["kdtree"] += time.perf_counter() - t0
-                geometry[key] = (st.local, st.X, st)
             if key not in geometry:
                 t0 = time.perf_counter()
                 local, X = _place(model, feat, beta, geometry, placed)
@@ -408,7 +383,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
                 held = seen[2]
             else:
                 t0 = time.perf_counter()
-                kd = tree is not None and not isinstance(tree, FittedSurface | ReachedSurface)
+                kd = tree is not None and not isinstance(tree, FittedSurface)
                 nearest = nearest_vertices(tree, Y, feat.near) if kd else None
                 tim["kdtree"] += time.perf_counter() - t0
                 t0 = time.perf_counter()
@@ -432,12 +407,8 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
         tim["jacobian"] += time.perf_counter() - t0
     reusable = None
     if frozen is None:  # replaced whole: an evaluation in another thread reads the old or the new
-        # the next state's boxes start from these surfaces' (``reach``); none is written to again
-        reached = {k: g[2] for k, g in geometry.items() if isinstance(g[2], ReachedSurface)}
         reusable = model.cache.evaluation = (np.array(beta, float), geometry, {
             name: (np.array(Y, float), corr[name], made[name]) for name, Y in data.items()})
-        if reached:
-            model.cache.reached = {**model.cache.reached, **reached}
     # robust weight factors (Huber, outlier rejection): held when given, so that with held
     # correspondences Ω is one fixed weighted least-squares problem
     robust = dict(scales) if scales is not None else weights.robust_factors(dists, row_of)
