@@ -180,8 +180,28 @@ def test_held_correspondences_fast_path_equals_full_deformation(small_model):
     fast = evaluate(small_model, data, beta1, Weights(), jacobian=False, frozen=ev.correspondence)
     slow = evaluate(small_model, data, beta1, Weights(), jacobian=False,
                     frozen={k: c.without_basis() for k, c in ev.correspondence.items()})
-    assert np.allclose(fast.f, slow.f, rtol=1e-10, atol=1e-10)
-    assert np.isclose(fast.omega, slow.omega, rtol=1e-12)
+    # the full deformation multiplies B·J_u in single precision (``model.displacement``), the
+    # fast path S·B·J_u in double: they agree to that rounding, ~1e-7 mm here
+    assert np.allclose(fast.f, slow.f, rtol=0, atol=1e-5)
+    assert np.isclose(fast.omega, slow.omega, rtol=1e-6)
+
+
+def test_single_precision_deformation_stays_within_a_micrometre(small_model):
+    """Eq. 8 at every model feature, J_u α from B·J_u in single precision
+    (``RegistrationModel.positions``), against the double-precision product, at a deformation
+    larger than any fit reaches (‖α‖ ≈ 60: the demo's fits end near 25)."""
+    from navapp.registration.model import deform, displacement
+
+    rng = np.random.default_rng(5)
+    n = small_model.basis.Ju.shape[1]
+    beta = np.concatenate([rng.normal(size=n) * 60 / np.sqrt(n), [3.0, -1.0, 2.0], np.radians([5.0, -4.0, 3.0])])
+    for feat in small_model.features.values():
+        u = displacement(feat.BJ, beta[:n])
+        assert np.abs(u).max() > 1.0  # a real deformation (mm)
+        _, exact = deform(feat.rest, u, beta, small_model.centroid)
+        _, x = small_model.positions(feat, beta)
+        assert feat.single_basis().dtype == np.float32
+        assert np.abs(x - exact).max() < 1e-3  # mm
 
 
 def test_component_residuals_are_table_one_distances_with_an_exact_linear_model(small_model):
@@ -207,7 +227,10 @@ def test_component_residuals_are_table_one_distances_with_an_exact_linear_model(
     step = np.concatenate([rng.normal(size=n) * 0.5, [2.0, -1.0, 1.5], [0.0, 0.0, 0.0]])
     moved = evaluate(small_model, data, beta + step, Weights(), jacobian=False, frozen=ev.correspondence)
     lin = ev.f + ev.J @ step
-    assert np.allclose(moved.f[:-1], lin[:-1], rtol=0, atol=1e-9)
+    # exact but for rounding: ev.f from the whole deformation (J_u α in single precision,
+    # ``model.displacement``), moved.f from the held S·B·J_u in double; the norm form's
+    # first-order error here is ~1e-2 mm
+    assert np.allclose(moved.f[:-1], lin[:-1], rtol=0, atol=1e-5)
 
 
 def test_jacobian_added_later_equals_jacobian_at_once(small_model):
@@ -277,10 +300,13 @@ def test_regions_deformed_as_rows_of_the_liver_give_the_same_evaluation(small_mo
         assert np.array_equal(f.rest, liver.rest[f.part_rows]) and np.array_equal(f.BJ, liver.BJ[f.part_rows])
         data[name] = f.rest[rng.choice(len(f.rest), min(20, len(f.rest)), replace=False)] + rng.normal(size=(1, 3))
     a, b = evaluate(small_model, data, beta, Weights()), evaluate(own, data, beta, Weights())
-    assert np.isclose(a.omega, b.omega, rtol=1e-12, atol=0)
-    assert np.allclose(a.J, b.J, rtol=1e-12, atol=1e-12)
-    for name in regions:
-        assert (a.correspondence[name].S != b.correspondence[name].S).nnz == 0
+    # J_u α in single precision (``model.displacement``): a row of the liver's product and the
+    # region's own differ by its rounding (~1e-7 mm), not only in the last bit
+    assert np.isclose(a.omega, b.omega, rtol=1e-6, atol=0)
+    assert np.allclose(a.J, b.J, rtol=1e-6, atol=1e-9)
+    # the same residuals to that rounding (a closest point on an edge may take either triangle
+    # of it when the edge's two deformed copies differ by it)
+    assert np.allclose(a.f, b.f, rtol=0, atol=1e-6)
 
 
 def test_eq8_one_implementation_agrees_at_features_and_arbitrary_points(small_model):
@@ -303,7 +329,8 @@ def test_eq8_one_implementation_agrees_at_features_and_arbitrary_points(small_mo
     by_hand = (feat.rest + u - small_model.centroid) @ R.T + beta[n:n + 3] + small_model.centroid
     assert np.allclose(X, by_hand, atol=1e-9)
     assert np.allclose(deform_points(small_model.basis, small_model.centroid, beta, feat.rest), by_hand, atol=1e-6)
-    assert np.allclose(deform(feat.rest, u, beta, small_model.centroid)[0], local, atol=1e-12)
+    # positions' J_u α in single precision (``model.displacement``): its rounding, ~1e-6 mm
+    assert np.allclose(deform(feat.rest, u, beta, small_model.centroid)[0], local, rtol=0, atol=1e-4)
 
 
 def test_every_stop_reason_the_solver_returns_is_documented():

@@ -58,6 +58,17 @@ class ModelFeature:
     part_rows: np.ndarray | None = field(default=None, repr=False, compare=False)
     # a surface's bounding-volume tree (``geometry.bvh``), built on first use by ``search_tree``
     hierarchy: "SurfaceHierarchy | None" = field(default=None, repr=False, compare=False)
+    # (B·J_u, its single-precision copy (3V, 3k)), made by ``single_basis`` on first use; kept with
+    # the B·J_u it was made from, so a copy of the feature with other modes makes its own
+    single: tuple | None = field(default=None, repr=False, compare=False)
+
+    def single_basis(self) -> np.ndarray:
+        """B·J_u in single precision, (3V, 3k), made once per B·J_u: what eq. 8 multiplies by α
+        (``RegistrationModel.positions``)."""
+        kept = self.single
+        if kept is None or kept[0] is not self.BJ:
+            kept = self.single = (self.BJ, np.ascontiguousarray(self.BJ.reshape(-1, self.BJ.shape[2]), np.float32))
+        return kept[1]
 
     def search_tree(self) -> "SurfaceHierarchy":
         """The surface's ``bvh.SurfaceHierarchy`` on its undeformed points, built once."""
@@ -129,20 +140,30 @@ class RegistrationModel:
         return self.features[target]
 
     def positions(self, feat: ModelFeature, beta) -> tuple[np.ndarray, np.ndarray]:
-        """Eq. 8 at a feature's points: (x0 − x̄0 + J_u α) and x(β), both (V, 3) mm."""
+        """Eq. 8 at a feature's points: (x0 − x̄0 + J_u α) and x(β), both (V, 3) mm; J_u α
+        from B·J_u in single precision (``displacement``)."""
         n = len(beta) - 6
-        return deform(feat.rest, displacement(feat.BJ, beta[:n]), beta, self.centroid)
+        return deform(feat.rest, displacement(feat.BJ, beta[:n], feat.single_basis()), beta, self.centroid)
 
 
-def displacement(BJ: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+def displacement(BJ: np.ndarray, alpha: np.ndarray, single: np.ndarray | None = None) -> np.ndarray:
     """J_u α carried to a feature's points, (V, 3) mm, from its B·J_u (V, 3, 3k) or S·B·J_u.
+
+    ``single``: B·J_u in single precision (3V, 3k) (``ModelFeature.single_basis``), multiplied
+    instead. Reading B·J_u is an LM evaluation's largest cost (the liver's is 20 MB in double
+    precision, every evaluation); in single precision it is half the bytes and twice the
+    width of each vector instruction, and J_u α comes out within ~1e-5 mm of the double
+    product (docs/decisions.md, "Eq. 8 in single precision"): the positions, in double
+    precision, are x0 + that. S·B·J_u (a few rows) stays in double precision.
 
     At α = 0 (every fit from β = 0 starts there: the continuation's first fit, the basin
     screening's, each cross-validation fold's deformable and rigid fits, and a rigid fit
-    never leaves it) the product is zero without reading B·J_u (the liver's is 20 MB): the
-    same bits, as x0 + 0 is x0 and ``deform`` then subtracts x̄0."""
+    never leaves it) the product is zero without reading B·J_u: the same bits, as x0 + 0 is
+    x0 and ``deform`` then subtracts x̄0."""
     if not alpha.any():
         return np.zeros((BJ.shape[0] * BJ.shape[1] // 3, 3))
+    if single is not None:
+        return (single @ alpha.astype(np.float32)).astype(float).reshape(-1, 3)
     return (BJ.reshape(-1, len(alpha)) @ alpha).reshape(-1, 3)
 
 
