@@ -219,6 +219,17 @@ def test_a_reload_is_matched_though_its_old_connection_closes_late(app):
     assert app.core.resume(other, None).startswith("wait")
     other.resume_asked -= CLOSE_LAG_S + 1.0
     assert app.core.resume(other, None) is None and other.drawing is None and other.current() is other
+    # a tab opened beside another and still asking when that one reloads is not its reload: it
+    # asked before the other's page was left (seen in Chromium: tab B, asking for 4 s, took the
+    # plane and contour of tab A reloaded 3.6 s after B's first ask, and A's reload found nothing)
+    beside = app.core.new_client_state()
+    assert app.core.resume(beside, None).startswith("wait")
+    reloading = app.core.new_client_state()
+    app.imaging.show(reloading, 1)
+    app.core.going(reloading)
+    assert app.core.resume(beside, None).startswith("wait") and reloading.current() is reloading
+    reloaded = app.core.new_client_state()
+    assert app.core.resume(reloaded, None) is None and reloaded.plane == 1 and reloading.current() is reloaded
     # a page that is only redrawn in its tab (same token) and asks again is not "going" any more
     app.core.going(new)
     assert app.core.resume(new, None) is None and new.going is None

@@ -184,9 +184,12 @@ class Core:
         names that tab (``previous``) from the browser's per-tab session storage where the
         browser lets the 2D view's frame keep one (Chromium refuses it to a frame of another
         site when third-party storage is blocked); else (None) the one tab that left within
-        ``RELOAD_S`` (its page said so, ``going``, or its connection closed) and no later than
-        ``CLOSE_LAG_S`` after this tab first asked is taken, and none when there are several.
-        ``WAIT`` while the old tab may not have left yet (``CLOSE_LAG_S``)."""
+        ``RELOAD_S`` is taken, and none when there are several. A tab whose page said it was
+        going (``going``) left before this page first asked: a reload's new page exists only
+        after its old one was left, so a tab opened beside it and still asking is not its
+        reload. A tab that left without a word (its connection closed) may have closed as late
+        as ``CLOSE_LAG_S`` after this page first asked. ``WAIT`` while the old tab may not
+        have left yet (``CLOSE_LAG_S``)."""
         with self.lock:
             cs.going = None  # asking again: this page is here (its frame was only redrawn)
             if previous is not None:
@@ -199,12 +202,13 @@ class Core:
                     cs.resume_asked = now
                 asked = cs.resume_asked
 
-                def left(p: ClientState) -> float | None:
-                    return p.going if p.going is not None else p.parked
+                def left(p: ClientState) -> bool:
+                    if p.going is not None:  # in the browser's own order
+                        return p.going < asked and now - p.going < RELOAD_S
+                    return p.parked is not None and now - p.parked < RELOAD_S and p.parked - asked < CLOSE_LAG_S
 
                 gone = [p for p in (*self.parked.values(), *self.states.values())
-                        if p is not cs and p.successor is None and (t := left(p)) is not None
-                        and now - t < RELOAD_S and t - asked < CLOSE_LAG_S]
+                        if p is not cs and p.successor is None and left(p)]
                 if len(gone) != 1:
                     # a loaded server may hear the old tab leave seconds after the new one asked
                     return WAIT if not gone and now - asked < CLOSE_LAG_S else None
