@@ -858,9 +858,9 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         fits = PoseFits(pooled_rms(result.features), pooled_rms(at_given.features), shift_mm(rigid, data))
         preferred = prefer_given(choice, fits)
         if preferred is None and at_given.stop_reason != "cancelled":
-            # ICP's pose stays, and its line says how far it moved — unless the only doubt was the
-            # cross-validation and the correction outweighs its σ (``Support.outweighs``)
-            choice = compared(choice, fits, confirmed=quality.ok and support is not None and support.outweighs)
+            # ICP's pose stays: the fit earned its move, and no line says its pose is in doubt (the
+            # doubt that asked — a poor fit, the cross-validation — keeps its own line)
+            choice = compared(choice, fits)
         elif preferred is not None and at_given.stop_reason != "cancelled":
             choice, options = preferred, held
             rigid = _given(rms_on_model(model, data, _given()))
