@@ -37,6 +37,7 @@ from .local_modes import LocalModeOptions, LocalModes, choose_local_modes, fold_
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, rebased_model, usable_data
 from .objective import HUBER_MM, evaluate
 from .pose import (
+    POSE_RULE,
     Determinacy,
     PoseChoice,
     PoseFits,
@@ -756,8 +757,14 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
         # the chosen basin's pose is finished by today's exact point-to-point ICP: on the
         # phantom cases LIBR went on to a lower Ω and TRE from it than from the
         # vertex-matched point-to-plane pose (e.g. 0.48 against 0.95 mm). Starting it from
-        # the basin's pose, not the tracker's, keeps the result independent of the offset
-        rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,
+        # the basin's pose, not the tracker's, keeps the result independent of the offset. A basin
+        # that turns the organ further than a tracker errs is finished to convergence, as the
+        # rigid-only answer is: whether the pose alone makes such a turn good is asked of it
+        # (``PoseChoice.unconfirmed_turn``), and stopped at ``TOL_BEFORE_LIBR`` it can end short
+        # along a shallow valley (hard case "90 deg" at 12 mm: 81° with 43 % of the data within
+        # 1 mm of the model, 89° and 85 % converged; docs/decisions.md, "The undeclared pose choice …")
+        loose = deform and turn_deg(rigid) <= POSE_RULE.tracker_turn_deg
+        rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if loose else 1e-4,
                           start=rigid, features=features, robust=init.rigid_robust)
     clock.mark("icp")
     choice = None
