@@ -161,13 +161,21 @@ EXCEEDS_STATED_BOUND = {"collinear", "coplanar", "soft"}
 # Known defects the study shows since it judges the answer shown against navapp's own
 # rigid-only answer and counts the lines the answer carries (docs/decisions.md, "Hard cases
 # judged by the answer shown"), listed so that a change either way is seen (issue 46):
-# - consistent data whose good answer (TRE better than rigid) still carries warnings: ICP's
-#   5° / 11 mm correct move from the frame's identity is called "in doubt";
+# - consistent data whose good answer (TRE better than rigid) still carries warnings: the
+#   cross-validation's "deformation not supported" (held-out 0.92 against 1.26 mm at 12 mm: better,
+#   but not by its 30 % margin). ICP's 5° / 11 mm correct move from the frame's identity, which the
+#   fit earns (0.34 against 0.50 mm RMS, beyond ``PoseRule.given_ratio``), is no longer called "in
+#   doubt" by a second line;
 WARNED_ON_A_GOOD_ANSWER = {"baseline", "duplicated", "far", "weights x 1e-6", "weights x 1e6"}
 # - answers worse than the rigid-only answer to the same data: the pose choice keeps the
-#   data's own frame (identity, 11 mm / 5° and 90° off) over ICP's right pose; a pooled RMS
-#   dominated by the contradictory points (3.95 against 3.96 mm), and the 45° turn rule.
-WORSE_THAN_RIGID = {"contradictory", "90 deg"}
+#   data's own frame (identity, 11 mm / 5° off) over ICP's right pose; a pooled RMS dominated by
+#   the contradictory points (3.95 against 3.96 mm), which no comparison of the two fits' residuals
+#   and strain energy can overrule and still hold a pre-aligned scan over a deep dent
+#   (docs/decisions.md, "The undeclared pose choice: one line per decision, and what no summary of
+#   the two fits can decide"). "90 deg" left this list when a basin turned beyond a tracker's error
+#   was finished to convergence before the 45° turn rule judged it (81° with 43 % of the data
+#   within 1 mm of the model, refused: 71.7 mm; converged 89°: 1.57 against 2.23 rigid-only).
+WORSE_THAN_RIGID = {"contradictory"}
 FAILING = EXCEEDS_STATED_BOUND | WARNED_ON_A_GOOD_ANSWER | WORSE_THAN_RIGID
 
 
@@ -185,6 +193,8 @@ def test_hard_case_within_its_bounds(hard_results, name):
     r = hard_results[name]
     if name in WARNED_ON_A_GOOD_ANSWER:
         assert r.outcome == "warned" and r.tre_mm < r.tre_rigid_mm, r
+        # ... but not for its pose: ICP's move is earned by the fit (it was called "in doubt")
+        assert "ICP's pose" not in r.message, r.message
     else:
         assert r.outcome in case.allowed, r.message
     assert r.identical  # bit-identical β, pose and TRE from the same input

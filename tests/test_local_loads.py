@@ -335,26 +335,22 @@ def test_a_pose_the_fit_does_not_pay_for_is_not_taken_over_the_given_one(small_m
     before = pipeline.register(small_model, data)
     assert before.pose_choice.source is PoseSource.FITTED
     assert far_motion(before) > 15.0
-    # where ICP's pose stays the answer (its fit here is taken as better by more than the
-    # margin), the answer from it still in doubt: one line says how far it moved the organ
-    line = next(w.text for w in before.warnings
-                if w.text.startswith("ICP's pose is kept, though the answer from it is in doubt"))
-    moved = float(line.split("it moved the organ ")[1].split(" mm")[0])
-    assert moved == round(before.pose_choice.fits.shift_mm) and moved > 5.0, line
+    # where ICP's pose stays the answer (as if the fit had earned its move), no line says its pose
+    # is in doubt (it said "neither pose is determined" right after a rule that had just decided);
+    # the comparison is recorded
+    assert not any(w.text.startswith("ICP's pose") for w in before.warnings)
     assert before.pose_choice.as_dict()["fitted_shift_mm"] > 5.0
-    # this slide's correction is within its own uncertainty (z < 1), so neither line is let go
-    # (``Support.outweighs``): the cross-validation's "do not rely on it" stands beside it
+    # this slide's correction is within its own uncertainty (z < 1), so the cross-validation's
+    # "do not rely on it" is not let go (``Support.outweighs``)
     s = before.support
     assert s.correction_mm is not None and s.correction_mm < s.z_strong * s.sigma_mm and not s.outweighs
-    assert not before.pose_choice.confirmed
     assert any(w.text.startswith("deformation not supported by the data") for w in before.warnings)
 
-    # were the correction to outweigh its σ, the same answer would be shown without either line
+    # were the correction to outweigh its σ, the same answer would be shown without that line
     strong = pipeline.register(small_model, data, init=RobustOptions(support=SupportOptions(z_strong=0.0)))
-    assert strong.support.outweighs and strong.pose_choice.confirmed and strong.deformed
+    assert strong.support.outweighs and strong.deformed
     assert np.array_equal(strong.transform(nodes), before.transform(nodes))  # the answer is not changed
-    assert not any(w.text.startswith("deformation not supported") or "in doubt" in w.text for w in strong.warnings)
-    assert strong.pose_choice.as_dict()["confirmed"] is True
+    assert not any(w.text.startswith("deformation not supported") for w in strong.warnings)
 
 
 def _lifted_lobe(liver, tip_deg, base_deg):

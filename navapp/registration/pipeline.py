@@ -37,6 +37,7 @@ from .local_modes import LocalModeOptions, LocalModes, choose_local_modes, fold_
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, rebased_model, usable_data
 from .objective import HUBER_MM, evaluate
 from .pose import (
+    POSE_RULE,
     Determinacy,
     PoseChoice,
     PoseFits,
@@ -793,8 +794,14 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         # the chosen basin's pose is finished by today's exact point-to-point ICP: on the
         # phantom cases LIBR went on to a lower Ω and TRE from it than from the
         # vertex-matched point-to-plane pose (e.g. 0.48 against 0.95 mm). Starting it from
-        # the basin's pose, not the tracker's, keeps the result independent of the offset
-        rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,
+        # the basin's pose, not the tracker's, keeps the result independent of the offset. A basin
+        # that turns the organ further than a tracker errs is finished to convergence, as the
+        # rigid-only answer is: whether the pose alone makes such a turn good is asked of it
+        # (``PoseChoice.unconfirmed_turn``), and stopped at ``TOL_BEFORE_LIBR`` it can end short
+        # along a shallow valley (hard case "90 deg" at 12 mm: 81° with 43 % of the data within
+        # 1 mm of the model, 89° and 85 % converged; docs/decisions.md, "The undeclared pose choice …")
+        loose = deform and turn_deg(rigid) <= POSE_RULE.tracker_turn_deg
+        rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if loose else 1e-4,
                           start=rigid, features=features, robust=init.rigid_robust)
     clock.mark("icp")
     choice = None
@@ -895,9 +902,9 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         fits = PoseFits(pooled_rms(result.features), pooled_rms(at_given.features), shift_mm(rigid, data))
         preferred = prefer_given(choice, fits)
         if preferred is None and at_given.stop_reason != "cancelled":
-            # ICP's pose stays, and its line says how far it moved — unless the only doubt was the
-            # cross-validation and the correction outweighs its σ (``Support.outweighs``)
-            choice = compared(choice, fits, confirmed=quality.ok and support is not None and support.outweighs)
+            # ICP's pose stays: the fit earned its move, and no line says its pose is in doubt (the
+            # doubt that asked — a poor fit, the cross-validation — keeps its own line)
+            choice = compared(choice, fits)
         elif preferred is not None and at_given.stop_reason != "cancelled":
             choice, options = preferred, held
             rigid = _given(rms_on_model(model, data, _given()))

@@ -213,9 +213,6 @@ class PoseChoice:
     turn_deg: float | None = None
     # the two deformable fits, where the answer from ICP's pose was in doubt (``prefer_given``)
     fits: PoseFits | None = None
-    # ICP's pose kept after that comparison, and the doubt cleared: the deformation from it
-    # outweighs its own uncertainty (``support.Support.outweighs``), so no line says it is in doubt
-    confirmed: bool = False
 
     @property
     def kept(self) -> bool:
@@ -237,7 +234,9 @@ class PoseChoice:
     @property
     def warning(self) -> str | None:
         f, turn = self.fits, self.turn_deg or 0.0
-        if f is None or (self.confirmed and self.source is PoseSource.FITTED):
+        if f is None or self.source is PoseSource.FITTED:
+            # ICP's pose after the comparison is one the fit earned (``prefer_given``): no line says
+            # its pose is in doubt
             if self.source is PoseSource.FITTED and turn > POSE_RULE.tracker_turn_deg:
                 # the answer is not in doubt, yet a turn no tracker's registration needs: either
                 # the tracker was that far off, or the scanned part of the organ turned as a whole
@@ -248,15 +247,6 @@ class PoseChoice:
                         "registration and add data over the rest of the organ")
             return None
         moved = f"{f.shift_mm:.0f} mm" + (f" and turned it {turn:.0f}°" if turn >= 5.0 else "")
-        if self.source is PoseSource.FITTED:
-            # ICP's pose stays the answer, the answer from it in doubt: the surgeon is told how far
-            # it moved the organ from the tracker's pose, which both a wrong tracker registration and
-            # a partial scan of a lobe that swung away can make (docs/decisions.md, "ICP's pose kept while
-            # the answer from it is in doubt")
-            return (f"ICP's pose is kept, though the answer from it is in doubt: it moved the organ {moved} from "
-                    f"the given pose; the deformable fit leaves the data {f.fitted_rms_mm:.2f} mm RMS off there "
-                    f"against {f.given_rms_mm:.2f} mm at the given pose — neither pose is determined by these data; "
-                    "check the tracker's registration and add data away from where the organ moved")
         if self.source is PoseSource.GIVEN_TURN:
             on = self.on_model.get(PoseSource.FITTED, 0.0)
             return (f"ICP's pose is not taken: it moved the organ {moved} from the given pose, further than a "
@@ -281,7 +271,6 @@ class PoseChoice:
             out["fitted_turn_deg"] = round(self.turn_deg, 2)
         if self.fits is not None:
             out.update(self.fits.as_dict())
-            out["confirmed"] = self.confirmed
         if self.warning:
             out["warning"] = self.warning
         return out
@@ -343,7 +332,8 @@ def prefer_given(choice: PoseChoice, fits: PoseFits, rule: PoseRule = POSE_RULE)
     where they are: a move the fit does not pay for is a guess of the multi-start search, not a
     measurement; and a scan of a lobe that swung away fits the undeformed organ best turned as
     far as the lobe, a turn no tracker's registration needs. Returns the new choice, or None to
-    keep ICP's."""
+    keep ICP's: its move is then earned by the fit, and no line says its pose is in doubt (the
+    line of the doubt that asked, a poor fit or the cross-validation's, stands)."""
     if choice.source is not PoseSource.FITTED:
         return None
     if fits.given_rms_mm <= rule.given_ratio * fits.fitted_rms_mm:
@@ -360,11 +350,10 @@ def with_turn(choice: PoseChoice, pose: RigidResult) -> PoseChoice:
     return replace(choice, turn_deg=turn_deg(pose)) if choice.source is PoseSource.FITTED else choice
 
 
-def compared(choice: PoseChoice, fits: PoseFits, source: PoseSource = PoseSource.FITTED,
-             confirmed: bool = False) -> PoseChoice:
+def compared(choice: PoseChoice, fits: PoseFits, source: PoseSource = PoseSource.FITTED) -> PoseChoice:
     """``choice`` with the two fits recorded (``prefer_given``), its pose from ``source``: ICP's
-    kept (the default) or the given one; ``confirmed``: ICP's kept with the doubt cleared."""
-    return replace(choice, source=source, fits=fits, confirmed=confirmed)
+    kept (the default: the fit earned its move) or the given one."""
+    return replace(choice, source=source, fits=fits)
 
 
 @dataclass
