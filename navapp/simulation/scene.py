@@ -37,6 +37,7 @@ from pathlib import Path
 
 from ..defaults import N_PLANES
 from ..errors import InputError
+from ..mechanics.supports import RELEASES, Supports
 from .effects import Effect
 from .sources import registered
 
@@ -67,7 +68,7 @@ class Transposition:
 _TRANSPOSE_KEYS = {"phantom": int, "mesh_edge_mm": float}
 
 TOOL_SITES = ("anterior", "inferior")
-SUPPORTS = ("ligaments", "posterior", "bare_area")  # ``truth.Supports``
+SUPPORTS = tuple(s.value for s in Supports)  # what may hold the liver, one home: ``mechanics.supports``
 
 
 @dataclass(frozen=True)
@@ -248,7 +249,7 @@ def parse_scene(data: dict, path=None) -> Scene:
                          "use load = \"pressure\"", path)
     if "case" in data.get("anatomy", {}):
         scene.phantom = None
-    if scene.release not in ("L", "N", "R"):
+    if scene.release not in RELEASES:
         raise InputError(f"deformation.release must be \"L\", \"N\" or \"R\", got {scene.release!r}", path)
     if any(v is not None and v <= 0 for v in (scene.pose_sd_mm, scene.pose_sd_deg)):
         raise InputError("pose.sd_mm and pose.sd_deg must be positive (standard deviations, mm and degrees)", path)
