@@ -2,6 +2,7 @@
 
 import os
 import tempfile
+import time
 from pathlib import Path
 
 # Each of the two xdist workers holds its BLAS / OpenMP pools at one thread: two workers on
@@ -174,6 +175,30 @@ def viser_messages(frame) -> list:
 # The longest any test waits for work that takes seconds on a quiet machine: a bound, not a
 # time target (issue 25: the suite must pass beside a CPU hog; a 120 s join failed at load 14)
 BUSY_WAIT_S = 900.0
+
+
+def refused_in_one_line(read, path, text: str, problem: str):
+    """``read(path)`` of a file holding ``text`` raises one InputError line that names the file
+    first and says ``problem``."""
+    from navapp.errors import InputError
+
+    path.write_text(text)
+    with pytest.raises(InputError) as err:
+        read(path)
+    msg = str(err.value)
+    assert msg.startswith(str(path)) and problem in msg and "\n" not in msg, msg
+
+
+def wait_until(cond, timeout=BUSY_WAIT_S, step=0.01) -> bool:
+    """Poll ``cond()`` until true or ``timeout`` s have passed (then its last answer): a test
+    waiting on another thread or process returns as soon as it is done, and on a loaded machine
+    waits the whole bound rather than failing early."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if cond():
+            return True
+        time.sleep(step)
+    return cond()
 
 
 def start_app(scene: dict, cache_root, folder):

@@ -241,6 +241,7 @@ def test_live_laparoscope_points_arrive_as_a_point_message():
     import time
 
     import pyigtl
+    from conftest import wait_until
 
     from navapp.tracking.client import TrackingClient
     from navapp.tracking.config import TrackingConfig
@@ -262,9 +263,7 @@ def test_live_laparoscope_points_arrive_as_a_point_message():
                                            timestamp=stamp + 1).pack()
                      + pyigtl.PointMessage(positions=sent[:1] + 1, device_name="laparoscope",
                                            timestamp=stamp + 2).pack())
-        end = time.monotonic() + 5.0
-        while sum(isinstance(e, SourcePoints) for e in events) < 2 and time.monotonic() < end:
-            time.sleep(0.01)
+        wait_until(lambda: sum(isinstance(e, SourcePoints) for e in events) >= 2)
     finally:
         client.stop()
         listener.close()
@@ -302,7 +301,7 @@ def test_the_viewer_takes_live_laparoscope_points_into_its_session(cache_root, t
     import time
 
     import pyigtl
-    from conftest import BUSY_WAIT_S, free_port
+    from conftest import free_port, wait_until
 
     from navapp.app.server import App
     from navapp.tracking.config import TrackingConfig
@@ -315,13 +314,10 @@ def test_the_viewer_takes_live_laparoscope_points_into_its_session(cache_root, t
     sent = np.array([[10.0, 20.0, 30.0], [11.0, 21.0, 31.5]])
     try:
         assert app.start().wait(600) and app.core.failed is None, app.core.failed
-        end = time.monotonic() + BUSY_WAIT_S
-        while not server.is_connected() and time.monotonic() < end:
-            time.sleep(0.02)
+        wait_until(server.is_connected)
         server.send_message(pyigtl.PointMessage(positions=sent, device_name="laparoscope", timestamp=time.time()),
                             wait=True)
-        while len(app.core.session.live_points) < 2 and time.monotonic() < end:
-            time.sleep(0.02)
+        wait_until(lambda: len(app.core.session.live_points) >= 2)
         assert [p[3] for p in app.core.session.live_points] == ["laparoscope", "laparoscope"]
         data = app.core.data()["laparoscope"]
         simulated = app.core.sd.sourced["laparoscope"]

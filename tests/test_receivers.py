@@ -9,10 +9,9 @@ import time
 import numpy as np
 import pyigtl
 import pytest
-from conftest import BUSY_WAIT_S
+from conftest import refused_in_one_line, wait_until
 from scipy.spatial.transform import Rotation
 
-from navapp.errors import InputError
 from navapp.tracking.client import TrackingClient
 from navapp.tracking.config import ToolDevices, TrackingConfig, load_config
 from navapp.tracking.digitiser import Digitiser
@@ -57,12 +56,7 @@ def test_tools_in_the_config_are_read_and_bad_ones_refused_in_one_line(tmp_path)
                           ('[tools.laparoscope]\npose = "ProbeToReference"\n', "another device's name"),
                           ('[tools.laparoscope]\npose = "ALaparoscopeCameraToReference"\n', "1–20 bytes"),
                           ('[tools]\nlaparoscope = 1\n', "[tools.laparoscope] must be a table")]:
-        bad = tmp_path / "bad.toml"
-        bad.write_text(text)
-        with pytest.raises(InputError) as err:
-            load_config(bad)
-        msg = str(err.value)
-        assert msg.startswith(str(bad)) and problem in msg and "\n" not in msg, msg
+        refused_in_one_line(load_config, tmp_path / "bad.toml", text, problem)
 
 
 def test_a_tracked_laparoscopes_camera_points_arrive_in_reference_placed_by_its_pose():
@@ -89,9 +83,7 @@ def test_a_tracked_laparoscopes_camera_points_arrive_in_reference_placed_by_its_
                      + transform(pose, t + 0.05) + points(t + 0.1)  # placed by the pose 0.05 s before
                      + transform(moved, t + 0.2) + points(t + 0.6)  # the pose 0.4 s old (stale_s 0.2): refused
                      + transform(moved, t + 0.7) + points(t + 0.7, in_camera[:1]))
-        end = time.monotonic() + 10.0
-        while sum(isinstance(e, SourcePoints) for e in events) < 2 and time.monotonic() < end:
-            time.sleep(0.01)
+        wait_until(lambda: sum(isinstance(e, SourcePoints) for e in events) >= 2)
     finally:
         client.stop()
         listener.close()
@@ -129,15 +121,12 @@ def test_the_viewer_takes_a_tracked_laparoscopes_points_into_its_session_in_refe
     pose = _camera_to_reference()
     try:
         assert app.start().wait(600) and app.core.failed is None, app.core.failed
-        end = time.monotonic() + BUSY_WAIT_S
-        while not server.is_connected() and time.monotonic() < end:
-            time.sleep(0.02)
+        wait_until(server.is_connected)
         t = time.time()
         server.send_message(pyigtl.TransformMessage(pose, timestamp=t, device_name=POSE), wait=True)
         server.send_message(pyigtl.PointMessage(positions=in_camera, device_name="laparoscope", timestamp=t + 0.01),
                             wait=True)
-        while len(app.core.session.live_points) < 2 and time.monotonic() < end:
-            time.sleep(0.02)
+        wait_until(lambda: len(app.core.session.live_points) >= 2)
         assert [p[3] for p in app.core.session.live_points] == ["laparoscope", "laparoscope"]
         data = app.core.data()["laparoscope"]
         simulated = app.core.sd.sourced["laparoscope"]

@@ -11,9 +11,8 @@ import time
 import numpy as np
 import pyigtl
 import pytest
-from conftest import BUSY_WAIT_S
+from conftest import refused_in_one_line, wait_until
 
-from navapp.errors import InputError
 from navapp.tracking.client import TrackingClient
 from navapp.tracking.config import TrackingConfig, load_config
 from navapp.tracking.digitiser import Digitiser
@@ -37,15 +36,6 @@ def synthetic_script(seed=0):
 """
 exec(SCRIPT_CODE)  # defines synthetic_script (the subprocess server below runs the same code)
 synthetic_script = globals()["synthetic_script"]  # named for linters: exec defined it
-
-
-def wait_until(cond, timeout=BUSY_WAIT_S, step=0.01):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        if cond():
-            return True
-        time.sleep(step)
-    return cond()
 
 
 def free_port():
@@ -78,12 +68,7 @@ def test_config_reads_plus_names_and_refuses_bad_files_in_one_line(tmp_path):
                           ('[device]\nstylus = "X"\n', "unknown section [device]"),
                           ('[devices]\nstylus = "AVeryLongToolNameToReference"\n', "1–20 bytes"),
                           ('[server\n', "invalid TOML")]:
-        bad = tmp_path / "bad.toml"
-        bad.write_text(text)
-        with pytest.raises(InputError) as err:
-            load_config(bad)
-        msg = str(err.value)
-        assert msg.startswith(str(bad)) and problem in msg and "\n" not in msg, msg
+        refused_in_one_line(load_config, tmp_path / "bad.toml", text, problem)
 
 
 def test_watchdog_seen_stale_missing():
