@@ -176,10 +176,10 @@ class _Provider:
     def view_pixel_ratio(self, token, ratio):
         pass
 
-    def view_resume(self, token, previous):
+    def view_resume(self, token, previous, opened_ms=None, address=None):
         return None
 
-    def view_going(self, token):
+    def view_going(self, token, at_ms, address):
         pass
 
 

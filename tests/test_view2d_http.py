@@ -26,6 +26,8 @@ class FakeProvider:
     def __init__(self):
         self.clicks = []
         self.ratios = []
+        self.going = []
+        self.resumed = []
 
     def view_known(self, token):
         return token == TOKEN
@@ -51,6 +53,12 @@ class FakeProvider:
 
     def view_pixel_ratio(self, token, ratio):
         self.ratios.append(ratio)
+
+    def view_going(self, token, at_ms, address):
+        self.going.append((token, at_ms, address))
+
+    def view_resume(self, token, previous, opened_ms=None, address=None):
+        self.resumed.append((token, previous, opened_ms, address))
 
 
 @pytest.fixture
@@ -82,6 +90,22 @@ def test_the_pages_pixel_ratio_reaches_the_provider_and_junk_is_ignored(served):
         r = urllib.request.urlopen(f"{base}/us/state?c={TOKEN}&dpr={dpr}", timeout=30)
         assert r.status == 200
     assert provider.ratios == [2.0, 1.5]
+
+
+def test_a_pages_beacon_and_its_times_reach_the_provider(served):
+    """The beacon of a page whose tab is gone already (its viewer connection closed first, so
+    the tab is no longer known) still reaches the provider, with the browser's clock."""
+    provider, base, _ = served
+    at = 1_765_000_000_123
+    code, _ = post(f"{base}/us/going?c=GoneTab_1", json.dumps({"at": at}).encode())
+    assert code == 204 and provider.going == [("GoneTab_1", float(at), "127.0.0.1")]
+    code, _ = post(f"{base}/us/resume?c={TOKEN}", json.dumps({"previous": "", "opened": at + 900}).encode())
+    assert code == 200 and provider.resumed == [(TOKEN, None, float(at + 900), "127.0.0.1")]
+    for junk in (b'{"at": "soon"}', b'{"at": -5}', b'{"at": 1e300}', b'{"at": true}'):
+        code, body = post(f"{base}/us/going?c={TOKEN}", junk)
+        assert code == 400, junk
+        short_and_plain(body)
+    assert len(provider.going) == 1
 
 
 def test_a_crafted_token_is_never_copied_into_the_page(served):

@@ -47,6 +47,9 @@ RELOAD_S = 60.0  # a tab whose connection closed this recently may be coming bac
 # that tab's old self. Without the bound a tab opened beside another waited RELOAD_S and took
 # the work of the next tab to reload within that minute (its plane, contour and undo)
 CLOSE_LAG_S = 5.0
+# how long a new page is told to ask again while no tab has left before it: the old page's
+# beacon, which the browser's clock puts before the new page, may reach a loaded server late
+ASK_S = 20.0
 WAIT = "wait: the tab before the reload is still connected"
 SAVED = (Change.DATA, Change.RESULT, Change.LOG, Change.POSE)  # changes the session file must hold at once
 ON_CONNECT = (Change.STATUS, Change.SCENE, Change.MODEL, Change.DATA, Change.PLANE, Change.RESULT, Change.ACTIONS,
@@ -172,26 +175,34 @@ class Core:
                 while len(self.parked) > PARKED:
                     self.parked.pop(next(iter(self.parked)))
 
-    def going(self, cs: ClientState):
-        """The 2D view's page of ``cs`` is being left (reloaded or closed): heard at once, while
-        the viewer's own connection may be closed many seconds later on a loaded server (a
-        reload's new page had asked for its work back before then, and been refused)."""
+    def going(self, cs: ClientState, at_ms: float | None = None, address: str | None = None):
+        """The 2D view's page of ``cs`` is being left (reloaded or closed), at ``at_ms`` on the
+        browser's clock: heard at once, while the viewer's own connection may be closed many
+        seconds later on a loaded server (a reload's new page had asked for its work back
+        before then, and been refused), or a little before."""
         with self.lock:
-            cs.going = time.monotonic()
+            cs.going, cs.going_ms = time.monotonic(), at_ms
+            cs.address = cs.address or address
 
-    def resume(self, cs: ClientState, previous: str | None) -> str | None:
+    def resume(self, cs: ClientState, previous: str | None, opened_ms: float | None = None,
+               address: str | None = None) -> str | None:
         """The tab ``cs`` may be a reload: it takes the work of the tab it was back. Its page
         names that tab (``previous``) from the browser's per-tab session storage where the
         browser lets the 2D view's frame keep one (Chromium refuses it to a frame of another
         site when third-party storage is blocked); else (None) the one tab that left within
-        ``RELOAD_S`` is taken, and none when there are several. A tab whose page said it was
-        going (``going``) left before this page first asked: a reload's new page exists only
-        after its old one was left, so a tab opened beside it and still asking is not its
-        reload. A tab that left without a word (its connection closed) may have closed as late
-        as ``CLOSE_LAG_S`` after this page first asked. ``WAIT`` while the old tab may not
-        have left yet (``CLOSE_LAG_S``)."""
+        ``RELOAD_S`` is taken, and none when there are several.
+
+        A tab whose page said it was going (``going``) counts only if it was left before this
+        page began (``opened_ms``, both on the browser's clock; the server's order of hearing
+        them where the page gave no time): a reload's new page exists only after its old one was
+        left, so a tab opened beside it and still asking is not its reload, and a beacon that a
+        loaded server hears after the new page asked is still in order. A tab that left without
+        a word (its connection closed) may have closed as late as ``CLOSE_LAG_S`` after this page
+        first asked. Tabs of another address are never taken. ``WAIT`` while no tab has left
+        before this page and its old one may still say so (``ASK_S``)."""
         with self.lock:
-            cs.going = None  # asking again: this page is here (its frame was only redrawn)
+            cs.going = cs.going_ms = None  # asking again: this page is here (its frame was only redrawn)
+            cs.address = cs.address or address
             if previous is not None:
                 old = self.parked.pop(previous, None)
                 if old is None:
@@ -199,24 +210,35 @@ class Core:
             else:
                 now = time.monotonic()
                 if cs.resume_asked is None:
-                    cs.resume_asked = now
+                    cs.resume_asked, cs.opened_ms = now, opened_ms
                 asked = cs.resume_asked
 
                 def left(p: ClientState) -> bool:
-                    if p.going is not None:  # in the browser's own order
-                        return p.going < asked and now - p.going < RELOAD_S
+                    if p.address is not None and cs.address is not None and p.address != cs.address:
+                        return False  # another browser's tab
+                    if p.going is not None:
+                        if p.going_ms is not None and cs.opened_ms is not None:
+                            before = p.going_ms <= cs.opened_ms  # in the browser's own order
+                        else:
+                            before = p.going < asked
+                        return before and now - p.going < RELOAD_S
                     return p.parked is not None and now - p.parked < RELOAD_S and p.parked - asked < CLOSE_LAG_S
 
                 gone = [p for p in (*self.parked.values(), *self.states.values())
                         if p is not cs and p.successor is None and left(p)]
                 if len(gone) != 1:
                     # a loaded server may hear the old tab leave seconds after the new one asked
-                    return WAIT if not gone and now - asked < CLOSE_LAG_S else None
+                    return WAIT if not gone and now - asked < ASK_S else None
                 old = gone[0]
                 self.parked.pop(old.token, None)  # else still connected: parked no more (``park``)
             cs.take_over(old)
         self.refresh_view(cs, Change.PLANE)
         return None
+
+    def state_or_parked(self, token: str) -> ClientState | None:
+        """A connected tab, or one gone and kept for its reload (``park``)."""
+        with self.lock:
+            return self.states.get(token) or self.parked.get(token)
 
     def state_for(self, token: str) -> ClientState | None:
         with self.lock:

@@ -84,8 +84,14 @@ class ClientState:
     resume_asked: float | None = None  # when its page first asked to take a reloaded tab's work back
     parked: float | None = None  # when its connection closed (``Core.park``)
     # when its 2D view's page said it was going (a reload or a close: ``Core.going``), which a
-    # loaded server hears before the closed connection, and in the order the browser did it
+    # loaded server hears before the closed connection, or just after it
     going: float | None = None
+    # the same two moments on the browser's own clock (ms since the epoch): when this tab's 2D
+    # view page began, and when it was left. A loaded server may hear the old page's beacon after
+    # the new page first asked; the browser's clock still has them in the order they happened
+    opened_ms: float | None = None
+    going_ms: float | None = None
+    address: str | None = None  # where its 2D view's requests came from (one browser's tabs share it)
 
     def touch(self):
         self.version += 1

@@ -48,10 +48,10 @@ def _no_constant(name):
 
 
 def _whole(text: str) -> int:
-    # a pixel or plane index has a few digits; Python refuses int() past 4,300 with a ValueError
-    # the handler would not recognise (a 500 with a traceback in the log)
-    if len(text.lstrip("-")) > 9:
-        raise BadRequest(f"{text[:12]}… is not a pixel or plane index")
+    # a pixel or plane index has a few digits, a time in ms since the epoch 13; Python refuses
+    # int() past 4,300 with a ValueError the handler would not recognise (a 500 with a traceback)
+    if len(text.lstrip("-")) > 15:
+        raise BadRequest(f"{text[:12]}… is not a pixel, a plane index or a time")
     return int(text)
 
 
@@ -76,6 +76,16 @@ def _int(body: dict, key: str, required: bool = True) -> int | None:
     return v
 
 
+def _ms(body: dict, key: str) -> float | None:
+    """A time on the browser's clock (ms since the epoch), or None where the page sent none."""
+    v = body.get(key)
+    if v is None:
+        return None
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < 1e14:
+        raise BadRequest(f"{key} must be a time in ms since the epoch")
+    return float(v)
+
+
 def _str(body: dict, key: str, required: bool = False) -> str:
     v = body.get(key, None if required else "")
     if not isinstance(v, str) or len(v) > 200:
@@ -91,8 +101,9 @@ class Provider(Protocol):
     def view_click(self, token: str, col: int, row: int, feature: str, plane: int) -> str | None: ...
     def view_command(self, token: str, cmd: str, feature: str, plane: int | None = None) -> str | None: ...
     def view_pixel_ratio(self, token: str, ratio: float) -> None: ...
-    def view_resume(self, token: str, previous: str | None) -> str | None: ...
-    def view_going(self, token: str) -> None: ...
+    def view_resume(self, token: str, previous: str | None, opened_ms: float | None = None,
+                    address: str | None = None) -> str | None: ...
+    def view_going(self, token: str, at_ms: float | None, address: str | None) -> None: ...
 
 
 @cache
@@ -207,6 +218,11 @@ class _Handler(BaseHTTPRequestHandler):
             if role is Role.OBSERVER and path in ("/us/click", "/us/command") and body.get("cmd") not in (
                     "Plane", "Feature"):
                 return self._send(403, OBSERVING.encode(), "text/plain; charset=utf-8")
+            if path == "/us/going" and token is not None:
+                # the page's last word (a beacon; nothing to answer): its tab may be gone already,
+                # its viewer connection closed just before
+                self.provider.view_going(token, _ms(body, "at"), self.client_address[0])
+                return self._send(204, b"", "text/plain")
             # a view this server does not know (a tab of a server since restarted): 404, as GET
             # answers it, so the page tells it from a refused click and asks for a reload
             if token is None or not self.provider.view_known(token):
@@ -218,12 +234,10 @@ class _Handler(BaseHTTPRequestHandler):
             elif path == "/us/command":
                 err = self.provider.view_command(token, _str(body, "cmd", required=True), _str(body, "feature"),
                                                  _int(body, "plane", required=False))
-            elif path == "/us/going":  # the page's last word (a beacon): nothing to answer
-                self.provider.view_going(token)
-                return self._send(204, b"", "text/plain")
             elif path == "/us/resume":
                 previous = _str(body, "previous")
-                err = self.provider.view_resume(token, previous if TOKEN.fullmatch(previous) else None)
+                err = self.provider.view_resume(token, previous if TOKEN.fullmatch(previous) else None,
+                                                _ms(body, "opened"), self.client_address[0])
             else:
                 return self._send(404, b"not found", "text/plain")
         except BadRequest as exc:

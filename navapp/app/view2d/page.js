@@ -1,6 +1,7 @@
 // the 2D ultrasound view (view2d/page.html): draws the frame, the model's sections and the
 // contours on a canvas, queues clicks and sends them one at a time (see view2d/__init__.py)
 const TOKEN = document.body.dataset.token;
+const OPENED = Date.now();  // when this page began, on the clock its beacon uses as it is left
 const ACCESS = document.body.dataset.access;  // the viewer's token, when it asks for one
 const POLL = Number(document.body.dataset.poll);
 const IN_PROGRESS = document.body.dataset.drawing;
@@ -171,9 +172,10 @@ $("plane").onchange = () => { if ($("plane").value !== "") command("Plane", {pla
 // browser that refuses storage to this frame (another site than the viewer) names none, and
 // the server takes the one tab that has just gone, if there is exactly one. A page being left
 // says so at once (a beacon is sent as the page goes): the viewer's connection of a reloaded tab
-// can close many seconds after its new page asked, on a loaded server
+// can close many seconds after its new page asked, on a loaded server. Both times are on this
+// browser's clock, the server's order of hearing them being no guide under load
 window.addEventListener("pagehide", () => {
-  try { navigator.sendBeacon(url("/us/going"), "{}"); } catch (e) {}
+  try { navigator.sendBeacon(url("/us/going"), JSON.stringify({at: Date.now()})); } catch (e) {}
 });
 async function resume(){
   let prev = null;
@@ -181,7 +183,7 @@ async function resume(){
   if (prev === TOKEN) return;
   for (let i = 0; i < 240; i++){  // the old page's connection may close a while after this one opened
     try {
-      const s = await post("/us/resume", {previous: prev || ""});
+      const s = await post("/us/resume", {previous: prev || "", opened: OPENED});
       if (!s.error) { apply(s); return; }
       if (!s.error.startsWith("wait")) return;
     } catch (e) {}

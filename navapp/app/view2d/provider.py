@@ -145,16 +145,17 @@ class View2D:
         if view is not None:
             view.camera_changed()
 
-    def view_going(self, token: str) -> None:
-        cs = self.core.state_for(token)
+    def view_going(self, token: str, at_ms: float | None, address: str | None) -> None:
+        cs = self.core.state_or_parked(token)  # its viewer connection may have closed already
         if cs is not None:
-            self.core.going(cs)
+            self.core.going(cs, at_ms, address)
 
-    def view_resume(self, token: str, previous: str | None) -> str | None:
+    def view_resume(self, token: str, previous: str | None, opened_ms: float | None = None,
+                    address: str | None = None) -> str | None:
         cs = self.core.state_for(token)
         if cs is None:
             return GONE
-        return self.core.resume(cs, previous)
+        return self.core.resume(cs, previous, opened_ms, address)
 
     def overlays(self, index: int) -> list[Overlay]:
         """The model's sections with plane ``index``: preoperative (rigidly placed by the
