@@ -45,6 +45,7 @@ class Act(Enum):
     RECORDING = "live recording"
     FOLLOW = "live re-registration"
     POSE = "pose of the data stated"
+    SUPPORTS = "supports stated"
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,8 @@ from .. import progress
 from ..anatomy.meshing import check_size
 from ..anatomy.truth import TruthField
 from ..errors import NavappError
-from ..registration.pipeline import Registration, mesh_and_basis, prepare
+from ..mechanics.supports import HeldSupports
+from ..registration.pipeline import Registration, held_model, mesh_and_basis, prepare
 from ..simulation.scenedata import SceneData, is_simulated, load_scene_data
 from ..simulation.ultrasound import PlaneData
 from .access import Role
@@ -98,6 +99,8 @@ class Core:
         self.actions: ActionLog | None = None  # the session's action log, opened with it
         self.planes: dict[int, PlaneData] = {}
         self.model: RegistrationModel | None = None
+        # the same mesh's models held at stated supports (``held_model``), built as they are stated
+        self.models: dict[HeldSupports, RegistrationModel] = {}
         self.worker: RegistrationWorker | None = None
         self.truth_nodes: np.ndarray | None = None
         self.run: Run | None = None  # the registration in progress
@@ -143,6 +146,28 @@ class Core:
         if model is None or worker is None:
             raise NotReady("the registration model is still being prepared")
         return model, worker
+
+    def model_for(self, held: HeldSupports | None) -> RegistrationModel | None:
+        """The registration model whose basis is held at ``held`` (None: free-floating), or None
+        while it is not built."""
+        with self.lock:
+            return self.model if held is None else self.models.get(held)
+
+    def kept_model(self, model: RegistrationModel) -> RegistrationModel | None:
+        """What a result keeps of the model it is in (``RegisteredState.model``): None for the
+        free-floating one, which ``model`` always is."""
+        return None if model is self.model else model
+
+    def build_held(self, held: HeldSupports) -> RegistrationModel:
+        """The model held at ``held``: the free model's mesh and features, the basis computed
+        with the supports (or read from the basis cache). Blocks for as long as a basis takes."""
+        model, _ = self.need_model()
+        built = self.model_for(held)
+        if built is None:
+            built = held_model(model, held.held.value, held.release, self.cache_root)
+            with self.lock:
+                built = self.models.setdefault(held, built)
+        return built
 
     def data(self, surface_only: bool = False) -> dict[str, np.ndarray]:
         """The registration data the session holds now: {feature: (N, 3) tracker mm}."""

@@ -283,13 +283,17 @@ class LiveFollower:
             data = core.data()
             if self.reg is None:
                 model, _ = core.need_model()
-                self.reg = LiveRegistration(model, data, options=viewer_options())
                 doubt = core.result.pose_warning if core.result is not None else None
+                last = core.last_reg if core.last_reg is not None and core.last_reg.libr is not None else None
+                # the result on show's own model (held at the supports stated when it was fitted), as
+                # a warm start's: its β means nothing in another basis
+                self.reg = LiveRegistration(last.model if last is not None and not doubt else model, data,
+                                            options=viewer_options())
                 if doubt:  # never continued from a pose nobody should believe: a fresh fit, and said so
                     core.notify("Live re-registration", "Starts afresh, not from the result on show: " + doubt,
                                 error=True)
-                elif core.last_reg is not None and core.last_reg.libr is not None:
-                    self.reg.last = core.last_reg  # continue from the result on show
+                elif last is not None:
+                    self.reg.last = last  # continue from the result on show
             else:
                 self.reg.base = merge(data)
 
@@ -453,12 +457,12 @@ class Live:
         if not final and now - self._shown < VIEW_MIN_S:
             return
         self._shown = now
-        err = shown.node_error(reg.rigid, beta)
+        err = shown.node_error(reg.rigid, beta, reg.model)
         checked = checked_by(core.result, reg, warm=True)
         predicted = shown.predict(reg, checked) if final else (None, [])  # ~0.1 s: not on every frame
         state = RegisteredState(RunKind.LIVE.label, reg.rigid, beta, err, *predicted,
                                 data_model_frame=reg.data_model_frame, pose_warning=one_line(reg.pose_doubts),
-                                checked=checked)
+                                checked=checked, model=core.kept_model(reg.model))
         flipped = (core.result.pose_warning if core.result is not None else None) != state.pose_warning
         with core.lock:
             core.result, core.last_reg = state, reg
@@ -470,7 +474,7 @@ class Live:
                 points = int(sum(len(v) for v in core.data().values()))
                 entry = RunEntry.of(RunKind.LIVE, reg, points, sum(reg.seconds.values()), err, live=summary,
                                     checked=checked)
-                entry.targets_mm = shown.target_errors(reg.rigid, beta)
+                entry.targets_mm = shown.target_errors(reg.rigid, beta, reg.model)
                 session.log.append(entry)
                 core.shown_runs[len(session.log) - 1] = (state, reg, [])
         if final:

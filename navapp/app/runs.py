@@ -41,6 +41,7 @@ from .state import (
     RunEntry,
     RunKind,
     StatedPose,
+    StatedSupports,
     WorstPoint,
     checked_by,
 )
@@ -97,11 +98,15 @@ class Runs:
             kind = RunKind.ALL
             core.notify("Registration", "Not continued from the result on show (its pose is not to be believed): "
                         "a fresh registration on all data instead.", error=True)
+        model, waiting = self._model(kind)
+        if model is None:
+            return waiting
         prior, given = self._pose(kind)
         with self._starting:
             with core.lock:
-                core.run = Run(kind, npts, time.monotonic(), data=data, origins=origins, left_out=left_out)
-            if not worker.start(data, deform=kind.deformable, warm=kind is RunKind.WARM, pose_prior=prior,
+                core.run = Run(kind, npts, time.monotonic(), data=data, origins=origins, left_out=left_out,
+                               model=model)
+            if not worker.start(data, deform=kind.deformable, warm=kind is RunKind.WARM, pose_prior=prior, model=model,
                                 given=given):
                 with core.lock:
                     core.run = None
@@ -109,6 +114,64 @@ class Runs:
         core.changed(Change.RUN)
         core.record(cs, Act.RUN, f"{kind.label}, {npts} points")
         return None
+
+    def _model(self, kind: RunKind):
+        """The model a run of ``kind`` fits: a warm start's is the one its result is in, a fresh
+        run's is held at the stated supports. (None, why) while that one is still being built."""
+        core = self.core
+        worker = core.worker
+        if kind is RunKind.WARM and worker is not None and worker.last is not None:
+            return worker.last.model, None
+        with core.lock:
+            sd, session = core.need_scene()
+            held = session.stated_supports(sd).held
+        model = core.model_for(held)
+        if model is None:
+            return None, (f"The registration model {StatedSupports(held).words()} is still being prepared "
+                          "(a basis takes about as long as the first start's); try again in a moment.")
+        return model, None
+
+    def set_supports(self, stated: StatedSupports, cs: ClientState | None = None) -> str | None:
+        """State where the organ is held for the runs to come, an action of ``cs``: the model
+        held there is built in the background (its basis from the cache where it was made
+        before). Returns what changed in words, or None where nothing did."""
+        core = self.core
+        with core.lock:
+            sd, session = core.need_scene()
+            if stated == session.stated_supports(sd):
+                return None
+            session.supports = stated
+        core.changed(Change.POSE)
+        core.record(cs, Act.SUPPORTS, stated.words())
+        if not self.prepare_held():
+            return f"Organ {stated.words()}. It applies from the next fresh registration."
+        return (f"Organ {stated.words()}: its model is being prepared (about as long as the first start's "
+                "basis); the next fresh registration uses it.")
+
+    def prepare_held(self) -> bool:
+        """Build the model held at the stated supports in the background, if it is not built;
+        returns whether it began. Said in a notice when it is ready or has failed."""
+        core = self.core
+        with core.lock:
+            sd, session = core.need_scene()
+            stated = session.stated_supports(sd)
+        held = stated.held
+        if held is None or core.model is None or core.model_for(held) is not None:
+            return False
+
+        def build():
+            t0 = time.monotonic()
+            try:
+                core.build_held(held)
+            except Exception as exc:  # said, never a dead thread
+                core.notify("Supports", f"The model {stated.words()} could not be built: {exc}", error=True)
+                return
+            core.notify("Supports", f"The model {stated.words()} is ready ({time.monotonic() - t0:.0f} s); "
+                        "the next fresh registration uses it.")
+            core.changed(Change.POSE)
+
+        threading.Thread(target=build, daemon=True, name="navapp-held-model").start()
+        return True
 
     def _pose(self, kind: RunKind) -> tuple[PosePrior | None, RigidResult | None]:
         """The pose prior a run of ``kind`` starts with, and the pose it is about (None: the data's
@@ -174,7 +237,7 @@ class Runs:
         core, shown = self.core, self.shown
         rigid = u.rigid
         assert rigid is not None  # every streamed state has its rigid pose
-        err = shown.node_error(rigid, u.beta)
+        err = shown.node_error(rigid, u.beta, u.model)
         with core.lock:
             run = core.run
             if run is None:
@@ -185,7 +248,8 @@ class Runs:
                 run.trace.append((u.elapsed, float(err.mean())))
                 run.error = err
             run.state = (rigid, u.beta)
-        geom = shown.geometry(rigid, u.beta, surfaces={"liver": u.liver, **(u.vessels or {})})
+            run.model = u.model or run.model
+        geom = shown.geometry(rigid, u.beta, surfaces={"liver": u.liver, **(u.vessels or {})}, model=u.model)
         core.each_view(lambda v: v.show_update(u, geom))
 
     def on_done(self, reg: Registration):
@@ -196,17 +260,17 @@ class Runs:
         stopped = cancelled(reg)
         # the answer: the rigid pose alone where the data do not support the deformation
         beta = reg.libr.beta if reg.libr is not None and reg.deformed else None
-        err = None if stopped else shown.node_error(reg.rigid, beta)
+        err = None if stopped else shown.node_error(reg.rigid, beta, reg.model)
         checked = checked_by(core.result, reg, warm=run.kind is RunKind.WARM)
         entry = RunEntry.of(run.kind, reg, run.points, time.monotonic() - run.t0, err, run.streamed, run.trace,
                             checked=checked)
         worst: list[WorstPoint] = []
         n_out = (0, 0)
         if not stopped:
-            entry.targets_mm = shown.target_errors(reg.rigid, beta)
+            entry.targets_mm = shown.target_errors(reg.rigid, beta, reg.model)
             result = RegisteredState(run.kind.label, reg.rigid, beta, err, *shown.predict(reg, checked),
                                      data_model_frame=reg.data_model_frame, pose_warning=one_line(reg.pose_doubts),
-                                     checked=checked)
+                                     checked=checked, model=self.core.kept_model(reg.model))
             residuals = point_residuals(reg, viewer_options().weights)
             worst = worst_points(reg, run.data, run.origins, viewer_options().weights, left_out=run.left_out,
                                  residuals=residuals)

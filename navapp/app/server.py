@@ -124,6 +124,7 @@ class App:
                                              max_rate_hz=STREAM_HZ)
             self.shown.restore()
         self.runs.restore_worst()
+        self.runs.prepare_held()  # the supports the session or the case states: their model made ahead
 
     def export(self, cs: ClientState | None = None):
         """The registered model, the data and the action log into the session's export/ folder,

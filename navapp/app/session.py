@@ -27,6 +27,7 @@ from ..errors import InputError
 from ..features import NAMES as FEATURE_NAMES
 from ..features import SOURCED
 from ..features import STYLUS as STYLUS_FEATURES
+from ..mechanics.supports import case_supports
 from ..outputs import replace_folder
 from ..registration.prior import declared_pose
 from ..simulation.scenedata import SceneData, acquire_free_plane, scene_key
@@ -34,7 +35,7 @@ from ..simulation.ultrasound import PlaneData
 from .actions import FILE as ACTIONS_FILE
 from .contours import Contour, Origin, OriginKind, contour_points
 from .palette import DRAWABLE
-from .state import PoseFrame, RunEntry, StatedPose
+from .state import PoseFrame, RunEntry, StatedPose, StatedSupports
 
 SESSION_VERSION = 1
 LIVE_FEATURES = STYLUS_FEATURES + SOURCED  # a live point's: the tracked stylus's, or a source's (``app.live``)
@@ -60,6 +61,8 @@ class Session:
     note: str | None = None  # one line on what opening the folder found and did, for the user
     # what the surgeon stated of the pose of the data (Registration panel); None: the case's own declaration
     pose: StatedPose | None = None
+    # where the surgeon stated the organ is held (Registration panel); None: the case's own declaration
+    supports: StatedSupports | None = None
 
     # ------------------------------------------------------------ data
     def data(self, sd: SceneData, planes: dict, surface_only=False) -> dict:
@@ -106,13 +109,18 @@ class Session:
         """The pose of the data as stated in the viewer, else as the case declares it."""
         return self.pose if self.pose is not None else StatedPose.of_case(declared_pose(sd.case.settings))
 
+    def stated_supports(self, sd: SceneData) -> StatedSupports:
+        """Where the organ is held as stated in the viewer, else as the case declares it."""
+        return self.supports if self.supports is not None else StatedSupports.of_case(case_supports(sd.case.settings))
+
     # ------------------------------------------------------------ persistence
     def to_json(self) -> dict:
         return {"version": SESSION_VERSION, "scene_key": self.key, "stylus_count": self.stylus_count,
                 "planes_added": self.planes_added, "contours": [c.to_json() for c in self.contours],
                 "free_planes": self.free_planes, "log": [e.to_json() for e in self.log], "result": self.result,
                 "live_points": self.live_points, "live_planes": self.live_planes, "excluded": self.excluded,
-                "pose": None if self.pose is None else self.pose.to_json()}
+                "pose": None if self.pose is None else self.pose.to_json(),
+                "supports": None if self.supports is None else self.supports.to_json()}
 
     def save(self, sd: SceneData, planes: dict):
         """Write session.json and the case folder's intraop/. The first save writes the whole
@@ -155,15 +163,21 @@ def _write_case(folder: Path, sd: SceneData):
         write_truth(sd.case.truth, folder)
 
 
-def _settings(sd: SceneData, stated: StatedPose | None) -> dict:
-    """case.toml: the name, the units and the pose of the data as stated (the case's own
-    declaration until the viewer states one), so that ``navapp register SESSION`` starts from
-    what the viewer knew. A pose known from the previous registration has no place there (the command
-    has no previous registration): it is written unknown."""
+def _settings(sd: SceneData, stated: StatedPose | None, supports: StatedSupports | None = None) -> dict:
+    """case.toml: the name, the units, the pose of the data and where the organ is held, as
+    stated (the case's own declarations until the viewer states them), so that ``navapp register
+    SESSION`` starts from what the viewer knew. A pose known from the previous registration has no
+    place there (the command has no previous registration): it is written unknown."""
     stated = stated or StatedPose.of_case(declared_pose(sd.case.settings))
+    held = (supports or StatedSupports.of_case(case_supports(sd.case.settings))).held
     settings: dict = {"name": _case_name(sd), "units": "mm"}
+    intraop: dict = {}
     if stated.frame is PoseFrame.GIVEN:
-        settings["intraop"] = {"pose": {"known": True, "sd_mm": float(stated.sd_mm), "sd_deg": float(stated.sd_deg)}}
+        intraop["pose"] = {"known": True, "sd_mm": float(stated.sd_mm), "sd_deg": float(stated.sd_deg)}
+    if held is not None:
+        intraop["supports"] = {"held": held.held.value, "release": held.release}
+    if intraop:
+        settings["intraop"] = intraop
     return settings
 
 
@@ -171,7 +185,7 @@ def _write_data(s: Session, folder: Path, sd: SceneData, planes: dict):
     """intraop/ (the registration data the session holds), case.toml and session.json, each
     file atomically."""
     tmp = folder / "case.toml.tmp"
-    write_settings(tmp.parent, _settings(sd, s.pose), name=tmp.name)
+    write_settings(tmp.parent, _settings(sd, s.pose, s.supports), name=tmp.name)
     os.replace(tmp, folder / "case.toml")
     idir = folder / "intraop"
     idir.mkdir(exist_ok=True)
@@ -300,7 +314,8 @@ def open_session(folder: Path, sd: SceneData) -> tuple[Session, dict]:
                     [_point(p, "live_points", LIVE_FEATURES) for p in _list(d.get("live_points", []), "live_points")],
                     [_plane(f, "live_planes", png=True) for f in _list(d.get("live_planes", []), "live_planes")],
                     [_point(p, "excluded", FEATURE_NAMES) for p in _list(d.get("excluded", []), "excluded")],
-                    pose=None if d.get("pose") is None else StatedPose.from_json(d["pose"]))
+                    pose=None if d.get("pose") is None else StatedPose.from_json(d["pose"]),
+                    supports=None if d.get("supports") is None else StatedSupports.from_json(d["supports"]))
     except (ValueError, KeyError, TypeError, AttributeError) as exc:
         raise InputError(f"damaged session.json ({exc.__class__.__name__}: {exc}); move it away to start afresh",
                          path) from None

@@ -16,14 +16,14 @@ from ..fitwarning import FitWarning, WarningKind
 from ..geometry.targets_distance import ImagePlane, plane_distances, tip_distances
 from ..geometry.tre import point_errors
 from ..registration.libr import LibrResult
-from ..registration.model import deform
+from ..registration.model import RegistrationModel, deform
 from ..registration.pipeline import Registration
 from ..registration.rigid import RigidResult
 from ..registration.support import SupportOptions, TargetSupport, target_support
 from ..registration.targets import registered_targets, target_interpolation
 from .core import Core
 from .slicer import Slicer
-from .state import CARRIED, ClientState, RegisteredState, StateGeometry, TargetBand
+from .state import CARRIED, ClientState, RegisteredState, StatedSupports, StateGeometry, TargetBand
 from .worker import viewer_options
 
 # beside each tumour when the pose is not to be believed: no figure, what to do instead
@@ -40,9 +40,11 @@ class Shown:
         self._geometry: StateGeometry | None = None  # the last state's geometry (see geometry())
 
     # ------------------------------------------------------------------ positions and errors
-    def node_positions(self, rigid: RigidResult, beta: np.ndarray | None) -> np.ndarray:
-        """All mesh nodes at state β in tracker space, (M, 3) mm (eq. 8, ``registration.model.deform``)."""
-        model, _ = self.core.need_model()
+    def node_positions(self, rigid: RigidResult, beta: np.ndarray | None,
+                       model: RegistrationModel | None = None) -> np.ndarray:
+        """All mesh nodes at state β in tracker space, (M, 3) mm (eq. 8, ``registration.model.deform``).
+        ``model``: the one β is in (default the free-floating one)."""
+        model = model or self.core.need_model()[0]
         nodes = model.basis.nodes
         if beta is None:
             return rigid.apply(nodes)
@@ -50,14 +52,16 @@ class Shown:
         u = (model.basis.Ju @ beta[:n]).reshape(-1, 3)
         return rigid.apply(deform(nodes, u, beta, model.centroid)[1])
 
-    def node_error(self, rigid: RigidResult, beta: np.ndarray | None) -> np.ndarray | None:
+    def node_error(self, rigid: RigidResult, beta: np.ndarray | None,
+                   model: RegistrationModel | None = None) -> np.ndarray | None:
         """(M,) true error at the mesh nodes, mm; None without the truth."""
         truth = self.core.truth_nodes
         if truth is None:
             return None
-        return point_errors(self.node_positions(rigid, beta), truth)
+        return point_errors(self.node_positions(rigid, beta, model), truth)
 
-    def target_errors(self, rigid: RigidResult, beta: np.ndarray | None) -> dict[str, float] | None:
+    def target_errors(self, rigid: RigidResult, beta: np.ndarray | None,
+                      model: RegistrationModel | None = None) -> dict[str, float] | None:
         """Each target's (tumour's) true error at its centre, mm: the mesh nodes' error vector
         interpolated there (the truth is known at the nodes); None without the truth."""
         core = self.core
@@ -71,7 +75,7 @@ class Shown:
             self._centre_B = interpolation_matrix(model.basis.nodes, model.basis.tets,
                                                   np.array([t.centre for t in targets]))
         # the error vectors interpolated to the centres, then their lengths
-        d = point_errors(self._centre_B @ (self.node_positions(rigid, beta) - truth), 0.0)
+        d = point_errors(self._centre_B @ (self.node_positions(rigid, beta, model) - truth), 0.0)
         return {t.name: round(float(e), 3) for t, e in zip(targets, d, strict=True)}
 
     def predict(self, reg: Registration, checked: Registration | None = None) -> tuple[np.ndarray | None,
@@ -83,7 +87,7 @@ class Shown:
         the warm result's, said to be from then, as a warm start does not cross-validate."""
         from ..registration.uncertainty import estimate_error
 
-        model, _ = self.core.need_model()
+        model = reg.model
         if reg.libr is None or not reg.data_model_frame:
             return None, []
         preop = self.core.preop
@@ -133,17 +137,18 @@ class Shown:
 
     # ------------------------------------------------------------------ geometry
     def geometry(self, rigid: RigidResult | None = None, beta: np.ndarray | None = None,
-                 surfaces: dict | None = None) -> StateGeometry:
+                 surfaces: dict | None = None, model: RegistrationModel | None = None) -> StateGeometry:
         """The model at a registered state, computed once per state (the last one is kept):
         by default the state on show. ``surfaces``: the worker's vertices for this state
-        when it already has them (name → (V, 3))."""
+        when it already has them (name → (V, 3)); ``model``: the one β is in (default the
+        free-floating one)."""
         core = self.core
         if rigid is None:
             run = core.run
             if run is not None and run.state is not None:
-                rigid, beta = run.state
+                (rigid, beta), model = run.state, run.model
             elif core.result is not None:
-                rigid, beta = core.result.rigid, core.result.beta
+                rigid, beta, model = core.result.rigid, core.result.beta, core.result.model
         g = self._geometry
         if g is not None and g.rigid is rigid and g.beta is beta:
             return g
@@ -151,9 +156,9 @@ class Shown:
         if rigid is None or core.model is None or core.worker is None:
             g = StateGeometry(None, None, {}, pre)
         else:
-            model = core.model
+            model = model or core.model
             if surfaces is None:
-                surfaces = core.worker.surfaces(rigid, beta)
+                surfaces = core.worker.surfaces(rigid, beta, model)
             cells = {name: model.features[name].cells for name in surfaces}
             reg = Registration(model, rigid, None, {})  # transform: rigid ∘ eq. 8 at β
             if pre and self._target_B is None:  # locating the target points in the mesh once
@@ -201,10 +206,15 @@ class Shown:
     def restore(self):
         """The registered model stored in the session (rigid pose and β) after a restart."""
         core = self.core
-        model, worker = core.need_model()
+        free, worker = core.need_model()
         d = core.need_session().result
         if not d:
             return
+        try:  # the model β is in: held at the supports stated when it was fitted, or free-floating
+            held = StatedSupports.from_json(d["supports"]).held if d.get("supports") is not None else None
+        except ValueError:
+            return  # a record this version cannot read: nothing to restore
+        model = free if held is None else core.build_held(held)
         rigid = RigidResult(np.array(d["R"]), np.array(d["t"]), 0, float(d.get("rms_mm", np.nan)),
                             kept=bool(d.get("kept", False)))
         beta = None if d.get("beta") is None else np.array(d["beta"], float)
@@ -224,8 +234,9 @@ class Shown:
         saved = d.get("predicted_mm")
         if saved is not None and len(saved) == len(model.basis.surface):
             predicted = (np.array(saved, float), [TargetBand.from_json(b) for b in d.get("target_bands", [])])
-        core.result = RegisteredState(d.get("run", "restored"), rigid, beta, self.node_error(rigid, beta), *predicted,
-                                      data_model_frame=inv, pose_warning=doubt, restored=True)
+        core.result = RegisteredState(d.get("run", "restored"), rigid, beta, self.node_error(rigid, beta, model),
+                                      *predicted, data_model_frame=inv, pose_warning=doubt, restored=True,
+                                      model=core.kept_model(model))
         self.slicer.send(reg)  # queued: a Slicer connecting later receives the result on show
 
 

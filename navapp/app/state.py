@@ -17,6 +17,8 @@ from enum import Enum
 import numpy as np
 
 from ..fitwarning import FitWarning, WarningKind, one_line
+from ..mechanics.supports import RELEASES, HeldSupports, Supports
+from ..registration.model import RegistrationModel
 from ..registration.pipeline import Registration
 from ..registration.prior import PosePrior
 from ..registration.rigid import RigidResult
@@ -155,6 +157,9 @@ class RegisteredState:
     # restart a warm start becomes a fresh fit, which checks again
     checked: Registration | None = field(default=None, kw_only=True, repr=False, compare=False)
     restored: bool = field(default=False, kw_only=True)  # read back from the session after a restart
+    # the model whose basis β is in (held at the stated supports, or free-floating): its geometry
+    # and errors are read off that model only. None: the free-floating model (``Core.model``)
+    model: RegistrationModel | None = field(default=None, kw_only=True, repr=False, compare=False)
 
     def to_json(self) -> dict:
         # the prediction is kept too: it was made from the data of the fit, which for a live
@@ -164,6 +169,7 @@ class RegisteredState:
                 "beta": None if self.beta is None else np.asarray(self.beta).tolist(),
                 "predicted_mm": None if self.predicted_mm is None else np.round(self.predicted_mm, 3).tolist(),
                 "target_bands": [b.to_json() for b in self.target_bands], "pose_warning": self.pose_warning,
+                "supports": None if self.model is None else StatedSupports(held_of(self.model)).to_json(),
                 "data_model_frame": None if self.data_model_frame is None else
                 {k: np.round(np.asarray(v, float), 4).tolist() for k, v in self.data_model_frame.items()}}
 
@@ -277,6 +283,54 @@ class StatedPose:
         return StatedPose(PoseFrame(d["frame"]), d["sd_mm"], d["sd_deg"])
 
 
+@dataclass(frozen=True)
+class StatedSupports:
+    """What the surgeon states of where the organ is held (the Registration panel's "Organ
+    held at"): the registration's basis then vanishes there in every mode; None: free-floating,
+    the paper's basis."""
+
+    held: HeldSupports | None = None
+
+    @staticmethod
+    def of_case(declared: HeldSupports | None) -> StatedSupports:
+        """The case's declaration (case.toml ``[intraop.supports]``)."""
+        return StatedSupports(declared)
+
+    def words(self) -> str:
+        return supports_words(self.held)
+
+    def to_json(self) -> dict:
+        h = self.held
+        return {"held": None if h is None else h.held.value, "release": "N" if h is None else h.release}
+
+    @staticmethod
+    def from_json(d) -> StatedSupports:
+        """Raises ValueError (with what is wrong) for anything but a stated supports' record."""
+        if not isinstance(d, dict) or set(d) != {"held", "release"}:
+            raise ValueError(f"supports: {d!r} is not {{held, release}}")
+        if d["held"] is None:
+            return StatedSupports()
+        if d["release"] not in RELEASES:
+            raise ValueError(f"supports: the released side {d['release']!r} is not L, N or R")
+        return StatedSupports(HeldSupports(Supports(d["held"]), d["release"]))
+
+
+def supports_words(held: HeldSupports | None) -> str:
+    """Where a basis holds the organ, in a surgeon's words."""
+    if held is None:
+        return "free-floating (no supports stated)"
+    if held.held is Supports.LIGAMENTS:
+        side = {"L": ", the left one released", "R": ", the right one released"}.get(held.release, "")
+        return f"held at its ligaments{side}"
+    return "held on a posterior bed" if held.held is Supports.POSTERIOR else "held at the bare area alone"
+
+
+def held_of(model: RegistrationModel) -> HeldSupports | None:
+    """The supports ``model``'s basis is held at (None: free-floating)."""
+    s = model.basis.settings
+    return None if s.supports is None else HeldSupports(Supports(s.supports), s.release)
+
+
 class RunKind(Enum):
     """What a run fits with what; the value is the button's key, ``label`` the words shown."""
 
@@ -343,6 +397,7 @@ class Run:
     omega: float = float("nan")
     error: np.ndarray | None = None  # (M,) true error at the mesh nodes of the latest state
     state: tuple[RigidResult, np.ndarray | None] | None = None  # the latest state (rigid pose, β)
+    model: RegistrationModel | None = None  # the model the run fits (its basis: the stated supports)
 
 
 @dataclass

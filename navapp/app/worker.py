@@ -15,6 +15,7 @@ import numpy as np
 
 from ..anatomy.model import VESSELS
 from ..registration.libr import LMOptions
+from ..registration.model import RegistrationModel
 from ..registration.objective import robust_weights
 from ..registration.pipeline import Registration, RobustOptions, register
 from ..registration.prior import PosePrior
@@ -31,6 +32,7 @@ class Update:
     vessels: dict | None = None  # "portal" / "hepatic" → (V, 3) deformed vessel-surface vertices, mm
     beta: np.ndarray | None = None  # the state β (None for a rigid-only result)
     rigid: RigidResult | None = None  # the rigid pose of this state
+    model: RegistrationModel | None = None  # the model β is in (the run's: its basis held at the stated supports)
 
 
 def viewer_options() -> LMOptions:
@@ -67,9 +69,12 @@ class RegistrationWorker:
         return self._thread is not None and self._thread.is_alive()
 
     def start(self, data: dict, deform=True, warm=False, options: LMOptions | None = None,
-              pose_prior: PosePrior | None = None, given: RigidResult | None = None) -> bool:
+              pose_prior: PosePrior | None = None, given: RigidResult | None = None,
+              model: RegistrationModel | None = None) -> bool:
         """Start a run; returns False, starting nothing, while another run is going.
-        ``warm`` continues from the last result's rigid pose and β (e.g. after adding a plane).
+        ``warm`` continues from the last result's rigid pose and β (e.g. after adding a plane),
+        in the last result's model. ``model``: a fresh run's model (default the worker's, the
+        free-floating one; the viewer passes the one held at the stated supports).
         ``pose_prior``: what is known of the pose (``register(pose_prior=)``), about ``given``
         (the previous registration's pose) or, without it, the data's own frame; a warm run
         carries the last run's prior, centred on its pose, while one is stated."""
@@ -79,8 +84,9 @@ class RegistrationWorker:
             self._cancel.clear()
             self._decided = not deform  # a rigid registration has no iteration to stop at
             prev = self.last if warm else None
+            run_model = prev.model if prev is not None else (model or self.model)
             self._thread = threading.Thread(target=self._run, daemon=True, args=(
-                data, deform, prev, options or viewer_options(), pose_prior, given))
+                data, deform, prev, options or viewer_options(), pose_prior, given, run_model))
             self._thread.start()
             return True
 
@@ -104,20 +110,22 @@ class RegistrationWorker:
         if self._thread is not None:
             self._thread.join(timeout)
 
-    def surfaces(self, rigid, beta) -> dict:
+    def surfaces(self, rigid, beta, model: RegistrationModel | None = None) -> dict:
         """"liver" (the tet boundary) / "portal" / "hepatic" → (V, 3) vertices of the
-        registration model's surfaces at state β (None: rigid only), tracker space, mm."""
+        registration model's surfaces at state β (None: rigid only), tracker space, mm.
+        ``model``: the one β is in (default the worker's)."""
+        model = model or self.model
         out = {}
         for name in ("liver", *VESSELS):
-            f = self.model.features.get(name)
+            f = model.features.get(name)
             if f is not None:
-                out[name] = rigid.apply(f.rest if beta is None else self.model.positions(f, beta)[1])
+                out[name] = rigid.apply(f.rest if beta is None else model.positions(f, beta)[1])
         return out
 
-    def _state(self, iteration, omega, t0, rigid, beta, final=False) -> Update:
-        s = self.surfaces(rigid, beta)
+    def _state(self, iteration, omega, t0, rigid, beta, model, final=False) -> Update:
+        s = self.surfaces(rigid, beta, model)
         return Update(iteration, omega, time.monotonic() - t0, s.pop("liver"), final, s,
-                      None if beta is None else np.array(beta), rigid)
+                      None if beta is None else np.array(beta), rigid, model)
 
     def submit(self, job, on_done=None, on_error=None) -> bool:
         """Run ``job(cancel_event)`` (e.g. a settings sweep) in the worker thread, under the
@@ -142,7 +150,7 @@ class RegistrationWorker:
             self._thread.start()
             return True
 
-    def _run(self, data, deform, prev, options, pose_prior, given):
+    def _run(self, data, deform, prev, options, pose_prior, given, model):
         t0 = time.monotonic()
         last_sent = -np.inf
         try:
@@ -150,37 +158,40 @@ class RegistrationWorker:
                 rigid_run, rigid = None, prev.rigid
                 prior = (prev.pose_prior or pose_prior) if pose_prior is not None else None
             else:
-                rigid_run = register(self.model, data, deform=False, options=options, pose_prior=pose_prior,
+                rigid_run = register(model, data, deform=False, options=options, pose_prior=pose_prior,
                                      given=given)
                 rigid, prior = rigid_run.rigid, rigid_run.pose_prior
             if not deform:
-                reg = rigid_run or register(self.model, data, deform=False, options=options, rigid=rigid,
+                reg = rigid_run or register(model, data, deform=False, options=options, rigid=rigid,
                                             pose_prior=prior)
-                final = self._state(0, float("nan"), t0, rigid, None, True)
+                final = self._state(0, float("nan"), t0, rigid, None, reg.model, True)
             else:
                 def on_iteration(p):
                     nonlocal last_sent
                     now = time.monotonic()
                     if now - last_sent >= self.interval:  # otherwise dropped: the next state supersedes it
                         last_sent = now
-                        self.on_update(self._state(p.iteration, p.omega, t0, rigid, p.beta))
+                        # the model β is in: the free-floating one once the data contradicted the supports
+                        self.on_update(self._state(p.iteration, p.omega, t0, rigid, p.beta, p.model or model))
 
                 beta0 = prev.libr.beta if prev is not None and prev.libr is not None else None
                 # the starting state (the rigid pose, or the warm start) is always shown first
-                self.on_update(self._state(0, float("nan"), t0, rigid, beta0))
+                self.on_update(self._state(0, float("nan"), t0, rigid, beta0, model))
                 last_sent = time.monotonic()
                 if prev is None and pose_prior is not None:
                     # the declared path whole, as ``navapp register`` runs it (the deformable fit's
                     # own noise scale, ``pipeline._settle_scale``); its rigid stage is the one above
-                    reg = register(self.model, data, deform=True, options=options, callback=on_iteration,
-                                   cancel=self._cancel, pose_prior=pose_prior, given=given)
+                    reg = register(model, data, deform=True, options=options, callback=on_iteration,
+                                   cancel=self._cancel, pose_prior=pose_prior, given=given, undeclared=self.model)
                     rigid = reg.rigid
                 else:
-                    reg = register(self.model, data, deform=True, options=options, callback=on_iteration,
-                                   cancel=self._cancel, beta0=beta0, rigid=rigid, pose_prior=prior)
+                    reg = register(model, data, deform=True, options=options, callback=on_iteration,
+                                   cancel=self._cancel, beta0=beta0, rigid=rigid, pose_prior=prior,
+                                   undeclared=self.model)
                 lm = reg.libr
                 assert lm is not None  # a deformable run has an LM result
-                final = self._state(lm.iterations, lm.omega, t0, rigid, lm.beta, True)
+                # the answer's own model: the free-floating one where the data contradicted the supports
+                final = self._state(lm.iterations, lm.omega, t0, rigid, lm.beta, reg.model, True)
             with self._lock:  # the decision: a Cancel before it stops the run, one after it is refused
                 if self._cancel.is_set() and reg.libr is not None and not cancelled(reg):
                     # asked after LM's and the checks' last look at the event (the last fold fit,

@@ -68,6 +68,7 @@ class Progress:
     elapsed: float
     accepted: bool
     lam: float
+    model: RegistrationModel | None = None  # the model β is in (a caller may fit more than one in turn)
 
 
 @dataclass
@@ -210,7 +211,8 @@ def _register(model, data, beta0, options, callback, cancel, first=None):
             else:
                 lam *= 4
         if callback is not None:
-            callback(Progress(it, beta.copy(), ev.omega, ev.features, time.perf_counter() - start, accepted, lam))
+            callback(Progress(it, beta.copy(), ev.omega, ev.features, time.perf_counter() - start, accepted, lam,
+                              model))
         if accepted and abs(change) < options.tol:
             reason = "converged"
             break

@@ -625,6 +625,19 @@ def free_model(model: RegistrationModel, cache_root=None) -> RegistrationModel:
     return rebased_model(model, free)
 
 
+def held_model(model: RegistrationModel, held: str, release: str = "N", cache_root=None) -> RegistrationModel:
+    """``model`` with its basis held at the declared supports ``held`` (``mechanics.supports``;
+    ``release``: the ligament released): the same mesh, features and k, every mode vanishing
+    there (from the basis cache; computed and cached when absent). The twin of ``free_model``."""
+    basis = model.basis
+    settings = replace(basis.settings, supports=held, release=release)
+    if settings == basis.settings:
+        return model
+    other, _ = load_or_compute_basis(TetMesh(basis.nodes, basis.tets), settings, basis.material,
+                                     cache_root=cache_root)
+    return rebased_model(model, other)
+
+
 PRIOR_REACH = 3.0
 """How many declared standard deviations (per axis) from the given pose a multi-start ICP
 pose may lie and still be a candidate of the declared rigid stage (``_declared_rigid``)."""

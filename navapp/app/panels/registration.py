@@ -6,9 +6,20 @@ from html import escape
 
 import numpy as np
 
+from ...mechanics.supports import HeldSupports, Supports
 from ..core import INTERRUPTED
 from ..runs import WORST_SHOWN
-from ..state import STATED_SD_DEG, STATED_SD_MM, Change, PoseFrame, RunKind, StatedPose
+from ..state import (
+    STATED_SD_DEG,
+    STATED_SD_MM,
+    Change,
+    PoseFrame,
+    RunKind,
+    StatedPose,
+    StatedSupports,
+    held_of,
+    supports_words,
+)
 from ..worker import Update
 
 NOTE = ("The solver minimises the misfit to the data, which it can see, not the error, which it "
@@ -25,6 +36,17 @@ POSE_HELP = ("How well the pose of the data is known before the fit: from a land
              "(as the tracker gives it), or from the registration on show. The fit then keeps the pose within "
              "that spread where the data cannot determine it; unknown, it searches for the pose.")
 
+# "Organ held at": where the surgeon knows the liver is held (``state.StatedSupports``)
+HELD = {"Free-floating (not stated)": StatedSupports(),
+        "Its ligaments": StatedSupports(HeldSupports(Supports.LIGAMENTS, "N")),
+        "Its ligaments, left one released": StatedSupports(HeldSupports(Supports.LIGAMENTS, "L")),
+        "Its ligaments, right one released": StatedSupports(HeldSupports(Supports.LIGAMENTS, "R")),
+        "A posterior bed": StatedSupports(HeldSupports(Supports.POSTERIOR)),
+        "The bare area alone": StatedSupports(HeldSupports(Supports.BARE_AREA))}
+HELD_HELP = ("Where the liver is held (the ligaments left intact, the bed it lies on): the model then does not "
+             "move there in any mode, so sparse data on the front need not carry the whole organ. The data can "
+             "contradict the statement: then the free-floating answer is shown, with a line saying so.")
+
 
 class RegistrationPanel:
     def __init__(self, view):
@@ -35,6 +57,8 @@ class RegistrationPanel:
                                         initial_value=FRAMES[PoseFrame.UNKNOWN], hint=POSE_HELP)
             self.sd_mm = g.add_number("Known within (mm)", STATED_SD_MM, min=0.1, max=50.0, step=0.1, disabled=True)
             self.sd_deg = g.add_number("Known within (°)", STATED_SD_DEG, min=0.1, max=45.0, step=0.1, disabled=True)
+            self.held = g.add_dropdown("Organ held at", options=tuple(HELD), initial_value=next(iter(HELD)),
+                                       hint=HELD_HELP)
             self.btn = {kind: g.add_button(words, disabled=True) for kind, words in BUTTONS.items()}
             # never disabled once the model is ready: see ``runs.Runs.cancel``
             self.btn_cancel = g.add_button("Cancel", color="red", disabled=True)
@@ -63,6 +87,8 @@ class RegistrationPanel:
             # a value set here (``_pose``, every tab following one) calls back at once, with no
             # client, half-set: only a person's change is a statement
             control.on_update(lambda e: None if e.client is None else stated(e))
+        said = view.edits(lambda e: self.state_supports())
+        self.held.on_update(lambda e: None if e.client is None else said(e))
         self._choices: dict[str, int] = {}  # dropdown words → row of the log
 
     def _in_order(self, action):
@@ -91,6 +117,25 @@ class RegistrationPanel:
             # a number box sends each keystroke (1, then 1.5): the panel shows the numbers, and
             # only a change of frame is worth a notice
             self.view.notify("Pose of the data", said)
+
+    def state_supports(self):
+        stated = HELD.get(self.held.value)
+        if stated is None:
+            return
+        said = self.app.runs.set_supports(stated, self.view.cs)
+        if said:
+            self.view.notify("Organ held at", said)
+
+    def _supports(self):
+        """The dropdown shows the session's stated supports (every tab the same)."""
+        core = self.core
+        with core.lock:
+            if core.sd is None or core.session is None:
+                return
+            stated = core.session.stated_supports(core.sd)
+        words = next((w for w, s in HELD.items() if s == stated), None)
+        if words is not None and self.held.value != words:
+            self.held.value = words
 
     def _stated(self) -> StatedPose | None:
         core = self.core
@@ -186,6 +231,7 @@ class RegistrationPanel:
                                f"when it is switched off.")
         if what in (Change.POSE, Change.SCENE):
             self._pose()
+            self._supports()
         if what in (Change.RESULT, Change.DATA, Change.SCENE):
             self._worst()
         if what in (Change.RESULT, Change.SCENE, Change.MODEL, Change.RUN):
@@ -253,6 +299,8 @@ class RegistrationPanel:
             # rounding, the same result read 3.92 in "Last" and 3.91 here
             head += (f"  \nOn show: {res.run}{POSE_ONLY if pose_only else ''}"
                      + (f" (mean error {round(float(err.mean()), 3):.2f} mm)" if err is not None else ""))
+            if res.model is not None:  # a basis held at stated supports: said, as the data may contradict them
+                head += f"; model {supports_words(held_of(res.model))}"
             if res.predicted_mm is not None:
                 head += (f"  \nPredicted error (no truth used): mean {res.predicted_mm.mean():.1f} mm over the "
                          f"liver surface")

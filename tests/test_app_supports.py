@@ -1,0 +1,80 @@
+"""Where the organ is held, stated in the viewer (issue 47, item 1): the runs fit the model
+held there, each result is drawn and measured with the model its β is in, the statement and
+the result come back after a restart, and a surgeon's return to "free-floating" is a free fit."""
+
+import json
+import tomllib
+
+import numpy as np
+from conftest import BUSY_WAIT_S, run_to_end, start_app, stop_app, wait_until
+
+from navapp.app.panels.registration import HELD
+from navapp.app.state import RunKind, StatedSupports, held_of
+from navapp.mechanics.supports import HeldSupports, Supports
+
+SCENE = {"name": "apptest", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
+         "stylus": {"coverage": 0.2}, "ius": {"planes": 2}}
+AS_SIMULATED = HeldSupports(Supports.LIGAMENTS, "L")  # the scene's own supports (its release)
+BED = HeldSupports(Supports.POSTERIOR)
+
+
+def liver_drawn(app):
+    return app.shown.geometry().surfaces["liver"][0]
+
+
+def test_stated_supports_hold_the_fit_and_come_back_after_a_restart(cache_root, tmp_path):
+    folder = tmp_path / "session"
+    app = start_app(SCENE, cache_root, folder)
+    try:
+        app.stylus.collect_now()
+        # the ligaments as the scene held them: on this coarse model (12 mm, k = 12) the free basis
+        # predicts the held-out data better (2.56 against 3.06 mm), so the free answer is shown
+        stated = next(s for s in HELD.values() if s.held == AS_SIMULATED)
+        said = app.runs.set_supports(stated)
+        assert said is not None and "being prepared" in said, said
+        assert app.runs.set_supports(stated) is None  # stated again: nothing changes
+        assert wait_until(lambda: app.core.model_for(AS_SIMULATED) is not None, BUSY_WAIT_S)
+        run_to_end(app, RunKind.ALL)
+        reg, res = app.core.last_reg, app.core.result
+        assert reg.held is not None and reg.held.replaced and reg.model is app.core.model and res.model is None
+        # a posterior bed, which these data do not contradict (held 2.49 against free 2.56 mm)
+        said = app.runs.set_supports(next(s for s in HELD.values() if s.held == BED))
+        assert wait_until(lambda: app.core.model_for(BED) is not None, BUSY_WAIT_S)
+        held = app.core.model_for(BED)
+        assert held is not app.core.model and held_of(held) == BED
+        run_to_end(app, RunKind.ALL)
+        reg, res = app.core.last_reg, app.core.result
+        assert reg.held is not None and not reg.held.replaced  # fitted held, the data not against it
+        assert res.model is held and reg.model is held
+        # drawn with the model β is in; the free model at the same β is another organ
+        f = held.features["liver"]
+        assert np.allclose(liver_drawn(app), reg.rigid.apply(held.positions(f, res.beta)[1]))
+        free_f = app.core.model.features["liver"]
+        off = np.linalg.norm(reg.rigid.apply(app.core.model.positions(free_f, res.beta)[1]) - liver_drawn(app), axis=1)
+        assert off.max() > 1.0, off.max()
+        err = app.shown.node_error(reg.rigid, res.beta, held)
+        assert np.allclose(res.node_error_mm, err)
+        # the warm start continues in the same model
+        run_to_end(app, RunKind.WARM)
+        assert app.core.last_reg.model is held and app.core.result.model is held
+        drawn = liver_drawn(app).copy()
+        saved = json.loads((folder / "session.json").read_text())
+        assert saved["supports"] == {"held": "posterior", "release": "N"}
+        assert saved["result"]["supports"] == {"held": "posterior", "release": "N"}
+        case = tomllib.loads((folder / "case.toml").read_text())
+        assert case["intraop"]["supports"] == {"held": "posterior", "release": "N"}  # ``navapp register SESSION``
+    finally:
+        stop_app(app)
+    again = start_app(SCENE, cache_root, folder)
+    try:
+        res = again.core.result
+        assert res is not None and res.model is not None and held_of(res.model) == BED
+        assert np.allclose(liver_drawn(again), drawn, atol=1e-6)
+        assert again.core.model_for(BED) is res.model
+        # back to free-floating: the next fresh fit is free, drawn with the free model
+        assert "free-floating" in again.runs.set_supports(StatedSupports())
+        run_to_end(again, RunKind.ALL)
+        assert again.core.result.model is None and again.core.last_reg.model is again.core.model
+        assert again.core.last_reg.held is None
+    finally:
+        stop_app(again)
