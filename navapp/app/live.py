@@ -45,7 +45,7 @@ from ..tracking.client import TrackingClient
 from ..tracking.config import TrackingConfig
 from ..tracking.events import ProbeSample
 from .core import Core
-from .imaging import LIVE_PLANE_BASE, Imaging
+from .imaging import Imaging
 from .shown import Shown
 from .slicer import Slicer
 from .sources import Wiring
@@ -447,27 +447,9 @@ class Live:
         link, core = self.link, self.core
         if link is None:
             return NO_TRACKER
-        sd, session = core.need_scene()
-        with core.lock:
-            index = LIVE_PLANE_BASE + len(session.live_planes)
-            plane = link.frozen_plane(index)
-            f = link.frame
-            if plane is None or f is None or plane.image is None:
-                return "No live ultrasound frame now (none received yet, or the probe's stream is lost)."
-            probe = sd.probe
-            H, W = plane.image.shape[:2]
-            spacing = f.spacing_mm
-            if (H, W) != (probe.height_px, probe.width_px) or abs(spacing[0] - probe.spacing_mm) > 1e-6 \
-                    or abs(spacing[1] - probe.spacing_mm) > 1e-6:
-                return (f"the tracked frame is {W}×{H} px at {spacing[0]:.3f}×{spacing[1]:.3f} mm, the scene's "
-                        f"probe {probe.width_px}×{probe.height_px} px at {probe.spacing_mm} mm: set the scene's probe")
-            from PIL import Image
-
-            rel = f"live/frame_{index - LIVE_PLANE_BASE:03d}.png"
-            (session.folder / "live").mkdir(parents=True, exist_ok=True)
-            Image.fromarray(plane.image).save(session.folder / rel)
-            core.planes[index] = plane
-            session.live_planes.append({"index": index, "pose": plane.probe_to_tracker.tolist(), "png": rel})
+        index = link.probe.freeze()
+        if isinstance(index, str):
+            return index
         self.imaging.show(cs, index)
         core.changed(Change.DATA)
         return None

@@ -1,4 +1,4 @@
-"""The tracked ultrasound probe, shown: its latest frame drawn on the probe, the live
+"""The tracked ultrasound probe, shown and kept: its latest frame drawn on the probe, the live
 re-registration told of each new one, and the frame frozen as a plane of the session."""
 
 import numpy as np
@@ -6,6 +6,7 @@ import numpy as np
 from ...geometry.transforms import probe_pose
 from ...simulation.ultrasound import PlaneData
 from ...tracking.events import ProbeSample, ToolStatus
+from ..imaging import LIVE_PLANE_BASE
 from ..state import Change
 from .base import Wiring, shows
 
@@ -51,6 +52,34 @@ class ProbeShown:
 
     def taken(self) -> list[tuple[np.ndarray, list[str]]]:
         return []  # a frame is data once frozen and segmented (``Live.freeze_frame``), not as it arrives
+
+    def freeze(self) -> int | str:
+        """The frame on show becomes a plane of the session, kept: its image a PNG beside
+        session.json, its pose in ``Session.live_planes``, the plane in ``Core.planes``.
+        Returns its plane index, or why not (no frame now; a frame that is not the scene's probe's)."""
+        core = self.core
+        sd, session = core.need_scene()
+        with core.lock:
+            index = LIVE_PLANE_BASE + len(session.live_planes)
+            plane = self.frozen_plane(index)
+            f = self.frame
+            if plane is None or f is None or plane.image is None:
+                return "No live ultrasound frame now (none received yet, or the probe's stream is lost)."
+            probe = sd.probe
+            H, W = plane.image.shape[:2]
+            spacing = f.spacing_mm
+            if (H, W) != (probe.height_px, probe.width_px) or abs(spacing[0] - probe.spacing_mm) > 1e-6 \
+                    or abs(spacing[1] - probe.spacing_mm) > 1e-6:
+                return (f"the tracked frame is {W}×{H} px at {spacing[0]:.3f}×{spacing[1]:.3f} mm, the scene's "
+                        f"probe {probe.width_px}×{probe.height_px} px at {probe.spacing_mm} mm: set the scene's probe")
+            from PIL import Image
+
+            rel = f"live/frame_{index - LIVE_PLANE_BASE:03d}.png"
+            (session.folder / "live").mkdir(parents=True, exist_ok=True)
+            Image.fromarray(plane.image).save(session.folder / rel)
+            core.planes[index] = plane
+            session.live_planes.append({"index": index, "pose": plane.probe_to_tracker.tolist(), "png": rel})
+        return index
 
     def frozen_plane(self, index) -> PlaneData | None:
         """The latest frame as a plane of the session, or None (no frame yet)."""
