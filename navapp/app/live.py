@@ -122,11 +122,8 @@ class LiveLink:
         return self.stylus.recording
 
     def set_recording(self, on: bool, label="anterior"):
-        d = self.client.digitiser
-        if on:
-            d.start(label)
-        else:
-            d.stop()
+        self.stylus.record(on, label)
+        if not on:
             self._collect()  # what was recorded up to now is in the session before the switch reads off
 
     def status_lines(self) -> list[str]:

@@ -30,6 +30,15 @@ class StylusShown:
     def recording(self) -> bool:
         return self.client.digitiser.recording
 
+    def record(self, on: bool, label: str = "anterior") -> None:
+        """Digitise the tip's points under the feature ``label`` while on (the digitiser
+        samples them at its rate in the client's thread; ``taken`` hands them on)."""
+        d = self.client.digitiser
+        if on:
+            d.start(label)
+        else:
+            d.stop()
+
     def wakes(self, event: object) -> bool:
         return isinstance(event, StylusSample)
 
