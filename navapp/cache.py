@@ -9,11 +9,12 @@ import hashlib
 import json
 import os
 import sys
-import tempfile
 import zipfile
 from pathlib import Path
 
 import numpy as np
+
+from .outputs import replaced
 
 CACHE_VERSION = "1"
 
@@ -53,14 +54,8 @@ def save(path: Path, arrays: dict):
     path.parent.mkdir(parents=True, exist_ok=True)
     payload = dict(arrays)
     payload["__digest__"] = np.array(_digest(arrays))
-    fd, tmp = tempfile.mkstemp(dir=path.parent, suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            np.savez(f, **payload)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with replaced(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **payload)
 
 
 def load(path: Path, report=True) -> dict | None:

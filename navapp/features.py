@@ -91,10 +91,10 @@ HAND_WIRED = ("fiducial",)
 neither simulated nor received. Every other ``source`` is a module there, simulated through
 the protocol (the stylus, the iUS planes and their frames at a chosen pose, the laparoscope)."""
 TRACKED = ("stylus", "ius")
-"""Sources received as a tracked tool's pose stream (each by its module of
-``navapp/tracking/receivers``) and kept and shown by the viewer's own paths (the stylus's
-tip, the digitiser and the sweep; the probe's tracked frames, frozen and segmented, and the
-plane list), not as points a POINT message carries."""
+"""Sources received as a tracked tool's pose stream, each by its own module of
+``navapp/tracking/receivers`` and shown by its own module of ``navapp/app/sources`` (the
+stylus's tip, its lost banner and the digitiser's points; the probe's tracked frames, drawn,
+frozen and followed), not as points a POINT message carries."""
 SOURCED: tuple[str, ...] = tuple(f.name for f in TABLE if f.source not in HAND_WIRED + TRACKED)
 """The features of those sources: live, an OpenIGTLink POINT message of this device name."""
 SEEN: tuple[str, ...] = tuple(n for n in SOURCED if BY_NAME[n].kind == "surface" and BY_NAME[n].target == "liver")

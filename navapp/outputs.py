@@ -11,6 +11,9 @@ error the old folder is renamed away, the new one renamed into place, and the ol
 deleted. A run killed while writing leaves ``out`` as it was (its leftovers are removed
 by the next run on that folder).
 
+``replaced(path)`` is the same for one file: written beside it under a temporary name, renamed
+over it when complete (the cache's arrays, the viewer's session files).
+
 ``write_registered`` writes the registered model's surfaces: the one writer of ``navapp
 register``'s output folder and the viewer's Export.
 """
@@ -134,6 +137,29 @@ def staged(out):
         replace_folder(tmp, out, old / "content")
     finally:
         shutil.rmtree(old, ignore_errors=True)
+
+
+@contextmanager
+def replaced(path, tmp: str | None = None):
+    """Yield a temporary path beside ``path`` to write the file into; when the block ends
+    without an error it replaces ``path`` by one rename (atomic on one file system: a reader
+    sees the old file or the new one, never half of it), after an error it is removed and
+    ``path`` is as it was. ``tmp``: its name in ``path``'s folder (a caller that cleans up
+    after a kill by name), else a fresh unique one (several processes may write ``path``).
+    The one way navapp writes a file that must never be seen half written."""
+    path = Path(path)
+    if tmp is None:
+        fd, name = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        os.close(fd)
+        new = Path(name)
+    else:
+        new = path.parent / tmp
+    try:
+        yield new
+        os.replace(new, path)
+    except BaseException:
+        new.unlink(missing_ok=True)
+        raise
 
 
 def replace_folder(new: Path, folder: Path, aside: Path) -> None:

@@ -1,6 +1,6 @@
 """Write the local-load study scenes ``navapp/scenes/tool<p>-<x>.toml`` (3 livers × 8).
 
-    python scripts/make_tool_scenes.py
+    python scripts/make_tool_scenes.py [--out DIR]
     python scripts/make_tool_scenes.py --held-out DIR   # a second draw, never used to set a margin
     python scripts/make_tool_scenes.py --held-out DIR --draw 2   # a third (tooldraw2_<p>-<x>)
     python scripts/make_tool_scenes.py --held-out DIR --draw 3 --coverage 0.2 0.65   # patches of 5–15 %
@@ -88,7 +88,7 @@ def main(out=OUT, prefix="tool", draw=100, seed=0, coverage=None):
                 lines += ["coverage = 0.2"]
             else:
                 c = 0.3 if coverage is None else float(share.uniform(*coverage))
-                lines += ['pattern = "patch"', "points = 500", f"coverage = {c:.2f}",
+                lines += ['pattern = "patch"', "points = 500", f"coverage = {round(c, 2):g}",
                           "at = [" + ", ".join(f"{v:.1f}" for v in patch) + "]"]
             lines += ["", "[ius]", "planes = 16"]
             if offset:
@@ -100,6 +100,9 @@ def main(out=OUT, prefix="tool", draw=100, seed=0, coverage=None):
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", type=Path, default=OUT, metavar="DIR",
+                    help="where the study's own scenes go (default navapp/scenes; a test writes them elsewhere "
+                         "and holds them to the committed ones)")
     ap.add_argument("--held-out", type=Path, metavar="DIR",
                     help="write a held-out set (tooltest<p>-<x>.toml, other draw and noise seeds) into DIR")
     ap.add_argument("--draw", type=int, default=1, metavar="K",
@@ -118,4 +121,4 @@ if __name__ == "__main__":
         prefix = "tooltest" if args.draw == 1 else f"tooldraw{args.draw}_"
         main(args.held_out, prefix, draw=500 + 100 * (args.draw - 1), seed=1000 * args.draw, coverage=args.coverage)
     else:
-        main()
+        main(args.out)

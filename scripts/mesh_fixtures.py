@@ -5,6 +5,7 @@ dihedral, seconds) or refused (the one line a user would read).
     python scripts/mesh_fixtures.py [EDGE_MM] [WORD ...]   (only fixtures whose name has a WORD)
 """
 
+import argparse
 import sys
 import time
 from pathlib import Path
@@ -18,7 +19,11 @@ from navapp.anatomy.meshing import mesh_liver  # noqa: E402
 from navapp.anatomy.phantom import make_phantom  # noqa: E402
 from navapp.errors import NavappError  # noqa: E402
 
-edge = float(sys.argv[1]) if len(sys.argv) > 1 else 4.0
+ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+ap.add_argument("edge", nargs="?", type=float, default=4.0, help="target edge length, mm")
+ap.add_argument("words", nargs="*", metavar="WORD", help="only the fixtures whose name has one of these")
+args = ap.parse_args()
+edge = args.edge
 phantom = make_phantom(0).liver
 sharp = sf.sharp_ridged_liver()
 fixtures = {
@@ -37,7 +42,7 @@ fixtures = {
 }
 print(f"| fixture (edge {edge:g} mm) | outcome | method | nodes | min dihedral ° | seconds |")
 print("|---|---|---|---|---|---|")
-words = sys.argv[2:]
+words = args.words
 for name, make in fixtures.items():
     if words and not any(w in name for w in words):
         continue

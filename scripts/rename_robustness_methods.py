@@ -7,9 +7,9 @@ Run once on the committed rows (rows written since already carry the new names);
 that is neither old nor in ``METHODS`` stops it before anything is written.
 """
 
+import argparse
 import csv
 import io
-import sys
 from pathlib import Path
 
 from navapp.registration.pipeline import METHODS
@@ -57,4 +57,10 @@ def main(paths) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("csv", nargs="+", type=Path, help="robustness study CSVs, rewritten in place")
+    args = ap.parse_args()
+    for p in args.csv:
+        if not p.is_file():
+            ap.error(f"{p}: no such file")
+    main(args.csv)

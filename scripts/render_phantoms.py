@@ -1,12 +1,14 @@
 """Render the committed phantom pictures: python scripts/render_phantoms.py [OUT_DIR]."""
 
-import sys
+import argparse
 from pathlib import Path
 
 from navapp.anatomy.phantom import make_phantom
 from navapp.evaluation.render import phantom_figure
 
-out = Path(sys.argv[1] if len(sys.argv) > 1 else "docs/img")
+ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+ap.add_argument("out", nargs="?", type=Path, default=Path("docs/img"), help="folder for phantom0-2.png")
+out = ap.parse_args().out
 out.mkdir(parents=True, exist_ok=True)
 for i in range(3):
     m = make_phantom(i)

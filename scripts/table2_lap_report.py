@@ -8,15 +8,21 @@ and the full design over the cases whose 701 registrations are all present.
 Writes OUT_MD (default results/table2_lap_sections.md) and results/table2_lap_by_level.png.
 """
 
-import sys
+import argparse
 from collections import Counter
 from pathlib import Path
 
 from navapp.evaluation.report import markdown, plot_levels
 from navapp.evaluation.table2 import read_results, scenarios
 
-csv = Path(sys.argv[1] if len(sys.argv) > 1 else "results/table2_lap.csv")
-out = Path(sys.argv[2] if len(sys.argv) > 2 else "results/table2_lap_sections.md")
+ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+ap.add_argument("csv", nargs="?", type=Path, default=Path("results/table2_lap.csv"), help="the transposed cases' rows")
+ap.add_argument("out", nargs="?", type=Path, default=Path("results/table2_lap_sections.md"),
+                help="the sections written")
+args = ap.parse_args()
+csv, out = args.csv, args.out
+if not csv.is_file():
+    ap.error(f"{csv}: no such results file")
 rows = read_results(csv)
 quick = {(lv, "-".join(map(str, p))) for lv, p in scenarios(quick=True)}
 sub = [r for r in rows if (r["level"], r["planes"]) in quick]

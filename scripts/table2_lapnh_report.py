@@ -9,19 +9,25 @@ averages per level beside the paper and the linear reference, and the per-case t
 Writes OUT_MD (default results/table2_lapnh.md) and results/table2_lapnh_by_level.png.
 """
 
+import argparse
 import json
-import sys
 from pathlib import Path
 
 from navapp.evaluation.report import markdown, plot_levels, summarise
 from navapp.evaluation.table2 import PAPER, read_results
 from navapp.simulation.levels import LEVELS
 
-args = sys.argv[1:] + [None] * 4
-cases = Path(args[0] or "/work/study-cases-lapnh")
-csv = Path(args[1] or "results/table2_lapnh.csv")
-linear_csv = Path(args[2] or "results/table2_lap.csv")
-out = Path(args[3] or "results/table2_lapnh.md")
+ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+ap.add_argument("cases", nargs="?", type=Path, default=Path("/work/study-cases-lapnh"),
+                help="the nine cases' folders (their truth/report.json)")
+ap.add_argument("csv", nargs="?", type=Path, default=Path("results/table2_lapnh.csv"), help="their Table II rows")
+ap.add_argument("linear_csv", nargs="?", type=Path, default=Path("results/table2_lap.csv"),
+                help="the linear-reference cases' rows")
+ap.add_argument("out", nargs="?", type=Path, default=Path("results/table2_lapnh.md"), help="the section written")
+args = ap.parse_args()
+cases, csv, linear_csv, out = args.cases, args.csv, args.linear_csv, args.out
+if not cases.is_dir():
+    ap.error(f"{cases}: no such folder of cases")
 rows, linear = read_results(csv), read_results(linear_csv)
 _, nh = summarise(rows)
 _, lin = summarise(linear)

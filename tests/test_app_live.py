@@ -416,7 +416,7 @@ def test_a_frames_image_to_reference_gives_back_the_probe_pose_and_spacing():
     ProbeToTracker and the spacing."""
     from scipy.spatial.transform import Rotation
 
-    from navapp.app.live import probe_pose_from_image
+    from navapp.app.sources.ius import probe_pose_from_image
     from navapp.simulation.probe import Probe
 
     probe = Probe(width_px=301, height_px=200, spacing_mm=0.27)

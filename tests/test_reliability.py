@@ -559,3 +559,29 @@ def test_a_case_simulated_over_another_replaces_it_whole(tmp_path, capsys, cache
     with pytest.raises(InputError, match="holds files and is not a case folder"):
         simulate(parse_scene(scene), mine, cache_root=cache_root)
     assert (mine / "notes.txt").read_text() == "the surgeon's"
+
+
+def test_a_file_replaced_is_whole_or_as_it_was(tmp_path):
+    """``outputs.replaced``, the one way a file is written atomically (the cache's arrays, the
+    session's files): complete, it replaces the file by one rename; an error while writing
+    leaves the old file and no temporary one behind (the session's files left a ``.tmp`` after
+    an error, for the next start to find)."""
+    from navapp.cache import load, save
+    from navapp.outputs import replaced
+
+    path = tmp_path / "session.json"
+    path.write_text("old")
+    with replaced(path, "session.json.tmp") as tmp:
+        assert tmp == tmp_path / "session.json.tmp"
+        tmp.write_text("new")
+        assert path.read_text() == "old"  # not before the block ends
+    assert path.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["session.json"]
+    for name in ("session.json.tmp", None):  # a fixed name, and a fresh unique one
+        with pytest.raises(RuntimeError), replaced(path, name) as tmp:
+            tmp.write_text("half")
+            raise RuntimeError("killed while writing")
+        assert path.read_text() == "new" and sorted(p.name for p in tmp_path.iterdir()) == ["session.json"]
+    arrays = tmp_path / "entry.npz"
+    save(arrays, {"a": np.arange(5.0)})
+    assert np.array_equal(load(arrays)["a"], np.arange(5.0))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["entry.npz", "session.json"]

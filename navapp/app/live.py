@@ -2,10 +2,12 @@
 server or ``navapp replay``) pumped into the shared state as messages arrive. No viser here.
 
 ``Live`` is the room the panels and the other rooms talk to (it exists without a tracker:
-then it refuses with the reason); ``LiveLink`` is the connection, ``LiveFollower`` the
+then it refuses with the reason); ``LiveLink`` is the connection, whose pump asks each
+source's showing side (``app.sources``: one module per tracked tool, one for every point
+source) what to draw and which points join the session; ``LiveFollower`` the
 re-registration on every frame.
 
-- The stylus tip moves live in every browser (at most ``TIP_HZ`` updates a second).
+- The stylus tip moves live in every browser (at most every ``sources.stylus.TIP_MIN_S``).
 - While digitising is on, the client's ``Digitiser`` records points at the configured
   rate in the client thread; the pump moves them into the session (saved at once), so a
   dropped connection or a browser reload loses nothing.
@@ -35,52 +37,47 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..fitwarning import one_line
-from ..geometry.transforms import probe_pose
 from ..registration.live import LiveRegistration, merge
 from ..registration.pipeline import Registration
 from ..simulation.scenedata import auto_segmentation, segment_frame
 from ..simulation.ultrasound import PlaneData
 from ..tracking.client import TrackingClient
 from ..tracking.config import TrackingConfig
-from ..tracking.events import ProbeSample, SourcePoints, StylusSample
+from ..tracking.events import ProbeSample
 from .core import Core
-from .imaging import LIVE_PLANE_BASE, Imaging
+from .imaging import Imaging
 from .shown import Shown
 from .slicer import Slicer
+from .sources import Wiring
+from .sources import build as build_sources
+from .sources.ius import ProbeShown, probe_pose_from_image
+from .sources.stylus import StylusShown
 from .state import Action, Change, ClientState, RegisteredState, RunEntry, RunKind, Undone, checked_by
 from .worker import viewer_options
 
 log = logging.getLogger(__name__)
 
 PUMP_HZ = 20.0  # status refresh and digitiser collection; tip and frames go out as they arrive
-TIP_MIN_S = 1.0 / 60  # at most this often per browser: a 100 Hz tracker would flood the websockets
 VIEW_MIN_S = 1.0 / 15  # live registrations shown at most this often (the model mesh is large)
 NO_TRACKER = "No tracker connected (navapp serve --igtl HOST:PORT)."
 
 
-def probe_pose_from_image(image_to_reference, width_px, height_px) -> tuple[np.ndarray, float]:
-    """navapp's ProbeToTracker (4×4, rigid: x lateral, y plane normal, z depth, origin at
-    the centre of the probe face) and the pixel spacing (mm) of a frame whose
-    ImageToReference maps (col, row, 0, 1) to mm; inverse of ``Probe.image_to_probe``."""
-    m = np.asarray(image_to_reference, float)
-    a, b, o = m[:3, 0], m[:3, 1], m[:3, 3]  # a column step, a row step (mm), pixel (0, 0)
-    return probe_pose(o + a * (width_px - 1) / 2.0, a, b), float(np.linalg.norm(a))
-
-
 class LiveLink:
+    """The connection: the tracking client, and one shown source per received source
+    (``app.sources``: the stylus, the iUS probe, each point source) that its pump asks, in
+    ``features.TABLE``'s order, what to draw and which points join the session."""
+
     def __init__(self, live: Live, config: TrackingConfig):
         self.live, self.core = live, live.core
         self.config = config
         self._wake = threading.Event()
         self.client = TrackingClient(config, on_event=self._on_event)
         self.follower = LiveFollower(self)
-        self.tip: np.ndarray | None = None
-        self.lost: str | None = None  # why the stylus, once seen, is not shown now (the viewer's red banner)
-        self.frame: ProbeSample | None = None  # latest ProbeSample
-        self.recorded = 0  # digitiser points already moved into the session
+        self.sources = build_sources(Wiring(self.client, config, self.core, self.follower.new_frame))
+        self.stylus = _one(self.sources, StylusShown)
+        self.probe = _one(self.sources, ProbeShown)
         self._stop = threading.Event()
         self._collect_lock = threading.Lock()
-        self._sourced: list[SourcePoints] = []  # received from a data source, not yet in the session
         self._thread: threading.Thread | None = None
 
     def start(self) -> LiveLink:
@@ -96,23 +93,37 @@ class LiveLink:
         self.follower.stop()
         self.client.stop()
 
+    @property
+    def tip(self) -> np.ndarray | None:
+        """Where the stylus tip is drawn now (``StylusShown.tip``)."""
+        return self.stylus.tip
+
+    @property
+    def lost(self) -> str | None:
+        """Why the stylus, once seen, is not shown now: the viewer's red banner (``StylusShown.lost``)."""
+        return self.stylus.lost
+
+    @property
+    def frame(self) -> ProbeSample | None:
+        """The latest tracked ultrasound frame on show (``ProbeShown.frame``)."""
+        return self.probe.frame
+
+    def frozen_plane(self, index) -> PlaneData | None:
+        """The latest frame as a plane of the session, or None (no frame yet)."""
+        return self.probe.frozen_plane(index)
+
     def _on_event(self, ev):
-        if isinstance(ev, SourcePoints):  # the pump moves them into the session
-            with self._collect_lock:
-                self._sourced.append(ev)
-        if isinstance(ev, (StylusSample, ProbeSample, SourcePoints)):  # called in the client thread: only a wake-up
+        # called in the client thread: a wake-up only (a point source keeps its points until taken)
+        if any([s.wakes(ev) for s in self.sources]):
             self._wake.set()
 
     @property
     def recording(self) -> bool:
-        return self.client.digitiser.recording
+        return self.stylus.recording
 
     def set_recording(self, on: bool, label="anterior"):
-        d = self.client.digitiser
-        if on:
-            d.start(label)
-        else:
-            d.stop()
+        self.stylus.record(on, label)
+        if not on:
             self._collect()  # what was recorded up to now is in the session before the switch reads off
 
     def status_lines(self) -> list[str]:
@@ -127,86 +138,33 @@ class LiveLink:
 
     def _collect(self):
         with self._collect_lock:  # the pump and a switch-off both collect: each point once
-            pts = self.client.digitiser.points()
-            labels = self.client.digitiser.labels()
-            if len(pts) > self.recorded:
-                new, new_labels = pts[self.recorded:], labels[self.recorded:len(pts)]
-                self.recorded = len(pts)
-                self.live.add_points(new, new_labels)
-            got, self._sourced = self._sourced, []
-            for ev in got:
-                self.live.add_points(ev.points, [ev.feature] * len(ev.points))
+            for source in self.sources:
+                for pts, labels in source.taken():
+                    self.live.add_points(pts, labels)
 
     def _pump(self):
-        last_status = last_tip = last_collect = 0.0
-        last_state: str | None = None
+        last_status = last_collect = 0.0
         while not self._stop.is_set():
             self._wake.wait(1.0 / PUMP_HZ)
             self._wake.clear()
             now = time.monotonic()
-            s = self.client.latest_stylus
-            # the latest sample stays there after the tracker stops: only a tool the watchdog
-            # calls seen is drawn or measured from, so a stale pose never comes back
             status = self.client.status()
-            st = status.get(self.config.stylus)
-            fresh = self.client.fresh("stylus", status)
-            moved = s is not None and (self.tip is None or not np.array_equal(s.tip, self.tip))
-            if s is not None and fresh and moved and now - last_tip >= TIP_MIN_S:
-                last_tip = now
-                self.tip = np.array(s.tip, float)
-                if self.lost is not None:
-                    self.lost = None
-                    self.core.each_view(lambda v: v.refresh(Change.LIVE))
-                self.core.each_view(_shows("show_live_tip", self.tip))
-            elif not fresh and self.tip is not None:
-                self.tip = None  # a lost tool is not shown where it was last seen, nor measured from
-                self.lost = _lost(self.config.stylus, st)
-                self.core.each_view(lambda v: v.show_live_tip(None))
-                self.core.each_view(lambda v: v.refresh(Change.LIVE))
-            f = self.client.latest_frame
-            imaged = self.client.fresh("ius", status)  # the image's stream, and the probe's pose when it places it
-            if f is not None and f is not self.frame and imaged:
-                self.frame = f
-                self.core.each_view(_shows("show_live_frame", f))
-                self.follower.new_frame()
-            elif not imaged and self.frame is not None:
-                # a lost probe is not drawn at its last pose with its last image (nor frozen as a plane)
-                self.frame = None
-                self.core.each_view(_shows("show_live_frame", None))
-                self.core.each_view(lambda v: v.refresh(Change.LIVE))
-            state = st.state if st is not None else None
+            urgent = False
+            for source in self.sources:  # each in turn, whatever the one before found
+                urgent = source.show(now, status) or urgent
             if now - last_collect >= 1.0 / PUMP_HZ:
                 last_collect = now
                 self._collect()
-            # at once when the stylus goes from stale to missing, else twice a second (the age grows)
-            if now - last_status > 0.5 or (self.lost is not None and state != last_state):
+            if now - last_status > 0.5 or urgent:  # twice a second (ages grow), or at once when a source asks
                 last_status = now
-                if self.lost is not None:
-                    self.lost = _lost(self.config.stylus, st)  # stale becomes missing; the age grows
+                for source in self.sources:
+                    source.age(status)
                 self.core.each_view(lambda v: v.refresh(Change.LIVE))
-            last_state = state
-
-    def frozen_plane(self, index) -> PlaneData | None:
-        """The latest frame as a plane of the session, or None (no frame yet)."""
-        f = self.frame
-        if f is None:
-            return None
-        img = np.asarray(f.image)
-        T, _ = probe_pose_from_image(f.image_to_reference, img.shape[1], img.shape[0])
-        return PlaneData(index, "live", T, {}, img.astype(np.uint8))
 
 
-def _lost(device: str, st) -> str:
-    """The banner's words for a stylus not seen now (``st``: its ToolStatus, or None)."""
-    state = st.state if st is not None else "missing"
-    age = "" if st is None or st.age_s is None else f", last seen {st.age_s:.1f} s ago"
-    return f"Stylus {'lost' if state == 'missing' else 'not tracked'} ({device}: {state}{age}): not shown, " \
-           f"no tumour distances."
-
-
-def _shows(method: str, arg):
-    """``fn(view)`` calling the view's ``method(arg)`` (bound now, not when called)."""
-    return lambda v: getattr(v, method)(arg)
+def _one(sources, kind):
+    """The one shown source of type ``kind`` (the stylus's, the probe's: the viewer has panels of theirs)."""
+    return next(s for s in sources if isinstance(s, kind))
 
 
 class LiveFollower:
@@ -490,27 +448,9 @@ class Live:
         link, core = self.link, self.core
         if link is None:
             return NO_TRACKER
-        sd, session = core.need_scene()
-        with core.lock:
-            index = LIVE_PLANE_BASE + len(session.live_planes)
-            plane = link.frozen_plane(index)
-            f = link.frame
-            if plane is None or f is None or plane.image is None:
-                return "No live ultrasound frame now (none received yet, or the probe's stream is lost)."
-            probe = sd.probe
-            H, W = plane.image.shape[:2]
-            spacing = f.spacing_mm
-            if (H, W) != (probe.height_px, probe.width_px) or abs(spacing[0] - probe.spacing_mm) > 1e-6 \
-                    or abs(spacing[1] - probe.spacing_mm) > 1e-6:
-                return (f"the tracked frame is {W}×{H} px at {spacing[0]:.3f}×{spacing[1]:.3f} mm, the scene's "
-                        f"probe {probe.width_px}×{probe.height_px} px at {probe.spacing_mm} mm: set the scene's probe")
-            from PIL import Image
-
-            rel = f"live/frame_{index - LIVE_PLANE_BASE:03d}.png"
-            (session.folder / "live").mkdir(parents=True, exist_ok=True)
-            Image.fromarray(plane.image).save(session.folder / rel)
-            core.planes[index] = plane
-            session.live_planes.append({"index": index, "pose": plane.probe_to_tracker.tolist(), "png": rel})
+        index = link.probe.freeze()
+        if isinstance(index, str):
+            return index
         self.imaging.show(cs, index)
         core.changed(Change.DATA)
         return None

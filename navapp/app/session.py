@@ -28,7 +28,7 @@ from ..features import NAMES as FEATURE_NAMES
 from ..features import SOURCED
 from ..features import STYLUS as STYLUS_FEATURES
 from ..mechanics.supports import case_supports
-from ..outputs import replace_folder
+from ..outputs import replace_folder, replaced
 from ..registration.prior import declared_pose
 from ..simulation.scenedata import SceneData, acquire_free_plane, scene_key
 from ..simulation.ultrasound import PlaneData
@@ -184,23 +184,21 @@ def _settings(sd: SceneData, stated: StatedPose | None, supports: StatedSupports
 def _write_data(s: Session, folder: Path, sd: SceneData, planes: dict):
     """intraop/ (the registration data the session holds), case.toml and session.json, each
     file atomically."""
-    tmp = folder / "case.toml.tmp"
-    write_settings(tmp.parent, _settings(sd, s.pose, s.supports), name=tmp.name)
-    os.replace(tmp, folder / "case.toml")
+    # the temporary files' names are fixed: a kill leaves them where ``_complete`` looks for them
+    with replaced(folder / "case.toml", "case.toml.tmp") as tmp:
+        write_settings(tmp.parent, _settings(sd, s.pose, s.supports), name=tmp.name)
     idir = folder / "intraop"
     idir.mkdir(exist_ok=True)
     data = s.data(sd, planes)
     for name in FEATURE_NAMES:
         path = idir / f"{name}.csv"
         if name in data:
-            tmp = path.with_suffix(".csv.tmp")
-            write_csv(tmp, data[name], ("x", "y", "z"))
-            os.replace(tmp, path)
+            with replaced(path, f"{name}.csv.tmp") as tmp:
+                write_csv(tmp, data[name], ("x", "y", "z"))
         elif path.exists():
             path.unlink()
-    tmp = folder / "session.json.tmp"
-    tmp.write_text(json.dumps(s.to_json(), indent=1))
-    os.replace(tmp, folder / "session.json")
+    with replaced(folder / "session.json", "session.json.tmp") as tmp:
+        tmp.write_text(json.dumps(s.to_json(), indent=1))
 
 
 def _case_name(sd: SceneData) -> str:
@@ -455,9 +453,8 @@ def write_tabs(folder: Path, tabs: dict) -> None:
     history back when it reconnects (they were in memory only, and the tab fell back to plane 1)."""
     if not folder.is_dir():
         return
-    tmp = folder / f".{TABS_FILE}.{os.getpid()}.tmp"
-    tmp.write_text(json.dumps(tabs))
-    os.replace(tmp, folder / TABS_FILE)
+    with replaced(folder / TABS_FILE, f".{TABS_FILE}.{os.getpid()}.tmp") as tmp:
+        tmp.write_text(json.dumps(tabs))
 
 
 def read_tabs(folder: Path) -> dict:

@@ -16,16 +16,13 @@ does not add this note beside it (docs/decisions.md, "issue 46, session 35").
 """
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..fitwarning import WarningKind, found
+from ..fitwarning import FitWarning, WarningKind, found
 from .model import RegistrationModel
-
-if TYPE_CHECKING:  # the pipeline applies this check to every registration: it imports this module
-    from .pipeline import Registration
 
 COVER_MM = 10.0  # a surface node this close to a data point counts as covered
 MIN_COVERAGE = 0.10  # below this share of the liver surface the pose is not to be believed
@@ -124,7 +121,16 @@ def _kept_covers_enough(model: RegistrationModel, data_model_frame: dict) -> boo
     return covered is not None and float(np.mean(covered)) >= MIN_COVERAGE
 
 
-def note_coverage(reg: "Registration") -> None:
+class Noted(Protocol):
+    """What ``note_coverage`` reads and adds to: a ``pipeline.Registration`` (which calls it on
+    every registration, so this module may not import it: the two would import each other)."""
+
+    model: RegistrationModel
+    data_model_frame: dict
+    notes: list[FitWarning]
+
+
+def note_coverage(reg: Noted) -> None:
     """Check ``reg``'s coverage and add its warning to the registration's notes (so that every
     reader of ``Registration.warnings`` — ``navapp register``, result.json, the run table,
     Slicer's NavappStatus — carries it); idempotent. ``pipeline.register`` calls it on every

@@ -18,17 +18,14 @@ by PLUS, so e.g. 18945): ``ResultsSender.connect("slicer-host", 18945)``; connec
 while nobody is connected are delivered on connection (the latest 100).
 """
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 import pyigtl
 
 from ..anatomy.frames import to_case
-from ..fitwarning import texts
+from ..fitwarning import FitWarning, texts
 from ..geometry.transforms import homogeneous
-
-if TYPE_CHECKING:  # tracking registers nothing: it only shows a registration's answer and warnings
-    from ..registration.pipeline import Registration
 
 RIGID = "RigidToReference"
 PREOP_RAS = "PreopRASToReference"
@@ -39,7 +36,52 @@ COLOURS = {TARGETS: (255, 255, 0, 255), "PortalCenterline": (255, 80, 80, 255),
            "HepaticCenterline": (90, 140, 255, 255)}
 
 
-def rigid_matrix(rigid) -> np.ndarray:
+class _Rigid(Protocol):
+    @property
+    def R(self) -> np.ndarray: ...  # (3, 3)
+
+    @property
+    def t(self) -> np.ndarray: ...  # (3,) mm
+
+    @property
+    def rms_mm(self) -> float: ...
+
+
+class _Deformable(Protocol):
+    @property
+    def iterations(self) -> int: ...
+
+    @property
+    def stop_reason(self) -> str: ...
+
+    @property
+    def omega(self) -> float: ...
+
+
+class Answer(Protocol):
+    """What Slicer is told of a registration: ``registration.pipeline.Registration`` as this
+    module reads it (its rigid pose, its deformable fit if any, whether that is the answer shown,
+    and its warnings). Named here, not imported: tracking registers nothing, so it may not
+    import the solver, not even for a type."""
+
+    @property
+    def rigid(self) -> _Rigid: ...
+
+    @property
+    def libr(self) -> _Deformable | None: ...
+
+    @property
+    def deformed(self) -> bool: ...
+
+    @property
+    def warnings(self) -> list[FitWarning]: ...
+
+    def transform(self, points: np.ndarray) -> np.ndarray:
+        """Preoperative points (P, 3) mm at their registered positions (P, 3) mm."""
+        ...
+
+
+def rigid_matrix(rigid: _Rigid) -> np.ndarray:
     """(4, 4) model → Reference of a ``RigidResult`` (R, t)."""
     return homogeneous(rigid.R, rigid.t)
 
@@ -54,7 +96,7 @@ def ascii_text(text: str) -> str:
     return text.translate(_ASCII).encode("ascii", "replace").decode()
 
 
-def status_line(reg: "Registration") -> str:
+def status_line(reg: Answer) -> str:
     """One line about a ``Registration``: which answer it is, and every warning it carries
     (an undetermined pose, a deformation the data do not support, a poor fit) — "fit ok"
     only when there is none, so Slicer is never told a doubtful answer is fine."""
@@ -71,7 +113,7 @@ def status_line(reg: "Registration") -> str:
     return ascii_text("; ".join(parts))
 
 
-def registration_messages(reg, targets=None, centerlines=None, status=None) -> list:
+def registration_messages(reg: Answer, targets=None, centerlines=None, status=None) -> list:
     """pyigtl messages for a registration: ``targets`` (P, 3) and ``centerlines`` (name →
     (N, 3)) in the preoperative frame are sent at their registered positions."""
     R = rigid_matrix(reg.rigid)
@@ -139,7 +181,7 @@ class ResultsSender:
         self.sent += len(messages)
         return len(messages)
 
-    def send_registration(self, reg, targets=None, centerlines=None, status=None) -> int:
+    def send_registration(self, reg: Answer, targets=None, centerlines=None, status=None) -> int:
         return self.send(registration_messages(reg, targets, centerlines, status))
 
     def send_status(self, text: str) -> int:

@@ -22,8 +22,8 @@ the simulation: a free plane the user placed, or a live frame's automatic segmen
 
 Received, every source has one home too, ``navapp/tracking/receivers`` (a tracked source's
 points may arrive in its own frame, placed by its pose: ``[tools.<source>]`` in the tracking
-config). The stylus and the iUS planes are kept and shown by hand (a tracked tip's sweep, a
-tracked probe's frames: ``features.TRACKED``);
+config); shown, ``navapp/app/sources`` (the stylus's tip and its digitised points, the probe's
+tracked frames: ``features.TRACKED``; every point source's points by one generic module);
 fiducials have no module (``features.HAND_WIRED``); see docs/decisions.md, "Data sources
 as rooms" and sessions 34 and 35.
 """
