@@ -78,3 +78,23 @@ def test_stated_supports_hold_the_fit_and_come_back_after_a_restart(cache_root, 
         assert again.core.last_reg.held is None
     finally:
         stop_app(again)
+
+
+def test_a_live_update_says_which_basis_it_fits():
+    """Issue 47, item 3: the live follower's summary names the basis its updates fit, the one of
+    the result it continued from (the stated supports change only the next fresh run)."""
+    from types import SimpleNamespace
+
+    from navapp.app.live import LiveFollower
+
+    f = LiveFollower.__new__(LiveFollower)
+    f.on, f.last_error, f.frames, f.skipped, f.ms = True, None, 3, 0, [10.0, 12.0, 11.0]
+
+    def basis(supports, release="N"):
+        return SimpleNamespace(model=SimpleNamespace(basis=SimpleNamespace(
+            settings=SimpleNamespace(supports=supports, release=release))))
+
+    f.reg = basis(None)
+    assert f.summary() == "3 frames re-registered, 11 ms median (max 12 ms), 0 frames skipped while busy"
+    f.reg = basis("ligaments", "L")
+    assert f.summary().startswith("3 frames re-registered, held at its ligaments, the left one released, 11 ms")

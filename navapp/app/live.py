@@ -52,7 +52,18 @@ from .sources import Wiring
 from .sources import build as build_sources
 from .sources.ius import ProbeShown, probe_pose_from_image
 from .sources.stylus import StylusShown
-from .state import Action, Change, ClientState, RegisteredState, RunEntry, RunKind, Undone, checked_by
+from .state import (
+    Action,
+    Change,
+    ClientState,
+    RegisteredState,
+    RunEntry,
+    RunKind,
+    Undone,
+    checked_by,
+    held_of,
+    supports_words,
+)
 from .worker import viewer_options
 
 log = logging.getLogger(__name__)
@@ -231,7 +242,11 @@ class LiveFollower:
         if not self.frames:
             return "Not re-registered on live frames yet."
         ms = list(self.ms)
-        return (f"{self.frames} frames re-registered, {statistics.median(ms):.0f} ms median "
+        # the basis a live update fits (the result's it continued from): said, as the stated
+        # supports change only the next fresh registration's
+        held = None if self.reg is None else held_of(self.reg.model)
+        model = "" if held is None else f", {supports_words(held)}"
+        return (f"{self.frames} frames re-registered{model}, {statistics.median(ms):.0f} ms median "
                 f"(max {max(ms):.0f} ms), {self.skipped} frames skipped while busy")
 
     def _base(self):
