@@ -135,14 +135,8 @@ class Runs:
         """State where the organ is held for the runs to come, an action of ``cs``: the model
         held there is built in the background (its basis from the cache where it was made
         before). Returns what changed in words, or None where nothing did."""
-        core = self.core
-        with core.lock:
-            sd, session = core.need_scene()
-            if stated == session.stated_supports(sd):
-                return None
-            session.supports = stated
-        core.changed(Change.POSE)
-        core.record(cs, Act.SUPPORTS, stated.words())
+        if not self._state(stated, Act.SUPPORTS, cs):
+            return None
         if not self.prepare_held():
             return f"Organ {stated.words()}. It applies from the next fresh registration."
         return (f"Organ {stated.words()}: its model is being prepared (about as long as the first start's "
@@ -194,17 +188,29 @@ class Runs:
         whole = shown.rigid if shown.beta is None else after(shown.rigid, beta_pose(shown.beta, model.centroid))
         return stated.prior(), whole
 
-    def set_pose(self, stated: StatedPose, cs: ClientState | None = None) -> str | None:
-        """State the pose of the data for the runs to come, an action of ``cs``; returns what
-        changed in words, or None where nothing did (a tab's own refresh)."""
+    def _state(self, stated: StatedPose | StatedSupports, act: Act, cs: ClientState | None) -> bool:
+        """The session's statement of the pose or of the supports made ``stated``, an action of
+        ``cs``; False where it already was (a tab's own refresh)."""
         core = self.core
         with core.lock:
             sd, session = core.need_scene()
-            if stated == session.stated_pose(sd):
-                return None
-            session.pose = stated
+            if isinstance(stated, StatedPose):
+                if stated == session.stated_pose(sd):
+                    return False
+                session.pose = stated
+            else:
+                if stated == session.stated_supports(sd):
+                    return False
+                session.supports = stated
         core.changed(Change.POSE)
-        core.record(cs, Act.POSE, stated.words())
+        core.record(cs, act, stated.words())
+        return True
+
+    def set_pose(self, stated: StatedPose, cs: ClientState | None = None) -> str | None:
+        """State the pose of the data for the runs to come, an action of ``cs``; returns what
+        changed in words, or None where nothing did (a tab's own refresh)."""
+        if not self._state(stated, Act.POSE, cs):
+            return None
         return f"Pose of the data: {stated.words()}. It applies from the next fresh registration."
 
     def cancel(self, cs: ClientState | None = None) -> str:
