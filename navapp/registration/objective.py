@@ -214,6 +214,19 @@ def _apply(S, X):
     return out
 
 
+def _carried(SBJ, alpha):
+    """J_u α at held closest points, (N, 3) mm, from their S·B·J_u (N, 3, 3k): the compiled α
+    kernel keeps it in single precision, summed here in double (``jacobian_compiled.carried``);
+    NumPy's double product for the double S·B·J_u of the SciPy/NumPy Jacobian."""
+    if SBJ.dtype != np.float32:
+        return displacement(SBJ, alpha)
+    if not alpha.any():
+        return np.zeros((len(SBJ), 3))
+    out = np.empty((len(SBJ), 3))
+    _jacobian_kernel[0][3](SBJ, np.ascontiguousarray(alpha, dtype=float), out)  # made it: it is loaded
+    return out
+
+
 @dataclass
 class Correspondence:
     """Where one data feature's N points meet its model feature, held fixed within an LM
@@ -228,7 +241,9 @@ class Correspondence:
         unit normals (surfaces) or tangents (centerlines) at the closest points; None for
         fiducials.
     SBJ : (N, 3, 3k) array or None
-        S·B·J_u, the basis carried to the closest points (mm per unit α), and
+        S·B·J_u, the basis carried to the closest points (mm per unit α; single precision
+        where the Jacobian was compiled, as eq. 8's whole-feature product is: J's α columns are
+        made from its double-precision sum, ``jacobian_compiled``), and
     S_rest : (N, 3) array or None
         S·x0 (mm): both added with the Jacobian (``add_jacobian``). When present, x(β) at the
         closest points costs N·3·3k instead of deforming the whole feature (the held fast path).
@@ -363,7 +378,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
             t0 = time.perf_counter()
             c = corr[name] = frozen[name]
             S, direction = c.S, c.direction
-            u = displacement(c.SBJ, alpha) if c.SBJ is not None else np.zeros((len(c.S_rest), 3))
+            u = np.zeros((len(c.S_rest), 3)) if c.SBJ is None else _carried(c.SBJ, alpha)
             p = Y - deform(c.S_rest, u, beta, model.centroid)[1]
             tim["deform"] += time.perf_counter() - t0
         else:
@@ -539,9 +554,9 @@ def _alpha_kernel():
     if _numpy_jacobian[0]:
         return None
     if not _jacobian_kernel:
-        from .jacobian_compiled import alpha_columns, apply, pose_columns
+        from .jacobian_compiled import alpha_columns, apply, carried, pose_columns
 
-        _jacobian_kernel.append(None if alpha_columns is None else (alpha_columns, pose_columns, apply))
+        _jacobian_kernel.append(None if alpha_columns is None else (alpha_columns, pose_columns, apply, carried))
     return _jacobian_kernel[0]
 
 
@@ -589,7 +604,8 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation, alpha_columns: bool =
         if kernel is not None:
             U = None
             if alpha_columns:
-                U = np.empty((S.shape[0], 3, n))
+                # S·B·J_u kept in single precision for the held fast path; J from it in double
+                U = np.empty((S.shape[0], 3, n), np.float32)
                 kernel[0](S.indptr, S.indices, S.data, feat.BJ, np.ascontiguousarray(qR), rows, U, Jf)
             S_rest = np.empty((S.shape[0], 3))
             kernel[1](S.indptr, S.indices, S.data, feat.rest, local, np.ascontiguousarray(q), dR, rows, S_rest, Jf)
