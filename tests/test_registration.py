@@ -375,3 +375,24 @@ def test_compiled_alpha_columns_take_rows_in_any_order_to_the_bit():
     # from the single-precision sums the rows would differ: the test can tell
     from_single = -np.einsum("ra,rak->rk", qR, U[rows].astype(float))
     assert not np.array_equal(from_single, J[:, :n])
+
+
+def test_positions_compiled_are_eq8_of_the_single_precision_product(small_model):
+    """``RegistrationModel.positions`` makes eq. 8 in one compiled pass (``deform_compiled``):
+    every feature's local part the same bits as ``model.deform`` of the same single-precision
+    product, x(β) within rounding of it, and at α = 0 ``deform``'s own answer."""
+    from navapp.registration.model import deform, displacement
+
+    rng = np.random.default_rng(29)
+    n = small_model.basis.Ju.shape[1]
+    beta = np.concatenate([rng.normal(size=n) * 0.3, [1.0, -2.0, 0.5], [0.05, -0.03, 0.04]])
+    for name, feat in small_model.features.items():
+        local, x = small_model.positions(feat, beta)
+        ref_local, ref_x = deform(feat.rest, displacement(feat.BJ, beta[:n], feat.single_basis()), beta,
+                                  small_model.centroid)
+        assert np.array_equal(local, ref_local), name
+        assert np.abs(x - ref_x).max() <= 1e-9, name
+        rest = np.concatenate([np.zeros(n), beta[n:]])
+        assert all(np.array_equal(a, b) for a, b in zip(small_model.positions(feat, rest),
+                                                        deform(feat.rest, np.zeros_like(feat.rest), rest,
+                                                               small_model.centroid))), name
