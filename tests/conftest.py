@@ -102,7 +102,8 @@ def compile_once():
     apply(np.array([0, 1], np.int32), np.array([0], np.int32), np.ones(1), np.zeros((1, 3)), np.zeros((1, 3)))
     from navapp.registration.deform_compiled import place
 
-    place(np.zeros((1, 3)), np.zeros(3, np.float32), np.zeros(3), np.eye(3), np.zeros(3), np.zeros((1, 3)), np.zeros((1, 3)))
+    place(np.zeros((1, 3)), np.zeros(3, np.float32), np.zeros(3), np.eye(3), np.zeros(3), np.zeros((1, 3)),
+          np.zeros((1, 3)))
 
 
 def pytest_configure(config):

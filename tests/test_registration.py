@@ -395,4 +395,4 @@ def test_positions_compiled_are_eq8_of_the_single_precision_product(small_model)
         rest = np.concatenate([np.zeros(n), beta[n:]])
         assert all(np.array_equal(a, b) for a, b in zip(small_model.positions(feat, rest),
                                                         deform(feat.rest, np.zeros_like(feat.rest), rest,
-                                                               small_model.centroid))), name
+                                                               small_model.centroid), strict=True)), name
