@@ -94,10 +94,11 @@ def compile_once():
     surface_normals(p, v, f, face, bary)
     n = 2
     alpha_columns(np.array([0, 1], np.int32), np.array([0], np.int32), np.ones(1), np.zeros((1, 3, n)),
-                  np.zeros((1, 3)), np.zeros(1, np.int64), np.zeros((1, 3, n), np.float32), np.zeros((1, 3 * n + 6)))
+                  np.zeros((1, 3)), np.zeros(1, np.int64), np.zeros((1, 3, n), np.float32), np.zeros((1, 3 * n + 6)),
+                  np.ones(1), np.zeros((1, 3 * n + 6)))
     pose_columns(np.array([0, 1], np.int32), np.array([0], np.int32), np.ones(1), np.zeros((1, 3)),
                  np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((3, 3, 3)), np.zeros(1, np.int64), np.zeros((1, 3)),
-                 np.zeros((1, 3 * n + 6)))
+                 np.zeros((1, 3 * n + 6)), np.ones(1), np.zeros((1, 3 * n + 6)))
     carried(np.zeros((1, 3, n), np.float32), np.zeros(n), np.zeros((1, 3)))
     apply(np.array([0, 1], np.int32), np.array([0], np.int32), np.ones(1), np.zeros((1, 3)), np.zeros((1, 3)))
     from navapp.registration.deform_compiled import place

@@ -272,6 +272,7 @@ def test_compiled_jacobian_equals_scipy_numpy_to_the_bit(small_model):
     with numpy_jacobian():
         reference = add_jacobian(small_model, evaluate(small_model, data, beta, Weights(), jacobian=False))
     assert np.array_equal(compiled.J, reference.J)
+    assert np.array_equal(compiled.Js, reference.J * np.sqrt(reference.w)[:, None])  # √W·J made beside J
     assert np.array_equal(compiled.f, reference.f)  # S·X compiled, in SciPy's order
     for k, c in compiled.correspondence.items():
         assert c.SBJ.dtype == np.float32 and np.array_equal(c.SBJ, reference.correspondence[k].SBJ.astype(np.float32))
@@ -365,12 +366,16 @@ def test_compiled_alpha_columns_take_rows_in_any_order_to_the_bit():
     qR = rng.normal(size=(len(rows), 3))
     U = np.empty((N, 3, n), np.float32)
     J = np.empty((len(rows), n + 6))
-    alpha_columns(indptr, indices, weights, BJ, qR, rows, U, J)
+    sw = rng.random(len(rows))
+    Js = np.empty_like(J)
+    alpha_columns(indptr, indices, weights, BJ, qR, rows, U, J, sw, Js)
+    assert np.array_equal(Js[:, :n], J[:, :n] * sw[:, None])
     exact = np.einsum("ivak->iak", weights.reshape(N, 3)[:, :, None, None] * BJ[indices.reshape(N, 3)])
     assert np.array_equal(U, exact.astype(np.float32))
     shuffle = rng.permutation(len(rows))
     J2 = np.empty_like(J)
-    alpha_columns(indptr, indices, weights, BJ, qR[shuffle], rows[shuffle], np.empty_like(U), J2)
+    alpha_columns(indptr, indices, weights, BJ, qR[shuffle], rows[shuffle], np.empty_like(U), J2, sw[shuffle],
+                  np.empty_like(J))
     assert np.array_equal(J2[:, :n], J[shuffle, :n])
     # from the single-precision sums the rows would differ: the test can tell
     from_single = -np.einsum("ra,rak->rk", qR, U[rows].astype(float))

@@ -19,9 +19,11 @@ except ImportError:  # pragma: no cover - only without numba
     njit = None
 
 
-def _alpha_columns(indptr, indices, weights, BJ, qR, rows, U, J):
+def _alpha_columns(indptr, indices, weights, BJ, qR, rows, U, J, sw, Js):
     """Fill U (N, 3, n) = S·B·J_u and J[:, :n] = −qR·(S·B·J_u)[rows] for the R rows (``rows``:
-    the point of each row, nondecreasing as ``objective.residuals`` makes them).
+    the point of each row, nondecreasing as ``objective.residuals`` makes them), and
+    Js[:, :n] = sw[:, None]·J[:, :n], the rows scaled by √w for LM's JᵀWJ (``libr``): the
+    product NumPy's ``J * sw[:, None]`` makes, without another pass over J.
 
     Each point's S·B·J_u is summed in double precision into one (3, n) buffer, in CSR order
     as SciPy sums it, and its rows of J are made from that buffer: the same bits as from
@@ -53,8 +55,10 @@ def _alpha_columns(indptr, indices, weights, BJ, qR, rows, U, J):
         if ordered:
             while r < R and rows[r] == i:
                 q0, q1, q2 = qR[r, 0], qR[r, 1], qR[r, 2]
+                s = sw[r]
                 for k in range(n):
                     J[r, k] = -(q0 * acc[0, k] + q1 * acc[1, k] + q2 * acc[2, k])
+                    Js[r, k] = J[r, k] * s
                 r += 1
     if not ordered:  # each row's point summed again, in the same order: the same bits
         for r in range(R):
@@ -68,13 +72,16 @@ def _alpha_columns(indptr, indices, weights, BJ, qR, rows, U, J):
                     for k in range(n):
                         acc[a, k] += w * BJ[v, a, k]
             q0, q1, q2 = qR[r, 0], qR[r, 1], qR[r, 2]
+            s = sw[r]
             for k in range(n):
                 J[r, k] = -(q0 * acc[0, k] + q1 * acc[1, k] + q2 * acc[2, k])
+                Js[r, k] = J[r, k] * s
 
 
-def _pose_columns(indptr, indices, weights, rest, local, q, dR, rows, S_rest, J):
+def _pose_columns(indptr, indices, weights, rest, local, q, dR, rows, S_rest, J, sw, Js):
     """Fill S_rest (N, 3) = S·x0 and J's six pose columns (the last six): −q for τ and
-    −qᵀ(∂R/∂θ_j)(S·local)[rows] for θ, for the R rows (``rows``: the point of each row)."""
+    −qᵀ(∂R/∂θ_j)(S·local)[rows] for θ, for the R rows (``rows``: the point of each row), and
+    those columns of Js = sw[:, None]·J (``alpha_columns``)."""
     N, n = S_rest.shape[0], J.shape[1] - 6
     xl = np.zeros((N, 3))
     for i in range(N):
@@ -95,6 +102,8 @@ def _pose_columns(indptr, indices, weights, rest, local, q, dR, rows, S_rest, J)
                 for b in range(3):
                     acc += q[r, a] * dR[j, a, b] * xl[i, b]
             J[r, n + 3 + j] = -acc
+        for c in range(n, n + 6):
+            Js[r, c] = J[r, c] * sw[r]
 
 
 def _apply(indptr, indices, weights, X, out):

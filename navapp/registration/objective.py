@@ -137,6 +137,9 @@ class Evaluation:
     pose_prior: PosePrior | None = None  # the prior whose P rows f holds (``Weights.pose_prior``)
     # (β, geometry, data and correspondences) for a later evaluation at the same β (``keep_end``)
     reusable: tuple | None = field(default=None, repr=False)
+    # √W·J (each row of J times √w), made with J by ``add_jacobian`` for LM's JᵀWJ; None when J
+    # was assembled otherwise (``points_of``: the weights are made again there)
+    Js: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def jacobian(self) -> np.ndarray:
@@ -591,24 +594,33 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation, alpha_columns: bool =
     t0 = time.perf_counter()
     kernel = _alpha_kernel()
     J = np.empty((len(ev.f), n + 6))  # filled block by block: the data rows, the prior's, f_E's
+    sw = np.sqrt(ev.w)
+    # √W·J for LM's JᵀWJ, written by the kernels beside J (the bits of NumPy's J * sw[:, None])
+    Js = np.empty_like(J) if kernel is not None else None
     at = 0
     for name, feat, S, q, rows, local in ev.terms:
         if local is None:  # made by the held fast path: the feature's points were never deformed
             local = model.positions(feat, beta)[0]
         Jf = J[at:at + len(q)]
+        block = slice(at, at + len(q))
         at += len(q)
         qR = q @ R  # qᵀR, (R, 3)
         c = ev.correspondence[name]
         if not alpha_columns:
             Jf[:, :n] = 0.0
         if kernel is not None:
+            assert Js is not None
+            Jsf, swf = Js[block], sw[block]
             U = None
             if alpha_columns:
                 # S·B·J_u kept in single precision for the held fast path; J from it in double
                 U = np.empty((S.shape[0], 3, n), np.float32)
-                kernel[0](S.indptr, S.indices, S.data, feat.BJ, np.ascontiguousarray(qR), rows, U, Jf)
+                kernel[0](S.indptr, S.indices, S.data, feat.BJ, np.ascontiguousarray(qR), rows, U, Jf, swf, Jsf)
+            else:
+                Jsf[:, :n] = Jf[:, :n] * swf[:, None]
             S_rest = np.empty((S.shape[0], 3))
-            kernel[1](S.indptr, S.indices, S.data, feat.rest, local, np.ascontiguousarray(q), dR, rows, S_rest, Jf)
+            kernel[1](S.indptr, S.indices, S.data, feat.rest, local, np.ascontiguousarray(q), dR, rows, S_rest, Jf,
+                      swf, Jsf)
             if not c.carries_basis:
                 ev.correspondence[name] = Correspondence(c.S, c.direction, U, S_rest)
             continue
@@ -622,11 +634,16 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation, alpha_columns: bool =
         xl = (S @ local)[rows]
         for j in range(3):
             Jf[:, n + 3 + j] = -np.einsum("ia,ab,ib->i", q, dR[j], xl)
+    data_end = at
     if ev.pose_prior is not None:
         J[at:at + 6] = ev.pose_prior.jacobian(n)
         at += 6
     J[at] = 0.0
     J[at, :n] = (basis.energy @ beta[:n]) / basis.M
-    ev.J = J
+    if Js is None:
+        Js = J * sw[:, None]
+    else:  # the prior's rows and f_E's
+        Js[data_end:] = J[data_end:] * sw[data_end:, None]
+    ev.J, ev.Js = J, Js
     ev.timings["jacobian"] += time.perf_counter() - t0
     return ev
