@@ -82,7 +82,7 @@ def compile_once():
 
     from navapp.geometry.bvh import SurfaceHierarchy
     from navapp.geometry.closest import closest_on_surface, incidence, surface_normals
-    from navapp.registration.jacobian_compiled import alpha_columns, apply, pose_columns
+    from navapp.registration.jacobian_compiled import alpha_columns, apply, carried, pose_columns
 
     ball = trimesh.creation.icosphere(subdivisions=1)
     v = np.ascontiguousarray(ball.vertices, dtype=float)
@@ -94,11 +94,17 @@ def compile_once():
     surface_normals(p, v, f, face, bary)
     n = 2
     alpha_columns(np.array([0, 1], np.int32), np.array([0], np.int32), np.ones(1), np.zeros((1, 3, n)),
-                  np.zeros((1, 3)), np.zeros(1, np.int64), np.zeros((1, 3, n)), np.zeros((1, 3 * n + 6)))
+                  np.zeros((1, 3)), np.zeros(1, np.int64), np.zeros((1, 3, n), np.float32), np.zeros((1, 3 * n + 6)),
+                  np.ones(1), np.zeros((1, 3 * n + 6)))
     pose_columns(np.array([0, 1], np.int32), np.array([0], np.int32), np.ones(1), np.zeros((1, 3)),
                  np.zeros((1, 3)), np.zeros((1, 3)), np.zeros((3, 3, 3)), np.zeros(1, np.int64), np.zeros((1, 3)),
-                 np.zeros((1, 3 * n + 6)))
+                 np.zeros((1, 3 * n + 6)), np.ones(1), np.zeros((1, 3 * n + 6)))
+    carried(np.zeros((1, 3, n), np.float32), np.zeros(n), np.zeros((1, 3)))
     apply(np.array([0, 1], np.int32), np.array([0], np.int32), np.ones(1), np.zeros((1, 3)), np.zeros((1, 3)))
+    from navapp.registration.deform_compiled import place
+
+    place(np.zeros((1, 3)), np.zeros(3, np.float32), np.zeros(3), np.eye(3), np.zeros(3), np.zeros((1, 3)),
+          np.zeros((1, 3)))
 
 
 def pytest_configure(config):

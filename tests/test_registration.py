@@ -255,9 +255,9 @@ def test_jacobian_added_later_equals_jacobian_at_once(small_model):
 
 
 def test_compiled_jacobian_equals_scipy_numpy_to_the_bit(small_model):
-    """The compiled α columns (``jacobian_compiled``) give the Jacobian and the held S·B·J_u
-    of the SciPy/NumPy formation bit for bit, on every feature kind (one row per surface
-    point, three per centerline point and fiducial)."""
+    """The compiled α columns (``jacobian_compiled``) give the Jacobian of the SciPy/NumPy
+    formation bit for bit, and its held S·B·J_u rounded to single precision, on every feature
+    kind (one row per surface point, three per centerline point and fiducial)."""
     from navapp.registration.jacobian_compiled import alpha_columns
     from navapp.registration.objective import add_jacobian, numpy_jacobian
 
@@ -272,9 +272,10 @@ def test_compiled_jacobian_equals_scipy_numpy_to_the_bit(small_model):
     with numpy_jacobian():
         reference = add_jacobian(small_model, evaluate(small_model, data, beta, Weights(), jacobian=False))
     assert np.array_equal(compiled.J, reference.J)
+    assert np.array_equal(compiled.Js, reference.J * np.sqrt(reference.w)[:, None])  # √W·J made beside J
     assert np.array_equal(compiled.f, reference.f)  # S·X compiled, in SciPy's order
     for k, c in compiled.correspondence.items():
-        assert np.array_equal(c.SBJ, reference.correspondence[k].SBJ)
+        assert c.SBJ.dtype == np.float32 and np.array_equal(c.SBJ, reference.correspondence[k].SBJ.astype(np.float32))
         assert np.array_equal(c.S_rest, reference.correspondence[k].S_rest)
 
 
@@ -345,3 +346,58 @@ def test_every_stop_reason_the_solver_returns_is_documented():
     assert returned <= set(libr.STOP_REASONS)
     for r in libr.STOP_REASONS:
         assert f'"{r}"' in libr.__doc__, r
+
+
+def test_compiled_alpha_columns_take_rows_in_any_order_to_the_bit():
+    """``jacobian_compiled.alpha_columns`` makes J's rows from each point's S·B·J_u summed in
+    double precision, whether the rows come in point order (one pass) or not (summed again),
+    while the S·B·J_u it keeps is single precision: J is the same bits either way."""
+    from navapp.registration.jacobian_compiled import alpha_columns
+
+    if alpha_columns is None:
+        pytest.skip("numba is not installed")
+    rng = np.random.default_rng(5)
+    V, N, n = 40, 12, 9
+    BJ = rng.normal(size=(V, 3, n)) * 7.3
+    indptr = np.arange(0, 3 * N + 1, 3, dtype=np.int32)
+    indices = rng.integers(0, V, 3 * N).astype(np.int32)
+    weights = rng.random(3 * N)
+    rows = np.repeat(np.arange(N), 3)  # three rows a point, as a centerline's or a fiducial's
+    qR = rng.normal(size=(len(rows), 3))
+    U = np.empty((N, 3, n), np.float32)
+    J = np.empty((len(rows), n + 6))
+    sw = rng.random(len(rows))
+    Js = np.empty_like(J)
+    alpha_columns(indptr, indices, weights, BJ, qR, rows, U, J, sw, Js)
+    assert np.array_equal(Js[:, :n], J[:, :n] * sw[:, None])
+    exact = np.einsum("ivak->iak", weights.reshape(N, 3)[:, :, None, None] * BJ[indices.reshape(N, 3)])
+    assert np.array_equal(U, exact.astype(np.float32))
+    shuffle = rng.permutation(len(rows))
+    J2 = np.empty_like(J)
+    alpha_columns(indptr, indices, weights, BJ, qR[shuffle], rows[shuffle], np.empty_like(U), J2, sw[shuffle],
+                  np.empty_like(J))
+    assert np.array_equal(J2[:, :n], J[shuffle, :n])
+    # from the single-precision sums the rows would differ: the test can tell
+    from_single = -np.einsum("ra,rak->rk", qR, U[rows].astype(float))
+    assert not np.array_equal(from_single, J[:, :n])
+
+
+def test_positions_compiled_are_eq8_of_the_single_precision_product(small_model):
+    """``RegistrationModel.positions`` makes eq. 8 in one compiled pass (``deform_compiled``):
+    every feature's local part the same bits as ``model.deform`` of the same single-precision
+    product, x(β) within rounding of it, and at α = 0 ``deform``'s own answer."""
+    from navapp.registration.model import deform, displacement
+
+    rng = np.random.default_rng(29)
+    n = small_model.basis.Ju.shape[1]
+    beta = np.concatenate([rng.normal(size=n) * 0.3, [1.0, -2.0, 0.5], [0.05, -0.03, 0.04]])
+    for name, feat in small_model.features.items():
+        local, x = small_model.positions(feat, beta)
+        ref_local, ref_x = deform(feat.rest, displacement(feat.BJ, beta[:n], feat.single_basis()), beta,
+                                  small_model.centroid)
+        assert np.array_equal(local, ref_local), name
+        assert np.abs(x - ref_x).max() <= 1e-9, name
+        rest = np.concatenate([np.zeros(n), beta[n:]])
+        assert all(np.array_equal(a, b) for a, b in zip(small_model.positions(feat, rest),
+                                                        deform(feat.rest, np.zeros_like(feat.rest), rest,
+                                                               small_model.centroid), strict=True)), name

@@ -19,29 +19,69 @@ except ImportError:  # pragma: no cover - only without numba
     njit = None
 
 
-def _alpha_columns(indptr, indices, weights, BJ, qR, rows, U, J):
-    """Fill U (N, 3, n) = S·B·J_u and J[:, :n] = −qR·U[rows] for the R rows (``rows``: the
-    point of each row)."""
+def _alpha_columns(indptr, indices, weights, BJ, qR, rows, U, J, sw, Js):
+    """Fill U (N, 3, n) = S·B·J_u and J[:, :n] = −qR·(S·B·J_u)[rows] for the R rows (``rows``:
+    the point of each row, nondecreasing as ``objective.residuals`` makes them), and
+    Js[:, :n] = sw[:, None]·J[:, :n], the rows scaled by √w for LM's JᵀWJ (``libr``): the
+    product NumPy's ``J * sw[:, None]`` makes, without another pass over J.
+
+    Each point's S·B·J_u is summed in double precision into one (3, n) buffer, in CSR order
+    as SciPy sums it, and its rows of J are made from that buffer: the same bits as from
+    the sum stored in double. U may be single precision: it is what the held fast path
+    multiplies by α (eq. 8 at the closest points, ``objective.Correspondence``), as the
+    whole-feature deformation multiplies the single-precision B·J_u; storing half the bytes
+    and not reading them back for J is a fifth of this kernel's time (docs/decisions.md,
+    "Issue 49, session 37"). Rows not in point order have their points summed again."""
     N, n = U.shape[0], U.shape[2]
+    R = rows.shape[0]
+    ordered = True
+    for r in range(1, R):
+        if rows[r] < rows[r - 1]:
+            ordered = False
+    acc = np.empty((3, n))
+    r = 0
     for i in range(N):
         for a in range(3):
             for k in range(n):
-                U[i, a, k] = 0.0
+                acc[a, k] = 0.0
         for jj in range(indptr[i], indptr[i + 1]):
             v, w = indices[jj], weights[jj]
             for a in range(3):
                 for k in range(n):
-                    U[i, a, k] += w * BJ[v, a, k]
-    for r in range(rows.shape[0]):
-        i = rows[r]
-        q0, q1, q2 = qR[r, 0], qR[r, 1], qR[r, 2]
-        for k in range(n):
-            J[r, k] = -(q0 * U[i, 0, k] + q1 * U[i, 1, k] + q2 * U[i, 2, k])
+                    acc[a, k] += w * BJ[v, a, k]
+        for a in range(3):
+            for k in range(n):
+                U[i, a, k] = acc[a, k]
+        if ordered:
+            while r < R and rows[r] == i:
+                q0, q1, q2 = qR[r, 0], qR[r, 1], qR[r, 2]
+                s = sw[r]
+                for k in range(n):
+                    J[r, k] = -(q0 * acc[0, k] + q1 * acc[1, k] + q2 * acc[2, k])
+                    Js[r, k] = J[r, k] * s
+                r += 1
+    if not ordered:  # each row's point summed again, in the same order: the same bits
+        for r in range(R):
+            i = rows[r]
+            for a in range(3):
+                for k in range(n):
+                    acc[a, k] = 0.0
+            for jj in range(indptr[i], indptr[i + 1]):
+                v, w = indices[jj], weights[jj]
+                for a in range(3):
+                    for k in range(n):
+                        acc[a, k] += w * BJ[v, a, k]
+            q0, q1, q2 = qR[r, 0], qR[r, 1], qR[r, 2]
+            s = sw[r]
+            for k in range(n):
+                J[r, k] = -(q0 * acc[0, k] + q1 * acc[1, k] + q2 * acc[2, k])
+                Js[r, k] = J[r, k] * s
 
 
-def _pose_columns(indptr, indices, weights, rest, local, q, dR, rows, S_rest, J):
+def _pose_columns(indptr, indices, weights, rest, local, q, dR, rows, S_rest, J, sw, Js):
     """Fill S_rest (N, 3) = S·x0 and J's six pose columns (the last six): −q for τ and
-    −qᵀ(∂R/∂θ_j)(S·local)[rows] for θ, for the R rows (``rows``: the point of each row)."""
+    −qᵀ(∂R/∂θ_j)(S·local)[rows] for θ, for the R rows (``rows``: the point of each row), and
+    those columns of Js = sw[:, None]·J (``alpha_columns``)."""
     N, n = S_rest.shape[0], J.shape[1] - 6
     xl = np.zeros((N, 3))
     for i in range(N):
@@ -62,6 +102,8 @@ def _pose_columns(indptr, indices, weights, rest, local, q, dR, rows, S_rest, J)
                 for b in range(3):
                     acc += q[r, a] * dR[j, a, b] * xl[i, b]
             J[r, n + 3 + j] = -acc
+        for c in range(n, n + 6):
+            Js[r, c] = J[r, c] * sw[r]
 
 
 def _apply(indptr, indices, weights, X, out):
@@ -77,6 +119,24 @@ def _apply(indptr, indices, weights, X, out):
                 out[i, a] += w * X[v, a]
 
 
+def _carried(U, alpha, out):
+    """out (N, 3) = U·α for the S·B·J_u U (N, 3, n) the α kernel keeps in single precision,
+    summed in double precision: the held fast path's J_u α at the closest points, a linear
+    function of α to double precision's rounding, as LM's ratio and a finite difference need
+    (a product in single precision would round it anew at every α by ~1e-6 mm). Compiled
+    with reassociation allowed (``carried``): the sum over the modes is then vectorised (0.13
+    against 0.37 ms in order, and 0.20 ms for NumPy's product of a double U, 1,600 points)."""
+    for i in range(U.shape[0]):
+        for a in range(3):
+            acc = 0.0
+            for k in range(U.shape[2]):
+                acc += U[i, a, k] * alpha[k]
+            out[i, a] = acc
+
+
 alpha_columns = njit(cache=True, nogil=True)(_alpha_columns) if njit is not None else None
 apply = njit(cache=True, nogil=True)(_apply) if njit is not None else None
 pose_columns = njit(cache=True, nogil=True)(_pose_columns) if njit is not None else None
+# reassociation lets the sum over the modes be vectorised; a fixed sum order per build, so the
+# same bits every call
+carried = njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})(_carried) if njit is not None else None

@@ -171,7 +171,10 @@ def _register(model, data, beta0, options, callback, cancel, first=None):
         # JᵀWJ as (√W J)ᵀ(√W J): NumPy hands a product of an array's transpose with itself to
         # BLAS's symmetric rank-k update, half of the general product's work (1.5 against
         # 2.4 ms for the live demo's 2,184 × 141 on one thread; docs/decisions.md)
-        Js = J * np.sqrt(ev.w)[:, None]
+        if ev.Js is None:
+            Js = J * np.sqrt(ev.w)[:, None]
+        else:  # made with J (``add_jacobian``): the same bits, without another pass over J
+            Js = ev.Js if free.all() else ev.Js[:, free]
         A = Js.T @ Js
         g = -(J.T @ (ev.w * ev.f))
         if options.energy_curvature and options.deform:

@@ -137,6 +137,9 @@ class Evaluation:
     pose_prior: PosePrior | None = None  # the prior whose P rows f holds (``Weights.pose_prior``)
     # (β, geometry, data and correspondences) for a later evaluation at the same β (``keep_end``)
     reusable: tuple | None = field(default=None, repr=False)
+    # √W·J (each row of J times √w), made with J by ``add_jacobian`` for LM's JᵀWJ; None when J
+    # was assembled otherwise (``points_of``: the weights are made again there)
+    Js: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def jacobian(self) -> np.ndarray:
@@ -214,6 +217,19 @@ def _apply(S, X):
     return out
 
 
+def _carried(SBJ, alpha):
+    """J_u α at held closest points, (N, 3) mm, from their S·B·J_u (N, 3, 3k): the compiled α
+    kernel keeps it in single precision, summed here in double (``jacobian_compiled.carried``);
+    NumPy's double product for the double S·B·J_u of the SciPy/NumPy Jacobian."""
+    if SBJ.dtype != np.float32:
+        return displacement(SBJ, alpha)
+    if not alpha.any():
+        return np.zeros((len(SBJ), 3))
+    out = np.empty((len(SBJ), 3))
+    _jacobian_kernel[0][3](SBJ, np.ascontiguousarray(alpha, dtype=float), out)  # made it: it is loaded
+    return out
+
+
 @dataclass
 class Correspondence:
     """Where one data feature's N points meet its model feature, held fixed within an LM
@@ -228,7 +244,9 @@ class Correspondence:
         unit normals (surfaces) or tangents (centerlines) at the closest points; None for
         fiducials.
     SBJ : (N, 3, 3k) array or None
-        S·B·J_u, the basis carried to the closest points (mm per unit α), and
+        S·B·J_u, the basis carried to the closest points (mm per unit α; single precision
+        where the Jacobian was compiled, as eq. 8's whole-feature product is: J's α columns are
+        made from its double-precision sum, ``jacobian_compiled``), and
     S_rest : (N, 3) array or None
         S·x0 (mm): both added with the Jacobian (``add_jacobian``). When present, x(β) at the
         closest points costs N·3·3k instead of deforming the whole feature (the held fast path).
@@ -363,7 +381,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
             t0 = time.perf_counter()
             c = corr[name] = frozen[name]
             S, direction = c.S, c.direction
-            u = displacement(c.SBJ, alpha) if c.SBJ is not None else np.zeros((len(c.S_rest), 3))
+            u = np.zeros((len(c.S_rest), 3)) if c.SBJ is None else _carried(c.SBJ, alpha)
             p = Y - deform(c.S_rest, u, beta, model.centroid)[1]
             tim["deform"] += time.perf_counter() - t0
         else:
@@ -539,9 +557,9 @@ def _alpha_kernel():
     if _numpy_jacobian[0]:
         return None
     if not _jacobian_kernel:
-        from .jacobian_compiled import alpha_columns, apply, pose_columns
+        from .jacobian_compiled import alpha_columns, apply, carried, pose_columns
 
-        _jacobian_kernel.append(None if alpha_columns is None else (alpha_columns, pose_columns, apply))
+        _jacobian_kernel.append(None if alpha_columns is None else (alpha_columns, pose_columns, apply, carried))
     return _jacobian_kernel[0]
 
 
@@ -576,23 +594,33 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation, alpha_columns: bool =
     t0 = time.perf_counter()
     kernel = _alpha_kernel()
     J = np.empty((len(ev.f), n + 6))  # filled block by block: the data rows, the prior's, f_E's
+    sw = np.sqrt(ev.w)
+    # √W·J for LM's JᵀWJ, written by the kernels beside J (the bits of NumPy's J * sw[:, None])
+    Js = np.empty_like(J) if kernel is not None else None
     at = 0
     for name, feat, S, q, rows, local in ev.terms:
         if local is None:  # made by the held fast path: the feature's points were never deformed
             local = model.positions(feat, beta)[0]
         Jf = J[at:at + len(q)]
+        block = slice(at, at + len(q))
         at += len(q)
         qR = q @ R  # qᵀR, (R, 3)
         c = ev.correspondence[name]
         if not alpha_columns:
             Jf[:, :n] = 0.0
         if kernel is not None:
+            assert Js is not None
+            Jsf, swf = Js[block], sw[block]
             U = None
             if alpha_columns:
-                U = np.empty((S.shape[0], 3, n))
-                kernel[0](S.indptr, S.indices, S.data, feat.BJ, np.ascontiguousarray(qR), rows, U, Jf)
+                # S·B·J_u kept in single precision for the held fast path; J from it in double
+                U = np.empty((S.shape[0], 3, n), np.float32)
+                kernel[0](S.indptr, S.indices, S.data, feat.BJ, np.ascontiguousarray(qR), rows, U, Jf, swf, Jsf)
+            else:
+                Jsf[:, :n] = Jf[:, :n] * swf[:, None]
             S_rest = np.empty((S.shape[0], 3))
-            kernel[1](S.indptr, S.indices, S.data, feat.rest, local, np.ascontiguousarray(q), dR, rows, S_rest, Jf)
+            kernel[1](S.indptr, S.indices, S.data, feat.rest, local, np.ascontiguousarray(q), dR, rows, S_rest, Jf,
+                      swf, Jsf)
             if not c.carries_basis:
                 ev.correspondence[name] = Correspondence(c.S, c.direction, U, S_rest)
             continue
@@ -606,11 +634,16 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation, alpha_columns: bool =
         xl = (S @ local)[rows]
         for j in range(3):
             Jf[:, n + 3 + j] = -np.einsum("ia,ab,ib->i", q, dR[j], xl)
+    data_end = at
     if ev.pose_prior is not None:
         J[at:at + 6] = ev.pose_prior.jacobian(n)
         at += 6
     J[at] = 0.0
     J[at, :n] = (basis.energy @ beta[:n]) / basis.M
-    ev.J = J
+    if Js is None:
+        Js = J * sw[:, None]
+    else:  # the prior's rows and f_E's
+        Js[data_end:] = J[data_end:] * sw[data_end:, None]
+    ev.J, ev.Js = J, Js
     ev.timings["jacobian"] += time.perf_counter() - t0
     return ev
