@@ -478,7 +478,9 @@ def _cross_validate(model: RegistrationModel, local: dict, options: LMOptions, s
     "Local modes in register"). With a declared pose (``declared``) the held-out prediction is the
     one criterion: the correction is not weighed against its σ (docs/decisions.md, "Pose prior")."""
     if support is None and not local_modes:  # with local modes only the folds' own verdict, which no block saw
-        support = check_support(model, local, options, settings, cancel)
+        # declared: surface data alone are judged by one paired standard error, not the 30 % margin
+        support = check_support(model, local, options, replace(settings, surface_se=True) if declared else settings,
+                                cancel)
     if support is not None and not declared and (rigid.kept or not support.predicts or local_modes) and \
             not (cancel is not None and cancel.is_set()):
         support = weigh_correction(model, local, result.beta, support, options, settings)
