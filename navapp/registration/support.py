@@ -48,6 +48,7 @@ from ..threads import limit_threads
 from .libr import LMOptions, register_libr
 from .model import DATA_TO_MODEL, RegistrationModel
 from .objective import evaluate, points_of
+from .quality import EXPECTED_NOISE_MM
 from .uncertainty import covariance_factor, information, point_jacobian, point_sigma
 
 
@@ -63,12 +64,12 @@ class SupportOptions:
     # behind a good surface fit, ``margin_interior``
     margin: float = 0.3
     margin_interior: float = 0.1
-    # with a declared pose and surface data alone: the deformation is supported where it predicts
-    # the held-out blocks better than the rigid answer by more than one standard error of that
-    # gain, paired block by block (``paired_gain``), in place of ``margin``. The 30 % margin stood
-    # for a pose the data find alone, where a slid pose's deformation predicts held-out surface
-    # as well as a right one's; a declared prior confines the pose (docs/decisions.md, "issue 46,
-    # session 37")
+    # with a declared pose within the clinical goal and surface data alone: the deformation is
+    # supported where it predicts the held-out blocks better than the rigid answer by more than
+    # one standard error of that gain, paired block by block (``paired_gain``), in place of
+    # ``margin``. The 30 % margin stands for a pose the data find alone, where a slid pose's
+    # deformation predicts held-out surface as well as a right one's; such a prior confines the
+    # pose (docs/decisions.md, "issue 46, session 37")
     surface_se: bool = False
     far_mm: float = 40.0  # a target farther than this from every data point is extrapolated
     min_points: int = 30  # fewer data points: no cross-validation (too few to split)
@@ -307,7 +308,12 @@ def _folds(model, data, options, support, cancel, extend) -> tuple[Support, Supp
     inside = any(DATA_TO_MODEL[k] not in ("liver", "fiducials", *SALIENT) for k in data)
     margin, sec = support.margin_interior if inside else support.margin, time.perf_counter() - t0
     paired = support.surface_se and not inside
-    return _summary(out, margin, sec, paired), _summary(out_ext, margin, sec, paired)
+    # what a held-out RMS can resolve: the standard error of a mean over the held-out points at the
+    # features' stated noise (the least of them), so that noise-free data on the undeformed model
+    # (every block 10⁻⁹ mm either way) do not decide by rounding
+    total = sum(b.points for b in out)
+    floor = min(EXPECTED_NOISE_MM.get(k, 1.0) for k in data if k != "fiducials") / math.sqrt(max(total, 1))
+    return _summary(out, margin, sec, paired, floor), _summary(out_ext, margin, sec, paired, floor)
 
 
 def paired_gain(blocks: list[Block]) -> tuple[float, float]:
@@ -324,11 +330,11 @@ def paired_gain(blocks: list[Block]) -> tuple[float, float]:
     return gain, float(np.sqrt(n / max(n - 1, 1) * np.sum(p ** 2 * (g - gain) ** 2)))
 
 
-def _summary(blocks: list[Block], margin: float, seconds: float, paired: bool = False) -> Support:
+def _summary(blocks: list[Block], margin: float, seconds: float, paired: bool = False, floor: float = 0.0) -> Support:
     w = np.array([b.points for b in blocks], float)
     r = float(np.average([b.rigid_mm for b in blocks], weights=w))
     d = float(np.average([b.deformable_mm for b in blocks], weights=w))
-    return Support(r, d, blocks, margin, seconds, se_mm=paired_gain(blocks)[1], paired=paired)
+    return Support(r, d, blocks, margin, seconds, se_mm=max(paired_gain(blocks)[1], floor), paired=paired)
 
 
 def weigh_correction(model: RegistrationModel, data: dict, beta, support: Support, options: LMOptions,

@@ -521,6 +521,19 @@ def pose_evidence(model: RegistrationModel, data: dict, pose, prior, weights: We
     return PoseEvidence(float(moved.mean()), float(sigma.mean()), float(prior_sigma.mean()))
 
 
+def declared_spread(model: RegistrationModel, weights: Weights) -> float:
+    """The declared pose's own predicted error over the organ (mm): the mean over ``organ_nodes``
+    of σ_pose from the prior alone (``weights.pose_prior``, no data) — ``PoseEvidence``'s
+    ``prior_sigma_mm`` before any fit. Whether the given pose is good enough to navigate by
+    (within ``CLINICAL_GOAL_MM``) as the surgeon declared it."""
+    assert weights.pose_prior is not None
+    nodes = organ_nodes(model)
+    zero = np.zeros(model.basis.Ju.shape[1] + 6)
+    with limit_threads(1):
+        _, G = point_jacobian(model, zero, nodes=nodes)
+        return float(point_sigma(G[:, :, -6:], cov=pose_covariance(model, {}, zero, weights)).mean())
+
+
 ORGAN_NODES = 1500
 """Mesh nodes (a fixed random sample, ``organ_nodes``) over which "the predicted error over the
 organ" is a mean: in ``OrganError`` and in the next plane's ranking (σ costs time per node)."""
