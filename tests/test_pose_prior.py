@@ -379,7 +379,7 @@ def test_the_held_out_gain_is_judged_against_its_own_paired_standard_error():
     from navapp.registration.support import Block, Support, paired_gain
 
     def support(rigid, deformable, paired):
-        blocks = [Block(np.zeros(3), 100, r, d) for r, d in zip(rigid, deformable)]
+        blocks = [Block(np.zeros(3), 100, r, d) for r, d in zip(rigid, deformable, strict=True)]
         r, d = float(np.mean(rigid)), float(np.mean(deformable))
         return Support(r, d, blocks, se_mm=paired_gain(blocks)[1], paired=paired)
 
