@@ -312,7 +312,8 @@ def _folds(model, data, options, support, cancel, extend) -> tuple[Support, Supp
     # features' stated noise (the least of them), so that noise-free data on the undeformed model
     # (every block 10⁻⁹ mm either way) do not decide by rounding
     total = sum(b.points for b in out)
-    floor = min(EXPECTED_NOISE_MM.get(k, 1.0) for k in data if k != "fiducials") / math.sqrt(max(total, 1))
+    noise = min((EXPECTED_NOISE_MM.get(k, 1.0) for k in data if k != "fiducials"), default=1.0)
+    floor = noise / math.sqrt(max(total, 1))
     return _summary(out, margin, sec, paired, floor), _summary(out_ext, margin, sec, paired, floor)
 
 
