@@ -8,8 +8,10 @@ the model frame); for each block the deformable model is fitted to the other blo
 predicts the held-out one. The rigid answer is fitted to the same blocks (τ, θ alone, or the
 kept given pose) and predicts it too. A deformation is *supported* where it predicts
 held-out data better than the rigid answer by ``margin`` (relative; ``margin_interior`` when
-vessel data inside the organ take part). Where it does not, or where a target is farther than
-``far_mm`` from every data point, the target's correction is not determined by the data.
+vessel data inside the organ take part); with a pose declared within the clinical goal and surface
+data alone, by more than one standard error of the gain, paired block by block (``paired_gain``).
+Where it does not, or where a target is farther than ``far_mm`` from every data point, the
+target's correction is not determined by the data.
 
 ``register`` (pipeline) returns the given pose without deformation when the deformation is
 not supported and the given pose was kept (the data lay on the undeformed model: never
