@@ -320,11 +320,22 @@ def _folds(model, data, options, support, cancel, extend) -> tuple[Support, Supp
 
 
 def paired_gain(blocks: list[Block]) -> tuple[float, float]:
-    """The deformation's held-out gain over the rigid answer, mean over the blocks weighted by
-    their points (mm; Σ p_b (r_b − d_b), p_b = n_b / Σ n), and its standard error, the gain
-    paired block by block: sqrt(B / (B − 1) Σ p_b² (g_b − ḡ)²) over B blocks. Paired because the
-    blocks differ in how hard they are to predict (one over the dent, one flat) far more than the
-    two answers do on any one block (as ``forces.one_standard_error`` judges its λ)."""
+    """The deformation's held-out gain over the rigid answer and its standard error.
+
+    Parameters
+    ----------
+    blocks : list of Block
+        the cross-validation's B held-out blocks: points n_b, RMS r_b (rigid) and d_b
+        (deformable), mm.
+
+    Returns
+    -------
+    (gain, se) : (float, float)
+        mm: ḡ = Σ p_b g_b with g_b = r_b − d_b and p_b = n_b / Σ n, and
+        sqrt(B / (B − 1) Σ p_b² (g_b − ḡ)²), the gain paired block by block. Paired because the
+        blocks differ in how hard they are to predict (one over the dent, one flat) far more than
+        the two answers do on any one block (as ``forces.one_standard_error`` judges its λ).
+    """
     p = np.array([b.points for b in blocks], float)
     p /= p.sum()
     g = np.array([b.rigid_mm - b.deformable_mm for b in blocks])

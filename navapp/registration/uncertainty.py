@@ -522,10 +522,22 @@ def pose_evidence(model: RegistrationModel, data: dict, pose, prior, weights: We
 
 
 def declared_spread(model: RegistrationModel, weights: Weights) -> float:
-    """The declared pose's own predicted error over the organ (mm): the mean over ``organ_nodes``
-    of σ_pose from the prior alone (``weights.pose_prior``, no data) — ``PoseEvidence``'s
-    ``prior_sigma_mm`` before any fit. Whether the given pose is good enough to navigate by
-    (within ``CLINICAL_GOAL_MM``) as the surgeon declared it."""
+    """The declared pose's own predicted error over the organ, before any data.
+
+    Parameters
+    ----------
+    model : RegistrationModel
+    weights : Weights
+        with ``pose_prior`` set (the declared σ_τ, σ_θ; its centre and scale do not enter).
+
+    Returns
+    -------
+    float
+        mm: the mean over ``organ_nodes`` of σ_pose = sqrt(tr(G_pose Σ_P G_poseᵀ)), Σ_P the
+        prior's covariance alone (``pose_covariance`` without data) — ``PoseEvidence``'s
+        ``prior_sigma_mm`` before any fit. Against ``CLINICAL_GOAL_MM``: whether the given pose,
+        as declared, is good enough to navigate by.
+    """
     assert weights.pose_prior is not None
     nodes = organ_nodes(model)
     zero = np.zeros(model.basis.Ju.shape[1] + 6)
