@@ -78,7 +78,7 @@ from .support import (
     pooled_rms,
     weigh_correction,
 )
-from .uncertainty import OrganError, PoseEvidence, organ_error, pose_evidence
+from .uncertainty import CLINICAL_GOAL_MM, OrganError, PoseEvidence, declared_spread, organ_error, pose_evidence
 
 
 @dataclass
@@ -468,7 +468,7 @@ def rigid_starts(model: RegistrationModel, data: dict, options: LMOptions | None
 
 def _cross_validate(model: RegistrationModel, local: dict, options: LMOptions, settings: SupportOptions, cancel,
                     rigid: RigidResult, result: LibrResult, support: Support | None = None,
-                    local_modes: bool = False, declared: bool = False) -> Support | None:
+                    local_modes: bool = False, declared: bool = False, paired: bool = False) -> Support | None:
     """The spatial cross-validation of a fresh deformable fit (``support``: already made, by
     the local-mode step's folds); from a kept pose (a known-good answer without deformation),
     or where the cross-validation fails from ICP's pose (whether to warn, ``Support.outweighs``),
@@ -476,9 +476,12 @@ def _cross_validate(model: RegistrationModel, local: dict, options: LMOptions, s
     (``local_modes``) from ICP's pose: the modes were placed where the data asked, and
     held-out blocks are a weaker judge of a fit that can bend there (docs/decisions.md,
     "Local modes in register"). With a declared pose (``declared``) the held-out prediction is the
-    one criterion: the correction is not weighed against its σ (docs/decisions.md, "Pose prior")."""
+    one criterion: the correction is not weighed against its σ (docs/decisions.md, "Pose prior");
+    with ``paired`` (a declared pose within the clinical goal) surface data alone are judged by one
+    paired standard error of the held-out gain, not the 30 % margin (``SupportOptions.surface_se``)."""
     if support is None and not local_modes:  # with local modes only the folds' own verdict, which no block saw
-        support = check_support(model, local, options, settings, cancel)
+        support = check_support(model, local, options, replace(settings, surface_se=True) if paired else settings,
+                                cancel)
     if support is not None and not declared and (rigid.kept or not support.predicts or local_modes) and \
             not (cancel is not None and cancel.is_set()):
         support = weigh_correction(model, local, result.beta, support, options, settings)
@@ -883,8 +886,14 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
     support = None
     if deform and fresh and init.support is not None and result is not None and result.stop_reason != "cancelled":
         t = time.perf_counter()
+        # a declared pose within the clinical goal confines the pose: the held-out gain is judged
+        # against its own standard error; declared wider, the rigid stage searches within that
+        # width, and the margin that stands for a searched pose holds (docs/decisions.md, "issue 46,
+        # session 37")
+        confined = declared and options.weights.pose_prior is not None and \
+            declared_spread(model, options.weights) <= CLINICAL_GOAL_MM
         support = _cross_validate(model, local, options, init.support, cancel, rigid, result, folds_support,
-                                  local_modes=base_model is not None, declared=declared)
+                                  local_modes=base_model is not None, declared=declared, paired=confined)
         sec["support"] = time.perf_counter() - t
         clock.mark("support")
     evidence: PoseEvidence | None = None

@@ -8,8 +8,10 @@ the model frame); for each block the deformable model is fitted to the other blo
 predicts the held-out one. The rigid answer is fitted to the same blocks (τ, θ alone, or the
 kept given pose) and predicts it too. A deformation is *supported* where it predicts
 held-out data better than the rigid answer by ``margin`` (relative; ``margin_interior`` when
-vessel data inside the organ take part). Where it does not, or where a target is farther than
-``far_mm`` from every data point, the target's correction is not determined by the data.
+vessel data inside the organ take part); with a pose declared within the clinical goal and surface
+data alone, by more than one standard error of the gain, paired block by block (``paired_gain``).
+Where it does not, or where a target is farther than ``far_mm`` from every data point, the
+target's correction is not determined by the data.
 
 ``register`` (pipeline) returns the given pose without deformation when the deformation is
 not supported and the given pose was kept (the data lay on the undeformed model: never
@@ -48,6 +50,7 @@ from ..threads import limit_threads
 from .libr import LMOptions, register_libr
 from .model import DATA_TO_MODEL, RegistrationModel
 from .objective import evaluate, points_of
+from .quality import EXPECTED_NOISE_MM
 from .uncertainty import covariance_factor, information, point_jacobian, point_sigma
 
 
@@ -63,6 +66,13 @@ class SupportOptions:
     # behind a good surface fit, ``margin_interior``
     margin: float = 0.3
     margin_interior: float = 0.1
+    # with a declared pose within the clinical goal and surface data alone: the deformation is
+    # supported where it predicts the held-out blocks better than the rigid answer by more than
+    # one standard error of that gain, paired block by block (``paired_gain``), in place of
+    # ``margin``. The 30 % margin stands for a pose the data find alone, where a slid pose's
+    # deformation predicts held-out surface as well as a right one's; such a prior confines the
+    # pose (docs/decisions.md, "issue 46, session 37")
+    surface_se: bool = False
     far_mm: float = 40.0  # a target farther than this from every data point is extrapolated
     min_points: int = 30  # fewer data points: no cross-validation (too few to split)
     iterations: int = 30  # LM cap per fold (the fold fits start from β = 0)
@@ -98,6 +108,10 @@ class Support:
     blocks: list[Block] = field(default_factory=list)
     margin: float = SupportOptions.margin
     seconds: float = 0.0
+    # the held-out gain's standard error (mm, ``paired_gain``); ``paired``: the verdict is the gain
+    # against it, not against ``margin`` (``SupportOptions.surface_se``)
+    se_mm: float = 0.0
+    paired: bool = False
     # from a kept pose (``weigh_correction``): the mean displacement the deformation adds and
     # the mean σ, over the sampled mesh nodes (mm); None where it was not weighed
     correction_mm: float | None = None
@@ -108,6 +122,8 @@ class Support:
     @property
     def predicts(self) -> bool:
         """The cross-validation's verdict: held-out data predicted better than without deformation."""
+        if self.paired:
+            return self.rigid_mm - self.deformable_mm > self.se_mm
         return self.deformable_mm < (1 - self.margin) * self.rigid_mm
 
     @property
@@ -147,13 +163,15 @@ class Support:
             return (f"deformation not determined by the data: the correction it makes (mean "
                     f"{self.correction_mm:.2f} mm over the organ) is under {self.z:g} × its own uncertainty "
                     f"(σ {self.sigma_mm:.2f} mm) — {shown}; add data where the organ moved")
+        by = f", not better by one standard error ({self.se_mm:.2f} mm)" if self.paired else ""
         return (f"deformation not supported by the data: fitted to part of the data it predicts the rest "
-                f"{self.deformable_mm:.2f} mm RMS against {self.rigid_mm:.2f} mm without deformation — "
+                f"{self.deformable_mm:.2f} mm RMS against {self.rigid_mm:.2f} mm without deformation{by} — "
                 f"{shown}; add data where the organ moved")
 
     def as_dict(self) -> dict:
         return {"supported": self.supported, "heldout_rigid_mm": round(self.rigid_mm, 3),
                 "heldout_deformable_mm": round(self.deformable_mm, 3), "margin": self.margin,
+                **({"standard_error_mm": round(self.se_mm, 3), "rule": "one standard error"} if self.paired else {}),
                 "blocks": [{"centre_mm": np.round(b.centre, 1).tolist(), "points": b.points,
                             "rigid_mm": round(b.rigid_mm, 3), "deformable_mm": round(b.deformable_mm, 3)}
                            for b in self.blocks], "seconds": round(self.seconds, 3),
@@ -291,14 +309,46 @@ def _folds(model, data, options, support, cancel, extend) -> tuple[Support, Supp
         return None  # cut short: folds stopped before they were fitted say nothing about the data
     inside = any(DATA_TO_MODEL[k] not in ("liver", "fiducials", *SALIENT) for k in data)
     margin, sec = support.margin_interior if inside else support.margin, time.perf_counter() - t0
-    return _summary(out, margin, sec), _summary(out_ext, margin, sec)
+    paired = support.surface_se and not inside
+    # what a held-out RMS can resolve: the standard error of a mean over the held-out points at the
+    # features' stated noise (the least of them), so that noise-free data on the undeformed model
+    # (every block 10⁻⁹ mm either way) do not decide by rounding
+    total = sum(b.points for b in out)
+    noise = min((EXPECTED_NOISE_MM.get(k, 1.0) for k in data if k != "fiducials"), default=1.0)
+    floor = noise / math.sqrt(max(total, 1))
+    return _summary(out, margin, sec, paired, floor), _summary(out_ext, margin, sec, paired, floor)
 
 
-def _summary(blocks: list[Block], margin: float, seconds: float) -> Support:
+def paired_gain(blocks: list[Block]) -> tuple[float, float]:
+    """The deformation's held-out gain over the rigid answer and its standard error.
+
+    Parameters
+    ----------
+    blocks : list of Block
+        the cross-validation's B held-out blocks: points n_b, RMS r_b (rigid) and d_b
+        (deformable), mm.
+
+    Returns
+    -------
+    (gain, se) : (float, float)
+        mm: ḡ = Σ p_b g_b with g_b = r_b − d_b and p_b = n_b / Σ n, and
+        sqrt(B / (B − 1) Σ p_b² (g_b − ḡ)²), the gain paired block by block. Paired because the
+        blocks differ in how hard they are to predict (one over the dent, one flat) far more than
+        the two answers do on any one block (as ``forces.one_standard_error`` judges its λ).
+    """
+    p = np.array([b.points for b in blocks], float)
+    p /= p.sum()
+    g = np.array([b.rigid_mm - b.deformable_mm for b in blocks])
+    gain = float(p @ g)
+    n = len(blocks)
+    return gain, float(np.sqrt(n / max(n - 1, 1) * np.sum(p ** 2 * (g - gain) ** 2)))
+
+
+def _summary(blocks: list[Block], margin: float, seconds: float, paired: bool = False, floor: float = 0.0) -> Support:
     w = np.array([b.points for b in blocks], float)
     r = float(np.average([b.rigid_mm for b in blocks], weights=w))
     d = float(np.average([b.deformable_mm for b in blocks], weights=w))
-    return Support(r, d, blocks, margin, seconds)
+    return Support(r, d, blocks, margin, seconds, se_mm=max(paired_gain(blocks)[1], floor), paired=paired)
 
 
 def weigh_correction(model: RegistrationModel, data: dict, beta, support: Support, options: LMOptions,

@@ -521,6 +521,31 @@ def pose_evidence(model: RegistrationModel, data: dict, pose, prior, weights: We
     return PoseEvidence(float(moved.mean()), float(sigma.mean()), float(prior_sigma.mean()))
 
 
+def declared_spread(model: RegistrationModel, weights: Weights) -> float:
+    """The declared pose's own predicted error over the organ, before any data.
+
+    Parameters
+    ----------
+    model : RegistrationModel
+    weights : Weights
+        with ``pose_prior`` set (the declared σ_τ, σ_θ; its centre and scale do not enter).
+
+    Returns
+    -------
+    float
+        mm: the mean over ``organ_nodes`` of σ_pose = sqrt(tr(G_pose Σ_P G_poseᵀ)), Σ_P the
+        prior's covariance alone (``pose_covariance`` without data) — ``PoseEvidence``'s
+        ``prior_sigma_mm`` before any fit. Against ``CLINICAL_GOAL_MM``: whether the given pose,
+        as declared, is good enough to navigate by.
+    """
+    assert weights.pose_prior is not None
+    nodes = organ_nodes(model)
+    zero = np.zeros(model.basis.Ju.shape[1] + 6)
+    with limit_threads(1):
+        _, G = point_jacobian(model, zero, nodes=nodes)
+        return float(point_sigma(G[:, :, -6:], cov=pose_covariance(model, {}, zero, weights)).mean())
+
+
 ORGAN_NODES = 1500
 """Mesh nodes (a fixed random sample, ``organ_nodes``) over which "the predicted error over the
 organ" is a mean: in ``OrganError`` and in the next plane's ranking (σ costs time per node)."""
