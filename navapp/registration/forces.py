@@ -32,6 +32,13 @@ one-standard-error rule takes from their path (``one_standard_error``) — as th
 points' distance to the surface each answer makes; the least wins, so the answer never
 predicts the held-out data worse than not deforming. The data are in the model frame
 (the rigid stage's pose applied).
+
+Where the pose is declared (a ``PosePrior``), the forces carry their own rigid part q = (τ, θ)
+of eq. 8, fitted with the weights under the prior's term (``PoseTerm``), as the basis's fit
+carries its τ, θ: with the supports held, a tracker offset is no deformation the organ can make
+cheaply, so the energy and the supports tell it from the dent. In the held-out choice the pose
+is the fit to every block (as no deformation's is the rigid stage's); only the forces are
+refitted per fold.
 """
 
 import time
@@ -52,6 +59,9 @@ from ..mechanics.supports import held_nodes
 from ..threads import limit_threads
 from .libr import LMOptions, register_libr
 from .model import RegistrationModel, deform
+from .prior import PosePrior
+from .rigid import beta_pose
+from .rotation import rotation, rotation_derivatives
 from .support import SupportOptions, blocks_of, supports_not_borne_out
 
 MAX_SITES = 150
@@ -109,6 +119,48 @@ class ForceOptions:
     max_damping_tries: int = 8
     blocks: int = 5
     sites: int = MAX_SITES
+
+
+@dataclass(frozen=True)
+class PoseTerm:
+    """The declared pose in the forces' fit: the rigid part q = (τ mm, θ rad) of eq. 8 — x ↦
+    R(θ)(x − x̄0) + τ + x̄0 after the forces' displacement, the rigid stage's pose before it —
+    fitted with the forces under the declared prior's term σ_F² |(q − q_c) / σ|², the
+    ``PosePrior`` of LIBR's Ω read for one surface feature (Ω / (w_ref u²); prior.py).
+
+    Why: with the supports declared, a tracker offset is not a deformation — the organ cannot
+    reach an offset patch without straining from its supports — so the forces alone, deforming
+    from the rigid stage's pose (a fit of the undeformed organ to a dented patch), left the
+    offset cases 4–8 mm off (docs/decisions.md, issue 47 session 37)."""
+
+    centroid: np.ndarray  # x̄0 (3,) mm, the rotation's centre (the mesh nodes' centroid)
+    centre: np.ndarray  # q_c (6,): where the given pose lies from the rigid stage's
+    sd: np.ndarray  # (6,) σ_τ mm ×3, σ_θ rad ×3
+    weight: float  # σ_F² (mm²): the prior's weight against one feature's mean-square distance
+
+    @classmethod
+    def of(cls, prior: PosePrior, centroid) -> "PoseTerm":
+        sd = np.array([prior.sd_mm] * 3 + [prior.sd_rad] * 3)
+        return cls(np.asarray(centroid, float), np.asarray(prior.centre, float), sd, prior.feature_sd_mm ** 2)
+
+    def to_model(self, points: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """R(θ)ᵀ (p − τ − x̄0) + x̄0 (N, 3) — ``points`` (N, 3) in the frame before the deformation
+        — and R(θ): distances to the surface are the same in either frame."""
+        R = rotation(q[3:])
+        return (points - q[:3] - self.centroid) @ R + self.centroid, R
+
+    def jacobian(self, points_model: np.ndarray, d: np.ndarray, nrm: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """−∂d/∂q (N, 6) of the signed distances d (N,) of the data to the posed surface
+        (``to_model``'s points, their normals ``nrm`` there): d = n_wᵀ(p − x), x = R(θ) l + τ + x̄0
+        with l the closest point less x̄0, n_w = R n — so −∂d/∂τ = n_w, −∂d/∂θ_j = n_wᵀ ∂R/∂θ_j l."""
+        R = rotation(q[3:])
+        nw = nrm @ R.T
+        local = points_model - d[:, None] * nrm - self.centroid
+        dR = rotation_derivatives(q[3:])
+        return np.column_stack([nw] + [np.einsum("ij,ij->i", nw, local @ dR[j].T) for j in range(3)])
+
+    def value(self, q: np.ndarray) -> float:
+        return self.weight * float(np.sum(((q - self.centre) / self.sd) ** 2))
 
 
 @dataclass
@@ -290,7 +342,8 @@ class SurfaceForces:
         return np.einsum("ij,ij->i", points - y, nrm), A, nrm
 
     def fit_weights(self, pf: "PointForces", lam: float, train: np.ndarray | None = None,
-                    options: "ForceOptions | None" = None) -> "WeightFit":
+                    options: "ForceOptions | None" = None, pose: PoseTerm | None = None,
+                    rigid_only: bool = False, held_q: np.ndarray | None = None) -> "WeightFit":
         """The forces on the points ``train`` (indices into ``pf``; default all) minimising Φ
         (module doc) with the correspondences recomputed on the deformed surface: Levenberg–
         Marquardt on the point weights w (forces F = Dᵀw at the points' undeformed
@@ -298,29 +351,53 @@ class SurfaceForces:
         a step taken only where Φ at its own closest points falls (monotone), the damping
         raised until one does; stopped when Φ falls by less than ``tol`` (relative), no step
         lowers it, or after ``iterations``. The first undamped step from w = 0 is the exact
-        minimiser at the undeformed correspondences."""
-        with limit_threads(1):  # small dense systems: on 2 shared cores threaded BLAS only waits
-            return self._fit_weights(pf, lam, train, options or ForceOptions(energy_weight=lam))
+        minimiser at the undeformed correspondences (without ``pose``).
 
-    def _fit_weights(self, pf: "PointForces", lam: float, train, o: "ForceOptions") -> "WeightFit":
+        ``pose``: the rigid part q of eq. 8 is fitted with the weights under the declared
+        prior's term (``PoseTerm``); the points are then in the rigid stage's frame and the
+        answer's pose is that frame's followed by q (``WeightFit.q``); ``rigid_only``: q alone,
+        no force (the undeformed organ's pose under the prior: no deformation's own fold fit)."""
+        with limit_threads(1):  # small dense systems: on 2 shared cores threaded BLAS only waits
+            return self._fit_weights(pf, lam, train, options or ForceOptions(energy_weight=lam), pose, rigid_only,
+                                     held_q)
+
+    def _fit_weights(self, pf: "PointForces", lam: float, train, o: "ForceOptions",
+                     pose: PoseTerm | None = None, rigid_only: bool = False,
+                     held_q: np.ndarray | None = None) -> "WeightFit":
         idx = np.arange(len(pf.points)) if train is None else np.asarray(train)
         # the force sites among the training points (a held-out point's site is held out too)
-        cols = np.flatnonzero(np.isin(pf.sites, idx))
+        cols = np.flatnonzero(np.isin(pf.sites, idx)) if not rigid_only else np.zeros(0, int)
         P, X, G = pf.points[idx], pf.Xs[:, cols], pf.Gs[np.ix_(cols, cols)]
-        n, scale = len(idx), lam / self.volume
+        if held_q is not None and pose is not None:  # the pose held where the fit to every block put it
+            P, pose = pose.to_model(P, held_q)[0], None
+        n, scale, s = len(idx), lam / self.volume, len(cols)
 
-        def phi(w):
-            d, A, nrm = self.distances(P, X @ w)
-            return float(d @ d) / n + 0.5 * scale * float(w @ G @ w), d, A, nrm
+        def phi(x):
+            w, q = x[:s], x[s:]
+            if pose is None:
+                Pm, prior = P, 0.0
+            else:
+                Pm, prior = pose.to_model(P, q)[0], pose.value(q)
+            d, A, nrm = self.distances(Pm, X @ w)
+            return float(d @ d) / n + 0.5 * scale * float(w @ G @ w) + prior, d, A, nrm, Pm
 
-        w = np.zeros(len(cols))
-        cur, d, A, nrm = phi(w)
+        # the pose starts where the rigid stage left it (q = 0), its prior centred on the given pose
+        x = np.zeros(s + (6 if pose is not None else 0))
+        cur, d, A, nrm, Pm = phi(x)
         start, nu, iterations, accepted = cur, 0.0, 0, 0
         while iterations < o.iterations:
             iterations += 1
+            w = x[:s]
             J = np.asarray(self._surface_rows_of(A, nrm) @ X)
-            H = (2.0 / n) * (J.T @ J) + scale * G
-            g = -(2.0 / n) * (J.T @ d) + scale * (G @ w)
+            if pose is not None:
+                J = np.hstack([J, pose.jacobian(Pm, d, nrm, x[s:])])
+            H = (2.0 / n) * (J.T @ J)
+            H[:s, :s] += scale * G
+            g = -(2.0 / n) * (J.T @ d)
+            g[:s] += scale * (G @ w)
+            if pose is not None:
+                H[s:, s:] += np.diag(2.0 * pose.weight / pose.sd ** 2)
+                g[s:] += 2.0 * pose.weight * (x[s:] - pose.centre) / pose.sd ** 2
             diag = np.maximum(np.diag(H), 1e-300)
             step_taken = False
             for _ in range(o.max_damping_tries):
@@ -329,11 +406,11 @@ class SurfaceForces:
                 except np.linalg.LinAlgError:
                     delta = None
                 if delta is not None and np.isfinite(delta).all():
-                    trial = phi(w + delta)
+                    trial = phi(x + delta)
                     if trial[0] < cur:
-                        w, step_taken = w + delta, True
+                        x, step_taken = x + delta, True
                         done = cur - trial[0] < o.tol * cur
-                        cur, d, A, nrm = trial
+                        cur, d, A, nrm, Pm = trial
                         nu = nu / 3.0 if nu > 1e-6 else 0.0
                         break
                 nu = max(1e-4, 4.0 * nu)
@@ -342,7 +419,8 @@ class SurfaceForces:
             accepted += 1
             if done:
                 break
-        return WeightFit(cols, w, cur, start, float(np.sqrt(np.mean(d ** 2))), iterations, accepted)
+        return WeightFit(cols, x[:s], cur, start, float(np.sqrt(np.mean(d ** 2))), iterations, accepted,
+                         x[s:] if pose is not None else held_q)
 
     def field(self, pf: "PointForces", fit: "WeightFit") -> np.ndarray:
         """u (M, 3) mm at every node under the fitted forces (one solve)."""
@@ -394,6 +472,7 @@ class WeightFit:
     rms_mm: float
     iterations: int
     accepted: int
+    q: np.ndarray | None = None  # the fitted rigid part (τ mm, θ rad) of eq. 8 (``fit_weights``' pose)
 
 
 def spread_sites(points: np.ndarray, count: int) -> np.ndarray:
@@ -447,6 +526,9 @@ class ForceChoice:
     seconds: float = 0.0
     solves: int = 0
     free_mm: float | None = None  # the free-floating basis's held-out RMS (mm) on the same folds
+    # the forces' rigid part (τ mm, θ rad) of eq. 8, fitted with them under the declared pose's
+    # prior (``PoseTerm``); None: they deform from the rigid stage's pose
+    pose: np.ndarray | None = None
 
     @property
     def shown_mm(self) -> float:
@@ -487,6 +569,9 @@ class ForceChoice:
                 "heldout_forces_blocks_mm": {f"{k:g}": [round(float(x), 3) for x in v]
                                              for k, v in self.forces_blocks_mm.items()},
                 "heldout_free_mm": None if self.free_mm is None else round(self.free_mm, 3),
+                "pose_fitted": None if self.pose is None else
+                {"translation_mm": round(float(np.linalg.norm(self.pose[:3])), 3),
+                 "rotation_deg": round(float(np.degrees(np.linalg.norm(self.pose[3:]))), 3)},
                 "supports_contradicted": self.supports_contradicted,
                 "energy_weight": self.energy_weight, "seconds": round(self.seconds, 2), "solves": self.solves}
 
@@ -499,10 +584,20 @@ def _basis_surface(model: RegistrationModel, beta: np.ndarray, surface: np.ndarr
     return (deform(x, u, beta, model.centroid)[1] - x).ravel()
 
 
+def _posed_surface(forces: SurfaceForces, us: np.ndarray, q: np.ndarray | None, pose: PoseTerm | None) -> np.ndarray:
+    """The surface nodes' displacement (3 S,) under forces' ``us`` (3 S,) and the rigid part q
+    of eq. 8 (``fit_weights``' pose; None: ``us`` itself)."""
+    if q is None or pose is None:
+        return us
+    x = forces.nodes[forces.all_surface]
+    return (beta_pose(q, pose.centroid).apply(x + us.reshape(-1, 3)) - x).ravel()
+
+
 def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, local: dict,
                        basis_beta: np.ndarray | None, libr_options: LMOptions | None,
                        options: ForceOptions = ForceOptions(),
-                       weights=ENERGY_WEIGHTS, cancel=None, free: RegistrationModel | None = None) -> ForceChoice:
+                       weights=ENERGY_WEIGHTS, cancel=None, free: RegistrationModel | None = None,
+                       pose: PoseTerm | None = None) -> ForceChoice:
     """No deformation, the basis's answer or surface forces: the one whose fits to all but
     one spatial block of the surface data predict that block best (the points' distance to
     the surface each fold's answer makes, RMS per block, point-weighted mean over blocks).
@@ -518,7 +613,11 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
     to the same folds are scored the same way (``ForceChoice.free_mm``): not a candidate (its
     answer is another model's), but the test of the declared supports — where it predicts the
     held-out data better than the answer shown, the supports are contradicted by the data
-    (``ForceChoice.supports_warning``)."""
+    (``ForceChoice.supports_warning``).
+
+    ``pose``: the declared pose's prior (``PoseTerm``): the forces' rigid part is fitted with
+    them, in every fold and in the answer (``ForceChoice.pose``), as the basis's fits carry
+    their own τ, θ under the same prior."""
     t0, s0 = time.perf_counter(), forces.solves
     names = [k for k in local if k in LIVER_SURFACE and len(local[k])]
     points = surface_points(local)
@@ -559,10 +658,13 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
     forces_blocks = {}
     for lam in weights:
         o = replace(options, energy_weight=lam)
+        # the pose, where it is fitted with the forces, from every block, as no deformation's is
+        # (the rigid stage's); only the forces are refitted per fold
+        q = None if pose is None else forces.fit_weights(pf, lam, None, o, pose).q
 
-        def force_fold(b, held, train, lam=lam, o=o):
-            fw = forces.fit_weights(pf, lam, train, o)
-            return pf.Xs[:, fw.index] @ fw.w
+        def force_fold(b, held, train, lam=lam, o=o, q=q):
+            fw = forces.fit_weights(pf, lam, train, o, pose, held_q=q)
+            return _posed_surface(forces, pf.Xs[:, fw.index] @ fw.w, fw.q, pose)
 
         forces_blocks[lam] = blocks(force_fold)
     forces_mm = {k: float(np.average(v, weights=counts)) for k, v in forces_blocks.items()}
@@ -575,8 +677,9 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
                          free_mm=free_mm)
     # the force answer at its λ is kept whichever is shown: a study compares the three
     o = replace(options, energy_weight=best)
-    wf = forces.fit_weights(pf, best, None, o)
+    wf = forces.fit_weights(pf, best, None, o, pose)
     u = forces.field(pf, wf)
+    choice.pose = wf.q
     f_free = pf.D[wf.index].T @ wf.w
     fit = ForceFit(u, f_free[forces._surface_rows].reshape(-1, 3), wf.rms_mm,
                    0.5 * float(f_free @ u.ravel()[forces.free]) / forces.volume, 0, 0.0, wf.iterations, wf.phi,

@@ -31,7 +31,15 @@ from ..geometry.interpolation import interpolation_matrix
 from ..geometry.tre import tre_stats
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
 from .coverage import note_coverage
-from .forces import WARM_WITHOUT_FORCES, Answer, ForceChoice, SurfaceForces, choose_deformation, surface_points
+from .forces import (
+    WARM_WITHOUT_FORCES,
+    Answer,
+    ForceChoice,
+    PoseTerm,
+    SurfaceForces,
+    choose_deformation,
+    surface_points,
+)
 from .libr import LibrResult, LMOptions, register_libr
 from .local_modes import LocalModeOptions, LocalModes, choose_local_modes, fold_model
 from .model import REGION_FEATURES, RegistrationModel, build_model, deform, rebased_model, usable_data
@@ -277,7 +285,10 @@ class Registration:
             assert self.forces.u is not None
             basis = self.model.basis
             B = interpolation_matrix(basis.nodes, basis.tets, points) if B is None else B
-            return self.rigid.apply(points + B @ self.forces.u)
+            moved = points + B @ self.forces.u
+            if self.forces.pose is not None:  # the forces' own rigid part, fitted with them (eq. 8)
+                moved = beta_pose(self.forces.pose, self.model.centroid).apply(moved)
+            return self.rigid.apply(moved)
         b = self.libr.beta if (beta is None and self.deformed and self.libr is not None) else beta
         basis = self.model.basis
         if b is None:
@@ -967,8 +978,10 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         t = time.perf_counter()
         sf = SurfaceForces(model.basis)
         try:
+            prior = options.weights.pose_prior
             reg.forces = choose_deformation(sf, model, local, result.beta, options, cancel=cancel,
-                                            free=undeclared if undeclared is not None else free_model(model))
+                                            free=undeclared if undeclared is not None else free_model(model),
+                                            pose=PoseTerm.of(prior, model.centroid) if declared and prior else None)
         finally:
             sf.close()
         sec["forces"] = time.perf_counter() - t

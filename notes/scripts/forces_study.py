@@ -22,6 +22,7 @@ from navapp.geometry.interpolation import interpolation_matrix
 from navapp.geometry.tre import tre_stats
 from navapp.registration.forces import ENERGY_WEIGHTS, SurfaceForces, surface_points
 from navapp.registration.pipeline import prepare, register
+from navapp.registration.rigid import beta_pose
 from navapp.simulation.levels import data_level
 
 out = Path(sys.argv[1])
@@ -39,12 +40,18 @@ for arg in sys.argv[2:]:
     sec = time.perf_counter() - t
     fc = reg.forces
 
+    def forces_at(p, fc=fc, reg=reg, model=model, B=B):
+        moved = p + B @ fc.u
+        if fc.pose is not None:  # the forces' own rigid part (session 37)
+            moved = beta_pose(fc.pose, model.centroid).apply(moved)
+        return reg.rigid.apply(moved)
+
     def tre(p, x1=x1):
         return round(tre_stats(p, x1)["mean_mm"], 3)
 
     row = {"case": case_dir.name, "identity": tre(x0), "none": tre(reg.rigid.apply(x0)),
            "basis": tre(reg.transform(x0, beta=reg.libr.beta, B=B)),
-           "forces": tre(reg.rigid.apply(x0 + B @ fc.u)), "shown": tre(reg.transform(x0, B=B)),
+           "forces": tre(forces_at(x0)), "shown": tre(reg.transform(x0, B=B)),
            "answer": fc.answer.value, "warned": bool(reg.warnings), **fc.as_dict(),
            "fit_iterations": fc.fit.iterations, "fit_rms_mm": round(fc.fit.rms_mm, 3), "seconds_total": round(sec, 1),
            "stage_seconds": {k: round(v, 1) for k, v in reg.seconds.items()}}
