@@ -17,6 +17,8 @@ from navapp.tracking.client import TrackingClient
 from navapp.tracking.config import TrackingConfig, load_config
 from navapp.tracking.digitiser import Digitiser
 from navapp.tracking.events import ProbeSample, Skipped, StylusSample
+from navapp.tracking.receivers.ius import ProbeSettings
+from navapp.tracking.receivers.stylus import StylusSettings
 from navapp.tracking.replay import ReplayServer
 from navapp.tracking.results import PREOP_RAS, RIGID, STATUS, TARGETS, ResultsSender, rigid_matrix
 from navapp.tracking.watchdog import Watchdog
@@ -57,10 +59,11 @@ def test_config_reads_plus_names_and_refuses_bad_files_in_one_line(tmp_path):
     good.write_text('[server]\nport = 18950\n[devices]\nstylus = "NeedleTipToReference"\n'
                     '[watchdog]\nstale_s = 0.1\nmissing_s = 0.5\n[digitiser]\nrate_hz = 20\n')
     cfg = load_config(good)
-    assert (cfg.port, cfg.stylus, cfg.probe, cfg.image) == (18950, "NeedleTipToReference", "ProbeToReference",
-                                                            "Image_Reference")
+    stylus, ius = cfg.tool("stylus", StylusSettings), cfg.tool("ius", ProbeSettings)
+    assert (cfg.port, stylus.device, ius.probe, ius.image) == (18950, "NeedleTipToReference", "ProbeToReference",
+                                                               "Image_Reference")
     assert (cfg.stale_s, cfg.missing_s, cfg.rate_hz) == (0.1, 0.5, 20.0)
-    assert np.linalg.det(cfg.image_to_probe[:3, :3]) != 0  # an IMAGE matrix must be invertible
+    assert np.linalg.det(ius.image_to_probe[:3, :3]) != 0  # an IMAGE matrix must be invertible
     for text, problem in [('[devices]\nstylus = 3\n', "devices.stylus must be a str"),
                           ('[watchdog]\nstale_s = 2.0\nmissing_s = 1.0\n', "stale_s < missing_s"),
                           ('[calibration]\nimage_to_probe = [[1, 0], [0, 1]]\n', "4×4"),
