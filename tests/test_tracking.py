@@ -294,3 +294,25 @@ def test_status_text_that_pyigtl_cannot_encode_is_spelled_out_and_never_kills_th
     finally:
         slicer.stop()
         sender.close()
+
+
+def test_the_documented_tracking_file_is_read_as_documented(tmp_path):
+    """docs/tracker.md's TOML example, every section and key, read into the shared settings and
+    each tool's own (its receiver's settings): the format the docs promise."""
+    from pathlib import Path
+
+    from navapp.tracking.receivers.points import PointsSettings
+
+    doc = (Path(__file__).resolve().parents[1] / "docs/tracker.md").read_text()
+    block = doc.split("```toml\n", 1)[1].split("```", 1)[0]
+    path = tmp_path / "tracking.toml"
+    path.write_text(block)
+    cfg = load_config(path)
+    stylus, ius = cfg.tool("stylus", StylusSettings), cfg.tool("ius", ProbeSettings)
+    assert (cfg.host, cfg.port, cfg.stale_s, cfg.missing_s, cfg.rate_hz) == ("192.168.0.10", 18944, 0.2, 1.0, 10.0)
+    assert (stylus.device, ius.probe, ius.image, ius.image_pose) == ("StylusTipToReference", "ProbeToReference",
+                                                                     "Image_Reference", "embedded")
+    np.testing.assert_array_equal(ius.image_to_probe, [[0.25, 0, 0, -31.875], [0, 0, -0.25, 0], [0, 0.25, 0, 0],
+                                                       [0, 0, 0, 1]])
+    assert cfg.tool("laparoscope", PointsSettings).pose == "CameraToReference"
+    assert cfg.source == path
