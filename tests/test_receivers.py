@@ -13,12 +13,13 @@ from conftest import refused_in_one_line, wait_until
 from scipy.spatial.transform import Rotation
 
 from navapp.tracking.client import TrackingClient
-from navapp.tracking.config import ToolDevices, TrackingConfig, load_config
+from navapp.tracking.config import TrackingConfig, load_config
 from navapp.tracking.digitiser import Digitiser
 from navapp.tracking.events import Skipped, SourcePoints, TransformSample
-from navapp.tracking.receivers import PointsReceiver, build
-from navapp.tracking.receivers.ius import ProbeReceiver
-from navapp.tracking.receivers.stylus import StylusReceiver
+from navapp.tracking.receivers import PointsReceiver, Shared, build
+from navapp.tracking.receivers.ius import ProbeReceiver, ProbeSettings
+from navapp.tracking.receivers.points import PointsSettings
+from navapp.tracking.receivers.stylus import StylusReceiver, StylusSettings
 
 POSE = "CameraToReference"
 
@@ -31,24 +32,27 @@ def _camera_to_reference():
 
 
 def test_each_source_has_one_receiver_found_from_the_feature_table():
-    cfg = TrackingConfig(image_pose="calibration", tools=(ToolDevices("laparoscope", POSE),))
-    got = build(cfg, Digitiser())
+    cfg = TrackingConfig(tools=(ProbeSettings(image_pose="calibration"), PointsSettings("laparoscope", POSE)))
+    got = build(cfg.tools, Shared(Digitiser(), cfg.stale_s))
     assert [r.source for r in got] == ["stylus", "ius", "laparoscope"]  # fiducials: not received
     stylus, ius, lap = got
     assert isinstance(stylus, StylusReceiver) and isinstance(ius, ProbeReceiver) and isinstance(lap, PointsReceiver)
     assert (lap.features, lap.pose, lap.max_pose_age_s) == (("laparoscope",), POSE, cfg.stale_s)
     # the watchdog's devices, in the order the viewer lists them: as before receivers, then the tool's pose
     client = TrackingClient(cfg)
-    assert list(client.status()) == [cfg.stylus, cfg.probe, cfg.image, POSE]
-    assert list(TrackingClient(TrackingConfig()).status()) == [cfg.stylus, cfg.probe, cfg.image]
+    names = [stylus.device, ius.probe, ius.image]
+    assert names == ["StylusTipToReference", "ProbeToReference", "Image_Reference"] and ius.image_pose == "calibration"
+    assert list(client.status()) == [*names, POSE]
+    assert list(TrackingClient(TrackingConfig()).status()) == names
 
 
 def test_tools_in_the_config_are_read_and_bad_ones_refused_in_one_line(tmp_path):
     good = tmp_path / "tracking.toml"
     good.write_text(f'[tools.laparoscope]\npose = "{POSE}"\n')
     cfg = load_config(good)
-    assert cfg.tools == (ToolDevices("laparoscope", POSE),) and cfg.tool("laparoscope") == cfg.tools[0]
-    assert TrackingConfig().tool("laparoscope") is None
+    assert cfg.tool("laparoscope", PointsSettings) == PointsSettings("laparoscope", POSE)
+    assert cfg.tool("stylus", StylusSettings) == StylusSettings()  # the others: their defaults
+    assert TrackingConfig().tool("laparoscope", PointsSettings).pose is None
     for text, problem in [('[tools.stylus]\npose = "X"\n', "unknown tool [tools.stylus] (known: laparoscope)"),
                           ('[tools.laparoscope]\nposes = "X"\n', "unknown key tools.laparoscope.poses"),
                           ('[tools.laparoscope]\n', "tools.laparoscope.pose is missing"),
@@ -63,7 +67,7 @@ def test_a_tracked_laparoscopes_camera_points_arrive_in_reference_placed_by_its_
     listener = socket.create_server(("127.0.0.1", 0))
     listener.settimeout(5.0)
     events: list = []
-    cfg = TrackingConfig(port=listener.getsockname()[1], reconnect_s=0.05, tools=(ToolDevices("laparoscope", POSE),))
+    cfg = TrackingConfig(port=listener.getsockname()[1], reconnect_s=0.05, tools=(PointsSettings("laparoscope", POSE),))
     client = TrackingClient(cfg, on_event=events.append).start()
     in_camera = np.array([[1.0, -2.0, 95.0], [4.0, 5.0, 110.5], [-7.0, 8.0, 130.25]])
     pose = _camera_to_reference()
@@ -114,7 +118,7 @@ def test_the_viewer_takes_a_tracked_laparoscopes_points_into_its_session_in_refe
 
     server = quiet_server(0)
     server.start()
-    cfg = TrackingConfig(port=server.server_address[1], tools=(ToolDevices("laparoscope", POSE),))
+    cfg = TrackingConfig(port=server.server_address[1], tools=(PointsSettings("laparoscope", POSE),))
     app = App(parse_scene(SCENE), port=free_port(), session_dir=tmp_path / "s", edge=12.0, k=12,
               cache_root=cache_root, tracking=cfg)
     in_camera = np.array([[10.0, 20.0, 90.0], [11.0, 21.0, 101.5]])
@@ -179,3 +183,88 @@ def test_points_are_placed_by_the_pose_at_their_own_time_not_the_latest():
     with pytest.raises(ValueError, match=r"poses -0.40 s and \+0.60 s from them"):
         place(t + 0.5)
     assert isinstance(place(t + 1.2), SourcePoints)  # the newest pose, 0.1 s before
+
+
+def test_a_new_kind_of_tool_is_its_receiver_module_alone_config_and_client_unchanged(tmp_path, monkeypatch):
+    """A tracked needle, written as a receiver module would be (its settings dataclass, their
+    keys and parser, ``make``) and found as ``receivers.modules`` finds one: the tracking file
+    reads its key, refuses its bad values and a clash with another tool's device in one line,
+    and the client builds and watches its receiver — with no line of ``config`` or ``client``
+    knowing it."""
+    from dataclasses import dataclass
+    from types import ModuleType
+
+    from navapp.errors import InputError
+    from navapp.tracking import receivers
+    from navapp.tracking.client import HEADER, parse_header
+    from navapp.tracking.events import StylusSample
+    from navapp.tracking.receivers.base import device_name, pose_matrix, seen
+
+    @dataclass(frozen=True)
+    class NeedleSettings:
+        device: str = "NeedleToReference"
+        source: str = "needle"
+
+        @property
+        def named(self):
+            return (("devices.needle", self.device),)
+
+    @dataclass
+    class NeedleReceiver:
+        device: str
+        source: str = "needle"
+        devices = property(lambda self: (self.device,))
+        latest = None
+
+        def takes(self, mtype, device):
+            return mtype == "TRANSFORM" and device == self.device
+
+        def receive(self, message):
+            m = pose_matrix(message)
+            return StylusSample(message.t, message.t_sent, m[:3, 3].copy(), m)
+
+        def keep(self, event):
+            self.latest = event
+
+        def fresh(self, status):
+            return seen(status, self.device)
+
+    def parse(source, data, path=None):
+        device = data.get("devices", {}).get("needle", NeedleSettings.device)
+        if device == "Needle":
+            raise InputError("devices.needle: a TRANSFORM is named <Tool>To<Frame>", path)
+        return NeedleSettings(device_name(device, "devices.needle", path), source)
+
+    needle = ModuleType("navapp.tracking.receivers.needle")
+    needle.KEYS, needle.TABLES, needle.parse = {"devices": {"needle": str}}, (), parse
+    needle.default = lambda source: NeedleSettings(source=source)
+    needle.make = lambda settings, shared: NeedleReceiver(settings.device, settings.source)
+    found = receivers.modules
+
+    monkeypatch.setattr(receivers, "modules", lambda: {**found(), "needle": needle})
+    good = tmp_path / "tracking.toml"
+    good.write_text('[devices]\nneedle = "BiopsyToReference"\nstylus = "PointerToReference"\n')
+    cfg = load_config(good)
+    assert [t.source for t in cfg.tools] == ["stylus", "ius", "laparoscope", "needle"]
+    assert cfg.tool("needle", NeedleSettings) == NeedleSettings("BiopsyToReference")
+    assert cfg.tool("stylus", StylusSettings).device == "PointerToReference"
+    assert TrackingConfig().tool("needle", NeedleSettings) == NeedleSettings()
+    for text, problem in [('[devices]\nneedle = 3\n', "devices.needle must be a str"),
+                          ('[devices]\nneedle = "Needle"\n', "<Tool>To<Frame>"),
+                          ('[devices]\nneedle = "ABiopsyNeedleToReference"\n', "1–20 bytes"),
+                          ('[devices]\nneedle = "ProbeToReference"\n',
+                           "devices.needle 'ProbeToReference' is another device's name"),
+                          ('[devices]\nneedles = "X"\n', "(known: stylus, probe, image, image_pose, needle)")]:
+        refused_in_one_line(load_config, tmp_path / "bad.toml", text, problem)
+
+    client = TrackingClient(cfg)  # never started: a message is fed by hand
+    assert list(client.status()) == ["PointerToReference", "ProbeToReference", "Image_Reference",
+                                     "BiopsyToReference"]
+    m = _camera_to_reference().astype(np.float32)
+    raw = pyigtl.TransformMessage(m, timestamp=time.time(), device_name="BiopsyToReference").pack()
+    fields = parse_header(raw[:HEADER.size])
+    client._on_message(fields, raw[HEADER.size:])
+    got = client.receiver("needle")
+    assert isinstance(got, NeedleReceiver) and got.latest is not None
+    np.testing.assert_allclose(got.latest.tip, m[:3, 3], atol=1e-4)
+    assert client.status()["BiopsyToReference"].state == "seen" and client.fresh("needle")

@@ -13,9 +13,12 @@ from navapp.app.sources.ius import ProbeShown
 from navapp.app.sources.stylus import StylusShown
 from navapp.app.state import Change
 from navapp.tracking.client import TrackingClient
-from navapp.tracking.config import ToolDevices, TrackingConfig
+from navapp.tracking.config import TrackingConfig
 from navapp.tracking.events import SourcePoints, StylusSample, ToolStatus
+from navapp.tracking.receivers import Shared
 from navapp.tracking.receivers import build as build_receivers
+from navapp.tracking.receivers.points import PointsSettings
+from navapp.tracking.receivers.stylus import StylusSettings
 
 
 class Views:
@@ -36,10 +39,10 @@ def _wiring(client, config=None, frames=None):
 
 
 def test_each_received_source_is_shown_by_one_room_found_from_the_feature_table():
-    cfg = TrackingConfig(tools=(ToolDevices("laparoscope", "CameraToReference"),))
+    cfg = TrackingConfig(tools=(PointsSettings("laparoscope", "CameraToReference"),))
     client = TrackingClient(cfg)  # not started: nothing connects
     shown = build(_wiring(client, cfg))
-    assert [s.source for s in shown] == [r.source for r in build_receivers(cfg, client.digitiser)] \
+    assert [s.source for s in shown] == [r.source for r in build_receivers(cfg.tools, Shared(client.digitiser))] \
         == ["stylus", "ius", "laparoscope"]
     assert [type(s) for s in shown] == [StylusShown, ProbeShown, PointsShown]
 
@@ -75,21 +78,22 @@ class Stylus:
 def test_a_lost_stylus_is_taken_off_the_views_and_bannered_and_its_digitised_points_taken_once():
     client = Stylus()
     cfg = TrackingConfig()
+    device = cfg.tool("stylus", StylusSettings).device
     stylus = StylusShown(_wiring(client, cfg))
     views = stylus.core
-    seen = {cfg.stylus: ToolStatus(cfg.stylus, "seen", 0.01)}
+    seen = {device: ToolStatus(device, "seen", 0.01)}
     client.latest_stylus = StylusSample(1.0, 1.0, np.array([1.0, 2.0, 3.0]), np.eye(4))
     assert not stylus.show(10.0, seen)
     assert np.array_equal(stylus.tip, [1, 2, 3]) and stylus.lost is None and views.calls[-1][0] == "tip"
     stylus.show(10.001, seen)  # the same sample: not sent again
     assert len(views.calls) == 1
     client.seen = False
-    stale = {cfg.stylus: ToolStatus(cfg.stylus, "stale", 0.3)}
+    stale = {device: ToolStatus(device, "stale", 0.3)}
     assert stylus.show(10.5, stale)  # lost now: the panels refresh at once
     assert stylus.tip is None and "not tracked" in stylus.lost and "0.3 s ago" in stylus.lost
     assert views.calls[1:] == [("tip", None), ("refresh", Change.LIVE)]
     assert not stylus.show(10.6, stale)  # nothing new to say
-    missing = {cfg.stylus: ToolStatus(cfg.stylus, "missing", 1.2)}
+    missing = {device: ToolStatus(device, "missing", 1.2)}
     assert stylus.show(11.5, missing)  # stale → missing: at once, not at the next periodic refresh
     stylus.age(missing)
     assert stylus.lost.startswith("Stylus lost") and "1.2 s ago" in stylus.lost

@@ -17,6 +17,8 @@ from navapp.tracking.client import TrackingClient
 from navapp.tracking.config import TrackingConfig, load_config
 from navapp.tracking.digitiser import Digitiser
 from navapp.tracking.events import ProbeSample, Skipped, StylusSample
+from navapp.tracking.receivers.ius import ProbeSettings
+from navapp.tracking.receivers.stylus import StylusSettings
 from navapp.tracking.replay import ReplayServer
 from navapp.tracking.results import PREOP_RAS, RIGID, STATUS, TARGETS, ResultsSender, rigid_matrix
 from navapp.tracking.watchdog import Watchdog
@@ -57,10 +59,11 @@ def test_config_reads_plus_names_and_refuses_bad_files_in_one_line(tmp_path):
     good.write_text('[server]\nport = 18950\n[devices]\nstylus = "NeedleTipToReference"\n'
                     '[watchdog]\nstale_s = 0.1\nmissing_s = 0.5\n[digitiser]\nrate_hz = 20\n')
     cfg = load_config(good)
-    assert (cfg.port, cfg.stylus, cfg.probe, cfg.image) == (18950, "NeedleTipToReference", "ProbeToReference",
-                                                            "Image_Reference")
+    stylus, ius = cfg.tool("stylus", StylusSettings), cfg.tool("ius", ProbeSettings)
+    assert (cfg.port, stylus.device, ius.probe, ius.image) == (18950, "NeedleTipToReference", "ProbeToReference",
+                                                               "Image_Reference")
     assert (cfg.stale_s, cfg.missing_s, cfg.rate_hz) == (0.1, 0.5, 20.0)
-    assert np.linalg.det(cfg.image_to_probe[:3, :3]) != 0  # an IMAGE matrix must be invertible
+    assert np.linalg.det(ius.image_to_probe[:3, :3]) != 0  # an IMAGE matrix must be invertible
     for text, problem in [('[devices]\nstylus = 3\n', "devices.stylus must be a str"),
                           ('[watchdog]\nstale_s = 2.0\nmissing_s = 1.0\n', "stale_s < missing_s"),
                           ('[calibration]\nimage_to_probe = [[1, 0], [0, 1]]\n', "4×4"),
@@ -291,3 +294,25 @@ def test_status_text_that_pyigtl_cannot_encode_is_spelled_out_and_never_kills_th
     finally:
         slicer.stop()
         sender.close()
+
+
+def test_the_documented_tracking_file_is_read_as_documented(tmp_path):
+    """docs/tracker.md's TOML example, every section and key, read into the shared settings and
+    each tool's own (its receiver's settings): the format the docs promise."""
+    from pathlib import Path
+
+    from navapp.tracking.receivers.points import PointsSettings
+
+    doc = (Path(__file__).resolve().parents[1] / "docs/tracker.md").read_text()
+    block = doc.split("```toml\n", 1)[1].split("```", 1)[0]
+    path = tmp_path / "tracking.toml"
+    path.write_text(block)
+    cfg = load_config(path)
+    stylus, ius = cfg.tool("stylus", StylusSettings), cfg.tool("ius", ProbeSettings)
+    assert (cfg.host, cfg.port, cfg.stale_s, cfg.missing_s, cfg.rate_hz) == ("192.168.0.10", 18944, 0.2, 1.0, 10.0)
+    assert (stylus.device, ius.probe, ius.image, ius.image_pose) == ("StylusTipToReference", "ProbeToReference",
+                                                                     "Image_Reference", "embedded")
+    np.testing.assert_array_equal(ius.image_to_probe, [[0.25, 0, 0, -31.875], [0, 0, -0.25, 0], [0, 0.25, 0, 0],
+                                                       [0, 0, 0, 1]])
+    assert cfg.tool("laparoscope", PointsSettings).pose == "CameraToReference"
+    assert cfg.source == path

@@ -1,7 +1,8 @@
 """Live tracking over OpenIGTLink: headless, no viser; I/O only (the re-registration of live
 data is ``registration.live``, its benchmark ``evaluation.live_bench``).
 
-- ``config``: TOML config (PLUS device names, ImageToProbe, watchdog timeouts, digitising rate);
+- ``config``: the TOML config: the connection, watchdog timeouts and digitising rate, and each
+  tool's own settings read by its receiver (PLUS device names, ImageToProbe, a tool's pose);
 - ``events``: the typed events the app receives (StylusSample, ProbePose, ProbeSample, ToolStatus,
   ConnectionStatus, Skipped, TransformSample);
 - ``client``: ``TrackingClient``, an OpenIGTLink client thread (pyigtl) checking every message
@@ -19,11 +20,11 @@ preoperative model is in navapp's LAS frame; registration's rigid part maps mode
 space and so absorbs the tracker-to-patient transform, whatever the tracker's axes are.
 """
 
-from .config import ToolDevices, TrackingConfig, load_config
+from .config import TrackingConfig, load_config
 from .digitiser import Digitiser
 from .events import ConnectionStatus, ProbePose, ProbeSample, Skipped, StylusSample, ToolStatus, TransformSample
 
-__all__ = ["TrackingConfig", "ToolDevices", "load_config", "Digitiser", "ConnectionStatus", "ProbePose",
+__all__ = ["TrackingConfig", "load_config", "Digitiser", "ConnectionStatus", "ProbePose",
            "ProbeSample", "Skipped", "StylusSample", "ToolStatus", "TransformSample", "TrackingClient", "ReplayServer",
            "ResultsSender"]
 

@@ -34,7 +34,7 @@ from pyigtl.messages import CRC64, MessageBase
 from .config import TrackingConfig
 from .digitiser import Digitiser
 from .events import ConnectionStatus, ProbePose, ProbeSample, Skipped, StylusSample, TransformSample
-from .receivers import Message, Receiver, build
+from .receivers import Message, Receiver, Shared, build
 from .receivers.base import pose_matrix
 from .receivers.ius import ProbeReceiver
 from .receivers.stylus import StylusReceiver
@@ -177,7 +177,7 @@ class TrackingClient:
         self.on_event = on_event
         self.events: queue.Queue = queue.Queue(maxsize=queue_size)
         self.digitiser = digitiser or Digitiser(c.rate_hz)
-        self.receivers: tuple[Receiver, ...] = build(c, self.digitiser)
+        self.receivers: tuple[Receiver, ...] = build(c.tools, Shared(self.digitiser, c.stale_s))
         self.watchdog = Watchdog([d for r in self.receivers for d in r.devices], c.stale_s, c.missing_s)
         self.counts: Counter[str] = Counter()  # "TRANSFORM", "IMAGE", … received; "skipped:<kind>"
         self.connects = 0

@@ -26,148 +26,113 @@ as ``<Image Name="Image" EmbeddedTransformToFrame="Reference"/>`` arrives as the
 
 Without a ``[tools.<source>]`` table a source's POINT messages are in Reference already.
 
+This module reads what the connection, the watchdog and the digitiser share (``[server]``,
+``[watchdog]``, ``[digitiser]``); each tool's own settings live with its receiver
+(``receivers/<source>.py``: a settings dataclass, its ``KEYS``/``TABLES`` and ``parse``),
+found from ``features.TABLE`` (``receivers.modules``): a new kind of tool adds no line here.
+
 A bad file ends in one line naming the file and the key (``InputError``).
 """
 
 import tomllib
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Any
-
-import numpy as np
+from typing import Any, TypeVar
 
 from ..errors import InputError
-from ..features import SOURCED, TABLE
-from ..simulation.probe import Probe
+from ..features import SOURCED
+from . import receivers
+from .receivers.base import ToolSettings, typed
 
 DEFAULT_PORT = 18944  # OpenIGTLink's registered port, PLUS's and Slicer's default
-
-
-def full_image_matrix(m) -> np.ndarray:
-    """An image-to-frame 4×4 whose third (slice) column is the image plane's normal at the
-    column spacing. navapp's ``Probe.image_to_probe`` leaves that column degenerate (pixels
-    have k = 0, so it never mattered); OpenIGTLink, PLUS and Slicer need it invertible."""
-    m = np.array(m, float)
-    n = np.cross(m[:3, 0], m[:3, 1])
-    if np.linalg.norm(n) > 0:
-        m[:3, 2] = n / np.linalg.norm(n) * np.linalg.norm(m[:3, 0])
-    return m
-
-
-def _default_image_to_probe():
-    return full_image_matrix(Probe().image_to_probe())
-
-
-@dataclass(frozen=True)
-class ToolDevices:
-    """A tracked data source's own devices (``[tools.<source>]``): ``pose`` is the TRANSFORM
-    (ToolToReference, mm) that places its POINT messages, which then arrive in the tool's
-    own frame (a tracked laparoscope's camera frame); a source without one sends them in
-    Reference."""
-
-    source: str  # a ``features.TABLE`` source with features in ``features.SOURCED``
-    pose: str  # its TRANSFORM's device name
+S = TypeVar("S")
 
 
 @dataclass(frozen=True)
 class TrackingConfig:
+    """The connection, the watchdog, the digitiser and each tool's own settings.
+
+    ``tools``: the settings of the tools given (``receivers.stylus.StylusSettings``,
+    ``receivers.ius.ProbeSettings``, ``receivers.points.PointsSettings``, …); every other
+    received source takes its defaults, so ``tools`` ends holding one per received source,
+    in ``features.TABLE``'s order. ``tool(source, kind)`` reads one.
+    """
+
     host: str = "127.0.0.1"
     port: int = DEFAULT_PORT
-    stylus: str = "StylusTipToReference"
-    probe: str = "ProbeToReference"
-    image: str = "Image_Reference"
-    image_pose: str = "embedded"  # "embedded" (IMAGE matrix is ImageToReference) | "calibration"
-    image_to_probe: np.ndarray = field(default_factory=_default_image_to_probe)  # 4×4, pixel → mm
     stale_s: float = 0.2
     missing_s: float = 1.0
     rate_hz: float = 10.0
     reconnect_s: float = 0.25  # pause between connection attempts
-    tools: tuple[ToolDevices, ...] = ()  # tracked data sources' devices (``[tools.<source>]``)
+    tools: tuple[ToolSettings, ...] = ()
     source: Path | None = None
 
-    def tool(self, source: str) -> ToolDevices | None:
-        """``source``'s own devices, or None (its points arrive in Reference)."""
-        return next((t for t in self.tools if t.source == source), None)
+    def __post_init__(self):
+        given = {t.source: t for t in self.tools}
+        known = receivers.defaults()
+        unknown = set(given) - {t.source for t in known}
+        if unknown:
+            raise ValueError(f"no receiver for {', '.join(sorted(unknown))}")
+        object.__setattr__(self, "tools", tuple(given.get(t.source, t) for t in known))
+
+    def tool(self, source: str, kind: type[S]) -> S:
+        """``source``'s settings, a ``kind`` (its receiver module's settings dataclass)."""
+        for t in self.tools:
+            if t.source == source:
+                if not isinstance(t, kind):
+                    raise TypeError(f"{source}'s settings are a {type(t).__name__}, not a {kind.__name__}")
+                return t
+        raise KeyError(f"no receiver for source {source!r}")
 
     def with_address(self, host=None, port=None) -> "TrackingConfig":
         return replace(self, host=host or self.host, port=port or self.port)
 
 
-_KEYS: dict[str, dict[str, type]] = {  # section → key → type
+_KEYS: dict[str, dict[str, type]] = {  # section → key → type, the shared ones (each tool's: its module's KEYS)
     "server": {"host": str, "port": int, "reconnect_s": float},
-    "devices": {"stylus": str, "probe": str, "image": str, "image_pose": str},
-    "calibration": {"image_to_probe": list},
     "watchdog": {"stale_s": float, "missing_s": float},
     "digitiser": {"rate_hz": float},
-    "tools": {},  # one table per tracked data source: ``_tools``
 }
-_TOOL_KEYS: dict[str, type] = {"pose": str}
-_TRACKABLE = tuple(dict.fromkeys(f.source for f in TABLE if f.name in SOURCED))  # sources sending POINT messages
 
 
-def _tools(table: dict, path) -> tuple[ToolDevices, ...]:
-    out = []
-    for source, keys in table.items():
-        if source not in _TRACKABLE:
-            raise InputError(f"unknown tool [tools.{source}] (known: {', '.join(_TRACKABLE) or 'none'})", path)
-        if not isinstance(keys, dict):
-            raise InputError(f"[tools.{source}] must be a table", path)
-        for key, value in keys.items():
-            if key not in _TOOL_KEYS:
-                raise InputError(f"unknown key tools.{source}.{key} (known: {', '.join(_TOOL_KEYS)})", path)
-            _typed(value, _TOOL_KEYS[key], f"tools.{source}.{key}", path)
-        if "pose" not in keys:
-            raise InputError(f"tools.{source}.pose is missing (the TRANSFORM that places its points)", path)
-        out.append(ToolDevices(source, keys["pose"]))
-    return tuple(out)
-
-
-def _typed(value, kind, key, path):
-    if kind is float and isinstance(value, (int, float)) and not isinstance(value, bool):
-        return float(value)
-    if isinstance(value, kind) and not isinstance(value, bool):
-        return value
-    raise InputError(f"{key} must be a {kind.__name__}, got {value!r}", path)
+def _sections() -> tuple[dict[str, dict[str, type]], tuple[str, ...]]:
+    """Every key the file may hold (section → key → type) and the sections a tool reads whole."""
+    keys: dict[str, dict[str, type]] = {"server": dict(_KEYS["server"])}
+    tables: list[str] = []
+    for module in dict.fromkeys(receivers.modules().values()):
+        for section, own in module.KEYS.items():
+            keys.setdefault(section, {}).update(own)
+        tables += [t for t in module.TABLES if t not in tables]
+    for section in ("watchdog", "digitiser"):
+        keys[section] = dict(_KEYS[section])
+    return keys, tuple(tables)
 
 
 def parse_config(data: dict, path=None) -> TrackingConfig:
+    keys, tables = _sections()
     values: dict[str, Any] = {}
     for section, table in data.items():
-        if section not in _KEYS:
-            raise InputError(f"unknown section [{section}] (known: {', '.join(_KEYS)})", path)
+        if section not in keys and section not in tables:
+            raise InputError(f"unknown section [{section}] (known: {', '.join([*keys, *tables])})", path)
         if not isinstance(table, dict):
             raise InputError(f"[{section}] must be a table", path)
-        if section == "tools":
-            values["tools"] = _tools(table, path)
+        if section in tables:
             continue
         for key, value in table.items():
-            if key not in _KEYS[section]:
-                raise InputError(f"unknown key {section}.{key} (known: {', '.join(_KEYS[section])})", path)
-            values[key] = _typed(value, _KEYS[section][key], f"{section}.{key}", path)
-    if "image_to_probe" in values:
-        try:
-            m = np.array(values["image_to_probe"], float)
-        except (TypeError, ValueError):
-            m = None
-        if m is None or m.shape != (4, 4) or not np.isfinite(m).all() or not np.allclose(m[3], [0, 0, 0, 1]):
-            raise InputError("calibration.image_to_probe must be a 4×4 matrix (rows) with last row 0 0 0 1", path)
-        values["image_to_probe"] = m
-    cfg = TrackingConfig(**values, source=Path(path) if path else None)
+            if key not in keys[section]:
+                raise InputError(f"unknown key {section}.{key} (known: {', '.join(keys[section])})", path)
+            typed_value = typed(value, keys[section][key], f"{section}.{key}", path)
+            if key in _KEYS.get(section, {}):
+                values[key] = typed_value
+    tools = tuple(m.parse(source, data, path) for source, m in receivers.modules().items())
+    seen: set[str] = set(SOURCED)  # a source's POINT devices are named as its features
+    for key, name in (n for t in tools for n in t.named):
+        if name in seen:
+            raise InputError(f"{key} {name!r} is another device's name", path)
+        seen.add(name)
+    cfg = TrackingConfig(**values, tools=tools, source=Path(path) if path else None)
     if not 0 < cfg.port < 65536:
         raise InputError(f"server.port must be 1–65535, got {cfg.port}", path)
-    if cfg.image_pose not in ("embedded", "calibration"):
-        raise InputError(f"devices.image_pose must be \"embedded\" or \"calibration\", got {cfg.image_pose!r}", path)
-    for name in ("stylus", "probe", "image"):
-        v = getattr(cfg, name)
-        if not v or len(v.encode()) > 20:
-            raise InputError(f"devices.{name} must be 1–20 bytes (an OpenIGTLink device name), got {v!r}", path)
-    for t in cfg.tools:
-        if not t.pose or len(t.pose.encode()) > 20:
-            raise InputError(f"tools.{t.source}.pose must be 1–20 bytes (an OpenIGTLink device name), got {t.pose!r}",
-                             path)
-        taken = {cfg.stylus, cfg.probe, cfg.image, *SOURCED} | {o.pose for o in cfg.tools if o is not t}
-        if t.pose in taken:
-            raise InputError(f"tools.{t.source}.pose {t.pose!r} is another device's name", path)
     if not 0 < cfg.stale_s < cfg.missing_s:
         raise InputError("watchdog: need 0 < stale_s < missing_s", path)
     if cfg.rate_hz <= 0 or cfg.reconnect_s <= 0:
@@ -186,6 +151,3 @@ def load_config(path) -> TrackingConfig:
         raise InputError(f"invalid TOML ({exc})", path) from None
     return parse_config(data, path)
 
-
-def config_fields() -> list[str]:
-    return [f.name for f in fields(TrackingConfig)]

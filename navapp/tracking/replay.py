@@ -37,7 +37,9 @@ import pyigtl
 
 from ..errors import InputError, NavappError
 from ..geometry.transforms import homogeneous, interpolate_pose
-from .config import TrackingConfig, full_image_matrix
+from .config import TrackingConfig
+from .receivers.ius import ProbeSettings, full_image_matrix
+from .receivers.stylus import StylusSettings
 
 log = logging.getLogger("navapp.tracking")
 
@@ -59,7 +61,7 @@ class ReplayScript:
     probe_stops: list  # [(4, 4)] poses the probe rests at
     keyframes: list  # [ProbeKeyframe] sorted by t, within one cycle
     cycle_s: float  # length of the probe's cycle
-    image_to_probe: np.ndarray = field(default_factory=lambda: TrackingConfig().image_to_probe)
+    image_to_probe: np.ndarray = field(default_factory=lambda: ProbeSettings().image_to_probe)
     dwell_s: float = 2.0
     move_s: float = 1.0
     stylus_mm_per_s: float = STYLUS_MM_PER_S
@@ -245,7 +247,8 @@ class ReplayServer:
             self.ticks += 1
 
     def _send_tick(self, t, stamp):
-        s, n = self.script, self.names
+        s = self.script
+        stylus, ius = self.names.tool("stylus", StylusSettings), self.names.tool("ius", ProbeSettings)
         tip = homogeneous(np.eye(3), s.stylus_at(t))
         probe = s.probe_at(t)
         frame = s.frame_at(t)
@@ -256,12 +259,12 @@ class ReplayServer:
             probe[:3, 3] += shift
             image_pose = image_pose.copy()
             image_pose[:3, 3] += shift
-        for name, m in ((n.stylus, tip), (n.probe, probe)):
+        for name, m in ((stylus.device, tip), (ius.probe, probe)):
             m32 = np.asarray(m, np.float32)
             self._server.send_message(pyigtl.TransformMessage(m32, timestamp=stamp, device_name=name), wait=False)
             self.sent.append((stamp, name, m32))
         img = pyigtl.ImageMessage(np.ascontiguousarray(frame.image)[None], image_pose @ s.image_to_probe,
-                                  world_coordinate_system="ras", timestamp=stamp, device_name=n.image)
+                                  world_coordinate_system="ras", timestamp=stamp, device_name=ius.image)
         self._server.send_message(img, wait=False)
         self.frames_sent += 1
 
@@ -274,7 +277,7 @@ def run_replay(scene, port=18944, rate_hz=25.0, latency_s=0.0, transit_frames=6,
         script = script_from_scene(scene, transit_frames)
     server = ReplayServer(script, port, rate_hz, latency_s=latency_s).start()
     out(f"navapp: replaying {scene.name} on 127.0.0.1:{server.port} as PLUS would: "
-        f"{TrackingConfig().stylus}, {TrackingConfig().probe} (TRANSFORM), {TrackingConfig().image} (IMAGE) "
+        f"{StylusSettings().device}, {ProbeSettings().probe} (TRANSFORM), {ProbeSettings().image} (IMAGE) "
         f"at {rate_hz:g} Hz; stylus sweep {script.stylus_length_mm:.0f} mm at {script.stylus_mm_per_s:g} mm/s, "
         f"{len(script.probe_stops)} probe poses; Ctrl-C stops")
     t0 = time.monotonic()

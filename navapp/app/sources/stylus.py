@@ -4,6 +4,7 @@ the points its digitiser records moved into the session."""
 import numpy as np
 
 from ...tracking.events import StylusSample, ToolStatus
+from ...tracking.receivers.stylus import StylusSettings
 from ..state import Change
 from .base import Wiring, shows
 
@@ -19,7 +20,8 @@ class StylusShown:
     source = "stylus"
 
     def __init__(self, wiring: Wiring):
-        self.client, self.core, self.device = wiring.client, wiring.core, wiring.config.stylus
+        self.client, self.core = wiring.client, wiring.core
+        self.device = wiring.config.tool("stylus", StylusSettings).device
         self.tip: np.ndarray | None = None
         self.lost: str | None = None
         self.recorded = 0  # digitiser points already taken

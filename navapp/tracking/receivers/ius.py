@@ -1,23 +1,65 @@
 """The tracked ultrasound probe, received: its pose (TRANSFORM ``ProbeToReference``) and its
 frames (IMAGE ``Image_Reference``), each frame placed by its own embedded matrix or, with
-``image_pose = "calibration"``, by the latest probe pose times ImageToProbe."""
+``image_pose = "calibration"``, by the latest probe pose times ImageToProbe. Its settings:
+``[devices] probe, image, image_pose`` and ``[calibration] image_to_probe`` in the tracking
+TOML file."""
 
 from collections.abc import Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..config import TrackingConfig
-from ..digitiser import Digitiser
+from ...errors import InputError
+from ...simulation.probe import Probe
 from ..events import ProbePose, ProbeSample, ToolStatus, as_matrix
-from .base import Event, Message, pose_matrix, seen
+from .base import Event, Message, Shared, device_name, pose_matrix, seen
+
+KEYS: dict[str, dict[str, type]] = {  # its keys in the tracking TOML file
+    "devices": {"probe": str, "image": str, "image_pose": str},
+    "calibration": {"image_to_probe": list},
+}
+TABLES: tuple[str, ...] = ()
+IMAGE_POSES = ("embedded", "calibration")
+
+
+def full_image_matrix(m) -> np.ndarray:
+    """An image-to-frame 4×4 whose third (slice) column is the image plane's normal at the
+    column spacing. navapp's ``Probe.image_to_probe`` leaves that column degenerate (pixels
+    have k = 0, so it never mattered); OpenIGTLink, PLUS and Slicer need it invertible."""
+    m = np.array(m, float)
+    n = np.cross(m[:3, 0], m[:3, 1])
+    if np.linalg.norm(n) > 0:
+        m[:3, 2] = n / np.linalg.norm(n) * np.linalg.norm(m[:3, 0])
+    return m
+
+
+def _default_image_to_probe():
+    return full_image_matrix(Probe().image_to_probe())
+
+
+@dataclass(frozen=True)
+class ProbeSettings:
+    """PLUS's names by default: a tracked probe ``ProbeToReference``; an image stream declared
+    ``<Image Name="Image" EmbeddedTransformToFrame="Reference"/>`` arrives as ``Image_Reference``
+    whose matrix already is ImageToReference (``image_pose = "embedded"``); with
+    ``"calibration"`` a frame is placed by ProbeToReference · ``image_to_probe``."""
+
+    probe: str = "ProbeToReference"
+    image: str = "Image_Reference"
+    image_pose: str = "embedded"  # "embedded" (IMAGE matrix is ImageToReference) | "calibration"
+    image_to_probe: np.ndarray = field(default_factory=_default_image_to_probe)  # (4, 4), pixel → mm
+    source: str = "ius"
+
+    @property
+    def named(self) -> tuple[tuple[str, str], ...]:
+        return (("devices.probe", self.probe), ("devices.image", self.image))
 
 
 @dataclass
 class ProbeReceiver:
     probe: str  # the probe's TRANSFORM (ProbeToReference)
     image: str  # the frames' IMAGE device
-    image_pose: str  # "embedded" | "calibration" (``TrackingConfig.image_pose``)
+    image_pose: str  # "embedded" | "calibration" (``ProbeSettings.image_pose``)
     image_to_probe: np.ndarray  # (4, 4) pixel → mm, the calibration
     source: str = "ius"
     latest_pose: ProbePose | None = None
@@ -70,5 +112,34 @@ class ProbeReceiver:
         return all(seen(status, d) for d in streams)
 
 
-def make(config: TrackingConfig, digitiser: Digitiser) -> ProbeReceiver:
-    return ProbeReceiver(config.probe, config.image, config.image_pose, config.image_to_probe)
+def default(source: str = "ius") -> ProbeSettings:
+    return ProbeSettings(source=source)
+
+
+def parse(source: str, data: Mapping, path=None) -> ProbeSettings:
+    """Its settings from the TOML file's ``data`` (types checked by ``config``)."""
+    devices, out = data.get("devices", {}), ProbeSettings(source=source)
+    probe = device_name(devices.get("probe", out.probe), "devices.probe", path)
+    image = device_name(devices.get("image", out.image), "devices.image", path)
+    image_pose = devices.get("image_pose", out.image_pose)
+    if image_pose not in IMAGE_POSES:
+        raise InputError(f"devices.image_pose must be \"embedded\" or \"calibration\", got {image_pose!r}", path)
+    m = out.image_to_probe
+    if "image_to_probe" in data.get("calibration", {}):
+        m = _calibration(data["calibration"]["image_to_probe"], path)
+    return ProbeSettings(probe, image, image_pose, m, source)
+
+
+def _calibration(rows, path) -> np.ndarray:
+    try:
+        m = np.array(rows, float)
+    except (TypeError, ValueError):
+        m = np.zeros(0)
+    if m.shape != (4, 4) or not np.isfinite(m).all() or not np.allclose(m[3], [0, 0, 0, 1]):
+        raise InputError("calibration.image_to_probe must be a 4×4 matrix (rows) with last row 0 0 0 1", path)
+    return m
+
+
+def make(settings: ProbeSettings, shared: Shared) -> ProbeReceiver:
+    return ProbeReceiver(settings.probe, settings.image, settings.image_pose, settings.image_to_probe,
+                         settings.source)

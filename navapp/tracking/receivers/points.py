@@ -12,6 +12,9 @@ has moved on. Both poses must be the watchdog's ``stale_s`` or less from the poi
 in the stream, the tool out of view, is not bridged); points newer or older than every kept
 pose take the nearest one if it is that close. Others are refused: never placed where the
 tool was a while before.
+
+Its settings: ``[tools.<source>] pose`` in the tracking TOML file, one table per tracked
+source (without one its points arrive in Reference).
 """
 
 from bisect import bisect_left
@@ -21,13 +24,31 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ...features import TABLE
+from ...errors import InputError
+from ...features import SOURCED, TABLE
 from ...geometry.transforms import apply, interpolate_pose
-from ..config import TrackingConfig
 from ..events import SourcePoints, ToolStatus, TransformSample
-from .base import Event, Message, pose_matrix, seen
+from .base import Event, Message, Shared, device_name, pose_matrix, seen, typed
 
 POSES_KEPT = 256  # ~2.5 s of a 100 Hz tracker: a depth matcher's points are far younger
+KEYS: dict[str, dict[str, type]] = {}
+TABLES = ("tools",)  # ``[tools.<source>]``: read whole here
+_TOOL_KEYS: dict[str, type] = {"pose": str}
+TRACKABLE = tuple(dict.fromkeys(f.source for f in TABLE if f.name in SOURCED))  # sources sending POINT messages
+
+
+@dataclass(frozen=True)
+class PointsSettings:
+    """A source's points' settings: ``pose``, the TRANSFORM (ToolToReference, mm) placing its
+    POINT messages, which then arrive in the tool's own frame (a tracked laparoscope's camera
+    frame); None: they arrive in Reference."""
+
+    source: str  # a ``features.TABLE`` source with features in ``features.SOURCED``
+    pose: str | None = None
+
+    @property
+    def named(self) -> tuple[tuple[str, str], ...]:
+        return () if self.pose is None else ((f"tools.{self.source}.pose", self.pose),)
 
 
 @dataclass
@@ -90,8 +111,31 @@ class PointsReceiver:
         return self.pose is None or seen(status, self.pose)
 
 
-def make_points(source: str, config: TrackingConfig) -> PointsReceiver:
-    """``source``'s points receiver, tracked when the config names its pose."""
-    tool = config.tool(source)
-    return PointsReceiver(source, tuple(f.name for f in TABLE if f.source == source),
-                          None if tool is None else tool.pose, config.stale_s)
+def default(source: str) -> PointsSettings:
+    return PointsSettings(source)
+
+
+def parse(source: str, data: Mapping, path=None) -> PointsSettings:
+    """``source``'s settings from the TOML file's ``data``: its ``[tools.<source>]`` table,
+    every table of ``[tools]`` checked (a tool no source sends points for is refused)."""
+    tools = data.get("tools", {})
+    for name, keys in tools.items():
+        if name not in TRACKABLE:
+            raise InputError(f"unknown tool [tools.{name}] (known: {', '.join(TRACKABLE) or 'none'})", path)
+        if not isinstance(keys, dict):
+            raise InputError(f"[tools.{name}] must be a table", path)
+        for key, value in keys.items():
+            if key not in _TOOL_KEYS:
+                raise InputError(f"unknown key tools.{name}.{key} (known: {', '.join(_TOOL_KEYS)})", path)
+            typed(value, _TOOL_KEYS[key], f"tools.{name}.{key}", path)
+        if "pose" not in keys:
+            raise InputError(f"tools.{name}.pose is missing (the TRANSFORM that places its points)", path)
+    if source not in tools:
+        return PointsSettings(source)
+    return PointsSettings(source, device_name(tools[source]["pose"], f"tools.{source}.pose", path))
+
+
+def make(settings: PointsSettings, shared: Shared) -> PointsReceiver:
+    """``settings.source``'s points receiver, tracked when its settings name its pose."""
+    return PointsReceiver(settings.source, tuple(f.name for f in TABLE if f.source == settings.source),
+                          settings.pose, shared.stale_s)

@@ -1,14 +1,26 @@
 """The tracked stylus, received: its tip's pose stream (TRANSFORM ``StylusTipToReference``
 by default), each sample offered to the digitiser, which records tip points at its rate
-while digitising is on."""
+while digitising is on. Its settings: ``[devices] stylus`` in the tracking TOML file."""
 
 from collections.abc import Mapping
 from dataclasses import dataclass
 
-from ..config import TrackingConfig
 from ..digitiser import Digitiser
 from ..events import StylusSample, ToolStatus
-from .base import Event, Message, pose_matrix, seen
+from .base import Event, Message, Shared, device_name, pose_matrix, seen
+
+KEYS: dict[str, dict[str, type]] = {"devices": {"stylus": str}}  # its keys in the tracking TOML file
+TABLES: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
+class StylusSettings:
+    device: str = "StylusTipToReference"  # the tip's TRANSFORM, PLUS's name for a pivot-calibrated stylus
+    source: str = "stylus"
+
+    @property
+    def named(self) -> tuple[tuple[str, str], ...]:
+        return (("devices.stylus", self.device),)
 
 
 @dataclass
@@ -38,5 +50,15 @@ class StylusReceiver:
         return seen(status, self.device)
 
 
-def make(config: TrackingConfig, digitiser: Digitiser) -> StylusReceiver:
-    return StylusReceiver(config.stylus, digitiser)
+def default(source: str = "stylus") -> StylusSettings:
+    return StylusSettings(source=source)
+
+
+def parse(source: str, data: Mapping, path=None) -> StylusSettings:
+    """Its settings from the TOML file's ``data`` (types checked by ``config``)."""
+    device = data.get("devices", {}).get("stylus", StylusSettings.device)
+    return StylusSettings(device_name(device, "devices.stylus", path), source)
+
+
+def make(settings: StylusSettings, shared: Shared) -> StylusReceiver:
+    return StylusReceiver(settings.device, shared.digitiser, settings.source)
