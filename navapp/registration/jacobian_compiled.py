@@ -41,41 +41,45 @@ def _alpha_columns(indptr, indices, weights, BJ, qR, rows, U, J, sw, Js):
     acc = np.empty((3, n))
     r = 0
     for i in range(N):
-        for a in range(3):
-            for k in range(n):
-                acc[a, k] = 0.0
-        for jj in range(indptr[i], indptr[i + 1]):
-            v, w = indices[jj], weights[jj]
-            for a in range(3):
-                for k in range(n):
-                    acc[a, k] += w * BJ[v, a, k]
+        _point_sum(indptr, indices, weights, BJ, i, acc)
         for a in range(3):
             for k in range(n):
                 U[i, a, k] = acc[a, k]
         if ordered:
             while r < R and rows[r] == i:
-                q0, q1, q2 = qR[r, 0], qR[r, 1], qR[r, 2]
-                s = sw[r]
-                for k in range(n):
-                    J[r, k] = -(q0 * acc[0, k] + q1 * acc[1, k] + q2 * acc[2, k])
-                    Js[r, k] = J[r, k] * s
+                _row(acc, qR, sw, r, J, Js)
                 r += 1
     if not ordered:  # each row's point summed again, in the same order: the same bits
         for r in range(R):
-            i = rows[r]
-            for a in range(3):
-                for k in range(n):
-                    acc[a, k] = 0.0
-            for jj in range(indptr[i], indptr[i + 1]):
-                v, w = indices[jj], weights[jj]
-                for a in range(3):
-                    for k in range(n):
-                        acc[a, k] += w * BJ[v, a, k]
-            q0, q1, q2 = qR[r, 0], qR[r, 1], qR[r, 2]
-            s = sw[r]
+            _point_sum(indptr, indices, weights, BJ, rows[r], acc)
+            _row(acc, qR, sw, r, J, Js)
+
+
+def _point_sum_py(indptr, indices, weights, BJ, i, acc):
+    """acc (3, n) = point i's S·B·J_u, summed in CSR order."""
+    n = acc.shape[1]
+    for a in range(3):
+        for k in range(n):
+            acc[a, k] = 0.0
+    for jj in range(indptr[i], indptr[i + 1]):
+        v, w = indices[jj], weights[jj]
+        for a in range(3):
             for k in range(n):
-                J[r, k] = -(q0 * acc[0, k] + q1 * acc[1, k] + q2 * acc[2, k])
-                Js[r, k] = J[r, k] * s
+                acc[a, k] += w * BJ[v, a, k]
+
+
+def _row_py(acc, qR, sw, r, J, Js):
+    """Row r's α columns of J from its point's S·B·J_u (``acc``), and of Js = √w·J."""
+    q0, q1, q2 = qR[r, 0], qR[r, 1], qR[r, 2]
+    s = sw[r]
+    for k in range(acc.shape[1]):
+        J[r, k] = -(q0 * acc[0, k] + q1 * acc[1, k] + q2 * acc[2, k])
+        Js[r, k] = J[r, k] * s
+
+
+# the two steps each α row is made of, compiled for ``_alpha_columns`` to call (inlined by Numba)
+_point_sum = njit(cache=True, nogil=True, inline="always")(_point_sum_py) if njit is not None else _point_sum_py
+_row = njit(cache=True, nogil=True, inline="always")(_row_py) if njit is not None else _row_py
 
 
 def _pose_columns(indptr, indices, weights, rest, local, q, dR, rows, S_rest, J, sw, Js):
