@@ -631,18 +631,13 @@ def _rebased(model: RegistrationModel, beta: np.ndarray, pose: RigidResult) -> n
 def free_model(model: RegistrationModel, cache_root=None) -> RegistrationModel:
     """The free-floating model of a model held at declared supports: the same mesh, features and
     k, the basis without supports (from the basis cache; computed and cached when absent)."""
-    basis = model.basis
-    if basis.settings.supports is None:
-        return model
-    free, _ = load_or_compute_basis(TetMesh(basis.nodes, basis.tets), replace(basis.settings, supports=None),
-                                    basis.material, cache_root=cache_root)
-    return rebased_model(model, free)
+    return held_model(model, None, model.basis.settings.release, cache_root)
 
 
-def held_model(model: RegistrationModel, held: str, release: str = "N", cache_root=None) -> RegistrationModel:
+def held_model(model: RegistrationModel, held: str | None, release: str = "N", cache_root=None) -> RegistrationModel:
     """``model`` with its basis held at the declared supports ``held`` (``mechanics.supports``;
-    ``release``: the ligament released): the same mesh, features and k, every mode vanishing
-    there (from the basis cache; computed and cached when absent). The twin of ``free_model``."""
+    ``release``: the ligament released; None: free-floating): the same mesh, features and k,
+    every mode vanishing there (from the basis cache; computed and cached when absent)."""
     basis = model.basis
     settings = replace(basis.settings, supports=held, release=release)
     if settings == basis.settings:
