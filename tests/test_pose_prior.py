@@ -179,25 +179,34 @@ def test_a_declared_tracker_offset_is_corrected_by_the_data(small_model):
     assert np.linalg.norm(deformable.transform(nodes) - truth, axis=1).mean() < 1.5
 
 
+def _basis_deformation(model, percentile: float, most_mm: float):
+    """A scan of the liver surface's anterior nodes above ``percentile`` (of y), the mesh nodes,
+    and a deformation the basis can make (random α, ``most_mm`` at most): x ↦ its deformed place."""
+    from navapp.registration.pipeline import deform_points
+
+    rest = model.features["liver"].rest
+    scan = rest[rest[:, 1] > np.percentile(rest[:, 1], percentile)]
+    nodes, n = model.basis.nodes, model.basis.Ju.shape[1]
+    beta = np.zeros(n + 6)
+    beta[:n] = np.random.default_rng(3).normal(size=n)
+    beta[:n] *= most_mm / np.linalg.norm(deform_points(model.basis, model.centroid, beta, nodes) - nodes,
+                                         axis=1).max()
+    return scan, nodes, lambda x: deform_points(model.basis, model.centroid, beta, x)
+
+
 def test_a_declared_offset_under_a_deformation_is_corrected_at_the_answers_own_scale(small_model):
     """A tracker frame off by 8° / 9 mm, declared at that size, and the organ deformed (15 mm at
     most, a deformation this basis can make) under data on 45 % of the surface. The rigid stage
     counts the deformation as misfit (σ_F ≈ 11 mm), which would hold the offset part-way
     (3.1 mm mean error); re-estimated from the deformable answer's residuals (``_settle_scale``)
     the scale is the noise the model leaves, and the data take the offset out (2.0 mm)."""
-    from navapp.registration.pipeline import deform_points, register
+    from navapp.registration.pipeline import register
 
-    rest = small_model.features["liver"].rest
-    scan = rest[rest[:, 1] > np.percentile(rest[:, 1], 55)]
-    nodes, n = small_model.basis.nodes, small_model.basis.Ju.shape[1]
-    beta = np.zeros(n + 6)
-    beta[:n] = np.random.default_rng(3).normal(size=n)
-    beta[:n] *= 15.0 / np.linalg.norm(deform_points(small_model.basis, small_model.centroid, beta, nodes) - nodes,
-                                       axis=1).max()
+    scan, nodes, deformed = _basis_deformation(small_model, 55, 15.0)
     R, t = rotation(np.radians([6.0, -4.0, 3.0])), np.array([6.0, -5.0, 4.0])
 
     def truth_of(x):
-        return deform_points(small_model.basis, small_model.centroid, beta, x) @ R.T + t
+        return deformed(x) @ R.T + t
 
     reg = register(small_model, {"anterior": truth_of(scan)}, pose_prior=PosePrior(9.0, 8.0))
     none = np.linalg.norm(nodes - truth_of(nodes), axis=1).mean()
@@ -401,18 +410,9 @@ def test_a_declared_surface_scan_keeps_a_deformation_the_held_out_blocks_confirm
     a searched pose, and by more than one paired standard error. The declared answer is that
     deformation, half the error of no correction (the margin showed the given pose: 1.93 mm);
     undeclared, or declared wider than the clinical goal, the margin still decides."""
-    from navapp.registration.pipeline import deform_points, register
+    from navapp.registration.pipeline import register
 
-    rest = small_model.features["liver"].rest
-    scan = rest[rest[:, 1] > np.percentile(rest[:, 1], 80)]
-    nodes, n = small_model.basis.nodes, small_model.basis.Ju.shape[1]
-    beta = np.zeros(n + 6)
-    beta[:n] = np.random.default_rng(3).normal(size=n)
-    beta[:n] *= 5.0 / np.linalg.norm(deform_points(small_model.basis, small_model.centroid, beta, nodes) - nodes,
-                                      axis=1).max()
-
-    def truth_of(x):
-        return deform_points(small_model.basis, small_model.centroid, beta, x)
+    scan, nodes, truth_of = _basis_deformation(small_model, 80, 5.0)
 
     data = {"anterior": truth_of(scan) + np.random.default_rng(1).normal(0, 0.5, scan.shape)}
     reg = register(small_model, data, pose_prior=PosePrior(1.5, 1.5))
