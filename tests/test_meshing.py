@@ -120,13 +120,17 @@ def test_other_generators_mesh_above_the_floor(make, edge, gmsh_hangs):
     surface = make()
     attempts = ATTEMPTS
     if gmsh_hangs:
-        # Gmsh's surface classification never returns on these two (docs/decisions.md, "Where
-        # Gmsh's budget goes"): its default budget (27 CPU s) only delays the fallback, which
-        # a 6 CPU s budget reaches the same way; the log must show it was the hang
+        # Gmsh's surface classification does not return on these two within its budget
+        # (docs/decisions.md, "Where Gmsh's budget goes"): its default budget (27 CPU s) only
+        # delays the fallback, which a 6 CPU s budget reaches the same way. On a quiet machine
+        # Gmsh has also returned from the thin lobe at 6.0 CPU s, with a mesh under the floor at
+        # 40° and 60° and one above it at 90° (CI, session 37): either way the log must say why
+        # the first attempt was not taken
         attempts = (MeshAttempt("gmsh", 40.0, limit=6.0), *ATTEMPTS[1:])
     mesh, report = mesh_liver(surface, edge, plan=plan_mesh(surface, edge, attempts))
     if gmsh_hangs:
-        assert "work budget" in report["attempts"][0]["outcome"], report["attempts"]
+        first = report["attempts"][0]["outcome"]
+        assert "work budget" in first or "below the quality floor" in first, report["attempts"]
     _floor(mesh)
     assert abs(report["volume_mm3"] - surface.volume) / surface.volume < 0.05
     boundary = trimesh.Trimesh(mesh.nodes, mesh.boundary_faces(), process=True)
