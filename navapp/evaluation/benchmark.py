@@ -32,6 +32,7 @@ from ..mechanics.basis import BasisSettings, basis_key, load_or_compute_basis
 from ..mechanics.fem import Material
 from ..mechanics.sparse import backend
 from ..registration.libr import LMOptions
+from ..registration.objective import cold_search
 from ..registration.pipeline import prepare, register
 from ..simulation.levels import data_level
 from ..simulation.scene import demo_scene
@@ -132,7 +133,9 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     run as before issue 49's hierarchy and compiled Jacobian (``live_bench.before_path``),
     alternated with it repeat by repeat, each on its own
     copy of the model's cache: ``before_after`` holds both medians (CPU and wall) and the
-    TREs. ``truth_edge``: the mesh the scene is simulated on, mm (default the scene's)."""
+    TREs. A third variant, ``cold_search``, is the new path with every surface search begun at
+    the hierarchy's root (``objective.cold_search``: as before LM's searches started from the
+    last iteration's triangles, session 38), in the same rotation. ``truth_edge``: the mesh the scene is simulated on, mm (default the scene's)."""
 
     scene = demo_scene()
     # the simulated scene from navapp's cache (as ``bench live`` and the viewer take it):
@@ -144,14 +147,16 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     model, _ = prepare(case, edge, k)
     x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     times, rigid_s, support_s, iters = [], [], [], []
-    stages: dict[str, dict[str, dict[str, list]]] = {"before": {}, "after": {}}  # variant → stage → cpu, wall
-    before = replace(model, cache=model.cache.copy())
-    paired: dict[str, dict[str, list]] = {v: {"cpu": [], "wall": [], "tre": []} for v in ("before", "after")}
+    variants = ("before", "cold_search", "after")
+    stages: dict[str, dict[str, dict[str, list]]] = {v: {} for v in variants}  # variant → stage → cpu, wall
+    models = {v: model if v == "after" else replace(model, cache=model.cache.copy()) for v in variants}
+    switch = {"before": before_path, "cold_search": cold_search, "after": nullcontext}
+    paired: dict[str, dict[str, list]] = {v: {"cpu": [], "wall": [], "tre": []} for v in variants}
     for i in range(repeats):
-        for variant in (("before", "after") if i % 2 == 0 else ("after", "before")):
-            with before_path() if variant == "before" else nullcontext():
+        for variant in (variants if i % 2 == 0 else variants[::-1]):
+            with switch[variant]():
                 c, t = time.process_time(), time.perf_counter()
-                r = register(before if variant == "before" else model, data)
+                r = register(models[variant], data)
                 paired[variant]["cpu"].append(time.process_time() - c)
                 paired[variant]["wall"].append(time.perf_counter() - t)
             paired[variant]["tre"].append(round(tre_stats(r.transform(x0), x1)["mean_mm"], 4))

@@ -135,9 +135,9 @@ def _register(model, data, beta0, options, callback, cancel, first=None):
     # a fit that holds α at zero (a rigid fit from β = 0) needs only J's pose columns
     alpha_columns = options.deform or bool(beta[:n].any())
 
-    def run(b, jac=True, frozen=None, scales=None):
+    def run(b, jac=True, frozen=None, scales=None, warm=None):
         ev = evaluate(model, data, b, options.weights, jacobian=jac, frozen=frozen, scales=scales,
-                      alpha_columns=alpha_columns)
+                      alpha_columns=alpha_columns, warm=warm)
         for k, v in ev.timings.items():
             tim[k] += v
         return ev
@@ -205,7 +205,8 @@ def _register(model, data, beta0, options, callback, cancel, first=None):
                 beta = trial
                 # new correspondences, the next iteration's starting point; its Jacobian is
                 # added only if there is a next iteration
-                ev = run(beta, jac=False)
+                # each surface search starts from this iteration's triangles (the same answer)
+                ev = run(beta, jac=False, warm=ev.correspondence)
                 history.append(ev.omega)
                 change = prev_omega - ev.omega
                 prev_omega = ev.omega
