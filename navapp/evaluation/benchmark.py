@@ -132,10 +132,11 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     added and the fit warm-started from the previous state. The fresh registration is also
     run as before issue 49's hierarchy and compiled Jacobian (``live_bench.before_path``),
     alternated with it repeat by repeat, each on its own
-    copy of the model's cache: ``before_after`` holds both medians (CPU and wall) and the
-    TREs. A third variant, ``cold_search``, is the new path with every surface search begun at
-    the hierarchy's root (``objective.cold_search``: as before LM's searches started from the
-    last iteration's triangles, session 38), in the same rotation. ``truth_edge``: the mesh the scene is simulated on, mm (default the scene's)."""
+    copy of the model's cache: ``before_after`` holds the medians (CPU and wall) and the TREs
+    of each. A third variant, ``cold_search``, is the new path with every surface search begun
+    at the hierarchy's root (``objective.cold_search``: as before LM's searches started from
+    the last iteration's triangles, session 38), in the same rotation. ``truth_edge``: the
+    mesh the scene is simulated on, mm (default the scene's)."""
 
     scene = demo_scene()
     # the simulated scene from navapp's cache (as ``bench live`` and the viewer take it):
