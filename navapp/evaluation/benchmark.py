@@ -15,7 +15,8 @@ import subprocess
 import sys
 import tempfile
 import time
-from contextlib import nullcontext
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import replace
 from pathlib import Path
 
@@ -151,7 +152,8 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     variants = ("before", "cold_search", "after")
     stages: dict[str, dict[str, dict[str, list]]] = {v: {} for v in variants}  # variant → stage → cpu, wall
     models = {v: model if v == "after" else replace(model, cache=model.cache.copy()) for v in variants}
-    switch = {"before": before_path, "cold_search": cold_search, "after": nullcontext}
+    switch: dict[str, Callable[[], AbstractContextManager]] = {"before": before_path, "cold_search": cold_search,
+                                                                "after": nullcontext}
     paired: dict[str, dict[str, list]] = {v: {"cpu": [], "wall": [], "tre": []} for v in variants}
     for i in range(repeats):
         for variant in (variants if i % 2 == 0 else variants[::-1]):
