@@ -220,7 +220,8 @@ def stage_table(stages: dict) -> str:
     each variant, and the sum of those medians (about the whole ``register`` call)."""
     variants = list(stages)
     names = list(dict.fromkeys(n for v in variants for n in stages[v]))
-    head = "stage (median ms)".ljust(20) + "".join(f"{v + ' cpu':>14}{v + ' wall':>14}" for v in variants)
+    c = max(14, *(len(v) + 7 for v in variants))  # a column wider than its name: the heads stay apart
+    head = "stage (median ms)".ljust(20) + "".join(f"{v + ' cpu':>{c}}{v + ' wall':>{c}}" for v in variants)
     lines = [head]
     for name in [*names, "sum"]:
         cells = []
@@ -230,7 +231,7 @@ def stage_table(stages: dict) -> str:
             else:
                 s = stages[v].get(name, {"cpu": 0.0, "wall": 0.0})
                 cpu, wall = s["cpu"], s["wall"]
-            cells.append(f"{1000 * cpu:14.1f}{1000 * wall:14.1f}")
+            cells.append(f"{1000 * cpu:{c}.1f}{1000 * wall:{c}.1f}")
         lines.append(name.ljust(20) + "".join(cells))
     return "\n".join(lines)
 
