@@ -117,6 +117,10 @@ def test_bench_register_stage_table_lists_every_stage_and_the_sum():
     assert [ln.split()[0] for ln in lines[1:]] == ["support", "icp", "sum"]
     assert lines[1].split()[1:] == ["500.0", "1000.0", "250.0", "500.0"]
     assert lines[3].split()[1:] == ["510.0", "1020.0", "250.0", "500.0"]
+    # a variant's name longer than the default column (``bench register``'s cold_search) keeps the heads apart
+    three = stage_table({v: {"support": {"cpu": 0.5, "wall": 1.0}} for v in ("before", "cold_search", "after")})
+    heads = [w for v in ("before", "cold_search", "after") for w in (v, "cpu", v, "wall")]
+    assert three.splitlines()[0].split()[3:] == heads
 
 
 def _all_kinds(model, rng):

@@ -173,3 +173,39 @@ def test_cache_copy_is_written_apart(small_model):
     evaluate(other, {"anterior": _surface_sample(model, rng, 30, 0.5)}, beta + 0.1, Weights())
     assert not np.array_equal(other.cache.evaluation[0], model.cache.evaluation[0])
     assert np.array_equal(model.cache.evaluation[0], beta)
+
+
+def test_lm_searches_start_from_the_last_iterations_triangles_with_the_same_fit(small_model, monkeypatch):
+    """After an accepted step LM searches each surface again at the new β; the search begins at
+    the triangles of the last iteration's (``evaluate(warm=)``), and the fit is the one a
+    search from the hierarchy's root gives, to the bit (``cold_search``)."""
+    from navapp.geometry import bvh
+    from navapp.registration.libr import LMOptions, register_libr
+    from navapp.registration.objective import cold_search
+
+    rng = np.random.default_rng(12)
+    data = {"anterior": _surface_sample(small_model, rng, 60, 1.5),
+            "posterior": _surface_sample(small_model, rng, 30, 1.5) + [1.0, -0.5, 0.8]}
+    starts = []
+    plain = bvh.SurfaceHierarchy.closest
+
+    def closest(self, points, vertices, boxes, start=None):
+        starts.append(None if start is None else np.array(start))
+        return plain(self, points, vertices, boxes, start)
+
+    monkeypatch.setattr(bvh.SurfaceHierarchy, "closest", closest)
+    fits = {}
+    for name, ctx in (("warm", None), ("cold", cold_search)):
+        starts.clear()
+        if ctx is None:
+            fits[name] = register_libr(_bare(small_model), data, options=LMOptions(max_iterations=6))
+            warm_starts = [s for s in starts if s is not None]
+        else:
+            with ctx():
+                fits[name] = register_libr(_bare(small_model), data, options=LMOptions(max_iterations=6))
+            assert all(s is None for s in starts)
+    assert fits["warm"].iterations >= 2 and len(fits["warm"].steps) >= 2
+    # every accepted step's search of both features started from triangles
+    assert len(warm_starts) >= 2 * len(fits["warm"].steps) and all((s >= 0).all() for s in warm_starts)
+    a, b = fits["warm"], fits["cold"]
+    assert np.array_equal(a.beta, b.beta) and a.history == b.history and a.iterations == b.iterations

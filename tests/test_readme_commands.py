@@ -184,6 +184,10 @@ def test_bench_register(capsys):
     assert 0 < tre["deformable"] < tre["rigid"] < 30
     one = out["add_one_plane"]
     assert one["warm_median_seconds"] > 0 and one["cold_seconds"] > 0 and 0 < one["tre_warm_mm"] < 30
+    # before and after side by side: the searches begun at the root give the same registration
+    ba = out["before_after"]
+    assert set(ba) == {"before", "cold_search", "after"} and all(v["median_cpu_seconds"] > 0 for v in ba.values())
+    assert ba["cold_search"]["tre_mm"] == ba["after"]["tre_mm"]
 
 
 def test_bench_live(capsys):
@@ -200,6 +204,9 @@ def test_bench_live(capsys):
         assert 0 <= v["within_one_frame_at_30hz"] <= 1
     assert out["default"]["iterations_median"] == 1  # the viewer's one LM iteration per frame
     assert out["one_thread_over_installed"]["median_of_ratios"] > 0
+    warm = out["before_after_warm_search"]  # the same frames with every search begun at the root
+    assert warm["variants"] == ["default_cold_search", "default"] and warm["before_over_after_median"] > 0
+    assert warm["tre_after_last_frame_mm"][0] == warm["tre_after_last_frame_mm"][1]
 
 
 def test_bench_precompute(capsys):

@@ -26,6 +26,34 @@ def synthetic_data(model, alpha, rng, theta=(0, 0, 0), tau=(0, 0, 0)):
     return out, beta
 
 
+def test_lm_solve_is_scipys_positive_definite_solve_to_the_bit_with_its_fallback():
+    """``libr._solve`` calls LAPACK's posv and pocon itself: the same step as
+    ``scipy.linalg.solve(assume_a="pos")`` on LM's damped normal matrices, and least squares
+    where SciPy's solve refuses (not positive definite) or warns (rcond below machine ε)."""
+    import warnings
+
+    import scipy.linalg as sla
+
+    from navapp.registration.libr import _solve
+
+    rng = np.random.default_rng(3)
+    for _ in range(20):
+        J = rng.normal(size=(400, 141)) * rng.uniform(1e-3, 1e2, 141)
+        A = J.T @ J
+        A += 1e-2 * np.diag(np.diag(A))
+        g = rng.normal(size=141)
+        assert np.array_equal(_solve(A, g), sla.solve(A, g, assume_a="pos", check_finite=False))
+    g = np.ones(3)
+    for A in (np.diag([1.0, 1.0, 0.0]), np.diag([1.0, 1.0, 1e-17]), np.array([[1.0, 2, 0], [2, 1, 0], [0, 0, 1]])):
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", sla.LinAlgWarning)
+            with pytest.raises((sla.LinAlgError, sla.LinAlgWarning)):
+                sla.solve(A, g, assume_a="pos", check_finite=False)
+        assert np.array_equal(_solve(A, g), sla.lstsq(A, g, check_finite=False)[0])
+    A = np.diag([1.0, 1.0, 1e-15])  # rcond just above ε: solved, not least squares
+    assert np.array_equal(_solve(A, g), sla.solve(A, g, assume_a="pos", check_finite=False))
+
+
 def test_rotation_derivatives_match_finite_differences():
     th = np.array([0.3, -0.2, 0.5])
     D = rotation_derivatives(th)

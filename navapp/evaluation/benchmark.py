@@ -15,7 +15,8 @@ import subprocess
 import sys
 import tempfile
 import time
-from contextlib import nullcontext
+from collections.abc import Callable
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import replace
 from pathlib import Path
 
@@ -32,6 +33,7 @@ from ..mechanics.basis import BasisSettings, basis_key, load_or_compute_basis
 from ..mechanics.fem import Material
 from ..mechanics.sparse import backend
 from ..registration.libr import LMOptions
+from ..registration.objective import cold_search
 from ..registration.pipeline import prepare, register
 from ..simulation.levels import data_level
 from ..simulation.scene import demo_scene
@@ -131,8 +133,11 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     added and the fit warm-started from the previous state. The fresh registration is also
     run as before issue 49's hierarchy and compiled Jacobian (``live_bench.before_path``),
     alternated with it repeat by repeat, each on its own
-    copy of the model's cache: ``before_after`` holds both medians (CPU and wall) and the
-    TREs. ``truth_edge``: the mesh the scene is simulated on, mm (default the scene's)."""
+    copy of the model's cache: ``before_after`` holds the medians (CPU and wall) and the TREs
+    of each. A third variant, ``cold_search``, is the new path with every surface search begun
+    at the hierarchy's root (``objective.cold_search``: as before LM's searches started from
+    the last iteration's triangles, session 38), in the same rotation. ``truth_edge``: the
+    mesh the scene is simulated on, mm (default the scene's)."""
 
     scene = demo_scene()
     # the simulated scene from navapp's cache (as ``bench live`` and the viewer take it):
@@ -144,14 +149,17 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     model, _ = prepare(case, edge, k)
     x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     times, rigid_s, support_s, iters = [], [], [], []
-    stages: dict[str, dict[str, dict[str, list]]] = {"before": {}, "after": {}}  # variant → stage → cpu, wall
-    before = replace(model, cache=model.cache.copy())
-    paired: dict[str, dict[str, list]] = {v: {"cpu": [], "wall": [], "tre": []} for v in ("before", "after")}
+    variants = ("before", "cold_search", "after")
+    stages: dict[str, dict[str, dict[str, list]]] = {v: {} for v in variants}  # variant → stage → cpu, wall
+    models = {v: model if v == "after" else replace(model, cache=model.cache.copy()) for v in variants}
+    switch: dict[str, Callable[[], AbstractContextManager]] = {"before": before_path, "cold_search": cold_search,
+                                                                "after": nullcontext}
+    paired: dict[str, dict[str, list]] = {v: {"cpu": [], "wall": [], "tre": []} for v in variants}
     for i in range(repeats):
-        for variant in (("before", "after") if i % 2 == 0 else ("after", "before")):
-            with before_path() if variant == "before" else nullcontext():
+        for variant in (variants if i % 2 == 0 else variants[::-1]):
+            with switch[variant]():
                 c, t = time.process_time(), time.perf_counter()
-                r = register(before if variant == "before" else model, data)
+                r = register(models[variant], data)
                 paired[variant]["cpu"].append(time.process_time() - c)
                 paired[variant]["wall"].append(time.perf_counter() - t)
             paired[variant]["tre"].append(round(tre_stats(r.transform(x0), x1)["mean_mm"], 4))
@@ -212,7 +220,8 @@ def stage_table(stages: dict) -> str:
     each variant, and the sum of those medians (about the whole ``register`` call)."""
     variants = list(stages)
     names = list(dict.fromkeys(n for v in variants for n in stages[v]))
-    head = "stage (median ms)".ljust(20) + "".join(f"{v + ' cpu':>14}{v + ' wall':>14}" for v in variants)
+    c = max(14, *(len(v) + 7 for v in variants))  # a column wider than its name: the heads stay apart
+    head = "stage (median ms)".ljust(20) + "".join(f"{v + ' cpu':>{c}}{v + ' wall':>{c}}" for v in variants)
     lines = [head]
     for name in [*names, "sum"]:
         cells = []
@@ -222,7 +231,7 @@ def stage_table(stages: dict) -> str:
             else:
                 s = stages[v].get(name, {"cpu": 0.0, "wall": 0.0})
                 cpu, wall = s["cpu"], s["wall"]
-            cells.append(f"{1000 * cpu:14.1f}{1000 * wall:14.1f}")
+            cells.append(f"{1000 * cpu:{c}.1f}{1000 * wall:{c}.1f}")
         lines.append(name.ljust(20) + "".join(cells))
     return "\n".join(lines)
 

@@ -14,7 +14,10 @@ this kind differ 2–3× in speed, and load moves absolute times: compare within
 - ``default_before``: ``default`` as before issue 49's hierarchy and compiled Jacobian
   (``before_path``: the surfaces searched by the k-d tree's candidate triangles, the
   Jacobian's α columns by SciPy and NumPy): before and after side by side, on
-  the same frames under the same load (``before_after``: per-update ratios, per-stage ms).
+  the same frames under the same load (``before_after``: per-update ratios, per-stage ms);
+- ``default_cold_search``: ``default`` with every surface search begun at the hierarchy's
+  root (``objective.cold_search``), as before LM's searches started from the last
+  iteration's triangles (session 38): ``before_after_warm_search``, the same figures.
 
 Each variant has its own copy of the model's cache: variants that reach the same β
 (before and after give the same bits) would otherwise reuse each other's evaluations.
@@ -40,7 +43,7 @@ from ..geometry.interpolation import interpolation_matrix
 from ..geometry.transforms import interpolate_pose
 from ..geometry.tre import tre_stats
 from ..registration.live import LiveRegistration
-from ..registration.objective import numpy_jacobian
+from ..registration.objective import cold_search, numpy_jacobian
 from ..registration.pipeline import prepare, register
 from ..simulation.levels import data_level
 from ..simulation.scene import demo_scene
@@ -49,8 +52,11 @@ from ..simulation.scenedata import auto_segmentation, load_scene_data, segment_f
 VARIANTS: dict[str, dict] = {"default": {"threads": 1, "iterations_per_frame": 1},
             "converged_one_thread": {"threads": 1, "iterations_per_frame": None},
             "converged_as_installed": {"threads": None, "iterations_per_frame": None},
-            "default_before": {"threads": 1, "iterations_per_frame": 1}}
-BEFORE = {"default_before": "default"}  # a variant run on ``before_path`` → its "after"
+            "default_before": {"threads": 1, "iterations_per_frame": 1},
+            "default_cold_search": {"threads": 1, "iterations_per_frame": 1}}
+# a "before" variant → its "after", the switch it runs under and its pair's key in the output
+BEFORE = {"default_before": ("default", "before_path", "before_after"),
+          "default_cold_search": ("default", "cold_search", "before_after_warm_search")}
 FRAME_MS = 1000.0 / 30  # one frame at 30 Hz
 
 
@@ -61,6 +67,13 @@ def before_path():
     cheaper statistics are not undone (the same answers within rounding)."""
     with kd_search(), numpy_jacobian():
         yield
+
+
+def _switch(variant):
+    """The path a variant runs on (``BEFORE``)."""
+    if variant not in BEFORE:
+        return nullcontext()
+    return before_path() if BEFORE[variant][1] == "before_path" else cold_search()
 
 
 def _poses(sd, first_plane, count, per_transit):
@@ -110,7 +123,7 @@ def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8, truth_edge
         frame_pts.append(sum(len(v) for v in feats.values()))
         names = list(VARIANTS) if i % 2 == 0 else list(reversed(VARIANTS))  # interleaved: load hits all alike
         for name in names:
-            with before_path() if name in BEFORE else nullcontext():
+            with _switch(name):
                 t = time.perf_counter()
                 reg = live[name].update(feats)
                 wall = 1000 * (time.perf_counter() - t)
@@ -142,12 +155,12 @@ def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8, truth_edge
     a, b = rows["converged_one_thread"], rows["converged_as_installed"]
     ratios = [x["ms"] / y["ms"] for x, y in zip(a, b, strict=True)]
     out["one_thread_over_installed"] = {"median_of_ratios": round(statistics.median(ratios), 3)}
-    for before, after in BEFORE.items():
+    for before, (after, _, key) in BEFORE.items():
         pairs = [x["ms"] / y["ms"] for x, y in zip(rows[before], rows[after], strict=True)]
         stages = {s: [out[before]["per_iteration_ms"][s], out[after]["per_iteration_ms"][s]]
                   for s in out[after]["per_iteration_ms"] if s != "closest_points_share"}
         tre = [out[v]["tre_after_last_frame_mm"] for v in (before, after)]
-        out["before_after"] = {"variants": [before, after],
+        out[key] = {"variants": [before, after],
                                "before_over_after_median": round(statistics.median(pairs), 3),
                                "median_ms": [out[before]["median_ms"], out[after]["median_ms"]],
                                "per_iteration_ms": stages, "tre_after_last_frame_mm": tre}

@@ -252,12 +252,16 @@ class Correspondence:
         closest points costs N·3·3k instead of deforming the whole feature (the held fast path).
         A pose-only Jacobian (``add_jacobian(alpha=False)``, at α = 0) adds S·x0 alone: the
         held fast path then applies at α = 0, where S·B·J_u α is zero.
+    face : (N,) int array or None
+        a surface's closest triangle per point (the hierarchy's search): the next search of
+        the same points starts from it (``evaluate(warm=)``; speed only, the answer is exact).
     """
 
     S: sp.csr_matrix
     direction: np.ndarray | None
     SBJ: np.ndarray | None = None
     S_rest: np.ndarray | None = None
+    face: np.ndarray | None = None
 
     @property
     def carries_basis(self) -> bool:
@@ -270,30 +274,34 @@ class Correspondence:
 
     def without_basis(self) -> "Correspondence":
         """The same correspondence without S·B·J_u and S·x0 (x(β) then from the whole feature)."""
-        return Correspondence(self.S, self.direction)
+        return Correspondence(self.S, self.direction, face=self.face)
 
 
-def correspond(feat, X, Y, tree=None, nearest=None) -> Correspondence:
+def correspond(feat, X, Y, tree=None, nearest=None, start=None) -> Correspondence:
     """Closest points of data Y (N, 3) mm on the model feature ``feat`` at its current
     geometry X (V, 3) mm: S and the direction data (normals for surfaces, tangents for
     centerlines). ``tree``/``nearest``: a surface's ``FittedSurface`` at X (exact closest
-    points), a KD-tree of X, or Y's nearest vertices of X when already found."""
+    points), a KD-tree of X, or Y's nearest vertices of X when already found. ``start``
+    (N,): a triangle per point for the hierarchy's search to begin from (the last search's
+    ``Correspondence.face``): a tight first bound, the same answer."""
     N = len(Y)
     kind = feat.kind
     if kind == "surface":
         face = None
-        if isinstance(tree, FittedSurface):
-            face, bary = tree.hierarchy.closest(Y, X, tree.boxes)
+        hierarchy = isinstance(tree, FittedSurface)
+        if hierarchy:
+            face, bary = tree.hierarchy.closest(Y, X, tree.boxes, start)
             if not (face >= 0).all():  # a non-finite surface: the candidates' path says what it can
                 face = None
                 tree = None
+                hierarchy = False
         if face is None:
             face, bary, _ = closest_on_surface(Y, X, feat.cells, feat.table, feat.near,
                                                tree=tree, nearest=nearest)
         # the normal at the closest point: the face's inside a triangle, p/|p| on an edge or
         # vertex (``surface_normals``), which makes f the true point–surface distance
         S = _rows_matrix(bary, feat.cells[face], len(X))
-        return Correspondence(S, surface_normals(Y, X, feat.cells, face, bary))
+        return Correspondence(S, surface_normals(Y, X, feat.cells, face, bary), face=face if hierarchy else None)
     if kind == "centerline":
         seg, t, _ = closest_on_polyline(Y, X, feat.cells, feat.table, tree=tree, nearest=nearest)
         ends = feat.cells[seg]
@@ -340,7 +348,8 @@ def point_distances(r, rows, n_points):
 
 
 def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: Weights, jacobian=True,
-             frozen: dict | None = None, scales: dict | None = None, alpha_columns: bool = True) -> Evaluation:
+             frozen: dict | None = None, scales: dict | None = None, alpha_columns: bool = True,
+             warm: dict | None = None) -> Evaluation:
     """Ω(β) with residuals, per-feature statistics and (optionally) the Jacobian J = ∂f/∂β.
 
     Correspondences S_i and their normals/tangents are recomputed at β unless ``frozen``
@@ -351,7 +360,10 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
     ``scales``: robust weight factors to hold (a previous evaluation's ``scales``), so that
     with held correspondences Ω is one fixed weighted least-squares problem; otherwise
     they are computed here from the residuals (``Weights.robust_factors``: Huber δ,
-    outlier rejection). ``alpha_columns``: as for ``add_jacobian``.
+    outlier rejection). ``alpha_columns``: as for ``add_jacobian``. ``warm``: an earlier
+    evaluation's ``correspondence`` of the same data (LM's last state): each surface's search
+    starts from the triangles found there (``correspond(start=)``; the same answer, fewer boxes
+    visited), where a feature's points are the same count (off within ``cold_search``).
     """
     basis = model.basis
     n = basis.Ju.shape[1]
@@ -405,8 +417,11 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
                 nearest = nearest_vertices(tree, Y, feat.near) if kd else None
                 tim["kdtree"] += time.perf_counter() - t0
                 t0 = time.perf_counter()
+                before = warm.get(name) if warm is not None and _warm_search[0] else None
+                start = before.face if before is not None and before.face is not None else None
                 c = corr[name] = (frozen[name] if frozen is not None
-                                  else correspond(feat, X, Y, tree=None if kd else tree, nearest=nearest))
+                                  else correspond(feat, X, Y, tree=None if kd else tree, nearest=nearest,
+                                                  start=start if start is not None and len(start) == len(Y) else None))
                 tim["closest"] += time.perf_counter() - t0
             S, direction = c.S, c.direction
             if held is None:
@@ -499,7 +514,8 @@ def points_of(ev: Evaluation, keep: dict, weights: Weights) -> Evaluation:
         S_kept = S[idx]
         corr[name] = Correspondence(S_kept, None if c.direction is None else c.direction[idx],
                                     None if c.SBJ is None else c.SBJ[idx],
-                                    None if c.S_rest is None else c.S_rest[idx])
+                                    None if c.S_rest is None else c.S_rest[idx],
+                                    None if c.face is None else c.face[idx])
         q_kept = q[on]
         dist = point_distances(ev.f[block][on], new_rows, len(idx))
         wF = weights.features[name] * weights.unit_m ** 2 / len(idx)
@@ -563,6 +579,20 @@ def _alpha_kernel():
     return _jacobian_kernel[0]
 
 
+_warm_search = [True]  # ``cold_search``
+
+
+@contextmanager
+def cold_search():
+    """Within it, ``evaluate`` ignores ``warm``: every surface search starts at the hierarchy's
+    root, as before the warm start (the benches' "before"); process-wide."""
+    _warm_search[0] = False
+    try:
+        yield
+    finally:
+        _warm_search[0] = True
+
+
 @contextmanager
 def numpy_jacobian():
     """Within it, ``add_jacobian`` forms the α columns with SciPy and NumPy, as before the
@@ -622,14 +652,14 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation, alpha_columns: bool =
             kernel[1](S.indptr, S.indices, S.data, feat.rest, local, np.ascontiguousarray(q), dR, rows, S_rest, Jf,
                       swf, Jsf)
             if not c.carries_basis:
-                ev.correspondence[name] = Correspondence(c.S, c.direction, U, S_rest)
+                ev.correspondence[name] = Correspondence(c.S, c.direction, U, S_rest, c.face)
             continue
         U = None
         if alpha_columns:
             U = np.asarray(S @ feat.BJ.reshape(len(local), 3 * n)).reshape(-1, 3, n)
             Jf[:, :n] = -np.einsum("ia,iak->ik", qR, U[rows] if len(q) != S.shape[0] else U)
         if not c.carries_basis:
-            ev.correspondence[name] = Correspondence(c.S, c.direction, U, S @ feat.rest)
+            ev.correspondence[name] = Correspondence(c.S, c.direction, U, S @ feat.rest, c.face)
         Jf[:, n:n + 3] = -q
         xl = (S @ local)[rows]
         for j in range(3):
