@@ -7,7 +7,9 @@ not a test.
 Runs ``navapp serve --edge $EDGE --k $K`` (default 12 and 12) on the demo in this process (cache: $NAVAPP_CACHE or a
 temporary one), opens one 1366 x 768 tab in headless Chromium, collects the sweep and runs
 "Rigid" (the scene of a click in ``tab_latency.py``: preoperative and registered surfaces, the
-data, the error dots), then ROUNDS times goes through the variants in turn (alternated), each
+data, the error dots; $RUNS: other buttons in turn, comma-separated, e.g. "Rigid,Deformable (all
+data)"), prints how far the registered surfaces the tab is sent lie from the state's own, then
+ROUNDS times goes through the variants in turn (alternated), each
 applied, settled 2 s, and measured over 6 s idle: this browser's CPU seconds per frame drawn
 (WebGL clears; viser redraws once a second) and the GPU process's share. Prints medians.
 
@@ -17,7 +19,8 @@ or all); ``far:F`` (the camera F times as far from what it looks at); ``toon5``/
 ``flat`` (every mesh's material); ``lights:none``/``lights:ambient``/``lights:hemi``/
 ``lights:one`` (viser's default lights replaced); ``opaque`` (the preoperative vessels and
 targets opaque); ``square`` (the point clouds drawn as squares); ``noshadow`` (meshes neither
-cast nor receive shadows).
+cast nor receive shadows); ``nopoll`` (the 2D view's page stops polling the server); ``fetchonly`` (it polls
+but sets nothing from the answer).
 """
 import os
 import statistics
@@ -33,6 +36,7 @@ from playwright.sync_api import sync_playwright  # noqa: E402
 from navapp.app.panels import layers as layers_mod  # noqa: E402
 
 PANELS: list = []
+PAGE: list = []  # the tab's page, for the variants made in the browser
 _init = layers_mod.LayersPanel.__init__
 
 
@@ -115,6 +119,19 @@ def variant(name, panel, server):
                 for m, (v, f) in zip(ms, old, strict=True):
                     m.vertices, m.faces = v, f
         return restore
+    if name == "nopoll":  # the 2D view's page stops asking the server for its state (every POLL_MS)
+        frame = next(f for f in PAGE[0].frames if "/us" in f.url or f.parent_frame is not None)
+        frame.evaluate("window.__st = window.setTimeout; window.setTimeout = (f, t) => 0")
+        return lambda: frame.evaluate("window.setTimeout = window.__st; poll()")
+    if name == "fetchonly":  # the 2D view's page polls, but only fetches (its answer read, nothing set)
+        frame = next(f for f in PAGE[0].frames if "/us" in f.url or f.parent_frame is not None)
+        frame.evaluate("""() => { window.__st = window.setTimeout; window.__on = true;
+            window.setTimeout = (f, t) => 0;
+            const loop = async () => { if (!window.__on) return;
+                const r = await fetch(url("/us/state?v=" + encodeURIComponent(etag) + "&dpr=" + window.devicePixelRatio));
+                await r.text(); window.__st(loop, POLL); };
+            window.__st(loop, POLL); }""")
+        return lambda: frame.evaluate("window.__on = false; window.setTimeout = window.__st; poll()")
     if name.startswith("hide:"):
         nodes = panel.nodes[name[5:]]
         for n in nodes:
@@ -183,6 +200,7 @@ if __name__ == "__main__":
         b = p.chromium.launch(executable_path="/usr/bin/chromium", args=["--no-sandbox"])
         pg = b.new_page(viewport={"width": 1366, "height": 768})
         pg.add_init_script(COUNT)
+        PAGE.append(pg)
         for _ in range(600):
             try:
                 pg.goto(f"http://127.0.0.1:{port}")
@@ -194,12 +212,32 @@ if __name__ == "__main__":
             pg.get_by_role("button", name="Collect the whole sweep now").click(timeout=60_000)
             time.sleep(3)
             rows = pg.evaluate("document.querySelectorAll('table tr').length")
-            pg.get_by_role("button", name="Rigid").click(timeout=60_000)
-            t0 = time.time()
-            while pg.evaluate("document.querySelectorAll('table tr').length") <= rows and time.time() - t0 < 300:
-                time.sleep(0.5)
+            for run in os.environ.get("RUNS", "Rigid").split(","):
+                pg.get_by_role("button", name=run).click(timeout=60_000)
+                t0 = time.time()
+                while pg.evaluate("document.querySelectorAll('table tr').length") <= rows and time.time() - t0 < 600:
+                    time.sleep(0.5)
+                rows = pg.evaluate("document.querySelectorAll('table tr').length")
+                time.sleep(2)
         time.sleep(6)
         panel, server = PANELS[-1], PANELS[-1].app.server
+        if os.environ.get("STATE", "run") == "run":  # what the tab is sent against the state's surfaces
+            import numpy as np
+            import trimesh
+
+            surfaces = panel.app.shown.geometry().surfaces
+            for name in ("liver", "portal", "hepatic"):
+                node = panel.reg.get(name)
+                if node is None:
+                    continue
+                v, f = surfaces[name]
+                whole = trimesh.Trimesh(v, f, process=False)
+                drawn = trimesh.Trimesh(node.vertices, node.faces, process=False)
+                out = trimesh.proximity.closest_point(whole, np.asarray(node.vertices, float))[1].max()
+                back = trimesh.proximity.closest_point(drawn, np.asarray(v, float))[1]
+                print(f"registered {name}: {len(node.faces)} of {len(f)} triangles drawn; drawn vertices "
+                      f"within {out:.4f} mm of the surface, the surface within {back.max():.2f} mm of what is "
+                      f"drawn (99th percentile {np.percentile(back, 99):.2f})", flush=True)
         procs = [q for q in psutil.Process().children(recursive=True) if "chrom" in q.name()]
         for r in range(rounds):
             for name in names:
