@@ -11,6 +11,7 @@ continued; afterwards every feature's residual is checked against its expected n
 """
 
 import json
+import math
 import time
 import warnings
 from collections.abc import Callable
@@ -78,11 +79,13 @@ from .rigid import (
 from .rotation import rotation
 from .stages import StageClock, StageTime
 from .support import (
+    Block,
     HeldCheck,
     Support,
     SupportOptions,
     check_support,
     check_support_pair,
+    paired_gain,
     pooled_rms,
     weigh_correction,
 )
@@ -999,11 +1002,23 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         # declared supports are a hypothesis the data can contradict: the free-floating basis's
         # fits to the same held-out blocks (docs/decisions.md, "Declared supports tested by the data")
         t = time.perf_counter()
-        free = check_support(undeclared if undeclared is not None else free_model(model), local, options,
-                             init.support, cancel)
+        unheld = undeclared if undeclared is not None else free_model(model)
+        # judged as the undeclared registration judges its own deformation (the one-standard-error
+        # rule where the declared pose confines it, else the margin): the held-out RMS is the same
+        paired = declared and options.weights.pose_prior is not None and \
+            declared_spread(unheld, options.weights) <= CLINICAL_GOAL_MM
+        free = check_support(unheld, local, options, replace(init.support, surface_se=True) if paired
+                             else init.support, cancel)
         if free is not None and not (cancel is not None and cancel.is_set()):
+            # the held answer's gain over the free basis's fits, block by block (the same folds)
+            pairs = [Block(h.centre, h.points, f.deformable_mm, h.deformable_mm if reg.deformed else h.rigid_mm)
+                     for h, f in zip(support.blocks, free.blocks, strict=False) if np.allclose(h.centre, f.centre)]
+            gain, se = paired_gain(pairs) if pairs and len(pairs) == len(support.blocks) == len(free.blocks) \
+                else (math.nan, math.nan)
             reg.held = HeldCheck(str(model.basis.settings.supports),
-                                 support.deformable_mm if reg.deformed else support.rigid_mm, free.deformable_mm)
+                                 support.deformable_mm if reg.deformed else support.rigid_mm, free.deformable_mm,
+                                 held_deforms=reg.deformed, free_rigid_mm=free.rigid_mm, free_earns=free.predicts,
+                                 gain_mm=gain, gain_se_mm=se)
         sec["supports_check"] = time.perf_counter() - t
         clock.mark("supports_check")
     if fresh and reg.deformed and result is not None and result.stop_reason != "cancelled":

@@ -202,20 +202,40 @@ class HeldCheck:
     held_mm: float
     free_mm: float
     replaced: bool = False  # the answer is the free-floating model's registration
+    held_deforms: bool = False  # the held answer is deformed
+    free_rigid_mm: float = math.nan  # the rigid answer's held-out RMS in the free basis's folds
+    # the free basis's folds earn a deformation by the undeclared registration's own rule
+    free_earns: bool = True
+    # the held answer's held-out gain over the free basis's fits and its paired standard error (mm)
+    gain_mm: float = math.nan
+    gain_se_mm: float = math.nan
 
     @property
     def contradicted(self) -> bool:
         return self.free_mm < self.held_mm
 
     @property
+    def rests_on_supports(self) -> bool:
+        """The held answer deforms where the free-floating basis's fits earn no deformation: only
+        the declaration makes this one (docs/decisions.md, "Wrong supports, session 38")."""
+        return self.held_deforms and not self.replaced and not self.contradicted and not self.free_earns
+
+    @property
     def warning(self) -> str | None:
+        if self.rests_on_supports:
+            return (f"the deformation shown rests on the declared supports ({self.held}): without them the data "
+                    f"earn none (held out {self.free_mm:.2f} mm free-floating against {self.free_rigid_mm:.2f} mm "
+                    f"without deformation; {self.held_mm:.2f} mm held) — check where the organ is held")
         if not self.replaced:
             return None
         return supports_not_borne_out(self.free_mm, self.held_mm, "the free-floating model's answer is shown")
 
     def as_dict(self) -> dict:
         return {"held": self.held, "heldout_held_mm": round(self.held_mm, 3), "heldout_free_mm": round(self.free_mm, 3),
-                "contradicted": self.contradicted, "replaced": self.replaced}
+                "contradicted": self.contradicted, "replaced": self.replaced,
+                "heldout_free_rigid_mm": round(self.free_rigid_mm, 3), "free_earns_deformation": self.free_earns,
+                "rests_on_supports": self.rests_on_supports, "gain_mm": round(self.gain_mm, 4),
+                "gain_se_mm": round(self.gain_se_mm, 4)}
 
 
 def pooled_rms(features: dict, names=None) -> float:
