@@ -215,17 +215,29 @@ class HeldCheck:
         return self.free_mm < self.held_mm
 
     @property
+    def undecided(self) -> bool:
+        """The held answer predicts the held-out blocks better than the free basis's fits by no more
+        than one paired standard error (``paired_gain``): the data do not tell the two apart."""
+        return not math.isnan(self.gain_mm) and not self.gain_mm > self.gain_se_mm
+
+    @property
     def rests_on_supports(self) -> bool:
-        """The held answer deforms where the free-floating basis's fits earn no deformation: only
-        the declaration makes this one (docs/decisions.md, "Wrong supports, session 38")."""
-        return self.held_deforms and not self.replaced and not self.contradicted and not self.free_earns
+        """The held answer deforms, and either the free-floating basis's fits earn no deformation
+        by the undeclared rule, or the held answer's held-out gain over them is within one paired
+        standard error: the declaration, not the data, makes this deformation (docs/decisions.md,
+        "Wrong supports, session 38")."""
+        return self.held_deforms and not self.replaced and not self.contradicted and \
+            (not self.free_earns or self.undecided)
 
     @property
     def warning(self) -> str | None:
         if self.rests_on_supports:
-            return (f"the deformation shown rests on the declared supports ({self.held}): without them the data "
-                    f"earn none (held out {self.free_mm:.2f} mm free-floating against {self.free_rigid_mm:.2f} mm "
-                    f"without deformation; {self.held_mm:.2f} mm held) — check where the organ is held")
+            why = (f"without them the data earn none (held out {self.free_mm:.2f} mm free-floating against "
+                   f"{self.free_rigid_mm:.2f} mm without deformation)" if not self.free_earns else
+                   f"the data do not tell them from a free-floating organ (held out {self.held_mm:.2f} mm held "
+                   f"against {self.free_mm:.2f} mm free, within one standard error, {self.gain_se_mm:.2f} mm)")
+            return f"the deformation shown rests on the declared supports ({self.held}): {why} — check where the " \
+                   "organ is held"
         if not self.replaced:
             return None
         return supports_not_borne_out(self.free_mm, self.held_mm, "the free-floating model's answer is shown")
