@@ -1,3 +1,11 @@
+"""Which wrong-supports answers are worse than the undeclared one without a line, under the
+warning rules of session 38, from the probe's rows (``wrong_supports_probe.py``'s JSONL):
+"A (in code)" as the rows were warned, "A|SE1" also warning a held deformation whose held-out
+gain over the free basis's fits is within one paired standard error (``HeldCheck.undecided``),
+"A|SE2" within two. Worse: by more than 0.1 mm mean TRE.
+
+    python notes/scripts/wrong_supports_rules.py notes/wrong_supports_s38_after.jsonl
+"""
 import json, sys, math
 from collections import defaultdict
 rows = [json.loads(l) for l in open(sys.argv[1])]
