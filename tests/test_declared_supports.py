@@ -146,6 +146,8 @@ def test_support_points_and_springs_reach_the_basis(tmp_path, spied):
     (None, 'held = "posterior"\n', ["--support-stiffness", "0"],
      "--support-stiffness: the supports' stiffness must be"),
     (None, "", ["--support-stiffness", "10"], "--support-stiffness needs declared supports"),
+    ("near", 'held = "posterior"\n', [], "supports.csv: the case has support points but does not declare them"),
+    ("near", "", [], "supports.csv: the case has support points but does not declare them"),
 ])
 def test_a_bad_support_point_or_stiffness_is_one_line(tmp_path, capsys, csv, toml, option, says):
     case = tmp_path / "c"
@@ -153,6 +155,8 @@ def test_a_bad_support_point_or_stiffness_is_one_line(tmp_path, capsys, csv, tom
     if csv == "far":
         text = _surface_points(case, [0])
         csv = text + "500.0,0.0,0.0\n"
+    elif csv == "near":
+        csv = _surface_points(case, [0, 7])
     if csv is not None:
         (case / "preop" / "supports.csv").write_text(csv)
     if toml:

@@ -60,7 +60,7 @@ class HeldSupports:
               points_where=None) -> "HeldSupports":
         """From the words a user wrote; ``where``: the file or option named in the one-line error.
         ``points`` (P, 3) mm: a case's ``preop/supports.csv`` (``points_where``: its path), needed
-        by ``held = points`` and refused with any other support."""
+        by ``held = points`` (another support does not read them)."""
         if held not in {s.value for s in Supports}:
             raise InputError(f"supports must be one of {', '.join(s.value for s in Supports)}, got {held!r}", where)
         if release not in RELEASES:

@@ -58,6 +58,10 @@ def held_supports(args, case):
     held = getattr(args, "supports", None)
     release = getattr(args, "release", None)
     stiffness = getattr(args, "support_stiffness", None)
+    if held is None and points is not None and (declared is None or declared.held != "points"):
+        # a file the case holds but its declaration does not read would look honoured
+        raise InputError("the case has support points but does not declare them: [intraop.supports] held = "
+                         "\"points\" in case.toml (or --supports points)", points_at)
     if held is None:
         if declared is None:
             if release is not None:
