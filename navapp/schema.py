@@ -51,6 +51,7 @@ NAMED = {
     "rotation_deg": Range(0.0, 180.0),
     "mesh_edge_mm": POSITIVE,
     "truth_E_pa": POSITIVE,
+    "stiffness_pa_per_mm": POSITIVE,  # a declared support's springs: zero would hold nothing
 }
 """Exact names."""
 

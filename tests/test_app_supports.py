@@ -86,13 +86,14 @@ def test_a_live_update_says_which_basis_it_fits():
     from types import SimpleNamespace
 
     from navapp.app.live import LiveFollower
+    from navapp.mechanics.basis import BasisSettings
 
     f = LiveFollower.__new__(LiveFollower)
     f.on, f.last_error, f.frames, f.skipped, f.ms = True, None, 3, 0, [10.0, 12.0, 11.0]
 
     def basis(supports, release="N"):
         return SimpleNamespace(model=SimpleNamespace(basis=SimpleNamespace(
-            settings=SimpleNamespace(supports=supports, release=release))))
+            settings=BasisSettings(supports=supports, release=release))))
 
     f.reg = basis(None)
     assert f.summary() == "3 frames re-registered, 11 ms median (max 12 ms), 0 frames skipped while busy"

@@ -7,10 +7,10 @@ import pytest
 
 from navapp.mechanics.basis import BasisSettings, basis_key, compute_basis
 from navapp.mechanics.fem import Material
-from navapp.mechanics.supports import Supports, held_nodes
+from navapp.mechanics.supports import REGIONS, held_nodes
 
 
-@pytest.mark.parametrize("supports", [s.value for s in Supports])
+@pytest.mark.parametrize("supports", [s.value for s in REGIONS])
 def test_every_mode_vanishes_at_the_supports(coarse_mesh, supports):
     held = held_nodes(coarse_mesh, supports)
     assert len(held) > 0
@@ -45,7 +45,7 @@ def test_the_truths_supports_are_the_declared_ones(coarse_mesh):
     """One rule for both: the simulated truth holds exactly the nodes a declared support names."""
     from navapp.simulation.truth import supported_nodes
 
-    for s in Supports:
+    for s in REGIONS:
         ours = held_nodes(coarse_mesh, s)
         theirs = np.unique(np.concatenate(list(supported_nodes(coarse_mesh, "N", s).values())))
         assert np.array_equal(ours, theirs)

@@ -22,6 +22,8 @@ from .targets import TARGETS_DIR, read_targets, write_targets
 from .truth import FIELD_FILE, POINT_COLUMNS, POINTS_FILE, Truth, TruthField, TruthPoints, read_field
 
 LIVER_SIZE_MM = (40.0, 400.0)  # plausible range of a liver's largest extent, for the units check
+SUPPORTS_FILE = "supports.csv"  # preop/: points where the organ is held (x,y,z mm, preoperative frame)
+SUPPORT_REACH_MM = 10.0  # a support point farther than this from the liver surface is refused
 
 
 @dataclass
@@ -58,7 +60,8 @@ CASE_SETTINGS: dict = {
     # the intraoperative data's frame is registered to the preoperative one, to within these
     # standard deviations per axis (``registration.prior.PosePrior``); absent or known = false: unknown
     # where the organ is held (``mechanics.supports.HeldSupports``): the registration's basis vanishes there
-    "intraop": {"pose": {"known": bool, "sd_mm": Real, "sd_deg": Real}, "supports": {"held": str, "release": str}},
+    "intraop": {"pose": {"known": bool, "sd_mm": Real, "sd_deg": Real},
+                "supports": {"held": str, "release": str, "stiffness_pa_per_mm": Real}},
 }
 """Every key case.toml may hold, with its type; a table's keys are listed in a dict. Keys
 navapp does not read are refused: a setting that is silently ignored looks honoured."""
@@ -248,7 +251,8 @@ def read_case(folder) -> Case:
     folder : str or Path
         holds ``preop/liver.ply`` (required) and optionally ``case.toml``, the vessels
         (``preop/{portal,hepatic}.ply`` and ``_centerline.csv``), ``preop/fiducials.csv``,
-        ``preop/regions.csv``, ``preop/targets/``, ``intraop/<feature>.csv`` (the names of
+        ``preop/regions.csv``, ``preop/targets/``, ``preop/supports.csv`` (points on the
+        surface where the organ is held), ``intraop/<feature>.csv`` (the names of
         ``navapp.features.NAMES``) and the truth: ``truth/field.npz`` (a simulated case)
         or ``truth/targets.csv`` (measured point pairs).
 
@@ -322,6 +326,9 @@ def read_case(folder) -> Case:
     tdir = pre / TARGETS_DIR
     if tdir.is_dir():
         model.targets = read_targets(tdir, liver)
+    sp_ = pre / SUPPORTS_FILE
+    if sp_.exists():
+        model.support_points = read_support_points(sp_, liver)
     intraop = {}
     idir = folder / "intraop"
     if idir.is_dir():
@@ -333,6 +340,19 @@ def read_case(folder) -> Case:
                 continue
             intraop[p.stem] = read_csv(p, ("x", "y", "z"), points=True)
     return Case(preop=model, intraop=intraop, truth=read_truth(folder), settings=settings)
+
+
+def read_support_points(path: Path, liver: trimesh.Trimesh) -> np.ndarray:
+    """``preop/supports.csv``: (P, 3) mm, each within ``SUPPORT_REACH_MM`` of the liver surface
+    (a point off it is refused in one line: it names no part of the surface)."""
+    pts = read_csv(path, ("x", "y", "z"))
+    _, dist, _ = trimesh.proximity.closest_point(liver, pts)
+    far = np.flatnonzero(dist > SUPPORT_REACH_MM)
+    if len(far):
+        i = int(far[np.argmax(dist[far])])
+        raise InputError(f"{len(far)} of {len(pts)} support points are not on the liver surface: row {i + 1} is "
+                         f"{dist[i]:.1f} mm from it (at most {SUPPORT_REACH_MM:g} mm; preoperative frame, mm)", path)
+    return pts
 
 
 def read_truth(folder) -> Truth | None:
@@ -394,6 +414,8 @@ def write_preop(model: PreopModel, folder):
         (pre / "regions.csv").write_text("label\n" + "\n".join(REGION_NAMES[c] for c in model.regions) + "\n")
     if model.targets:
         write_targets(model.targets, pre / TARGETS_DIR)
+    if model.support_points is not None:
+        write_csv(pre / SUPPORTS_FILE, model.support_points, ("x", "y", "z"))
     if not (folder / "case.toml").exists():
         write_settings(folder, {"name": model.name, "units": "mm"})
 

@@ -104,6 +104,7 @@ class PreopModel:
     name: str = "liver"
     meta: dict = field(default_factory=dict)
     targets: list[Target] = field(default_factory=list)  # tumours (preop/targets/); empty: none
+    support_points: np.ndarray | None = None  # (P, 3) mm, preop/supports.csv: where the organ is held
 
     def vessel(self, name: str) -> trimesh.Trimesh | None:
         return getattr(self, name)

@@ -164,7 +164,7 @@ class Core:
         model, _ = self.need_model()
         built = self.model_for(held)
         if built is None:
-            built = held_model(model, held.held.value, held.release, self.cache_root)
+            built = held_model(model, held.held.value, held.release, self.cache_root, held.stiffness, held.points)
             with self.lock:
                 built = self.models.setdefault(held, built)
         return built

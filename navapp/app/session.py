@@ -111,7 +111,7 @@ class Session:
 
     def stated_supports(self, sd: SceneData) -> StatedSupports:
         """Where the organ is held as stated in the viewer, else as the case declares it."""
-        return self.supports if self.supports is not None else StatedSupports.of_case(case_supports(sd.case.settings))
+        return self.supports if self.supports is not None else _case_supports(sd)
 
     # ------------------------------------------------------------ persistence
     def to_json(self) -> dict:
@@ -163,19 +163,25 @@ def _write_case(folder: Path, sd: SceneData):
         write_truth(sd.case.truth, folder)
 
 
+def _case_supports(sd: SceneData) -> StatedSupports:
+    """Where the case declares its organ held (case.toml and preop/supports.csv)."""
+    return StatedSupports.of_case(case_supports(sd.case.settings, points=sd.case.preop.support_points))
+
+
 def _settings(sd: SceneData, stated: StatedPose | None, supports: StatedSupports | None = None) -> dict:
     """case.toml: the name, the units, the pose of the data and where the organ is held, as
     stated (the case's own declarations until the viewer states them), so that ``navapp register
     SESSION`` starts from what the viewer knew. A pose known from the previous registration has no
     place there (the command has no previous registration): it is written unknown."""
     stated = stated or StatedPose.of_case(declared_pose(sd.case.settings))
-    held = (supports or StatedSupports.of_case(case_supports(sd.case.settings))).held
+    held = (supports or _case_supports(sd)).held
     settings: dict = {"name": _case_name(sd), "units": "mm"}
     intraop: dict = {}
     if stated.frame is PoseFrame.GIVEN:
         intraop["pose"] = {"known": True, "sd_mm": float(stated.sd_mm), "sd_deg": float(stated.sd_deg)}
     if held is not None:
-        intraop["supports"] = {"held": held.held.value, "release": held.release}
+        # the points stay in preop/supports.csv (written with the preoperative model)
+        intraop["supports"] = {k: v for k, v in held.as_dict().items() if k != "points"}
     if intraop:
         settings["intraop"] = intraop
     return settings

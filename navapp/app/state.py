@@ -16,6 +16,7 @@ from enum import Enum
 
 import numpy as np
 
+from ..errors import InputError
 from ..fitwarning import FitWarning, WarningKind, one_line
 from ..mechanics.supports import RELEASES, HeldSupports, Supports
 from ..registration.model import RegistrationModel
@@ -301,34 +302,45 @@ class StatedSupports:
 
     def to_json(self) -> dict:
         h = self.held
-        return {"held": None if h is None else h.held.value, "release": "N" if h is None else h.release}
+        return {"held": None, "release": "N"} if h is None else h.as_dict()
 
     @staticmethod
     def from_json(d) -> StatedSupports:
-        """Raises ValueError (with what is wrong) for anything but a stated supports' record."""
-        if not isinstance(d, dict) or set(d) != {"held", "release"}:
-            raise ValueError(f"supports: {d!r} is not {{held, release}}")
+        """Raises ValueError (with what is wrong) for anything but a stated supports' record:
+        ``held``, ``release`` and, where given, ``stiffness_pa_per_mm`` and ``points``."""
+        if not isinstance(d, dict) or not {"held", "release"} <= set(d) <= SUPPORT_KEYS:
+            raise ValueError(f"supports: {d!r} is not {{held, release[, stiffness_pa_per_mm, points]}}")
         if d["held"] is None:
             return StatedSupports()
         if d["release"] not in RELEASES:
             raise ValueError(f"supports: the released side {d['release']!r} is not L, N or R")
-        return StatedSupports(HeldSupports(Supports(d["held"]), d["release"]))
+        try:
+            return StatedSupports(HeldSupports.parse(d["held"], d["release"], stiffness=d.get("stiffness_pa_per_mm"),
+                                                     points=d.get("points")))
+        except InputError as exc:
+            raise ValueError(f"supports: {exc}") from None
+
+
+SUPPORT_KEYS = {"held", "release", "stiffness_pa_per_mm", "points"}  # a stated supports' record
 
 
 def supports_words(held: HeldSupports | None) -> str:
     """Where a basis holds the organ, in a surgeon's words."""
     if held is None:
         return "free-floating (no supports stated)"
+    firm = "" if held.stiffness is None else f", on springs of {held.stiffness:g} Pa/mm"
     if held.held is Supports.LIGAMENTS:
         side = {"L": ", the left one released", "R": ", the right one released"}.get(held.release, "")
-        return f"held at its ligaments{side}"
-    return "held on a posterior bed" if held.held is Supports.POSTERIOR else "held at the bare area alone"
+        return f"held at its ligaments{side}{firm}"
+    if held.held is Supports.POINTS:
+        return f"held at {len(held.points)} points on its surface{firm}"
+    return ("held on a posterior bed" if held.held is Supports.POSTERIOR else "held at the bare area alone") + firm
 
 
 def held_of(model: RegistrationModel) -> HeldSupports | None:
     """The supports ``model``'s basis is held at (None: free-floating)."""
     s = model.basis.settings
-    return None if s.supports is None else HeldSupports(Supports(s.supports), s.release)
+    return None if s.supports is None else HeldSupports(Supports(s.supports), s.release, s.stiffness, s.points)
 
 
 class RunKind(Enum):

@@ -71,7 +71,7 @@ def declared_supports(case) -> dict:
     """Where the case says its organ is held (case.toml ``[intraop.supports]``), else where its
     scene held it (its ``supports`` and ``release``: what a surgeon declaring the supports would
     say), as ``prepare``'s keyword arguments."""
-    held = case_supports(case.settings)
+    held = case_supports(case.settings, points=case.preop.support_points)
     if held is not None:
         return held.prepare_args()
     scene = load_scene(case.settings["scene"])

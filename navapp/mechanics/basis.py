@@ -38,7 +38,7 @@ from ..defaults import K
 from .controlpoints import geodesic_tiles, nodal_areas, place_control_points
 from .fem import Material, nodal_strain_operator, stiffness
 from .sparse import Factorisation, backend
-from .supports import held_nodes
+from .supports import Conditions, conditions
 
 BASIS_VERSION = "basis-2"  # bump when the computation changes: it is part of the cache key
 
@@ -65,6 +65,11 @@ class BasisSettings:
         them. None: the free-floating basis of the paper.
     release : str
         with ``supports = "ligaments"``: the side released (L, N or R).
+    stiffness : float or None
+        how firmly the supports hold, Pa/mm: on springs this stiff (every mode moves there
+        elastically; ``mechanics.supports.conditions``). None: held (zero displacement).
+    points : tuple
+        with ``supports = "points"``: the support points ((x, y, z), …) mm.
     """
 
     k: int = K
@@ -76,6 +81,14 @@ class BasisSettings:
     relax_layers: int | None = 6
     supports: str | None = None  # a ``Supports`` name: zero displacement there in every mode
     release: str = "N"
+    stiffness: float | None = None  # Pa/mm: springs at the supports instead of zero displacement
+    points: tuple = ()  # with supports = "points": ((x, y, z), …) mm
+
+    def conditions(self, mesh: TetMesh) -> Conditions | None:
+        """The declared supports as boundary conditions on ``mesh`` (None: free-floating)."""
+        if self.supports is None:
+            return None
+        return conditions(mesh, self.supports, self.release, self.points, self.stiffness)
 
 
 @dataclass
@@ -157,7 +170,7 @@ def grow(A, mask, layers):
     return mask
 
 
-def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None, layers=None, held=None):
+def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None, layers=None, held=None, support=None):
     """Saint-Venant relaxation of every point-load mode (choice 2 of the module doc).
 
     K (3M × 3M); U (3M × 3k) point-load modes; R (3k × 3k) their control reactions;
@@ -170,6 +183,8 @@ def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None, layers=No
     d = 0 beyond them (and, as in the exact problem, on the held surface nodes).
     ``on_tile(i)`` is called after each tile (progress). ``held`` (H,): nodes of a declared
     support, fixed at zero in every solve; a tile's load is spread over its other nodes.
+    ``support`` (default ``held``): the nodes no load is spread on — a support on springs
+    (its springs in K) takes none either, so that a stiff spring tends to held.
     """
     n = K.shape[0]
     M = n // 3
@@ -181,23 +196,26 @@ def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None, layers=No
     if held is not None:
         is_held[held] = True
     movable &= ~is_held
+    on_support = is_held.copy()
+    if support is not None:
+        on_support[support] = True
     A = node_adjacency(K) if layers is not None else None
     for c in range(len(control)):
-        in_tile = (tiles == c) & ~is_held[surface]
-        tile_nodes = surface[in_tile]
-        w = areas[in_tile] / areas[in_tile].sum()
+        tile_nodes = surface[(tiles == c) & ~is_held[surface]]  # free in this solve (springs move)
+        loaded = (tiles == c) & ~on_support[surface]  # the tile's load goes on these
+        w = areas[loaded] / areas[loaded].sum()
         free_nodes = movable.copy()
         free_nodes[tile_nodes] = True
         if layers is not None:
             region = np.zeros(M, bool)
-            region[tile_nodes] = True
+            region[surface[loaded]] = True  # grown from where the load is: a spring node adds no ring
             free_nodes &= grow(A, region, layers)
         free = _dofs(np.flatnonzero(free_nodes))
         cols = 3 * c + np.arange(3)
         r = R[3 * c:3 * c + 3][:, cols]  # (3 force axes, 3 modes)
         Kf = K[free]
         rhs = -(Kf @ U[:, cols])  # minus the point-load forces: the reaction at c (and solver residue)
-        pos = np.searchsorted(free, 3 * tile_nodes)  # tile nodes are free: their x DOF rows
+        pos = np.searchsorted(free, 3 * surface[loaded])  # loaded nodes are free: their x DOF rows
         for a in range(3):
             rhs[pos + a] += np.outer(w, r[a])
         with Factorisation(Kf[:, free]) as F:
@@ -227,12 +245,17 @@ def compute_basis(mesh: TetMesh, settings: BasisSettings = BasisSettings(), mate
     t = time.perf_counter()
     faces = mesh.boundary_faces()
     surface = np.unique(faces)
-    held = np.zeros(0, int) if settings.supports is None else held_nodes(mesh, settings.supports, settings.release)
+    cond = settings.conditions(mesh)
+    held = np.zeros(0, int) if cond is None else cond.held  # on springs: none held, K stiffened
     with progress.stage(f"{label}: assemble"):
         K = stiffness(mesh.nodes, mesh.tets, material)
+        if cond is not None:
+            K = cond.stiffen(K)
     timings["assemble"] = time.perf_counter() - t
     t = time.perf_counter()
-    control = place_control_points(mesh.nodes, np.setdiff1d(surface, held), settings.k, settings.seed)
+    # no control point on a support, held or on springs: a stiff spring then tends to held
+    support = np.zeros(0, int) if cond is None else cond.nodes
+    control = place_control_points(mesh.nodes, np.setdiff1d(surface, support), settings.k, settings.seed)
     tiles = geodesic_tiles(mesh.nodes, faces, surface, control)
     areas = nodal_areas(mesh.nodes, faces, surface)
     timings["control_points"] = time.perf_counter() - t
@@ -244,7 +267,7 @@ def compute_basis(mesh: TetMesh, settings: BasisSettings = BasisSettings(), mate
     if settings.relax:
         with progress.bar(settings.k, f"{label}: relax tiles", "tile") as pb:
             Ju = relax_modes(K, U, R, control, surface, tiles, areas, on_tile=lambda c: pb.update(1),
-                             layers=settings.relax_layers, held=held)
+                             layers=settings.relax_layers, held=held, support=support)
     else:
         Ju = U
     timings["relax"] = time.perf_counter() - t
@@ -259,6 +282,9 @@ def basis_key(mesh: TetMesh, settings: BasisSettings, material: Material) -> str
     d = asdict(settings)
     if d["supports"] is None:  # the free-floating basis keeps the key it had before supports existed
         del d["supports"], d["release"]
+    for name in ("stiffness", "points"):  # and a held one the key it had before springs and points
+        if d[name] is None or d[name] == ():
+            del d[name]
     return cache.content_key(BASIS_VERSION, mesh.nodes, mesh.tets, d, asdict(material))
 
 

@@ -29,12 +29,16 @@ def add_register_parser(sub):
                         "(standard deviations per axis): a pose prior holds what the data cannot determine; "
                         "'none': an unknown frame (the multi-start search). Default: the case's [intraop.pose]")
     s.add_argument("--supports", metavar="HELD",
-                   help="where the organ is held (ligaments, posterior or bare_area; 'none': free-floating, the "
-                        "paper's basis): every mode of the basis vanishes there. Default: the case's "
-                        "[intraop.supports]")
+                   help="where the organ is held (ligaments, posterior, bare_area, or points: the case's "
+                        "preop/supports.csv; 'none': free-floating, the paper's basis): every mode of the basis "
+                        "vanishes there. Default: the case's [intraop.supports]")
     s.add_argument("--release", metavar="SIDE",
                    help="with --supports ligaments: the ligament released, L, N (none) or R. Default: the case's, "
                         "else N")
+    s.add_argument("--support-stiffness", metavar="PA_PER_MM", type=float,
+                   help="the supports hold on springs this stiff (Pa per mm of displacement) instead of firmly: "
+                        "every mode moves there elastically. Default: the case's [intraop.supports] "
+                        "stiffness_pa_per_mm, else held firmly")
     s.add_argument("--surface-forces", action="store_true",
                    help="with declared supports: no deformation, the basis's fit or a force at every surface node, "
                         "whichever predicts held-out surface data best (a local dent; 15-35 s; docs/robustness.md)")
@@ -43,24 +47,44 @@ def add_register_parser(sub):
 
 
 def held_supports(args, case):
-    """The supports a registration holds its basis at: ``--supports``/``--release`` where given,
-    else the case's ``[intraop.supports]``; None: free-floating."""
+    """The supports a registration holds its basis at: ``--supports``/``--release``/
+    ``--support-stiffness`` where given, else the case's ``[intraop.supports]`` (its points:
+    ``preop/supports.csv``); None: free-floating."""
+    from ..anatomy.caseio import SUPPORTS_FILE
     from ..mechanics.supports import HeldSupports, case_supports
 
-    declared = case_supports(case.settings, Path(args.case) / "case.toml")
+    points, points_at = case.preop.support_points, Path(args.case) / "preop" / SUPPORTS_FILE
+    declared = case_supports(case.settings, Path(args.case) / "case.toml", points)
     held = getattr(args, "supports", None)
     release = getattr(args, "release", None)
+    stiffness = getattr(args, "support_stiffness", None)
+    if held is None and points is not None and (declared is None or declared.held != "points"):
+        # a file the case holds but its declaration does not read would look honoured
+        raise InputError("the case has support points but does not declare them: [intraop.supports] held = "
+                         "\"points\" in case.toml (or --supports points)", points_at)
     if held is None:
         if declared is None:
             if release is not None:
                 raise InputError("--release needs --supports ligaments (or [intraop.supports] in case.toml)")
+            if stiffness is not None:
+                raise InputError("--support-stiffness needs declared supports (--supports HELD, or "
+                                 "[intraop.supports] in case.toml)")
             return None
-        return declared if release is None else HeldSupports.parse(declared.held.value, release, "--release")
+        if release is None and stiffness is None:
+            return declared
+        return HeldSupports.parse(declared.held.value, release or declared.release,
+                                  "--release" if release is not None else "--support-stiffness",
+                                  declared.stiffness if stiffness is None else stiffness, points, points_at)
     if held == "none":
         if release is not None:
             raise InputError("--release with --supports none: a free-floating organ has no ligaments to release")
+        if stiffness is not None:
+            raise InputError("--support-stiffness with --supports none: a free-floating organ has no supports")
         return None
-    return HeldSupports.parse(held, release or (declared.release if declared is not None else "N"), "--supports")
+    if stiffness is None and declared is not None:
+        stiffness = declared.stiffness
+    return HeldSupports.parse(held, release or (declared.release if declared is not None else "N"), "--supports",
+                              stiffness, points, points_at)
 
 
 def cmd_register(args):
@@ -102,7 +126,7 @@ def cmd_register(args):
     summary: dict = {"case": case.name, "nodes": model.basis.M, "k": model.basis.k,
                "features": {n: len(p) for n, p in reg.data_model_frame.items()},
                "rigid": {"iterations": reg.rigid.iterations, "rms_mm": reg.rigid.rms_mm},
-               "supports": None if held is None else {"held": held.held.value, "release": held.release}}
+               "supports": None if held is None else held.as_dict()}
     if reg.libr is not None:
         r = reg.libr
         summary.update(iterations=r.iterations, stop_reason=r.stop_reason, omega=r.omega,

@@ -55,7 +55,6 @@ from ..geometry.closest import NEAR, closest_on_surface, incidence, surface_norm
 from ..mechanics.basis import Basis
 from ..mechanics.fem import stiffness
 from ..mechanics.sparse import Factorisation
-from ..mechanics.supports import held_nodes
 from ..threads import limit_threads
 from .libr import LMOptions, register_libr
 from .model import RegistrationModel, deform
@@ -187,19 +186,19 @@ class SurfaceForces:
     held nodes); raises ValueError for a free-floating basis (K would be singular)."""
 
     def __init__(self, basis: Basis):
-        if basis.settings.supports is None:
+        cond = basis.settings.conditions(TetMesh(basis.nodes, basis.tets))
+        if cond is None:
             raise ValueError("surface forces need declared supports: a free-floating organ has no unique "
                              "displacement under a load (prepare(..., supports=...))")
-        mesh = TetMesh(basis.nodes, basis.tets)
         self.nodes, self.faces = basis.nodes, basis.surface_faces
         self.M = len(basis.nodes)
-        held = held_nodes(mesh, basis.settings.supports, basis.settings.release)
+        held = cond.held  # none on springs: K stiffened there instead
         fixed = np.zeros(self.M, bool)
         fixed[held] = True
         self.surface = np.setdiff1d(basis.surface, held)  # the nodes a force may act on
         free_nodes = np.flatnonzero(~fixed)
         self.free = (3 * free_nodes[:, None] + np.arange(3)).ravel()
-        K = stiffness(basis.nodes, basis.tets, basis.material).tocsr()
+        K = cond.stiffen(stiffness(basis.nodes, basis.tets, basis.material))
         self.F = Factorisation(K[self.free][:, self.free])
         pos = np.full(self.M, -1)
         pos[free_nodes] = np.arange(len(free_nodes))

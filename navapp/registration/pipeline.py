@@ -11,6 +11,7 @@ continued; afterwards every feature's residual is checked against its expected n
 """
 
 import json
+import math
 import time
 import warnings
 from collections.abc import Callable
@@ -78,11 +79,13 @@ from .rigid import (
 from .rotation import rotation
 from .stages import StageClock, StageTime
 from .support import (
+    Block,
     HeldCheck,
     Support,
     SupportOptions,
     check_support,
     check_support_pair,
+    paired_gain,
     pooled_rms,
     weigh_correction,
 )
@@ -323,7 +326,7 @@ def deform_points(basis: Basis, centroid, beta, points, B=None) -> np.ndarray:
 
 
 def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None, supports: str | None = None,
-            release: str = "N") -> tuple[RegistrationModel, dict]:
+            release: str = "N", stiffness: float | None = None, points: tuple = ()) -> tuple[RegistrationModel, dict]:
     """Mesh, basis and registration model of a case, each cached by content.
 
     Parameters
@@ -341,7 +344,11 @@ def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None, supports: str | None
         where the organ is held (``mechanics.supports.Supports``: ligaments, posterior,
         bare_area; ``release`` L, N or R for the ligaments): every mode of the basis vanishes
         there, so the organ moves only as its supports let it, and the rigid parameters are
-        the tracker's. None: the paper's free-floating basis.
+        the tracker's. None: the paper's free-floating basis. ``points``: with
+        ``supports="points"``, the support points ((x, y, z), …) mm (a case's preop/supports.csv).
+    stiffness : float, optional
+        Pa/mm: the supports hold on springs this stiff (every mode moves there elastically);
+        None: held firmly (zero displacement).
 
     Returns
     -------
@@ -350,7 +357,7 @@ def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None, supports: str | None
     seconds : dict
         ``mesh``, ``basis``, ``model``: wall time of each stage (a cache hit is fast).
     """
-    basis, report, sec = mesh_and_basis(case.preop.liver, edge, k, cache_root, supports, release)
+    basis, report, sec = mesh_and_basis(case.preop.liver, edge, k, cache_root, supports, release, stiffness, points)
     t = time.perf_counter()
     model = build_model(basis, case.preop, case.preop.fiducials)
     model.mesher = MeshProvenance.from_report(report)
@@ -359,7 +366,8 @@ def prepare(case: Case, edge=EDGE_MM, k=K, cache_root=None, supports: str | None
 
 
 def mesh_and_basis(liver, edge=EDGE_MM, k=K, cache_root=None, supports: str | None = None,
-                   release: str = "N") -> tuple[Basis, dict, dict]:
+                   release: str = "N", stiffness: float | None = None,
+                   points: tuple = ()) -> tuple[Basis, dict, dict]:
     """``prepare``'s first two stages: the tetrahedral mesh of ``liver`` (a closed surface,
     mm) and its deformation basis, each cached by content. Needs the preoperative liver only,
     so a viewer makes it ahead while its scene is simulated. Returns the basis, the mesher's
@@ -372,7 +380,8 @@ def mesh_and_basis(liver, edge=EDGE_MM, k=K, cache_root=None, supports: str | No
     if k > len(np.unique(mesh.boundary_faces())):
         raise InputError(f"--k {k} is more control points than the mesh has surface nodes "
                          f"({len(np.unique(mesh.boundary_faces()))} at {edge:g} mm): use a smaller k or a finer edge")
-    basis, _ = load_or_compute_basis(mesh, BasisSettings(k=k, supports=supports, release=release),
+    basis, _ = load_or_compute_basis(mesh, BasisSettings(k=k, supports=supports, release=release,
+                                                         stiffness=stiffness, points=tuple(points)),
                                      cache_root=cache_root)
     sec["basis"] = time.perf_counter() - t
     return basis, report, sec
@@ -634,12 +643,15 @@ def free_model(model: RegistrationModel, cache_root=None) -> RegistrationModel:
     return held_model(model, None, model.basis.settings.release, cache_root)
 
 
-def held_model(model: RegistrationModel, held: str | None, release: str = "N", cache_root=None) -> RegistrationModel:
+def held_model(model: RegistrationModel, held: str | None, release: str = "N", cache_root=None,
+               stiffness: float | None = None, points: tuple = ()) -> RegistrationModel:
     """``model`` with its basis held at the declared supports ``held`` (``mechanics.supports``;
-    ``release``: the ligament released; None: free-floating): the same mesh, features and k,
-    every mode vanishing there (from the basis cache; computed and cached when absent)."""
+    ``release``: the ligament released; ``stiffness``: on springs, Pa/mm; ``points``: with
+    ``held="points"``; None: free-floating): the same mesh, features and k, every mode vanishing
+    there, or moving on the springs (from the basis cache; computed and cached when absent)."""
     basis = model.basis
-    settings = replace(basis.settings, supports=held, release=release)
+    settings = replace(basis.settings, supports=held, release=release, stiffness=None if held is None else stiffness,
+                       points=() if held is None else tuple(points))
     if settings == basis.settings:
         return model
     other, _ = load_or_compute_basis(TetMesh(basis.nodes, basis.tets), settings, basis.material,
@@ -990,11 +1002,23 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         # declared supports are a hypothesis the data can contradict: the free-floating basis's
         # fits to the same held-out blocks (docs/decisions.md, "Declared supports tested by the data")
         t = time.perf_counter()
-        free = check_support(undeclared if undeclared is not None else free_model(model), local, options,
-                             init.support, cancel)
+        unheld = undeclared if undeclared is not None else free_model(model)
+        # judged as the undeclared registration judges its own deformation (the one-standard-error
+        # rule where the declared pose confines it, else the margin): the held-out RMS is the same
+        paired = declared and options.weights.pose_prior is not None and \
+            declared_spread(unheld, options.weights) <= CLINICAL_GOAL_MM
+        free = check_support(unheld, local, options, replace(init.support, surface_se=True) if paired
+                             else init.support, cancel)
         if free is not None and not (cancel is not None and cancel.is_set()):
+            # the held answer's gain over the free basis's fits, block by block (the same folds)
+            pairs = [Block(h.centre, h.points, f.deformable_mm, h.deformable_mm if reg.deformed else h.rigid_mm)
+                     for h, f in zip(support.blocks, free.blocks, strict=False) if np.allclose(h.centre, f.centre)]
+            gain, se = paired_gain(pairs) if pairs and len(pairs) == len(support.blocks) == len(free.blocks) \
+                else (math.nan, math.nan)
             reg.held = HeldCheck(str(model.basis.settings.supports),
-                                 support.deformable_mm if reg.deformed else support.rigid_mm, free.deformable_mm)
+                                 support.deformable_mm if reg.deformed else support.rigid_mm, free.deformable_mm,
+                                 held_deforms=reg.deformed, free_rigid_mm=free.rigid_mm, free_earns=free.predicts,
+                                 gain_mm=gain, gain_se_mm=se)
         sec["supports_check"] = time.perf_counter() - t
         clock.mark("supports_check")
     if fresh and reg.deformed and result is not None and result.stop_reason != "cancelled":

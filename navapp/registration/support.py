@@ -202,20 +202,52 @@ class HeldCheck:
     held_mm: float
     free_mm: float
     replaced: bool = False  # the answer is the free-floating model's registration
+    held_deforms: bool = False  # the held answer is deformed
+    free_rigid_mm: float = math.nan  # the rigid answer's held-out RMS in the free basis's folds
+    # the free basis's folds earn a deformation by the undeclared registration's own rule
+    free_earns: bool = True
+    # the held answer's held-out gain over the free basis's fits and its paired standard error (mm)
+    gain_mm: float = math.nan
+    gain_se_mm: float = math.nan
 
     @property
     def contradicted(self) -> bool:
         return self.free_mm < self.held_mm
 
     @property
+    def undecided(self) -> bool:
+        """The held answer predicts the held-out blocks better than the free basis's fits by no more
+        than one paired standard error (``paired_gain``): the data do not tell the two apart."""
+        return not math.isnan(self.gain_mm) and not self.gain_mm > self.gain_se_mm
+
+    @property
+    def rests_on_supports(self) -> bool:
+        """The held answer deforms, and either the free-floating basis's fits earn no deformation
+        by the undeclared rule, or the held answer's held-out gain over them is within one paired
+        standard error: the declaration, not the data, makes this deformation (docs/decisions.md,
+        "Wrong supports, session 38")."""
+        return self.held_deforms and not self.replaced and not self.contradicted and \
+            (not self.free_earns or self.undecided)
+
+    @property
     def warning(self) -> str | None:
+        if self.rests_on_supports:
+            why = (f"without them the data earn none (held out {self.free_mm:.2f} mm free-floating against "
+                   f"{self.free_rigid_mm:.2f} mm without deformation)" if not self.free_earns else
+                   f"the data do not tell them from a free-floating organ (held out {self.held_mm:.2f} mm held "
+                   f"against {self.free_mm:.2f} mm free, within one standard error, {self.gain_se_mm:.2f} mm)")
+            return f"the deformation shown rests on the declared supports ({self.held}): {why} — check where the " \
+                   "organ is held"
         if not self.replaced:
             return None
         return supports_not_borne_out(self.free_mm, self.held_mm, "the free-floating model's answer is shown")
 
     def as_dict(self) -> dict:
         return {"held": self.held, "heldout_held_mm": round(self.held_mm, 3), "heldout_free_mm": round(self.free_mm, 3),
-                "contradicted": self.contradicted, "replaced": self.replaced}
+                "contradicted": self.contradicted, "replaced": self.replaced,
+                "heldout_free_rigid_mm": round(self.free_rigid_mm, 3), "free_earns_deformation": self.free_earns,
+                "rests_on_supports": self.rests_on_supports, "gain_mm": round(self.gain_mm, 4),
+                "gain_se_mm": round(self.gain_se_mm, 4)}
 
 
 def pooled_rms(features: dict, names=None) -> float:

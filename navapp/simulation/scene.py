@@ -37,7 +37,7 @@ from pathlib import Path
 
 from ..defaults import N_PLANES
 from ..errors import InputError
-from ..mechanics.supports import RELEASES, Supports
+from ..mechanics.supports import REGIONS, RELEASES
 from .effects import Effect
 from .sources import registered
 
@@ -68,7 +68,7 @@ class Transposition:
 _TRANSPOSE_KEYS = {"phantom": int, "mesh_edge_mm": float}
 
 TOOL_SITES = ("anterior", "inferior")
-SUPPORTS = tuple(s.value for s in Supports)  # what may hold the liver, one home: ``mechanics.supports``
+SUPPORTS = tuple(s.value for s in REGIONS)  # what may hold the liver, one home: ``mechanics.supports``
 
 
 @dataclass(frozen=True)
