@@ -5,11 +5,17 @@ and one JSON line per registration on stdout (the answer, its lines, its TRE). J
 offline from these (``band_targets_judge.py``) without registering again.
 
     python notes/scripts/band_targets_collect.py OUT CASE...
+    python notes/scripts/band_targets_collect.py --both OUT CASE...
+
+``--both``: also the estimate with s read from the mean square alone (as before session 38's
+robust reading), from the same registration, into OUT_mean_square (the registrations are the
+same either way: nothing decides on the estimate before the answer is chosen).
 """
 
 import json
 import sys
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -18,15 +24,28 @@ from navapp import progress
 from navapp.anatomy.caseio import read_case
 from navapp.evaluation.loads import declared_prior
 from navapp.geometry.interpolation import interpolation_matrix
+from navapp.registration import uncertainty
 from navapp.registration.pipeline import prepare, register
 from navapp.registration.uncertainty import estimate_error
 from navapp.simulation.levels import data_level
 
 progress.QUIET = True
 warnings.simplefilter("ignore")
-out = Path(sys.argv[1])
+both = "--both" in sys.argv
+args = [a for a in sys.argv[1:] if a != "--both"]
+out = Path(args[0])
 out.mkdir(parents=True, exist_ok=True)
-for case_dir in sys.argv[2:]:
+plain_out = Path(f"{out}_mean_square")
+if both:
+    plain_out.mkdir(parents=True, exist_ok=True)
+robust_information = uncertainty.information
+
+
+def mean_square_information(*a, **k):
+    return replace(robust_information(*a, **k), robust_scale=None)
+
+
+for case_dir in args[1:]:
     name = case_dir.rstrip("/").split("/")[-1]
     case = read_case(case_dir)
     model, _ = prepare(case)
@@ -41,6 +60,15 @@ for case_dir in sys.argv[2:]:
         np.savez(out / f"{name}_{level}.npz", err=err, shown=shown, d=est.distance_mm, sigma=est.sigma_mm,
                  m=est.spread_mm, pose_sigma=est.pose_sigma_mm, pred=est.predicted_mm, lower=est.lower_mm,
                  upper=est.upper_mm)
+        if both:
+            uncertainty.information = mean_square_information
+            try:
+                plain = estimate_error(reg, points=x0, B=B)
+            finally:
+                uncertainty.information = robust_information
+            np.savez(plain_out / f"{name}_{level}.npz", err=np.linalg.norm(plain.positions - x1, axis=1), shown=shown,
+                     d=plain.distance_mm, sigma=plain.sigma_mm, m=plain.spread_mm, pose_sigma=plain.pose_sigma_mm,
+                     pred=plain.predicted_mm, lower=plain.lower_mm, upper=plain.upper_mm)
         sup = reg.support
         print(json.dumps({"case": name, "level": level, "deformed": reg.deformed,
                           "tre_shown": round(float(shown.mean()), 3), "tre_fit": round(float(err.mean()), 3),
