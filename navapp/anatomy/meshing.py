@@ -17,6 +17,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -180,16 +181,61 @@ def mesher_choice() -> str:
     return choice
 
 
+FEATURE_SPACING_MIN = 10.0
+"""A Gmsh attempt is skipped when the surface's feature lines at its angle (edges between
+triangles whose normals differ by more than the angle) lie on average closer together than
+this many mesh edges (``feature_spacing``): Gmsh keeps every feature line as a patch
+boundary and meshes the strips between them, which at a spacing of a few edges ends in
+"Wrong topology of boundary mesh for parametrization" or in slivers under the quality floor.
+Measured (docs/decisions.md, "Choosing Gmsh's feature angle from the surface"): livers
+imported from CT label maps failed at 1.4–9.1 edges and meshed at 13 and more; the
+phantoms have no feature line at 40°, the test surfaces from other generators 12–27 edges."""
+
+
+def feature_spacing(surface: trimesh.Trimesh, angle: float, edge: float) -> float:
+    """Mean spacing of ``surface``'s feature lines at ``angle`` degrees, in edges of
+    ``edge`` mm: its area over the feature lines' length, over ``edge`` (inf: none).
+
+    A feature line is an edge whose two triangles' normals differ by more than ``angle``
+    (what Gmsh's ``classifySurfaces`` splits patches at). A voxel staircase left by
+    marching cubes, smoothing and decimation of a CT label map has thousands of them at 40°.
+    """
+    adjacency = surface.face_adjacency_edges
+    crease = np.degrees(surface.face_adjacency_angles) > angle
+    if not crease.any():
+        return float("inf")
+    v = np.asarray(surface.vertices, float)
+    ends = adjacency[crease]
+    length = float(np.linalg.norm(v[ends[:, 0]] - v[ends[:, 1]], axis=1).sum())
+    return float(surface.area) / (length * edge)
+
+
+_every_attempt = [False]
+
+
+@contextmanager
+def every_attempt_in_turn():
+    """Within it, ``plan_mesh`` keeps every Gmsh attempt whatever the surface, as before
+    the attempts were chosen from it: the benches' "before" (process-wide)."""
+    _every_attempt[0] = True
+    try:
+        yield
+    finally:
+        _every_attempt[0] = False
+
+
 @dataclass(frozen=True)
 class MeshPlan:
     """What meshing a surface will do, fixed before it starts: the attempts (in order),
     the expected node count and each attempt's CPU work budget. Everything the result
-    depends on besides the surface and the edge: it goes into the cache key."""
+    depends on besides the surface and the edge: it goes into the cache key. ``skipped``:
+    the Gmsh attempts left out, each with its feature-line spacing in edges."""
 
     choice: str
     attempts: tuple[MeshAttempt, ...]
     nodes: int
     budgets: tuple[float, ...]
+    skipped: tuple[tuple[str, float], ...] = ()
 
     def key(self) -> list:
         return [self.choice, [[_label(a), round(b, 1)] for a, b in zip(self.attempts, self.budgets, strict=True)]]
@@ -197,13 +243,23 @@ class MeshPlan:
 
 def plan_mesh(surface: trimesh.Trimesh, edge: float, attempts=ATTEMPTS, choice: str | None = None) -> MeshPlan:
     """The plan for ``surface`` at ``edge`` mm: ``attempts`` filtered by ``choice``
-    (default ``$NAVAPP_MESHER``), budgets from the expected node count."""
+    (default ``$NAVAPP_MESHER``), without the Gmsh attempts whose feature lines lie closer
+    than ``FEATURE_SPACING_MIN`` edges (their failure known in advance; never all of the
+    attempts), budgets from the expected node count."""
     choice = mesher_choice() if choice is None else choice
     chosen = tuple(a for a in attempts if choice == "auto" or a.method == choice)
     if not chosen:
         raise NavappError(f"mesher {choice!r}: none of the attempts uses it")
+    skipped: list[tuple[str, float]] = []
+    if not _every_attempt[0]:
+        spacing = {a: feature_spacing(surface, a.feature_angle, edge * a.edge_scale)
+                   for a in chosen if a.method == "gmsh"}
+        kept = tuple(a for a in chosen if spacing.get(a, np.inf) >= FEATURE_SPACING_MIN)
+        if kept:
+            skipped = [(_label(a), round(spacing[a], 1)) for a in chosen if a not in kept]
+            chosen = kept
     nodes = expected_nodes(surface, edge)
-    return MeshPlan(choice, chosen, nodes, tuple(work_budget(a, nodes) for a in chosen))
+    return MeshPlan(choice, chosen, nodes, tuple(work_budget(a, nodes) for a in chosen), tuple(skipped))
 
 
 def tetrahedralise(surface: trimesh.Trimesh, edge: float = EDGE_MM, seed: int = 0, limit: float | None = None,
@@ -280,11 +336,14 @@ def _mesh_with_log(surface, edge, seed, limit, attempts, plan: MeshPlan | None =
 def why(log: list[dict], plan: MeshPlan) -> str:
     """One line: which mesher made the mesh and why that one."""
     ran = log[-1]["method"]
+    skipped = ""
+    if plan.skipped:
+        skipped = "; ".join(f"{label} skipped (feature lines {spacing:g} edges apart)" for label, spacing in plan.skipped)
     if plan.choice != "auto":
-        return f"{ran}: NAVAPP_MESHER={plan.choice}"
-    if len(log) == 1:
+        return f"{ran}: NAVAPP_MESHER={plan.choice}" + (f"; {skipped}" if skipped else "")
+    if len(log) == 1 and not skipped:
         return f"{ran}: first in the chain, meshed above the quality floor"
-    return f"{ran}: " + "; ".join(f"{e['method']} {e['outcome']}" for e in log[:-1])
+    return f"{ran}: " + "; ".join([skipped] * bool(skipped) + [f"{e['method']} {e['outcome']}" for e in log[:-1]])
 
 
 def _label(attempt: MeshAttempt) -> str:
