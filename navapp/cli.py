@@ -426,7 +426,8 @@ def build_parser():
     s.add_argument("--volume-ml", type=positive(float), help="precompute: the phantom scaled to this volume, ml")
     s.add_argument("--relax", choices=("local", "exact", "both"), default="local",
                    help="precompute: relaxation subdomain (both: exact and local, with the local one's error)")
-    s.add_argument("--phantom", type=int, choices=range(4), default=0, help="precompute: which phantom's liver (default 0)")
+    s.add_argument("--phantom", type=int, choices=range(4), default=0,
+                   help="precompute: which phantom's liver (default 0)")
     s.add_argument("--labelmap", action="store_true",
                    help="precompute: the liver as navapp's import of its CT label map gives it (a voxel staircase, "
                         "as a real segmentation's), not the phantom's smooth surface")

@@ -105,7 +105,8 @@ ATTEMPTS = (
     MeshAttempt("ftetwild"),
     MeshAttempt("ftetwild", edge_scale=0.85),
 )
-"""Tried in order until one passes the quality floor. Gmsh at 40° gives the meshes navapp
+"""Tried in order until one passes the quality floor, less the Gmsh angles whose failure the
+surface tells in advance (``plan_mesh``, ``feature_spacing``). Gmsh at 40° gives the meshes navapp
 was measured with; larger angles make fewer, larger patches, which is what lets
 re-parametrisation succeed on sharp or unevenly triangulated surfaces; fTetWild is the
 fallback that cannot fail on a valid closed surface, tried a second time on a slightly
@@ -210,6 +211,19 @@ def feature_spacing(surface: trimesh.Trimesh, angle: float, edge: float) -> floa
     return float(surface.area) / (length * edge)
 
 
+def smallest_patch(surface: trimesh.Trimesh, angle: float) -> float:
+    """Area (mm²) of the smallest patch ``surface`` falls into when cut at its feature lines
+    at ``angle`` degrees (the whole area where there is no feature line)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    smooth = surface.face_adjacency[np.degrees(surface.face_adjacency_angles) <= angle]
+    n = len(surface.faces)
+    graph = sp.coo_matrix((np.ones(len(smooth)), (smooth[:, 0], smooth[:, 1])), shape=(n, n))
+    count, patch = connected_components(graph, directed=False)
+    return float(np.bincount(patch, surface.area_faces, count).min())
+
+
 _every_attempt = [False]
 
 
@@ -229,13 +243,13 @@ class MeshPlan:
     """What meshing a surface will do, fixed before it starts: the attempts (in order),
     the expected node count and each attempt's CPU work budget. Everything the result
     depends on besides the surface and the edge: it goes into the cache key. ``skipped``:
-    the Gmsh attempts left out, each with its feature-line spacing in edges."""
+    the Gmsh attempts left out, each with the reason."""
 
     choice: str
     attempts: tuple[MeshAttempt, ...]
     nodes: int
     budgets: tuple[float, ...]
-    skipped: tuple[tuple[str, float], ...] = ()
+    skipped: tuple[tuple[str, str], ...] = ()
 
     def key(self) -> list:
         return [self.choice, [[_label(a), round(b, 1)] for a, b in zip(self.attempts, self.budgets, strict=True)]]
@@ -243,20 +257,34 @@ class MeshPlan:
 
 def plan_mesh(surface: trimesh.Trimesh, edge: float, attempts=ATTEMPTS, choice: str | None = None) -> MeshPlan:
     """The plan for ``surface`` at ``edge`` mm: ``attempts`` filtered by ``choice``
-    (default ``$NAVAPP_MESHER``), without the Gmsh attempts whose feature lines lie closer
-    than ``FEATURE_SPACING_MIN`` edges (their failure known in advance; never all of the
-    attempts), budgets from the expected node count."""
+    (default ``$NAVAPP_MESHER``), without the Gmsh attempts whose failure the surface tells
+    in advance (never all of the attempts): feature lines closer than ``FEATURE_SPACING_MIN``
+    edges; and, on such a staircase, a larger angle still leaving a patch smaller than one
+    mesh triangle (``smallest_patch``). Budgets from the expected node count."""
     choice = mesher_choice() if choice is None else choice
     chosen = tuple(a for a in attempts if choice == "auto" or a.method == choice)
     if not chosen:
         raise NavappError(f"mesher {choice!r}: none of the attempts uses it")
-    skipped: list[tuple[str, float]] = []
+    skipped: list[tuple[str, str]] = []
     if not _every_attempt[0]:
-        spacing = {a: feature_spacing(surface, a.feature_angle, edge * a.edge_scale)
-                   for a in chosen if a.method == "gmsh"}
-        kept = tuple(a for a in chosen if spacing.get(a, np.inf) >= FEATURE_SPACING_MIN)
+        why_not = {}
+        for a in chosen:
+            if a.method == "gmsh":
+                spacing = feature_spacing(surface, a.feature_angle, edge * a.edge_scale)
+                if spacing < FEATURE_SPACING_MIN:
+                    why_not[a] = f"feature lines {spacing:.1f} edges apart"
+        if why_not:
+            # a staircase: the creases it keeps at larger angles are fragments around patches
+            # smaller than one triangle of the mesh, which Gmsh meshes into slivers
+            triangle = np.sqrt(3) / 4 * edge ** 2
+            for a in chosen:
+                if a.method == "gmsh" and a not in why_not:
+                    patch = smallest_patch(surface, a.feature_angle)
+                    if patch < triangle * a.edge_scale ** 2:
+                        why_not[a] = f"a patch of {patch:.2g} mm², under one mesh triangle"
+        kept = tuple(a for a in chosen if a not in why_not)
         if kept:
-            skipped = [(_label(a), round(spacing[a], 1)) for a in chosen if a not in kept]
+            skipped = [(_label(a), why_not[a]) for a in chosen if a in why_not]
             chosen = kept
     nodes = expected_nodes(surface, edge)
     return MeshPlan(choice, chosen, nodes, tuple(work_budget(a, nodes) for a in chosen), tuple(skipped))
@@ -338,7 +366,7 @@ def why(log: list[dict], plan: MeshPlan) -> str:
     ran = log[-1]["method"]
     skipped = ""
     if plan.skipped:
-        skipped = "; ".join(f"{label} skipped (feature lines {spacing:g} edges apart)" for label, spacing in plan.skipped)
+        skipped = "; ".join(f"{label} skipped ({reason})" for label, reason in plan.skipped)
     if plan.choice != "auto":
         return f"{ran}: NAVAPP_MESHER={plan.choice}" + (f"; {skipped}" if skipped else "")
     if len(log) == 1 and not skipped:
