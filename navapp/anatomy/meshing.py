@@ -267,7 +267,7 @@ def plan_mesh(surface: trimesh.Trimesh, edge: float, attempts=ATTEMPTS, choice: 
         raise NavappError(f"mesher {choice!r}: none of the attempts uses it")
     skipped: list[tuple[str, str]] = []
     if not _every_attempt[0]:
-        why_not = {}
+        why_not: dict[MeshAttempt, str] = {}
         for a in chosen:
             if a.method == "gmsh":
                 spacing = feature_spacing(surface, a.feature_angle, edge * a.edge_scale)
