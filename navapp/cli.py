@@ -298,17 +298,18 @@ def cmd_bench(args):
     from .evaluation import benchmark
 
     if args.what == "precompute":
-        benchmark.bench_precompute(args.edges, args.ks, args.volume_ml, args.relax)
+        benchmark.bench_precompute(args.edges, args.ks, args.volume_ml, args.relax, args.repeats or 1, args.labelmap,
+                                   args.phantom)
     elif args.what == "import":
         from .anatomy.importbench import bench_import
 
-        bench_import(args.repeats, args.routes)
+        bench_import(args.repeats or 5, args.routes)
     elif args.what == "live":
         from .evaluation.live_bench import bench_live
 
         bench_live(args.frames, args.planes, args.ks[0], args.edges[0], truth_edge=args.truth_edge)
     else:
-        benchmark.bench_register(args.repeats, args.planes, args.ks[0], args.edges[0], truth_edge=args.truth_edge)
+        benchmark.bench_register(args.repeats or 5, args.planes, args.ks[0], args.edges[0], truth_edge=args.truth_edge)
 
 
 def cmd_replay(args):
@@ -422,10 +423,17 @@ def build_parser():
     s.add_argument("what", choices=("precompute", "register", "live", "import"))
     s.add_argument("--edges", type=positive(float), nargs="+", default=[EDGE_MM], help="element sizes, mm")
     s.add_argument("--ks", type=_k, nargs="+", default=[K], help="numbers of control points")
-    s.add_argument("--volume-ml", type=positive(float), help="precompute: phantom 0 scaled to this volume, ml")
+    s.add_argument("--volume-ml", type=positive(float), help="precompute: the phantom scaled to this volume, ml")
     s.add_argument("--relax", choices=("local", "exact", "both"), default="local",
                    help="precompute: relaxation subdomain (both: exact and local, with the local one's error)")
-    s.add_argument("--repeats", type=positive(int), default=5, help="register, import: repetitions for the median")
+    s.add_argument("--phantom", type=int, choices=range(4), default=0,
+                   help="precompute: which phantom's liver (default 0)")
+    s.add_argument("--labelmap", action="store_true",
+                   help="precompute: the liver as navapp's import of its CT label map gives it (a voxel staircase, "
+                        "as a real segmentation's), not the phantom's smooth surface")
+    s.add_argument("--repeats", type=positive(int),
+                   help="register, import: repetitions for the median (default 5); precompute: before/after pairs "
+                        "of fresh-process runs, alternated (default 1)")
     s.add_argument("--planes", type=positive(int), default=3, help="register: iUS planes (≥ 2); live: planes kept")
     s.add_argument("--routes", nargs="+", choices=("nifti masks", "nrrd label map", "dicom seg",
                                                    "totalsegmentator folder", "stl"), metavar="ROUTE",

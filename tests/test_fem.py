@@ -149,3 +149,46 @@ def test_pardiso_found_in_a_venv_that_borrows_the_system_site_packages(tmp_path)
     code = "import sys; from navapp.mechanics.sparse import backend; print(sys.prefix != sys.base_prefix, backend())"
     out = subprocess.run([str(python), "-c", code], capture_output=True, text=True, env=env, check=True)
     assert out.stdout.split() == ["True", "pardiso"], (out.stdout, out.stderr, sys.prefix)
+
+
+def test_stiffness_summed_by_node_pair_blocks_is_the_coo_assembly(box):
+    """The block assembly (session 38) stores the same entries as SciPy's COO → CSR (the old
+    path, kept for the bench's "before") and sums them to the same values within rounding."""
+    from navapp.mechanics.fem import coo_assembly
+
+    nodes, tets = box
+    K = stiffness(nodes, tets)
+    with coo_assembly():
+        ref = stiffness(nodes, tets)
+    assert K.has_canonical_format and ref.has_canonical_format
+    assert np.array_equal(K.indptr, ref.indptr) and np.array_equal(K.indices, ref.indices)
+    assert abs(K - ref).max() <= 4e-16 * abs(ref).max()
+    assert abs(K - K.T).max() <= 1e-15 * abs(K).max()
+
+
+def test_element_strain_operator_written_as_csr_is_the_same_bits(box):
+    from navapp.mechanics.fem import _element_strain_operator_coo, element_strain_operator
+
+    nodes, tets = box
+    rng = np.random.default_rng(3)
+    tets = tets[rng.permutation(len(tets))][:, [2, 0, 3, 1]]  # node order not sorted within a tet
+    B, ref = element_strain_operator(nodes, tets), _element_strain_operator_coo(nodes, tets)
+    for part in ("indptr", "indices", "data"):
+        assert np.array_equal(getattr(B, part), getattr(ref, part)), part
+
+
+def test_upper_triangle_is_scipys_triu():
+    import scipy.sparse as sp
+
+    from navapp.mechanics.sparse import upper_triangle
+
+    rng = np.random.default_rng(0)
+    A = sp.random(60, 60, 0.1, format="csr", random_state=rng)
+    A = (A + A.T + sp.identity(60)).tocsr()
+    A.indices[A.indptr[5]:A.indptr[6]] = A.indices[A.indptr[5]:A.indptr[6]][::-1].copy()  # one row unsorted
+    A.data[A.indptr[5]:A.indptr[6]] = A.data[A.indptr[5]:A.indptr[6]][::-1].copy()
+    A.has_sorted_indices = False
+    U, ref = upper_triangle(A), sp.triu(A, format="csr")
+    ref.sort_indices()
+    for part in ("indptr", "indices", "data"):
+        assert np.array_equal(getattr(U, part), getattr(ref, part)), part

@@ -347,3 +347,29 @@ def test_a_killed_callers_temporary_folder_is_removed(tmp_path):
         assert not stale.exists() and mine.exists()  # a live process's folder stays
     finally:
         mine.rmdir()
+
+
+def test_a_label_maps_staircase_is_meshed_first_time():
+    """A liver imported from a CT label map (phantom 0 voxelised on an oblique 0.7 × 0.7 ×
+    2.5 mm grid, then the import's marching cubes, smoothing and decimation) has feature
+    lines a few edges apart at 40° (and 60°): Gmsh fails there ("Wrong topology of boundary
+    mesh for parametrization", or slivers under the floor: docs/decisions.md, "Choosing
+    Gmsh's feature angle from the surface"). The plan skips those angles up front and the
+    first attempt it makes meshes above the floor; the phantoms' smooth surfaces keep the
+    whole chain (so their plans, cache keys and meshes are unchanged)."""
+    from navapp.anatomy.ctcase import imported_liver
+    from navapp.anatomy.meshing import ATTEMPTS, FEATURE_SPACING_MIN, feature_spacing, plan_mesh
+    from navapp.anatomy.phantom import make_phantom
+
+    smooth = make_phantom(0).liver
+    plan = plan_mesh(smooth, 4.0, choice="auto")
+    assert plan.attempts == ATTEMPTS and plan.skipped == ()
+    surface = imported_liver(smooth)
+    assert feature_spacing(surface, 40.0, 4.0) < 3.0 < FEATURE_SPACING_MIN < feature_spacing(surface, 90.0, 4.0)
+    plan = plan_mesh(surface, 4.0, choice="auto")
+    assert plan.skipped and plan.skipped[0][0] == "gmsh 40°" and plan.attempts[0].method == "gmsh"
+    assert plan.attempts[0].feature_angle > 40.0
+    mesh, report = mesh_liver(surface, 4.0, plan=plan)
+    assert [e["outcome"] for e in report["attempts"]] == ["ok"]
+    assert "gmsh 40° skipped (feature lines" in report["mesher"]["why"]
+    _floor(mesh)

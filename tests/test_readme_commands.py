@@ -210,17 +210,28 @@ def test_bench_live(capsys):
 
 
 def test_bench_precompute(capsys):
-    """``navapp bench precompute --edges 12 --ks 12``: one row from a fresh process and a cold
-    cache, its stage times, peak memory, and a warm reload faster than the cold build."""
+    """``navapp bench precompute --edges 12 --ks 12``: one pair of rows, before session 38's
+    precompute and after, each from a fresh process and a cold cache, with its stage times,
+    peak memory and a warm reload faster than the cold build; then both side by side."""
     assert main(["--quiet", "bench", "precompute", "--edges", "12", "--ks", "12"]) == 0
-    row = last_json(capsys.readouterr().out)
-    assert row["edge_mm"] == 12.0 and row["k"] == 12 and row["relax"] == "local"
-    assert 500 < row["nodes"] < 3000 and row["surface_nodes"] < row["nodes"]
-    assert 600 < row["volume_ml"] < 4000 and row["peak_memory_mb"] > 0
-    assert row["seconds"]["mesh"] > 0 and row["total_seconds"] >= row["seconds"]["mesh"]
-    assert 0 < row["cache_load_seconds"]["total"] < row["total_seconds"]
-    assert "basis_file" not in row and "mesh_file" not in row  # the temporary cache is removed
-    assert row["solver"] in ("pardiso", "superlu") and row["mesher"].startswith(("gmsh", "ftetwild"))
+    lines = capsys.readouterr().out.strip().splitlines()
+    rows = [json.loads(x) for x in lines if x.startswith('{"variant"')]
+    assert sorted(r["variant"] for r in rows) == ["after", "before"] and rows[0]["variant"] == "before"
+    for row in rows:
+        assert row["edge_mm"] == 12.0 and row["k"] == 12 and row["relax"] == "local"
+        assert 500 < row["nodes"] < 3000 and row["surface_nodes"] < row["nodes"]
+        assert 600 < row["volume_ml"] < 4000 and row["peak_memory_mb"] > 0
+        assert row["seconds"]["mesh"] > 0 and row["total_seconds"] >= row["seconds"]["mesh"]
+        assert 0 < row["cache_load_seconds"]["total"] < row["total_seconds"]
+        assert row["process_cpu_seconds"] > 0 and row["process_seconds"] >= row["total_seconds"]
+        assert "basis_file" not in row and "mesh_file" not in row  # the temporary cache is removed
+        assert row["solver"] in ("pardiso", "superlu") and row["mesher"].startswith(("gmsh", "ftetwild"))
+    assert rows[0]["nodes"] == rows[1]["nodes"]  # phantom 0 is meshed the same way before and after
+    assert any(x.startswith("stage") and "before" in x and "after" in x for x in lines)
+    summary = json.loads(lines[-1])["before_after"]
+    assert summary["runs"] == 1 and set(summary["median_seconds"]) == {"before", "after"}
+    assert summary["median_seconds"]["after"]["process cpu"] == rows[1]["process_cpu_seconds"]
+    assert summary["after_over_before_median"]["process_cpu_seconds"] > 0
 
 
 def test_bench_import(capsys):

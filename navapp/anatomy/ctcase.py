@@ -194,3 +194,26 @@ def _contiguous_frames(seg, voxels: int) -> None:
         return
     packed = np.packbits(padded.ravel(), bitorder="little").tobytes()
     seg.PixelData = packed + b"\0" * (len(packed) % 2)
+
+
+def imported_liver(liver: trimesh.Trimesh, spacing=CT_SPACING, tilt_deg=CT_TILT_DEG) -> trimesh.Trimesh:
+    """``liver`` as navapp's import of a CT label map of it gives it back: voxelised on an
+    oblique grid of ``spacing`` mm, then marching cubes, smoothing and decimation
+    (``importer.mask_surface``) and the import's clean-up. What a real segmentation gives:
+    the voxel staircase leaves thousands of creases over 40° (Gmsh's feature lines)."""
+    from .cleanup import clean_surface
+    from .importer import LIVER_MAX_FACES, LIVER_SURFACE_EDGE_MM, mask_surface
+    from .labelmaps import StructureMask
+
+    reach = liver.bounds[1] - liver.bounds[0]
+    shape = tuple(int(np.ceil(1.2 * float(reach.max()) / s)) + 4 for s in spacing)  # any tilt fits
+    affine = grid_affine(liver.bounds.mean(0), spacing, shape, tilt_deg)
+    mask = voxelise(liver, affine, shape)
+    idx = np.argwhere(mask)
+    lo, hi = idx.min(0), idx.max(0) + 1
+    shift = np.eye(4)
+    shift[:3, 3] = lo - 1.0
+    crop = StructureMask(np.pad(mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], 1), affine @ shift,
+                         Path("liver.nii.gz"), 1)
+    surface = mask_surface(crop, LIVER_SURFACE_EDGE_MM, LIVER_MAX_FACES)
+    return clean_surface(surface, crop.path, closed=True, what="liver")[0]

@@ -17,6 +17,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -104,7 +105,8 @@ ATTEMPTS = (
     MeshAttempt("ftetwild"),
     MeshAttempt("ftetwild", edge_scale=0.85),
 )
-"""Tried in order until one passes the quality floor. Gmsh at 40° gives the meshes navapp
+"""Tried in order until one passes the quality floor, less the Gmsh angles whose failure the
+surface tells in advance (``plan_mesh``, ``feature_spacing``). Gmsh at 40° gives the meshes navapp
 was measured with; larger angles make fewer, larger patches, which is what lets
 re-parametrisation succeed on sharp or unevenly triangulated surfaces; fTetWild is the
 fallback that cannot fail on a valid closed surface, tried a second time on a slightly
@@ -180,16 +182,74 @@ def mesher_choice() -> str:
     return choice
 
 
+FEATURE_SPACING_MIN = 10.0
+"""A Gmsh attempt is skipped when the surface's feature lines at its angle (edges between
+triangles whose normals differ by more than the angle) lie on average closer together than
+this many mesh edges (``feature_spacing``): Gmsh keeps every feature line as a patch
+boundary and meshes the strips between them, which at a spacing of a few edges ends in
+"Wrong topology of boundary mesh for parametrization" or in slivers under the quality floor.
+Measured (docs/decisions.md, "Choosing Gmsh's feature angle from the surface"): livers
+imported from CT label maps failed at 1.4–9.1 edges and meshed at 13 and more; the
+phantoms have no feature line at 40°, the test surfaces from other generators 12–27 edges."""
+
+
+def feature_spacing(surface: trimesh.Trimesh, angle: float, edge: float) -> float:
+    """Mean spacing of ``surface``'s feature lines at ``angle`` degrees, in edges of
+    ``edge`` mm: its area over the feature lines' length, over ``edge`` (inf: none).
+
+    A feature line is an edge whose two triangles' normals differ by more than ``angle``
+    (what Gmsh's ``classifySurfaces`` splits patches at). A voxel staircase left by
+    marching cubes, smoothing and decimation of a CT label map has thousands of them at 40°.
+    """
+    adjacency = surface.face_adjacency_edges
+    crease = np.degrees(surface.face_adjacency_angles) > angle
+    if not crease.any():
+        return float("inf")
+    v = np.asarray(surface.vertices, float)
+    ends = adjacency[crease]
+    length = float(np.linalg.norm(v[ends[:, 0]] - v[ends[:, 1]], axis=1).sum())
+    return float(surface.area) / (length * edge)
+
+
+def smallest_patch(surface: trimesh.Trimesh, angle: float) -> float:
+    """Area (mm²) of the smallest patch ``surface`` falls into when cut at its feature lines
+    at ``angle`` degrees (the whole area where there is no feature line)."""
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import connected_components
+
+    smooth = surface.face_adjacency[np.degrees(surface.face_adjacency_angles) <= angle]
+    n = len(surface.faces)
+    graph = sp.coo_matrix((np.ones(len(smooth)), (smooth[:, 0], smooth[:, 1])), shape=(n, n))
+    count, patch = connected_components(graph, directed=False)
+    return float(np.bincount(patch, surface.area_faces, count).min())
+
+
+_every_attempt = [False]
+
+
+@contextmanager
+def every_attempt_in_turn():
+    """Within it, ``plan_mesh`` keeps every Gmsh attempt whatever the surface, as before
+    the attempts were chosen from it: the benches' "before" (process-wide)."""
+    _every_attempt[0] = True
+    try:
+        yield
+    finally:
+        _every_attempt[0] = False
+
+
 @dataclass(frozen=True)
 class MeshPlan:
     """What meshing a surface will do, fixed before it starts: the attempts (in order),
     the expected node count and each attempt's CPU work budget. Everything the result
-    depends on besides the surface and the edge: it goes into the cache key."""
+    depends on besides the surface and the edge: it goes into the cache key. ``skipped``:
+    the Gmsh attempts left out, each with the reason."""
 
     choice: str
     attempts: tuple[MeshAttempt, ...]
     nodes: int
     budgets: tuple[float, ...]
+    skipped: tuple[tuple[str, str], ...] = ()
 
     def key(self) -> list:
         return [self.choice, [[_label(a), round(b, 1)] for a, b in zip(self.attempts, self.budgets, strict=True)]]
@@ -197,13 +257,37 @@ class MeshPlan:
 
 def plan_mesh(surface: trimesh.Trimesh, edge: float, attempts=ATTEMPTS, choice: str | None = None) -> MeshPlan:
     """The plan for ``surface`` at ``edge`` mm: ``attempts`` filtered by ``choice``
-    (default ``$NAVAPP_MESHER``), budgets from the expected node count."""
+    (default ``$NAVAPP_MESHER``), without the Gmsh attempts whose failure the surface tells
+    in advance (never all of the attempts): feature lines closer than ``FEATURE_SPACING_MIN``
+    edges; and, on such a staircase, a larger angle still leaving a patch smaller than one
+    mesh triangle (``smallest_patch``). Budgets from the expected node count."""
     choice = mesher_choice() if choice is None else choice
     chosen = tuple(a for a in attempts if choice == "auto" or a.method == choice)
     if not chosen:
         raise NavappError(f"mesher {choice!r}: none of the attempts uses it")
+    skipped: list[tuple[str, str]] = []
+    if not _every_attempt[0]:
+        why_not: dict[MeshAttempt, str] = {}
+        for a in chosen:
+            if a.method == "gmsh":
+                spacing = feature_spacing(surface, a.feature_angle, edge * a.edge_scale)
+                if spacing < FEATURE_SPACING_MIN:
+                    why_not[a] = f"feature lines {spacing:.1f} edges apart"
+        if why_not:
+            # a staircase: the creases it keeps at larger angles are fragments around patches
+            # smaller than one triangle of the mesh, which Gmsh meshes into slivers
+            triangle = np.sqrt(3) / 4 * edge ** 2
+            for a in chosen:
+                if a.method == "gmsh" and a not in why_not:
+                    patch = smallest_patch(surface, a.feature_angle)
+                    if patch < triangle * a.edge_scale ** 2:
+                        why_not[a] = f"a patch of {patch:.2g} mm², under one mesh triangle"
+        kept = tuple(a for a in chosen if a not in why_not)
+        if kept:
+            skipped = [(_label(a), why_not[a]) for a in chosen if a in why_not]
+            chosen = kept
     nodes = expected_nodes(surface, edge)
-    return MeshPlan(choice, chosen, nodes, tuple(work_budget(a, nodes) for a in chosen))
+    return MeshPlan(choice, chosen, nodes, tuple(work_budget(a, nodes) for a in chosen), tuple(skipped))
 
 
 def tetrahedralise(surface: trimesh.Trimesh, edge: float = EDGE_MM, seed: int = 0, limit: float | None = None,
@@ -280,11 +364,14 @@ def _mesh_with_log(surface, edge, seed, limit, attempts, plan: MeshPlan | None =
 def why(log: list[dict], plan: MeshPlan) -> str:
     """One line: which mesher made the mesh and why that one."""
     ran = log[-1]["method"]
+    skipped = ""
+    if plan.skipped:
+        skipped = "; ".join(f"{label} skipped ({reason})" for label, reason in plan.skipped)
     if plan.choice != "auto":
-        return f"{ran}: NAVAPP_MESHER={plan.choice}"
-    if len(log) == 1:
+        return f"{ran}: NAVAPP_MESHER={plan.choice}" + (f"; {skipped}" if skipped else "")
+    if len(log) == 1 and not skipped:
         return f"{ran}: first in the chain, meshed above the quality floor"
-    return f"{ran}: " + "; ".join(f"{e['method']} {e['outcome']}" for e in log[:-1])
+    return f"{ran}: " + "; ".join([skipped] * bool(skipped) + [f"{e['method']} {e['outcome']}" for e in log[:-1]])
 
 
 def _label(attempt: MeshAttempt) -> str:

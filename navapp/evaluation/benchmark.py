@@ -16,21 +16,22 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable
-from contextlib import AbstractContextManager, nullcontext
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from .. import cache
 from ..anatomy.caseio import read_case
-from ..anatomy.meshing import cached_tetmesh
+from ..anatomy.meshing import cached_tetmesh, every_attempt_in_turn
 from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
 from ..errors import NavappError
 from ..geometry.tre import tre_stats
 from ..mechanics.basis import BasisSettings, basis_key, load_or_compute_basis
-from ..mechanics.fem import Material
+from ..mechanics.fem import Material, coo_assembly
 from ..mechanics.sparse import backend
 from ..registration.libr import LMOptions
 from ..registration.objective import cold_search
@@ -56,33 +57,51 @@ def scaled_liver(liver, volume_ml: float):
     return out
 
 
+@contextmanager
+def before_precompute():
+    """Within it, the precompute runs as before session 38: every Gmsh attempt tried in
+    turn whatever the surface (``meshing.every_attempt_in_turn``), the stiffness through
+    SciPy's COO → CSR (``fem.coo_assembly``). The bench's "before" (process-wide)."""
+    with every_attempt_in_turn(), coo_assembly():
+        yield
+
+
 def precompute_one(edge: float, k: int, volume_ml: float | None = None, relax: str = "local",
-                   mesh_from: str | None = None) -> dict:
+                   mesh_from: str | None = None, surface_file: str | None = None, before: bool = False) -> dict:
     """Run in a fresh process (cold cache dir) so that peak memory is this run's alone.
     ``relax``: "local" (the default subdomain) or "exact" (whole-mesh relaxation).
     ``mesh_from``: a cached mesh file to start from (Gmsh does not give the same mesh twice,
-    and exact and local bases are compared on one mesh); its row then has no mesh time."""
+    and exact and local bases are compared on one mesh); its row then has no mesh time.
+    ``surface_file``: the liver surface (.npz, vertices and faces) in place of phantom 0.
+    ``before``: run as before session 38 (``before_precompute``)."""
 
     settings = BasisSettings(k=k) if relax == "local" else BasisSettings(k=k, relax_layers=None)
     root = Path(tempfile.mkdtemp(prefix="navapp-bench-"))
     if mesh_from:
         shutil.copy(mesh_from, root)
-    liver = make_phantom(0).liver
-    if volume_ml:
-        liver = scaled_liver(liver, volume_ml)
-    t0 = time.perf_counter()  # mesh + basis, as a case with its liver surface would take
-    mesh, rep = cached_tetmesh(liver, edge, root)
-    basis, _ = load_or_compute_basis(mesh, settings, cache_root=root)
-    total = time.perf_counter() - t0
-    t1 = time.perf_counter()
-    cached_tetmesh(liver, edge, root)
-    t2 = time.perf_counter()
-    load_or_compute_basis(mesh, settings, cache_root=root)
-    t3 = time.perf_counter()
-    return {"edge_mm": edge, "k": k, "volume_ml": round(liver.volume / 1000.0), "relax": relax,
+    if surface_file:
+        with np.load(surface_file) as f:
+            liver = trimesh.Trimesh(f["vertices"], f["faces"], process=False)
+    else:
+        liver = make_phantom(0).liver
+        if volume_ml:
+            liver = scaled_liver(liver, volume_ml)
+    with before_precompute() if before else nullcontext():
+        t0 = time.perf_counter()  # mesh + basis, as a case with its liver surface would take
+        mesh, rep = cached_tetmesh(liver, edge, root)
+        basis, _ = load_or_compute_basis(mesh, settings, cache_root=root)
+        total = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        cached_tetmesh(liver, edge, root)
+        t2 = time.perf_counter()
+        load_or_compute_basis(mesh, settings, cache_root=root)
+        t3 = time.perf_counter()
+    return {"variant": "before" if before else "after",
+            "edge_mm": edge, "k": k, "volume_ml": round(liver.volume / 1000.0), "relax": relax,
             "relax_layers": settings.relax_layers, "nodes": basis.M, "surface_nodes": len(basis.surface),
             # which sparse solver and which mesher attempt: SuperLU in place of PARDISO is 5-10x the modes' time
             "solver": backend(), "mesher": "reused" if mesh_from else rep.get("method"),
+            "mesher_why": "reused" if mesh_from else rep["mesher"]["why"],
             "seconds": {"mesh": "reused" if mesh_from else round(rep["seconds"], 2),
                         **{s: round(v, 2) for s, v in basis.timings.items()}},
             "total_seconds": round(total, 2), "peak_memory_mb": round(peak_memory_mb()),
@@ -102,30 +121,118 @@ def mode_errors(fast_file, exact_file) -> dict:
     return {"median": float(f"{np.median(e):.3g}"), "max": float(f"{e.max():.3g}")}
 
 
-def bench_precompute(edges, ks, volume_ml=None, relax="local"):
-    """One row per (edge, k, relaxation). With relax="both" the local basis is computed,
-    then the exact one on the same mesh (its row without mesh time), and the local row
-    also reports its per-mode error against exact."""
+def _precompute_child(edge, k, how, volume_ml, surface_file=None, mesh_from=None, before=False) -> dict:
+    """``precompute_one`` in a fresh process; adds ``process_cpu_seconds``, the child's CPU
+    with its mesher workers', and ``process_seconds``, its wall time (imports included)."""
+    cmd = [sys.executable, "-m", "navapp.evaluation.benchmark", "precompute-one", str(edge), str(k), how,
+           str(volume_ml or 0)]
+    if mesh_from:
+        cmd += ["--mesh-from", mesh_from]
+    if surface_file:
+        cmd += ["--surface", surface_file]
+    if before:
+        cmd.append("--before")
+    used = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = time.perf_counter()
+    out = subprocess.run(cmd, capture_output=True, text=True)
+    wall = time.perf_counter() - t
+    now = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if out.returncode != 0:
+        raise NavappError(f"precompute-one failed: {(out.stderr.strip().splitlines() or [''])[-1]}")
+    row = json.loads(out.stdout.strip().splitlines()[-1])
+    row["process_cpu_seconds"] = round(now.ru_utime + now.ru_stime - used.ru_utime - used.ru_stime, 2)
+    row["process_seconds"] = round(wall, 2)
+    return row
+
+
+def _drop_files(row: dict):
+    shutil.rmtree(Path(row.pop("basis_file")).parent, ignore_errors=True)
+    row.pop("mesh_file")
+
+
+def bench_precompute(edges, ks, volume_ml=None, relax="local", repeats=1, labelmap=False, phantom=0):
+    """Per (edge, k): ``repeats`` pairs of fresh-process runs, before session 38's changes
+    (``before_precompute``) and after, alternated (before first in even pairs); one JSON
+    line per run, then per (edge, k) the medians side by side (a table and a JSON line:
+    whole-process wall and CPU, mesh + basis, each stage; the median of the per-pair ratios).
+    ``labelmap``: the liver as an import of its CT label map gives it (``ctcase.imported_liver``),
+    made once; ``phantom``: which phantom's liver (scaled to ``volume_ml`` when given).
+    With relax="both" (no before/after): the local basis, then the exact one on the same mesh
+    (its row without mesh time), with the local one's per-mode error against exact."""
     rows = []
-    for edge in edges:
-        for k in ks:
-            pair: dict[str, dict] = {}
-            for how in (("local", "exact") if relax == "both" else (relax,)):
-                cmd = [sys.executable, "-m", "navapp.evaluation.benchmark", "precompute-one", str(edge), str(k), how,
-                       str(volume_ml or 0)]
-                if pair:
-                    cmd.append(pair["local"]["mesh_file"])
-                out = subprocess.run(cmd, capture_output=True, text=True, check=True)
-                pair[how] = row = json.loads(out.stdout.strip().splitlines()[-1])
-                rows.append(row)
-            if len(pair) == 2:
-                pair["exact"]["mode_error_vs_local"] = mode_errors(pair["local"]["basis_file"],
-                                                                   pair["exact"]["basis_file"])
-            for row in pair.values():
-                shutil.rmtree(Path(row.pop("basis_file")).parent, ignore_errors=True)
-                row.pop("mesh_file")
-                print(json.dumps(row), flush=True)
+    with tempfile.TemporaryDirectory(prefix="navapp-bench-surface-") as tmp:
+        surface_file = None
+        if labelmap or phantom:
+            liver = make_phantom(phantom).liver
+            liver = scaled_liver(liver, volume_ml) if volume_ml else liver
+            if labelmap:
+                from ..anatomy.ctcase import imported_liver
+
+                liver = imported_liver(liver)
+            surface_file = str(Path(tmp, "liver.npz"))
+            np.savez(surface_file, vertices=liver.vertices, faces=liver.faces)
+        for edge in edges:
+            for k in ks:
+                if relax == "both":
+                    local = _precompute_child(edge, k, "local", volume_ml, surface_file)
+                    exact = _precompute_child(edge, k, "exact", volume_ml, surface_file, local["mesh_file"])
+                    exact["mode_error_vs_local"] = mode_errors(local["basis_file"], exact["basis_file"])
+                    for row in (local, exact):
+                        _drop_files(row)
+                        rows.append(row)
+                        print(json.dumps(row), flush=True)
+                    continue
+                pairs: dict[str, list[dict]] = {"before": [], "after": []}
+                for i in range(repeats):
+                    for variant in (("before", "after") if i % 2 == 0 else ("after", "before")):
+                        row = _precompute_child(edge, k, relax, volume_ml, surface_file, before=variant == "before")
+                        _drop_files(row)
+                        row["run"] = i
+                        pairs[variant].append(row)
+                        rows.append(row)
+                        print(json.dumps(row), flush=True)
+                summary = before_after_summary(pairs)
+                print(precompute_table(summary), flush=True)
+                print(json.dumps(summary), flush=True)
     return rows
+
+
+def _stage_seconds(row: dict) -> dict:
+    s = {n: v for n, v in row["seconds"].items() if isinstance(v, (int, float))}
+    return {**s, "mesh + basis": row["total_seconds"], "process wall": row["process_seconds"],
+            "process cpu": row["process_cpu_seconds"]}
+
+
+def before_after_summary(pairs: dict[str, list[dict]]) -> dict:
+    """Medians before and after of each stage and of the whole process, and the median of
+    the per-pair ratios after / before (wall and CPU of the whole process)."""
+    before, after = pairs["before"], pairs["after"]
+    first = after[0]
+    stages = {v: [_stage_seconds(r) for r in rs] for v, rs in pairs.items()}
+    names = list(dict.fromkeys(n for v in stages.values() for r in v for n in r))
+    med = {v: {n: round(statistics.median(r[n] for r in rs if n in r), 2) for n in names if any(n in r for r in rs)}
+           for v, rs in stages.items()}
+    ratio = {what: round(statistics.median(a[what] / b[what] for a, b in zip(after, before, strict=True)), 3)
+             for what in ("process_seconds", "process_cpu_seconds", "total_seconds")}
+    return {"before_after": {"runs": len(after), "edge_mm": first["edge_mm"], "k": first["k"],
+                             "volume_ml": first["volume_ml"], "relax": first["relax"],
+                             "nodes": [before[0]["nodes"], first["nodes"]],
+                             "mesher": [before[0]["mesher_why"], first["mesher_why"]],
+                             "median_seconds": med, "after_over_before_median": ratio}}
+
+
+def precompute_table(summary: dict) -> str:
+    """The medians before and after as a text table, one stage a row."""
+    s = summary["before_after"]
+    med = s["median_seconds"]
+    lines = [f"precompute at {s['edge_mm']:g} mm, k = {s['k']}, {s['volume_ml']} ml, {s['nodes'][1]} nodes: "
+             f"medians of {s['runs']} runs each (s)", f"{'stage':<16}{'before':>10}{'after':>10}"]
+    for name in med["after"]:
+        lines.append(f"{name:<16}{med['before'].get(name, float('nan')):>10.2f}{med['after'][name]:>10.2f}")
+    r = s["after_over_before_median"]
+    lines.append(f"after / before, median of pairs: process wall {r['process_seconds']:.3f}, "
+                 f"process cpu {r['process_cpu_seconds']:.3f}")
+    return "\n".join(lines)
 
 
 def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
@@ -236,10 +343,19 @@ def stage_table(stages: dict) -> str:
     return "\n".join(lines)
 
 
-if __name__ == "__main__" and len(sys.argv) in (6, 7) and sys.argv[1] == "precompute-one":
+if __name__ == "__main__" and len(sys.argv) >= 6 and sys.argv[1] == "precompute-one":
+    import argparse
+
     from .. import progress
 
     progress.QUIET = True
-    vol = float(sys.argv[5]) or None
-    mesh_from = sys.argv[6] if len(sys.argv) == 7 else None
-    print(json.dumps(precompute_one(float(sys.argv[2]), int(sys.argv[3]), vol, sys.argv[4], mesh_from)))
+    ap = argparse.ArgumentParser(prog="python -m navapp.evaluation.benchmark precompute-one")
+    ap.add_argument("edge", type=float)
+    ap.add_argument("k", type=int)
+    ap.add_argument("relax", choices=("local", "exact"))
+    ap.add_argument("volume_ml", type=float)
+    ap.add_argument("--mesh-from")
+    ap.add_argument("--surface")
+    ap.add_argument("--before", action="store_true")
+    a = ap.parse_args(sys.argv[2:])
+    print(json.dumps(precompute_one(a.edge, a.k, a.volume_ml or None, a.relax, a.mesh_from, a.surface, a.before)))

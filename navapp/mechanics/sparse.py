@@ -127,6 +127,19 @@ def nested_dissection(A: sp.csr_matrix) -> np.ndarray | None:
     return (block * perm[:, None] + np.arange(block)).ravel()
 
 
+def upper_triangle(A: sp.csr_matrix) -> sp.csr_matrix:
+    """The upper triangle (diagonal included) of a CSR matrix, its column indices sorted:
+    what PARDISO takes of a symmetric matrix. A mask on the stored entries (SciPy's ``triu``
+    goes through COO and back: 0.76 of the relaxation's 3 CPU s, 45 tiles at 22k nodes)."""
+    if not A.has_sorted_indices:
+        A = A.sorted_indices()
+    rows = np.repeat(np.arange(A.shape[0], dtype=A.indices.dtype), np.diff(A.indptr))
+    keep = A.indices >= rows
+    indptr = np.zeros(A.shape[0] + 1, A.indptr.dtype)
+    np.cumsum(np.bincount(rows[keep], minlength=A.shape[0]), out=indptr[1:])
+    return sp.csr_matrix((A.data[keep], A.indices[keep], indptr), shape=A.shape)
+
+
 class Factorisation:
     """A factorised SPD matrix A; ``solve(B)`` takes (n,) or (n, r) right-hand sides."""
 
@@ -135,8 +148,7 @@ class Factorisation:
         self.n = A.shape[0]
         self.kind = backend()
         if self.kind == "pardiso":
-            self._A = sp.triu(A, format="csr")
-            self._A.sort_indices()
+            self._A = upper_triangle(A)
             self._s = _pardiso_solver()
             # MKL's defaults for a real SPD matrix, but for one: the factor kept in variable
             # blocks (VBSR, iparm[36] < 0), which suits FE DOFs that come in node triples.
