@@ -89,7 +89,7 @@ from .support import (
     pooled_rms,
     weigh_correction,
 )
-from .uncertainty import CLINICAL_GOAL_MM, OrganError, PoseEvidence, declared_spread, organ_error, pose_evidence
+from .uncertainty import CLINICAL_GOAL_MM, MAD_SD, OrganError, PoseEvidence, declared_spread, organ_error, pose_evidence
 
 
 @dataclass
@@ -595,7 +595,7 @@ def _robust_sd(model: RegistrationModel, data: dict, beta, weights) -> float:
     standard deviation, 1.4826 × their median absolute value (the normal's MAD factor), so a
     deformation under fewer than half of the points does not set it."""
     ev = evaluate(model, data, beta, replace(weights, pose_prior=None), jacobian=False)
-    return float(1.4826 * np.median(np.abs(ev.f[:-1]))) if len(ev.f) > 1 else 0.0
+    return float(MAD_SD * np.median(np.abs(ev.f[:-1]))) if len(ev.f) > 1 else 0.0
 
 
 def _settle_scale(model: RegistrationModel, local: dict, result, options: LMOptions, cancel):
