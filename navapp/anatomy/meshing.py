@@ -17,7 +17,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from contextlib import contextmanager
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,6 +27,7 @@ import trimesh
 from ..budget import NODES_PER_EDGE3 as _NODES_PER_EDGE3
 from ..defaults import EDGE_MM
 from ..errors import NavappError
+from ..switches import Before
 from .manifold import boundary_defects, mend_pinches
 from .tets import TetMesh, tet_volumes  # TetMesh re-exported: its home is tets.py
 
@@ -224,18 +225,13 @@ def smallest_patch(surface: trimesh.Trimesh, angle: float) -> float:
     return float(np.bincount(patch, surface.area_faces, count).min())
 
 
-_every_attempt = [False]
+_every_attempt = Before()
 
 
-@contextmanager
-def every_attempt_in_turn():
+def every_attempt_in_turn() -> AbstractContextManager[None]:
     """Within it, ``plan_mesh`` keeps every Gmsh attempt whatever the surface, as before
     the attempts were chosen from it: the benches' "before" (process-wide)."""
-    _every_attempt[0] = True
-    try:
-        yield
-    finally:
-        _every_attempt[0] = False
+    return _every_attempt.taken()
 
 
 @dataclass(frozen=True)
@@ -266,7 +262,7 @@ def plan_mesh(surface: trimesh.Trimesh, edge: float, attempts=ATTEMPTS, choice: 
     if not chosen:
         raise NavappError(f"mesher {choice!r}: none of the attempts uses it")
     skipped: list[tuple[str, str]] = []
-    if not _every_attempt[0]:
+    if not _every_attempt:
         why_not: dict[MeshAttempt, str] = {}
         for a in chosen:
             if a.method == "gmsh":

@@ -15,11 +15,12 @@ triangles' test is compiled by Numba where installed (``closest_compiled``: the 
 NumPy's).
 """
 
-from contextlib import contextmanager
+from contextlib import AbstractContextManager
 
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..switches import Before
 from ..threads import limit_threads
 
 
@@ -147,12 +148,12 @@ def nearest_vertices(tree, points, near=NEAR):
 
 
 _compiled: list = []  # the compiled candidate test, or None; imported on first use (Numba takes ~1 s to load)
-_numpy_only = [False]  # ``numpy_test``
-_kd_only = [False]  # ``kd_search``
+_numpy_only = Before()  # ``numpy_test``
+_kd_only = Before()  # ``kd_search``
 
 
 def _surface_kernel():
-    if _numpy_only[0]:
+    if _numpy_only:
         return None
     if not _compiled:
         from .closest_compiled import surface_candidates
@@ -162,41 +163,31 @@ def _surface_kernel():
 
 
 def _normals_kernel():
-    if _numpy_only[0] or _surface_kernel() is None:
+    if _numpy_only or _surface_kernel() is None:
         return None
     from .closest_compiled import surface_normals as kernel
 
     return kernel
 
 
-@contextmanager
-def numpy_test():
+def numpy_test() -> AbstractContextManager[None]:
     """Within it, ``closest_on_surface`` tests the candidates with NumPy, as before the
     compiled test (``navapp bench live`` runs both in one sitting). Process-wide: for
     benchmarks, not for code that runs beside other registrations."""
-    _numpy_only[0] = True
-    try:
-        yield
-    finally:
-        _numpy_only[0] = False
+    return _numpy_only.taken()
 
 
-@contextmanager
-def kd_search():
+def kd_search() -> AbstractContextManager[None]:
     """Within it, LM searches the model surfaces by the k-d tree's candidate triangles
     (``closest_on_surface``), as before the refitted hierarchy (``bvh``); for the benches'
     "before", process-wide like ``numpy_test``."""
-    _kd_only[0] = True
-    try:
-        yield
-    finally:
-        _kd_only[0] = False
+    return _kd_only.taken()
 
 
 def hierarchy_search() -> bool:
     """Whether LM searches surfaces with the refitted hierarchy (``bvh``): where Numba is
     installed and outside ``kd_search`` / ``numpy_test``."""
-    if _kd_only[0] or _numpy_only[0]:
+    if _kd_only or _numpy_only:
         return False
     try:
         import numba  # noqa: F401

@@ -8,11 +8,13 @@ Voigt order: xx, yy, zz, yz, xz, xy with engineering shear strains (γ = 2ε), s
 σ·ε (Voigt dot product) is the strain-energy density times two.
 """
 
-from contextlib import contextmanager
+from contextlib import AbstractContextManager
 from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
+
+from ..switches import Before
 
 # Pa. The paper's text (and docs/design.md) say 2100 kPa; we use 2100 Pa. Displacement modes
 # do not depend on E, but the strain-energy penalty w_E f_E² scales with E², and with the
@@ -54,7 +56,7 @@ def stiffness(nodes: np.ndarray, tets: np.ndarray, material: Material = Material
     entries sorted and summed by SciPy's COO → CSR: 0.65 against 2.0 CPU s at 22k nodes,
     the same pattern and values within rounding (docs/decisions.md, session 38)."""
     Ke = _element_blocks(nodes, tets, material)  # (E, 4, 4, 3, 3): node a, node b, axis i, axis j
-    if _coo_only[0]:
+    if _coo_only:
         return _coo_assembly(Ke, tets, len(nodes))
     M = len(nodes)
     t = np.asarray(tets, np.int64)
@@ -89,18 +91,13 @@ def _coo_assembly(Ke, tets, M):
     return sp.csr_matrix((Ke.transpose(0, 1, 3, 2, 4).ravel(), (rows, cols)), shape=(n, n))
 
 
-_coo_only = [False]
+_coo_only = Before()
 
 
-@contextmanager
-def coo_assembly():
+def coo_assembly() -> AbstractContextManager[None]:
     """Within it, ``stiffness`` assembles through SciPy's COO → CSR as before session 38:
     the benches' "before" (process-wide)."""
-    _coo_only[0] = True
-    try:
-        yield
-    finally:
-        _coo_only[0] = False
+    return _coo_only.taken()
 
 
 def shape_gradients(nodes, tets):

@@ -10,7 +10,7 @@ value: w_F [m⁻²] · (unit_m)² / N_F per squared residual, and w_E [Pa⁻²] 
 """
 
 import time
-from contextlib import contextmanager
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
@@ -25,6 +25,7 @@ from ..geometry.closest import (
     surface_normals,
     vertex_tree,
 )
+from ..switches import Before
 from .model import REGION_FEATURES, W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform, displacement
 from .prior import PosePrior
 from .rotation import rotation, rotation_derivatives
@@ -417,7 +418,7 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
                 nearest = nearest_vertices(tree, Y, feat.near) if kd else None
                 tim["kdtree"] += time.perf_counter() - t0
                 t0 = time.perf_counter()
-                before = warm.get(name) if warm is not None and _warm_search[0] else None
+                before = warm.get(name) if warm is not None and not _cold_search else None
                 start = before.face if before is not None and before.face is not None else None
                 c = corr[name] = (frozen[name] if frozen is not None
                                   else correspond(feat, X, Y, tree=None if kd else tree, nearest=nearest,
@@ -566,11 +567,11 @@ def _at(model: RegistrationModel, beta) -> tuple | None:
 
 # the compiled (α columns, pose columns, S·X), or None (``jacobian_compiled``), imported on first use
 _jacobian_kernel: list = []
-_numpy_jacobian = [False]  # ``numpy_jacobian``
+_numpy_jacobian = Before()  # ``numpy_jacobian``
 
 
 def _alpha_kernel():
-    if _numpy_jacobian[0]:
+    if _numpy_jacobian:
         return None
     if not _jacobian_kernel:
         from .jacobian_compiled import alpha_columns, apply, carried, pose_columns
@@ -579,29 +580,19 @@ def _alpha_kernel():
     return _jacobian_kernel[0]
 
 
-_warm_search = [True]  # ``cold_search``
+_cold_search = Before()  # ``cold_search``
 
 
-@contextmanager
-def cold_search():
+def cold_search() -> AbstractContextManager[None]:
     """Within it, ``evaluate`` ignores ``warm``: every surface search starts at the hierarchy's
     root, as before the warm start (the benches' "before"); process-wide."""
-    _warm_search[0] = False
-    try:
-        yield
-    finally:
-        _warm_search[0] = True
+    return _cold_search.taken()
 
 
-@contextmanager
-def numpy_jacobian():
+def numpy_jacobian() -> AbstractContextManager[None]:
     """Within it, ``add_jacobian`` forms the α columns with SciPy and NumPy, as before the
     compiled ones (the benches' "before"); process-wide."""
-    _numpy_jacobian[0] = True
-    try:
-        yield
-    finally:
-        _numpy_jacobian[0] = False
+    return _numpy_jacobian.taken()
 
 
 def add_jacobian(model: RegistrationModel, ev: Evaluation, alpha_columns: bool = True) -> Evaluation:
