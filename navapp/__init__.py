@@ -4,7 +4,7 @@ reconstruction (LIBR; Heiselman & Miga, IEEE TMI 2020).
 Sub-packages, in the one direction data flows:
 anatomy -> mechanics -> simulation -> registration -> evaluation; ``app`` only calls them.
 All lengths are millimetres unless a docstring says otherwise. The maths is restated in
-``docs/design.md``; choices made where the paper is open are in ``docs/decisions.md``.
+``docs/design.md``; choices made where the paper is open are in ``docs/decisions/index.md``.
 
 The public API (everything in ``__all__``; imported on first use, so ``import navapp`` is
 cheap)::

@@ -2,7 +2,7 @@
 this machine's memory is refused in one line saying what to do.
 
 The budget is the memory available now (``psutil``), or ``$NAVAPP_MEMORY_MB``. The costs
-are measured (docs/decisions.md, "Bounded resources"): a mesh node costs its share of the
+are measured (docs/decisions/house.md, "Bounded resources"): a mesh node costs its share of the
 deformation basis, a data point its share of a registration, a surface triangle its share
 of the clean-up checks.
 """

@@ -28,7 +28,7 @@ DISPLAY_FACES = 4_000
 ``app.display``. Every tab redraws its whole scene in software on a machine without a GPU
 (viser's once-a-second heartbeat and every change), and an idle frame's cost follows the
 triangles drawn, whatever their size on screen; what the registration fits is not touched. On
-the phantoms the drawn liver lies within 0.25 mm of the surface both ways (docs/decisions.md,
+the phantoms the drawn liver lies within 0.25 mm of the surface both ways (docs/decisions/viewer.md,
 "What a tab draws" and "issue 50 item 7, session 35")."""
 DISPLAY_VESSEL_FACES = 2_000
 """Triangles the viewer draws at most for a preoperative vessel tree (``DISPLAY_FACES``' reason):

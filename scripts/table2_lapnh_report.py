@@ -54,7 +54,7 @@ text = f"""## Transposed cases, neo-Hookean reference
 The nine transposed cases again, their reference deformation now large (compressible
 neo-Hookean, total Lagrangian, Newton; `large = true` in navapp/scenes/lap*.toml) instead
 of linear. At the linear cases' loads the neo-Hookean reference moves 2.5–4 times as far
-(docs/decisions.md), so the loads were chosen again on the rigid TRE and displacement
+(docs/decisions/mechanics.md), so the loads were chosen again on the rigid TRE and displacement
 alone, before any S / S+n / CBCT number of these cases was seen: E = 14 kPa, 600 → 900 Pa on
 the anterior surface, gravity tilted 30° toward the released side and 30° head-up.
 

@@ -112,7 +112,7 @@ def test_a_tab_is_sent_the_drawn_surfaces_and_the_fit_keeps_the_whole_ones(app):
 def test_an_idle_tab_is_sent_nothing(app):
     """A tab redraws its 3D scene for every message batch that touches the scene and, in
     viser's client, once a second besides (its heartbeat, which navapp cannot turn off). With
-    several tabs on a machine without a GPU every redraw costs (docs/decisions.md, "What makes
+    several tabs on a machine without a GPU every redraw costs (docs/decisions/viewer.md, "What makes
     an idle tab redraw"): navapp must send nothing while nothing changes, no clock, no 'seen N s ago', no
     progress it already sent. Counts the frames of 6 s once the tab's first picture is sent."""
     with headless_tab(app) as (frames, _):

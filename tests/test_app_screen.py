@@ -139,7 +139,7 @@ def test_every_view_shows_the_whole_liver_between_the_panels(size, phantoms):
 def test_the_viewer_draws_without_shadows_or_image_based_lighting(app):
     """What a browser is sent on connecting: the default lights without shadows and no
     environment map. Drawn in software (no GPU), the idle viewer's shadows and image-based
-    lighting cost more than a core (docs/decisions.md, "The viewer's lighting")."""
+    lighting cost more than a core (docs/decisions/viewer.md, "The viewer's lighting")."""
     import time
 
     import viser

@@ -31,7 +31,7 @@ def labelled(phantoms):
 
 
 def test_agrees_with_the_phantoms_built_in_labels(phantoms, labelled):
-    # measured (docs/decisions.md): anterior/posterior Dice 0.98-0.99 on phantoms 0-2,
+    # measured (docs/decisions/anatomy.md): anterior/posterior Dice 0.98-0.99 on phantoms 0-2,
     # ridges 0.83-0.92; the bounds leave room for numerical noise only
     for model, lab in zip(phantoms, labelled, strict=True):
         assert isinstance(lab, RegionLabels)

@@ -121,7 +121,7 @@ def test_local_relaxation_on_the_whole_mesh_is_the_exact_one(parts, exact_relaxe
 def test_local_relaxation_is_local_and_close_to_exact(parts, exact_relaxed):
     """Few rings: the correction vanishes beyond them, and the modes stay within the
     error measured at 4 mm with the default 6 rings (≈ 24 mm, as 2 rings are here; per-mode
-    median 2 %, max 6 %: docs/decisions.md)."""
+    median 2 %, max 6 %: docs/decisions/mechanics.md)."""
     from navapp.mechanics.basis import grow, node_adjacency
 
     p = parts

@@ -94,7 +94,7 @@ def test_the_force_fit_is_a_continuous_function_of_its_data(forces, held_basis, 
     at most ~30 on the shift; 10⁻⁶ leaves room for a gain of 1000. With the face's own normal at
     an edge or vertex, a point there took the normal of whichever incident face won the tie,
     its distance jumped (by 0.09 mm at w = 0 for 6 of 293 points), and the nodes moved by up to
-    0.53 mm (15 mm dent) and 4.1 mm (4 cm dent) (docs/decisions.md)."""
+    0.53 mm (15 mm dent) and 4.1 mm (4 cm dent) (docs/decisions/local-loads.md)."""
     from navapp.mechanics import sparse
     from navapp.registration.forces import ForceOptions, SurfaceForces
 
@@ -425,7 +425,7 @@ def test_a_deformation_only_the_declared_supports_make_is_said(coarse_mesh, smal
     answer stays rigid), or the held answer predicts the held-out blocks better than they do by
     no more than one paired standard error (seed 1: 0.024 ± 0.041 mm). The deformation shown
     then rests on the declaration alone, and a line says so (on the local-load cases such answers
-    were up to 0.7 mm worse than the undeclared one, unwarned: docs/decisions.md, "Wrong supports,
+    were up to 0.7 mm worse than the undeclared one, unwarned: docs/decisions/local-loads.md, "Wrong supports,
     session 38"). The ligaments declared where the scene held them, the gain 0.19 ± 0.06 mm: no line."""
     from navapp.mechanics.basis import BasisSettings, compute_basis
     from navapp.registration.model import build_model

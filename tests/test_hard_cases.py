@@ -152,14 +152,14 @@ def hard_results(hard_setup):
     return {r.case: r for r in run_hard(hard_setup)}
 
 
-# Cases whose deformation exceeds the stated bound 2 d + 2 mm (docs/decisions.md, "Hard
+# Cases whose deformation exceeds the stated bound 2 d + 2 mm (docs/decisions/error-estimate.md, "Hard
 # cases"): coplanar data ask little at their own points while the true bending elsewhere is
 # larger (the fit finds it: TRE improves), collinear data fit anywhere along a wrong pose,
 # and an almost unregularised fit bends where no data are. All stay within the energy
 # bound the solver guarantees. Listed so that a change either way is seen.
 EXCEEDS_STATED_BOUND = {"collinear", "coplanar", "soft"}
 # Known defects the study shows since it judges the answer shown against navapp's own
-# rigid-only answer and counts the lines the answer carries (docs/decisions.md, "Hard cases
+# rigid-only answer and counts the lines the answer carries (docs/decisions/error-estimate.md, "Hard cases
 # judged by the answer shown"), listed so that a change either way is seen (issue 46):
 # - consistent data whose good answer (TRE better than rigid) still carries warnings: the
 #   cross-validation's "deformation not supported" (held-out 0.92 against 1.26 mm at 12 mm: better,
@@ -171,7 +171,7 @@ WARNED_ON_A_GOOD_ANSWER = {"baseline", "duplicated", "far", "weights x 1e-6", "w
 #   data's own frame (identity, 11 mm / 5° off) over ICP's right pose; a pooled RMS dominated by
 #   the contradictory points (3.95 against 3.96 mm), which no comparison of the two fits' residuals
 #   and strain energy can overrule and still hold a pre-aligned scan over a deep dent
-#   (docs/decisions.md, "The undeclared pose choice: one line per decision, and what no summary of
+#   (docs/decisions/registration.md, "The undeclared pose choice: one line per decision, and what no summary of
 #   the two fits can decide"). "90 deg" left this list when a basin turned beyond a tracker's error
 #   was finished to convergence before the 45° turn rule judged it (81° with 43 % of the data
 #   within 1 mm of the model, refused: 71.7 mm; converged 89°: 1.57 against 2.23 rigid-only).

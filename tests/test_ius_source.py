@@ -1,7 +1,7 @@
 """The tracked iUS probe as a data source (``simulation/sources/ius.py``): its preset planes in
 every scene, after the stylus on the scene's own stream, and one frame at a pose chosen after
 the simulation (a free plane, a live frame's automatic segmentation), with the data they gave
-before they were one (the pinned figures are main's at 6c0cdb6, docs/decisions.md,
+before they were one (the pinned figures are main's at 6c0cdb6, docs/decisions/sources.md,
 "session 35")."""
 
 import numpy as np

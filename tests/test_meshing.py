@@ -121,7 +121,7 @@ def test_other_generators_mesh_above_the_floor(make, edge, gmsh_hangs):
     attempts = ATTEMPTS
     if gmsh_hangs:
         # Gmsh's surface classification does not return on these two within its budget
-        # (docs/decisions.md, "Where Gmsh's budget goes"): its default budget (27 CPU s) only
+        # (docs/decisions/viewer.md, "Where Gmsh's budget goes"): its default budget (27 CPU s) only
         # delays the fallback, which a 6 CPU s budget reaches the same way. On a quiet machine
         # Gmsh has also returned from the thin lobe at 6.0 CPU s, with a mesh under the floor at
         # 40° and 60° and one above it at 90° (CI, session 37): either way the log must say why
@@ -353,7 +353,7 @@ def test_a_label_maps_staircase_is_meshed_first_time():
     """A liver imported from a CT label map (phantom 0 voxelised on an oblique 0.7 × 0.7 ×
     2.5 mm grid, then the import's marching cubes, smoothing and decimation) has feature
     lines a few edges apart at 40° (and 60°): Gmsh fails there ("Wrong topology of boundary
-    mesh for parametrization", or slivers under the floor: docs/decisions.md, "Choosing
+    mesh for parametrization", or slivers under the floor: docs/decisions/speed.md, "Choosing
     Gmsh's feature angle from the surface"). The plan skips those angles up front and the
     first attempt it makes meshes above the floor; the phantoms' smooth surfaces keep the
     whole chain (so their plans, cache keys and meshes are unchanged)."""

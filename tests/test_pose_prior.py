@@ -400,7 +400,7 @@ def test_a_declared_pose_is_judged_by_its_posterior_not_by_the_coverage_rule(sma
     believed and the coverage note says so; declared, the pose's posterior says how far it may be
     off (``PoseEvidence``, against the clinical goal), and the coverage note is not said beside it
     — silent where the declared spread keeps the given pose within the goal, one line (the
-    posterior's) where it does not (docs/decisions.md, "issue 46, session 35")."""
+    posterior's) where it does not (docs/decisions/registration.md, "issue 46, session 35")."""
     from navapp.fitwarning import WarningKind
     from navapp.registration.coverage import MIN_COVERAGE, data_coverage
     from navapp.registration.pipeline import register

@@ -1,6 +1,6 @@
 """The tracked stylus as a data source (``simulation/sources/stylus.py``): in every scene, on
 the scene's own random stream, with the cache and session keys and the data it had before
-it was one (the pinned figures are main's at 560e262, docs/decisions.md, "session 34")."""
+it was one (the pinned figures are main's at 560e262, docs/decisions/sources.md, "session 34")."""
 
 import numpy as np
 import pytest

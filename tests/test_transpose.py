@@ -154,7 +154,7 @@ def test_coarse_transposed_truth_has_the_calibrated_displacement(phantoms, coars
     from navapp.simulation.simulate import transposed_truth
 
     scene = load_scene(scene_dir() / "lap0-N.toml")
-    assert scene.large  # the calibrated loads are the neo-Hookean model's (docs/decisions.md)
+    assert scene.large  # the calibrated loads are the neo-Hookean model's (docs/decisions/mechanics.md)
     scene.transpose_from = type(scene.transpose_from)(phantom=scene.transpose_from.phantom, mesh_edge_mm=10.0)
     u, info = transposed_truth(scene, phantoms[0], coarse_mesh, cache_root=cache_root)
     d = np.linalg.norm(u, axis=1)

@@ -12,7 +12,7 @@ from the surface alone, in the patient frame given by an anterior (and superior)
 - posterior: everything else (posterior face, bare area, visceral surface).
 
 Parameters were chosen by agreement with the built-in labels of phantoms 0–2; see
-``docs/decisions.md``, "Automatic labels and centerlines".
+``docs/decisions/anatomy.md``, "Automatic labels and centerlines".
 """
 
 from dataclasses import dataclass, field

@@ -43,7 +43,7 @@ OUTSIDE_WARN_FRACTION = 0.01  # warn when more than 1 % of a vessel's vertices l
 VESSEL_MARGIN_MM = 15.0
 """The model holds a vessel within this of the liver's surface and cuts off the rest: the
 portal trunk at the hilum stays, the extrahepatic portal vein, the IVC and a splenic vein
-beyond go; the FE model has no tissue out there to move them with (docs/decisions.md)."""
+beyond go; the FE model has no tissue out there to move them with (docs/decisions/anatomy.md)."""
 
 
 def slicer_frame(path) -> str | None:

@@ -112,7 +112,7 @@ was measured with; larger angles make fewer, larger patches, which is what lets
 re-parametrisation succeed on sharp or unevenly triangulated surfaces; fTetWild is the
 fallback that cannot fail on a valid closed surface, tried a second time on a slightly
 finer edge because its boundary can come out pinched beyond mending (choices and timings:
-docs/decisions.md, "Meshing any liver" and "Pinched boundaries")."""
+docs/decisions/anatomy.md, "Meshing any liver" and "Pinched boundaries")."""
 
 MESHERS = ("auto", "gmsh", "ftetwild")
 """``$NAVAPP_MESHER``: "auto" (the chain above), or only the attempts of one method."""
@@ -123,7 +123,7 @@ scaled by ``mesh_engines.FTETWILD_EDGE_FACTOR`` to give the same count)."""
 
 CPU_SECONDS = {"gmsh": (6.0, 0.0006), "ftetwild": (15.0, 0.0035)}
 """Expected CPU seconds of one attempt, a + b × expected nodes (interpreter start-up and
-imports included; measured, docs/decisions.md "Deterministic meshing")."""
+imports included; measured, docs/decisions/house.md, "Same answer on a busy machine")."""
 
 WORK_FACTOR = 4.0
 """An attempt may use this many times its expected CPU seconds. CPU time, unlike wall
@@ -189,7 +189,7 @@ triangles whose normals differ by more than the angle) lie on average closer tog
 this many mesh edges (``feature_spacing``): Gmsh keeps every feature line as a patch
 boundary and meshes the strips between them, which at a spacing of a few edges ends in
 "Wrong topology of boundary mesh for parametrization" or in slivers under the quality floor.
-Measured (docs/decisions.md, "Choosing Gmsh's feature angle from the surface"): livers
+Measured (docs/decisions/speed.md, "Choosing Gmsh's feature angle from the surface"): livers
 imported from CT label maps failed at 1.4–9.1 edges and meshed at 13 and more; the
 phantoms have no feature line at 40°, the test surfaces from other generators 12–27 edges."""
 

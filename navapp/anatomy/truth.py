@@ -13,7 +13,7 @@ Two kinds, each answering only what it knows:
   TRE is measured at those points whatever the registration mesh.
 
 A folder with both is read as the field (the simulator of before the field wrote a
-``targets.csv`` on its own registration mesh's nodes; see docs/decisions.md).
+``targets.csv`` on its own registration mesh's nodes; see docs/decisions/mechanics.md).
 """
 
 import zipfile

@@ -408,7 +408,7 @@ class Core:
             ahead = None
             if not is_simulated(self.scene, self.cache_root):
                 # the registration mesh and basis need only the preoperative liver: they are made
-                # beside the scene's simulation (docs/decisions.md, "The first start")
+                # beside the scene's simulation (docs/decisions/viewer.md, "The first start")
                 ahead = Ahead(self.preop.liver, self.edge, self.k, self.cache_root)
             sd = load_scene_data(self.scene, self.cache_root, self.edge)
             folder = Path(self.session_dir) if self.session_dir else default_folder(sd)

@@ -2,7 +2,7 @@
 token or serves TLS. viser binds 127.0.0.1 behind it; the front (the ``websockets`` library
 viser itself is built on) listens on ``--host``, refuses with a short 403 any page, file or
 websocket without a valid token, and passes the rest through: files as HTTP, the websocket
-message by message. Why a front rather than a hook in viser: docs/decisions.md, "Who may
+message by message. Why a front rather than a hook in viser: docs/decisions/viewer.md, "Who may
 use a viewer".
 
 The token comes in the URL (``?token=``) and is then kept in a cookie of this port, so the

@@ -99,7 +99,7 @@ class App:
         cam.look_at, cam.position = self.core.centre, self.core.centre + HOME_VIEW_MM
         self.server.gui.configure_theme(control_width="large", dark_mode=False)
         # no cascaded shadows and no image-based lighting: on a machine without a GPU (WebGL
-        # drawn in software) they cost the idle viewer more than a core (docs/decisions.md,
+        # drawn in software) they cost the idle viewer more than a core (docs/decisions/viewer.md,
         # "The viewer's lighting"), and a shadow on a semi-transparent liver hides what is inside
         self.server.scene.configure_default_lights(enabled=True, cast_shadow=False)
         self.server.scene.configure_environment_map(hdri=None)

@@ -9,7 +9,7 @@ way. For each case the table records, and ``HardResult.failures`` checks:
   ``Registration.warnings``: what the user is told) / refused (``NavappError``,
   one line) / error (anything else: a defect), against the outcomes the case allows;
 - the registered model's deformation, against two bounds stated before any run
-  (docs/decisions.md, "Hard cases"):
+  (docs/decisions/error-estimate.md, "Hard cases"):
   * D, the largest nodal displacement of J_u α once its best rigid fit is removed (LIBR
     re-poses while it deforms, so J_u α itself carries some rigid motion; 0 where the answer
     shown is the kept pose without deformation), against the
@@ -66,7 +66,7 @@ POSE_DEG, POSE_T_MM = 5.0, (4.0, -3.0, 6.0)  # the rigid pose of the data (about
 NOISE_MM = 0.3  # Gaussian noise on every data coordinate
 N_POINTS, N_TARGETS = 150, 40
 SEED = 7
-# TRE margins (mm), stated before any run (docs/decisions.md, "Hard cases"): consistent
+# TRE margins (mm), stated before any run (docs/decisions/error-estimate.md, "Hard cases"): consistent
 # data on a sound model must not lose more than the noise level to rigid; deliberately
 # degenerate, contradictory or degraded input may lose up to 1 mm
 MARGIN_CONSISTENT, MARGIN_DEGRADED = 0.3, 1.0
@@ -486,10 +486,10 @@ def markdown(results, setup: Setup, command: str) -> str:
         f"k = {setup.k}; data: {N_POINTS} anterior points of an analytic bending of the organ (≤ {BEND_MM:g} mm, "
         f"not from the basis) under a {POSE_DEG:g}° / {np.linalg.norm(POSE_T_MM):.1f} mm pose, "
         f"{NOISE_MM} mm noise, then made hard as the case says. Bounds and margins were stated before the run "
-        "(docs/decisions.md, \"Hard cases\"): deformation is the largest nodal displacement of J_u α with its "
-        "best rigid fit removed, bound 2 d + 2 mm with d the largest data-to-model distance at the rigid pose; "
-        "the energy bound (on |J_u α| itself) is what the solver guarantees (Ω never ends above its start); TRE is the "
-        f"mean over {N_TARGETS} interior points, navapp's rigid-only answer → the answer shown; the outcome "
+        "(docs/decisions/error-estimate.md, \"Hard cases\"): deformation is the largest nodal displacement of J_u α "
+        "with its best rigid fit removed, bound 2 d + 2 mm with d the largest data-to-model distance at the rigid "
+        "pose; the energy bound (on |J_u α| itself) is what the solver guarantees (Ω never ends above its start); "
+        f"TRE is the mean over {N_TARGETS} interior points, navapp's rigid-only answer → the answer shown; the outcome "
         "counts every line the answer carries; condition is the Jacobi-scaled condition "
         "number of the last LM matrix JᵀWJ + C; every case ran twice (identical: bit for bit).",
         "",

@@ -178,7 +178,7 @@ workers=2, offsets=O)` (what `navapp study robustness` calls with single-icp and
 `scripts/simulate_study.py` on the meshes of commit 7703fca. Variants of the first default
 measured earlier on older meshes (point-to-point starts, iUS posterior points in ICP, no
 Huber, continuation at 10 ×) are in the history of this file (commit 8a12042) and in
-docs/decisions.md.
+docs/decisions/registration.md.
 
 """
 

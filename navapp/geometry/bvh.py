@@ -13,7 +13,7 @@ its tie rule (the lowest triangle index among equal squared distances): the same
 an exhaustive search, and as the k-d path wherever that found the closest triangle. A
 box is skipped only when it is farther than the best by more than a rounding margin, so
 rounding in the boxes' distances never drops a tied or nearer triangle.
-Measured against the alternatives: docs/decisions.md, "Closest points at the tracker's speed".
+Measured against the alternatives: docs/decisions/speed.md, "Closest points at the tracker's speed".
 """
 
 import numpy as np

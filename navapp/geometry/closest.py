@@ -7,7 +7,7 @@ vertices (always the case for well-shaped meshes and queries near the surface). 
 triangles need more vertices: the decimated vessel surfaces use ``NEAR_DECIMATED``.
 
 LM searches the model surfaces with ``bvh``'s hierarchy instead, refitted per evaluation:
-exact everywhere and as fast or faster (docs/decisions.md, "Closest points at the tracker's
+exact everywhere and as fast or faster (docs/decisions/speed.md, "Closest points at the tracker's
 speed"); this k-d path remains where Numba is missing, for the centerlines, and as the
 benches' "before" (``kd_search``). pykdtree builds and queries the tree in half the time of
 SciPy's cKDTree (same neighbours), so ``vertex_tree`` uses it where installed. The candidate
@@ -38,7 +38,7 @@ _FastTree = _fast_tree()
 NEAR = 2  # nearest vertices whose incident cells are tested
 # quadric-decimated surfaces (the vessels, ``registration.model.VESSEL_FACES``): with two
 # nearest vertices 4 % of the portal contour points of the demo missed their closest
-# triangle (by up to 0.28 mm), with three 0.3 %, with four none (docs/decisions.md)
+# triangle (by up to 0.28 mm), with three 0.3 %, with four none (docs/decisions/speed.md)
 NEAR_DECIMATED = 4
 
 
@@ -131,7 +131,7 @@ def nearest_vertices(tree, points, near=NEAR):
     points = np.ascontiguousarray(points, dtype=float)
     # one OpenMP thread for pykdtree: a query of ~1,000 points ends before a second thread
     # pays, and OpenMP's waiting threads took CPU from the rest on 2 cores (a fresh
-    # registration: 2.2 s CPU with two threads, 1.8 s with one; docs/decisions.md)
+    # registration: 2.2 s CPU with two threads, 1.8 s with one; docs/decisions/speed.md)
     with limit_threads(1):
         found = tree.query(points, k=near)[1]
     found = np.asarray(found, np.int64).reshape(len(points), near)

@@ -3,7 +3,7 @@
 LM tests every data point against the triangles incident to its nearest vertices at every
 evaluation (~8,500 point–triangle pairs for the demo's stylus points alone). Written with
 NumPy that is ~70 whole-array operations on temporaries of the pairs' length, 3.5–4.5 ms of
-CPU a call; compiled, one pass over the pairs with nothing allocated (docs/decisions.md,
+CPU a call; compiled, one pass over the pairs with nothing allocated (docs/decisions/speed.md,
 "Closest points at the tracker's speed"). The arithmetic is ``closest.triangle_weights``'s,
 operation for operation and in the same order, and the choice among the candidates is the
 same (the smallest squared distance, ties to the lowest triangle index), so the answers are

@@ -21,7 +21,7 @@ Choices where the paper is open (each tested in tests/test_basis.py):
    whose load is self-equilibrated, on the tile plus ``relax_layers`` rings of the node
    graph with the correction held at zero beyond (``None``: on the whole mesh, one
    factorisation of nearly all of K per tile). The error of the local solve against the
-   exact one and its effect on TRE are measured in docs/decisions.md.
+   exact one and its effect on TRE are measured in docs/decisions/mechanics.md.
 3. Nodal strain and stress are volume-weighted averages of the (constant) element values.
 """
 

@@ -20,7 +20,7 @@ from ..switches import Before
 # do not depend on E, but the strain-energy penalty w_E f_E² scales with E², and with the
 # paper's w_E = 1e-8 Pa⁻² an E of 2.1 MPa makes the penalty dominate any millimetre-scale
 # deformation; 2.1 kPa is the order of liver stiffness in the literature and gives the
-# kind of gain the paper's Table II shows (the measurement: docs/decisions.md, "Measured
+# kind of gain the paper's Table II shows (the measurement: docs/decisions/registration.md, "Measured
 # choices moved out of docstrings").
 E_LIVER = 2100.0
 NU_LIVER = 0.45
@@ -54,7 +54,7 @@ def stiffness(nodes: np.ndarray, tets: np.ndarray, material: Material = Material
     The 16 node-pair blocks of each element are summed per pair of nodes (one sort of the
     E·16 pairs, nine weighted counts) into a 3 × 3 block matrix, rather than the E·144
     entries sorted and summed by SciPy's COO → CSR: 0.65 against 2.0 CPU s at 22k nodes,
-    the same pattern and values within rounding (docs/decisions.md, session 38)."""
+    the same pattern and values within rounding (docs/decisions/speed.md, session 38)."""
     Ke = _element_blocks(nodes, tets, material)  # (E, 4, 4, 3, 3): node a, node b, axis i, axis j
     if _coo_only:
         return _coo_assembly(Ke, tets, len(nodes))

@@ -7,7 +7,7 @@ minutes instead of seconds at that size). ``NAVAPP_SOLVER=superlu`` forces the f
 SuperLU is given METIS's nested-dissection ordering of the matrix's node graph (``nested_dissection``)
 rather than its own minimum degree: on the 4 mm liver held at its supports (52k DOFs) the factor
 holds 52 M entries instead of 77 M, and the factorisation and solves take 4× and 2× less time,
-with the same answers to 10⁻¹³ (docs/decisions.md).
+with the same answers to 10⁻¹³ (docs/decisions/local-loads.md).
 """
 
 import glob

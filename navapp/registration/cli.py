@@ -23,7 +23,7 @@ def add_register_parser(sub):
     s.add_argument("--max-iterations", type=positive(int), default=cap, help=f"LM iteration cap (default {cap})")
     s.add_argument("--local-modes", action="store_true",
                    help="add point-load modes under the surface data the first fit leaves off, kept where "
-                        "held-out data gain (for local tool loads; off by default, docs/decisions.md)")
+                        "held-out data gain (for local tool loads; off by default, docs/decisions/local-loads.md)")
     s.add_argument("--pose-sd", nargs="+", metavar="MM DEG",
                    help="the data arrive in a frame registered to the preoperative one, to within MM and DEG "
                         "(standard deviations per axis): a pose prior holds what the data cannot determine; "

@@ -6,13 +6,13 @@ reported as "ICP RMS 3.69 mm"; one plane's posterior wall alone, 33–127 mm. Th
 determinacy (``pose.pose_determinacy``) names the motions a patch leaves free, but only for the
 stylus surface data, and a curved patch can fix every motion and still sit in the wrong place.
 Coverage is the second check: the share of the liver's surface nodes within ``COVER_MM`` of a
-data point (in the model frame). Measured on the demo liver (docs/decisions.md, "Gross poses"):
+data point (in the model frame). Measured on the demo liver (docs/decisions/registration.md, "Gross poses"):
 the whole stylus sweep 21.8 %, its anterior 853 points 19.0 % (rigid error 8.9 mm mean), a
 400-point patch 9.2 % (12.9 mm), 200 points 4.9 % (15.9 mm), one plane's wall ≤ 1.9 % (33–127 mm).
 
 A declared pose (``prior.PosePrior``) is not a pose the data must find alone: where its posterior
 says how far the pose may be off (``uncertainty.PoseEvidence``, ``OrganError.pose_mm``), ``register``
-does not add this note beside it (docs/decisions.md, "issue 46, session 35").
+does not add this note beside it (docs/decisions/registration.md, "issue 46, session 35").
 """
 
 from dataclasses import dataclass

@@ -4,7 +4,7 @@ Numba (``model.RegistrationModel.positions``).
 NumPy makes x(β) = R(θ)(x0 − x̄0 + J_u α) + τ + x̄0 in six passes over the points (the
 product's conversion to double, two sums, a 3 × 3 product, two more sums), each allocating:
 0.15 ms for the demo liver's 6,214 points against 0.03 ms in one pass here, at every LM
-evaluation that searches (docs/decisions.md, "Issue 49, session 37"). ``model.deform`` stays
+evaluation that searches (docs/decisions/speed.md, "Issue 49, session 37"). ``model.deform`` stays
 eq. 8's definition; this is the same arithmetic per point (the rotated sum in another order
 than BLAS's, so x within ~1e-13 mm of it). None where Numba is missing.
 """

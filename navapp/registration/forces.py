@@ -66,7 +66,7 @@ from .support import SupportOptions, blocks_of, supports_not_borne_out
 MAX_SITES = 150
 """Force sites at most (``SurfaceForces.responses``): one solve each, and with SuperLU a solve of
 the 4 mm liver costs ~0.1–0.3 s; 150 sites over a scan of 6–10 % of the surface are 3–6 mm apart,
-finer than a tool's dent (docs/decisions.md)."""
+finer than a tool's dent (docs/decisions/local-loads.md)."""
 
 WARM_WITHOUT_FORCES = ("surface forces are not refitted in a warm re-registration: the basis's answer is shown "
                        "(LIBR's modes held at the declared supports) — register afresh to choose among no "
@@ -89,7 +89,7 @@ def one_standard_error(block_mm: dict[float, np.ndarray], counts: np.ndarray) ->
     block; the spread of the blocks' own RMS would accept every λ. Why not the least alone: 5
     blocks, neighbouring λ held out within the blocks' noise of each other, and a smaller λ
     lets the forces grow where no datum checks them (on the study set and draw 3 the least's
-    λ = 10⁻³ gave three answers 2–4 mm worse than any other λ; docs/decisions.md, session 34)."""
+    λ = 10⁻³ gave three answers 2–4 mm worse than any other λ; docs/decisions/local-loads.md, session 34)."""
     p = np.asarray(counts, float) / np.sum(counts)
     mean = {k: float(p @ np.asarray(v)) for k, v in block_mm.items()}
     best = min(mean, key=lambda k: (mean[k], -k))
@@ -130,7 +130,7 @@ class PoseTerm:
     Why: with the supports declared, a tracker offset is not a deformation — the organ cannot
     reach an offset patch without straining from its supports — so the forces alone, deforming
     from the rigid stage's pose (a fit of the undeformed organ to a dented patch), left the
-    offset cases 4–8 mm off (docs/decisions.md, issue 47 session 37)."""
+    offset cases 4–8 mm off (docs/decisions/local-loads.md, issue 47 session 37)."""
 
     centroid: np.ndarray  # x̄0 (3,) mm, the rotation's centre (the mesh nodes' centroid)
     centre: np.ndarray  # q_c (6,): where the given pose lies from the rigid stage's
@@ -253,7 +253,7 @@ class SurfaceForces:
         gradient where the closest point is on an edge or vertex, so c is the true distance and
         continuous in the points. A face's own normal there was the normal of whichever
         incident face won a tie of equal distances (rounding decides it), and the fit's answer
-        moved by up to 4 mm with the data moved by 10⁻⁹ mm (docs/decisions.md)."""
+        moved by up to 4 mm with the data moved by 10⁻⁹ mm (docs/decisions/local-loads.md)."""
         moved = self.nodes + u
         face, bary, _ = closest_on_surface(points, moved, self.faces, self.table)
         tri = self.faces[face]

@@ -30,7 +30,7 @@ def _alpha_columns(indptr, indices, weights, BJ, qR, rows, U, J, sw, Js):
     the sum stored in double. U may be single precision: it is what the held fast path
     multiplies by α (eq. 8 at the closest points, ``objective.Correspondence``), as the
     whole-feature deformation multiplies the single-precision B·J_u; storing half the bytes
-    and not reading them back for J is a fifth of this kernel's time (docs/decisions.md,
+    and not reading them back for J is a fifth of this kernel's time (docs/decisions/speed.md,
     "Issue 49, session 37"). Rows not in point order have their points summed again."""
     N, n = U.shape[0], U.shape[2]
     R = rows.shape[0]

@@ -12,7 +12,7 @@ Choices where the paper is open:
 - C = w_E f_E ∇²f_E = w_E f_E J_σᵀJ_ε / M is the part of the exact Hessian of the
   strain-energy term that Gauss–Newton drops. f_E is quadratic in α, so w_E f_E² is
   quartic, and without C the model underestimates it and λ must stay large (more
-  iterations; docs/decisions.md). It changes the path, not the objective;
+  iterations; docs/decisions/registration.md). It changes the path, not the objective;
   ``LMOptions(energy_curvature=False)`` gives the plain step of eq. 14.
 
 Stop reasons (``STOP_REASONS``): "converged" (|ΔΩ| < tol on an accepted step, or Ω = 0),
@@ -45,7 +45,7 @@ class LMOptions:
 
     tol: float = 1e-12  # on |ΔΩ| (Ω dimensionless, SI), the paper's rule
     # on |ΔΩ| / Ω, twice in a row: correspondence switching keeps Ω jittering far above tol.
-    # 0.1, not 0.01: a few hundredths of a mm of TRE for fewer iterations (docs/decisions.md)
+    # 0.1, not 0.01: a few hundredths of a mm of TRE for fewer iterations (docs/decisions/registration.md)
     rtol: float = 1e-1
     max_iterations: int = LM_MAX_ITERATIONS
     lam0: float = 1e-2
@@ -104,7 +104,7 @@ def _solve(A, g):
     LAPACK's Cholesky solve (posv, upper triangle) and its reciprocal condition estimate
     (pocon) called directly: what ``scipy.linalg.solve(assume_a="pos")`` does, with its rule
     (not positive definite, or rcond below machine ε: least squares instead) and the same
-    bits, at half its cost for LM's 141 × 141 (0.09 against 0.19 ms; docs/decisions.md,
+    bits, at half its cost for LM's 141 × 141 (0.09 against 0.19 ms; docs/decisions/speed.md,
     "Issue 49, session 38")."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a non-finite A: to least squares, as before
@@ -182,7 +182,7 @@ def _register(model, data, beta0, options, callback, cancel, first=None):
         J = ev.J if free.all() else ev.J[:, free]
         # JᵀWJ as (√W J)ᵀ(√W J): NumPy hands a product of an array's transpose with itself to
         # BLAS's symmetric rank-k update, half of the general product's work (1.5 against
-        # 2.4 ms for the live demo's 2,184 × 141 on one thread; docs/decisions.md)
+        # 2.4 ms for the live demo's 2,184 × 141 on one thread; docs/decisions/speed.md)
         if ev.Js is None:
             Js = J * np.sqrt(ev.w)[:, None]
         else:  # made with J (``add_jacobian``): the same bits, without another pass over J

@@ -12,7 +12,7 @@ The same spatial blocks as the cross-validation (``support.blocks_of``) can: per
 today's basis and the extended one (sources placed from the *training* blocks' own fit, so
 no held-out point has a say where its modes go) are fitted to the other blocks and predict
 the held-out one. The modes are kept where the held-out RMS drops by more than ``min_gain``
-(relative). The truth is never read. docs/decisions.md ("Local modes in
+(relative). The truth is never read. docs/decisions/local-loads.md ("Local modes in
 register") has the measurements; the constants were set before the probe's first run.
 """
 

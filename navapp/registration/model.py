@@ -7,7 +7,7 @@ segments for centerlines, none for fiducials.
 Data feature → model feature (a choice where the paper is open; ``navapp.features`` holds
 the table): anterior and posterior points slide on the whole liver surface (restricting
 posterior iUS points to the labelled posterior region was measured worse — the region's
-edges stop points sliding; docs/decisions.md); falciform and ridge points only on their
+edges stop points sliding; docs/decisions/registration.md); falciform and ridge points only on their
 own labelled region (salient features); iUS contours on the PV/HV surfaces; centerline
 points on the centerline polylines; fiducials on their preoperative counterparts, row by row.
 """
@@ -172,7 +172,7 @@ def displacement(BJ: np.ndarray, alpha: np.ndarray, single: np.ndarray | None = 
     instead. Reading B·J_u is an LM evaluation's largest cost (the liver's is 20 MB in double
     precision, every evaluation); in single precision it is half the bytes and twice the
     width of each vector instruction, and J_u α comes out within ~1e-5 mm of the double
-    product (docs/decisions.md, "Eq. 8 in single precision"): the positions, in double
+    product (docs/decisions/speed.md, "Eq. 8 in single precision"): the positions, in double
     precision, are x0 + that. S·B·J_u (a few rows) stays in double precision.
 
     At α = 0 (every fit from β = 0 starts there: the continuation's first fit, the basin
@@ -215,7 +215,7 @@ def deform(rest, u, beta, centroid) -> tuple[np.ndarray, np.ndarray]:
 
 # Vessel surfaces are decimated to this many triangles for registration: both vessels are
 # deformed and searched at every LM evaluation, and the decimation error stays far below
-# the 4 mm tet mesh (measurements: docs/decisions.md, "Measured choices moved out of docstrings").
+# the 4 mm tet mesh (measurements: docs/decisions/registration.md, "Measured choices moved out of docstrings").
 VESSEL_FACES = 4000
 
 

@@ -48,7 +48,7 @@ class Rejection:
     points. ``k`` keeps the cut loose while the fit is far off (after the rigid pose of a
     large deformation the good points too are several mm off), ``floor_mm`` once it has
     converged; below the cut a Huber δ (``robust_weights``) bounds the pull of the spike's
-    foot. Measured: docs/decisions.md, "Outliers"."""
+    foot. Measured: docs/decisions/registration.md, "Outliers"."""
 
     floor_mm: float = 10.0
     k: float = 5.0
@@ -114,7 +114,7 @@ def robust_weights(salient_mm: float) -> Weights:
     """Weights robust on every feature: Huber δ ``salient_mm`` on the salient features (the
     pipeline's ``RobustOptions.huber_salient_mm``), ``HUBER_MM`` on every other, and outlier
     rejection (``Rejection``). The viewer fits with these (a click can go wrong);
-    ``pipeline.register``'s default is the salient Huber alone (docs/decisions.md, "Outliers")."""
+    ``pipeline.register``'s default is the salient Huber alone (docs/decisions/registration.md, "Outliers")."""
     from ..features import NAMES
 
     return Weights(huber_mm={n: salient_mm if n in REGION_FEATURES else HUBER_MM for n in NAMES},

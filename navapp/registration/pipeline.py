@@ -95,7 +95,7 @@ from .uncertainty import CLINICAL_GOAL_MM, MAD_SD, OrganError, PoseEvidence, dec
 @dataclass
 class RobustOptions:
     """How registration starts and guards itself; the defaults are what the robustness
-    study chose (``results/robustness.md``; docs/decisions.md, "Registration: robust
+    study chose (``results/robustness.md``; docs/decisions/registration.md, "Registration: robust
     initialisation and fit quality")."""
     multi_start: bool = True  # False: one exact point-to-point ICP from the tracker pose
     start_angle_deg: float = 15.0  # starts at ± this about each axis through the data centroid
@@ -112,12 +112,12 @@ class RobustOptions:
     stiff_first: float | None = 3.0
     # the given (tracker) pose is kept when a trimmed fit from it hardly moves the data, the
     # trimmed fit's pose when most data lie on the model there (``pose.choose_pose``); a kept
-    # pose is kept by LIBR too (τ, θ fixed): docs/decisions.md, "Local loads"
+    # pose is kept by LIBR too (τ, θ fixed): docs/decisions/local-loads.md, "Local loads"
     keep_given_pose: bool = True
     # spatial cross-validation of the deformation against the rigid answer; None: off
     support: SupportOptions | None = field(default_factory=SupportOptions)
     # Kelvin modes under the surface data the first fit leaves off, kept where held-out data
-    # gain (``local_modes``); None: off (not yet the default: docs/decisions.md, "Local modes
+    # gain (``local_modes``); None: off (not yet the default: docs/decisions/local-loads.md, "Local modes
     # in register")
     local_modes: LocalModeOptions | None = None
 
@@ -152,7 +152,7 @@ METHODS = {
     "default-no-continuation": lambda: RobustOptions(stiff_first=None),
     "default-plain-icp": lambda: RobustOptions(rigid_robust=None),
     # variants measured on older meshes before the robust ICP and the continuation joined the
-    # default (docs/decisions.md); they keep the guards against local loads, "multistart" does not
+    # default (docs/decisions/registration.md); they keep the guards against local loads, "multistart" does not
     "multistart-LS": lambda: RobustOptions(huber_salient_mm=None, rigid_robust=None, stiff_first=None),
     "multistart-point": lambda: RobustOptions(icp="point", rigid_robust=None, stiff_first=None),
     "multistart-posterior": lambda: RobustOptions(rigid_posterior=True, rigid_robust=None, stiff_first=None),
@@ -494,9 +494,9 @@ def _cross_validate(model: RegistrationModel, local: dict, options: LMOptions, s
     or where the cross-validation fails from ICP's pose (whether to warn, ``Support.outweighs``),
     the correction is also weighed against its own σ. So is a fit with local modes
     (``local_modes``) from ICP's pose: the modes were placed where the data asked, and
-    held-out blocks are a weaker judge of a fit that can bend there (docs/decisions.md,
+    held-out blocks are a weaker judge of a fit that can bend there (docs/decisions/local-loads.md,
     "Local modes in register"). With a declared pose (``declared``) the held-out prediction is the
-    one criterion: the correction is not weighed against its σ (docs/decisions.md, "Pose prior");
+    one criterion: the correction is not weighed against its σ (docs/decisions/registration.md, "Pose prior");
     with ``paired`` (a declared pose within the clinical goal) surface data alone are judged by one
     paired standard error of the held-out gain, not the 30 % margin (``SupportOptions.surface_se``)."""
     if support is None and not local_modes:  # with local modes only the folds' own verdict, which no block saw
@@ -609,7 +609,7 @@ def _settle_scale(model: RegistrationModel, local: dict, result, options: LMOpti
     continued from its β until σ_F changes by less than a tenth (at most ``SCALE_ROUNDS``):
     the scale and the answer agree, as in an EM estimate of a noise variance. Kept with the
     rigid stage's scale, a declared tracker offset of its true size was held part-way
-    (tool2-e at S: 10.6 mm against 7.05 mm settled; docs/decisions.md, "Pose prior")."""
+    (tool2-e at S: 10.6 mm against 7.05 mm settled; docs/decisions/registration.md, "Pose prior")."""
     prior = options.weights.pose_prior
     assert prior is not None
     floor = _noise_floor(local)
@@ -733,7 +733,7 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
                     surface_forces, undeclared)
     if reg.held is not None and reg.held.contradicted and not (cancel is not None and cancel.is_set()):
         # the data contradict the declared supports: the free-floating model's registration,
-        # every check its own, with the line that says why it is the one shown (docs/decisions.md,
+        # every check its own, with the line that says why it is the one shown (docs/decisions/local-loads.md,
         # "Declared supports tested by the data")
         free = undeclared if undeclared is not None else free_model(model)
         alt = _register(free, data, deform, options, callback, cancel, beta0, rigid, init, starts, pose_prior,
@@ -833,7 +833,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         # rigid-only answer is: whether the pose alone makes such a turn good is asked of it
         # (``PoseChoice.unconfirmed_turn``), and stopped at ``TOL_BEFORE_LIBR`` it can end short
         # along a shallow valley (hard case "90 deg" at 12 mm: 81° with 43 % of the data within
-        # 1 mm of the model, 89° and 85 % converged; docs/decisions.md, "The undeclared pose choice …")
+        # 1 mm of the model, 89° and 85 % converged; docs/decisions/registration.md, "The undeclared pose choice …")
         loose = deform and turn_deg(rigid) <= POSE_RULE.tracker_turn_deg
         rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if loose else 1e-4,
                           start=rigid, features=features, robust=init.rigid_robust)
@@ -906,7 +906,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         t = time.perf_counter()
         # a declared pose within the clinical goal confines the pose: the held-out gain is judged
         # against its own standard error; declared wider, the rigid stage searches within that
-        # width, and the margin that stands for a searched pose holds (docs/decisions.md, "issue 46,
+        # width, and the margin that stands for a searched pose holds (docs/decisions/registration.md, "issue 46,
         # session 37"). Measured on the free-floating basis only: on a basis held at declared
         # supports it kept a deformation 1 mm worse than no correction, unwarned (tool1-a), and
         # the margin holds there ("The one-standard-error rule on a held basis", session 37)
@@ -921,7 +921,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
             result.stop_reason != "cancelled" and centred is not None and options.weights.pose_prior is not None \
             and moved is not None:
         # the rigid answer with a declared pose: the fitted pose or the given one, by whether the
-        # posterior tells them apart (``PoseEvidence``; docs/decisions.md, "One criterion for the pose")
+        # posterior tells them apart (``PoseEvidence``; docs/decisions/registration.md, "One criterion for the pose")
         evidence = pose_evidence(model, local, moved, centred, options.weights)
         if evidence.kept_given:
             # the deformable fit re-expressed about the given pose, so that its β and the data's
@@ -1000,7 +1000,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
     elif model.basis.settings.supports is not None and deform and fresh and support is not None and \
             init.support is not None and result is not None and result.stop_reason != "cancelled":
         # declared supports are a hypothesis the data can contradict: the free-floating basis's
-        # fits to the same held-out blocks (docs/decisions.md, "Declared supports tested by the data")
+        # fits to the same held-out blocks (docs/decisions/local-loads.md, "Declared supports tested by the data")
         t = time.perf_counter()
         unheld = undeclared if undeclared is not None else free_model(model)
         # judged as the undeclared registration judges its own deformation (the one-standard-error
@@ -1023,7 +1023,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         clock.mark("supports_check")
     if fresh and reg.deformed and result is not None and result.stop_reason != "cancelled":
         # every check above compares the answer with simpler ones on the data; this one asks
-        # whether it is good enough to navigate by at all (docs/decisions.md, "An answer the data
+        # whether it is good enough to navigate by at all (docs/decisions/error-estimate.md, "An answer the data
         # do not determine"). Warm re-registrations skip it, as they skip the cross-validation
         # with the fit's own weights (its robust factors), as the viewer's predicted error is made
         reg.organ = organ_error(reg, weights=replace(options.weights, pose_prior=None))
@@ -1034,7 +1034,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
     # Not where a declared pose's posterior already says how far the pose may be off (the rigid
     # answer's ``PoseEvidence``, the deformable answer's ``OrganError.pose_mm``, each against the
     # clinical goal): the coverage rule (10 % of the surface) stands for a pose the data must find
-    # alone, and said twice it also hid the organ's own line (docs/decisions.md, "issue 46, session 35")
+    # alone, and said twice it also hid the organ's own line (docs/decisions/registration.md, "issue 46, session 35")
     if not (declared and (reg.pose_evidence is not None or reg.organ is not None)):
         note_coverage(reg)
     clock.mark("coverage")

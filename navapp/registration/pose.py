@@ -53,7 +53,7 @@ class PoseRule:
     keep: float = 0.5  # the trimmed fit uses this best-fitting fraction of the surface data
     # the given pose is kept when the trimmed fit moves the data less (RMS, mm); measured: 8.2–12.9 mm
     # on the nine direct study cases (a global sag), 1.1–3.1 mm on the tool cases with a dent under
-    # the data (docs/decisions.md, "Local loads")
+    # the data (docs/decisions/local-loads.md, "Local loads")
     moved_mm: float = 4.0
     # ... and part of the data lie on the model there: a global sag leaves the trimmed fit stuck
     # on the points where the two surfaces cross (phantom2-N: 3.3 mm moved, 12 % on the model; from
@@ -64,7 +64,7 @@ class PoseRule:
     # the scenes simulate (0.3 mm sd)
     on_mm: float = 1.0
     # the trimmed fit's pose is taken when at least this fraction of the points is on the model
-    # there, and this much more than at ICP's pose (docs/decisions.md, "Local loads")
+    # there, and this much more than at ICP's pose (docs/decisions/local-loads.md, "Local loads")
     consensus: float = 0.65
     consensus_margin: float = 0.15
     # ... and only when the trimmed fit moved the data less than this (RMS, mm): a correction
@@ -75,14 +75,14 @@ class PoseRule:
     # when the answer from ICP's pose is in doubt (a poor fit, or a deformation the data do not
     # support), the given pose (held, with LIBR) is the answer if its data residual is within this
     # factor of ICP's: the move was not earned by a better fit (``prefer_given``). Measured (pooled
-    # RMS, given ÷ ICP, docs/decisions.md "Local loads"): at most 1.09 where the given pose was right,
+    # RMS, given ÷ ICP, docs/decisions/local-loads.md "Local loads"): at most 1.09 where the given pose was right,
     # at least 1.23 where ICP's was
     given_ratio: float = 1.15
     # ... and the given pose is held when ICP's pose turns the organ by more than this from it
     # (degrees) and the pose alone leaves most data off the model (under ``consensus`` within
     # ``on_mm``), whatever the residuals: a tracker's registration is not that far off, so such a
     # turn is the multi-start search's guess at a lobe that moved, not a correction of the
-    # tracker (docs/decisions.md, "A turn no tracker makes"). The robustness study's largest
+    # tracker (docs/decisions/registration.md, "A turn no tracker makes"). The robustness study's largest
     # offset is 20°; its starts turn by 15° and by the principal axes' flips (90°, 180°)
     tracker_turn_deg: float = 45.0
 
@@ -140,7 +140,7 @@ def trimmed_pose(model: RegistrationModel, data: dict, start: RigidResult, keep:
         # distances, searched afresh) is the linearisation failing, not a better pose, and is
         # undone. A line of stylus points leaves a rotation about it and a slide along it
         # nearly free; solved whole, the steps along them grew until the pose stood 1e221 mm
-        # off and the closest-point search read past its arrays (docs/decisions.md)
+        # off and the closest-point search read past its arrays (docs/decisions/live.md)
         objective = float(np.sum(r[best] ** 2))
         if not objective <= kept:
             R, t = last
@@ -307,7 +307,7 @@ def choose_pose(model: RegistrationModel, data: dict, given: RigidResult, fitted
         return PoseChoice(PoseSource.FITTED, None)
     # a rigid offset smaller than the margin is kept too (and LIBR cannot take it out): a
     # clause that also refused poses whose trimmed fit halved the median distance caught a
-    # 2 mm shift but kept no tool case's pose either (docs/decisions.md, "Local loads")
+    # 2 mm shift but kept no tool case's pose either (docs/decisions/local-loads.md, "Local loads")
     local, moved = trimmed_pose(model, data, given, rule.keep, at_start=at_given)
     d = _distances(model, data, local)
     on = {PoseSource.LOCAL: float(np.mean(d < rule.on_mm))}

@@ -15,7 +15,7 @@ The prior is on τ, θ, the tracker's registration, not on the organ's own motio
 control-point modes can move the organ nearly rigidly at little strain energy, and a liver
 pushed against its supports does move so. A prior on the rigid part of J_u α as well held
 such a motion back (tool0-b, a 9.8 mm push: 8.2 mm TRE against 3.5 mm with τ, θ alone
-held; docs/decisions.md, "Pose prior").
+held; docs/decisions/registration.md, "Pose prior").
 
 Why s_P: Ω is a log-likelihood only up to a scale. The paper's w_F / N_F makes a feature's
 term w_F u² × its mean-square residual, whatever its point count: a feature is one
@@ -32,7 +32,7 @@ fewer than half of the points does not set it. The deformable fit then re-estima
 its own residuals, where the deformation is no longer misfit (``pipeline._settle_scale``). A
 fixed σ_F = 1 mm shrank a declared 4 mm / 3° offset by half; the RMS in place of the median
 held a declared 10° / 17 mm offset at 4°; the rigid stage's scale kept for the deformable fit
-held declared tracker offsets part-way (docs/decisions.md, "Pose prior").
+held declared tracker offsets part-way (docs/decisions/registration.md, "Pose prior").
 """
 
 from dataclasses import dataclass
@@ -43,7 +43,7 @@ FEATURE_SD_MM = 1.0
 """σ_F (mm) of a ``PosePrior`` made by hand: the residual RMS one unit-weight data feature is read
 as carrying when Ω is read as a log-likelihood (module doc). ``register`` replaces it by the data's
 own robust σ at the rigid stage's pose; a fixed 1 mm shrank a declared offset by half
-(docs/decisions.md, "Pose prior")."""
+(docs/decisions/registration.md, "Pose prior")."""
 
 W_REF_SI = 1.0
 """w_ref (m⁻²): the weight of a unit data feature (eq. 7's anterior surface)."""

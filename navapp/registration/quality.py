@@ -17,7 +17,7 @@ EXPECTED_NOISE_MM = {f.name: f.noise_mm for f in TABLE}
 # A feature is flagged when its RMS exceeds noise + MARGIN_MM: the linear-elastic basis
 # does not reach every detail of a true deformation, so a correct fit keeps some
 # residual. Calibrated on the nine simulated study cases (noise-free data, so what stays is
-# model mismatch): see docs/decisions.md, "Registration: robust initialisation and fit quality".
+# model mismatch): see docs/decisions/registration.md, "Registration: robust initialisation and fit quality".
 MARGIN_MM = 2.0
 MIN_POINTS = 5  # fewer points say too little to raise an alarm
 

@@ -3,7 +3,7 @@
 Point-to-point ICP between the digitised surface data (stylus: anterior, falciform, ridges;
 and fiducials) and the model surface (as docs/design.md §1 says; iUS contours and iUS posterior
 points join only in the deformable stage: the contours pulled the pose toward the wrong
-branches and the posterior points lowered the success rate — docs/decisions.md, "Measured
+branches and the posterior points lowered the success rate — docs/decisions/registration.md, "Measured
 choices moved out of docstrings"; ``features`` can add them). Each
 feature finds closest points on its own model feature only (falciform to the falciform
 region, ridges to their ridges), and every point carries its feature's objective weight
@@ -73,7 +73,7 @@ TOL_BEFORE_LIBR = 1e-2  # mm: ICP only initialises LIBR
 # Huber factors on falciform and ridge points with δ = this × the feature's median residual
 # (``_robust_scale``); None: plain weighted ICP (the path before). On the study grid a
 # mislabelled stretch of a ridge had pulled the pose 1.3 mm further off (rigid TRE 10.1
-# against 8.8 mm) and LIBR never recovered: see docs/decisions.md, "Registration: robust
+# against 8.8 mm) and LIBR never recovered: see docs/decisions/registration.md, "Registration: robust
 # initialisation and fit quality"
 RIGID_ROBUST = 2.0
 
@@ -87,7 +87,7 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights | None = No
     w_F / N_F is per point of the subset, so every feature keeps its total weight w_F).
     Stops when the weighted RMS changes by less than ``tol_mm``; the pipeline passes
     ``TOL_BEFORE_LIBR`` when LIBR follows (it refines the rigid pose anyway: β carries τ, θ;
-    what that saves and costs: docs/decisions.md). ``start``: the pose
+    what that saves and costs: docs/decisions/registration.md). ``start``: the pose
     to begin from; without one, ``multi_start`` begins from the lowest-RMS pose the
     multi-start ICP reaches (``multi_start_icp``; the registration pipeline instead picks
     among those poses by the LIBR objective and passes its choice as ``start``), and

@@ -61,7 +61,7 @@ class SupportOptions:
     blocks: int = 5
     # the deformable prediction must be this much (relative) better than rigid from surface data
     # alone: on the tool cases whose surface-only deformable answer was worse than none it
-    # predicted the held-out data 14–15 % better, where it helped 46–75 % (docs/decisions.md,
+    # predicted the held-out data 14–15 % better, where it helped 46–75 % (docs/decisions/local-loads.md,
     # "Local loads"); with vessel data inside the organ, which rule out a wrong interior
     # behind a good surface fit, ``margin_interior``
     margin: float = 0.3
@@ -71,17 +71,17 @@ class SupportOptions:
     # one standard error of that gain, paired block by block (``paired_gain``), in place of
     # ``margin``. The 30 % margin stands for a pose the data find alone, where a slid pose's
     # deformation predicts held-out surface as well as a right one's; such a prior confines the
-    # pose (docs/decisions.md, "issue 46, session 37")
+    # pose (docs/decisions/registration.md, "issue 46, session 37")
     surface_se: bool = False
     far_mm: float = 40.0  # a target farther than this from every data point is extrapolated
     min_points: int = 30  # fewer data points: no cross-validation (too few to split)
     iterations: int = 30  # LM cap per fold (the fold fits start from β = 0)
     # a kept pose's correction must be at least this many σ (means over the mesh nodes):
-    # the conventional three; docs/decisions.md ("A correction within its own uncertainty")
+    # the conventional three; docs/decisions/local-loads.md ("A correction within its own uncertainty")
     # has where the measured cases lie against it
     z: float = 3.0
     # from ICP's pose, a correction of at least this many σ is not warned about where the
-    # cross-validation fails (module doc); docs/decisions.md ("The warnings on good answers")
+    # cross-validation fails (module doc); docs/decisions/error-estimate.md ("The warnings on good answers")
     # has the measured cases on either side of it
     z_strong: float = 4.0
     sample_nodes: int = 2000  # mesh nodes the comparison is made at (every n-th: σ costs time per node)
@@ -224,7 +224,7 @@ class HeldCheck:
     def rests_on_supports(self) -> bool:
         """The held answer deforms, and either the free-floating basis's fits earn no deformation
         by the undeclared rule, or the held answer's held-out gain over them is within one paired
-        standard error: the declaration, not the data, makes this deformation (docs/decisions.md,
+        standard error: the declaration, not the data, makes this deformation (docs/decisions/local-loads.md,
         "Wrong supports, session 38")."""
         return self.held_deforms and not self.replaced and not self.contradicted and \
             (not self.free_earns or self.undecided)

@@ -56,7 +56,7 @@ class Calibration:
     holds ``coverage`` at every data level of each kind of deformation, the local tool
     loads tool0-* included.
     Validated on the cases of the two other livers (results/error_estimate.md,
-    docs/decisions.md)."""
+    docs/decisions/error-estimate.md)."""
     a: float = 0.59697  # mm
     b: float = 0.0038633  # mm per mm of distance to the data
     c: float = 5.1995  # per mm of σ
@@ -366,7 +366,7 @@ def estimate_error(reg, points=None, calibration: Calibration | None = None, B=N
         # the pose's own uncertainty, where a pose is declared: the calibrated ê was fitted on
         # answers whose pose was right, so it leaves out how far the declared pose may be off.
         # Undeclared it is not joined: on a smooth cap the data leave turns free, and σ_pose put a
-        # right answer's predicted error over the organ at 21 mm (docs/decisions.md, "Pose prior")
+        # right answer's predicted error over the organ at 21 mm (docs/decisions/registration.md, "Pose prior")
         pose_sigma = np.zeros(len(x))
         # the strain energy over its own posterior spread, not its Laplace curvature alone, which
         # vanishes with the deformation and left σ far from a partial scan held by nothing
@@ -376,7 +376,7 @@ def estimate_error(reg, points=None, calibration: Calibration | None = None, B=N
             # not noise — does not scale σ over the whole organ. s from the mean square put ê at 3–6 ×
             # the true error there (tooldraw3_1-g at S: ê 16.6 mm, true 3.0). The lesser of the
             # two: a misfit only adds to the mean square, and where the robust reading is the larger
-            # the residuals have no tail to discount (docs/decisions.md, "The residual scale read
+            # the residuals have no tail to discount (docs/decisions/error-estimate.md, "The residual scale read
             # robustly in the declared error estimate")
             info = replace(info, scale=min(info.scale, info.robust_scale))
         H = info.matrix() + energy_spread(model, info)
@@ -387,7 +387,7 @@ def estimate_error(reg, points=None, calibration: Calibration | None = None, B=N
             # the calibrated term takes the deformation's σ given the pose (α's block of H). The
             # data-only σ of every β also carried the τ, θ a partial scan leaves weakly fixed,
             # unbounded by the prior and then × c: tooldraw3_0-a at S, σ 5.99 → 4.41 mm given the
-            # pose (docs/decisions.md, "The declared pose counted once in the error estimate")
+            # pose (docs/decisions/error-estimate.md, "The declared pose counted once in the error estimate")
             n = G.shape[-1] - 6
             sigma = point_sigma(G[:, :, :n], factor=covariance_factor(info, H[:n, :n]))
             w = weights or default_weights()
@@ -446,7 +446,7 @@ class OrganError:
     that is the pose's own posterior (data and the declared prior): beyond ``pose_bound_mm``, the
     paper's clinical goal, the data do not fix the pose well enough to navigate by, whatever the
     deformation — the rule ``PoseEvidence`` applies to a declared rigid answer, here for a
-    deformable one (docs/decisions.md, "The declared pose counted once in the error estimate")."""
+    deformable one (docs/decisions/error-estimate.md, "The declared pose counted once in the error estimate")."""
     mean_mm: float
     nodes: int
     bound_mm: float = ONCOLOGICAL_MARGIN_MM
@@ -489,7 +489,7 @@ class PoseEvidence:
     is within ``bound_mm``, the clinical goal. A fitted pose is always warned about: where the
     basis cannot make the deformation, the posterior does not see the misfit that moved the
     pose, and such a fitted pose was worse than its reference, silently, on 5 of the 72 declared
-    local-load registrations (by 0.05–0.44 mm; docs/decisions.md, "One criterion for the pose").
+    local-load registrations (by 0.05–0.44 mm; docs/decisions/registration.md, "One criterion for the pose").
     """
     moved_mm: float
     sigma_mm: float

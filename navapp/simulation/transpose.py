@@ -29,7 +29,7 @@ Supported regions after transposition: the target's own bare area and ligaments 
 not re-clamped. They move as the transposed field says (near zero where φ lands on
 the reference's supports, not exactly zero elsewhere); ``simulate`` reports that
 motion (``report.json``: ``transposed.support_displacement_mm``). See
-docs/decisions.md.
+docs/decisions/mechanics.md.
 """
 
 from dataclasses import asdict, dataclass

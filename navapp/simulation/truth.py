@@ -18,7 +18,7 @@ adaptive load stepping and a backtracking line search (``solve_neo_hookean``). T
 are dead loads (gravity and the anterior pressure act in the reference configuration),
 so the problem has a potential energy, which the line search descends.
 St-Venant–Kirchhoff was tried first and dropped: it softens in compression and its
-Newton failed at the laparoscopic loads (docs/decisions.md).
+Newton failed at the laparoscopic loads (docs/decisions/mechanics.md).
 """
 
 from dataclasses import dataclass

@@ -7,7 +7,7 @@ The libraries are not navapp's dependencies: ``pip install fcpw libigl open3d em
     python notes/scripts/closest_libraries.py
 
 Prints CPU ms per search (median) and the largest distance error against the hierarchy's
-exact answer (issue 49; docs/decisions.md, "exact closest points by a refitted hierarchy").
+exact answer (issue 49; docs/decisions/speed.md, "exact closest points by a refitted hierarchy").
 """
 
 import statistics

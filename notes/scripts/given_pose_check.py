@@ -2,7 +2,7 @@
 changes a registration of the study cases: Table II's CBCT and iCT rows (the levels whose rigid
 stage is not the shared stylus ICP) and the robustness design's trials of one draw (every
 offset and label condition). One JSON line per registration: the pose's source and TRE; where
-the rule took the given pose, the TRE with the rule off too (docs/decisions.md, "Local loads").
+the rule took the given pose, the TRE with the rule off too (docs/decisions/local-loads.md, "Local loads").
 
     python notes/scripts/given_pose_check.py STUDY_CASE [STUDY_CASE ...] > given_pose.jsonl
 """

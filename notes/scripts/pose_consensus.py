@@ -1,7 +1,7 @@
 """How much of the surface data lies on the model at the given pose (G), at the trimmed fit
 from it (T) and at the multi-start ICP's pose (I), with each pose's rigid TRE, and LIBR's
 TRE from T with the pose fixed and free: the measurements behind ``pose.POSE_RULE``
-(docs/decisions.md, "Local loads").
+(docs/decisions/local-loads.md, "Local loads").
 
     python notes/scripts/pose_consensus.py S|S+all CASE [CASE ...]
 

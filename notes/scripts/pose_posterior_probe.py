@@ -1,5 +1,5 @@
 """What the undeclared pose comparison (``pose.prefer_given``) sees, and what a posterior in its
-place would decide (docs/decisions.md, "The undeclared pose choice: one line per decision, and
+place would decide (docs/decisions/registration.md, "The undeclared pose choice: one line per decision, and
 what no summary of the two fits can decide"). Every registration that reaches the comparison
 prints one JSON line: both fits' pooled RMS, their strain energy f_E, the rule's decision, and
 the posterior gain per data point (−2 log of the posterior ratio given : ICP ÷ N; positive

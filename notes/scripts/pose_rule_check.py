@@ -1,6 +1,6 @@
 """Which pose the rigid stage answers with (``pose.choose_pose``: given, local or fitted)
 on every trial of the robustness design (offsets, label noise), one JSON line per trial:
-where it says "fitted" the guarded registration is the unguarded one (docs/decisions.md,
+where it says "fitted" the guarded registration is the unguarded one (docs/decisions/local-loads.md,
 "Local loads").
 
     python notes/scripts/pose_rule_check.py STUDY_CASE [STUDY_CASE ...] > pose_rule.jsonl

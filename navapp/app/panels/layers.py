@@ -34,13 +34,13 @@ STANDARD_VIEWS = {  # camera direction from the liver centroid (navapp frame: +x
 LAYERS = ("Preoperative liver", "Preoperative vessels", "Targets", "Collected data", "Registered liver",
           "Registered vessels", "Error colours", "True deformed liver (ghost)", "Ultrasound plane", "Stylus")
 # the error dots' point_size: viser draws a point of size s about 2 s wide (mm); at 1.0 they hid
-# a third of the registered vessels' pixels (docs/decisions.md, "Error dots")
+# a third of the registered vessels' pixels (docs/decisions/viewer.md, "Error dots")
 ERROR_DOT_MM = 0.5
 # The translucent livers are drawn one-sided, their outer faces only (both are closed and wound
 # outward: the imported surface by ``anatomy.cleanup``, the registered one as the mesh's outward
 # boundary). Two-sided, three.js draws a translucent mesh twice, inner faces then outer, and every
 # tab redraws once a second in software where there is no GPU: the back half of the liver was
-# about a third of an idle tab's frame (docs/decisions.md, "What makes an idle tab redraw").
+# about a third of an idle tab's frame (docs/decisions/viewer.md, "What makes an idle tab redraw").
 LIVER_SIDE: Final = "front"
 TRUE, PREDICTED = "true error", "predicted error"
 ERROR_SOURCES = {TRUE: "true error", PREDICTED: "predicted error, no truth needed"}  # choice → legend label

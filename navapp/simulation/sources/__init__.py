@@ -24,7 +24,7 @@ Received, every source has one home too, ``navapp/tracking/receivers`` (a tracke
 points may arrive in its own frame, placed by its pose: ``[tools.<source>]`` in the tracking
 config); shown, ``navapp/app/sources`` (the stylus's tip and its digitised points, the probe's
 tracked frames: ``features.TRACKED``; every point source's points by one generic module);
-fiducials have no module (``features.HAND_WIRED``); see docs/decisions.md, "Data sources
+fiducials have no module (``features.HAND_WIRED``); see docs/decisions/sources.md, "Data sources
 as rooms" and sessions 34 and 35.
 """
 
