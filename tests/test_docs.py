@@ -54,3 +54,42 @@ def test_the_commands_page_lists_every_command():
     text = (ROOT / "docs/commands.md").read_text()
     listed = set(re.findall(r"^\| `navapp (\w[\w-]*)", text, flags=re.M))
     assert listed == set(subcommands())
+
+
+def results_index() -> list[tuple[set[str], str]]:
+    """docs/studies.md's table of every file in results/: per row, the file names (paths
+    relative to results/, globs allowed) and the command cell."""
+    text = (ROOT / "docs/studies.md").read_text().split("## Every file in results/", 1)[1]
+    rows = [line for line in text.split("\n## ", 1)[0].splitlines() if line.startswith("| ") and "---" not in line]
+    out = []
+    for row in rows[1:]:  # the header first
+        files, _, made_by = (cell.strip() for cell in row.strip("|").split(" | "))
+        names = set(re.findall(r"\]\(results/([^)]+)\)", files))
+        names |= set(re.findall(r"`([^`]+)`", re.sub(r"\[[^\]]*\]\([^)]*\)", "", files)))
+        out.append((names, made_by))
+    return out
+
+
+def test_every_file_in_results_is_listed_with_the_command_that_makes_it():
+    """results/ holds only what the docs list (docs/studies.md, "Every file in results/"), each
+    beside a command the docs name: a navapp command, or a script that exists. A probe's output
+    goes to notes/, not here."""
+    from fnmatch import fnmatch
+
+    on_disk = {str(p.relative_to(ROOT / "results")) for p in (ROOT / "results").rglob("*") if p.is_file()}
+    listed: set[str] = set()
+    commands = set(subcommands())
+    for names, made_by in results_index():
+        for name in names:
+            matched = {f for f in on_disk if fnmatch(f, name)}
+            assert matched, f"docs/studies.md lists results/{name}, which is not there"
+            listed |= matched
+        runs = re.findall(r"`((?:navapp|python) [^`]+)`", made_by)
+        assert runs, f"no command for {sorted(names)}"
+        for run in runs:
+            words = run.split()
+            if words[0] == "navapp":
+                assert words[1] in commands, run
+            elif words[1] != "-m":
+                assert (ROOT / words[1]).is_file(), run
+    assert sorted(on_disk - listed) == []

@@ -262,7 +262,7 @@ def test_default_fit_is_a_continuation_from_a_stiffer_organ(small_model):
 
 def test_the_committed_rows_name_methods_that_exist():
     """The committed study rows are reported under today's method names: a method renamed
-    in ``METHODS`` without rewriting the rows (scripts/rename_robustness_methods.py) would
+    in ``METHODS`` without rewriting the rows (as notes/scripts/rename_robustness_methods.py did once) would
     drop them from the regenerated report's comparisons."""
     from pathlib import Path
 

@@ -44,6 +44,14 @@ def test_every_maintained_tool_starts_and_says_its_usage_without_writing_anythin
     assert not list(tmp_path.iterdir())
 
 
+def test_every_maintained_tool_is_named_by_the_docs():
+    """A tool in scripts/ is one the docs tell a reader to run (README, docs/, the reports in
+    results/); a one-off probe or migration goes to notes/scripts/ with its output in notes/."""
+    pages = [ROOT / "README.md", *(ROOT / "docs").glob("*.md"), *(ROOT / "results").rglob("*.md")]
+    text = "\n".join(p.read_text() for p in pages)
+    assert SCRIPTS and [s.name for s in SCRIPTS if f"scripts/{s.name}" not in text] == []
+
+
 def test_make_tool_scenes_writes_the_committed_study_scenes(tmp_path):
     """``python scripts/make_tool_scenes.py`` makes the 24 local-load scenes in
     navapp/scenes byte for byte (written elsewhere here with ``--out``)."""

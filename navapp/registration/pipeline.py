@@ -143,7 +143,7 @@ class RobustOptions:
 
 # the registration variants the robustness study compares; the rows of
 # results/robustness.csv were written under older names ("before", "after", "first-after",
-# "after-no-continuation", "after-plain-icp"), rewritten by scripts/rename_robustness_methods.py
+# "after-no-continuation", "after-plain-icp"), rewritten once by notes/scripts/rename_robustness_methods.py
 METHODS = {
     "single-icp": RobustOptions.single_icp,
     "default": RobustOptions,

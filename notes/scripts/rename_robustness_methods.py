@@ -1,7 +1,7 @@
 """Rewrite the method column of a robustness study CSV from the names the committed rows were
 written under to today's ``registration.pipeline.METHODS`` names; every other byte stays.
 
-    python scripts/rename_robustness_methods.py results/robustness.csv
+    python notes/scripts/rename_robustness_methods.py results/robustness.csv
 
 Run once on the committed rows (rows written since already carry the new names); a name
 that is neither old nor in ``METHODS`` stops it before anything is written.
