@@ -93,3 +93,32 @@ def test_every_file_in_results_is_listed_with_the_command_that_makes_it():
             elif words[1] != "-m":
                 assert (ROOT / words[1]).is_file(), run
     assert sorted(on_disk - listed) == []
+
+
+def test_mkdocs_serve_serves_the_front_page():
+    """The README's ``mkdocs serve``: the site is built and served, the README its home page."""
+    import socket
+    import time
+    import urllib.request
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    env = {**os.environ, "NO_MKDOCS_2_WARNING": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "mkdocs", "serve", "--no-livereload", "--dev-addr",
+                             f"127.0.0.1:{port}"], cwd=ROOT, env=env, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    try:
+        page, deadline = "", time.monotonic() + 300  # a cold build on a loaded 2-core machine
+        while time.monotonic() < deadline and proc.poll() is None:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=10) as response:
+                    page = response.read().decode()
+                break
+            except OSError:
+                time.sleep(0.5)
+        assert proc.poll() is None, proc.stderr.read()[-3000:]
+        assert "What to read next" in page and "opens the navigation viewer" in page
+    finally:
+        proc.terminate()
+        proc.wait(timeout=60)
