@@ -122,3 +122,12 @@ def test_mkdocs_serve_serves_the_front_page():
     finally:
         proc.terminate()
         proc.wait(timeout=60)
+
+
+def test_the_docs_extra_is_installed_by_the_test_extra():
+    """``pip install -e ".[docs]"`` (the README) installs nothing that CI's ``.[test]`` does not,
+    so the suite's site build proves the docs extra too."""
+    import tomllib
+
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    assert extras["docs"] and set(extras["docs"]) <= set(extras["test"])
