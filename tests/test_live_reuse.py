@@ -2,6 +2,7 @@
 determinacy, the last evaluation's geometry and correspondences) gives the answers computed
 afresh, whatever the data do between calls."""
 
+from contextlib import nullcontext
 from dataclasses import replace
 
 import numpy as np
@@ -209,3 +210,86 @@ def test_lm_searches_start_from_the_last_iterations_triangles_with_the_same_fit(
     assert len(warm_starts) >= 2 * len(fits["warm"].steps) and all((s >= 0).all() for s in warm_starts)
     a, b = fits["warm"], fits["cold"]
     assert np.array_equal(a.beta, b.beta) and a.history == b.history and a.iterations == b.iterations
+
+
+def _vessel_sample(model, name, rng, n, spread):
+    rest = model.feature_for(name).rest
+    return rest[rng.choice(len(rest), n, replace=False)] + rng.normal(0.0, spread, (n, 3))
+
+
+def _same_evaluation(a, b) -> None:
+    assert a.omega == b.omega and np.array_equal(a.f, b.f) and np.array_equal(a.w, b.w)
+    assert np.array_equal(a.J, b.J) and np.array_equal(a.Js, b.Js) and a.features == b.features
+    for name, c in a.correspondence.items():
+        d = b.correspondence[name]
+        for x, y in ((c.S.data, d.S.data), (c.S.indices, d.S.indices), (c.S.indptr, d.S.indptr),
+                     (c.direction, d.direction), (c.face, d.face), (c.SBJ, d.SBJ), (c.S_rest, d.S_rest)):
+            assert (x is None) == (y is None) and (x is None or np.array_equal(x, y)), name
+
+
+def test_a_frames_points_after_the_kept_ones_are_searched_alone_with_the_same_evaluation(small_model, monkeypatch):
+    """The next live frame's first evaluation is at the β the last update ended at, where that
+    update's final evaluation searched the kept planes' contour points and the last frame's: the
+    rows of a feature's first points that are the same, at the same β, are kept and only the
+    points after them searched (``search_whole`` searches them all again, as before). The
+    evaluation equals a fresh model's to the bit, and keeps no row of a point that moved."""
+    import navapp.registration.objective as objective
+    from navapp.registration.libr import LMOptions, register_libr
+    from navapp.registration.objective import search_whole
+
+    rng = np.random.default_rng(13)
+    n = small_model.basis.Ju.shape[1]
+    beta = np.concatenate([rng.normal(0.0, 0.3, n), [0.5, -0.2, 0.1, 0.01, 0.0, -0.02]])
+    anterior = _surface_sample(small_model, rng, 40, 0.5)
+    contour, line = _vessel_sample(small_model, "portal_contour", rng, 30, 1.0), \
+        _vessel_sample(small_model, "portal_centerline", rng, 4, 1.0)
+
+    def frame(k):
+        return {"anterior": anterior,
+                "portal_contour": np.vstack([contour, _vessel_sample(small_model, "portal_contour", rng, k, 1.5)]),
+                "portal_centerline": np.vstack([line, _vessel_sample(small_model, "portal_centerline", rng, 2, 1.5)])}
+
+    searched = []
+    plain = objective.correspond
+
+    def correspond(feat, X, Y, **kw):
+        searched.append(len(Y))
+        return plain(feat, X, Y, **kw)
+
+    monkeypatch.setattr(objective, "correspond", correspond)
+    last, now = frame(12), frame(9)
+    moved = {**now, "portal_contour": now["portal_contour"].copy()}
+    moved["portal_contour"][7] += 1.0  # a kept point moved: its rows and the ones after it are searched
+    for data, kept in ((now, {"portal_contour": 30, "portal_centerline": 4}),
+                       (moved, {"portal_contour": 7, "portal_centerline": 4})):
+        model = _bare(small_model)
+        evaluate(model, last, beta, Weights(), jacobian=False)  # the last update's final evaluation
+        searched.clear()
+        got = evaluate(model, data, beta, Weights())
+        reached = sorted(searched)
+        searched.clear()
+        fresh = evaluate(_bare(small_model), data, beta, Weights())
+        assert sorted(searched) == sorted(len(v) for v in data.values())
+        _same_evaluation(got, fresh)  # before the count: a stale row fails here
+        assert reached == sorted(len(data[k]) - kept[k] for k in kept)  # the anterior's reused whole
+        with search_whole():
+            model = _bare(small_model)
+            evaluate(model, last, beta, Weights(), jacobian=False)
+            searched.clear()
+            whole = evaluate(model, data, beta, Weights())
+        assert sorted(searched) == sorted(len(data[k]) for k in kept)
+        _same_evaluation(got, whole)
+    # another β: nothing of the last evaluation is kept
+    model = _bare(small_model)
+    evaluate(model, last, beta, Weights(), jacobian=False)
+    _same_evaluation(evaluate(model, now, beta * 0.9, Weights()), evaluate(_bare(small_model), now, beta * 0.9,
+                                                                           Weights()))
+    # a live update: LM from where the last fit ended, one iteration, the same fit as searching whole
+    fits = []
+    for ctx in (None, search_whole):
+        model = _bare(small_model)
+        with ctx() if ctx else nullcontext():
+            end = register_libr(model, last, beta, LMOptions(max_iterations=2))
+            fits.append(register_libr(model, now, end.beta, LMOptions(max_iterations=1)))
+    a, b = fits
+    assert len(a.steps) == 1 and np.array_equal(a.beta, b.beta) and a.omega == b.omega and a.features == b.features

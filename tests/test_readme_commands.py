@@ -207,6 +207,9 @@ def test_bench_live(capsys):
     warm = out["before_after_warm_search"]  # the same frames with every search begun at the root
     assert warm["variants"] == ["default_cold_search", "default"] and warm["before_over_after_median"] > 0
     assert warm["tre_after_last_frame_mm"][0] == warm["tre_after_last_frame_mm"][1]
+    kept = out["before_after_kept_points"]  # the same frames with a feature the frame adds to searched whole
+    assert kept["variants"] == ["default_search_whole", "default"] and kept["before_over_after_median"] > 0
+    assert kept["tre_after_last_frame_mm"][0] == kept["tre_after_last_frame_mm"][1]
 
 
 def test_bench_precompute(capsys):

@@ -17,7 +17,11 @@ this kind differ 2–3× in speed, and load moves absolute times: compare within
   the same frames under the same load (``before_after``: per-update ratios, per-stage ms);
 - ``default_cold_search``: ``default`` with every surface search begun at the hierarchy's
   root (``objective.cold_search``), as before LM's searches started from the last
-  iteration's triangles (session 38): ``before_after_warm_search``, the same figures.
+  iteration's triangles (session 38): ``before_after_warm_search``, the same figures;
+- ``default_search_whole``: ``default`` with a contour feature the new frame adds to searched
+  whole again (``objective.search_whole``), as before the kept planes' points of it, searched at
+  the same β by the last update's final evaluation, kept their rows (session 39):
+  ``before_after_kept_points``, the same figures.
 
 Each variant has its own copy of the model's cache: variants that reach the same β
 (before and after give the same bits) would otherwise reuse each other's evaluations.
@@ -43,7 +47,7 @@ from ..geometry.interpolation import interpolation_matrix
 from ..geometry.transforms import interpolate_pose
 from ..geometry.tre import tre_stats
 from ..registration.live import LiveRegistration
-from ..registration.objective import cold_search, numpy_jacobian
+from ..registration.objective import cold_search, numpy_jacobian, search_whole
 from ..registration.pipeline import prepare, register
 from ..simulation.levels import data_level
 from ..simulation.scene import demo_scene
@@ -53,10 +57,12 @@ VARIANTS: dict[str, dict] = {"default": {"threads": 1, "iterations_per_frame": 1
             "converged_one_thread": {"threads": 1, "iterations_per_frame": None},
             "converged_as_installed": {"threads": None, "iterations_per_frame": None},
             "default_before": {"threads": 1, "iterations_per_frame": 1},
-            "default_cold_search": {"threads": 1, "iterations_per_frame": 1}}
+            "default_cold_search": {"threads": 1, "iterations_per_frame": 1},
+            "default_search_whole": {"threads": 1, "iterations_per_frame": 1}}
 # a "before" variant → its "after", the switch it runs under and its pair's key in the output
 BEFORE = {"default_before": ("default", "before_path", "before_after"),
-          "default_cold_search": ("default", "cold_search", "before_after_warm_search")}
+          "default_cold_search": ("default", "cold_search", "before_after_warm_search"),
+          "default_search_whole": ("default", "search_whole", "before_after_kept_points")}
 FRAME_MS = 1000.0 / 30  # one frame at 30 Hz
 
 
@@ -73,7 +79,7 @@ def _switch(variant):
     """The path a variant runs on (``BEFORE``)."""
     if variant not in BEFORE:
         return nullcontext()
-    return before_path() if BEFORE[variant][1] == "before_path" else cold_search()
+    return {"before_path": before_path, "cold_search": cold_search, "search_whole": search_whole}[BEFORE[variant][1]]()
 
 
 def _poses(sd, first_plane, count, per_transit):

@@ -313,6 +313,46 @@ def correspond(feat, X, Y, tree=None, nearest=None, start=None) -> Correspondenc
     return Correspondence(sp.identity(N, format="csr"), None)
 
 
+def _kept_points(seen: tuple, Y: np.ndarray) -> int:
+    """How many of ``Y``'s first points (N, 3) are ``seen``'s first points, row for row
+    (``seen``: a kept evaluation's (points, correspondence, residual rows) of the feature);
+    0 within ``search_whole``."""
+    if _search_whole:
+        return 0
+    Y0 = seen[0]
+    m = min(len(Y0), len(Y))
+    if not m or Y0.ndim != 2 or np.ndim(Y) != 2 or Y0.shape[1] != np.shape(Y)[1]:
+        return 0
+    same = (Y0[:m] == Y[:m]).all(axis=1)
+    return m if same.all() else int(np.argmin(same))
+
+
+def _joined(seen: tuple, kept: int, c: "Correspondence | None", made: tuple | None, n_columns: int):
+    """The correspondence and residual rows (r, q, rows, dist) of a feature's points whose
+    first ``kept`` are ``seen``'s (the same β) and the rest searched now (``c``, ``made``:
+    the rest's correspondence and ``residuals``; None when there is no rest): what one
+    search of them all gives, to the bit, as every row belongs to one point and is made
+    from it alone (the S rows, the normal or tangent, the residual rows, the distance)."""
+    _, c0, (r0, q0, rows0, dist0) = seen
+    per_point = 1 if len(r0) == len(dist0) else 3  # surfaces: one row a point; centerlines: three
+    head = kept * per_point
+    S0 = c0.S
+    width = int(S0.indptr[1] - S0.indptr[0]) if S0.shape[0] else 0
+    data, cols = S0.data[:kept * width], S0.indices[:kept * width]
+    direction, face = c0.direction[:kept], None if c0.face is None else c0.face[:kept]
+    r, q, rows, dist = r0[:head], q0[:head], rows0[:head], dist0[:kept]
+    if c is not None and made is not None:
+        r1, q1, rows1 = made
+        data, cols = np.concatenate([data, c.S.data]), np.concatenate([cols, c.S.indices])
+        direction = np.concatenate([direction, c.direction])
+        face = None if face is None or c.face is None else np.concatenate([face, c.face])
+        dist = np.concatenate([dist, point_distances(r1, rows1, len(r1) // per_point)])
+        r, q, rows = np.concatenate([r0[:head], r1]), np.concatenate([q0[:head], q1]), \
+            np.concatenate([rows0[:head], rows1 + kept])
+    S = _rows_matrix(data.reshape(-1, width), cols.reshape(-1, width), n_columns)
+    return Correspondence(S, direction, face=face), (r, q, rows, dist)
+
+
 def residuals(kind, p, direction):
     """Residual rows of Table I for N points with p (N, 3) mm.
 
@@ -413,17 +453,32 @@ def evaluate(model: RegistrationModel, data: dict, beta: np.ndarray, weights: We
                 c = corr[name] = seen[1]
                 held = seen[2]
             else:
-                t0 = time.perf_counter()
-                kd = tree is not None and not isinstance(tree, FittedSurface)
-                nearest = nearest_vertices(tree, Y, feat.near) if kd else None
-                tim["kdtree"] += time.perf_counter() - t0
-                t0 = time.perf_counter()
-                before = warm.get(name) if warm is not None and not _cold_search else None
-                start = before.face if before is not None and before.face is not None else None
-                c = corr[name] = (frozen[name] if frozen is not None
-                                  else correspond(feat, X, Y, tree=None if kd else tree, nearest=nearest,
-                                                  start=start if start is not None and len(start) == len(Y) else None))
-                tim["closest"] += time.perf_counter() - t0
+                # the same β, the feature's first points the same (the kept data come first,
+                # ``live.merge``): their rows are kept and only the points after them searched
+                kept = _kept_points(seen, Y) if seen is not None and feat.kind != "fiducial" else 0
+                new = Y[kept:] if kept else Y
+                c = None
+                if len(new) or not kept:
+                    t0 = time.perf_counter()
+                    kd = tree is not None and not isinstance(tree, FittedSurface)
+                    nearest = nearest_vertices(tree, new, feat.near) if kd else None
+                    tim["kdtree"] += time.perf_counter() - t0
+                    t0 = time.perf_counter()
+                    before = warm.get(name) if warm is not None and not _cold_search else None
+                    start = before.face if before is not None and before.face is not None else None
+                    start = start[kept:] if start is not None and len(start) == len(Y) else None
+                    c = (frozen[name] if frozen is not None
+                         else correspond(feat, X, new, tree=None if kd else tree, nearest=nearest, start=start))
+                    tim["closest"] += time.perf_counter() - t0
+                if kept:
+                    assert seen is not None
+                    t0 = time.perf_counter()
+                    made_new = None
+                    if c is not None:
+                        made_new = residuals(feat.kind, new - _apply(c.S, X), c.direction)
+                    c, held = _joined(seen, kept, c, made_new, len(X))
+                    tim["closest"] += time.perf_counter() - t0
+                corr[name] = c
             S, direction = c.S, c.direction
             if held is None:
                 p = Y - _apply(S, X)
@@ -581,6 +636,14 @@ def _alpha_kernel():
 
 
 _cold_search = Before()  # ``cold_search``
+_search_whole = Before()  # ``search_whole``
+
+
+def search_whole() -> AbstractContextManager[None]:
+    """Within it, ``evaluate`` searches a feature's points all again where the kept evaluation
+    at the same β had only its first points (the next live frame's contours after the kept
+    planes'), as before those points' rows were kept (the benches' "before"); process-wide."""
+    return _search_whole.taken()
 
 
 def cold_search() -> AbstractContextManager[None]:
