@@ -153,7 +153,7 @@ def run_case(case_dir, methods: tuple[str, ...] = METHODS) -> list[dict]:
             sec = time.perf_counter() - t
             st = tre_stats(pred, x1)
             rows.append({"case": case_dir.name, "level": level, "method": method, **facts,
-                         "tre_mean_mm": round(st["mean_mm"], 3), "tre_max_mm": round(st["max_mm"], 2),
+                         "tre_mean_mm": round(st.mean_mm, 3), "tre_max_mm": round(st.max_mm, 2),
                          "answer": answer, "warned": bool(lines), "warning": lines[0].text if lines else "",
                          "seconds": round(sec, 3), "pose": pose, "turn_deg": turn})
     return rows

@@ -34,7 +34,7 @@ from ..defaults import EDGE_MM, N_PLANES, K
 from ..features import SALIENT
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.transforms import axis_angle
-from ..geometry.tre import tre_stats
+from ..geometry.tre import mean_tre
 from ..registration import pipeline
 from ..registration.pipeline import prepare
 from ..simulation.levels import data_level
@@ -184,8 +184,8 @@ def run_case(case_dir, trials, methods, edge=EDGE_MM, k=K) -> list[dict]:
         rows.append({
             "case": trial.case, "method": method, "condition": trial.condition, "draw": trial.draw,
             "angle_deg": trial.angle_deg, "shift_mm": trial.shift_mm, "planes": "-".join(map(str, planes)),
-            "tre_mm": round(tre_stats(reg.transform(x0, B=B), truth)["mean_mm"], 4),
-            "tre_rigid_mm": round(tre_stats(reg.rigid.apply(x0), truth)["mean_mm"], 4),
+            "tre_mm": round(mean_tre(reg.transform(x0, B=B), truth), 4),
+            "tre_rigid_mm": round(mean_tre(reg.rigid.apply(x0), truth), 4),
             "seconds": round(sec, 4), "rigid_seconds": round(reg.seconds.get("rigid", 0.0), 4),
             "iterations": reg.libr.iterations, "stop_reason": reg.libr.stop_reason,
             "starts": getattr(reg, "starts", None) and len(reg.starts) or 1,
