@@ -218,6 +218,10 @@ KEPT = {
     # the principal axes of the data and of the model matched (four sign choices, the one
     # nearest the tracker pose): no fit of point pairs
     ("registration/rigid.py", "start_poses", "kabsch by hand"),
+    # the probe's pixel ↔ tracker maps in homogeneous coordinates: through apply() one pixel
+    # (a contour's centre, a plane's centerline point in every simulated case) rounds otherwise
+    ("simulation/probe.py", "pixels_to_tracker", "transform applied by hand"),
+    ("simulation/probe.py", "tracker_to_pixels", "transform applied by hand"),
     # a file already written in the session's sibling folder moved in by one rename
     ("app/session.py", "_complete", "atomic replace by hand"),
 }
