@@ -28,8 +28,8 @@ def main(argv=None) -> dict:
     out = {}
     if case.truth is not None:  # truth: where the model's nodes x0 really are (x1)
         x0, x1 = case.truth.tre_points(model.basis.nodes)
-        out = {"rigid": navapp.tre_stats(reg.rigid.apply(x0), x1)["mean_mm"],
-               "deformable": navapp.tre_stats(reg.transform(x0), x1)["mean_mm"]}
+        out = {"rigid": navapp.mean_tre(reg.rigid.apply(x0), x1),
+               "deformable": navapp.mean_tre(reg.transform(x0), x1)}
         print(f"mean target error: rigid {out['rigid']:.2f} mm, deformable {out['deformable']:.2f} mm "
               f"({len(x0)} targets)")
     return out

@@ -41,8 +41,8 @@ def main(argv=None) -> dict:
     for label, data in (("S", navapp.data_level(args.out, "S", case=case)),
                         (f"S+{args.planes}", navapp.data_level(args.out, "S+planes", range(args.planes), case=case))):
         reg = navapp.register(model, data)
-        out[label] = navapp.tre_stats(reg.transform(x0), x1)["mean_mm"]
-        out[f"{label} rigid"] = navapp.tre_stats(reg.rigid.apply(x0), x1)["mean_mm"]
+        out[label] = navapp.mean_tre(reg.transform(x0), x1)
+        out[f"{label} rigid"] = navapp.mean_tre(reg.rigid.apply(x0), x1)
         print(f"{label:>5}: mean TRE rigid {out[f'{label} rigid']:.2f} mm, deformable {out[label]:.2f} mm")
     return out
 

@@ -29,7 +29,7 @@ def main(argv=None) -> dict:
         t = time.perf_counter()
         reg = navapp.register(model, case.intraop)
         seconds = time.perf_counter() - t
-        out[k] = navapp.tre_stats(reg.transform(x0), x1)["mean_mm"]
+        out[k] = navapp.mean_tre(reg.transform(x0), x1)
         print(f"{k:>4} {out[k]:>8.2f} {seconds:>7.2f} {reg.libr.iterations:>10}")
     return out
 

@@ -52,6 +52,8 @@ _EXPORTS = {
     "deform_points": "navapp.registration.pipeline",
     "write_outputs": "navapp.registration.pipeline",
     "tre_stats": "navapp.geometry.tre",
+    "mean_tre": "navapp.geometry.tre",
+    "TreStats": "navapp.geometry.tre",
     "Registration": "navapp.registration.pipeline",
     "RobustOptions": "navapp.registration.pipeline",
     "LocalModeOptions": "navapp.registration.local_modes",
@@ -80,10 +82,10 @@ _EXPORTS = {
 __all__ = [
     "Basis", "BasisSettings", "Case", "Correspondence", "EDGE_MM", "FEATURES", "Feature", "FitQuality",
     "HeldSupports", "InputError", "K", "LMOptions", "LibrResult", "LocalModeOptions", "NavappError", "PosePrior",
-    "PreopModel", "Registration", "RegistrationModel", "RigidResult", "RobustOptions", "Scene", "Weights",
-    "case_supports", "data_level", "declared_pose", "deform_points", "demo_scene", "load_scene", "make_phantom",
-    "prepare", "read_case", "register", "rigid_starts", "scene_dir", "simulate", "study_scenes", "tre_stats",
-    "write_case", "write_outputs",
+    "PreopModel", "Registration", "RegistrationModel", "RigidResult", "RobustOptions", "Scene", "TreStats",
+    "Weights", "case_supports", "data_level", "declared_pose", "deform_points", "demo_scene", "load_scene",
+    "make_phantom", "mean_tre", "prepare", "read_case", "register", "rigid_starts", "scene_dir", "simulate",
+    "study_scenes", "tre_stats", "write_case", "write_outputs",
 ]  # the keys of _EXPORTS (a test checks)
 
 if TYPE_CHECKING:  # what type checkers and editors see; at run time ``__getattr__`` imports on first use
@@ -94,6 +96,7 @@ if TYPE_CHECKING:  # what type checkers and editors see; at run time ``__getattr
     from .errors import InputError, NavappError
     from .features import TABLE as FEATURES
     from .features import Feature
+    from .geometry.tre import TreStats, mean_tre, tre_stats
     from .mechanics.basis import Basis, BasisSettings
     from .mechanics.supports import HeldSupports, case_supports
     from .registration.libr import LibrResult, LMOptions
@@ -107,7 +110,6 @@ if TYPE_CHECKING:  # what type checkers and editors see; at run time ``__getattr
         prepare,
         register,
         rigid_starts,
-        tre_stats,
         write_outputs,
     )
     from .registration.prior import PosePrior, declared_pose

@@ -20,9 +20,6 @@ DASK_STUDIES = ("table2", "cost", "robustness")  # the studies that run on a Das
 
 
 _port = positive(int, most=65535)
-_k = k_count
-
-
 
 
 def cmd_phantom(args):
@@ -378,7 +375,7 @@ def build_parser():
     s.add_argument("case", type=Path, help="case folder")
     s.add_argument("--edge", type=positive(float), default=EDGE_MM,
                    help=f"target element size in mm (default {EDGE_MM:g})")
-    s.add_argument("--k", type=_k, default=K, help=f"number of control points (default {K})")
+    s.add_argument("--k", type=k_count, default=K, help=f"number of control points (default {K})")
     s.set_defaults(func=cmd_precompute)
 
     from .registration.cli import add_register_parser
@@ -416,13 +413,14 @@ def build_parser():
     s.add_argument("--edge", type=positive(float), default=EDGE_MM,
                    help=f"registration mesh element size, mm (default {EDGE_MM:g}; not cost, which sweeps it; "
                         "12 with --k 12 for a quick look)")
-    s.add_argument("--k", type=_k, default=K, help=f"number of control points (default {K}; not cost, which sweeps it)")
+    s.add_argument("--k", type=k_count, default=K,
+                   help=f"number of control points (default {K}; not cost, which sweeps it)")
     s.set_defaults(func=cmd_study)
 
     s = sub.add_parser("bench", help="benchmarks that print timings and memory as JSON lines")
     s.add_argument("what", choices=("precompute", "register", "live", "import"))
     s.add_argument("--edges", type=positive(float), nargs="+", default=[EDGE_MM], help="element sizes, mm")
-    s.add_argument("--ks", type=_k, nargs="+", default=[K], help="numbers of control points")
+    s.add_argument("--ks", type=k_count, nargs="+", default=[K], help="numbers of control points")
     s.add_argument("--volume-ml", type=positive(float), help="precompute: the phantom scaled to this volume, ml")
     s.add_argument("--relax", choices=("local", "exact", "both"), default="local",
                    help="precompute: relaxation subdomain (both: exact and local, with the local one's error)")
@@ -462,7 +460,7 @@ def build_parser():
                    help="element size of the mesh the truth is simulated on, mm (default: the scene's, 3.5)")
     s.add_argument("--edge", type=positive(float), default=EDGE_MM,
                    help=f"registration mesh element size, mm (default {EDGE_MM:g})")
-    s.add_argument("--k", type=_k, default=K, help=f"number of control points (default {K})")
+    s.add_argument("--k", type=k_count, default=K, help=f"number of control points (default {K})")
     s.set_defaults(func=cmd_demo)
 
     s = sub.add_parser("serve", help="open the navigation viewer in the browser (built-in demo scene by default)")
@@ -473,7 +471,7 @@ def build_parser():
     s.add_argument("--session", type=Path,
                    help="session folder (default ~/navapp-sessions/<scene>-<key>, or under $NAVAPP_SESSIONS)")
     s.add_argument("--edge", type=positive(float), default=EDGE_MM, help="registration mesh element size, mm")
-    s.add_argument("--k", type=_k, default=K, help="number of control points")
+    s.add_argument("--k", type=k_count, default=K, help="number of control points")
     s.add_argument("--view2d-port", type=positive(int, most=65535, least=0), default=None,
                    help="port of the 2D ultrasound view's pages (default: the viewer's port + 1 where free, "
                         "else any free port; 0: any free port)")

@@ -66,9 +66,10 @@ def tre_table(case_dirs, layers, combos, edge=EDGE_MM, k=K, seed=0):
     from navapp.anatomy.caseio import read_case
     from navapp.anatomy.meshing import cached_tetmesh
     from navapp.geometry.interpolation import interpolation_matrix
+    from navapp.geometry.tre import mean_tre
     from navapp.mechanics.basis import BasisSettings, load_or_compute_basis
     from navapp.registration.model import build_model, usable_data
-    from navapp.registration.pipeline import register, tre_stats
+    from navapp.registration.pipeline import register
     from navapp.registration.rigid import TOL_BEFORE_LIBR, rigid_icp
     from navapp.simulation.levels import data_level
 
@@ -94,7 +95,7 @@ def tre_table(case_dirs, layers, combos, edge=EDGE_MM, k=K, seed=0):
                 rigid = rigid_icp(model, usable_data(model, stylus), tol_mm=TOL_BEFORE_LIBR)
             for level, data in scenarios:
                 reg = register(model, data, rigid=rigid)
-                tre.setdefault((name, level), []).append(tre_stats(reg.transform(x0, B=B), x1)["mean_mm"])
+                tre.setdefault((name, level), []).append(mean_tre(reg.transform(x0, B=B), x1))
         print(f"{d.name}: " + ", ".join(f"{name} S {tre[(name, 'S')][-1]:.2f}" for name in variants), flush=True)
     n_s3 = len(triples)
     print(f"\n{len(case_dirs)} cases; S + 3: {n_s3} plane triples per case; edge {edge:g} mm, k = {k}\n")

@@ -30,8 +30,9 @@ from navapp.anatomy.caseio import read_case
 from navapp.defaults import EDGE_MM, N_PLANES, K
 from navapp.evaluation.table2 import scenarios
 from navapp.geometry.interpolation import interpolation_matrix
+from navapp.geometry.tre import mean_tre
 from navapp.registration.pipeline import _settings as settings
-from navapp.registration.pipeline import prepare, register, tre_stats
+from navapp.registration.pipeline import prepare, register
 from navapp.registration.support import weigh_correction
 from navapp.simulation.levels import study_data
 
@@ -61,8 +62,8 @@ def run_case(case_dir: str) -> list[dict]:
         if level == "rigid":
             continue
         reg = register(model, study_data(case_dir_p, level, planes, case=case))
-        tre = tre_stats(reg.transform(x0, B=B), x1)["mean_mm"]
-        rigid = tre_stats(reg.rigid.apply(x0), x1)["mean_mm"]
+        tre = mean_tre(reg.transform(x0, B=B), x1)
+        rigid = mean_tre(reg.rigid.apply(x0), x1)
         lines = reg.warnings
         rows.append({"case": case_dir_p.name, "level": level, "planes": "-".join(map(str, planes)),
                      "tre_mm": round(tre, 4), "tre_rigid_mm": round(rigid, 4),
@@ -85,10 +86,10 @@ def probe_case(args) -> dict:
     reg = register(model, data)
     assert reg.libr is not None
     pre = "tracker_offset" not in json.loads((case_dir / "truth" / "report.json").read_text())
-    t_ans = tre_stats(reg.transform(x0, B=B), x1)["mean_mm"]
-    t_rig = tre_stats(reg.rigid.apply(x0), x1)["mean_mm"]
-    t_def = tre_stats(reg.transform(x0, beta=reg.libr.beta, B=B), x1)["mean_mm"]
-    t_id = tre_stats(x0, x1)["mean_mm"] if pre else None
+    t_ans = mean_tre(reg.transform(x0, B=B), x1)
+    t_rig = mean_tre(reg.rigid.apply(x0), x1)
+    t_def = mean_tre(reg.transform(x0, beta=reg.libr.beta, B=B), x1)
+    t_id = mean_tre(x0, x1) if pre else None
     out = {"case": case_dir.name, "level": level, "pre_aligned": pre, "tre_answer": round(t_ans, 3),
            "tre_rigid": round(t_rig, 3), "tre_deformed": round(t_def, 3), "tre_identity": t_id and round(t_id, 3),
            "reference": round(t_id if t_id is not None else t_rig, 3), "deformation_helps": t_def < t_rig - 0.1,

@@ -230,13 +230,13 @@ def test_closest_on_decimated_vessels_searches_more_vertices(phantoms):
 
 def test_tre_by_hand():
     """The one TRE (navapp.geometry.tre): a 3-4-5 offset and an exact hit."""
-    from navapp.geometry.tre import mean_tre, point_errors, tre_stats
+    from navapp.geometry.tre import TreStats, mean_tre, point_errors, tre_stats
 
     truth = np.array([[1.0, 2.0, 3.0], [-4.0, 0.0, 7.5]])
     pred = truth + [[3.0, 4.0, 0.0], [0.0, 0.0, 0.0]]
     assert point_errors(pred, truth).tolist() == [5.0, 0.0]
     assert mean_tre(pred, truth) == 2.5
-    assert tre_stats(pred, truth) == {"mean_mm": 2.5, "sd_mm": 2.5, "max_mm": 5.0, "n": 2}
+    assert tre_stats(pred, truth) == TreStats(mean_mm=2.5, sd_mm=2.5, max_mm=5.0, n=2)
 
 
 def _exhaustive(pts, v, faces):

@@ -14,7 +14,7 @@ from navapp.cli import main
 from navapp.errors import InputError
 from navapp.evaluation.table2 import read_results
 from navapp.features import STYLUS
-from navapp.geometry.tre import tre_stats
+from navapp.geometry.tre import mean_tre
 from navapp.registration.pipeline import prepare, register
 from navapp.simulation.levels import case_source_levels, data_level, study_data
 from navapp.simulation.scene import SCENE_SETS, load_scene, parse_scene, scene_dir, study_scenes
@@ -390,7 +390,7 @@ def test_table2_has_a_laparoscope_row_that_measures_what_it_adds(scope_case, tmp
     data = study_data(scope_case, "S+laparoscope", case=case)
     assert set(data) == set(STYLUS) | {"laparoscope"}
     x0, x1 = case.need_truth().tre_points(model.basis.nodes)
-    alone = tre_stats(register(model, data).transform(x0), x1)["mean_mm"]
+    alone = mean_tre(register(model, data).transform(x0), x1)
     assert alone == pytest.approx(tre["S+laparoscope"], abs=1e-4)
 
 

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import trimesh
 
+from navapp.defaults import PROBE_SPACING_MM
 from navapp.geometry.transforms import probe_pose
 from navapp.registration.libr import register_libr
 from navapp.registration.next_plane import (
-    PIXEL_MM,
     _extra_blocks,
     anterior_surface_mask,
     expected_features,
@@ -81,7 +81,7 @@ def test_expected_features_are_the_section_of_the_registered_model(small_model, 
     pts = feats["portal_contour"]
     assert max(_segment_distance(p, ref) for p in pts) < 1e-6
     length = np.linalg.norm(ref[:, 1] - ref[:, 0], axis=1).sum()
-    assert pixels["portal_contour"] == pytest.approx(length / PIXEL_MM, abs=1.0)
+    assert pixels["portal_contour"] == pytest.approx(length / PROBE_SPACING_MM, abs=1.0)
     assert len(pts) == pytest.approx(length, abs=2.0)  # one point per mm
 
 

@@ -13,7 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import trimesh
+from scipy.spatial.transform import Rotation
 
+from ..geometry.transforms import apply, homogeneous
 from . import frames
 from .model import VESSELS
 from .skeleton import inside_grid
@@ -41,26 +43,17 @@ class VoxelCase:
         return out
 
 
-def _rotation(deg) -> np.ndarray:
-    az, ax, ay = np.radians(deg)
-    rz = np.array([[np.cos(az), -np.sin(az), 0], [np.sin(az), np.cos(az), 0], [0, 0, 1]])
-    rx = np.array([[1, 0, 0], [0, np.cos(ax), -np.sin(ax)], [0, np.sin(ax), np.cos(ax)]])
-    ry = np.array([[np.cos(ay), 0, np.sin(ay)], [0, 1, 0], [-np.sin(ay), 0, np.cos(ay)]])
-    return rz @ rx @ ry
-
-
 def grid_affine(centre, spacing=CT_SPACING, shape=CT_SHAPE, tilt_deg=CT_TILT_DEG) -> np.ndarray:
     """(4, 4) index → mm (LAS) of a rotated, anisotropic grid whose middle voxel is ``centre``."""
-    A = np.eye(4)
-    A[:3, :3] = _rotation(tilt_deg) @ np.diag(spacing)
-    A[:3, 3] = np.asarray(centre, float) - A[:3, :3] @ ((np.asarray(shape) - 1) / 2.0)
-    return A
+    # R_z R_x R_y, angles in the order of ``tilt_deg``
+    axes = Rotation.from_euler("ZXY", tilt_deg, degrees=True).as_matrix() @ np.diag(spacing)
+    return homogeneous(axes, np.asarray(centre, float) - axes @ ((np.asarray(shape) - 1) / 2.0))
 
 
 def voxelise(mesh: trimesh.Trimesh, affine: np.ndarray, shape) -> np.ndarray:
     """(I, J, K) bool: the voxel centres of the grid ``affine`` (index → mm) inside ``mesh``."""
     shape = np.asarray(shape, int)
-    tri = frames.apply(np.linalg.inv(affine), mesh.vertices)[np.asarray(mesh.faces)]
+    tri = apply(np.linalg.inv(affine), mesh.vertices)[np.asarray(mesh.faces)]
     # a tiny offset keeps grid lines off the surface's vertices and edges (double counts)
     tri = tri + np.array([1.234567e-4, 2.345671e-4, 3.456712e-4])
     lo = np.clip(np.floor(tri.reshape(-1, 3).min(0)).astype(int) - 1, 0, shape)
@@ -111,7 +104,7 @@ def write_nrrd(labels: np.ndarray, affine_las: np.ndarray, path, names: dict | N
 def write_stl(mesh: trimesh.Trimesh, path) -> Path:
     """An STL in LPS with 3D Slicer's ``SPACE=LPS`` in the solid name."""
     M = frames.to_case("LPS")
-    lps = trimesh.Trimesh(frames.apply(M, mesh.vertices), np.asarray(mesh.faces)[:, ::-1], process=False)
+    lps = trimesh.Trimesh(apply(M, mesh.vertices), np.asarray(mesh.faces)[:, ::-1], process=False)
     data = trimesh.exchange.stl.export_stl(lps)
     path = Path(path)
     path.write_bytes(b"SPACE=LPS".ljust(80, b" ") + data[80:])
@@ -151,7 +144,7 @@ def write_dicom_seg(labels: np.ndarray, affine_las: np.ndarray, path, names: dic
         ds.PixelSpacing = [float(spacing[1]), float(spacing[0])]  # row spacing (along j), column spacing (along i)
         ds.SliceThickness = float(spacing[2])
         ds.ImageOrientationPatient = [float(x) for x in (*col_dir, *row_dir)]
-        ds.ImagePositionPatient = [float(x) for x in frames.apply(A, np.array([[0.0, 0.0, k]]))[0]]
+        ds.ImagePositionPatient = [float(x) for x in apply(A, np.array([[0.0, 0.0, k]]))[0]]
         ds.SamplesPerPixel, ds.PhotometricInterpretation = 1, "MONOCHROME2"
         ds.BitsAllocated, ds.BitsStored, ds.HighBit, ds.PixelRepresentation = 16, 16, 15, 1
         sources.append(ds)
@@ -211,8 +204,7 @@ def imported_liver(liver: trimesh.Trimesh, spacing=CT_SPACING, tilt_deg=CT_TILT_
     mask = voxelise(liver, affine, shape)
     idx = np.argwhere(mask)
     lo, hi = idx.min(0), idx.max(0) + 1
-    shift = np.eye(4)
-    shift[:3, 3] = lo - 1.0
+    shift = homogeneous(np.eye(3), lo - 1.0)
     crop = StructureMask(np.pad(mask[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], 1), affine @ shift,
                          Path("liver.nii.gz"), 1)
     surface = mask_surface(crop, LIVER_SURFACE_EDGE_MM, LIVER_MAX_FACES)

@@ -11,7 +11,6 @@ reversed with it.
 import numpy as np
 
 from ..errors import NavappError
-from ..geometry.transforms import apply  # noqa: F401  (frames.apply: the importers' name for it)
 
 CASE_FRAME = "LAS"
 FRAMES = ("LAS", "LPS", "RAS")

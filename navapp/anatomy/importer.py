@@ -18,6 +18,7 @@ import numpy as np
 import trimesh
 
 from ..errors import InputError, NavappError
+from ..geometry.transforms import apply, homogeneous
 from . import frames
 from .cleanup import clean_surface, outside_distance
 from .labelmaps import (
@@ -89,7 +90,7 @@ def mask_surface(sm: StructureMask, edge: float, max_faces: int, timings: dict |
     timings = {} if timings is None else timings
     with _timed(timings, "marching_cubes"):
         v, f, _, _ = marching_cubes(sm.mask.astype(np.float32), 0.5)
-        v = frames.apply(sm.affine, v)
+        v = apply(sm.affine, v)
         f = np.asarray(f)[:, ::-1] if frames.mirrors(sm.affine) else np.asarray(f)
         mesh = trimesh.Trimesh(v, f[:, ::-1], process=False)  # skimage winds inward for "inside = high"
     with _timed(timings, "smoothing"):
@@ -145,7 +146,7 @@ def mask_solidity(sm: StructureMask) -> float:
     from scipy.spatial import ConvexHull
 
     edge = sm.mask & ~ndimage.binary_erosion(sm.mask)
-    pts = frames.apply(sm.affine, np.argwhere(edge).astype(float))
+    pts = apply(sm.affine, np.argwhere(edge).astype(float))
     if len(pts) < 4:
         return 0.0
     try:
@@ -171,7 +172,7 @@ def fill_liver(liver: StructureMask, others: list[StructureMask]) -> StructureMa
         P = np.linalg.inv(liver.affine) @ o.affine
         if not np.allclose(P[:3, :3], np.round(P[:3, :3]), atol=1e-3):
             continue
-        ijk = np.round(frames.apply(P, np.argwhere(o.mask).astype(float))).astype(int)
+        ijk = np.round(apply(P, np.argwhere(o.mask).astype(float))).astype(int)
         ok = np.all((ijk >= 0) & (ijk < mask.shape), axis=1)
         extra[tuple(ijk[ok].T)] = True
     if extra.any():
@@ -200,7 +201,7 @@ def join_touching_targets(liver: StructureMask, target: StructureMask) -> tuple[
         return liver, 0.0, 0
     pieces, n = ndimage.label(target.mask)
     idx = np.argwhere(pieces)
-    ijk = np.round(frames.apply(P, idx.astype(float))).astype(int)  # in the liver crop's index
+    ijk = np.round(apply(P, idx.astype(float))).astype(int)  # in the liver crop's index
     piece_of = pieces[tuple(idx.T)]
     steps = np.vstack([np.eye(3, dtype=int), -np.eye(3, dtype=int)])
     touching = np.zeros(n + 1, bool)
@@ -222,8 +223,7 @@ def join_touching_targets(liver: StructureMask, target: StructureMask) -> tuple[
     mask[-lo[0]:-lo[0] + shape[0], -lo[1]:-lo[1] + shape[1], -lo[2]:-lo[2] + shape[2]] = liver.mask
     before = int(mask.sum())
     mask[tuple((add - lo).T)] = True
-    shift = np.eye(4)
-    shift[:3, 3] = lo
+    shift = homogeneous(np.eye(3), lo)
     added_ml = (int(mask.sum()) - before) * liver.voxel_ml
     return (StructureMask(mask, liver.affine @ shift, liver.path, liver.label), added_ml,
             int(touching.sum()))
@@ -238,13 +238,13 @@ def clip_to_liver(vessel: StructureMask, liver: StructureMask, within_mm: float)
 
     P = np.linalg.inv(liver.affine) @ vessel.affine
     idx = np.argwhere(vessel.mask)
-    ijk = np.round(frames.apply(P, idx.astype(float))).astype(int)
+    ijk = np.round(apply(P, idx.astype(float))).astype(int)
     ok = np.all((ijk >= 0) & (ijk < liver.mask.shape), axis=1)
     inside = np.zeros(len(idx), bool)
     inside[ok] = liver.mask[tuple(ijk[ok].T)]
     rim = liver.mask & ~ndimage.binary_erosion(liver.mask)
-    d, _ = cKDTree(frames.apply(liver.affine, np.argwhere(rim).astype(float))).query(
-        frames.apply(vessel.affine, idx[~inside].astype(float)), distance_upper_bound=within_mm)
+    d, _ = cKDTree(apply(liver.affine, np.argwhere(rim).astype(float))).query(
+        apply(vessel.affine, idx[~inside].astype(float)), distance_upper_bound=within_mm)
     keep = inside.copy()
     keep[~inside] = np.isfinite(d)
     mask = np.zeros_like(vessel.mask)
@@ -436,7 +436,7 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
         frames_of[organ] = f.upper()
         M = frames.to_case(f)
         fcs = np.asarray(mesh.faces)[:, ::-1] if frames.mirrors(M) else np.asarray(mesh.faces)
-        surfaces[organ] = trimesh.Trimesh(frames.apply(M, mesh.vertices), fcs, process=False)
+        surfaces[organ] = trimesh.Trimesh(apply(M, mesh.vertices), fcs, process=False)
     source_frame = frames_of["liver"]
     M = frames.to_case(source_frame)
     rep = ImportReport(frame=source_frame, to_case=M, seconds=timings)
@@ -531,7 +531,7 @@ def import_case(out, liver=None, portal=None, hepatic=None, labelmap=None, label
                          "(skeleton of the vessel volume)")
     if regions is None:
         with _timed(timings, "regions"):
-            lmk = None if falciform is None else frames.apply(M, np.asarray(falciform, float).reshape(2, 3))
+            lmk = None if falciform is None else apply(M, np.asarray(falciform, float).reshape(2, 3))
             labelled = auto_regions(liver_mesh, falciform=lmk)
         model.regions = labelled.codes
         counts = np.bincount(labelled.codes, minlength=len(REGION_NAMES))

@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError, short_error
+from ..geometry.transforms import apply, homogeneous
 from . import frames
 
 LABELMAP_SUFFIXES = (".nii", ".nii.gz", ".nrrd", ".seg.nrrd", ".nhdr", ".dcm")
@@ -188,9 +189,7 @@ def _read_nrrd(path: Path) -> LabelMap:
         data = np.moveaxis(data, layer_axis, 0)
     elif data.ndim != 3:
         raise InputError(f"NRRD is {data.ndim}-D; a label map is 3-D", path)
-    affine = np.eye(4)
-    affine[:3, :3] = np.column_stack(rows)
-    affine[:3, 3] = np.asarray(header.get("space origin", np.zeros(3)), float)
+    affine = homogeneous(np.column_stack(rows), np.asarray(header.get("space origin", np.zeros(3)), float))
     names: dict[Any, str] = {}
     i = 0
     while f"Segment{i}_Name" in header:
@@ -281,8 +280,7 @@ def structure_mask(lm: LabelMap, value: int) -> StructureMask:
     lo = [int(np.flatnonzero(full.any(axis=tuple(a for a in range(3) if a != k)))[0]) for k in range(3)]
     hi = [int(np.flatnonzero(full.any(axis=tuple(a for a in range(3) if a != k)))[-1]) + 1 for k in range(3)]
     crop = np.pad(full[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]], 1)
-    shift = np.eye(4)
-    shift[:3, 3] = np.asarray(lo, float) - 1.0
+    shift = homogeneous(np.eye(3), np.asarray(lo, float) - 1.0)
     assert lm.path is not None
     return StructureMask(crop, lm.to_case @ shift, lm.path, int(value))
 
@@ -319,7 +317,7 @@ def check_same_grid(first: LabelMap, other: LabelMap):
     A, B = first.to_case, other.to_case
     shape = np.asarray(other.labels.shape[:3]) - 1
     corners = np.array([[i, j, k] for i in (0, shape[0]) for j in (0, shape[1]) for k in (0, shape[2])], float)
-    in_first = frames.apply(np.linalg.inv(A), frames.apply(B, corners))
+    in_first = apply(np.linalg.inv(A), apply(B, corners))
     off_mm = np.linalg.norm((in_first - np.round(in_first)) @ A[:3, :3].T, axis=1).max()
     tol = SAME_GRID_TOLERANCE * float(min(first.spacing.min(), other.spacing.min()))
     if off_mm > tol:

@@ -22,6 +22,7 @@ import numpy as np
 import trimesh
 from skimage.measure import marching_cubes
 
+from ..geometry.transforms import apply_rigid
 from . import sdf
 from .model import REGION_NAMES, PreopModel
 from .targets import Target, from_surface
@@ -180,7 +181,7 @@ def irregular_ellipsoid(centre, radii, rng, subdivisions: int = 3) -> trimesh.Tr
         r += rng.uniform(0.02, 0.035) * np.sin(d @ k + rng.uniform(0, 2 * np.pi))
     q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
     q *= np.sign(np.linalg.det(q))  # a rotation, not a reflection: the winding stays outward
-    v = ((d * r[:, None]) * np.asarray(radii, float)) @ q.T + np.asarray(centre, float)
+    v = apply_rigid(q, np.asarray(centre, float), (d * r[:, None]) * np.asarray(radii, float))
     return trimesh.Trimesh(v.astype(np.float32).astype(float), ico.faces, process=False)
 
 

@@ -53,7 +53,7 @@ def sphere(name: str, centre, radius_mm: float, source=None) -> Target:
 def read_points_csv(path, to_case=None) -> list[Target]:
     """Point targets from ``name,x,y,z[,radius_mm]`` (header required); ``to_case``
     (4, 4) an optional rigid transform of the points into the case frame."""
-    from . import frames
+    from ..geometry.transforms import apply
 
     path = Path(path)
     try:
@@ -88,7 +88,7 @@ def read_points_csv(path, to_case=None) -> list[Target]:
         if radius is not None and radius <= 0:
             raise InputError(f"row {lineno}: radius_mm must be positive (leave it empty for a point target)", path)
         if to_case is not None:
-            xyz = frames.apply(to_case, xyz[None])[0]
+            xyz = apply(to_case, xyz[None])[0]
         out.append(sphere(name, xyz, radius, path) if radius is not None else Target(name, xyz, None, str(path)))
     return out
 
@@ -99,6 +99,7 @@ def read_target_file(path, to_case=None) -> list[Target]:
     ``to_case`` (4, 4): a transform into the case frame applied first (the importer's
     source frame → navapp's); a mirroring transform reverses the winding.
     """
+    from ..geometry.transforms import apply
     from . import frames
     from .cleanup import clean_surface
 
@@ -111,7 +112,7 @@ def read_target_file(path, to_case=None) -> list[Target]:
     mesh = read_any_surface(path)
     if to_case is not None:
         faces = np.asarray(mesh.faces)[:, ::-1] if frames.mirrors(to_case) else mesh.faces
-        mesh = trimesh.Trimesh(frames.apply(to_case, mesh.vertices), faces, process=False)
+        mesh = trimesh.Trimesh(apply(to_case, mesh.vertices), faces, process=False)
     clean, rep = clean_surface(mesh, path, closed=True, what="target surface")
     for line in rep.warnings:
         warnings.warn(f"{path}: {line}", stacklevel=3)

@@ -29,7 +29,7 @@ from ..anatomy.meshing import cached_tetmesh, every_attempt_in_turn
 from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
 from ..errors import NavappError
-from ..geometry.tre import tre_stats
+from ..geometry.tre import mean_tre
 from ..mechanics.basis import BasisSettings, basis_key, load_or_compute_basis
 from ..mechanics.fem import Material, coo_assembly
 from ..mechanics.sparse import backend
@@ -269,7 +269,7 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
                 r = register(models[variant], data)
                 paired[variant]["cpu"].append(time.process_time() - c)
                 paired[variant]["wall"].append(time.perf_counter() - t)
-            paired[variant]["tre"].append(round(tre_stats(r.transform(x0), x1)["mean_mm"], 4))
+            paired[variant]["tre"].append(round(mean_tre(r.transform(x0), x1), 4))
             for name, st in r.stages.items():
                 lap = stages[variant].setdefault(name, {"cpu": [], "wall": []})
                 lap["cpu"].append(st.cpu)
@@ -311,11 +311,11 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
         "add_one_plane": {"warm_median_seconds": round(statistics.median(warm_times), 4),
                           "warm_min_seconds": round(min(warm_times), 4), "warm_iterations": warm_iterations,
                           "cold_seconds": round(cold.seconds["rigid"] + cold.seconds["deformable"], 3),
-                          "tre_warm_mm": round(tre_stats(warm.transform(x0), x1)["mean_mm"], 2),
-                          "tre_cold_mm": round(tre_stats(cold.transform(x0), x1)["mean_mm"], 2)},
-        "tre_mm": {"rigid": round(tre_stats(reg.rigid.apply(x0), x1)["mean_mm"], 2),
-                   "deformable": round(tre_stats(reg.transform(x0), x1)["mean_mm"], 2),
-                   "deformable_5_iterations": round(tre_stats(quick.transform(x0), x1)["mean_mm"], 2)},
+                          "tre_warm_mm": round(mean_tre(warm.transform(x0), x1), 2),
+                          "tre_cold_mm": round(mean_tre(cold.transform(x0), x1), 2)},
+        "tre_mm": {"rigid": round(mean_tre(reg.rigid.apply(x0), x1), 2),
+                   "deformable": round(mean_tre(reg.transform(x0), x1), 2),
+                   "deformable_5_iterations": round(mean_tre(quick.transform(x0), x1), 2)},
     }
     print(stage_table(out["stages"]), flush=True)
     print(json.dumps(out), flush=True)

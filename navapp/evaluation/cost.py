@@ -20,7 +20,7 @@ from ..anatomy.caseio import read_case
 from ..anatomy.meshing import cached_tetmesh
 from ..defaults import EDGE_MM, N_PLANES, K
 from ..geometry.interpolation import interpolation_matrix
-from ..geometry.tre import mean_tre, tre_stats
+from ..geometry.tre import mean_tre
 from ..registration.libr import LMOptions
 from ..registration.pipeline import prepare, register
 from ..simulation.levels import data_level, plus_planes
@@ -47,7 +47,7 @@ def run_setting(model, data, x0, x1, label, options: LMOptions | None = None, de
     t = time.perf_counter()
     reg = register(model, data, deform=deform, options=options)
     sec = time.perf_counter() - t
-    tre = tre_stats(reg.transform(x0, B=B), x1)["mean_mm"]
+    tre = mean_tre(reg.transform(x0, B=B), x1)
     return CostRow(label, sec, tre, reg.libr.iterations if reg.libr else 0, settings)
 
 

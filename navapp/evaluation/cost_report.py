@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .cost import DEFAULT_EDGE, DEFAULT_K, pareto_front
+from .cost import DEFAULT_EDGE, DEFAULT_K, SWEEP_LEVELS, pareto_front
 
 
 def _rows(path):
@@ -86,7 +86,7 @@ def plot_k(rows, path):
     fig = Figure(figsize=(6, 4), dpi=110)
     ax = fig.subplots()
     sel = _mean_by([r for r in rows if r["sweep"] == "k" and r["method"] == "LIBR"], lambda r: (r["level"], r["k"]))
-    for level in ("S", "S+3", "S+all"):
+    for level in SWEEP_LEVELS:
         ks = sorted(k for (lv, k) in sel if lv == level)
         if ks:
             ax.plot(ks, [sel[(level, k)]["tre"] for k in ks], "o-", label=level)
@@ -127,11 +127,11 @@ def write_cost_report(results_csv, out_dir) -> Path:
                      lambda r: (r["method"], r["level"]))
     if base:
         edge, k = sorted(base)[0]
-        md.append(f"\n## Peers on the same data ({edge:g} mm, k = {k})\n\n| method | S | S+3 | S+all |\n"
-                  "|---|---|---|---|")
+        md.append(f"\n## Peers on the same data ({edge:g} mm, k = {k})\n\n| method | {' | '.join(SWEEP_LEVELS)} |\n"
+                  f"|---|{'---|' * len(SWEEP_LEVELS)}")
         for method in ("rigid ICP", "CPD", "LIBR"):
             cells = [f"{peers[(method, lv)]['tre']:.2f} mm, {peers[(method, lv)]['reg']:.2f} s"
-                     if (method, lv) in peers else "—" for lv in ("S", "S+3", "S+all")]
+                     if (method, lv) in peers else "—" for lv in SWEEP_LEVELS]
             md.append(f"| {method} | " + " | ".join(cells) + " |")
         md.append("\nCPD uses only the surface data (it has no model of vessel contours or centerlines); "
                   "its surface displacement is carried inside by thin-plate splines.")

@@ -44,7 +44,7 @@ from ..anatomy.meshing import TetMesh, cached_tetmesh, dihedral_angles, tet_volu
 from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
 from ..errors import NavappError
-from ..geometry.transforms import apply, homogeneous, kabsch
+from ..geometry.transforms import apply_rigid, kabsch
 from ..geometry.tre import mean_tre
 from ..mechanics.basis import BasisSettings, load_or_compute_basis
 from ..mechanics.fem import Material
@@ -91,7 +91,7 @@ class Setup:
     variants: dict = field(default_factory=dict)  # model variants, built once
 
     def pose(self, x, R=None, t=None):
-        return np.asarray(x) @ (self.R if R is None else R).T + (self.t if t is None else t)
+        return apply_rigid(self.R if R is None else R, self.t if t is None else t, x)
 
     def noisy(self, x, seed=0):
         return x + np.random.default_rng(SEED + seed).normal(scale=NOISE_MM, size=np.shape(x))
@@ -206,7 +206,7 @@ def _rotated_about_data(setup, degrees):
     y = setup.baseline()
     c = y.mean(0)
     Q = rotation(np.radians([0.0, degrees, 0.0]))
-    return (y - c) @ Q.T + c, (lambda x: (x - c) @ Q.T + c)
+    return apply_rigid(Q, c, y - c), (lambda x: apply_rigid(Q, c, x - c))
 
 
 def _collinear(s):
@@ -347,7 +347,7 @@ def nonrigid_max(nodes, u) -> float:
     """Largest |u_n − (R x_n + t − x_n)| over the nodes (mm): the displacement left once the
     rigid motion that best fits x → x + u (least squares, ``geometry.transforms.kabsch``) is removed."""
     R, t = kabsch(nodes, nodes + u)
-    return float(np.linalg.norm(nodes + u - apply(homogeneous(R, t), nodes), axis=1).max())
+    return float(np.linalg.norm(nodes + u - apply_rigid(R, t, nodes), axis=1).max())
 
 
 def _register_once(case: HardCase, setup: Setup):
@@ -371,8 +371,6 @@ def _register_once(case: HardCase, setup: Setup):
     # carries (``Registration.warnings``: the CLI, result.json and the viewer show these)
     notes = [str(w.message).splitlines()[0] for w in caught]
     notes += [w.text.splitlines()[0] for w in reg.warnings if w.text.splitlines()[0] not in notes]
-    if reg.quality is not None and reg.quality.warning and reg.quality.warning not in notes:
-        notes.append(reg.quality.warning)
     return ("warned" if notes else "registered"), "; ".join(notes), reg, model, options, sec
 
 

@@ -45,7 +45,7 @@ from ..defaults import EDGE_MM, K
 from ..geometry.closest import kd_search
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.transforms import interpolate_pose
-from ..geometry.tre import tre_stats
+from ..geometry.tre import mean_tre
 from ..registration.live import LiveRegistration
 from ..registration.objective import cold_search, numpy_jacobian, search_whole
 from ..registration.pipeline import prepare, register
@@ -156,7 +156,7 @@ def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8, truth_edge
                      "within_one_frame_at_30hz": round(float(np.mean(np.array(ms) <= FRAME_MS)), 2),
                      "iterations_median": statistics.median(its), "per_iteration_ms": pi,
                      "outside_lm_ms_median": round(statistics.median(r["outside_lm_ms"] for r in rs), 1),
-                     "tre_after_last_frame_mm": round(tre_stats(_last(live[name]).transform(x0, B=B), x1)["mean_mm"],
+                     "tre_after_last_frame_mm": round(mean_tre(_last(live[name]).transform(x0, B=B), x1),
                                                       2)}
     a, b = rows["converged_one_thread"], rows["converged_as_installed"]
     ratios = [x["ms"] / y["ms"] for x, y in zip(a, b, strict=True)]

@@ -24,7 +24,7 @@ from .. import progress
 from ..anatomy.caseio import read_case, read_csv
 from ..defaults import EDGE_MM, K
 from ..errors import InputError, NavappError
-from ..geometry.tre import tre_stats
+from ..geometry.tre import mean_tre
 from ..registration.next_plane import anterior_surface_mask, suggest_planes
 from ..registration.pipeline import prepare, register, rigid_starts
 from ..registration.uncertainty import DEFAULT_CALIBRATION as cal
@@ -111,7 +111,7 @@ def fresh_single_planes(case_dir, edge=EDGE_MM, k=K) -> dict:
     out = {}
     for i in range(len(recorded_poses(case_dir))):
         reg = register(model, data_level(case_dir, "S+planes", planes=(i,), case=case), starts=starts)
-        out[i] = tre_stats(reg.transform(x0), x1)["mean_mm"]
+        out[i] = mean_tre(reg.transform(x0), x1)
     return out
 
 
@@ -144,7 +144,7 @@ def run_case(case_dir, table, steps=3, edge=EDGE_MM, k=K, calibration=None, fres
                         [t for t in cand_tre if t is not None]) if all(ok) else float("nan")
         data = data_level(case_dir, "S+planes", planes=tuple(sorted(chosen)), case=case)
         reg = register(model, data, starts=starts)
-        tre = tre_stats(reg.transform(x0), x1)["mean_mm"]
+        tre = mean_tre(reg.transform(x0), x1)
         combo = tuple(sorted(chosen))
         level_tres = known.get(level, {})
         ref = level_tres.get(combo)

@@ -33,10 +33,9 @@ from ..anatomy.caseio import read_case, read_surface
 from ..defaults import EDGE_MM, N_PLANES, K
 from ..features import SALIENT
 from ..geometry.interpolation import interpolation_matrix
-from ..geometry.transforms import axis_angle
-from ..geometry.tre import tre_stats
-from ..registration import pipeline
-from ..registration.pipeline import prepare
+from ..geometry.transforms import apply_rigid, axis_angle
+from ..geometry.tre import mean_tre
+from ..registration.pipeline import METHODS, prepare, register
 from ..simulation.levels import data_level
 from .distribute import ResultsCSV, check_scheduler, run_tasks
 
@@ -85,7 +84,7 @@ def offset_transform(rng, angle_deg, shift_mm, pivot):
     R = random_rotation(rng, angle_deg)
     d = rng.normal(size=3)
     t = shift_mm * d / np.linalg.norm(d)
-    return lambda x: (np.asarray(x) - pivot) @ R.T + pivot + t
+    return lambda x: apply_rigid(R, pivot, np.asarray(x) - pivot) + t
 
 
 def shift_labels(data: dict, surface, rng, low_mm=5.0, high_mm=10.0) -> dict:
@@ -149,19 +148,6 @@ def trial_data(case_dir, case, trial: Trial, truth_surface=None, n_planes=N_PLAN
     return {k: move(v) for k, v in data.items()}, move, planes
 
 
-def register_with(method: str, model, data):
-    """Register ``data`` with one of the study's methods (``registration.pipeline.METHODS``).
-    Copied into a tree whose pipeline has no ``METHODS`` (before multi-start ICP), the only
-    method is "single-icp", that tree's default path: how the baseline was checked against
-    the old code."""
-
-    if not hasattr(pipeline, "METHODS"):
-        if method != BASELINE:
-            raise ValueError(f"method {method!r} needs a registration with multi-start ICP (pipeline.METHODS)")
-        return pipeline.register(model, data)
-    return pipeline.register(model, data, init=pipeline.METHODS[method]())
-
-
 @progress.quiet()  # scoped, as table2.run_chunk: a study step must not silence its caller
 def run_case(case_dir, trials, methods, edge=EDGE_MM, k=K) -> list[dict]:
     """Every (trial, method) of one case; returns CSV rows."""
@@ -172,24 +158,23 @@ def run_case(case_dir, trials, methods, edge=EDGE_MM, k=K) -> list[dict]:
     x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     B = interpolation_matrix(model.basis.nodes, model.basis.tets, x0)
     surface, _ = read_surface(case_dir / "truth" / "liver.ply", closed=False)
-    surface = surface[0] if isinstance(surface, tuple) else surface  # (mesh, clean-up report) since 31bc815
     rows = []
     for trial, method in ((t, m) for t in trials for m in methods):
         data, move, planes = trial_data(case_dir, case, trial, surface)
         t0 = time.perf_counter()
-        reg = register_with(method, model, data)
+        reg = register(model, data, init=METHODS[method]())
         sec = time.perf_counter() - t0
         truth = move(x1)
-        quality = getattr(reg, "quality", None)
+        assert reg.libr is not None  # every method of the study deforms
         rows.append({
             "case": trial.case, "method": method, "condition": trial.condition, "draw": trial.draw,
             "angle_deg": trial.angle_deg, "shift_mm": trial.shift_mm, "planes": "-".join(map(str, planes)),
-            "tre_mm": round(tre_stats(reg.transform(x0, B=B), truth)["mean_mm"], 4),
-            "tre_rigid_mm": round(tre_stats(reg.rigid.apply(x0), truth)["mean_mm"], 4),
+            "tre_mm": round(mean_tre(reg.transform(x0, B=B), truth), 4),
+            "tre_rigid_mm": round(mean_tre(reg.rigid.apply(x0), truth), 4),
             "seconds": round(sec, 4), "rigid_seconds": round(reg.seconds.get("rigid", 0.0), 4),
             "iterations": reg.libr.iterations, "stop_reason": reg.libr.stop_reason,
-            "starts": getattr(reg, "starts", None) and len(reg.starts) or 1,
-            "flagged": " ".join(quality.flagged) if quality is not None else ""})
+            "starts": len(reg.starts) or 1,
+            "flagged": " ".join(reg.quality.flagged) if reg.quality is not None else ""})
     return rows
 
 

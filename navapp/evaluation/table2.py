@@ -88,8 +88,8 @@ def run_chunk(case_dir, items, edge=EDGE_MM, k=K, init=None):
         sec = time.perf_counter() - t + (icp_sec if shared else 0.0)
         tre = tre_stats(reg.transform(x0, B=B), x1)
         rows.append({"case": case_dir.name, "level": level, "planes": "-".join(map(str, planes)),
-                     "tre_mean_mm": round(tre["mean_mm"], 4), "tre_sd_mm": round(tre["sd_mm"], 4),
-                     "tre_max_mm": round(tre["max_mm"], 4), "iterations": reg.libr.iterations if reg.libr else 0,
+                     "tre_mean_mm": round(tre.mean_mm, 4), "tre_sd_mm": round(tre.sd_mm, 4),
+                     "tre_max_mm": round(tre.max_mm, 4), "iterations": reg.libr.iterations if reg.libr else 0,
                      "stop_reason": reg.libr.stop_reason if reg.libr else "rigid", "seconds": round(sec, 4)})
     return rows
 

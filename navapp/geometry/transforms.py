@@ -20,8 +20,15 @@ def axis_angle(axis, angle_rad: float) -> np.ndarray:
     return rotvec_matrix(np.asarray(axis, float) * angle_rad)
 
 
+def rotation_between(a, b) -> np.ndarray:
+    """(3, 3) the smallest rotation taking the direction ``a`` (3,) to the direction ``b`` (3,)
+    (neither need be unit; opposite directions: a half turn about some axis normal to both)."""
+    return Rotation.align_vectors([np.asarray(b, float)], [np.asarray(a, float)])[0].as_matrix()
+
+
 def homogeneous(R, t) -> np.ndarray:
-    """(4, 4) transform ``x ↦ R x + t`` from a (3, 3) matrix and a (3,) shift (mm)."""
+    """(4, 4) transform ``x ↦ R x + t`` from a (3, 3) matrix (a rotation; or any linear map,
+    a voxel grid's scaled axes) and a (3,) shift (mm)."""
     m = np.eye(4)
     m[:3, :3], m[:3, 3] = R, t
     return m
@@ -38,6 +45,13 @@ def interpolate_pose(a, b, f) -> np.ndarray:
 def apply(T, points) -> np.ndarray:
     """Points (N, 3) mm through a (4, 4) affine ``T``."""
     return np.asarray(points, float) @ T[:3, :3].T + T[:3, 3]
+
+
+def apply_rigid(R, t, points) -> np.ndarray:
+    """Points (N, 3) mm through ``x ↦ R x + t`` (R (3, 3), t (3,) mm): ``x Rᵀ + t`` row by
+    row, the arithmetic of ``apply`` without building the 4 × 4; ``apply_inverse`` undoes it.
+    A rotation about a point c is ``apply_rigid(R, c, points - c)``."""
+    return np.asarray(points, float) @ np.asarray(R, float).T + t
 
 
 def apply_inverse(R, t, points) -> np.ndarray:

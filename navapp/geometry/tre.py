@@ -6,6 +6,8 @@ a case's TRE summarises those distances over its targets. Nothing here reads a t
 caller brings it, after the fit, so the solver still never sees it.
 """
 
+from dataclasses import asdict, dataclass
+
 import numpy as np
 
 
@@ -32,8 +34,22 @@ def mean_tre(pred, truth) -> float:
     return float(point_errors(pred, truth).mean())
 
 
-def tre_stats(pred, truth) -> dict:
-    """Summary of ``point_errors(pred, truth)`` (same parameters): a dict of ``mean_mm``,
-    ``sd_mm`` (population), ``max_mm`` (floats, mm) and the count ``n`` (int)."""
+@dataclass(frozen=True)
+class TreStats:
+    """A case's TRE summarised over its ``n`` targets (``tre_stats``), mm."""
+
+    mean_mm: float
+    sd_mm: float  # population standard deviation
+    max_mm: float
+    n: int
+
+    def as_dict(self) -> dict:
+        """``{"mean_mm", "sd_mm", "max_mm", "n"}``: result.json's ``tre_rigid`` / ``tre_deformable``."""
+        return asdict(self)
+
+
+def tre_stats(pred, truth) -> TreStats:
+    """Summary of ``point_errors(pred, truth)`` (same parameters): mean, population SD and
+    largest error (mm) and the number of targets."""
     d = point_errors(pred, truth)
-    return {"mean_mm": float(d.mean()), "sd_mm": float(d.std()), "max_mm": float(d.max()), "n": int(len(d))}
+    return TreStats(float(d.mean()), float(d.std()), float(d.max()), int(len(d)))

@@ -26,6 +26,7 @@ from ..errors import InputError
 from ..features import SALIENT, data_to_model, weights_si
 from ..geometry.closest import NEAR, NEAR_DECIMATED, incidence
 from ..geometry.interpolation import interpolation_matrix
+from ..geometry.transforms import apply_rigid
 from ..mechanics.basis import Basis
 from .rotation import rotation
 
@@ -210,7 +211,7 @@ def deform(rest, u, beta, centroid) -> tuple[np.ndarray, np.ndarray]:
     """
     n = len(beta) - 6
     local = rest + u - centroid
-    return local, local @ rotation(beta[n + 3:n + 6]).T + beta[n:n + 3] + centroid
+    return local, apply_rigid(rotation(beta[n + 3:n + 6]), beta[n:n + 3], local) + centroid
 
 
 # Vessel surfaces are decimated to this many triangles for registration: both vessels are

@@ -49,7 +49,6 @@ from .uncertainty import (
 # the simulator's probe and far-wall rule (``navapp.defaults``: one home for both sides)
 IMAGE_WIDTH_MM = PROBE_WIDTH_PX * PROBE_SPACING_MM
 IMAGE_DEPTH_MM = PROBE_HEIGHT_PX * PROBE_SPACING_MM
-PIXEL_MM = PROBE_SPACING_MM
 SAMPLE_MM = 1.0  # Jacobian rows taken every 1 mm along a section, weighted as the pixels they stand for
 
 
@@ -168,7 +167,7 @@ def _sample(seg):
         s = np.array([cum[-1] / 2])
     i = np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(seg) - 1)
     t = ((s - cum[i]) / np.maximum(length[i], 1e-12))[:, None]
-    return seg[i, 0] * (1 - t) + seg[i, 1] * t, round(cum[-1] / PIXEL_MM)
+    return seg[i, 0] * (1 - t) + seg[i, 1] * t, round(cum[-1] / PROBE_SPACING_MM)
 
 
 IMAGED = (("portal", "portal_contour"), ("hepatic", "hepatic_contour"), ("liver", "posterior"))

@@ -1091,8 +1091,8 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
         x0, x1 = case.truth.tre_points(reg.model.basis.nodes)
         pred = reg.transform(x0)
         write_csv(out / "targets.csv", np.column_stack([x0, pred]), ("x0", "y0", "z0", "x1", "y1", "z1"))
-        summary["tre_rigid"] = tre_stats(reg.rigid.apply(x0), x1)
+        summary["tre_rigid"] = tre_stats(reg.rigid.apply(x0), x1).as_dict()
         if reg.libr is not None:
-            summary["tre_deformable"] = tre_stats(pred, x1)  # the answer: rigid when not ``reg.deformed``
+            summary["tre_deformable"] = tre_stats(pred, x1).as_dict()  # the answer: rigid when not ``reg.deformed``
     (out / "result.json").write_text(json.dumps(summary, indent=2))
     return summary

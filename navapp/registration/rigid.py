@@ -23,7 +23,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..features import RIGID
-from ..geometry.transforms import apply_inverse, kabsch, rotvec_matrix
+from ..geometry.transforms import apply_inverse, apply_rigid, kabsch, rotvec_matrix
 from .model import REGION_FEATURES, RegistrationModel
 from .objective import Weights, correspond
 from .rotation import rotation, rotation_angle
@@ -44,7 +44,7 @@ class RigidResult:
     kept: bool = False
 
     def apply(self, x):
-        return np.asarray(x) @ self.R.T + self.t
+        return apply_rigid(self.R, self.t, x)
 
     def inverse(self, y):
         return apply_inverse(self.R, self.t, y)
@@ -127,7 +127,7 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights | None = No
                 Ws[-1] = Ws[-1] * _robust_scale(np.linalg.norm(Ym - Ps[-1], axis=-1), robust)
         P, Q, W = np.vstack(Ps), np.vstack(Qs), np.concatenate(Ws)
         R, t = kabsch(P, Q, W)
-        rms = float(np.sqrt(np.average(np.sum((P @ R.T + t - Q) ** 2, 1), weights=W)))
+        rms = float(np.sqrt(np.average(np.sum((apply_rigid(R, t, P) - Q) ** 2, 1), weights=W)))
         if abs(prev - rms) < tol_mm:
             break
         prev = rms

@@ -12,6 +12,7 @@ import numpy as np
 from ..anatomy.targets import Target, map_targets, target_points
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.targets_distance import unsigned_distance
+from ..geometry.tre import mean_tre
 
 
 def target_interpolation(reg, targets: list[Target]):
@@ -43,12 +44,12 @@ def target_errors(registered: Target, truth: Target) -> dict:
     agreement, blind to sliding along the surface).
     """
     if registered.surface is None or truth.surface is None:
-        return {"centroid_mm": round(float(np.linalg.norm(registered.centre - truth.centre)), 3)}
+        return {"centroid_mm": round(mean_tre([registered.centre], [truth.centre]), 3)}
     a, b = registered.surface, truth.surface
     d_ab = unsigned_distance(a.vertices, b.vertices, b.faces)
     d_ba = unsigned_distance(b.vertices, a.vertices, a.faces)
-    out = {"centroid_mm": round(float(np.linalg.norm(a.center_mass - b.center_mass)), 3)}
+    out = {"centroid_mm": round(mean_tre([a.center_mass], [b.center_mass]), 3)}
     if a.vertices.shape == b.vertices.shape:
-        out["mean_vertex_mm"] = round(float(np.linalg.norm(a.vertices - b.vertices, axis=1).mean()), 3)
+        out["mean_vertex_mm"] = round(mean_tre(a.vertices, b.vertices), 3)
     out["mean_surface_mm"] = round(float(np.concatenate([d_ab, d_ba]).mean()), 3)
     return out

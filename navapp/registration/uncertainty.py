@@ -38,6 +38,7 @@ from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
 from ..geometry.interpolation import interpolation_matrix
+from ..geometry.transforms import apply_rigid
 from ..threads import limit_threads
 from .model import REGION_FEATURES, RegistrationModel, deform
 from .objective import Weights, evaluate
@@ -280,7 +281,7 @@ def node_positions(model: RegistrationModel, beta) -> np.ndarray:
     beta = np.asarray(beta, float)
     n = len(beta) - 6
     local = model.basis.nodes - model.centroid + (model.basis.Ju @ beta[:n]).reshape(-1, 3)
-    return local @ rotation(beta[n + 3:]).T + beta[n:n + 3] + model.centroid
+    return apply_rigid(rotation(beta[n + 3:]), beta[n:n + 3], local) + model.centroid
 
 
 def data_spread(model: RegistrationModel, beta, data: dict) -> float:

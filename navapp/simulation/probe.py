@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..defaults import PROBE_HEIGHT_PX, PROBE_SPACING_MM, PROBE_WIDTH_PX
-from ..geometry.transforms import inverse
+from ..geometry.transforms import homogeneous, inverse
 
 
 @dataclass(frozen=True)
@@ -22,18 +22,17 @@ class Probe:
 
     def image_to_probe(self) -> np.ndarray:
         s = self.spacing_mm
-        m = np.eye(4)
-        m[0, 0] = s  # column → lateral
-        m[2, 1] = s  # row → depth
-        m[1, 1] = 0.0
-        m[0, 3] = -s * (self.width_px - 1) / 2.0
-        return m
+        # column → lateral, row → depth; the slice column is the identity's (pixels have k = 0)
+        axes = np.array([[s, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, s, 1.0]])
+        return homogeneous(axes, [-s * (self.width_px - 1) / 2.0, 0.0, 0.0])
 
 
 def pixels_to_tracker(probe: Probe, probe_to_tracker, cols, rows) -> np.ndarray:
     """3D tracker positions (N, 3) mm of image pixels (cols u, rows v)."""
     uv = np.column_stack([cols, rows, np.zeros(len(cols)), np.ones(len(cols))]).astype(float)
-    # image coordinates are (u, v, 0, 1); ImageToProbe maps v via its second column
+    # image coordinates are (u, v, 0, 1); ImageToProbe maps v via its second column. In homogeneous
+    # coordinates, not ``transforms.apply``: for one pixel (a contour's centre, stored as a plane's
+    # centerline point) NumPy's matrix–vector product rounds otherwise, 7 times in 10
     return (probe_to_tracker @ probe.image_to_probe() @ uv.T).T[:, :3]
 
 
@@ -41,7 +40,7 @@ def tracker_to_pixels(probe: Probe, probe_to_tracker, points) -> tuple[np.ndarra
     """Continuous pixel coordinates (cols, rows) of points projected onto the image
     plane, and their out-of-plane distance (mm)."""
     p = np.column_stack([np.asarray(points, float), np.ones(len(points))])
-    local = (inverse(probe_to_tracker) @ p.T).T
+    local = (inverse(probe_to_tracker) @ p.T).T  # as ``pixels_to_tracker``, for the same bits
     s = probe.spacing_mm
     cols = local[:, 0] / s + (probe.width_px - 1) / 2.0
     rows = local[:, 2] / s

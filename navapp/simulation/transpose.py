@@ -40,7 +40,7 @@ from scipy.interpolate import RBFInterpolator
 from .. import cache
 from ..anatomy.meshing import TetMesh, cached_tetmesh
 from ..geometry.interpolation import barycentric
-from ..geometry.transforms import kabsch
+from ..geometry.transforms import apply_rigid, homogeneous, kabsch
 from ..threads import limit_threads
 from .truth import solve_linear, solve_neo_hookean
 
@@ -105,9 +105,7 @@ def correspondence(target_vertices, reference_vertices, n_points=CPD_POINTS, bet
         ya, (B, t) = AffineRegistration(X=x, Y=y, max_iterations=100, tolerance=1e-6).register()
         yd, _ = DeformableRegistration(X=x, Y=ya, alpha=alpha, beta=beta, max_iterations=150,
                                        tolerance=1e-6).register()
-    A = np.eye(4)
-    A[:3, :3] = B.T
-    A[:3, 3] = t
+    A = homogeneous(B.T, t)
     u, _, vt = np.linalg.svd(B.T)
     Q = u @ vt
     if np.linalg.det(Q) < 0:
@@ -133,10 +131,10 @@ def transpose(reference: TetMesh, u_ref, phi: Correspondence, points) -> np.ndar
     ``u_ref`` (M, 3) on ``reference``, carried through φ (module doc): x ↦ R x + b + Q r(φ(x))."""
     X = reference.nodes
     R, b = kabsch(X, X + u_ref)
-    residual = X + u_ref - (X @ R.T + b)
+    residual = X + u_ref - apply_rigid(R, b, X)
     points = np.asarray(points, float)
     r = sample_field(reference, residual, phi(points)) @ phi.rotation  # Qᵀ: reference frame → target frame
-    return points @ R.T + b + r - points
+    return apply_rigid(R, b, points) + r - points
 
 
 def reference_deformation(reference_surface, mesh_edge_mm: float, loading, material, large: bool,

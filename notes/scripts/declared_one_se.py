@@ -16,7 +16,7 @@ from navapp import progress
 from navapp.anatomy.caseio import read_case
 from navapp.evaluation.loads import LOAD_LEVELS, declared_prior
 from navapp.geometry.interpolation import interpolation_matrix
-from navapp.geometry.tre import tre_stats
+from navapp.geometry.tre import mean_tre
 from navapp.registration.pipeline import prepare, register
 from navapp.registration.support import paired_gain
 from navapp.simulation.levels import data_level
@@ -35,7 +35,7 @@ for case_dir in [a for a in sys.argv[1:] if not a.startswith("--")]:
         s = reg.support
         gain, se = paired_gain(s.blocks) if s is not None and s.blocks else (None, None)
         row = {"case": str(case_dir).rstrip("/").split("/")[-1],
-               "level": level, "tre_mean_mm": round(tre_stats(reg.transform(x0, B=B), x1)["mean_mm"], 3),
+               "level": level, "tre_mean_mm": round(mean_tre(reg.transform(x0, B=B), x1), 3),
                "answer": "deformable" if reg.deformed else "rigid", "warned": bool(reg.warnings),
                "lines": [w.text for w in reg.warnings]}
         if s is not None:
@@ -43,5 +43,5 @@ for case_dir in [a for a in sys.argv[1:] if not a.startswith("--")]:
                        gain_mm=round(gain, 3), se_mm=round(se, 3), paired=s.paired, predicts=s.predicts,
                        margin_verdict=s.deformable_mm < (1 - s.margin) * s.rigid_mm)
         if reg.libr is not None and not reg.deformed:  # the deformable fit the verdict turned away
-            row["fit_tre_mean_mm"] = round(tre_stats(reg.transform(x0, beta=reg.libr.beta, B=B), x1)["mean_mm"], 3)
+            row["fit_tre_mean_mm"] = round(mean_tre(reg.transform(x0, beta=reg.libr.beta, B=B), x1), 3)
         print(json.dumps(row), flush=True)

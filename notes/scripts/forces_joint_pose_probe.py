@@ -14,7 +14,7 @@ from pathlib import Path
 from navapp.anatomy.caseio import read_case
 from navapp.evaluation.loads import declared_prior, declared_supports
 from navapp.geometry.interpolation import interpolation_matrix
-from navapp.geometry.tre import tre_stats
+from navapp.geometry.tre import mean_tre
 from navapp.registration.forces import ENERGY_WEIGHTS, PoseTerm, SurfaceForces, surface_points
 from navapp.registration.pipeline import prepare, register
 from navapp.registration.rigid import after, beta_pose
@@ -30,8 +30,8 @@ def run(case_dir: Path, level: str) -> dict:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         reg = register(model, data, pose_prior=declared_prior(case_dir, case))
-    row = {"case": case_dir.name, "level": level, "identity": round(tre_stats(x0, x1)["mean_mm"], 3),
-           "rigid": round(tre_stats(reg.rigid.apply(x0), x1)["mean_mm"], 3)}
+    row = {"case": case_dir.name, "level": level, "identity": round(mean_tre(x0, x1), 3),
+           "rigid": round(mean_tre(reg.rigid.apply(x0), x1), 3)}
     sf = SurfaceForces(model.basis)
     pts = surface_points({k: reg.rigid.inverse(p) for k, p in data.items()})
     pf = sf.responses(pts)
@@ -41,8 +41,8 @@ def run(case_dir: Path, level: str) -> dict:
         for lam in ENERGY_WEIGHTS:
             wf = sf.fit_weights(pf, lam, pose=pose)
             whole = reg.rigid if wf.q is None else after(reg.rigid, beta_pose(wf.q, model.centroid))
-            row[name][f"{lam:g}"] = [round(tre_stats(whole.apply(x0 + B @ sf.field(pf, wf)), x1)["mean_mm"], 3),
-                                     round(tre_stats(whole.apply(x0), x1)["mean_mm"], 3), round(wf.rms_mm, 3)]
+            row[name][f"{lam:g}"] = [round(mean_tre(whole.apply(x0 + B @ sf.field(pf, wf)), x1), 3),
+                                     round(mean_tre(whole.apply(x0), x1), 3), round(wf.rms_mm, 3)]
     sf.close()
     return row
 

@@ -26,7 +26,7 @@ from navapp.anatomy.caseio import read_case
 from navapp.anatomy.tets import TetMesh
 from navapp.evaluation.loads import declared_prior, declared_supports
 from navapp.geometry.transforms import apply
-from navapp.geometry.tre import tre_stats
+from navapp.geometry.tre import mean_tre
 from navapp.mechanics.supports import held_nodes
 from navapp.registration.forces import ENERGY_WEIGHTS, ForceOptions, SurfaceForces, spread_sites, surface_points
 from navapp.registration.pipeline import prepare, register
@@ -47,7 +47,7 @@ def run(case_dir: Path) -> dict:
     sf = SurfaceForces(model.basis)
 
     def tre_u(u, pose):
-        return round(tre_stats(pose(x0 + u), x1)["mean_mm"], 3)
+        return round(mean_tre(pose(x0 + u), x1), 3)
 
     def fits(points, pose, options=None):
         options = options or ForceOptions()
@@ -65,8 +65,8 @@ def run(case_dir: Path) -> dict:
 
     pts = surface_points(reg.data_model_frame)
     row = {"case": case_dir.name, "supports": sup["supports"], "points": len(pts),
-           "identity": round(tre_stats(x0, x1)["mean_mm"], 3),
-           "rigid_fitted": round(tre_stats(reg.rigid.apply(x0), x1)["mean_mm"], 3),
+           "identity": round(mean_tre(x0, x1), 3),
+           "rigid_fitted": round(mean_tre(reg.rigid.apply(x0), x1), 3),
            "pose_gap_mm": round(float(np.abs(reg.rigid.apply(x0) - true_pose(x0)).max()), 3)}
     row["lam"] = fits(pts, reg.rigid.apply)
     row["tight"] = fits(pts, reg.rigid.apply, ForceOptions(tol=1e-6, iterations=100))

@@ -15,7 +15,7 @@ from pathlib import Path
 from navapp.anatomy.caseio import read_case
 from navapp.evaluation.loads import declared_prior, declared_supports
 from navapp.geometry.interpolation import interpolation_matrix
-from navapp.geometry.tre import tre_stats
+from navapp.geometry.tre import mean_tre
 from navapp.registration.forces import ENERGY_WEIGHTS, SurfaceForces, surface_points
 from navapp.registration.pipeline import prepare, register
 from navapp.registration.rigid import after, beta_pose
@@ -32,16 +32,16 @@ def run(case_dir: Path) -> dict:
         warnings.simplefilter("ignore")
         reg = register(model, data, pose_prior=declared_prior(case_dir, case))
     whole = after(reg.rigid, beta_pose(reg.libr.beta, model.centroid))
-    row = {"case": case_dir.name, "identity": round(tre_stats(x0, x1)["mean_mm"], 3),
-           "rigid": round(tre_stats(reg.rigid.apply(x0), x1)["mean_mm"], 3),
-           "rigid_with_basis_pose": round(tre_stats(whole.apply(x0), x1)["mean_mm"], 3),
-           "basis": round(tre_stats(reg.transform(x0, beta=reg.libr.beta, B=B), x1)["mean_mm"], 3)}
+    row = {"case": case_dir.name, "identity": round(mean_tre(x0, x1), 3),
+           "rigid": round(mean_tre(reg.rigid.apply(x0), x1), 3),
+           "rigid_with_basis_pose": round(mean_tre(whole.apply(x0), x1), 3),
+           "basis": round(mean_tre(reg.transform(x0, beta=reg.libr.beta, B=B), x1), 3)}
     sf = SurfaceForces(model.basis)
     for name, pose in (("forces_at_rigid", reg.rigid), ("forces_at_basis_pose", whole)):
         pts = surface_points({k: pose.inverse(p) for k, p in data.items()})
         pf = sf.responses(pts)
-        row[name] = {f"{lam:g}": round(tre_stats(pose.apply(x0 + B @ sf.field(pf, sf.fit_weights(pf, lam))),
-                                                 x1)["mean_mm"], 3) for lam in ENERGY_WEIGHTS}
+        row[name] = {f"{lam:g}": round(mean_tre(pose.apply(x0 + B @ sf.field(pf, sf.fit_weights(pf, lam))),
+                                                 x1), 3) for lam in ENERGY_WEIGHTS}
     sf.close()
     return row
 

@@ -7,7 +7,7 @@ from pathlib import Path
 from navapp.anatomy.caseio import read_case
 from navapp.evaluation.loads import declared_prior, declared_supports
 from navapp.geometry.interpolation import interpolation_matrix
-from navapp.geometry.tre import tre_stats
+from navapp.geometry.tre import mean_tre
 from navapp.registration.pipeline import prepare, register
 from navapp.simulation.levels import data_level
 
@@ -23,7 +23,7 @@ with warnings.catch_warnings():
     reg = register(model, data, pose_prior=declared_prior(case_dir, case), surface_forces=True)
 sec = time.perf_counter() - t
 fc = reg.forces
-print(case_dir.name, "identity", round(tre_stats(x0, x1)["mean_mm"], 3), "answer", fc.answer.value,
-      "tre", round(tre_stats(reg.transform(x0, B=B), x1)["mean_mm"], 3), "sec", round(sec, 1), fc.as_dict(),
+print(case_dir.name, "identity", round(mean_tre(x0, x1), 3), "answer", fc.answer.value,
+      "tre", round(mean_tre(reg.transform(x0, B=B), x1), 3), "sec", round(sec, 1), fc.as_dict(),
       {k: round(v, 1) for k, v in reg.seconds.items()},
       None if fc.fit is None else (fc.fit.iterations, round(fc.fit.rms_mm, 3)), flush=True)

@@ -19,7 +19,7 @@ from pathlib import Path
 from navapp.anatomy.caseio import read_case
 from navapp.evaluation.loads import declared_prior, declared_supports
 from navapp.geometry.interpolation import interpolation_matrix
-from navapp.geometry.tre import tre_stats
+from navapp.geometry.tre import mean_tre
 from navapp.registration.forces import ENERGY_WEIGHTS, SurfaceForces, surface_points
 from navapp.registration.pipeline import prepare, register
 from navapp.registration.rigid import beta_pose
@@ -47,7 +47,7 @@ for arg in sys.argv[2:]:
         return reg.rigid.apply(moved)
 
     def tre(p, x1=x1):
-        return round(tre_stats(p, x1)["mean_mm"], 3)
+        return round(mean_tre(p, x1), 3)
 
     row = {"case": case_dir.name, "identity": tre(x0), "none": tre(reg.rigid.apply(x0)),
            "basis": tre(reg.transform(x0, beta=reg.libr.beta, B=B)),

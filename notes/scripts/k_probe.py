@@ -38,7 +38,7 @@ def main(out_path: str, ks: str, cases: list[str]) -> None:
                         reg = register(model, data, deform=True)
                         sec = time.perf_counter() - t
                     st = tre_stats(reg.transform(x0, B=B), x1)
-                    row = {"case": Path(c).name, "level": level, "k": k, "tre": round(st["mean_mm"], 3),
+                    row = {"case": Path(c).name, "level": level, "k": k, "tre": round(st.mean_mm, 3),
                            "answer": "deformable" if reg.deformed else "rigid", "warned": bool(reg.warnings),
                            "first": reg.warnings[0][:70] if reg.warnings else "", "seconds": round(sec, 2),
                            "prepare_s": round(prepare_s, 1)}

@@ -35,7 +35,7 @@ from navapp.defaults import EDGE_MM, K
 from navapp.evaluation.loads import LOAD_LEVELS
 from navapp.evaluation.table2 import scenarios
 from navapp.features import SALIENT
-from navapp.geometry.tre import tre_stats
+from navapp.geometry.tre import mean_tre
 from navapp.registration.libr import _solve, register_libr
 from navapp.registration.model import DATA_TO_MODEL
 from navapp.registration.objective import evaluate
@@ -159,11 +159,11 @@ def main(out_path, case_dirs):
                 (lin, lin_s), (warm, warm_s) = cheap_supports(model, local, options, reg.libr.beta)
                 # the TRE each verdict would show: from a kept pose an unsupported deformation shows
                 # the pose alone (``Registration.deformed``); the σ weighing does not depend on the folds
-                tre = {"deformable": tre_stats(reg.transform(x0, beta=reg.libr.beta), x1)["mean_mm"],
-                       "rigid": tre_stats(reg.rigid.apply(x0), x1)["mean_mm"]}
+                tre = {"deformable": mean_tre(reg.transform(x0, beta=reg.libr.beta), x1),
+                       "rigid": mean_tre(reg.rigid.apply(x0), x1)}
                 row = {"case": Path(case_dir).name, "level": level,
                        "planes": "-".join(map(str, planes)), "kept_pose": reg.rigid.kept,
-                       "shown_tre_mm": round(tre_stats(reg.transform(x0), x1)["mean_mm"], 4)}
+                       "shown_tre_mm": round(mean_tre(reg.transform(x0), x1), 4)}
                 for tag, s, sec in (("exact", exact, exact_s), ("linear", lin, lin_s), ("warm", warm, warm_s)):
                     deformed = not reg.rigid.kept or (s.predicts and exact.significant)
                     row[tag] = {"rigid_mm": round(s.rigid_mm, 4), "deformable_mm": round(s.deformable_mm, 4),

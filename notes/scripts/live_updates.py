@@ -20,7 +20,7 @@ import numpy as np
 from navapp.defaults import EDGE_MM, K
 from navapp.evaluation.live_bench import _poses
 from navapp.geometry.interpolation import interpolation_matrix
-from navapp.geometry.tre import tre_stats
+from navapp.geometry.tre import mean_tre
 from navapp.registration.live import LiveRegistration
 from navapp.registration.pipeline import prepare, register
 from navapp.simulation.levels import data_level
@@ -54,4 +54,4 @@ print(json.dumps({"updates": len(wall), "median_ms": round(statistics.median(wal
                   "cpu_p90_ms": round(float(np.percentile(cpu, 90)), 2),
                   "stages_mean_ms": {k: round(v / len(wall), 2) for k, v in stages.items()},
                   "pose_after_last": [round(float(x), 6) for x in reg.libr.beta[-6:]],
-                  "tre_after_last_mm": round(tre_stats(reg.transform(x0, B=B), x1)["mean_mm"], 4)}), flush=True)
+                  "tre_after_last_mm": round(mean_tre(reg.transform(x0, B=B), x1), 4)}), flush=True)

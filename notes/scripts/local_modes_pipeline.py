@@ -12,7 +12,7 @@ import time
 import warnings
 from pathlib import Path
 
-from navapp.geometry.tre import tre_stats
+from navapp.geometry.tre import mean_tre
 from navapp.registration.local_modes import LocalModeOptions
 from navapp.registration.pipeline import RobustOptions, register
 
@@ -34,8 +34,8 @@ def main(out_path, cases):
                         reg = register(model, data, init=init)
                         sec = time.perf_counter() - t
                     fit = reg.transform(x0, beta=reg.libr.beta)  # the deformable fit, shown or not
-                    row[name] = {"tre": round(tre_stats(reg.transform(x0), x1)["mean_mm"], 3),
-                                 "tre_fit": round(tre_stats(fit, x1)["mean_mm"], 3),
+                    row[name] = {"tre": round(mean_tre(reg.transform(x0), x1), 3),
+                                 "tre_fit": round(mean_tre(fit, x1), 3),
                                  "answer": "deformable" if reg.deformed else "rigid", "warned": bool(reg.warnings),
                                  "first": reg.warnings[0][:60] if reg.warnings else "", "s": round(sec, 2)}
                     if reg.local_modes is not None:

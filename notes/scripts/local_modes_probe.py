@@ -24,9 +24,10 @@ import numpy as np
 from navapp import progress
 from navapp.anatomy.caseio import read_case
 from navapp.geometry.interpolation import interpolation_matrix
+from navapp.geometry.tre import mean_tre
 from navapp.registration.local_modes import LocalModeOptions, sources_under, with_sources
 from navapp.registration.model import DATA_TO_MODEL
-from navapp.registration.pipeline import prepare, register, tre_stats
+from navapp.registration.pipeline import prepare, register
 from navapp.simulation.levels import data_level
 
 OFF_MM, MIN_POINTS, DEPTH_MM, MAX_SOURCES = 2.5, 8, 10.0, 2  # EPS_MM, MODE_MM: the package's (5, 5 mm)
@@ -79,7 +80,7 @@ def main(out_path, cases):
 
             def tre(reg, fit=False, x0=x0, x1=x1, B=B):
                 pred = reg.transform(x0, beta=reg.libr.beta, B=B) if fit else reg.transform(x0, B=B)
-                return round(tre_stats(pred, x1)["mean_mm"], 3)
+                return round(mean_tre(pred, x1), 3)
 
             def held_out(reg):  # the cross-validation's held-out RMS, deformable and rigid (mm)
                 s = reg.support

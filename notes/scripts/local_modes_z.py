@@ -12,8 +12,9 @@ import warnings
 from dataclasses import replace
 from pathlib import Path
 
+from navapp.geometry.tre import mean_tre
 from navapp.registration.local_modes import LocalModeOptions
-from navapp.registration.pipeline import RobustOptions, _settings, register, tre_stats
+from navapp.registration.pipeline import RobustOptions, _settings, register
 from navapp.registration.support import SupportOptions, weigh_correction
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -37,9 +38,9 @@ def main(out_path, cases):
                 row = {"case": c.name, "level": level, "kept": reg.rigid.kept, "deformed": reg.deformed,
                        "warned": bool(reg.warnings), "z": round(s.correction_mm / s.sigma_mm, 2),
                        "correction_mm": round(s.correction_mm, 2), "sigma_mm": round(s.sigma_mm, 2),
-                       "tre": round(tre_stats(reg.transform(x0), x1)["mean_mm"], 3),
-                       "tre_rigid": round(tre_stats(rigid.transform(x0), x1)["mean_mm"], 3),
-                       "tre_identity": round(tre_stats(x0, x1)["mean_mm"], 3)}
+                       "tre": round(mean_tre(reg.transform(x0), x1), 3),
+                       "tre_rigid": round(mean_tre(rigid.transform(x0), x1), 3),
+                       "tre_identity": round(mean_tre(x0, x1), 3)}
                 print(json.dumps(row), file=out, flush=True)
                 print(row, flush=True)
 

@@ -18,7 +18,8 @@ import numpy as np
 from navapp import progress
 from navapp.anatomy.caseio import read_case
 from navapp.geometry.interpolation import interpolation_matrix
-from navapp.registration.pipeline import RobustOptions, prepare, register, tre_stats
+from navapp.geometry.tre import mean_tre
+from navapp.registration.pipeline import RobustOptions, prepare, register
 from navapp.registration.pose import _distances, trimmed_pose
 from navapp.registration.rigid import RigidResult
 from navapp.simulation.levels import data_level
@@ -38,9 +39,9 @@ for case_dir in sys.argv[2:]:
     out = [case_dir.rstrip("/").split("/")[-1], level, f"moved={moved:.1f}"]
     for name, pose in (("G", given), ("T", trimmed), ("I", icp)):
         d = _distances(model, data, pose)
-        tre = tre_stats(pose.apply(x0), x1)["mean_mm"]
+        tre = mean_tre(pose.apply(x0), x1)
         out.append(f"{name}: f1={np.mean(d < 1):.2f} f2={np.mean(d < 2):.2f} med={np.median(d):.2f} tre={tre:.2f}")
     for name, kept in (("LT-fix", True), ("LT-free", False)):
         reg = register(model, data, rigid=replace(trimmed, kept=kept), init=RobustOptions.unguarded())
-        out.append(f"{name}={tre_stats(reg.transform(x0, B=B), x1)['mean_mm']:.2f}")
+        out.append(f"{name}={mean_tre(reg.transform(x0, B=B), x1):.2f}")
     print(" | ".join(out), flush=True)

@@ -13,7 +13,7 @@ import time
 from navapp import progress
 from navapp.anatomy.caseio import read_case
 from navapp.defaults import EDGE_MM, K
-from navapp.geometry.tre import tre_stats
+from navapp.geometry.tre import mean_tre
 from navapp.registration.pipeline import prepare, register
 from navapp.simulation.levels import data_level
 from navapp.simulation.scene import demo_scene
@@ -39,7 +39,7 @@ for i in range(a.repeats):
         prof.disable()
     print(json.dumps({"cpu": round(time.process_time() - c, 3), "wall": round(time.perf_counter() - t, 3),
                       "stages": {k: round(v, 3) for k, v in r.seconds.items()},
-                      "tre": round(tre_stats(r.transform(x0), x1)["mean_mm"], 4)}), flush=True)
+                      "tre": round(mean_tre(r.transform(x0), x1), 4)}), flush=True)
     if prof:
         prof.dump_stats(a.cprofile)
         pstats.Stats(prof).sort_stats("cumulative").print_stats(60)

@@ -17,7 +17,7 @@ from pathlib import Path
 from navapp.anatomy.caseio import read_case
 from navapp.evaluation.loads import declared_prior
 from navapp.geometry.interpolation import interpolation_matrix
-from navapp.geometry.tre import tre_stats
+from navapp.geometry.tre import mean_tre
 from navapp.registration.pipeline import prepare, register
 from navapp.simulation.levels import data_level
 
@@ -33,7 +33,7 @@ for arg in sys.argv[3:]:
     prior = declared_prior(case_dir, case)
 
     def tre(p, x1=x1):
-        return round(tre_stats(p, x1)["mean_mm"], 3)
+        return round(mean_tre(p, x1), 3)
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -18,7 +18,7 @@ from pathlib import Path
 from navapp.anatomy.caseio import read_case
 from navapp.evaluation.loads import LOAD_LEVELS, declared_prior
 from navapp.geometry.interpolation import interpolation_matrix
-from navapp.geometry.tre import tre_stats
+from navapp.geometry.tre import mean_tre
 from navapp.registration.pipeline import prepare, register
 from navapp.simulation.levels import data_level
 from navapp.simulation.scene import load_scene
@@ -47,7 +47,7 @@ def main(out, cases):
                         reg = register(model, data, pose_prior=prior)
                     sec = time.perf_counter() - t
                     row = {"case": c.name, "level": level, "supports": how, "held": model.basis.settings.supports,
-                           "scene": scene.supports, "tre": round(tre_stats(reg.transform(x0, B=B), x1)["mean_mm"], 3),
+                           "scene": scene.supports, "tre": round(mean_tre(reg.transform(x0, B=B), x1), 3),
                            "deformed": reg.deformed, "warnings": [w.text for w in reg.warnings],
                            "seconds": round(sec, 2)}
                     s = reg.support

@@ -9,6 +9,7 @@ import trimesh
 import viser.transforms as vtf
 
 from ...anatomy.model import VESSELS
+from ...geometry.transforms import rotation_between
 from ..framing import frame, plane_view
 from ..motion import Tween
 from ..palette import (
@@ -240,10 +241,9 @@ class LayersPanel:
         if pos is None:
             self.tool.visible = False
             return
-        from . import rotation_z_to
 
         _, j = self._tree.query(pos)
-        self.tool.wxyz = wxyz(rotation_z_to(self._normals[j] + np.array([0.0, 0.3, 0.3])))
+        self.tool.wxyz = wxyz(rotation_between([0.0, 0.0, 1.0], self._normals[j] + np.array([0.0, 0.3, 0.3])))
         self.tool.position = pos
         self.tool.visible = self.cb["Stylus"].value
 
