@@ -921,7 +921,9 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
             result.stop_reason != "cancelled" and centred is not None and options.weights.pose_prior is not None \
             and moved is not None:
         # the rigid answer with a declared pose: the fitted pose or the given one, by whether the
-        # posterior tells them apart (``PoseEvidence``; docs/decisions/registration.md, "One criterion for the pose")
+        # posterior tells them apart; within the goal, at the scale of the misfit the rigid fit
+        # leaves (``PoseEvidence``; docs/decisions/registration.md, "One criterion for the pose",
+        # "A declared rigid move judged at the scale of the misfit it leaves")
         evidence = pose_evidence(model, local, moved, centred, options.weights)
         if evidence.kept_given:
             # the deformable fit re-expressed about the given pose, so that its β and the data's

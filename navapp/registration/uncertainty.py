@@ -480,25 +480,51 @@ class PoseEvidence:
     """With a declared pose and no supported deformation: is the rigid fit within the prior told
     apart from the given pose, and how good is the pose shown? All means over ``organ_nodes``, mm.
 
-    ``moved_mm``: how far the fit moved the organ from the given pose; ``sigma_mm``: the fit's
-    posterior σ_pose (data and prior, ``pose_covariance``); ``prior_sigma_mm``: the prior's alone
-    (the given pose's own predicted error). One criterion, the posterior's: a move within its own
-    σ is not told apart from the given pose, which is then kept (for data in the preoperative
-    frame it is no correction, the answer never worse than its reference); a larger move is the
-    data's, and the fit is shown. One rule for the line: the answer is silent only when it is
-    the given pose — the surgeon's own reference — and that pose's predicted error (the prior's)
-    is within ``bound_mm``, the clinical goal. A fitted pose is always warned about: where the
-    basis cannot make the deformation, the posterior does not see the misfit that moved the
-    pose, and such a fitted pose was worse than its reference, silently, on 5 of the 72 declared
-    local-load registrations (by 0.05–0.44 mm; docs/decisions/registration.md, "One criterion for the pose").
+    ``moved_mm``: how far the rigid fit moved the organ from the given pose; ``sigma_mm``: that
+    fit's posterior σ_pose (data and prior, ``pose_covariance``) at the rigid stage's robust
+    scale; ``prior_sigma_mm``: the prior's alone (the given pose's own predicted error);
+    ``misfit_sigma_mm``: the same posterior σ_pose with the data read at the mean square of the
+    rigid fit's own residuals (``misfit_sd_mm``, the likelihood's usual scale estimate, floored
+    at the robust one), None when it was not computed.
+
+    One criterion, the posterior's: a move within its own σ is not told apart from the given
+    pose, which is then kept (for data in the preoperative frame it is no correction, the answer
+    never worse than its reference). The robust scale discounts the points a deformation moved,
+    as it must for the fit (a dent must not set the pose); but a deformation the rigid fit cannot
+    make is shared out by it as a pose error, and judged at the robust scale that move looks
+    like evidence (on 5 of the 16 fitted poses of the declared local-load sets the fitted pose
+    was worse than the given one, none told apart by it). So where the given pose is within
+    ``bound_mm`` (the clinical goal) — the surgeon's own reference to navigate by — the move is
+    judged at the scale of the misfit the rigid model leaves: a move within that σ is not told
+    from the misfit and the given pose is kept; a larger one (data the rigid model fits to their
+    noise, the misfit small) is the data's, and the fitted pose is shown without a line
+    (docs/decisions/registration.md, "A declared rigid move judged at the
+    scale of the misfit it leaves"). Declared wider than the goal, the given pose is
+    no answer to navigate by: a rigid move beyond its robust σ is shown, and said (the surgeon
+    should check it against the given pose). Any answer whose predicted error is beyond the goal
+    says so.
     """
     moved_mm: float
     sigma_mm: float
     prior_sigma_mm: float
     bound_mm: float = CLINICAL_GOAL_MM
+    misfit_sigma_mm: float | None = None
+
+    @property
+    def given_within_goal(self) -> bool:
+        """The given pose's own predicted error (the declared prior's) is within the goal."""
+        return self.prior_sigma_mm <= self.bound_mm
+
+    @property
+    def judged_by_misfit(self) -> bool:
+        """The move is judged at the rigid fit's misfit scale (within the goal, when computed)."""
+        return self.given_within_goal and self.misfit_sigma_mm is not None
 
     @property
     def kept_given(self) -> bool:
+        if self.judged_by_misfit:
+            assert self.misfit_sigma_mm is not None
+            return self.moved_mm <= max(self.sigma_mm, self.misfit_sigma_mm)
         return self.moved_mm <= self.sigma_mm
 
     @property
@@ -509,7 +535,7 @@ class PoseEvidence:
     @property
     def warning(self) -> str | None:
         beyond = self.predicted_mm > self.bound_mm
-        if self.kept_given and not beyond:
+        if not beyond and (self.kept_given or self.judged_by_misfit):
             return None
         error = (f"its predicted error over the organ is {self.predicted_mm:.1f} mm (mean), more than the "
                  f"{self.bound_mm:g} mm clinical goal" if beyond else
@@ -526,24 +552,41 @@ class PoseEvidence:
     def as_dict(self) -> dict:
         return {"moved_mm": round(self.moved_mm, 3), "sigma_mm": round(self.sigma_mm, 3),
                 "prior_sigma_mm": round(self.prior_sigma_mm, 3), "kept_given": self.kept_given,
-                "predicted_mm": round(self.predicted_mm, 3), "bound_mm": self.bound_mm}
+                "predicted_mm": round(self.predicted_mm, 3), "bound_mm": self.bound_mm,
+                **({} if self.misfit_sigma_mm is None else {"misfit_sigma_mm": round(self.misfit_sigma_mm, 3)})}
+
+
+def misfit_sd_mm(model: RegistrationModel, data: dict, weights: Weights) -> float:
+    """The root mean square (mm) of the data's residual rows (``weights`` without the prior: the
+    rows ``pipeline._robust_sd`` reads) at the undeformed model in the frame of ``data``: the
+    usual estimate of the likelihood's scale, which counts the misfit a deformation leaves where
+    the robust one (1.4826 × their median absolute value) discounts it."""
+    n = model.basis.Ju.shape[1]
+    ev = evaluate(model, data, np.zeros(n + 6), replace(weights, pose_prior=None), jacobian=False)
+    f = ev.f[:-1]  # the last row is the strain energy's
+    return float(np.sqrt(np.mean(f ** 2))) if len(f) else 0.0
 
 
 def pose_evidence(model: RegistrationModel, data: dict, pose, prior, weights: Weights) -> PoseEvidence:
     """``PoseEvidence`` of the rigid fit ``pose`` (``RigidResult``, model → data frame; the given
     pose is the identity) within ``prior`` (``PosePrior`` centred, as the rigid stage left it, on
     where the given pose is from ``pose``, at the rigid stage's scale). ``data``: feature → (N, 3)
-    mm in the model frame of ``pose`` (``pose.inverse`` of the tracker's)."""
+    mm in the model frame of ``pose`` (``pose.inverse`` of the tracker's). Its
+    ``misfit_sigma_mm`` is the posterior σ_pose with ``prior``'s scale σ_F raised to
+    ``misfit_sd_mm`` where that is larger."""
     nodes = organ_nodes(model)
     x = model.basis.nodes[nodes]
     zero = np.zeros(model.basis.Ju.shape[1] + 6)
+    misfit = replace(prior, feature_sd_mm=max(prior.feature_sd_mm, misfit_sd_mm(model, data, weights)))
     with limit_threads(1):
         _, G = point_jacobian(model, zero, nodes=nodes)
         w = replace(weights, pose_prior=prior)
         sigma = point_sigma(G[:, :, -6:], cov=pose_covariance(model, data, zero, w))
         prior_sigma = point_sigma(G[:, :, -6:], cov=pose_covariance(model, {}, zero, w))
+        misfit_sigma = point_sigma(G[:, :, -6:], cov=pose_covariance(model, data, zero, replace(w, pose_prior=misfit)))
     moved = np.linalg.norm(pose.apply(x) - x, axis=1)
-    return PoseEvidence(float(moved.mean()), float(sigma.mean()), float(prior_sigma.mean()))
+    return PoseEvidence(float(moved.mean()), float(sigma.mean()), float(prior_sigma.mean()),
+                        misfit_sigma_mm=float(misfit_sigma.mean()))
 
 
 def declared_spread(model: RegistrationModel, weights: Weights) -> float:
