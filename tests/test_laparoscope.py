@@ -8,12 +8,14 @@ import tomllib
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from navapp.anatomy.caseio import read_case
 from navapp.cli import main
 from navapp.errors import InputError
 from navapp.evaluation.table2 import read_results
 from navapp.features import STYLUS
+from navapp.geometry.transforms import kabsch
 from navapp.geometry.tre import tre_stats
 from navapp.registration.pipeline import prepare, register
 from navapp.simulation.levels import case_source_levels, data_level, study_data
@@ -21,12 +23,14 @@ from navapp.simulation.scene import SCENE_SETS, load_scene, parse_scene, scene_d
 from navapp.simulation.simulate import simulate
 from navapp.simulation.sources import features_of, registered
 from navapp.simulation.sources.laparoscope import (
+    MARKERS,
     LaparoscopeSpec,
     cylinder_entry,
     depth_sd,
     first_hits,
     look_at,
     sense,
+    tracked,
 )
 
 
@@ -216,6 +220,51 @@ def test_laparoscope_points_lie_on_the_deformed_surface_within_their_noise(lap_c
     assert np.median(off) > 0.01  # noisy, not on the surface exactly
 
 
+def test_a_views_points_share_one_rigid_tracking_error(cache_root, tmp_path):
+    """The tracker reports the camera's pose once per view: its error is one rigid motion of
+    all the view's points, not a separate error on each (as on the stylus's tip). With the
+    depth noise off, the view with tracking noise is the view without it moved rigidly: a
+    Kabsch fit leaves nothing (a separate error per point would leave ~sd)."""
+    quiet = {**SCENE, "laparoscope": {**SCENE["laparoscope"], "sd_mm": 0.0, "sd_growth_mm": 0.0}}
+    noisy = {**quiet, "effects": [{"kind": "tracking_noise", "sd_mm": 0.5}]}
+    exact = simulate(parse_scene(quiet), tmp_path / "exact", cache_root)
+    report = simulate(parse_scene(noisy), tmp_path / "noisy", cache_root)
+    p = read_case(tmp_path / "exact").intraop["laparoscope"]
+    q = read_case(tmp_path / "noisy").intraop["laparoscope"]
+    assert len(p) == len(q) == report["laparoscope"]["kept"]["laparoscope"] > 50  # the same rays kept
+    R, t = kabsch(p, q)
+    assert np.abs(p @ R.T + t - q).max() < 1e-6  # one rigid error (the truths agree to rounding)
+    moved = np.linalg.norm(q - p, axis=1)
+    assert moved.mean() > 0.3  # and an error there is
+    # the report states the view's error: its rotation, and the camera centre's shift
+    centre = np.array(exact["laparoscope"]["camera_mm"])
+    tracking = report["laparoscope"]["tracking"]
+    assert tracking["rotation_deg"] == pytest.approx(np.degrees(Rotation.from_matrix(R).magnitude()), abs=2e-3)
+    np.testing.assert_allclose(tracking["camera_shift_mm"], R @ centre + t - centre, atol=0.02)
+    assert "tracking" not in exact["laparoscope"]
+
+
+def test_the_cameras_pose_error_has_the_size_its_markers_give():
+    """The pose error of a ring of n markers of radius r, each measured with sd σ, fitted by
+    Kabsch: to first order rotations of sd σ/(r√(n/2)) across the shaft and σ/(r√n) about
+    it, a shift of σ/√n per axis at the ring's centre, carried to the camera centre by the
+    lever arm L across the shaft."""
+    cam = look_at([0.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    spec = LaparoscopeSpec(marker_offset_mm=300.0, marker_radius_mm=40.0)
+    sd, n, r, L = 0.3, MARKERS, 40.0, 300.0
+    rng = np.random.default_rng(5)
+    errors = [tracked(cam, spec, sd, rng) for _ in range(4000)]
+    w = np.array([Rotation.from_matrix(e[:3, :3]).as_rotvec() for e in errors])
+    shift = np.array([e[:3, :3] @ cam.centre + e[:3, 3] - cam.centre for e in errors])
+    across, about = sd / (r * np.sqrt(n / 2)), sd / (r * np.sqrt(n))
+    for axis, want in ((cam.right, across), (cam.up, across), (cam.forward, about)):
+        assert np.std(w @ axis) == pytest.approx(want, rel=0.06)
+    lever = np.sqrt(sd ** 2 / n + (L * across) ** 2)
+    for axis, want in ((cam.right, lever), (cam.up, lever), (cam.forward, sd / np.sqrt(n))):
+        assert np.std(shift @ axis) == pytest.approx(want, rel=0.06)
+    assert 1.5 < lever < 1.7  # 1.6 mm at the camera centre from 0.3 mm markers (the module's text)
+
+
 def _register(case, capsys) -> dict:
     assert main(["--quiet", "register", str(case), "--edge", "12", "--k", "12", "--json"]) == 0
     capsys.readouterr()
@@ -327,6 +376,47 @@ def test_the_viewer_takes_live_laparoscope_points_into_its_session(cache_root, t
         app.server.stop()
         app.view2d.stop()
         server.stop()
+
+
+def test_a_replayed_laparoscope_reaches_the_viewers_session_and_its_registration(cache_root, tmp_path):
+    """``navapp replay`` of a scene with a laparoscope plays its recorded depth points (a POINT
+    message named by the feature, once to the client, as the stylus's tip plays); ``navapp
+    serve --igtl`` on the same anatomy with no simulated camera takes them into its session
+    (``Session.live_points``), and a registration runs on exactly them."""
+    from conftest import free_port, run_to_end, wait_until
+
+    from navapp.app.server import App
+    from navapp.app.state import RunKind
+    from navapp.tracking.config import TrackingConfig
+    from navapp.tracking.replay import ReplayServer, script_from_scene
+
+    script = script_from_scene(parse_scene(SCENE), cache_root=cache_root, edge=12.0)
+    recorded = script.points["laparoscope"]
+    assert set(script.points) == {"laparoscope"} and len(recorded) > 50 and not script.probe_stops
+    viewer = parse_scene({k: v for k, v in SCENE.items() if k != "laparoscope"})
+    replay = ReplayServer(script, port=0).start()
+    app = App(viewer, port=free_port(), session_dir=tmp_path / "s", edge=12.0, k=12, cache_root=cache_root,
+              tracking=TrackingConfig(port=replay.port))
+    try:
+        assert app.start().wait(600) and app.core.failed is None, app.core.failed
+        assert app.core.sd.sourced == {}  # the viewer simulates no camera: every camera point is the replay's
+        live_points = app.core.session.live_points
+        wait_until(lambda: len(live_points) >= len(recorded))
+        ticks = replay.ticks
+        wait_until(lambda: replay.ticks >= ticks + 10)  # 0.4 s more of playing: no second copy
+        assert len(live_points) == len(recorded) and replay.points_sent == 1
+        assert {p[3] for p in live_points} == {"laparoscope"}
+        np.testing.assert_allclose([p[:3] for p in live_points], recorded, atol=1e-4)  # float32 on the wire
+        run_to_end(app, RunKind.ALL)
+        reg = app.core.last_reg
+        assert reg is not None and set(reg.data_model_frame) == {"laparoscope"}
+        np.testing.assert_allclose(reg.rigid.apply(reg.data_model_frame["laparoscope"]), recorded, atol=1e-3)
+        assert app.core.session.log[-1].points == len(recorded)
+    finally:
+        app.live.stop()
+        app.server.stop()
+        app.view2d.stop()
+        replay.stop()
 
 
 def test_a_laparoscope_point_far_off_is_named_by_its_source():
