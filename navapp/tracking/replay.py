@@ -9,7 +9,13 @@ Every tick (``rate_hz``, default 25) it sends, as PLUS does with its default nam
   plane poses and gliding (``move_s``; translation linear, rotation slerp) to the next;
 - IMAGE ``Image_Reference``: a B-mode frame whose matrix is ImageToReference (PLUS's
   ``EmbeddedTransformToFrame="Reference"``): the plane's image at rest, and in transit
-  frames simulated at ``transit_frames`` poses along the way (made once, at start).
+  frames simulated at ``transit_frames`` poses along the way (made once, at start);
+- POINT ``<feature>`` for every point source the scene simulated (``features.SOURCED``: the
+  laparoscope's depth points), as its depth matcher sends them: the points as recorded, in
+  Reference, once to each client that connects (a scene's source sees one view; sending it
+  every tick would add the same points to the viewer's session again and again).
+
+A scene without iUS planes plays no probe and no frames, if it has a point source to play.
 
 Only the scene's declared effects apply: the stylus points already carry the scene's
 tracking noise (the simulator added it when it digitised them); with ``tracking_noise``
@@ -67,6 +73,7 @@ class ReplayScript:
     stylus_mm_per_s: float = STYLUS_MM_PER_S
     probe_noise_mm: float = 0.0  # tracking_noise sd, when the scene declares it
     seed: int = 0
+    points: dict = field(default_factory=dict)  # feature → (N, 3) mm in Reference: a point source's, sent once
 
     def __post_init__(self):
         p = np.asarray(self.stylus_path, float)
@@ -117,8 +124,8 @@ def script_from_scene(scene, transit_frames: int = 6, dwell_s: float = 2.0, move
     from ..simulation.scenedata import acquire_free_plane, load_scene_data
 
     sd = load_scene_data(scene, cache_root) if edge is None else load_scene_data(scene, cache_root, edge)
-    if not sd.planes:
-        raise InputError("the scene has no iUS planes to replay ([ius] planes = 0)", scene.source)
+    if not sd.planes and not sd.sourced:
+        raise InputError("the scene has no iUS planes ([ius] planes = 0) and no point source to replay", scene.source)
     if len(sd.stylus_path) == 0:
         raise InputError("the scene has no stylus points to replay", scene.source)
     stops = [p.probe_to_tracker for p in sd.planes]
@@ -137,7 +144,8 @@ def script_from_scene(scene, transit_frames: int = 6, dwell_s: float = 2.0, move
     eff = {e.kind: e.params for e in scene.effects}
     return ReplayScript(sd.stylus_path, stops, keyframes, period * len(stops),
                         full_image_matrix(sd.probe.image_to_probe()), dwell_s, move_s,
-                        probe_noise_mm=eff.get("tracking_noise", {}).get("sd_mm", 0.0), seed=scene.seed)
+                        probe_noise_mm=eff.get("tracking_noise", {}).get("sd_mm", 0.0), seed=scene.seed,
+                        points={k: np.asarray(v, float) for k, v in sd.sourced.items() if len(v)})
 
 
 class _Handler(pyigtl.comm.TCPRequestHandler):
@@ -187,6 +195,8 @@ class ReplayServer:
         self.sent: deque = deque(maxlen=keep_sent)
         self.ticks = 0
         self.frames_sent = 0
+        self.points_sent = 0  # POINT messages sent (one per point feature per connection)
+        self._points_due = True  # the point sources' points, owed to the client that connects next
         self._rng = np.random.default_rng(script.seed)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -242,14 +252,31 @@ class ReplayServer:
             if self._server.is_connected():
                 try:
                     self._send_tick(t, wall0 + t)
+                    if self._points_due:
+                        self._points_due = False
+                        self._send_points(wall0 + t)
                 except Exception:  # noqa: BLE001 — a replay must keep playing
                     log.exception("replay tick failed")
+            else:
+                self._points_due = True
             self.ticks += 1
+
+    def _send_points(self, stamp):
+        """Each point source's recorded points, one POINT message per feature (its name)."""
+        for feature, pts in self.script.points.items():
+            msg = pyigtl.PointMessage(positions=np.asarray(pts, np.float32), timestamp=stamp, device_name=feature)
+            self._server.send_message(msg, wait=False)
+            self.points_sent += 1
 
     def _send_tick(self, t, stamp):
         s = self.script
         stylus, ius = self.names.tool("stylus", StylusSettings), self.names.tool("ius", ProbeSettings)
         tip = homogeneous(np.eye(3), s.stylus_at(t))
+        m32 = np.asarray(tip, np.float32)
+        self._server.send_message(pyigtl.TransformMessage(m32, timestamp=stamp, device_name=stylus.device), wait=False)
+        self.sent.append((stamp, stylus.device, m32))
+        if not s.probe_stops:  # a scene without iUS planes: its stylus and its point sources only
+            return
         probe = s.probe_at(t)
         frame = s.frame_at(t)
         image_pose = frame.pose
@@ -259,10 +286,9 @@ class ReplayServer:
             probe[:3, 3] += shift
             image_pose = image_pose.copy()
             image_pose[:3, 3] += shift
-        for name, m in ((stylus.device, tip), (ius.probe, probe)):
-            m32 = np.asarray(m, np.float32)
-            self._server.send_message(pyigtl.TransformMessage(m32, timestamp=stamp, device_name=name), wait=False)
-            self.sent.append((stamp, name, m32))
+        m32 = np.asarray(probe, np.float32)
+        self._server.send_message(pyigtl.TransformMessage(m32, timestamp=stamp, device_name=ius.probe), wait=False)
+        self.sent.append((stamp, ius.probe, m32))
         img = pyigtl.ImageMessage(np.ascontiguousarray(frame.image)[None], image_pose @ s.image_to_probe,
                                   world_coordinate_system="ras", timestamp=stamp, device_name=ius.image)
         self._server.send_message(img, wait=False)
@@ -276,9 +302,11 @@ def run_replay(scene, port=18944, rate_hz=25.0, latency_s=0.0, transit_frames=6,
     with progress.stage(f"preparing scene {scene.name} for replay"):
         script = script_from_scene(scene, transit_frames)
     server = ReplayServer(script, port, rate_hz, latency_s=latency_s).start()
+    points = "".join(f", {k} ({len(v)} points, POINT, once to each client)" for k, v in script.points.items())
+    probe = f", {ProbeSettings().probe} (TRANSFORM), {ProbeSettings().image} (IMAGE)" if script.probe_stops else ""
     out(f"navapp: replaying {scene.name} on 127.0.0.1:{server.port} as PLUS would: "
-        f"{StylusSettings().device}, {ProbeSettings().probe} (TRANSFORM), {ProbeSettings().image} (IMAGE) "
-        f"at {rate_hz:g} Hz; stylus sweep {script.stylus_length_mm:.0f} mm at {script.stylus_mm_per_s:g} mm/s, "
+        f"{StylusSettings().device}{probe}{' (TRANSFORM)' if not probe else ''} at {rate_hz:g} Hz{points}; "
+        f"stylus sweep {script.stylus_length_mm:.0f} mm at {script.stylus_mm_per_s:g} mm/s, "
         f"{len(script.probe_stops)} probe poses; Ctrl-C stops")
     t0 = time.monotonic()
     try:
