@@ -419,6 +419,115 @@ def test_a_replayed_laparoscope_reaches_the_viewers_session_and_its_registration
         replay.stop()
 
 
+SCANNER = '''"""A throwaway point source: a structured-light scanner's points on the anterior liver."""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...errors import InputError
+from ...features import STYLUS
+from . import Acquired, SimulatedSource
+
+
+@dataclass(frozen=True)
+class ScannerSpec:
+    fraction: float = 0.2
+
+
+def parse(table, path):
+    if not isinstance(table, dict) or set(table) - {"fraction"}:
+        raise InputError("[scanner] takes fraction only", path)
+    return ScannerSpec(**table)
+
+
+def acquire(spec, sight, rng):
+    sight.ledger.mark("scanner")
+    face = np.any([sight.preop.region_mask(n) for n in STYLUS], axis=0)
+    v = sight.liver.vertices[face]
+    pts = v[rng.random(len(v)) < spec.fraction]
+    return Acquired({"scanner": pts}, {"points": int(len(pts))})
+
+
+SOURCE = SimulatedSource("scanner", always=False, parse=parse, acquire=acquire)
+'''
+
+SCANNER_CHECK = '''
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pyigtl
+
+from navapp.app.session import Session
+from navapp.app.sources import PointsShown, build as shown
+from navapp.app.sources.base import Wiring
+from navapp.features import RIGID, SEEN, SOURCED
+from navapp.simulation.levels import case_source_levels, study_data
+from navapp.simulation.scene import parse_scene
+from navapp.simulation.scenedata import load_scene_data
+from navapp.simulation.sources import registered
+from navapp.tracking import receivers
+from navapp.tracking.client import TrackingClient
+from navapp.tracking.config import TrackingConfig
+from navapp.tracking.events import SourcePoints
+from navapp.tracking.receivers.base import Message, Shared
+from navapp.tracking.digitiser import Digitiser
+from navapp.tracking.replay import script_from_scene
+
+cache, tmp = Path(sys.argv[1]), Path(sys.argv[2])
+assert "scanner" in SOURCED and "scanner" in SEEN and "scanner" in RIGID and "scanner" in registered()
+scene = parse_scene({"name": "scan", "seed": 0, "anatomy": {"phantom": 0},
+                     "deformation": {"release": "L", "mesh_edge_mm": 10.0, "truth_E_pa": 5000.0},
+                     "stylus": {"coverage": 0.05}, "ius": {"planes": 0}, "scanner": {"fraction": 0.3}})
+sd = load_scene_data(scene, cache, edge=12.0)  # simulated: its own random stream, its own report entry
+pts = sd.sourced["scanner"]
+assert set(sd.sourced) == {"scanner"} and len(pts) > 50
+report = __import__("json").loads((sd.case_dir / "truth" / "report.json").read_text())
+assert report["scanner"]["kept"] == {"scanner": len(pts)} and "scanner" in report["ran"]
+data = Session(tmp / "s", "key").data(sd, {})  # kept: session data at once
+np.testing.assert_array_equal(data["scanner"], pts)
+assert case_source_levels(sd.case_dir) == ("S+scanner",)  # in the studies: its level
+assert set(study_data(sd.case_dir, "S+scanner")) == {"anterior", "falciform", "ridge_left", "ridge_right", "scanner"}
+got = receivers.build([t for t in TrackingConfig().tools if t.source == "scanner"], Shared(Digitiser(), 1.0))
+rx, = got  # received: POINT messages named by its feature
+assert rx.takes("POINT", "scanner")
+body = pyigtl.PointMessage(positions=pts[:3], device_name="scanner")
+event = rx.receive(Message("POINT", "scanner", 0.0, 0.0, body))
+assert isinstance(event, SourcePoints) and np.allclose(event.points, pts[:3], atol=1e-4)
+wiring = Wiring(TrackingClient(TrackingConfig()), TrackingConfig(), SimpleNamespace(), lambda: None)
+assert [s.source for s in shown(wiring) if isinstance(s, PointsShown)] == ["laparoscope", "scanner"]  # shown
+assert set(script_from_scene(scene, cache_root=cache, edge=12.0).points) == {"scanner"}  # replayed
+print("a new point source: all rooms")
+'''
+
+
+def test_a_second_point_source_is_one_module_and_one_row(cache_root, tmp_path):
+    """A throwaway point source (a structured-light scanner): the package copied, its module
+    added to ``simulation/sources`` and its row to ``features.TABLE`` — no other file — and it
+    is simulated, kept in the session, given its study level, received, shown and replayed."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import navapp
+
+    tree = tmp_path / "tree"
+    shutil.copytree(Path(navapp.__file__).parent, tree / "navapp", ignore=shutil.ignore_patterns("__pycache__"))
+    (tree / "navapp" / "simulation" / "sources" / "scanner.py").write_text(SCANNER)
+    features = tree / "navapp" / "features.py"
+    row = '''            "the laparoscope's depth points"),\n'''
+    text = features.read_text()
+    assert text.count(row) == 1
+    features.write_text(text.replace(row, row + '''    Feature("scanner", "surface", "liver", 1.0, "scanner", (120, 200, 255), 1.0,
+            "the scanner's points"),\n'''))
+    out = subprocess.run([sys.executable, "-c", SCANNER_CHECK, str(cache_root), str(tmp_path)], cwd=tmp_path,
+                         env={**__import__("os").environ, "PYTHONPATH": str(tree)}, capture_output=True, text=True,
+                         timeout=900)
+    assert out.returncode == 0 and "all rooms" in out.stdout, out.stdout + out.stderr
+
+
 def test_a_laparoscope_point_far_off_is_named_by_its_source():
     from navapp.app.contours import Origin, OriginKind
     from navapp.app.runs import worst_points
