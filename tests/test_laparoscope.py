@@ -507,6 +507,7 @@ def test_a_second_point_source_is_one_module_and_one_row(cache_root, tmp_path):
     """A throwaway point source (a structured-light scanner): the package copied, its module
     added to ``simulation/sources`` and its row to ``features.TABLE`` — no other file — and it
     is simulated, kept in the session, given its study level, received, shown and replayed."""
+    import os
     import subprocess
     import sys
     from pathlib import Path
@@ -520,10 +521,10 @@ def test_a_second_point_source_is_one_module_and_one_row(cache_root, tmp_path):
     row = '''            "the laparoscope's depth points"),\n'''
     text = features.read_text()
     assert text.count(row) == 1
-    features.write_text(text.replace(row, row + '''    Feature("scanner", "surface", "liver", 1.0, "scanner", (120, 200, 255), 1.0,
-            "the scanner's points"),\n'''))
+    scanner = '''    Feature("scanner", "surface", "liver", 1.0, "scanner", (120, 200, 255), 1.0, "its points"),\n'''
+    features.write_text(text.replace(row, row + scanner))
     out = subprocess.run([sys.executable, "-c", SCANNER_CHECK, str(cache_root), str(tmp_path)], cwd=tmp_path,
-                         env={**__import__("os").environ, "PYTHONPATH": str(tree)}, capture_output=True, text=True,
+                         env={**os.environ, "PYTHONPATH": str(tree)}, capture_output=True, text=True,
                          timeout=900)
     assert out.returncode == 0 and "all rooms" in out.stdout, out.stdout + out.stderr
 
