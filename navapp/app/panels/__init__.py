@@ -242,12 +242,3 @@ class ClientView:
         self.layers.show_registered(geom, error=self.app.shown.surface_error(self.cs, err) if err is not None else None,
                                     animate=True)
         self.registration.show_update(u)
-
-
-def rotation_z_to(n) -> np.ndarray:
-    """A rotation taking +z to the unit vector n."""
-    z = np.asarray(n, float) / np.linalg.norm(n)
-    a = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(a, z)
-    x /= np.linalg.norm(x)
-    return np.column_stack([x, np.cross(z, x), z])

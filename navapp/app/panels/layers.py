@@ -50,6 +50,15 @@ def wxyz(R):
     return vtf.SO3.from_matrix(np.asarray(R)).wxyz
 
 
+def rotation_z_to(n) -> np.ndarray:
+    """A rotation (3, 3) taking +z to the direction of ``n`` (3,): the stylus glyph along a normal."""
+    z = np.asarray(n, float) / np.linalg.norm(n)
+    a = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(a, z)
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z])
+
+
 def error_colours(err, vmax):
     """Per-point RGB (N, 3) uint8 for errors in mm on a fixed scale 0 … vmax (turbo)."""
     from matplotlib import colormaps
@@ -240,8 +249,6 @@ class LayersPanel:
         if pos is None:
             self.tool.visible = False
             return
-        from . import rotation_z_to
-
         _, j = self._tree.query(pos)
         self.tool.wxyz = wxyz(rotation_z_to(self._normals[j] + np.array([0.0, 0.3, 0.3])))
         self.tool.position = pos
