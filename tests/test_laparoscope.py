@@ -15,7 +15,7 @@ from navapp.cli import main
 from navapp.errors import InputError
 from navapp.evaluation.table2 import read_results
 from navapp.features import STYLUS
-from navapp.geometry.transforms import kabsch
+from navapp.geometry.transforms import apply, inverse, kabsch
 from navapp.geometry.tre import tre_stats
 from navapp.registration.pipeline import prepare, register
 from navapp.simulation.levels import case_source_levels, data_level, study_data
@@ -242,6 +242,11 @@ def test_a_views_points_share_one_rigid_tracking_error(cache_root, tmp_path):
     assert tracking["rotation_deg"] == pytest.approx(np.degrees(Rotation.from_matrix(R).magnitude()), abs=2e-3)
     np.testing.assert_allclose(tracking["camera_shift_mm"], R @ centre + t - centre, atol=0.02)
     assert "tracking" not in exact["laparoscope"]
+    # what the camera measured is the same in both: the points in its own frame; the tracker's
+    # reported pose (``tool_to_tracker``) is what differs, and it places them where they are
+    seen = [apply(inverse(np.array(r["laparoscope"]["tool_to_tracker"])), x) for r, x in ((exact, p), (report, q))]
+    np.testing.assert_allclose(seen[0], seen[1], atol=1e-6)
+    assert np.all(seen[0][:, 2] > 50.0)  # in front of the camera, along its z
 
 
 def test_the_cameras_pose_error_has_the_size_its_markers_give():
@@ -417,6 +422,51 @@ def test_a_replayed_laparoscope_reaches_the_viewers_session_and_its_registration
         app.server.stop()
         app.view2d.stop()
         replay.stop()
+
+
+def test_a_tracked_laparoscope_is_replayed_in_its_camera_frame_with_its_pose(cache_root):
+    """With ``[tools.laparoscope] pose`` in the tracking config, ``navapp replay`` sends the
+    camera's pose as the tracker reported it and the points in the camera's frame: a client
+    with the same config places them where they were recorded; one without it takes the
+    camera-frame numbers as Reference (far off). Each client that connects gets them once."""
+    from conftest import wait_until
+
+    from navapp.tracking.client import TrackingClient
+    from navapp.tracking.config import TrackingConfig
+    from navapp.tracking.events import SourcePoints, TransformSample
+    from navapp.tracking.receivers.points import PointsSettings
+    from navapp.tracking.replay import ReplayServer, script_from_scene
+
+    script = script_from_scene(parse_scene(SCENE), cache_root=cache_root, edge=12.0)
+    recorded = script.points["laparoscope"]
+    tracked = (PointsSettings("laparoscope", "CameraToReference"),)
+    with ReplayServer(script, port=0, names=TrackingConfig(tools=tracked)) as replay:
+        got = {}
+        for name, config in (("plain", TrackingConfig(port=replay.port)),
+                             ("tracked", TrackingConfig(port=replay.port, tools=tracked))):
+            events: list = []
+            client = TrackingClient(config, on_event=events.append).start()
+            try:
+                assert wait_until(lambda ev=events: any(isinstance(e, SourcePoints) for e in ev)), name
+            finally:
+                client.stop()
+            assert wait_until(lambda: not replay.connected)
+            got[name] = [e for e in events if isinstance(e, SourcePoints)]
+            assert any(isinstance(e, TransformSample) and e.name == "CameraToReference" for e in events)
+        assert replay.points_sent == 2  # once to each client
+    assert [len(v) for v in got.values()] == [1, 1]
+    np.testing.assert_allclose(got["tracked"][0].points, recorded, atol=1e-3)  # float32 on the wire
+    assert np.linalg.norm(got["plain"][0].points - recorded, axis=1).min() > 50.0
+
+
+def test_a_replay_refuses_a_tracked_source_whose_pose_the_scene_does_not_record():
+    from navapp.tracking.config import TrackingConfig
+    from navapp.tracking.receivers.points import PointsSettings
+    from navapp.tracking.replay import ReplayScript, ReplayServer
+
+    script = ReplayScript(np.zeros((2, 3)), [], [], 0.0, points={"laparoscope": np.ones((3, 3))})
+    with pytest.raises(InputError, match="records no pose of the laparoscope"):
+        ReplayServer(script, port=0, names=TrackingConfig(tools=(PointsSettings("laparoscope", "CamToReference"),)))
 
 
 SCANNER = '''"""A throwaway point source: a structured-light scanner's points on the anterior liver."""

@@ -30,8 +30,11 @@ the rotation's sd about the two axes across the shaft is sd / (r √(n/2)) rad a
 shaft sd / (r √n), the shift at the markers' centre sd / √n per axis, so the lever arm
 grows the error toward the camera and beyond it, to the liver (at sd 0.3 mm and the
 defaults: 0.30° across the shaft, 1.6 mm per axis at the camera centre). The report states
-the view's drawn error (``tracking``: rotation, shift of the camera centre). A ``dropout``
-drops a random fraction of the points (lost matches).
+the view's drawn error (``tracking``: rotation, shift of the camera centre) and the pose the
+tracker reported (``tool_to_tracker``: CameraToTracker, 4 × 4 mm; the camera frame x right,
+y down, z along the optical axis), which ``navapp replay`` sends with the points in the camera
+frame when the tracking config makes the laparoscope a tracked tool. A ``dropout`` drops a
+random fraction of the points (lost matches).
 
 In a scene (every key optional; these are the defaults)::
 
@@ -124,6 +127,11 @@ class Camera:
         u, v = np.meshgrid(s, s)
         d = self.forward + u.reshape(-1, 1) * self.right + v.reshape(-1, 1) * self.up
         return s, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    def pose(self) -> np.ndarray:
+        """CameraToTracker (4, 4): the camera frame's x right, y down (image rows), z forward
+        (right-handed), at the centre."""
+        return homogeneous(np.column_stack([self.right, -self.up, self.forward]), self.centre)
 
     def ray(self, u: float, v: float) -> np.ndarray:
         """The unit direction of image coordinates (u, v) in [-1, 1] (scaled by ``half``)."""
@@ -285,6 +293,7 @@ def acquire(spec: LaparoscopeSpec, sight: Sight, rng: np.random.Generator) -> Ac
     got = sense(cam, spec, sight.liver, rng, sight.ledger)
     eff = {e.kind: e.params for e in sight.effects}
     pts = got.points[FEATURE]
+    error = np.eye(4)
     if "tracking_noise" in eff:
         error = tracked(cam, spec, eff["tracking_noise"]["sd_mm"], rng, sight.ledger)
         pts = apply(error, pts)
@@ -296,6 +305,7 @@ def acquire(spec: LaparoscopeSpec, sight: Sight, rng: np.random.Generator) -> Ac
         pts = dropout(pts, rng, sight.ledger, **eff["dropout"])
     got.points[FEATURE] = pts
     got.report["kept"] = {FEATURE: int(len(pts))}
+    got.report["tool_to_tracker"] = (error @ cam.pose()).tolist()  # as reported: the points lie where it puts them
     return got
 
 
