@@ -469,6 +469,16 @@ def test_a_replay_refuses_a_tracked_source_whose_pose_the_scene_does_not_record(
         ReplayServer(script, port=0, names=TrackingConfig(tools=(PointsSettings("laparoscope", "CamToReference"),)))
 
 
+def test_replay_reads_its_tracking_file_and_refuses_a_bad_one_in_one_line(tmp_path, capsys):
+    """``navapp replay --igtl-config FILE`` reads the viewer's tracking file (the names it sends
+    under): a bad one is one line naming the file, before anything is simulated."""
+    bad = tmp_path / "tracking.toml"
+    bad.write_text('[tools.laparoscope]\npose = 3\n')
+    assert main(["replay", "--igtl-config", str(bad), "--seconds", "1"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "tracking.toml" in err and "tools.laparoscope.pose" in err, err
+
+
 SCANNER = '''"""A throwaway point source: a structured-light scanner's points on the anterior liver."""
 
 from dataclasses import dataclass
