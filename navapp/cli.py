@@ -317,8 +317,13 @@ def cmd_replay(args):
     latency_ms = args.latency_ms
     if latency_ms is None:  # the scene's declared latency, if any
         latency_ms = next((e.params["ms"] for e in scene.effects if e.kind == "latency"), 0.0)
+    names = None
+    if args.igtl_config:
+        from .tracking.config import load_config
+
+        names = load_config(args.igtl_config)
     out = run_replay(scene, args.port, args.rate, latency_ms / 1000.0, duration_s=args.seconds,
-                     out=lambda line: print(line, file=sys.stderr, flush=True))
+                     out=lambda line: print(line, file=sys.stderr, flush=True), names=names)
     print(json.dumps(out))
 
 
@@ -451,6 +456,10 @@ def build_parser():
     s.add_argument("--latency-ms", type=positive(float, least=0), default=None,
                    help="send each message this long after its timestamp (default: the scene's declared latency, or 0)")
     s.add_argument("--seconds", type=positive(float), help="stop after this long (default: until Ctrl-C)")
+    s.add_argument("--igtl-config", type=Path, metavar="FILE",
+                   help="tracking TOML naming the devices sent, as the viewer's; a [tools.<source>] table sends "
+                        "that source's points in its tool's frame with its pose (default: PLUS's names, points in "
+                        "Reference)")
     s.set_defaults(func=cmd_replay)
 
     s = sub.add_parser("demo",

@@ -8,12 +8,14 @@ import tomllib
 import numpy as np
 import pytest
 import trimesh
+from scipy.spatial.transform import Rotation
 
 from navapp.anatomy.caseio import read_case
 from navapp.cli import main
 from navapp.errors import InputError
 from navapp.evaluation.table2 import read_results
 from navapp.features import STYLUS
+from navapp.geometry.transforms import apply, inverse, kabsch
 from navapp.geometry.tre import mean_tre
 from navapp.registration.pipeline import prepare, register
 from navapp.simulation.levels import case_source_levels, data_level, study_data
@@ -21,12 +23,14 @@ from navapp.simulation.scene import SCENE_SETS, load_scene, parse_scene, scene_d
 from navapp.simulation.simulate import simulate
 from navapp.simulation.sources import features_of, registered
 from navapp.simulation.sources.laparoscope import (
+    MARKERS,
     LaparoscopeSpec,
     cylinder_entry,
     depth_sd,
     first_hits,
     look_at,
     sense,
+    tracked,
 )
 
 
@@ -216,6 +220,56 @@ def test_laparoscope_points_lie_on_the_deformed_surface_within_their_noise(lap_c
     assert np.median(off) > 0.01  # noisy, not on the surface exactly
 
 
+def test_a_views_points_share_one_rigid_tracking_error(cache_root, tmp_path):
+    """The tracker reports the camera's pose once per view: its error is one rigid motion of
+    all the view's points, not a separate error on each (as on the stylus's tip). With the
+    depth noise off, the view with tracking noise is the view without it moved rigidly: a
+    Kabsch fit leaves nothing (a separate error per point would leave ~sd)."""
+    quiet = {**SCENE, "laparoscope": {**SCENE["laparoscope"], "sd_mm": 0.0, "sd_growth_mm": 0.0}}
+    noisy = {**quiet, "effects": [{"kind": "tracking_noise", "sd_mm": 0.5}]}
+    exact = simulate(parse_scene(quiet), tmp_path / "exact", cache_root)
+    report = simulate(parse_scene(noisy), tmp_path / "noisy", cache_root)
+    p = read_case(tmp_path / "exact").intraop["laparoscope"]
+    q = read_case(tmp_path / "noisy").intraop["laparoscope"]
+    assert len(p) == len(q) == report["laparoscope"]["kept"]["laparoscope"] > 50  # the same rays kept
+    R, t = kabsch(p, q)
+    assert np.abs(p @ R.T + t - q).max() < 1e-6  # one rigid error (the truths agree to rounding)
+    moved = np.linalg.norm(q - p, axis=1)
+    assert moved.mean() > 0.3  # and an error there is
+    # the report states the view's error: its rotation, and the camera centre's shift
+    centre = np.array(exact["laparoscope"]["camera_mm"])
+    tracking = report["laparoscope"]["tracking"]
+    assert tracking["rotation_deg"] == pytest.approx(np.degrees(Rotation.from_matrix(R).magnitude()), abs=2e-3)
+    np.testing.assert_allclose(tracking["camera_shift_mm"], R @ centre + t - centre, atol=0.02)
+    assert "tracking" not in exact["laparoscope"]
+    # what the camera measured is the same in both: the points in its own frame; the tracker's
+    # reported pose (``tool_to_tracker``) is what differs, and it places them where they are
+    seen = [apply(inverse(np.array(r["laparoscope"]["tool_to_tracker"])), x) for r, x in ((exact, p), (report, q))]
+    np.testing.assert_allclose(seen[0], seen[1], atol=1e-6)
+    assert np.all(seen[0][:, 2] > 50.0)  # in front of the camera, along its z
+
+
+def test_the_cameras_pose_error_has_the_size_its_markers_give():
+    """The pose error of a ring of n markers of radius r, each measured with sd σ, fitted by
+    Kabsch: to first order rotations of sd σ/(r√(n/2)) across the shaft and σ/(r√n) about
+    it, a shift of σ/√n per axis at the ring's centre, carried to the camera centre by the
+    lever arm L across the shaft."""
+    cam = look_at([0.0, 0.0, 0.0], [0.0, 1.0, 0.0])
+    spec = LaparoscopeSpec(marker_offset_mm=300.0, marker_radius_mm=40.0)
+    sd, n, r, L = 0.3, MARKERS, 40.0, 300.0
+    rng = np.random.default_rng(5)
+    errors = [tracked(cam, spec, sd, rng) for _ in range(4000)]
+    w = np.array([Rotation.from_matrix(e[:3, :3]).as_rotvec() for e in errors])
+    shift = np.array([e[:3, :3] @ cam.centre + e[:3, 3] - cam.centre for e in errors])
+    across, about = sd / (r * np.sqrt(n / 2)), sd / (r * np.sqrt(n))
+    for axis, want in ((cam.right, across), (cam.up, across), (cam.forward, about)):
+        assert np.std(w @ axis) == pytest.approx(want, rel=0.06)
+    lever = np.sqrt(sd ** 2 / n + (L * across) ** 2)
+    for axis, want in ((cam.right, lever), (cam.up, lever), (cam.forward, sd / np.sqrt(n))):
+        assert np.std(shift @ axis) == pytest.approx(want, rel=0.06)
+    assert 1.5 < lever < 1.7  # 1.6 mm at the camera centre from 0.3 mm markers (the module's text)
+
+
 def _register(case, capsys) -> dict:
     assert main(["--quiet", "register", str(case), "--edge", "12", "--k", "12", "--json"]) == 0
     capsys.readouterr()
@@ -327,6 +381,212 @@ def test_the_viewer_takes_live_laparoscope_points_into_its_session(cache_root, t
         app.server.stop()
         app.view2d.stop()
         server.stop()
+
+
+def test_a_replayed_laparoscope_reaches_the_viewers_session_and_its_registration(cache_root, tmp_path):
+    """``navapp replay`` of a scene with a laparoscope plays its recorded depth points (a POINT
+    message named by the feature, once to the client, as the stylus's tip plays); ``navapp
+    serve --igtl`` on the same anatomy with no simulated camera takes them into its session
+    (``Session.live_points``), and a registration runs on exactly them."""
+    from conftest import free_port, run_to_end, wait_until
+
+    from navapp.app.server import App
+    from navapp.app.state import RunKind
+    from navapp.tracking.config import TrackingConfig
+    from navapp.tracking.replay import ReplayServer, script_from_scene
+
+    script = script_from_scene(parse_scene(SCENE), cache_root=cache_root, edge=12.0)
+    recorded = script.points["laparoscope"]
+    assert set(script.points) == {"laparoscope"} and len(recorded) > 50 and not script.probe_stops
+    viewer = parse_scene({k: v for k, v in SCENE.items() if k != "laparoscope"})
+    replay = ReplayServer(script, port=0).start()
+    app = App(viewer, port=free_port(), session_dir=tmp_path / "s", edge=12.0, k=12, cache_root=cache_root,
+              tracking=TrackingConfig(port=replay.port))
+    try:
+        assert app.start().wait(600) and app.core.failed is None, app.core.failed
+        assert app.core.sd.sourced == {}  # the viewer simulates no camera: every camera point is the replay's
+        live_points = app.core.session.live_points
+        wait_until(lambda: len(live_points) >= len(recorded))
+        ticks = replay.ticks
+        wait_until(lambda: replay.ticks >= ticks + 10)  # 0.4 s more of playing: no second copy
+        assert len(live_points) == len(recorded) and replay.points_sent == 1
+        assert {p[3] for p in live_points} == {"laparoscope"}
+        np.testing.assert_allclose([p[:3] for p in live_points], recorded, atol=1e-4)  # float32 on the wire
+        run_to_end(app, RunKind.ALL)
+        reg = app.core.last_reg
+        assert reg is not None and set(reg.data_model_frame) == {"laparoscope"}
+        np.testing.assert_allclose(reg.rigid.apply(reg.data_model_frame["laparoscope"]), recorded, atol=1e-3)
+        assert app.core.session.log[-1].points == len(recorded)
+    finally:
+        app.live.stop()
+        app.server.stop()
+        app.view2d.stop()
+        replay.stop()
+
+
+def test_a_tracked_laparoscope_is_replayed_in_its_camera_frame_with_its_pose(cache_root):
+    """With ``[tools.laparoscope] pose`` in the tracking config, ``navapp replay`` sends the
+    camera's pose as the tracker reported it and the points in the camera's frame: a client
+    with the same config places them where they were recorded; one without it takes the
+    camera-frame numbers as Reference (far off). Each client that connects gets them once."""
+    from conftest import wait_until
+
+    from navapp.tracking.client import TrackingClient
+    from navapp.tracking.config import TrackingConfig
+    from navapp.tracking.events import SourcePoints, TransformSample
+    from navapp.tracking.receivers.points import PointsSettings
+    from navapp.tracking.replay import ReplayServer, script_from_scene
+
+    script = script_from_scene(parse_scene(SCENE), cache_root=cache_root, edge=12.0)
+    recorded = script.points["laparoscope"]
+    tracked = (PointsSettings("laparoscope", "CameraToReference"),)
+    with ReplayServer(script, port=0, names=TrackingConfig(tools=tracked)) as replay:
+        got = {}
+        for name, config in (("plain", TrackingConfig(port=replay.port)),
+                             ("tracked", TrackingConfig(port=replay.port, tools=tracked))):
+            events: list = []
+            client = TrackingClient(config, on_event=events.append).start()
+            try:
+                assert wait_until(lambda ev=events: any(isinstance(e, SourcePoints) for e in ev)), name
+            finally:
+                client.stop()
+            assert wait_until(lambda: not replay.connected)
+            got[name] = [e for e in events if isinstance(e, SourcePoints)]
+            assert any(isinstance(e, TransformSample) and e.name == "CameraToReference" for e in events)
+        assert replay.points_sent == 2  # once to each client
+    assert [len(v) for v in got.values()] == [1, 1]
+    np.testing.assert_allclose(got["tracked"][0].points, recorded, atol=1e-3)  # float32 on the wire
+    assert np.linalg.norm(got["plain"][0].points - recorded, axis=1).min() > 50.0
+
+
+def test_a_replay_refuses_a_tracked_source_whose_pose_the_scene_does_not_record():
+    from navapp.tracking.config import TrackingConfig
+    from navapp.tracking.receivers.points import PointsSettings
+    from navapp.tracking.replay import ReplayScript, ReplayServer
+
+    script = ReplayScript(np.zeros((2, 3)), [], [], 0.0, points={"laparoscope": np.ones((3, 3))})
+    with pytest.raises(InputError, match="records no pose of the laparoscope"):
+        ReplayServer(script, port=0, names=TrackingConfig(tools=(PointsSettings("laparoscope", "CamToReference"),)))
+
+
+def test_replay_reads_its_tracking_file_and_refuses_a_bad_one_in_one_line(tmp_path, capsys):
+    """``navapp replay --igtl-config FILE`` reads the viewer's tracking file (the names it sends
+    under): a bad one is one line naming the file, before anything is simulated."""
+    bad = tmp_path / "tracking.toml"
+    bad.write_text('[tools.laparoscope]\npose = 3\n')
+    assert main(["replay", "--igtl-config", str(bad), "--seconds", "1"]) != 0
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "tracking.toml" in err and "tools.laparoscope.pose" in err, err
+
+
+SCANNER = '''"""A throwaway point source: a structured-light scanner's points on the anterior liver."""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ...errors import InputError
+from ...features import STYLUS
+from . import Acquired, SimulatedSource
+
+
+@dataclass(frozen=True)
+class ScannerSpec:
+    fraction: float = 0.2
+
+
+def parse(table, path):
+    if not isinstance(table, dict) or set(table) - {"fraction"}:
+        raise InputError("[scanner] takes fraction only", path)
+    return ScannerSpec(**table)
+
+
+def acquire(spec, sight, rng):
+    sight.ledger.mark("scanner")
+    face = np.any([sight.preop.region_mask(n) for n in STYLUS], axis=0)
+    v = sight.liver.vertices[face]
+    pts = v[rng.random(len(v)) < spec.fraction]
+    return Acquired({"scanner": pts}, {"points": int(len(pts))})
+
+
+SOURCE = SimulatedSource("scanner", always=False, parse=parse, acquire=acquire)
+'''
+
+SCANNER_CHECK = '''
+import sys
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pyigtl
+
+from navapp.app.session import Session
+from navapp.app.sources import PointsShown, build as shown
+from navapp.app.sources.base import Wiring
+from navapp.features import RIGID, SEEN, SOURCED
+from navapp.simulation.levels import case_source_levels, study_data
+from navapp.simulation.scene import parse_scene
+from navapp.simulation.scenedata import load_scene_data
+from navapp.simulation.sources import registered
+from navapp.tracking import receivers
+from navapp.tracking.client import TrackingClient
+from navapp.tracking.config import TrackingConfig
+from navapp.tracking.events import SourcePoints
+from navapp.tracking.receivers.base import Message, Shared
+from navapp.tracking.digitiser import Digitiser
+from navapp.tracking.replay import script_from_scene
+
+cache, tmp = Path(sys.argv[1]), Path(sys.argv[2])
+assert "scanner" in SOURCED and "scanner" in SEEN and "scanner" in RIGID and "scanner" in registered()
+scene = parse_scene({"name": "scan", "seed": 0, "anatomy": {"phantom": 0},
+                     "deformation": {"release": "L", "mesh_edge_mm": 10.0, "truth_E_pa": 5000.0},
+                     "stylus": {"coverage": 0.05}, "ius": {"planes": 0}, "scanner": {"fraction": 0.3}})
+sd = load_scene_data(scene, cache, edge=12.0)  # simulated: its own random stream, its own report entry
+pts = sd.sourced["scanner"]
+assert set(sd.sourced) == {"scanner"} and len(pts) > 50
+report = __import__("json").loads((sd.case_dir / "truth" / "report.json").read_text())
+assert report["scanner"]["kept"] == {"scanner": len(pts)} and "scanner" in report["ran"]
+data = Session(tmp / "s", "key").data(sd, {})  # kept: session data at once
+np.testing.assert_array_equal(data["scanner"], pts)
+assert case_source_levels(sd.case_dir) == ("S+scanner",)  # in the studies: its level
+assert set(study_data(sd.case_dir, "S+scanner")) == {"anterior", "falciform", "ridge_left", "ridge_right", "scanner"}
+got = receivers.build([t for t in TrackingConfig().tools if t.source == "scanner"], Shared(Digitiser(), 1.0))
+rx, = got  # received: POINT messages named by its feature
+assert rx.takes("POINT", "scanner")
+body = pyigtl.PointMessage(positions=pts[:3], device_name="scanner")
+event = rx.receive(Message("POINT", "scanner", 0.0, 0.0, body))
+assert isinstance(event, SourcePoints) and np.allclose(event.points, pts[:3], atol=1e-4)
+wiring = Wiring(TrackingClient(TrackingConfig()), TrackingConfig(), SimpleNamespace(), lambda: None)
+assert [s.source for s in shown(wiring) if isinstance(s, PointsShown)] == ["laparoscope", "scanner"]  # shown
+assert set(script_from_scene(scene, cache_root=cache, edge=12.0).points) == {"scanner"}  # replayed
+print("a new point source: all rooms")
+'''
+
+
+def test_a_second_point_source_is_one_module_and_one_row(cache_root, tmp_path):
+    """A throwaway point source (a structured-light scanner): the package copied, its module
+    added to ``simulation/sources`` and its row to ``features.TABLE`` — no other file — and it
+    is simulated, kept in the session, given its study level, received, shown and replayed."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    import navapp
+
+    tree = tmp_path / "tree"
+    shutil.copytree(Path(navapp.__file__).parent, tree / "navapp", ignore=shutil.ignore_patterns("__pycache__"))
+    (tree / "navapp" / "simulation" / "sources" / "scanner.py").write_text(SCANNER)
+    features = tree / "navapp" / "features.py"
+    row = '''            "the laparoscope's depth points"),\n'''
+    text = features.read_text()
+    assert text.count(row) == 1
+    scanner = '''    Feature("scanner", "surface", "liver", 1.0, "scanner", (120, 200, 255), 1.0, "its points"),\n'''
+    features.write_text(text.replace(row, row + scanner))
+    out = subprocess.run([sys.executable, "-c", SCANNER_CHECK, str(cache_root), str(tmp_path)], cwd=tmp_path,
+                         env={**os.environ, "PYTHONPATH": str(tree)}, capture_output=True, text=True,
+                         timeout=900)
+    assert out.returncode == 0 and "all rooms" in out.stdout, out.stdout + out.stderr
 
 
 def test_a_laparoscope_point_far_off_is_named_by_its_source():

@@ -44,3 +44,29 @@ def test_import_contracts_are_kept():
 def test_mypy_is_clean():
     out = _run([sys.executable, "-m", "mypy", "navapp"])
     assert out.returncode == 0, out.stdout + out.stderr
+
+
+def test_the_import_graph_has_no_cycle_and_every_top_module_is_in_a_layer():
+    """Import-linter's acyclic contract compares the siblings of each package only; a cycle
+    between a package and its own module (``app/panels/__init__`` importing ``layers``,
+    ``layers`` importing back from the package in a function) passes it. Here the whole
+    module graph, type-only imports counted: no module reaches itself. And each top module of
+    ``navapp`` is in a layer of the contract, so none can import upward unchecked."""
+    import tomllib
+
+    import grimp
+
+    graph = grimp.build_graph("navapp", exclude_type_checking_imports=False, cache_dir=None)
+    cycles = []
+    for a in sorted(graph.modules):
+        for b in sorted(graph.find_modules_directly_imported_by(a)):
+            back = graph.find_shortest_chain(importer=b, imported=a)
+            if back is not None:
+                cycles.append(" → ".join((a, *back)))
+    assert not cycles, "\n".join(cycles)
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["importlinter"]
+    assert config["exclude_type_checking_imports"] is False
+    layered = {name.strip() for contract in config["contracts"] if contract["type"] == "layers"
+               for layer in contract["layers"] for name in layer.replace("|", ":").split(":")}
+    top = {".".join(m.split(".")[:2]) for m in graph.modules if m != "navapp"}
+    assert top <= layered, f"not in a layer: {sorted(top - layered)}"

@@ -9,7 +9,16 @@ Every tick (``rate_hz``, default 25) it sends, as PLUS does with its default nam
   plane poses and gliding (``move_s``; translation linear, rotation slerp) to the next;
 - IMAGE ``Image_Reference``: a B-mode frame whose matrix is ImageToReference (PLUS's
   ``EmbeddedTransformToFrame="Reference"``): the plane's image at rest, and in transit
-  frames simulated at ``transit_frames`` poses along the way (made once, at start).
+  frames simulated at ``transit_frames`` poses along the way (made once, at start);
+- POINT ``<feature>`` for every point source the scene simulated (``features.SOURCED``: the
+  laparoscope's depth points), as its depth matcher sends them: the points as recorded, in
+  Reference, once to each client that connects (a scene's source sees one view; sending it
+  every tick would add the same points to the viewer's session again and again). When the
+  tracking config (``names``) makes the source a tracked tool (``[tools.<source>] pose``), its
+  points go in the tool's own frame and its TRANSFORM, the pose the tracker reported when they
+  were acquired (the source's ``tool_to_tracker`` in ``truth/report.json``), every tick.
+
+A scene without iUS planes plays no probe and no frames, if it has a point source to play.
 
 Only the scene's declared effects apply: the stylus points already carry the scene's
 tracking noise (the simulator added it when it digitised them); with ``tracking_noise``
@@ -25,6 +34,7 @@ pyigtl's server serves one client at a time (PlusServer serves several): a secon
 waits until the first disconnects.
 """
 
+import json
 import logging
 import signal
 import threading
@@ -36,9 +46,11 @@ import numpy as np
 import pyigtl
 
 from ..errors import InputError, NavappError
-from ..geometry.transforms import homogeneous, interpolate_pose
+from ..features import BY_NAME
+from ..geometry.transforms import apply, homogeneous, interpolate_pose, inverse
 from .config import TrackingConfig
 from .receivers.ius import ProbeSettings, full_image_matrix
+from .receivers.points import PointsSettings
 from .receivers.stylus import StylusSettings
 
 log = logging.getLogger("navapp.tracking")
@@ -67,6 +79,8 @@ class ReplayScript:
     stylus_mm_per_s: float = STYLUS_MM_PER_S
     probe_noise_mm: float = 0.0  # tracking_noise sd, when the scene declares it
     seed: int = 0
+    points: dict = field(default_factory=dict)  # feature → (N, 3) mm in Reference: a point source's, sent once
+    poses: dict = field(default_factory=dict)  # source → (4, 4) ToolToReference its points were acquired at
 
     def __post_init__(self):
         p = np.asarray(self.stylus_path, float)
@@ -115,10 +129,11 @@ def script_from_scene(scene, transit_frames: int = 6, dwell_s: float = 2.0, move
     ``edge``: the viewer's registration mesh size, to share its cached simulation (what is
     played does not depend on it)."""
     from ..simulation.scenedata import acquire_free_plane, load_scene_data
+    from ..simulation.sources import registered
 
     sd = load_scene_data(scene, cache_root) if edge is None else load_scene_data(scene, cache_root, edge)
-    if not sd.planes:
-        raise InputError("the scene has no iUS planes to replay ([ius] planes = 0)", scene.source)
+    if not sd.planes and not sd.sourced:
+        raise InputError("the scene has no iUS planes ([ius] planes = 0) and no point source to replay", scene.source)
     if len(sd.stylus_path) == 0:
         raise InputError("the scene has no stylus points to replay", scene.source)
     stops = [p.probe_to_tracker for p in sd.planes]
@@ -135,9 +150,16 @@ def script_from_scene(scene, transit_frames: int = 6, dwell_s: float = 2.0, move
             keyframes.append(ProbeKeyframe(i * period + dwell_s + (f - 0.5 / (transit_frames + 1)) * move_s,
                                            pose, frame.image))
     eff = {e.kind: e.params for e in scene.effects}
+    report = json.loads((sd.case_dir / "truth" / "report.json").read_text())
+    poses = {}
+    for source in {BY_NAME[k].source for k in sd.sourced}:
+        pose = report.get(registered()[source].report_as, {}).get("tool_to_tracker")
+        if pose is not None:
+            poses[source] = np.array(pose, float)
     return ReplayScript(sd.stylus_path, stops, keyframes, period * len(stops),
                         full_image_matrix(sd.probe.image_to_probe()), dwell_s, move_s,
-                        probe_noise_mm=eff.get("tracking_noise", {}).get("sd_mm", 0.0), seed=scene.seed)
+                        probe_noise_mm=eff.get("tracking_noise", {}).get("sd_mm", 0.0), seed=scene.seed,
+                        points={k: np.asarray(v, float) for k, v in sd.sourced.items() if len(v)}, poses=poses)
 
 
 class _Handler(pyigtl.comm.TCPRequestHandler):
@@ -145,6 +167,7 @@ class _Handler(pyigtl.comm.TCPRequestHandler):
 
     def handle(self):
         server = self.server
+        server.connections = getattr(server, "connections", 0) + 1  # which client this is (a replay sends once to each)
         server._connected = True
         self.request.settimeout(0.01)
         log.info("OpenIGTLink client connected from %s:%s", *self.client_address[:2])
@@ -187,6 +210,19 @@ class ReplayServer:
         self.sent: deque = deque(maxlen=keep_sent)
         self.ticks = 0
         self.frames_sent = 0
+        self.points_sent = 0  # POINT messages sent (one per point feature per connection)
+        self._points_to = 0  # the last client (``_Handler``'s count) the point sources' points went to
+        # source → (its TRANSFORM's name, ToolToReference) for each point source the config tracks
+        self.tools: dict[str, tuple[str, np.ndarray]] = {}
+        for source in dict.fromkeys(BY_NAME[k].source for k in script.points):
+            device = self.names.tool(source, PointsSettings).pose
+            if device is None:
+                continue
+            if source not in script.poses:
+                raise InputError(f"the tracking config places the {source}'s points by {device}, but the scene "
+                                 f"records no pose of the {source}: replay it without [tools.{source}]")
+            # as the wire carries it: the client places the points by the float32 pose
+            self.tools[source] = (device, np.asarray(script.poses[source], np.float32).astype(float))
         self._rng = np.random.default_rng(script.seed)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -242,14 +278,38 @@ class ReplayServer:
             if self._server.is_connected():
                 try:
                     self._send_tick(t, wall0 + t)
+                    client = getattr(self._server, "connections", 0)
+                    if client != self._points_to:
+                        self._points_to = client
+                        self._send_points(wall0 + t)
                 except Exception:  # noqa: BLE001 — a replay must keep playing
                     log.exception("replay tick failed")
             self.ticks += 1
+
+    def _send_points(self, stamp):
+        """Each point source's recorded points, one POINT message per feature (its name): in
+        Reference, or in the tool's own frame for a tracked one."""
+        for feature, pts in self.script.points.items():
+            tool = self.tools.get(BY_NAME[feature].source)
+            if tool is not None:
+                pts = apply(inverse(tool[1]), pts)
+            msg = pyigtl.PointMessage(positions=np.asarray(pts, np.float32), timestamp=stamp, device_name=feature)
+            self._server.send_message(msg, wait=False)
+            self.points_sent += 1
 
     def _send_tick(self, t, stamp):
         s = self.script
         stylus, ius = self.names.tool("stylus", StylusSettings), self.names.tool("ius", ProbeSettings)
         tip = homogeneous(np.eye(3), s.stylus_at(t))
+        m32 = np.asarray(tip, np.float32)
+        self._server.send_message(pyigtl.TransformMessage(m32, timestamp=stamp, device_name=stylus.device), wait=False)
+        self.sent.append((stamp, stylus.device, m32))
+        for device, pose in self.tools.values():  # a tracked point source's tool, held where it acquired
+            m32 = np.asarray(pose, np.float32)
+            self._server.send_message(pyigtl.TransformMessage(m32, timestamp=stamp, device_name=device), wait=False)
+            self.sent.append((stamp, device, m32))
+        if not s.probe_stops:  # a scene without iUS planes: its stylus and its point sources only
+            return
         probe = s.probe_at(t)
         frame = s.frame_at(t)
         image_pose = frame.pose
@@ -259,26 +319,33 @@ class ReplayServer:
             probe[:3, 3] += shift
             image_pose = image_pose.copy()
             image_pose[:3, 3] += shift
-        for name, m in ((stylus.device, tip), (ius.probe, probe)):
-            m32 = np.asarray(m, np.float32)
-            self._server.send_message(pyigtl.TransformMessage(m32, timestamp=stamp, device_name=name), wait=False)
-            self.sent.append((stamp, name, m32))
+        m32 = np.asarray(probe, np.float32)
+        self._server.send_message(pyigtl.TransformMessage(m32, timestamp=stamp, device_name=ius.probe), wait=False)
+        self.sent.append((stamp, ius.probe, m32))
         img = pyigtl.ImageMessage(np.ascontiguousarray(frame.image)[None], image_pose @ s.image_to_probe,
                                   world_coordinate_system="ras", timestamp=stamp, device_name=ius.image)
         self._server.send_message(img, wait=False)
         self.frames_sent += 1
 
 
-def run_replay(scene, port=18944, rate_hz=25.0, latency_s=0.0, transit_frames=6, duration_s=None, out=print):
-    """The ``navapp replay`` command: play until Ctrl-C (or ``duration_s``)."""
+def run_replay(scene, port=18944, rate_hz=25.0, latency_s=0.0, transit_frames=6, duration_s=None, out=print,
+               names: TrackingConfig | None = None):
+    """The ``navapp replay`` command: play until Ctrl-C (or ``duration_s``). ``names``: the
+    tracking config whose device names it sends under and whose ``[tools.<source>]`` make a
+    point source a tracked tool (default PLUS's names, points in Reference)."""
     from .. import progress
 
+    names = names or TrackingConfig()
     with progress.stage(f"preparing scene {scene.name} for replay"):
         script = script_from_scene(scene, transit_frames)
-    server = ReplayServer(script, port, rate_hz, latency_s=latency_s).start()
+    server = ReplayServer(script, port, rate_hz, names=names, latency_s=latency_s).start()
+    stylus, ius = names.tool("stylus", StylusSettings), names.tool("ius", ProbeSettings)
+    points = "".join(f", {k} ({len(v)} points, POINT, once to each client)" for k, v in script.points.items())
+    tools = "".join(f", {device} (TRANSFORM)" for device, _ in server.tools.values())
+    probe = f", {ius.probe} (TRANSFORM), {ius.image} (IMAGE)" if script.probe_stops else ""
     out(f"navapp: replaying {scene.name} on 127.0.0.1:{server.port} as PLUS would: "
-        f"{StylusSettings().device}, {ProbeSettings().probe} (TRANSFORM), {ProbeSettings().image} (IMAGE) "
-        f"at {rate_hz:g} Hz; stylus sweep {script.stylus_length_mm:.0f} mm at {script.stylus_mm_per_s:g} mm/s, "
+        f"{stylus.device}{probe}{' (TRANSFORM)' if not probe else ''}{tools} at {rate_hz:g} Hz{points}; "
+        f"stylus sweep {script.stylus_length_mm:.0f} mm at {script.stylus_mm_per_s:g} mm/s, "
         f"{len(script.probe_stops)} probe poses; Ctrl-C stops")
     t0 = time.monotonic()
     try:

@@ -241,7 +241,6 @@ class LayersPanel:
         if pos is None:
             self.tool.visible = False
             return
-
         _, j = self._tree.query(pos)
         self.tool.wxyz = wxyz(rotation_between([0.0, 0.0, 1.0], self._normals[j] + np.array([0.0, 0.3, 0.3])))
         self.tool.position = pos

@@ -80,8 +80,11 @@ class SimulatedSource:
     line naming the key. ``acquire(spec, sight, rng)``: the ``Acquired`` points on the deformed
     truth (``Sight``).
     ``acquires_effects``: the source applies the scene's tracking noise and dropout itself (a
-    tracked frame: per frame, through its pose); otherwise the simulator applies them to its
-    points and reports how many each feature kept.
+    tracked frame: per frame, through its pose; the laparoscope: one rigid error of its pose
+    per view); otherwise the simulator applies them to its points and reports how many each
+    feature kept. A tracked tool's report holds ``tool_to_tracker`` (4 × 4 mm, the pose the
+    tracker reported when it acquired), which ``navapp replay`` sends as the tool's TRANSFORM
+    with the points in its frame when the tracking config makes the source tracked.
     ``frame(spec, sight, index, probe_to_tracker, live)``: a tracked imaging source's one frame
     at a pose chosen after the simulation (``PlaneData``), or None.
     ``report_key``: its entry's key in ``truth/report.json`` (its name unless it had another

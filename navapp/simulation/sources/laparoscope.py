@@ -16,8 +16,25 @@ whose depth error grows with z² at a fixed baseline and focal length:
 
     sd(z) = sd_mm + sd_growth_mm · (z / 100 mm)²
 
-drawn along each ray. ``[[effects]]`` tracking noise and dropout then apply to these
-points as to the stylus's (``simulate.py``).
+drawn along each ray.
+
+The camera is a tracked tool: its depth points are placed by the pose the tracker reports,
+so the tracker's error is one rigid error of the camera's pose per view, shared by all the
+view's points — not a separate error on each point, as on the stylus's tip, which the
+tracker reports once per point. With the scene's ``tracking_noise`` declared, each of the
+camera's ``MARKERS`` markers (a ring of ``marker_radius_mm`` about the shaft, ``marker_offset_mm``
+behind the camera centre along it: a rigid body on the camera head) is measured with that
+sd (mm, isotropic), and the tracker fits the body's definition to them (Kabsch): the fit's
+rotation and shift is the pose's error, applied to every point of the view. To first order
+the rotation's sd about the two axes across the shaft is sd / (r √(n/2)) rad and about the
+shaft sd / (r √n), the shift at the markers' centre sd / √n per axis, so the lever arm
+grows the error toward the camera and beyond it, to the liver (at sd 0.3 mm and the
+defaults: 0.30° across the shaft, 1.6 mm per axis at the camera centre). The report states
+the view's drawn error (``tracking``: rotation, shift of the camera centre) and the pose the
+tracker reported (``tool_to_tracker``: CameraToTracker, 4 × 4 mm; the camera frame x right,
+y down, z along the optical axis), which ``navapp replay`` sends with the points in the camera
+frame when the tracking config makes the laparoscope a tracked tool. A ``dropout`` drops a
+random fraction of the points (lost matches).
 
 In a scene (every key optional; these are the defaults)::
 
@@ -33,6 +50,8 @@ In a scene (every key optional; these are the defaults)::
     sd_growth_mm = 0.8
     instrument_radius_mm = 0.0   # > 0: an instrument in view
     instrument_at = [0.3, 0.0]
+    marker_offset_mm = 300.0     # the tracked markers' ring, behind the camera centre
+    marker_radius_mm = 40.0      # its radius
 
 First hits are found by projecting every triangle into the image and testing it, by
 Möller–Trumbore, only against the rays whose pixel lies in its projected bounding box (a
@@ -42,15 +61,19 @@ z-buffer over rays, not over pixels): the whole grid costs one pass over the tri
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ...errors import InputError
 from ...features import STYLUS
+from ...geometry.transforms import apply, homogeneous, kabsch
+from ..effects import Ledger, dropout
 from . import Acquired, Sight, SimulatedSource
 
 NAME = "laparoscope"
 FEATURE = "laparoscope"
 TIP_GAP_MM = 10.0  # the instrument's tip hovers this far above the surface it points at
 PORT_SIDE_MM = 60.0  # its port is this far beside the camera, on the side of its tip in the image
+MARKERS = 4  # on the camera's tracked rigid body, evenly round the ring
 
 
 @dataclass(frozen=True)
@@ -68,17 +91,21 @@ class LaparoscopeSpec:
     sd_growth_mm: float = 0.8
     instrument_radius_mm: float = 0.0
     instrument_at: tuple[float, float] = (0.3, 0.0)
+    marker_offset_mm: float = 300.0
+    marker_radius_mm: float = 40.0
 
 
 _KEYS: dict[str, type] = {"distance_mm": float, "tilt_deg": float, "fov_deg": float, "rays": int, "keep": float,
                           "far_mm": float, "max_incidence_deg": float, "sd_mm": float, "sd_growth_mm": float,
-                          "instrument_radius_mm": float, "instrument_at": list}
+                          "instrument_radius_mm": float, "instrument_at": list, "marker_offset_mm": float,
+                          "marker_radius_mm": float}
 _RANGES: dict[str, tuple[float, float, str]] = {  # lo, hi, the words of the range
     "distance_mm": (10.0, 400.0, "between 10 and 400"), "tilt_deg": (0.0, 80.0, "between 0 and 80"),
     "fov_deg": (10.0, 120.0, "between 10 and 120"), "rays": (2, 512, "between 2 and 512"),
     "keep": (1e-9, 1.0, "in (0, 1]"), "far_mm": (1.0, 2000.0, "between 1 and 2000"),
     "max_incidence_deg": (1.0, 90.0, "between 1 and 90"), "sd_mm": (0.0, 20.0, "between 0 and 20"),
     "sd_growth_mm": (0.0, 20.0, "between 0 and 20"), "instrument_radius_mm": (0.0, 30.0, "between 0 and 30"),
+    "marker_offset_mm": (0.0, 1000.0, "between 0 and 1000"), "marker_radius_mm": (5.0, 200.0, "between 5 and 200"),
 }
 
 
@@ -100,6 +127,11 @@ class Camera:
         u, v = np.meshgrid(s, s)
         d = self.forward + u.reshape(-1, 1) * self.right + v.reshape(-1, 1) * self.up
         return s, d / np.linalg.norm(d, axis=1, keepdims=True)
+
+    def pose(self) -> np.ndarray:
+        """CameraToTracker (4, 4): the camera frame's x right, y down (image rows), z forward
+        (right-handed), at the centre."""
+        return homogeneous(np.column_stack([self.right, -self.up, self.forward]), self.centre)
 
     def ray(self, u: float, v: float) -> np.ndarray:
         """The unit direction of image coordinates (u, v) in [-1, 1] (scaled by ``half``)."""
@@ -254,9 +286,50 @@ def instrument(camera: Camera, spec: LaparoscopeSpec, hit_at) -> tuple[np.ndarra
 
 def acquire(spec: LaparoscopeSpec, sight: Sight, rng: np.random.Generator) -> Acquired:
     """The laparoscope's depth points on the deformed liver (``Acquired``; feature
-    ``laparoscope``), from the scene's camera (``camera_for``)."""
+    ``laparoscope``), from the scene's camera (``camera_for``), placed by its tracked pose
+    (``tracked``) and thinned by the scene's dropout."""
     sight.ledger.mark(NAME)
-    return sense(camera_for(spec, sight), spec, sight.liver, rng, sight.ledger)
+    cam = camera_for(spec, sight)
+    got = sense(cam, spec, sight.liver, rng, sight.ledger)
+    eff = {e.kind: e.params for e in sight.effects}
+    pts = got.points[FEATURE]
+    error = np.eye(4)
+    if "tracking_noise" in eff:
+        error = tracked(cam, spec, eff["tracking_noise"]["sd_mm"], rng, sight.ledger)
+        pts = apply(error, pts)
+        shift = apply(error, cam.centre[None])[0] - cam.centre
+        angle = np.degrees(Rotation.from_matrix(error[:3, :3]).magnitude())
+        got.report["tracking"] = {"rotation_deg": round(float(angle), 3),
+                                  "camera_shift_mm": np.round(shift, 3).tolist()}
+    if "dropout" in eff and len(pts):
+        pts = dropout(pts, rng, sight.ledger, **eff["dropout"])
+    got.points[FEATURE] = pts
+    got.report["kept"] = {FEATURE: int(len(pts))}
+    got.report["tool_to_tracker"] = (error @ cam.pose()).tolist()  # as reported: the points lie where it puts them
+    return got
+
+
+def markers(cam: Camera, spec: LaparoscopeSpec) -> np.ndarray:
+    """The camera's tracked markers (``MARKERS``, 3) mm: a ring of ``marker_radius_mm`` about
+    the shaft (the optical axis, backward), ``marker_offset_mm`` behind the camera centre."""
+    a = 2 * np.pi * np.arange(MARKERS) / MARKERS
+    ring = np.cos(a)[:, None] * cam.right + np.sin(a)[:, None] * cam.up
+    return cam.centre - spec.marker_offset_mm * cam.forward + spec.marker_radius_mm * ring
+
+
+def tracked(cam: Camera, spec: LaparoscopeSpec, sd_mm: float, rng: np.random.Generator,
+            ledger: Ledger | None = None) -> np.ndarray:
+    """The tracker's error of the camera's pose for one view, (4, 4) rigid, mm: the true pose
+    ↦ the reported one, so a point placed by the reported pose is ``apply(error, p)``.
+
+    Each marker (``markers``) is measured with isotropic Gaussian noise of ``sd_mm``, and the
+    body's definition is fitted to the measurements (Kabsch, as a tracker fits a tool): the
+    fit's rotation and shift. Draws ``MARKERS`` × 3 normals from ``rng``."""
+    if ledger is not None:
+        ledger.mark("tracking_noise")
+    true = markers(cam, spec)
+    R, t = kabsch(true, true + rng.normal(scale=sd_mm, size=true.shape))
+    return homogeneous(R, t)
 
 
 def sense(cam: Camera, spec: LaparoscopeSpec, surface, rng: np.random.Generator, ledger=None) -> Acquired:
@@ -326,4 +399,4 @@ def parse(table, path) -> LaparoscopeSpec:
     return LaparoscopeSpec(**values)
 
 
-SOURCE = SimulatedSource(NAME, always=False, parse=parse, acquire=acquire)
+SOURCE = SimulatedSource(NAME, always=False, parse=parse, acquire=acquire, acquires_effects=True)
