@@ -27,6 +27,7 @@ from ..anatomy.model import VESSELS
 from ..anatomy.tets import TetMesh
 from ..defaults import EDGE_MM, K
 from ..errors import CarriedWarning, InputError
+from ..features import RIGID, SALIENT
 from ..fitwarning import FitWarning, WarningKind, found, texts
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.tre import tre_stats
@@ -43,7 +44,7 @@ from .forces import (
 )
 from .libr import LibrResult, LMOptions, register_libr
 from .local_modes import LocalModeOptions, LocalModes, choose_local_modes, fold_model
-from .model import REGION_FEATURES, RegistrationModel, build_model, deform, rebased_model, usable_data
+from .model import RegistrationModel, build_model, deform, rebased_model, usable_data
 from .objective import HUBER_MM, evaluate
 from .pose import (
     POSE_RULE,
@@ -65,7 +66,6 @@ from .quality import EXPECTED_NOISE_MM, FitQuality, Verdict, assess_fit
 from .rigid import (
     RIGID_ROBUST,
     RIGID_WITH_POSTERIOR,
-    SURFACE_FEATURES,
     TOL_BEFORE_LIBR,
     RigidResult,
     Start,
@@ -447,12 +447,12 @@ def _settings(options: LMOptions | None, init: RobustOptions | None) -> tuple[LM
     init = init or RobustOptions()
     if init.huber_salient_mm and not options.weights.huber_mm:
         options = replace(options, weights=replace(options.weights, huber_mm={
-            n: init.huber_salient_mm for n in REGION_FEATURES}))
+            n: init.huber_salient_mm for n in SALIENT}))
     return options, init
 
 
 def _rigid_features(init: RobustOptions) -> tuple[str, ...]:
-    return RIGID_WITH_POSTERIOR if init.rigid_posterior else SURFACE_FEATURES
+    return RIGID_WITH_POSTERIOR if init.rigid_posterior else RIGID
 
 
 def _multi_start(model: RegistrationModel, data: dict, options: LMOptions, init: RobustOptions) -> list[Start]:
@@ -558,7 +558,7 @@ def _declared_rigid(model: RegistrationModel, data: dict, prior: PosePrior, opti
 
     best, current = fit(None, at_given)
     starts: list[Start] = []
-    if init.multi_start and any(n_ in SURFACE_FEATURES for n_ in data):
+    if init.multi_start and any(n_ in RIGID for n_ in data):
         features = _rigid_features(init)
         turn = min(init.start_angle_deg, 2.0 * prior.sd_deg)
         poses = start_poses(model, {k: v for k, v in data.items() if k in features} or data, turn, False)
