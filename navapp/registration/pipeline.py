@@ -160,6 +160,14 @@ METHODS = {
 }
 
 
+CARRIED_CHECKS = (WarningKind.ORGAN_ERROR,)
+"""The checks whose lines a warm re-registration or a live frame carries from the fresh
+registration it continues from (``Registration.carry``): it repeats neither the predicted error
+over the organ nor the cross-validation (whose verdicts the viewer carries per target)."""
+POSE_ALONE = (WarningKind.UNSUPPORTED, WarningKind.POSE_EVIDENCE, WarningKind.SURFACE_FORCES)
+"""The checks whose line says why an answer is its pose alone (``Registration.why_pose_alone``)."""
+
+
 @dataclass
 class Registration:
     """The result of ``register``.
@@ -216,6 +224,9 @@ class Registration:
     held: HeldCheck | None = None
     # wall and CPU seconds per stage, in the order run (``stages``): every guard's cost apart
     stages: dict[str, StageTime] = field(default_factory=dict)
+    # the lines of checks this answer did not repeat, carried from the fresh registration it
+    # continues from (``carry``): a warm start's or a live frame's, said in ``warnings``
+    carried: list[FitWarning] = field(default_factory=list)
 
     @property
     def deformed(self) -> bool:
@@ -254,7 +265,34 @@ class Registration:
             # 40-point patch: 535 mm predicted, 35 true); the pose's own line says what to do
             (WarningKind.ORGAN_ERROR,
              self.organ.warning if self.organ is not None and self.deformed and not doubt else None))
-            for w in found(kind, text)]
+            for w in found(kind, text)] + (self.carried if self.deformed and not doubt else [])
+
+    def carry(self, checked: "Registration | None", said: str) -> None:
+        """Carry the lines of the checks a warm re-registration does not repeat (``CARRIED_CHECKS``: the
+        predicted error over the organ) from ``checked``, the fresh registration it continues
+        from, as ``checked.warnings`` said them, each followed by `` (said)`` (the caller's words
+        for "at the last full registration") and marked ``carried``. Nothing for a registration
+        that made the check itself (``checked`` is it, or it has its own ``organ``) or whose
+        answer is not deformed. ``warnings`` then says them under its own rule: not beside a
+        pose not to be believed (docs/decisions/live.md, "A warm start keeps the last fresh
+        fit's checks, said to be from then")."""
+        if checked is None or checked is self or self.organ is not None or not self.deformed:
+            self.carried = []
+            return
+        self.carried = [FitWarning(w.kind, f"{w.text} ({said})", carried=True)
+                        for w in checked.warnings if w.kind in CARRIED_CHECKS and not w.carried]
+
+    @property
+    def why_pose_alone(self) -> FitWarning | None:
+        """The line of ``warnings`` that says why the answer shown is the pose alone, without
+        deformation (the deformation not supported or not determined by the data, a declared
+        pose's evidence, the surface forces' choice); None for a deformed answer, and for a pose
+        alone that no line stands for (a declared pose the data confirm, shown without a line:
+        docs/decisions/registration.md, "A declared rigid move judged at the scale of the misfit
+        it leaves"). The viewer writes its head beside each target, which has no predicted error."""
+        if self.deformed:
+            return None
+        return next((w for w in self.warnings if w.kind in POSE_ALONE), None)
 
     @property
     def pose_doubts(self) -> list[FitWarning]:
