@@ -11,6 +11,7 @@ from dataclasses import replace
 import numpy as np
 from test_local_loads import _dented_scan
 
+from navapp.app.runs import fit_notice
 from navapp.app.shown import Shown
 from navapp.app.state import CARRIED, RunEntry, RunKind
 from navapp.fitwarning import FitWarning, WarningKind
@@ -72,8 +73,10 @@ def test_a_warm_start_carries_the_organ_line_its_fresh_fit_said_and_only_that(sm
     warm.carry(fresh, CARRIED)
     said = f"{organ} ({CARRIED})"
     assert warm.warnings == [FitWarning(WarningKind.ORGAN_ERROR, said, carried=True)]
-    # one list for every place that shows it: the row, and Slicer's status line (before, only the row)
+    # one list for every place that shows it: the row, the red box (before, "⚠ ." with the row's
+    # line and no head) and Slicer's status line (before, "fit ok")
     assert RunEntry.of(RunKind.WARM, warm, 100, 1.0).warning == said
+    assert fit_notice(warm.warnings, False).startswith(f"⚠ {organ.split(':')[0]}.")
     assert "fit ok" not in status_line(warm) and "oncological margin" in status_line(warm)
     fresh.carry(fresh, CARRIED)
     assert fresh.carried == []  # the fit that made the check says it itself
