@@ -5,10 +5,13 @@ The solver's checks (too few points, too little coverage, the pose search, the p
 directions, the cross-validation, the fit's residuals, the predicted error over the organ, …)
 each say what they found in one line; ``registration.pipeline.Registration`` gathers them as
 ``FitWarning``s of a ``WarningKind``, and decides which of them stand for the answer shown
-(``Registration.warnings``) and which say its pose is not to be believed
-(``Registration.pose_doubts``). The command line, result.json, the viewer's run table and
-pinned banner, the load study and Slicer's status line only show them: they compare warnings,
-never search their words. Not a Python warning category (``errors.CarriedWarning`` is that): a
+(``Registration.warnings``), which say its pose is not to be believed
+(``Registration.pose_doubts``), which a warm start carries from the fresh fit it continues
+from (``Registration.carry``) and which says why an answer is its pose alone
+(``Registration.why_pose_alone``). The command line, result.json, the viewer's run table,
+red box, pinned banner and targets, the load study and Slicer's status line only show them:
+they compare warnings, never search their words, and read no check's own line
+(``tests/test_one_home.py``). Not a Python warning category (``errors.CarriedWarning`` is that): a
 ``FitWarning`` is data, kept with the answer.
 
 It lives below every layer because tracking, which may not import the solver, shows them too.

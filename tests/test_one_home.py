@@ -123,6 +123,11 @@ def _is_eye4(node) -> bool:
             and isinstance(node.args[0], ast.Constant) and node.args[0].value == 4)
 
 
+# ``pipeline.Registration``'s checks, and the attributes that hold each one's own line
+CHECKS = {"support", "organ", "quality", "determinacy", "pose_choice", "pose_evidence", "forces", "held"}
+CHECK_LINES = {"warning", "warning_for", "supports_warning"}
+
+
 def copies(root: Path) -> set[tuple[str, str, str]]:
     """(module, scope, what) for every hand-written copy of a concept with a home."""
     found = set()
@@ -194,6 +199,12 @@ def copies(root: Path) -> set[tuple[str, str, str]]:
             # a warning found by its attribute's name (fitwarning.FitWarning)
             if any(s.startswith("getattr(") and "warn" in s for s in text):
                 add("warning by getattr")
+            # a check's own line read past ``Registration.warnings`` (``pose_doubts``,
+            # ``fit_warnings``), which decide which lines stand for the answer shown
+            for n in nodes:
+                if (isinstance(n, ast.Attribute) and n.attr in CHECK_LINES and isinstance(n.value, ast.Attribute)
+                        and n.value.attr in CHECKS):
+                    add("a check's line read past Registration")
     return found
 
 
@@ -208,6 +219,9 @@ KEPT = {
     ("geometry/transforms.py", "kabsch", "kabsch by hand"),
     ("geometry/tre.py", "point_errors", "TRE by hand"),
     ("outputs.py", "replaced", "atomic replace by hand"),
+    ("registration/pipeline.py", "warnings", "a check's line read past Registration"),
+    ("registration/pipeline.py", "pose_doubts", "a check's line read past Registration"),
+    ("registration/pipeline.py", "fit_warnings", "a check's line read past Registration"),
     ("outputs.py", "replace_folder", "atomic replace by hand"),
     # the phantoms' vessel growth: SciPy's rotation differs in the last bit and moves every
     # phantom's centerlines (and every simulated case's files) by rounding

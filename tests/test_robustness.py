@@ -239,12 +239,12 @@ def test_default_fit_is_a_continuation_from_a_stiffer_organ(small_model):
     falls as the first stage gets stiffer, 1/3 → 3 → 10 ×), and its Ω is the true weight's.
     A warm start (β0 given: the last state, e.g. after adding a plane) continues from β0
     without the stiff stage."""
+    from navapp.features import SALIENT
     from navapp.registration.libr import LMOptions
-    from navapp.registration.model import REGION_FEATURES
     from navapp.registration.objective import Weights, evaluate
 
     data, _ = phantom_case(small_model, seed=7)
-    weights = Weights(huber_mm=dict.fromkeys(REGION_FEATURES, RobustOptions().huber_salient_mm))  # as the default
+    weights = Weights(huber_mm=dict.fromkeys(SALIENT, RobustOptions().huber_salient_mm))  # as the default
     options = LMOptions(weights=weights)
     cont = register(small_model, data, options=options, init=RobustOptions(retry_poor_fit=False))
     plain = register(small_model, data, options=options, init=RobustOptions(retry_poor_fit=False, stiff_first=None))

@@ -53,6 +53,7 @@ from .sources import build as build_sources
 from .sources.ius import ProbeShown, probe_pose_from_image
 from .sources.stylus import StylusShown
 from .state import (
+    CARRIED,
     Action,
     Change,
     ClientState,
@@ -426,12 +427,13 @@ class Live:
         core, shown = self.core, self.shown
         beta = reg.libr.beta if reg.libr is not None else None
         now = time.monotonic()
+        checked = checked_by(core.result, reg, warm=True)
+        reg.carry(checked, CARRIED)  # before anything shows its warnings: Slicer, the row
         self.slicer.send(reg, throttle=not final)
         if not final and now - self._shown < VIEW_MIN_S:
             return
         self._shown = now
         err = shown.node_error(reg.rigid, beta, reg.model)
-        checked = checked_by(core.result, reg, warm=True)
         predicted = shown.predict(reg, checked) if final else (None, [])  # ~0.1 s: not on every frame
         state = RegisteredState(RunKind.LIVE.label, reg.rigid, beta, err, *predicted,
                                 data_model_frame=reg.data_model_frame, pose_warning=one_line(reg.pose_doubts),
@@ -445,8 +447,7 @@ class Live:
                 session = core.need_session()
                 session.result = state.to_json()
                 points = int(sum(len(v) for v in core.data().values()))
-                entry = RunEntry.of(RunKind.LIVE, reg, points, sum(reg.seconds.values()), err, live=summary,
-                                    checked=checked)
+                entry = RunEntry.of(RunKind.LIVE, reg, points, sum(reg.seconds.values()), err, live=summary)
                 entry.targets_mm = shown.target_errors(reg.rigid, beta, reg.model)
                 session.log.append(entry)
                 core.shown_runs[len(session.log) - 1] = (state, reg, [])

@@ -33,6 +33,7 @@ from .palette import feature_words
 from .shown import Shown
 from .slicer import Slicer
 from .state import (
+    CARRIED,
     Change,
     ClientState,
     PoseFrame,
@@ -268,8 +269,8 @@ class Runs:
         beta = reg.libr.beta if reg.libr is not None and reg.deformed else None
         err = None if stopped else shown.node_error(reg.rigid, beta, reg.model)
         checked = checked_by(core.result, reg, warm=run.kind is RunKind.WARM)
-        entry = RunEntry.of(run.kind, reg, run.points, time.monotonic() - run.t0, err, run.streamed, run.trace,
-                            checked=checked)
+        reg.carry(checked, CARRIED)  # before anything shows its warnings: the row, the red box, Slicer
+        entry = RunEntry.of(run.kind, reg, run.points, time.monotonic() - run.t0, err, run.streamed, run.trace)
         worst: list[WorstPoint] = []
         n_out = (0, 0)
         if not stopped:

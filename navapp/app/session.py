@@ -24,9 +24,7 @@ import numpy as np
 from ..anatomy.caseio import write_csv, write_preop, write_settings, write_truth
 from ..anatomy.model import VESSELS
 from ..errors import InputError
-from ..features import NAMES as FEATURE_NAMES
-from ..features import SOURCED
-from ..features import STYLUS as STYLUS_FEATURES
+from ..features import NAMES, SOURCED, STYLUS
 from ..mechanics.supports import case_supports
 from ..outputs import replace_folder, replaced
 from ..registration.prior import declared_pose
@@ -38,7 +36,7 @@ from .palette import DRAWABLE
 from .state import PoseFrame, RunEntry, StatedPose, StatedSupports
 
 SESSION_VERSION = 1
-LIVE_FEATURES = STYLUS_FEATURES + SOURCED  # a live point's: the tracked stylus's, or a source's (``app.live``)
+LIVE_FEATURES = STYLUS + SOURCED  # a live point's: the tracked stylus's, or a source's (``app.live``)
 
 
 @dataclass
@@ -87,7 +85,7 @@ class Session:
                 whence.setdefault(name, []).extend(origins[i] for i in keep)
 
         n = min(self.stylus_count, len(sd.stylus_path))
-        for name in STYLUS_FEATURES:
+        for name in STYLUS:
             pts = sd.stylus_path[:n][sd.stylus_labels[:n] == name]
             add(name, pts, [Origin(OriginKind.STYLUS)] * len(pts))
         for name, pts in sd.sourced.items():  # a source's points are data as soon as it sees them
@@ -196,7 +194,7 @@ def _write_data(s: Session, folder: Path, sd: SceneData, planes: dict):
     idir = folder / "intraop"
     idir.mkdir(exist_ok=True)
     data = s.data(sd, planes)
-    for name in FEATURE_NAMES:
+    for name in NAMES:
         path = idir / f"{name}.csv"
         if name in data:
             with replaced(path, f"{name}.csv.tmp") as tmp:
@@ -317,7 +315,7 @@ def open_session(folder: Path, sd: SceneData) -> tuple[Session, dict]:
                     _record(d.get("result")),
                     [_point(p, "live_points", LIVE_FEATURES) for p in _list(d.get("live_points", []), "live_points")],
                     [_plane(f, "live_planes", png=True) for f in _list(d.get("live_planes", []), "live_planes")],
-                    [_point(p, "excluded", FEATURE_NAMES) for p in _list(d.get("excluded", []), "excluded")],
+                    [_point(p, "excluded", NAMES) for p in _list(d.get("excluded", []), "excluded")],
                     pose=None if d.get("pose") is None else StatedPose.from_json(d["pose"]),
                     supports=None if d.get("supports") is None else StatedSupports.from_json(d["supports"]))
     except (ValueError, KeyError, TypeError, AttributeError) as exc:

@@ -98,8 +98,10 @@ class Shown:
             verdicts, carried = checked.support, True
         support = {s.name: s for s in target_support(verdicts, centres, reg.data_model_frame)}
         if not reg.deformed:  # the rigid answer: no prediction, the reason beside each target
-            why = reg.support.warning if reg.support is not None else None
-            short = why.split(":")[0] if why else None
+            # the line ``Registration.warnings`` gives for it, its head: no other verdict beside the
+            # targets than the row, result.json and Slicer say (none for a declared pose the data confirm)
+            why = reg.why_pose_alone
+            short = why.head if why is not None else None
             return None, [TargetBand(t.name, float("nan"), float("nan"), float("nan"), short) for t in preop.targets]
         if reg.pose_doubts:
             # a pose nobody should believe (``Registration.pose_doubts``): the calibration was fitted on

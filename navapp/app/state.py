@@ -17,7 +17,7 @@ from enum import Enum
 import numpy as np
 
 from ..errors import InputError
-from ..fitwarning import FitWarning, WarningKind, one_line
+from ..fitwarning import one_line
 from ..mechanics.supports import RELEASES, HeldSupports, Supports
 from ..registration.model import RegistrationModel
 from ..registration.pipeline import Registration
@@ -179,16 +179,6 @@ class RegisteredState:
 # start)" is itself a warm start, which does not repeat the check
 CARRIED = ("at the last full registration — a warm start or a live frame does not repeat this check; "
            "\"Deformable (all data)\" does")
-
-
-def carried_warnings(reg: Registration, checked: Registration | None) -> list[FitWarning]:
-    """The warning of the predicted error over the organ made at ``checked``, for ``reg``, a warm
-    re-registration from it (which skips that check): kept, and said to be from then. Without
-    it the line vanished from a warm start's row as if the data now determined the answer."""
-    if checked is None or checked is reg or reg.organ is not None or not reg.deformed:
-        return []
-    line = checked.organ.warning if checked.organ is not None and checked.deformed else None
-    return [FitWarning(WarningKind.ORGAN_ERROR, f"{line} ({CARRIED})", carried=True)] if line else []
 
 
 def checked_by(previous: RegisteredState | None, reg: Registration, warm: bool) -> Registration | None:
@@ -439,15 +429,16 @@ class RunEntry:
 
     @staticmethod
     def of(kind: RunKind, reg: Registration, points: int, seconds: float, error: np.ndarray | None = None,
-           streamed: int = 0, trace=(), live: str | None = None, checked: Registration | None = None) -> RunEntry:
-        """The row of a finished (or cancelled) registration; ``error`` (M,) its true error;
-        ``checked``: the fresh registration whose checks a warm one carries (``carried_warnings``)."""
+           streamed: int = 0, trace=(), live: str | None = None) -> RunEntry:
+        """The row of a finished (or cancelled) registration; ``error`` (M,) its true error. Its
+        warning is ``reg.warnings`` in one line, with the lines a warm one carries
+        (``Registration.carry``, made by the caller before)."""
         lm = reg.libr
         stopped = cancelled(reg)
         e = RunEntry(kind.label, int(points), round(float(seconds), 3), lm.iterations if lm else 0,
                      lm.stop_reason if lm else "rigid", streamed, stopped,
                      [[round(t, 3), round(v, 3)] for t, v in trace],
-                     one_line(reg.warnings + carried_warnings(reg, checked)))
+                     one_line(reg.warnings))
         if error is not None and not stopped:
             e.error_mean_mm, e.error_max_mm = round(float(error.mean()), 3), round(float(error.max()), 3)
         e.pose_only = kind.deformable and not stopped and lm is not None and not reg.deformed

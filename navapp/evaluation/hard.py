@@ -44,12 +44,13 @@ from ..anatomy.meshing import TetMesh, cached_tetmesh, dihedral_angles, tet_volu
 from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
 from ..errors import NavappError
+from ..features import SALIENT
 from ..geometry.transforms import apply_rigid, kabsch
 from ..geometry.tre import mean_tre
 from ..mechanics.basis import BasisSettings, load_or_compute_basis
 from ..mechanics.fem import Material
 from ..registration.libr import LMOptions
-from ..registration.model import REGION_FEATURES, build_model
+from ..registration.model import build_model
 from ..registration.objective import Weights, evaluate
 from ..registration.pipeline import register
 from ..registration.rotation import rotation
@@ -413,7 +414,7 @@ def run_case(case: HardCase, setup: Setup) -> HardResult:
     res.displacement_mm = nonrigid_max(model.basis.nodes, u) if reg.deformed else 0.0
     weights = options.weights
     if not weights.huber_mm:  # as register() sets them (the salient features' Huber δ)
-        weights = replace(weights, huber_mm=dict.fromkeys(REGION_FEATURES, 1.0))
+        weights = replace(weights, huber_mm=dict.fromkeys(SALIENT, 1.0))
     ev0 = evaluate(model, reg.data_model_frame, np.zeros(n + 6), weights, jacobian=False)
     ask = max(st["max_abs_mm"] for st in ev0.features.values() if "max_abs_mm" in st)
     res.bound_mm = FACTOR * ask + FLOOR_MM

@@ -22,7 +22,6 @@ from ..features import LIVER_SURFACE
 from ..registration.model import RegistrationModel, usable_data
 from ..registration.rigid import rigid_icp
 
-CPD_SURFACE_FEATURES = LIVER_SURFACE  # CPD matches points on the liver surface only
 CPD_BETA_MM = 30.0
 CPD_LAMBDA = 3.0
 CPD_W = 0.1
@@ -46,7 +45,7 @@ def cpd_register(model: RegistrationModel, data: dict, points: np.ndarray, seed=
     t0 = time.perf_counter()
     data = usable_data(model, data)
     rigid = rigid_icp(model, data)
-    surf = np.vstack([v for k, v in data.items() if k in CPD_SURFACE_FEATURES])
+    surf = np.vstack([v for k, v in data.items() if k in LIVER_SURFACE])  # CPD matches points on the liver surface only
     rest = model.features["liver"].rest
     rng = np.random.default_rng(seed)
     pick = rng.choice(len(rest), min(CPD_POINTS, len(rest)), replace=False)

@@ -38,8 +38,6 @@ if TYPE_CHECKING:
 WEIGHTS_SI = weights_si()
 W_ENERGY_SI = 1e-8  # Pa⁻², the strain-energy weight w_E of eq. 7
 
-REGION_FEATURES = SALIENT
-
 DATA_TO_MODEL = data_to_model()
 
 
@@ -136,7 +134,7 @@ class RegistrationModel:
         """The model feature a data feature slides on; a salient region the model has no
         labels for falls back to the whole liver surface (``usable_data`` warns)."""
         target = DATA_TO_MODEL[data_name]
-        if target not in self.features and target in REGION_FEATURES:
+        if target not in self.features and target in SALIENT:
             target = "liver"
         return self.features[target]
 
@@ -243,7 +241,7 @@ def build_model(basis: Basis, preop: PreopModel, fiducials: np.ndarray | None = 
     if preop.regions is not None:
         _, near = cKDTree(preop.liver.vertices).query(nodes[surf])
         labels = preop.regions[near]
-        for name in REGION_FEATURES:
+        for name in SALIENT:
             code = REGION_NAMES.index(name)
             keep = (labels[faces] == code).sum(1) >= 2
             if keep.any():
@@ -306,7 +304,7 @@ def usable_data(model: RegistrationModel, data: dict) -> dict:
         if target is None:
             raise InputError(f"unknown feature {name!r}")
         if target not in model.features:
-            if target in REGION_FEATURES and "liver" in model.features:
+            if target in SALIENT and "liver" in model.features:
                 warnings.warn(f"no '{target}' region in the model (regions.csv missing?): "
                               f"{name} points slide on the whole liver surface", stacklevel=2)
             elif name == "fiducials":

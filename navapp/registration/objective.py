@@ -26,7 +26,7 @@ from ..geometry.closest import (
     vertex_tree,
 )
 from ..switches import Before
-from .model import REGION_FEATURES, W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform, displacement
+from .model import W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform, displacement
 from .prior import PosePrior
 from .rotation import rotation, rotation_derivatives
 
@@ -115,9 +115,9 @@ def robust_weights(salient_mm: float) -> Weights:
     pipeline's ``RobustOptions.huber_salient_mm``), ``HUBER_MM`` on every other, and outlier
     rejection (``Rejection``). The viewer fits with these (a click can go wrong);
     ``pipeline.register``'s default is the salient Huber alone (docs/decisions/registration.md, "Outliers")."""
-    from ..features import NAMES
+    from ..features import NAMES, SALIENT
 
-    return Weights(huber_mm={n: salient_mm if n in REGION_FEATURES else HUBER_MM for n in NAMES},
+    return Weights(huber_mm={n: salient_mm if n in SALIENT else HUBER_MM for n in NAMES},
                    reject=Rejection())
 
 

@@ -27,6 +27,7 @@ from ..anatomy.model import VESSELS
 from ..anatomy.tets import TetMesh
 from ..defaults import EDGE_MM, K
 from ..errors import CarriedWarning, InputError
+from ..features import RIGID, SALIENT
 from ..fitwarning import FitWarning, WarningKind, found, texts
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.tre import tre_stats
@@ -43,7 +44,7 @@ from .forces import (
 )
 from .libr import LibrResult, LMOptions, register_libr
 from .local_modes import LocalModeOptions, LocalModes, choose_local_modes, fold_model
-from .model import REGION_FEATURES, RegistrationModel, build_model, deform, rebased_model, usable_data
+from .model import RegistrationModel, build_model, deform, rebased_model, usable_data
 from .objective import HUBER_MM, evaluate
 from .pose import (
     POSE_RULE,
@@ -65,7 +66,6 @@ from .quality import EXPECTED_NOISE_MM, FitQuality, Verdict, assess_fit
 from .rigid import (
     RIGID_ROBUST,
     RIGID_WITH_POSTERIOR,
-    SURFACE_FEATURES,
     TOL_BEFORE_LIBR,
     RigidResult,
     Start,
@@ -160,6 +160,14 @@ METHODS = {
 }
 
 
+CARRIED_CHECKS = (WarningKind.ORGAN_ERROR,)
+"""The checks whose lines a warm re-registration or a live frame carries from the fresh
+registration it continues from (``Registration.carry``): it repeats neither the predicted error
+over the organ nor the cross-validation (whose verdicts the viewer carries per target)."""
+POSE_ALONE = (WarningKind.UNSUPPORTED, WarningKind.POSE_EVIDENCE, WarningKind.SURFACE_FORCES)
+"""The checks whose line says why an answer is its pose alone (``Registration.why_pose_alone``)."""
+
+
 @dataclass
 class Registration:
     """The result of ``register``.
@@ -216,6 +224,9 @@ class Registration:
     held: HeldCheck | None = None
     # wall and CPU seconds per stage, in the order run (``stages``): every guard's cost apart
     stages: dict[str, StageTime] = field(default_factory=dict)
+    # the lines of checks this answer did not repeat, carried from the fresh registration it
+    # continues from (``carry``): a warm start's or a live frame's, said in ``warnings``
+    carried: list[FitWarning] = field(default_factory=list)
 
     @property
     def deformed(self) -> bool:
@@ -254,7 +265,34 @@ class Registration:
             # 40-point patch: 535 mm predicted, 35 true); the pose's own line says what to do
             (WarningKind.ORGAN_ERROR,
              self.organ.warning if self.organ is not None and self.deformed and not doubt else None))
-            for w in found(kind, text)]
+            for w in found(kind, text)] + (self.carried if self.deformed and not doubt else [])
+
+    def carry(self, checked: "Registration | None", said: str) -> None:
+        """Carry the lines of the checks a warm re-registration does not repeat (``CARRIED_CHECKS``: the
+        predicted error over the organ) from ``checked``, the fresh registration it continues
+        from, as ``checked.warnings`` said them, each followed by `` (said)`` (the caller's words
+        for "at the last full registration") and marked ``carried``. Nothing for a registration
+        that made the check itself (``checked`` is it, or it has its own ``organ``) or whose
+        answer is not deformed. ``warnings`` then says them under its own rule: not beside a
+        pose not to be believed (docs/decisions/live.md, "A warm start keeps the last fresh
+        fit's checks, said to be from then")."""
+        if checked is None or checked is self or self.organ is not None or not self.deformed:
+            self.carried = []
+            return
+        self.carried = [FitWarning(w.kind, f"{w.text} ({said})", carried=True)
+                        for w in checked.warnings if w.kind in CARRIED_CHECKS and not w.carried]
+
+    @property
+    def why_pose_alone(self) -> FitWarning | None:
+        """The line of ``warnings`` that says why the answer shown is the pose alone, without
+        deformation (the deformation not supported or not determined by the data, a declared
+        pose's evidence, the surface forces' choice); None for a deformed answer, and for a pose
+        alone that no line stands for (a declared pose the data confirm, shown without a line:
+        docs/decisions/registration.md, "A declared rigid move judged at the scale of the misfit
+        it leaves"). The viewer writes its head beside each target, which has no predicted error."""
+        if self.deformed:
+            return None
+        return next((w for w in self.warnings if w.kind in POSE_ALONE), None)
 
     @property
     def pose_doubts(self) -> list[FitWarning]:
@@ -447,12 +485,12 @@ def _settings(options: LMOptions | None, init: RobustOptions | None) -> tuple[LM
     init = init or RobustOptions()
     if init.huber_salient_mm and not options.weights.huber_mm:
         options = replace(options, weights=replace(options.weights, huber_mm={
-            n: init.huber_salient_mm for n in REGION_FEATURES}))
+            n: init.huber_salient_mm for n in SALIENT}))
     return options, init
 
 
 def _rigid_features(init: RobustOptions) -> tuple[str, ...]:
-    return RIGID_WITH_POSTERIOR if init.rigid_posterior else SURFACE_FEATURES
+    return RIGID_WITH_POSTERIOR if init.rigid_posterior else RIGID
 
 
 def _multi_start(model: RegistrationModel, data: dict, options: LMOptions, init: RobustOptions) -> list[Start]:
@@ -558,7 +596,7 @@ def _declared_rigid(model: RegistrationModel, data: dict, prior: PosePrior, opti
 
     best, current = fit(None, at_given)
     starts: list[Start] = []
-    if init.multi_start and any(n_ in SURFACE_FEATURES for n_ in data):
+    if init.multi_start and any(n_ in RIGID for n_ in data):
         features = _rigid_features(init)
         turn = min(init.start_angle_deg, 2.0 * prior.sd_deg)
         poses = start_poses(model, {k: v for k, v in data.items() if k in features} or data, turn, False)

@@ -41,9 +41,10 @@ from enum import Enum
 
 import numpy as np
 
+from ..features import RIGID
 from .model import RegistrationModel
 from .objective import correspond
-from .rigid import SURFACE_FEATURES, RigidResult, _screen_geometry
+from .rigid import RigidResult, _screen_geometry
 from .rotation import rotation_angle
 
 
@@ -92,7 +93,7 @@ WEAK_RATIO = 1e-2  # an eigenvalue below this × the largest: a sliding directio
 MAX_POINTS = 2000  # per feature: the trimmed fit and the normal matrix need no more
 
 
-def _surface_points(model: RegistrationModel, data: dict, pose: RigidResult, features=SURFACE_FEATURES):
+def _surface_points(model: RegistrationModel, data: dict, pose: RigidResult, features=RIGID):
     """(points in the model frame, their closest points, unit normals) of the surface data."""
     Ps, Qs, Ns = [], [], []
     for name, Y in data.items():
@@ -404,7 +405,7 @@ def pose_determinacy(model: RegistrationModel, data: dict, pose: RigidResult) ->
     # a warm re-registration per ultrasound frame asks again with the same pose and the same
     # stylus data (frames add iUS features, which this does not use): the last answer is kept
     # on the model and given again when pose and surface data are equal, element for element
-    surface = {n: np.array(y, float) for n, y in data.items() if n in SURFACE_FEATURES and len(y)}
+    surface = {n: np.array(y, float) for n, y in data.items() if n in RIGID and len(y)}
     last = model.cache.determinacy
     if last is not None and np.array_equal(last[0], pose.R) and np.array_equal(last[1], pose.t) and \
             last[2].keys() == surface.keys() and all(np.array_equal(last[2][n], y) for n, y in surface.items()):

@@ -22,9 +22,9 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ..features import RIGID
+from ..features import RIGID, SALIENT
 from ..geometry.transforms import apply_inverse, apply_rigid, kabsch, rotvec_matrix
-from .model import REGION_FEATURES, RegistrationModel
+from .model import RegistrationModel
 from .objective import Weights, correspond
 from .rotation import rotation, rotation_angle
 
@@ -67,7 +67,6 @@ def beta_pose(beta, centroid) -> RigidResult:
     return RigidResult(R, c + beta[n:n + 3] - R @ c, 0, 0.0, kept=True)
 
 
-SURFACE_FEATURES = RIGID  # stylus data and fiducials (``navapp.features``)
 ICP_POINTS = 400  # per feature: an evenly strided subset is plenty for 6 parameters
 TOL_BEFORE_LIBR = 1e-2  # mm: ICP only initialises LIBR
 # Huber factors on falciform and ridge points with δ = this × the feature's median residual
@@ -79,7 +78,7 @@ RIGID_ROBUST = 2.0
 
 
 def rigid_icp(model: RegistrationModel, data: dict, weights: Weights | None = None, max_iterations=100,
-              tol_mm=1e-4, start: "RigidResult | None" = None, features=SURFACE_FEATURES,
+              tol_mm=1e-4, start: "RigidResult | None" = None, features=RIGID,
               multi_start=True, robust: float | None = RIGID_ROBUST) -> RigidResult:
     """Rigid transform taking the model onto ``data`` (feature → (N, 3) mm).
 
@@ -123,7 +122,7 @@ def rigid_icp(model: RegistrationModel, data: dict, weights: Weights | None = No
             Ps.append(S @ feat.rest)
             Qs.append(Y)
             Ws.append(np.full(len(Y), weights.features[name] / len(Y)))
-            if robust and name in REGION_FEATURES:
+            if robust and name in SALIENT:
                 Ws[-1] = Ws[-1] * _robust_scale(np.linalg.norm(Ym - Ps[-1], axis=-1), robust)
         P, Q, W = np.vstack(Ps), np.vstack(Qs), np.concatenate(Ws)
         R, t = kabsch(P, Q, W)
@@ -143,7 +142,7 @@ def _robust_scale(dist, k: float) -> np.ndarray:
     return delta / np.maximum(dist, delta)
 
 
-RIGID_WITH_POSTERIOR = SURFACE_FEATURES + ("posterior",)
+RIGID_WITH_POSTERIOR = RIGID + ("posterior",)
 SCREEN_POINTS = 150  # per feature in the multi-start ICP: 8 starts × all features stay cheap
 
 
@@ -244,7 +243,7 @@ def start_poses(model: RegistrationModel, data: dict, angle_deg=15.0, principal_
 
 
 def multi_start_icp(model: RegistrationModel, data: dict, starts: list[Start], weights: Weights | None = None,
-                    mode="plane", features=SURFACE_FEATURES, max_iterations=30, tol_mm=1e-2,
+                    mode="plane", features=RIGID, max_iterations=30, tol_mm=1e-2,
                     points=SCREEN_POINTS, basin_mm=1.5, merge_mm=0.5,
                     robust: float | None = RIGID_ROBUST) -> list[Start]:
     """ICP from every start at once; fills each start's ``result`` and ``basin``.
@@ -320,7 +319,7 @@ def multi_start_icp(model: RegistrationModel, data: dict, starts: list[Start], w
                     e[k] = 1.0
                     rows.append((np.cross(Ym, e), np.broadcast_to(e, Ym.shape), -d[..., k]))
             wN = np.full(d.shape[:2], wF)
-            if robust and name in REGION_FEATURES:
+            if robust and name in SALIENT:
                 size = np.abs(rows[0][2]) if normals is not None else np.linalg.norm(d, axis=-1)
                 wN = wN * _robust_scale(size, robust)
             for a_rot, a_tr, b in rows:

@@ -37,10 +37,11 @@ import numpy as np
 from scipy.spatial import cKDTree
 from scipy.stats import chi2
 
+from ..features import SALIENT
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.transforms import apply_rigid
 from ..threads import limit_threads
-from .model import REGION_FEATURES, RegistrationModel, deform
+from .model import RegistrationModel, deform
 from .objective import Weights, evaluate
 from .prior import FEATURE_SD_MM, likelihood_scale
 from .rotation import rotation, rotation_derivatives
@@ -137,7 +138,7 @@ MAD_SD = 1.4826
 
 def default_weights() -> Weights:
     """The weights ``pipeline.register`` fits with by default (Huber δ = 1 mm on the salient features)."""
-    return Weights(huber_mm={n: 1.0 for n in REGION_FEATURES})
+    return Weights(huber_mm={n: 1.0 for n in SALIENT})
 
 
 def information(model: RegistrationModel, data: dict, beta, weights: Weights | None = None) -> Information:

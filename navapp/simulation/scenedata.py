@@ -29,7 +29,6 @@ from .sources.ius import auto_segmentation as _auto_segmentation
 from .sources.ius import read_frames
 from .ultrasound import PlaneData
 
-STYLUS_FEATURES = STYLUS  # (``navapp.features``)
 # bump when the simulator's output changes (2: the truth as a field, no registration mesh)
 SCENE_CACHE_VERSION = "2"
 SESSION_SCENE_VERSION = "1"  # a session's scene identity: sessions saved before stay valid
@@ -116,7 +115,7 @@ def load_scene_data(scene: Scene, cache_root=None, edge: float = EDGE_MM) -> Sce
     has edge ``edge`` mm."""
     case_dir = simulated_case_dir(scene, cache_root)
     case = read_case(case_dir)
-    stylus = {k: case.intraop[k] for k in STYLUS_FEATURES if k in case.intraop}
+    stylus = {k: case.intraop[k] for k in STYLUS if k in case.intraop}
     allpts = np.vstack(list(stylus.values())) if stylus else np.zeros((0, 3))
     labels = np.concatenate([[k] * len(v) for k, v in stylus.items()]) if stylus else np.zeros(0, str)
     order = sweep_order(allpts)

@@ -2,7 +2,7 @@
 per-tool status (seen / stale / missing, as SlicerIGT's Watchdog), digitising with the
 tracked stylus while a switch is on, the live image, and freezing a frame to draw on."""
 
-from ...features import STYLUS as STYLUS_FEATURES
+from ...features import STYLUS
 from ..actions import Act
 from ..state import Change
 
@@ -14,7 +14,7 @@ class TrackingPanel:
         self.folder = g.add_folder("Live tracking (OpenIGTLink)", visible=self.app.live.config is not None)
         with self.folder:
             self.status = g.add_markdown("Not connected.")
-            self.label = g.add_dropdown("Digitise as", STYLUS_FEATURES)
+            self.label = g.add_dropdown("Digitise as", STYLUS)
             self.record = g.add_checkbox("Digitise (record while on)", False)
             self.count = g.add_markdown("")
             self.follow = g.add_checkbox("Show the live image", True)
