@@ -74,6 +74,9 @@ def test_support_points_and_springs_stated_in_the_panel(server, tmp_path):
         wait_text(page, r"on springs of 300 Pa/mm is ready", deadline)  # built once, for the last digit typed
         page.get_by_text("The next fresh registration:").first.scroll_into_view_if_needed(timeout=deadline.ms())
         page.screenshot(path=shots / "supports_stated.png")
+        # the held surface is a layer of its own (dots on the preoperative liver), in the legend
+        assert page.get_by_label("Stated supports", exact=True).count() == 1
+        wait_text(page, r"held at the stated supports", deadline)
         stated = json.loads((server["session"] / "session.json").read_text())["supports"]
         assert stated["held"] == "points" and stated["stiffness_pa_per_mm"] == 300.0
         assert np.allclose(stated["points"], pts, atol=1e-3)
