@@ -23,6 +23,7 @@ REGISTERED: RGB = (240, 190, 60)
 REG_VESSEL: dict[str, RGB] = {"portal": (200, 0, 0), "hepatic": (0, 60, 230)}
 TARGET: RGB = (170, 60, 230)
 REG_TARGET: RGB = (230, 0, 255)
+SUPPORTS: RGB = (0, 160, 150)  # the surface the stated supports hold (preoperative model)
 FEATURE_COLOURS: dict[str, RGB] = {f.name: f.colour for f in TABLE}  # data points, by feature
 TURBO_CSS = "#30123b,#4686fb,#1ae4b6,#a2fc3c,#fabb39,#e4460a,#7a0403"  # the error colour scale (matplotlib turbo)
 # the floating legend: (words, colour, opacity of the swatch)
@@ -30,7 +31,7 @@ LEGEND: tuple[tuple[str, RGB, float], ...] = (
     ("preop liver", LIVER, 0.5), ("preop portal vein", VESSEL["portal"], 0.6),
     ("preop hepatic veins", VESSEL["hepatic"], 0.6), ("registered liver", REGISTERED, 0.7),
     ("registered portal vein", REG_VESSEL["portal"], 1), ("registered hepatic veins", REG_VESSEL["hepatic"], 1),
-    ("targets (tumours)", TARGET, 1), ("true liver (ghost)", TRUTH, 0.5))
+    ("targets (tumours)", TARGET, 1), ("true liver (ghost)", TRUTH, 0.5), ("held at the stated supports", SUPPORTS, 1))
 
 # ---------------------------------------------------------------- 2D view
 # the model cut by the image: preoperative (rigidly placed) dashed in the first colour,

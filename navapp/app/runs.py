@@ -8,17 +8,21 @@ into ``Run`` under the shared lock; every view reads the run through ``Core.run`
 
 from __future__ import annotations
 
+import tempfile
 import threading
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 
 import numpy as np
 
-from ..errors import NavappError
+from ..anatomy.caseio import SUPPORTS_FILE, read_support_points
+from ..errors import InputError, NavappError
 from ..evaluation.cost import lm_sweep
 from ..features import BY_NAME
 from ..fitwarning import FitWarning, one_line
+from ..mechanics.supports import HeldSupports, Supports
 from ..registration.objective import Weights
 from ..registration.pipeline import Registration
 from ..registration.prior import PosePrior
@@ -51,6 +55,7 @@ from .worker import Update, cancelled, viewer_options
 MIN_POINTS = 3  # fewer data points than this fix nothing
 WORST_SHOWN = 5  # data points furthest from the registered model, listed for removal
 BUSY = "A registration is already running; wait for it or cancel it."
+SETTLE_S = 0.8  # a stated supports' model is built once the statement has stood this long (s)
 
 
 class Runs:
@@ -61,6 +66,7 @@ class Runs:
         self.following = following  # live re-registration is on (``live.Live.following``)
         self._starting = threading.Lock()  # a start and a cancel click are handled one after the other
         self._orders = ThreadPoolExecutor(max_workers=1, thread_name_prefix="navapp-orders")
+        self._loaded_points: tuple | None = None  # the support points loaded last (a file uploaded)
 
     def order(self, action: Callable[[], object]) -> None:
         """Run a button's request (start, Cancel, sweep) after every request clicked before it.
@@ -143,9 +149,45 @@ class Runs:
         return (f"Organ {stated.words()}: its model is being prepared (about as long as the first start's "
                 "basis); the next fresh registration uses it.")
 
+    def support_points(self) -> tuple | None:
+        """The points a statement "held at points" takes: the stated ones, else the file loaded
+        last, else the case's own preop/supports.csv; None where there are none."""
+        core = self.core
+        with core.lock:
+            sd, session = core.need_scene()
+            held = session.stated_supports(sd).held
+            own = sd.case.preop.support_points
+        if held is not None and held.held is Supports.POINTS:
+            return held.points
+        if self._loaded_points is not None:
+            return self._loaded_points
+        return None if own is None or not len(own) else tuple(tuple(float(c) for c in p) for p in own)
+
+    def load_support_points(self, name: str, content: bytes, stiffness: float | None,
+                            cs: ClientState | None = None) -> tuple[str, bool]:
+        """A support-points file (``name``, its bytes: x,y,z rows, mm, preoperative frame, as a
+        case's preop/supports.csv) read and checked as the command line reads that file, then
+        stated: the organ held at them, firmly or on springs of ``stiffness`` Pa/mm. Returns
+        (what happened in words, whether it is an error)."""
+        core = self.core
+        shown = Path(name).name or SUPPORTS_FILE
+        with tempfile.TemporaryDirectory(prefix="navapp-supports-") as tmp:
+            path = Path(tmp) / shown
+            path.write_bytes(content)
+            try:
+                points = read_support_points(path, core.preop.liver)
+            except InputError as exc:
+                return str(exc).replace(str(path), shown), True
+        held = HeldSupports.parse(Supports.POINTS.value, stiffness=stiffness, points=points)
+        self._loaded_points = held.points
+        said = self.set_supports(StatedSupports(held), cs) or f"Organ {StatedSupports(held).words()}."
+        return f"{len(held.points)} support points read from {shown}. {said}", False
+
     def prepare_held(self) -> bool:
         """Build the model held at the stated supports in the background, if it is not built;
-        returns whether it began. Said in a notice when it is ready or has failed."""
+        returns whether it began. Said in a notice when it is ready or has failed. A statement
+        made over again within ``SETTLE_S`` (a stiffness typed digit by digit) builds only the
+        last one's."""
         core = self.core
         with core.lock:
             sd, session = core.need_scene()
@@ -155,6 +197,10 @@ class Runs:
             return False
 
         def build():
+            time.sleep(SETTLE_S)
+            with core.lock:
+                if session.stated_supports(sd).held != held:
+                    return  # stated otherwise since: that statement builds its own
             t0 = time.monotonic()
             try:
                 core.build_held(held)

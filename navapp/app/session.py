@@ -21,11 +21,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ..anatomy.caseio import write_csv, write_preop, write_settings, write_truth
+from ..anatomy.caseio import SUPPORTS_FILE, write_csv, write_preop, write_settings, write_truth
 from ..anatomy.model import VESSELS
 from ..errors import InputError
 from ..features import NAMES, SOURCED, STYLUS
-from ..mechanics.supports import case_supports
+from ..mechanics.supports import Supports, case_supports
 from ..outputs import replace_folder, replaced
 from ..registration.prior import declared_pose
 from ..simulation.scenedata import SceneData, acquire_free_plane, scene_key
@@ -191,6 +191,7 @@ def _write_data(s: Session, folder: Path, sd: SceneData, planes: dict):
     # the temporary files' names are fixed: a kill leaves them where ``_complete`` looks for them
     with replaced(folder / "case.toml", "case.toml.tmp") as tmp:
         write_settings(tmp.parent, _settings(sd, s.pose, s.supports), name=tmp.name)
+    _write_support_points(folder, (s.supports or _case_supports(sd)).held)
     idir = folder / "intraop"
     idir.mkdir(exist_ok=True)
     data = s.data(sd, planes)
@@ -203,6 +204,19 @@ def _write_data(s: Session, folder: Path, sd: SceneData, planes: dict):
             path.unlink()
     with replaced(folder / "session.json", "session.json.tmp") as tmp:
         tmp.write_text(json.dumps(s.to_json(), indent=1))
+
+
+def _write_support_points(folder: Path, held):
+    """preop/supports.csv as the stated supports read it: their points where they are held at
+    points, else no such file (``navapp register SESSION`` refuses a case whose points file its
+    declaration does not read)."""
+    path = folder / "preop" / SUPPORTS_FILE
+    if held is not None and held.held is Supports.POINTS:
+        path.parent.mkdir(exist_ok=True)
+        with replaced(path, f"{SUPPORTS_FILE}.tmp") as tmp:
+            write_csv(tmp, np.asarray(held.points, float), ("x", "y", "z"))
+    elif path.exists():
+        path.unlink()
 
 
 def _case_name(sd: SceneData) -> str:

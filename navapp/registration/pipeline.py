@@ -89,7 +89,16 @@ from .support import (
     pooled_rms,
     weigh_correction,
 )
-from .uncertainty import CLINICAL_GOAL_MM, MAD_SD, OrganError, PoseEvidence, declared_spread, organ_error, pose_evidence
+from .uncertainty import (
+    CLINICAL_GOAL_MM,
+    MAD_SD,
+    OrganError,
+    PoseEvidence,
+    declared_spread,
+    organ_error,
+    organ_nodes,
+    pose_evidence,
+)
 
 
 @dataclass
@@ -782,6 +791,23 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
             return alt
         # two rigid answers, which the supports do not shape: the held one stays, with no line
         # (on the local-load cases this halved the lines and changed no answer's TRE)
+    elif reg.held is not None and reg.deformed and not reg.held.rests_on_supports and \
+            not (cancel is not None and cancel.is_set()):
+        # the data bear the supports out on the held-out blocks: is the change they make to the
+        # answer over the organ no more than those data bear out? (``HeldCheck.beyond_data``;
+        # docs/decisions/local-loads.md, "Wrong supports: the change the supports make")
+        t = time.perf_counter()
+        free = undeclared if undeclared is not None else free_model(model)
+        with warnings.catch_warnings():  # its lines are its own answer's, which is not shown
+            warnings.simplefilter("ignore")
+            alt = _register(free, data, deform, options, None, cancel, beta0, rigid, init, starts, pose_prior,
+                            given, False, None)
+        if not (cancel is not None and cancel.is_set()):
+            at = model.basis.nodes[organ_nodes(model)]
+            B = interpolation_matrix(model.basis.nodes, model.basis.tets, at)
+            change = float(np.sqrt(np.mean(np.sum((reg.transform(at, B=B) - alt.transform(at, B=B)) ** 2, axis=1))))
+            reg.held = replace(reg.held, organ_change_mm=change)
+        reg.seconds["supports_check"] = reg.seconds.get("supports_check", 0.0) + time.perf_counter() - t
     return reg
 
 

@@ -209,6 +209,9 @@ class HeldCheck:
     # the held answer's held-out gain over the free basis's fits and its paired standard error (mm)
     gain_mm: float = math.nan
     gain_se_mm: float = math.nan
+    # RMS over the organ (``uncertainty.organ_nodes``) of the held answer's difference from the
+    # free-floating model's registration on the same data, mm; NaN where not measured
+    organ_change_mm: float = math.nan
 
     @property
     def contradicted(self) -> bool:
@@ -221,13 +224,29 @@ class HeldCheck:
         return not math.isnan(self.gain_mm) and not self.gain_mm > self.gain_se_mm
 
     @property
+    def borne_out_mm(self) -> float:
+        """How much of a change the held-out data bear out, mm: √(free² − held²) of the held-out
+        RMS — what the held answer removes from the free basis's held-out misfit, as an RMS of
+        the difference between the two (zero where it removes none)."""
+        return math.sqrt(max(self.free_mm ** 2 - self.held_mm ** 2, 0.0))
+
+    @property
+    def beyond_data(self) -> bool:
+        """The declared supports change the answer over the organ (``organ_change_mm``, an RMS)
+        by more than the held-out data bear out (``borne_out_mm``): the rest of the change lies
+        where no data test it (docs/decisions: "Wrong supports, session 39")."""
+        return not math.isnan(self.organ_change_mm) and self.organ_change_mm > self.borne_out_mm
+
+    @property
     def rests_on_supports(self) -> bool:
         """The held answer deforms, and either the free-floating basis's fits earn no deformation
         by the undeclared rule, or the held answer's held-out gain over them is within one paired
-        standard error: the declaration, not the data, makes this deformation (docs/decisions/local-loads.md,
-        "Wrong supports, session 38")."""
+        standard error, or it differs from the free-floating answer over the organ by more than the
+        held-out data bear out: the declaration, not the data, makes this deformation
+        (docs/decisions/local-loads.md, "Wrong supports, session 38", and
+        "Wrong supports: the change the supports make, weighed against what the data bear out")."""
         return self.held_deforms and not self.replaced and not self.contradicted and \
-            (not self.free_earns or self.undecided)
+            (not self.free_earns or self.undecided or self.beyond_data)
 
     @property
     def warning(self) -> str | None:
@@ -235,7 +254,11 @@ class HeldCheck:
             why = (f"without them the data earn none (held out {self.free_mm:.2f} mm free-floating against "
                    f"{self.free_rigid_mm:.2f} mm without deformation)" if not self.free_earns else
                    f"the data do not tell them from a free-floating organ (held out {self.held_mm:.2f} mm held "
-                   f"against {self.free_mm:.2f} mm free, within one standard error, {self.gain_se_mm:.2f} mm)")
+                   f"against {self.free_mm:.2f} mm free, within one standard error, {self.gain_se_mm:.2f} mm)"
+                   if self.undecided else
+                   f"they move the organ {self.organ_change_mm:.2f} mm (RMS) from the free-floating answer, more "
+                   f"than the {self.borne_out_mm:.2f} mm the held-out data bear out (held out {self.held_mm:.2f} mm "
+                   f"held against {self.free_mm:.2f} mm free)")
             return f"the deformation shown rests on the declared supports ({self.held}): {why} — check where the " \
                    "organ is held"
         if not self.replaced:
@@ -247,7 +270,8 @@ class HeldCheck:
                 "contradicted": self.contradicted, "replaced": self.replaced,
                 "heldout_free_rigid_mm": round(self.free_rigid_mm, 3), "free_earns_deformation": self.free_earns,
                 "rests_on_supports": self.rests_on_supports, "gain_mm": round(self.gain_mm, 4),
-                "gain_se_mm": round(self.gain_se_mm, 4)}
+                "gain_se_mm": round(self.gain_se_mm, 4), "organ_change_mm": round(self.organ_change_mm, 4),
+                "borne_out_mm": round(self.borne_out_mm, 4), "beyond_data": self.beyond_data}
 
 
 def pooled_rms(features: dict, names=None) -> float:

@@ -5,8 +5,10 @@ the scene held the ligaments"), and what the free basis's held-out RMS on the sa
 
 Per case and level (S, S+all), the pose declared as the scene made it: LIBR on the free basis,
 on the basis held at the scene's supports, and at wrong ones (ligaments → posterior, posterior →
-ligaments, bare_area → posterior). Each row: TRE mean, answer, warnings, the answer's held-out
-RMS (its cross-validation) and the supports' test against the free basis (``Registration.held``).
+ligaments, bare_area → posterior). Each row: TRE mean (and no correction's), answer, warnings, the
+answer's held-out RMS (its cross-validation) and the supports' test against the free basis
+(``Registration.held``: since session 39 also the organ's change from the free answer and what
+the held-out data bear out).
 """
 
 import json
@@ -48,6 +50,7 @@ def main(out, cases):
                     sec = time.perf_counter() - t
                     row = {"case": c.name, "level": level, "supports": how, "held": model.basis.settings.supports,
                            "scene": scene.supports, "tre": round(mean_tre(reg.transform(x0, B=B), x1), 3),
+                           "identity": round(mean_tre(x0, x1), 3),
                            "deformed": reg.deformed, "warnings": [w.text for w in reg.warnings],
                            "seconds": round(sec, 2)}
                     s = reg.support

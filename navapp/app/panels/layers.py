@@ -19,6 +19,7 @@ from ..palette import (
     REG_TARGET,
     REG_VESSEL,
     REGISTERED,
+    SUPPORTS,
     TARGET,
     TRUTH,
     TURBO_CSS,
@@ -32,8 +33,10 @@ STANDARD_VIEWS = {  # camera direction from the liver centroid (navapp frame: +x
     "Anterior": (0.0, 1.0, 0.0), "Posterior": (0.0, -1.0, 0.0), "Left": (1.0, 0.0, 0.0), "Right": (-1.0, 0.0, 0.0),
     "Superior": (0.0, 0.01, 1.0),
 }
-LAYERS = ("Preoperative liver", "Preoperative vessels", "Targets", "Collected data", "Registered liver",
-          "Registered vessels", "Error colours", "True deformed liver (ghost)", "Ultrasound plane", "Stylus")
+LAYERS = ("Preoperative liver", "Preoperative vessels", "Targets", "Stated supports", "Collected data",
+          "Registered liver", "Registered vessels", "Error colours", "True deformed liver (ghost)", "Ultrasound plane",
+          "Stylus")
+SUPPORT_DOT_MM = 1.0  # the held surface's dots (``show_supports``)
 # the error dots' point_size: viser draws a point of size s about 2 s wide (mm); at 1.0 they hid
 # a third of the registered vessels' pixels (docs/decisions/viewer.md, "Error dots")
 ERROR_DOT_MM = 0.5
@@ -85,6 +88,7 @@ class LayersPanel:
         # the registered nodes move between a run's states rather than jump (``motion``)
         self.tween = Tween(self._draw, view.lock)
         self.data_nodes: dict = {}
+        self._supports_shown: object = None  # the stated supports drawn (``show_supports``)
         self._data_shown: dict = {}  # what each data node last showed
         with g.add_folder("Layers and views", expand_by_default=False):
             self.cb = {name: g.add_checkbox(name, name not in ("True deformed liver (ghost)",)) for name in LAYERS}
@@ -173,6 +177,8 @@ class LayersPanel:
             self._show_data()
         if what is Change.PLANE:
             self.show_plane()
+        if what in (Change.POSE, Change.SCENE, Change.MODEL):
+            self.show_supports()
         if what in (Change.RESULT, Change.MODEL):
             if what is Change.MODEL and core.model is not None and core.truth_nodes is None:
                 self.source.value, self.source.disabled = PREDICTED, True  # no truth: only the prediction
@@ -185,6 +191,31 @@ class LayersPanel:
                 for n in self.reg.values():
                     n.visible = False
         self.apply_visibility()
+
+    def show_supports(self):
+        """The registration mesh's surface nodes the stated supports hold, as dots on the
+        preoperative liver (none while free-floating): the named region, or the surface around
+        the points of a support-points file (``mechanics.supports.held_nodes``)."""
+        from ...anatomy.meshing import TetMesh
+        from ...mechanics.supports import held_nodes
+
+        core = self.core
+        with core.lock:
+            if core.sd is None or core.session is None or core.model is None:
+                return
+            held = core.session.stated_supports(core.sd).held
+            basis = core.model.basis
+        if held == self._supports_shown:
+            return
+        self._supports_shown = held
+        for node in self.nodes["Stated supports"]:
+            node.remove()
+        self.nodes["Stated supports"].clear()
+        if held is None:
+            return
+        at = basis.nodes[held_nodes(TetMesh(basis.nodes, basis.tets), held.held, held.release, held.points)]
+        self._add("Stated supports", self.s.add_point_cloud("/preop/supports", at.astype(np.float32), SUPPORTS,
+                                                            point_size=SUPPORT_DOT_MM))
 
     def _show_data(self):
         data = self.core.data()

@@ -2,6 +2,7 @@
 against time (from the starting rigid pose), the run table and the result on show with the
 predicted error at each target."""
 
+from dataclasses import replace
 from html import escape
 
 import numpy as np
@@ -43,9 +44,17 @@ HELD = {"Free-floating (not stated)": StatedSupports(),
         "Its ligaments, right one released": StatedSupports(HeldSupports(Supports.LIGAMENTS, "R")),
         "A posterior bed": StatedSupports(HeldSupports(Supports.POSTERIOR)),
         "The bare area alone": StatedSupports(HeldSupports(Supports.BARE_AREA))}
-HELD_HELP = ("Where the liver is held (the ligaments left intact, the bed it lies on): the model then does not "
-             "move there in any mode, so sparse data on the front need not carry the whole organ. The data can "
-             "contradict the statement: then the free-floating answer is shown, with a line saying so.")
+HELD_HELP = ("Where the liver is held (the ligaments left intact, the bed it lies on, or points on its surface from "
+             "a support-points file): the model then does not move there in any mode, so sparse data on the front "
+             "need not carry the whole organ. The data can contradict the statement: then the free-floating answer "
+             "is shown, with a line saying so.")
+# held at the points of a support-points file (preop/supports.csv: x,y,z mm, preoperative frame)
+POINTS = "Points on its surface (file)"
+STIFFNESS_HELP = ("How firmly the supports hold: 0 holds them firmly (no displacement there); a spring stiffness "
+                  "in Pa per mm of displacement lets every mode move there elastically (softer tissue, a retractor "
+                  "that gives).")
+POINTS_HELP = ("A CSV file of points on the liver surface where it is held (x,y,z in mm, preoperative frame; an "
+               "optional header x,y,z), as a case's preop/supports.csv: the surface within 5 mm of each is held.")
 
 
 class RegistrationPanel:
@@ -57,8 +66,13 @@ class RegistrationPanel:
                                         initial_value=FRAMES[PoseFrame.UNKNOWN], hint=POSE_HELP)
             self.sd_mm = g.add_number("Known within (mm)", STATED_SD_MM, min=0.1, max=50.0, step=0.1, disabled=True)
             self.sd_deg = g.add_number("Known within (°)", STATED_SD_DEG, min=0.1, max=45.0, step=0.1, disabled=True)
-            self.held = g.add_dropdown("Organ held at", options=tuple(HELD), initial_value=next(iter(HELD)),
+            self.held = g.add_dropdown("Organ held at", options=(*HELD, POINTS), initial_value=next(iter(HELD)),
                                        hint=HELD_HELP)
+            self.stiffness = g.add_number("Springs (Pa/mm; 0: firm)", 0.0, min=0.0, max=1e6, step=1.0,
+                                          disabled=True, hint=STIFFNESS_HELP)
+            self.points_file = g.add_upload_button("Support points file (CSV)", mime_type=".csv,text/csv",
+                                                   hint=POINTS_HELP)
+            self.held_md = g.add_markdown("")
             self.btn = {kind: g.add_button(words, disabled=True) for kind, words in BUTTONS.items()}
             # never disabled once the model is ready: see ``runs.Runs.cancel``
             self.btn_cancel = g.add_button("Cancel", color="red", disabled=True)
@@ -88,7 +102,9 @@ class RegistrationPanel:
             # client, half-set: only a person's change is a statement
             control.on_update(lambda e: None if e.client is None else stated(e))
         said = view.edits(lambda e: self.state_supports())
-        self.held.on_update(lambda e: None if e.client is None else said(e))
+        for control in (self.held, self.stiffness):
+            control.on_update(lambda e: None if e.client is None else said(e))
+        self.points_file.on_upload(view.edits(lambda e: self.load_points()))
         self._choices: dict[str, int] = {}  # dropdown words → row of the log
 
     def _in_order(self, action):
@@ -119,23 +135,75 @@ class RegistrationPanel:
             self.view.notify("Pose of the data", said)
 
     def state_supports(self):
-        stated = HELD.get(self.held.value)
-        if stated is None:
+        """The supports the controls say, stated for the runs to come: a named region or the
+        points (the ones loaded last, else the case's own), held firmly or on springs."""
+        try:
+            k = float(self.stiffness.value)
+        except (TypeError, ValueError):  # an emptied number field: the stated supports stay as they were
+            self._supports()
             return
+        stiffness = k if k > 0 else None
+        if self.held.value == POINTS:
+            points = self.app.runs.support_points()
+            if points is None:
+                self.view.notify("Organ held at", "No support points yet: load a support-points file (x,y,z mm, "
+                                 "preoperative frame) with the button below.", error=True)
+                self._supports()
+                return
+            stated = StatedSupports(HeldSupports(Supports.POINTS, stiffness=stiffness, points=points))
+        else:
+            region = HELD.get(self.held.value)
+            if region is None:
+                return
+            stated = region if region.held is None else StatedSupports(replace(region.held, stiffness=stiffness))
+        before = self._stated_supports()
         said = self.app.runs.set_supports(stated, self.view.cs)
-        if said:
+        if said and (before is None or before.held is None or stated.held is None or
+                     (before.held.held, before.held.release) != (stated.held.held, stated.held.release)):
+            # the number box sends each keystroke (3, 30, 300): the panel shows the springs, and only a
+            # change of where the organ is held is worth a notice
             self.view.notify("Organ held at", said)
 
-    def _supports(self):
-        """The dropdown shows the session's stated supports (every tab the same)."""
+    def load_points(self):
+        """A support-points file uploaded: read, checked against the liver surface, and stated
+        (held at them, firmly or on the springs shown)."""
+        up = self.points_file.value
+        said, error = self.app.runs.load_support_points(up.name, up.content, self._stiffness(), self.view.cs)
+        self.view.notify("Support points", said, error=error)
+
+    def _stiffness(self) -> float | None:
+        try:
+            k = float(self.stiffness.value)
+        except (TypeError, ValueError):
+            return None
+        return k if k > 0 else None
+
+    def _stated_supports(self) -> StatedSupports | None:
         core = self.core
         with core.lock:
             if core.sd is None or core.session is None:
-                return
-            stated = core.session.stated_supports(core.sd)
-        words = next((w for w, s in HELD.items() if s == stated), None)
+                return None
+            return core.session.stated_supports(core.sd)
+
+    def _supports(self):
+        """The controls show the session's stated supports (every tab the same)."""
+        stated = self._stated_supports()
+        if stated is None:
+            return
+        held = stated.held
+        if held is None:
+            words: str | None = next(iter(HELD))
+        elif held.held is Supports.POINTS:
+            words = POINTS
+        else:
+            words = next((w for w, s in HELD.items() if s.held == replace(held, stiffness=None)), None)
         if words is not None and self.held.value != words:
             self.held.value = words
+        k = 0.0 if held is None or held.stiffness is None else held.stiffness
+        if self.stiffness.value != k:
+            self.stiffness.value = k
+        self.stiffness.disabled = held is None
+        self.held_md.content = f"<small>The next fresh registration: organ {stated.words()}.</small>"
 
     def _stated(self) -> StatedPose | None:
         core = self.core
@@ -301,6 +369,10 @@ class RegistrationPanel:
                      + (f" (mean error {round(float(err.mean()), 3):.2f} mm)" if err is not None else ""))
             if res.model is not None:  # a basis held at stated supports: said, as the data may contradict them
                 head += f"; model {supports_words(held_of(res.model))}"
+            elif (stated := self._stated_supports()) is not None and stated.held is not None:
+                # supports are stated, and this answer is not held at them (the data did not bear them
+                # out, or it was fitted before they were stated): said beside the statement
+                head += "; model free-floating"
             if res.predicted_mm is not None:
                 head += (f"  \nPredicted error (no truth used): mean {res.predicted_mm.mean():.1f} mm over the "
                          f"liver surface")
