@@ -36,13 +36,15 @@ class WarningKind(Enum):
     POOR_FIT = "poor fit"  # residuals against the expected noise (``quality.FitQuality``)
     ORGAN_ERROR = "organ error"  # the predicted error over the organ (``uncertainty.OrganError``)
     POSE_EVIDENCE = "pose evidence"  # a declared pose against the fitted one (``uncertainty.PoseEvidence``)
+    TARGET = "target"  # the data near one target do not determine its deformation (``support.TargetSupport``)
 
 
 @dataclass(frozen=True)
 class FitWarning:
     """One warning: its ``kind`` and its ``text``, one line, as the user reads it.
     ``carried``: made at an earlier, full registration and carried to a warm start or a live
-    frame, which did not repeat the check (the text says so)."""
+    frame, which did not repeat the check (the text says so; a consumer that shows it shorter
+    reads this flag, never the text's words)."""
 
     kind: WarningKind
     text: str

@@ -88,7 +88,7 @@ def test_a_deformable_fit_on_a_pose_nobody_should_believe_gives_no_tumour_figure
     res = app.core.result
     assert res.pose_warning and res.target_bands
     for b in res.target_bands:
-        assert not np.isfinite(b.predicted_mm) and b.warning == NO_TARGET_FIGURE, b
+        assert not np.isfinite(b.predicted_mm) and b.warning.text == NO_TARGET_FIGURE, b
         assert "mm" not in b.text() and "register again" in b.text()
     # nor over the surface, nor over the organ (the demo's 40-point patch: 535 mm predicted over
     # the organ, 15 × its true 35 mm; notes/scripts/predicted_demo.py)

@@ -13,6 +13,7 @@ from conftest import BUSY_WAIT_S, start_app, stop_app
 
 from navapp.app.panels.registration import BUTTONS
 from navapp.app.state import CARRIED, Run, RunKind
+from navapp.fitwarning import WarningKind
 from navapp.registration.uncertainty import OrganError
 
 SCENE = {"name": "apptest", "anatomy": {"phantom": 0}, "deformation": {"release": "L", "mesh_edge_mm": 10.0},
@@ -420,8 +421,9 @@ def test_a_warm_start_keeps_the_last_full_checks_warnings(app):
         wait_idle(app)
         warm = app.core.result
         assert warm.checked is fresh and app.core.last_reg is not fresh and app.core.last_reg.support is None
-        near = [b for b in warm.target_bands if "not predicted better" in (b.warning or "")]
-        assert near and all(CARRIED in b.warning for b in near)
+        near = [b for b in warm.target_bands if b.warning is not None and "not predicted better" in b.warning.text]
+        assert near and all(b.warning.carried and b.warning.kind is WarningKind.TARGET for b in near)
+        assert all(b.warning.text.endswith(f"({CARRIED})") for b in near)
         assert BUTTONS[RunKind.ALL] in CARRIED and BUTTONS[RunKind.WARM] not in CARRIED  # the button that checks
         assert all(b.text(short=True).endswith("(last full registration)") for b in near)  # the 2D view's
         row = app.core.session.log[-1].warning or ""

@@ -5,6 +5,7 @@ answer was ``reg.support.warning`` read directly, and a warm start's row carried
 ``checked.organ.warning`` read directly: each said a line the run's own row, result.json and
 Slicer's status line did not."""
 
+import json
 import types
 from dataclasses import replace
 
@@ -37,7 +38,8 @@ def test_beside_the_targets_of_a_pose_alone_only_a_line_the_registration_says(sm
     why = reg.why_pose_alone
     assert why is not None and why in reg.warnings and why.kind is WarningKind.UNSUPPORTED
     bands = _bands(reg, centres)
-    assert [b.warning for b in bands] == [why.head] * 2 and all(not np.isfinite(b.predicted_mm) for b in bands)
+    assert [b.warning for b in bands] == [FitWarning(why.kind, why.head)] * 2
+    assert all(not np.isfinite(b.predicted_mm) for b in bands)
     assert all(b.text() == f"⚠ {why.head}" for b in bands)
 
     # a declared pose the data confirm: the pose alone is shown without a line (PoseEvidence), so
@@ -55,7 +57,7 @@ def test_beside_the_targets_of_a_pose_alone_only_a_line_the_registration_says(sm
     loud = replace(reg, notes=[], pose_evidence=PoseEvidence(moved_mm=0.2, sigma_mm=1.0, prior_sigma_mm=9.0))
     line = loud.pose_evidence.warning
     assert loud.warnings == [FitWarning(WarningKind.POSE_EVIDENCE, line)] and loud.why_pose_alone == loud.warnings[0]
-    assert [b.warning for b in _bands(loud, centres)] == [line.split(":")[0]] * 2
+    assert [b.warning for b in _bands(loud, centres)] == [FitWarning(WarningKind.POSE_EVIDENCE, line.split(":")[0])] * 2
 
 
 def test_a_warm_start_carries_the_organ_line_its_fresh_fit_said_and_only_that(small_model, phantoms):
@@ -90,3 +92,40 @@ def test_a_warm_start_carries_the_organ_line_its_fresh_fit_said_and_only_that(sm
     # and a warm answer whose own pose is in doubt says no carried figure beside it
     warm.carry(fresh, CARRIED)
     assert replace(warm, notes=doubted.notes).warnings == doubted.notes
+
+
+def test_a_targets_line_is_a_fitwarning_from_where_it_is_found():
+    """``support.TargetSupport.warning`` makes the target's line, its kind TARGET, and marks it
+    carried where it rests on a block verdict carried from the fresh fit (the distance to the
+    data is this answer's own): the texts the viewer and result.json show today."""
+    from navapp.registration.support import SupportOptions, TargetSupport
+
+    near = "deformation not determined by the data near tumour1: "
+    block = near + "the data around it are not predicted better by the deformation than without it"
+    assert TargetSupport("tumour1", 5.0, False).warning == FitWarning(WarningKind.TARGET, block)
+    assert TargetSupport("tumour1", 5.0, False, said=CARRIED).warning == \
+        FitWarning(WarningKind.TARGET, f"{block} ({CARRIED})", carried=True)
+    far = SupportOptions.far_mm + 30.0
+    line = near + f"no data within {SupportOptions.far_mm:g} mm (nearest {far:.0f} mm)"
+    assert TargetSupport("tumour1", far, None, said=CARRIED).warning == FitWarning(WarningKind.TARGET, line)
+    assert TargetSupport("tumour1", 5.0, True, said=CARRIED).warning is None
+
+
+def test_a_target_line_is_shown_by_its_flag_never_by_its_words():
+    """The 2D view's short form says "(last full registration)" for a line marked carried, whatever
+    its words; before, ``TargetBand.text`` searched the line for ``CARRIED``'s words. The session
+    keeps the kind and the flag; a session of before, the text alone, reads back as a saved line."""
+    from navapp.app.state import TargetBand
+
+    marked = TargetBand("tumour1", 4.0, 2.0, 7.0, FitWarning(WarningKind.TARGET, "a line near tumour1: why",
+                                                             carried=True))
+    assert marked.text(short=True) == "predicted error 4.0 mm (2.0–7.0) ⚠ a line near tumour1 (last full registration)"
+    assert marked.text() == "predicted error 4.0 mm (2.0–7.0) ⚠ a line near tumour1: why"
+    worded = TargetBand("tumour1", 4.0, 2.0, 7.0,
+                        FitWarning(WarningKind.TARGET, f"a line near tumour1: why ({CARRIED})"))
+    assert worded.text(short=True) == "predicted error 4.0 mm (2.0–7.0) ⚠ a line near tumour1"
+    assert TargetBand.from_json(json.loads(json.dumps(marked.to_json()))) == marked
+    assert TargetBand.from_json(json.loads(json.dumps(worded.to_json()))) == worded
+    old = TargetBand.from_json(["tumour1", 4.0, 2.0, 7.0, "a line near tumour1: why"])
+    assert old.warning == FitWarning(WarningKind.SAVED, "a line near tumour1: why")
+    assert TargetBand.from_json(["tumour1", 4.0, 2.0, 7.0]).warning is None

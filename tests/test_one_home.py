@@ -205,6 +205,13 @@ def copies(root: Path) -> set[tuple[str, str, str]]:
                 if (isinstance(n, ast.Attribute) and n.attr in CHECK_LINES and isinstance(n.value, ast.Attribute)
                         and n.value.attr in CHECKS):
                     add("a check's line read past Registration")
+            # a warning told by its words: ``CARRIED``'s words, or a phrase, searched in a line
+            # (a ``FitWarning``'s ``kind`` and ``carried`` say what it is)
+            for n in nodes:
+                if isinstance(n, ast.Compare) and isinstance(n.ops[0], (ast.In, ast.NotIn)) and (
+                        _dotted(n.left) == "CARRIED" or (isinstance(n.left, ast.Constant) and isinstance(
+                            n.left.value, str) and "warn" in ast.unparse(n.comparators[0]).lower())):
+                    add("a warning told by its words")
     return found
 
 

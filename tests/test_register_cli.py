@@ -143,3 +143,29 @@ def test_local_modes_are_asked_for_and_reported(tmp_path, capsys):
     modes = local["local_modes"]
     assert set(modes) >= {"sources", "adopted", "heldout_base_mm", "heldout_extended_mm"}
     assert modes["sources"] == 0 and not modes["adopted"] and local["tre_deformable"] == default["tre_deformable"]
+
+
+def test_a_targets_own_line_reaches_result_json_and_stderr(tmp_path, capsys):
+    """A target far from every data point: its line (``support.TargetSupport.warning``, carried
+    to ``write_outputs`` as a ``FitWarning``) is the target's ``warning`` in result.json, one of
+    its ``warnings`` after the answer's, makes ``ok`` false and is said on stderr; a determined
+    target has none."""
+    from navapp.anatomy.targets import Target, write_targets
+    from navapp.registration.support import SupportOptions
+
+    make_case(tmp_path / "c")
+    # the data cover y > 20 mm of a 60 mm semi-axis: the posterior pole is 80 mm from them
+    write_targets([Target("near", np.array([0.0, 45.0, 0.0])), Target("far", np.array([0.0, -50.0, 0.0]))],
+                  tmp_path / "c/preop/targets")
+    assert main(["--quiet", "register", str(tmp_path / "c"), "--edge", "15", "--k", "10", "--json"]) == 0
+    err = capsys.readouterr().err
+    result = json.loads((tmp_path / "c/registration/result.json").read_text())
+    rows = {r["name"]: r for r in result["targets"]}
+    far = rows["far"]
+    assert not far["determined"] and far["nearest_data_mm"] > SupportOptions.far_mm
+    assert far["warning"] == (f"deformation not determined by the data near far: no data within "
+                              f"{SupportOptions.far_mm:g} mm (nearest {far['nearest_data_mm']:.0f} mm)")
+    lines = [r["warning"] for r in result["targets"] if "warning" in r]  # in the targets' order, last
+    assert result["warnings"][-len(lines):] == lines and not result["ok"]
+    assert all(("warning" in r) is not r["determined"] for r in result["targets"])
+    assert f"navapp: warning: ellipsoid: {far['warning']}" in err.splitlines()

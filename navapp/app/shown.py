@@ -19,7 +19,7 @@ from ..registration.libr import LibrResult
 from ..registration.model import RegistrationModel, deform
 from ..registration.pipeline import Registration
 from ..registration.rigid import RigidResult
-from ..registration.support import SupportOptions, TargetSupport, target_support
+from ..registration.support import target_support
 from ..registration.targets import registered_targets, target_interpolation
 from .core import Core
 from .slicer import Slicer
@@ -93,23 +93,23 @@ class Shown:
         preop = self.core.preop
         centres = {t.name: t.centre for t in preop.targets}
         # the data and the targets' preoperative centres are both in the model frame
-        verdicts, carried = reg.support, False
+        verdicts, said = reg.support, None
         if verdicts is None and checked is not None and checked is not reg and checked.support is not None:
-            verdicts, carried = checked.support, True
-        support = {s.name: s for s in target_support(verdicts, centres, reg.data_model_frame)}
+            verdicts, said = checked.support, CARRIED
+        support = {s.name: s for s in target_support(verdicts, centres, reg.data_model_frame, said)}
         if not reg.deformed:  # the rigid answer: no prediction, the reason beside each target
             # the line ``Registration.warnings`` gives for it, its head: no other verdict beside the
             # targets than the row, result.json and Slicer say (none for a declared pose the data confirm)
             why = reg.why_pose_alone
-            short = why.head if why is not None else None
+            short = FitWarning(why.kind, why.head, why.carried) if why is not None else None
             return None, [TargetBand(t.name, float("nan"), float("nan"), float("nan"), short) for t in preop.targets]
         if reg.pose_doubts:
             # a pose nobody should believe (``Registration.pose_doubts``): the calibration was fitted on
             # answers whose pose was right and says nothing at a point 100 mm off (a 40-point patch:
             # tumours 39 and 133 mm off, predicted 202 and 31 mm; the demo's surface 15 × the true
             # error); no figure at the tumours or on the surface, but what to do
-            return None, [TargetBand(t.name, float("nan"), float("nan"), float("nan"), NO_TARGET_FIGURE)
-                          for t in preop.targets]
+            doubt = FitWarning(reg.pose_doubts[0].kind, NO_TARGET_FIGURE)  # it stands for the first doubt
+            return None, [TargetBand(t.name, float("nan"), float("nan"), float("nan"), doubt) for t in preop.targets]
         try:
             # with the weights of the fit: points it rejected (a wrong click) do not inflate the
             # residual scale of the prediction (with least squares weights a stray vertex the fit
@@ -119,7 +119,7 @@ class Shown:
             bands = []
             if preop.targets:
                 est = estimate_error(reg, points=np.array([t.centre for t in preop.targets]), weights=weights)
-                bands = [TargetBand(t.name, float(e), float(lo), float(hi), _said(support[t.name], carried))
+                bands = [TargetBand(t.name, float(e), float(lo), float(hi), support[t.name].warning)
                          for t, e, lo, hi in zip(preop.targets, est.predicted_mm, est.lower_mm, est.upper_mm,
                                                  strict=True)]
             return surface, bands
@@ -241,10 +241,3 @@ class Shown:
                                       model=core.kept_model(model))
         self.slicer.send(reg)  # queued: a Slicer connecting later receives the result on show
 
-
-def _said(target: TargetSupport, carried: bool) -> str | None:
-    """A target's warning; one that rests on a carried block verdict says it is from then."""
-    line = target.warning
-    if line and carried and target.block_supported is False and target.nearest_data_mm <= SupportOptions.far_mm:
-        return f"{line} ({CARRIED})"
-    return line

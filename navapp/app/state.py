@@ -17,7 +17,7 @@ from enum import Enum
 import numpy as np
 
 from ..errors import InputError
-from ..fitwarning import one_line
+from ..fitwarning import FitWarning, WarningKind, one_line
 from ..mechanics.supports import RELEASES, HeldSupports, Supports
 from ..registration.model import RegistrationModel
 from ..registration.pipeline import Registration
@@ -199,25 +199,36 @@ class TargetBand:
     predicted_mm: float
     lower_mm: float
     upper_mm: float
-    warning: str | None = None  # what the registration result warns about this target, shown after the band
+    # what the registration result warns about this target, shown after the band: the target's own
+    # line (``support.TargetSupport.warning``), a pose alone's reason, or why no figure is shown
+    warning: FitWarning | None = None
 
     def text(self, short: bool = False) -> str:
-        """The band and the warning; ``short``: the warning's first clause only (the 2D view,
-        whose frame clipped the whole line), with "(last full registration)" if carried."""
-        warning = self.warning
-        if warning and short:
-            warning = warning.split(":")[0] + (" (last full registration)" if CARRIED in warning else "")
+        """The band and the warning; ``short``: the warning's head only (the 2D view, whose
+        frame clipped the whole line), with "(last full registration)" if it is carried."""
+        warning = self.warning.text if self.warning is not None else None
+        if self.warning is not None and short:
+            warning = self.warning.head + (" (last full registration)" if self.warning.carried else "")
         if not np.isfinite(self.predicted_mm):  # a rigid answer: no prediction, only its warning
             return f"⚠ {warning}" if warning else ""
         band = f"predicted error {self.predicted_mm:.1f} mm ({self.lower_mm:.1f}–{self.upper_mm:.1f})"
         return band if not warning else f"{band} ⚠ {warning}"
 
     def to_json(self) -> list:
-        return [self.name, self.predicted_mm, self.lower_mm, self.upper_mm] + ([self.warning] if self.warning else [])
+        """[name, ê, lower, upper] and, with a warning, its text, kind and whether it is carried
+        (a session of session 39 and before kept the text alone)."""
+        w = self.warning
+        return [self.name, self.predicted_mm, self.lower_mm, self.upper_mm] + \
+            ([w.text, w.kind.value, w.carried] if w is not None else [])
 
     @staticmethod
     def from_json(b: list) -> TargetBand:
-        return TargetBand(str(b[0]), float(b[1]), float(b[2]), float(b[3]), str(b[4]) if len(b) > 4 else None)
+        warning = None
+        if len(b) > 4:  # an older session's text alone: a restored line, not carried
+            kinds = {k.value: k for k in WarningKind}
+            kind = kinds.get(b[5], WarningKind.SAVED) if len(b) > 5 else WarningKind.SAVED
+            warning = FitWarning(kind, str(b[4]), bool(b[6]) if len(b) > 6 else False)
+        return TargetBand(str(b[0]), float(b[1]), float(b[2]), float(b[3]), warning)
 
 
 class PoseFrame(Enum):

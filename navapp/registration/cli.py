@@ -10,6 +10,7 @@ from .. import progress
 from ..argtypes import k_count, positive
 from ..defaults import EDGE_MM, LM_MAX_ITERATIONS, K
 from ..errors import InputError
+from ..fitwarning import FitWarning
 
 
 def add_register_parser(sub):
@@ -135,9 +136,10 @@ def cmd_register(args):
     summary["seconds"] = {k: round(v, 4) for k, v in sec.items()}
     out = args.out or Path(args.case) / "registration"
     write_more = None
+    target_lines: list[FitWarning] = []
     if case.preop.targets:
-        summary["targets"], write_more = _targets(args.case, case, reg, model)
-    summary = write_outputs(case, reg, out, summary, write_more)
+        summary["targets"], write_more, target_lines = _targets(args.case, case, reg, model)
+    summary = write_outputs(case, reg, out, summary, write_more, target_lines)
     for line in summary["warnings"]:
         # one line each, on stderr whatever the output format: a wrong answer must not pass silently
         print(f"navapp: warning: {case.name}: {line}", file=sys.stderr)
@@ -168,10 +170,11 @@ def cmd_register(args):
         print(json.dumps(summary, indent=2))
 
 
-def _targets(case_dir, case, reg, model) -> tuple[list[dict], Callable[[Path], None]]:
+def _targets(case_dir, case, reg, model) -> tuple[list[dict], Callable[[Path], None], list[FitWarning]]:
     """Registered targets: per target its centres (preoperative, registered) and, where
-    truth is known, errors; and the writer of their surfaces (PLY, tracker space) into an
-    output folder's ``targets/``, which ``write_outputs`` calls inside its staging folder."""
+    truth is known, errors; the writer of their surfaces (PLY, tracker space) into an
+    output folder's ``targets/``, which ``write_outputs`` calls inside its staging folder;
+    and the targets' warnings (``support.TargetSupport.warning``), in the targets' order."""
     from ..anatomy.targets import TARGETS_DIR, write_targets
     from ..anatomy.truth import true_targets
     from .support import target_support
@@ -185,7 +188,7 @@ def _targets(case_dir, case, reg, model) -> tuple[list[dict], Callable[[Path], N
         if reg.libr is not None else []
     truth, source = true_targets(case_dir, targets, case.truth)
     rigid = registered_targets(reg, targets, rigid=True) if truth is not None else []
-    rows = []
+    rows, lines = [], []
     for i, (t, m) in enumerate(zip(targets, moved, strict=True)):
         row = {"name": t.name, "kind": "point" if t.surface is None else "surface",
                "diameter_mm": round(t.diameter_mm, 2),
@@ -196,11 +199,12 @@ def _targets(case_dir, case, reg, model) -> tuple[list[dict], Callable[[Path], N
         if supports:
             row["nearest_data_mm"] = round(supports[i].nearest_data_mm, 1)
             row["determined"] = supports[i].determined
-            if supports[i].warning:
-                row["warning"] = supports[i].warning
+            if (line := supports[i].warning) is not None:
+                row["warning"] = line.text
+                lines.append(line)
         if truth is not None:
             row["tre"] = {"truth": source, "rigid": target_errors(rigid[i], truth[i])}
             if reg.libr is not None:
                 row["tre"]["deformable"] = target_errors(m, truth[i])
         rows.append(row)
-    return rows, lambda folder: write_targets(moved, Path(folder) / TARGETS_DIR)
+    return rows, lambda folder: write_targets(moved, Path(folder) / TARGETS_DIR), lines

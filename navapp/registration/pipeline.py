@@ -14,7 +14,7 @@ import json
 import math
 import time
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -1109,21 +1109,22 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
 
 
 def write_outputs(case: Case, reg: Registration, out: Path, extra: dict,
-                  write_more: Callable[[Path], None] | None = None) -> dict:
+                  write_more: Callable[[Path], None] | None = None, targets: Iterable[FitWarning] = ()) -> dict:
     """Registered liver/vessels (PLY), displaced targets (CSV) and result.json, written to
     a temporary folder that replaces ``out`` whole, under ``out``'s lock (``navapp.outputs``).
     ``write_more(folder)`` writes the caller's own files (the registered tumours) into the
     same folder first: a run that stops half way leaves none of its files beside the last
-    run's result."""
+    run's result. ``targets``: the targets' own warnings (``support.TargetSupport.warning``),
+    said in result.json's ``warnings`` after the answer's (``Registration.warnings``)."""
     from ..outputs import folder_lock, staged
 
     with folder_lock(out), staged(out) as tmp:
         if write_more is not None:
             write_more(tmp)
-        return _write_outputs(case, reg, tmp, extra)
+        return _write_outputs(case, reg, tmp, extra, list(targets))
 
 
-def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dict:
+def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict, targets: list[FitWarning]) -> dict:
     from ..outputs import write_registered
 
     out = Path(out)
@@ -1146,7 +1147,7 @@ def _write_outputs(case: Case, reg: Registration, out: Path, extra: dict) -> dic
                       ("supports_check", reg.held)):
         if part is not None:
             summary[key] = part.as_dict()
-    lines = texts(reg.warnings) + [w for t in summary.get("targets", []) if (w := t.get("warning"))]
+    lines = texts([*reg.warnings, *targets])
     verdict = Verdict(tuple(lines))  # one rule: ok only with no warning (fit_quality.ok says the same)
     summary["ok"] = verdict.ok
     if reg.quality is not None:

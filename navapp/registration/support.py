@@ -46,6 +46,7 @@ from scipy.spatial import cKDTree
 from sklearn.cluster import KMeans
 
 from ..features import SALIENT
+from ..fitwarning import FitWarning, WarningKind
 from ..threads import limit_threads
 from .libr import LMOptions, register_libr
 from .model import DATA_TO_MODEL, RegistrationModel
@@ -430,25 +431,37 @@ class TargetSupport:
     name: str
     nearest_data_mm: float
     block_supported: bool | None  # the verdict of the held-out block nearest the target
+    # the caller's words for "at the last full registration" when the block verdicts are a fresh
+    # registration's carried to a warm start or a live frame, which does not cross-validate
+    said: str | None = None
 
     @property
     def determined(self) -> bool:
         return self.nearest_data_mm <= SupportOptions.far_mm and self.block_supported is not False
 
     @property
-    def warning(self) -> str | None:
+    def warning(self) -> FitWarning | None:
+        """The target's line (``WarningKind.TARGET``); one that rests on a carried block verdict
+        (not on the distance, which this answer's own data give) ends with `` (said)`` and is
+        marked ``carried``, as ``pipeline.Registration.carry`` marks the answer's lines."""
         if self.determined:
             return None
         if self.nearest_data_mm > SupportOptions.far_mm:
             why = f"no data within {SupportOptions.far_mm:g} mm (nearest {self.nearest_data_mm:.0f} mm)"
-        else:
-            why = "the data around it are not predicted better by the deformation than without it"
-        return f"deformation not determined by the data near {self.name}: {why}"
+            return FitWarning(WarningKind.TARGET, f"deformation not determined by the data near {self.name}: {why}")
+        line = (f"deformation not determined by the data near {self.name}: the data around it are not "
+                f"predicted better by the deformation than without it")
+        if self.said:
+            return FitWarning(WarningKind.TARGET, f"{line} ({self.said})", carried=True)
+        return FitWarning(WarningKind.TARGET, line)
 
 
-def target_support(support: Support | None, centres: dict, data: dict) -> list[TargetSupport]:
+def target_support(support: Support | None, centres: dict, data: dict,
+                   said: str | None = None) -> list[TargetSupport]:
     """Per target (name → (3,) mm in the model frame): its nearest data point and the
-    verdict of the nearest held-out block (None without cross-validation)."""
+    verdict of the nearest held-out block (None without cross-validation). ``said``: the
+    caller's words for "at the last full registration" when ``support`` is the fresh
+    registration's that a warm one continues from (``TargetSupport.said``)."""
     pts = np.vstack([p for p in data.values() if len(p)]) if data else np.zeros((0, 3))
     tree = cKDTree(pts) if len(pts) else None
     out = []
@@ -458,5 +471,5 @@ def target_support(support: Support | None, centres: dict, data: dict) -> list[T
         if support is not None and support.blocks:
             b = min(support.blocks, key=lambda b: float(np.linalg.norm(b.centre - c)))
             verdict = b.supported
-        out.append(TargetSupport(name, near, verdict))
+        out.append(TargetSupport(name, near, verdict, said))
     return out
