@@ -34,7 +34,7 @@ def test_a_deformable_run_answered_with_its_pose_says_so_in_a_short_box(small_mo
     # the panel: the last run and the result on show name the pose alone
     result = RegisteredState(entry.run, reg.rigid, None)
     core = types.SimpleNamespace(session=types.SimpleNamespace(log=[entry]), result=result)
-    panel = types.SimpleNamespace(core=core, md=types.SimpleNamespace(content=""))
+    panel = types.SimpleNamespace(core=core, md=types.SimpleNamespace(content=""), _stated_supports=lambda: None)
     RegistrationPanel._summary(panel)
     assert panel.md.content.count(POSE_ONLY) == 2 and whole in panel.md.content, panel.md.content
 
@@ -72,7 +72,7 @@ def test_the_last_run_and_the_result_on_show_read_the_same_mean_error():
     entry.error_mean_mm, entry.error_max_mm = round(float(err.mean()), 3), round(float(err.max()), 3)
     result = RegisteredState(entry.run, rigid, np.zeros(3), err)
     core = types.SimpleNamespace(session=types.SimpleNamespace(log=[entry]), result=result)
-    panel = types.SimpleNamespace(core=core, md=types.SimpleNamespace(content=""))
+    panel = types.SimpleNamespace(core=core, md=types.SimpleNamespace(content=""), _stated_supports=lambda: None)
     RegistrationPanel._summary(panel)
     assert "mean error 3.92 mm, max" in panel.md.content and "(mean error 3.92 mm)" in panel.md.content, \
         panel.md.content
