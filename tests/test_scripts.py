@@ -87,3 +87,100 @@ def test_table2_lapnh_report_reproduces_the_committed_report(tmp_path):
     made = out.read_text()
     assert committed.startswith(made) and committed[len(made):].startswith("\n### What it shows")
     assert (out.parent / "table2_lapnh_by_level.png").stat().st_size > 10_000
+
+
+def test_wrong_supports_report_reproduces_the_committed_report(tmp_path):
+    """``python scripts/wrong_supports.py report ROWS --before ROWS`` on the committed rows in
+    notes/ writes results/wrong_supports.md word for word, up to its hand-written "What it shows"
+    (kept when the report is rewritten in place)."""
+    committed = (ROOT / "results/wrong_supports.md").read_text()
+    out = tmp_path / "wrong_supports.md"
+    _run(ROOT / "scripts/wrong_supports.py", "report", "notes/wrong_supports_s39_after.jsonl",
+         "--before", "notes/wrong_supports_s39_before.jsonl", "--out", out)
+    made = out.read_text()
+    assert committed.startswith(made) and committed[len(made):].startswith("\n### What it shows")
+    assert "| right | S + all | 2.334 | 2 → 0 | 25 → 31 |" in made
+    shutil.copy(ROOT / "results/wrong_supports.md", out)
+    _run(ROOT / "scripts/wrong_supports.py", "report", "notes/wrong_supports_s39_after.jsonl",
+         "--before", "notes/wrong_supports_s39_before.jsonl", "--out", out)
+    assert out.read_text() == committed
+
+
+def _refused(args, cwd, problem):
+    out = subprocess.run([sys.executable, str(ROOT / "scripts/wrong_supports.py"), *map(str, args)], cwd=cwd,
+                         capture_output=True, text=True)
+    assert out.returncode != 0 and problem in out.stderr and out.stderr.count("\n") == 1, out.stderr[-2000:]
+
+
+def test_wrong_supports_refuses_a_missing_case_or_rows_file_in_one_line(tmp_path):
+    (tmp_path / "nocase").mkdir()
+    _refused(["run", tmp_path / "rows.jsonl", tmp_path / "absent"], tmp_path, "not a case folder")
+    _refused(["run", tmp_path / "rows.jsonl", tmp_path / "nocase"], tmp_path, "not a case folder")
+    _refused(["report", tmp_path / "absent.jsonl"], tmp_path, "no such rows file")
+    (tmp_path / "bad.jsonl").write_text('{"case": "x"}\n')
+    _refused(["report", tmp_path / "bad.jsonl"], tmp_path, "bad.jsonl:1: not a row")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bad.jsonl", "nocase"]
+
+
+TINY_TOOL_SCENE = """name = "tooltiny"
+seed = 1
+[anatomy]
+phantom = 0
+[deformation]
+gravity = false
+supports = "ligaments"
+release = "N"
+mesh_edge_mm = 10.0
+truth_E_pa = 5000
+[tool]
+site = "anterior"
+at = [-19.5, 55.5, 53.0]
+radius_mm = 10
+depth_mm = 15
+load = "pressure"
+[stylus]
+pattern = "patch"
+points = 200
+coverage = 0.3
+at = [-19.2, 69.6, 42.3]
+[ius]
+planes = 4
+"""
+
+
+def test_wrong_supports_runs_a_small_tool_case_and_reports_it(tmp_path, cache_root):
+    """``run`` on one small local-load case (phantom 0 held at its ligaments, a tool pressed
+    15 mm, 10 mm truth mesh; registered on a 12 mm mesh, k = 12): six rows, the undeclared,
+    right (ligaments) and wrong (posterior) bases at S and S+all; run again, nothing is
+    appended; ``report`` tables them."""
+    import os
+
+    from navapp.simulation.scene import load_scene
+    from navapp.simulation.simulate import simulate
+
+    (tmp_path / "tooltiny.toml").write_text(TINY_TOOL_SCENE)
+    case = tmp_path / "cases" / "tooltiny"
+    simulate(load_scene(tmp_path / "tooltiny.toml"), case, cache_root)
+    rows_file = tmp_path / "rows.jsonl"
+    env = {**os.environ, "NAVAPP_CACHE": str(cache_root)}
+    for added in (6, 0):
+        out = subprocess.run([sys.executable, str(ROOT / "scripts/wrong_supports.py"), "run", str(rows_file),
+                              str(case), "--edge", "12", "--k", "12"], cwd=ROOT, env=env, capture_output=True,
+                             text=True)
+        assert out.returncode == 0, out.stderr[-3000:]
+        assert json.loads(out.stdout)["rows_added"] == added
+    rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
+    assert [(r["level"], r["supports"], r["held"]) for r in rows] == [
+        (level, how, held) for level in ("S", "S+all")
+        for how, held in (("none", None), ("right", "ligaments"), ("wrong", "posterior"))]
+    assert all(r["case"] == "tooltiny" and r["scene"] == "ligaments" and 0 < r["tre"] < 10 for r in rows)
+    assert len({r["identity"] for r in rows}) == 1 and all("held_check" in r for r in rows if r["held"])
+    md = tmp_path / "report" / "wrong_supports.md"
+    _run(ROOT / "scripts/wrong_supports.py", "report", rows_file, "--out", md)
+    text = md.read_text()
+    assert text.startswith("# Declared supports that are wrong") and "1 local-load case (tooltiny … tooltiny)" in text
+    means = {(r["supports"], r["level"]): r["tre"] for r in rows}
+    for how, name in (("none", "undeclared"), ("right", "right"), ("wrong", "wrong")):
+        warned = sum(1 for r in rows if r["supports"] == how and r["level"] == "S+all" and r["warnings"])
+        assert f"| {name} | S + all | {means[how, 'S+all']:.3f} | " in text
+        assert text.split(f"| {name} | S + all | ", 1)[1].split("\n", 1)[0].endswith(f" | {warned} |")
