@@ -147,3 +147,30 @@ def test_the_translucent_livers_are_drawn_one_sided_and_face_out(app):
         assert drawn.volume > 0
         reg = trimesh.Trimesh(registered.vertices, registered.faces, process=False)
         assert reg.is_winding_consistent and reg.volume > 0
+
+
+def test_the_legend_names_only_the_layers_that_draw_something(app):
+    """The legend's ghost line is there with a truth, and its supports line only while supports
+    are stated (before, it listed "held at the stated supports" over an empty layer)."""
+    from navapp.app.panels.registration import HELD
+    from navapp.app.state import StatedSupports
+
+    with headless_tab(app) as (_, view):
+        def legend():
+            return view.layers.legend.content
+
+        assert "true liver (ghost)" in legend() and "held at the stated supports" not in legend()
+        bed = HELD["A posterior bed"]
+        try:
+            app.runs.set_supports(bed)
+            end = time.monotonic() + BUSY_WAIT_S
+            while not view.layers.nodes["Stated supports"] and time.monotonic() < end:
+                time.sleep(0.2)
+            assert view.layers.nodes["Stated supports"], "the stated supports were not drawn"
+            assert "held at the stated supports" in legend()
+        finally:
+            app.runs.set_supports(StatedSupports())
+        end = time.monotonic() + BUSY_WAIT_S
+        while view.layers.nodes["Stated supports"] and time.monotonic() < end:
+            time.sleep(0.2)
+        assert "held at the stated supports" not in legend()

@@ -5,6 +5,8 @@ so a data point, the contour it was drawn as and its legend entry share one colo
 No viser here.
 """
 
+from dataclasses import dataclass
+
 from ..anatomy.model import VESSELS
 from ..features import BY_NAME, TABLE
 
@@ -26,12 +28,28 @@ REG_TARGET: RGB = (230, 0, 255)
 SUPPORTS: RGB = (0, 160, 150)  # the surface the stated supports hold (preoperative model)
 FEATURE_COLOURS: dict[str, RGB] = {f.name: f.colour for f in TABLE}  # data points, by feature
 TURBO_CSS = "#30123b,#4686fb,#1ae4b6,#a2fc3c,#fabb39,#e4460a,#7a0403"  # the error colour scale (matplotlib turbo)
-# the floating legend: (words, colour, opacity of the swatch)
-LEGEND: tuple[tuple[str, RGB, float], ...] = (
-    ("preop liver", LIVER, 0.5), ("preop portal vein", VESSEL["portal"], 0.6),
-    ("preop hepatic veins", VESSEL["hepatic"], 0.6), ("registered liver", REGISTERED, 0.7),
-    ("registered portal vein", REG_VESSEL["portal"], 1), ("registered hepatic veins", REG_VESSEL["hepatic"], 1),
-    ("targets (tumours)", TARGET, 1), ("true liver (ghost)", TRUTH, 0.5), ("held at the stated supports", SUPPORTS, 1))
+# the floating legend
+
+
+@dataclass(frozen=True)
+class LegendEntry:
+    """One line of the floating legend: its words, its swatch's colour and opacity, and the
+    layer it names where that layer is not always there (the ghost only with a truth, the
+    supports only while stated): the line is left out while that layer draws nothing."""
+    words: str
+    colour: RGB
+    opacity: float
+    layer: str | None = None
+
+
+LEGEND: tuple[LegendEntry, ...] = (
+    LegendEntry("preop liver", LIVER, 0.5), LegendEntry("preop portal vein", VESSEL["portal"], 0.6),
+    LegendEntry("preop hepatic veins", VESSEL["hepatic"], 0.6), LegendEntry("registered liver", REGISTERED, 0.7),
+    LegendEntry("registered portal vein", REG_VESSEL["portal"], 1),
+    LegendEntry("registered hepatic veins", REG_VESSEL["hepatic"], 1),
+    LegendEntry("targets (tumours)", TARGET, 1),
+    LegendEntry("true liver (ghost)", TRUTH, 0.5, layer="True deformed liver (ghost)"),
+    LegendEntry("held at the stated supports", SUPPORTS, 1, layer="Stated supports"))
 
 # ---------------------------------------------------------------- 2D view
 # the model cut by the image: preoperative (rigidly placed) dashed in the first colour,

@@ -147,6 +147,7 @@ class LayersPanel:
         if t is not None and not self.nodes["True deformed liver (ghost)"]:
             self._add("True deformed liver (ghost)", s.add_mesh_simple("/truth/liver", *self.core.display.of(t),
                                                                         color=TRUTH, opacity=0.3))
+            self._render_legend()  # the ghost's line only where there is a truth
         if not self.nodes["Stylus"]:
             self.tool = self._add("Stylus", s.add_mesh_trimesh("/stylus/tool", stylus_tool()))
             self.tool.visible = False
@@ -211,11 +212,11 @@ class LayersPanel:
         for node in self.nodes["Stated supports"]:
             node.remove()
         self.nodes["Stated supports"].clear()
-        if held is None:
-            return
-        at = basis.nodes[held_nodes(TetMesh(basis.nodes, basis.tets), held.held, held.release, held.points)]
-        self._add("Stated supports", self.s.add_point_cloud("/preop/supports", at.astype(np.float32), SUPPORTS,
-                                                            point_size=SUPPORT_DOT_MM))
+        if held is not None:
+            at = basis.nodes[held_nodes(TetMesh(basis.nodes, basis.tets), held.held, held.release, held.points)]
+            self._add("Stated supports", self.s.add_point_cloud("/preop/supports", at.astype(np.float32), SUPPORTS,
+                                                                point_size=SUPPORT_DOT_MM))
+        self._render_legend()  # its supports line only while some are stated
 
     def _show_data(self):
         data = self.core.data()
@@ -412,9 +413,9 @@ class LayersPanel:
         none = (self.source.value == PREDICTED and res is not None and res.predicted_mm is None
                 and res.pose_warning is not None)
         sw = "".join(
-            f"<div><span style='display:inline-block;width:12px;height:12px;background:rgb{c};margin-right:5px;"
-            f"opacity:{o}'></span>{t}</div>"
-            for t, c, o in LEGEND)
+            f"<div><span style='display:inline-block;width:12px;height:12px;background:rgb{e.colour};"
+            f"margin-right:5px;opacity:{e.opacity}'></span>{e.words}</div>"
+            for e in LEGEND if e.layer is None or self.nodes[e.layer])
         self.legend.content = (
             f"<div style='font-size:12px'>{sw}<div style='margin-top:6px'>{ERROR_SOURCES[self.source.value]} "
             f"(dots on the registered surface)</div>"
