@@ -215,11 +215,12 @@ def test_a_declared_tracker_offset_is_corrected_by_the_data(small_model):
 
 
 def test_a_declared_offset_the_prior_must_let_the_data_correct(small_model):
-    """A tracker frame off by 6° / 6–8 mm, declared at that size (9 mm / 8°, wider than the
-    clinical goal), under a scan of about a sixth of the surface with an 8 mm dent the basis
-    cannot make. The rigid stage reads its scale at the undeformed model, where the offset it has
-    not yet removed is misfit, and that scale holds the pose near the given one (σ_pose wider than
-    the move: the given pose, 12 mm off, was shown). The deformation is not supported, so the
+    """A tracker frame turned (6°, −4°, 3°) and shifted (6, −5, 4) mm (12.1 mm mean over the
+    nodes), declared at 9 mm / 8° (wider than the clinical goal), under a scan of about a sixth
+    of the surface with an 8 mm dent the basis cannot make. The rigid stage reads its scale at
+    the undeformed model, where the offset it has not yet removed is misfit, and that scale
+    holds the pose near the given one (σ_pose wider than the move: the given pose, 12 mm off,
+    was shown). The deformation is not supported, so the
     rigid answer is refitted at the deformable answer's settled scale — the rigid model the
     held-out blocks judged — and the data take most of the offset out; the fitted pose is said."""
     from navapp.registration.pipeline import register
