@@ -673,7 +673,8 @@ def _settle_scale(model: RegistrationModel, local: dict, result, options: LMOpti
 
 
 def _rigid_at_settled_scale(model: RegistrationModel, data: dict, options: LMOptions, cancel, moved: RigidResult,
-                            rigid: RigidResult, centred: PosePrior, result: LibrResult):
+                            rigid: RigidResult, result: LibrResult
+                            ) -> tuple[RigidResult, RigidResult, dict, PosePrior, LibrResult] | None:
     """The declared rigid answer where the deformation is not supported and the pose is declared
     wider than the clinical goal: τ, θ refitted to all the data (α = 0) with the prior at the
     deformable answer's settled scale σ_F (``options``, after ``_settle_scale``), from the rigid
@@ -692,14 +693,15 @@ def _rigid_at_settled_scale(model: RegistrationModel, data: dict, options: LMOpt
 
     Returns ``(moved, rigid, local, centred, result)``: the pose relative to the given one, the
     pose (model → tracker frame), the data in its model frame, the prior centred on where the
-    given pose lies from it at the settled scale, and the deformable fit re-expressed in that
-    frame (its β and ``local`` stay one pair). Unchanged when the refit was cancelled."""
+    given pose lies from it at the settled scale (for ``PoseEvidence`` and the answer's options),
+    and the deformable fit re-expressed in that frame (its β and ``local`` stay one pair); None
+    when the refit was cancelled."""
     settled = options.weights.pose_prior
     assert settled is not None
     local = {name: rigid.inverse(p) for name, p in data.items()}
     fitted = register_libr(model, local, None, replace(options, deform=False, pose=True), None, cancel)
     if fitted.stop_reason == "cancelled":
-        return moved, rigid, local, centred, result
+        return None
     step = beta_pose(fitted.beta, model.centroid)
     moved = replace(after(moved, step), iterations=moved.iterations + fitted.iterations, kept=moved.kept)
     rigid = replace(after(rigid, step), iterations=moved.iterations, kept=rigid.kept)
@@ -1034,8 +1036,10 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         # (``_rigid_at_settled_scale``); within it, the given pose is the reference the move is
         # judged against at the misfit's scale, from the rigid stage's pose
         if declared_spread(model, options.weights) > CLINICAL_GOAL_MM:
-            moved, rigid, local, centred, result = _rigid_at_settled_scale(model, data, options, cancel, moved,
-                                                                           rigid, centred, result)
+            refit = _rigid_at_settled_scale(model, data, options, cancel, moved, rigid, result)
+            if refit is not None:
+                moved, rigid, local, centred, result = refit
+                options = replace(options, weights=replace(options.weights, pose_prior=centred))
         evidence = pose_evidence(model, local, moved, centred, options.weights)
         if evidence.kept_given:
             # the deformable fit re-expressed about the given pose, so that its β and the data's
