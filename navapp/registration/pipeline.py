@@ -1048,6 +1048,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
             at = given if given is not None else _given()
             rigid = replace(at, rms_mm=rms_on_model(model, data, at), kept=True)
             local = {n: rigid.inverse(p) for n, p in data.items()}
+            assert options.weights.pose_prior is not None
             options = replace(options, weights=replace(options.weights, pose_prior=replace(
                 options.weights.pose_prior, centre=(0.0,) * 6)))
     if choice is not None:
