@@ -672,6 +672,49 @@ def _settle_scale(model: RegistrationModel, local: dict, result, options: LMOpti
     return result, options
 
 
+def _rigid_at_settled_scale(model: RegistrationModel, data: dict, options: LMOptions, cancel, moved: RigidResult,
+                            rigid: RigidResult, result: LibrResult
+                            ) -> tuple[RigidResult, RigidResult, dict, PosePrior, LibrResult] | None:
+    """The declared rigid answer where the deformation is not supported and the pose is declared
+    wider than the clinical goal: τ, θ refitted to all the data (α = 0) with the prior at the
+    deformable answer's settled scale σ_F (``options``, after ``_settle_scale``), from the rigid
+    stage's pose.
+
+    The rigid model is the deformable one with α held at zero, and the two are compared by the
+    held-out blocks at that scale: each fold's rigid answer is this fit on its training data
+    (``support``). The noise of a nested comparison is read from the larger model's residuals
+    (as Mallows' C_p and the F-test read it); the rigid stage's own scale, at the undeformed
+    model, also counts the misfit of the offset it has not yet removed, and held a tracker
+    offset declared at its true size near the given pose (tooldraw4_2-e at S: 17.2 mm shown,
+    3.18 refitted; docs/decisions/registration.md, "The declared rigid answer at the settled
+    scale"). So the pose shown is the one the cross-validation judged. Within the goal the given
+    pose is the reference and the rigid stage's pose is judged against it as before: refitted
+    there too, two pre-aligned answers went silently worse (same section).
+
+    Returns ``(moved, rigid, local, centred, result)``: the pose relative to the given one, the
+    pose (model → tracker frame), the data in its model frame, the prior centred on where the
+    given pose lies from it at the settled scale (for ``PoseEvidence`` and the answer's options),
+    and the deformable fit re-expressed in that frame (its β and ``local`` stay one pair); None
+    when the refit was cancelled."""
+    settled = options.weights.pose_prior
+    assert settled is not None
+    local = {name: rigid.inverse(p) for name, p in data.items()}
+    fitted = register_libr(model, local, None, replace(options, deform=False, pose=True), None, cancel)
+    if fitted.stop_reason == "cancelled":
+        return None
+    step = beta_pose(fitted.beta, model.centroid)
+    moved = replace(after(moved, step), iterations=moved.iterations + fitted.iterations, kept=moved.kept)
+    rigid = replace(after(rigid, step), iterations=moved.iterations, kept=rigid.kept)
+    rigid = replace(rigid, rms_mm=rms_on_model(model, data, rigid))
+    local = {name: rigid.inverse(p) for name, p in data.items()}
+    c = model.centroid
+    tau = moved.t - c + moved.R @ c  # τ, θ of the moved pose about the given one (``_declared_rigid``)
+    theta = Rotation.from_matrix(moved.R).as_euler("XYZ")
+    centred = replace(settled, centre=tuple(np.concatenate([-moved.R.T @ tau, -theta]).tolist()))
+    back = RigidResult(step.R.T, -step.R.T @ step.t, 0, 0.0)
+    return moved, rigid, local, centred, replace(result, beta=_rebased(model, result.beta, back))
+
+
 def _rebased(model: RegistrationModel, beta: np.ndarray, pose: RigidResult) -> np.ndarray:
     """β (3k + 6,) fitted to data in ``pose``'s model frame, re-expressed about the given pose
     (identity): the same deformed organ in the tracker frame. With x(β) = R(θ)(x0 + u − x̄0) + τ + x̄0
@@ -987,7 +1030,16 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         # the rigid answer with a declared pose: the fitted pose or the given one, by whether the
         # posterior tells them apart; within the goal, at the scale of the misfit the rigid fit
         # leaves (``PoseEvidence``; docs/decisions/registration.md, "One criterion for the pose",
-        # "A declared rigid move judged at the scale of the misfit it leaves")
+        # "A declared rigid move judged at the scale of the misfit it leaves"). Declared wider than
+        # the goal, the rigid answer is the one the cross-validation weighed the deformation
+        # against: τ, θ refitted with the prior at the deformable answer's settled scale
+        # (``_rigid_at_settled_scale``); within it, the given pose is the reference the move is
+        # judged against at the misfit's scale, from the rigid stage's pose
+        if declared_spread(model, options.weights) > CLINICAL_GOAL_MM:
+            refit = _rigid_at_settled_scale(model, data, options, cancel, moved, rigid, result)
+            if refit is not None:
+                moved, rigid, local, centred, result = refit
+                options = replace(options, weights=replace(options.weights, pose_prior=centred))
         evidence = pose_evidence(model, local, moved, centred, options.weights)
         if evidence.kept_given:
             # the deformable fit re-expressed about the given pose, so that its β and the data's
@@ -996,6 +1048,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
             at = given if given is not None else _given()
             rigid = replace(at, rms_mm=rms_on_model(model, data, at), kept=True)
             local = {n: rigid.inverse(p) for n, p in data.items()}
+            assert options.weights.pose_prior is not None
             options = replace(options, weights=replace(options.weights, pose_prior=replace(
                 options.weights.pose_prior, centre=(0.0,) * 6)))
     if choice is not None:

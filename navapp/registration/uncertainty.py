@@ -483,7 +483,9 @@ class PoseEvidence:
 
     ``moved_mm``: how far the rigid fit moved the organ from the given pose; ``sigma_mm``: that
     fit's posterior σ_pose (data and prior, ``pose_covariance``) at the rigid stage's robust
-    scale; ``prior_sigma_mm``: the prior's alone (the given pose's own predicted error);
+    scale (declared wider than the goal: at the deformable answer's settled scale, where the
+    rigid fit is refitted, ``pipeline._rigid_at_settled_scale``); ``prior_sigma_mm``: the
+    prior's alone (the given pose's own predicted error);
     ``misfit_sigma_mm``: the same posterior σ_pose with the data read at the mean square of the
     rigid fit's own residuals (``misfit_sd_mm``, the likelihood's usual scale estimate, floored
     at the robust one), None when it was not computed.
