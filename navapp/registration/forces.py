@@ -255,7 +255,8 @@ class SurfaceForces:
         incident face won a tie of equal distances (rounding decides it), and the fit's answer
         moved by up to 4 mm with the data moved by 10⁻⁹ mm (docs/decisions/local-loads.md)."""
         moved = self.nodes + u
-        face, bary, _ = closest_on_surface(points, moved, self.faces, self.table)
+        face, bary, _ = closest_on_surface(points, moved, self.faces, self.table,
+                                           nearest=self._nearest_surface(points, moved))
         tri = self.faces[face]
         nrm = surface_normals(points, moved, self.faces, face, bary)
         rows = np.repeat(np.arange(len(points)), 3)
@@ -325,15 +326,22 @@ class SurfaceForces:
         return sp.csr_matrix((vals.ravel(), (np.repeat(np.arange(n), 9), cols.ravel())),
                              shape=(n, 3 * len(self.all_surface)))
 
+    def _nearest_surface(self, points: np.ndarray, moved: np.ndarray) -> np.ndarray:
+        """The ``NEAR`` surface nodes nearest each of ``points`` (N, NEAR), among the surface nodes
+        only: an interior node has no face to test, and a candidate set of interior nodes put a
+        point's closest point on a far vertex (a point 4 mm off the surface matched 40 mm away;
+        docs/decisions/local-loads.md, "interior nodes")."""
+        near = cKDTree(moved[self.all_surface]).query(points, k=NEAR)[1].reshape(len(points), NEAR)
+        return self.all_surface[near]
+
     def distances(self, points: np.ndarray, us: np.ndarray):
         """Signed distances (N,) of ``points`` to the surface moved by ``us`` (3 S_all,) at the
         surface nodes (the true distances: ``correspondences``' normals), with their barycentric
         rows and normals (the Jacobian's left factor)."""
         moved = self.nodes.copy()
         moved[self.all_surface] += us.reshape(-1, 3)
-        # the nearest vertices among the surface nodes only (an interior node has no face to test)
-        near = cKDTree(moved[self.all_surface]).query(points, k=NEAR)[1].reshape(len(points), NEAR)
-        face, bary, y = closest_on_surface(points, moved, self.faces, self.table, nearest=self.all_surface[near])
+        face, bary, y = closest_on_surface(points, moved, self.faces, self.table,
+                                           nearest=self._nearest_surface(points, moved))
         tri = self.faces[face]
         nrm = surface_normals(points, moved, self.faces, face, bary)
         rows = np.repeat(np.arange(len(points)), 3)
@@ -342,7 +350,8 @@ class SurfaceForces:
 
     def fit_weights(self, pf: "PointForces", lam: float, train: np.ndarray | None = None,
                     options: "ForceOptions | None" = None, pose: PoseTerm | None = None,
-                    rigid_only: bool = False, held_q: np.ndarray | None = None) -> "WeightFit":
+                    rigid_only: bool = False, held_q: np.ndarray | None = None,
+                    warm: "WeightFit | None" = None) -> "WeightFit":
         """The forces on the points ``train`` (indices into ``pf``; default all) minimising Φ
         (module doc) with the correspondences recomputed on the deformed surface: Levenberg–
         Marquardt on the point weights w (forces F = Dᵀw at the points' undeformed
@@ -358,11 +367,11 @@ class SurfaceForces:
         no force (the undeformed organ's pose under the prior: no deformation's own fold fit)."""
         with limit_threads(1):  # small dense systems: on 2 shared cores threaded BLAS only waits
             return self._fit_weights(pf, lam, train, options or ForceOptions(energy_weight=lam), pose, rigid_only,
-                                     held_q)
+                                     held_q, warm)
 
     def _fit_weights(self, pf: "PointForces", lam: float, train, o: "ForceOptions",
                      pose: PoseTerm | None = None, rigid_only: bool = False,
-                     held_q: np.ndarray | None = None) -> "WeightFit":
+                     held_q: np.ndarray | None = None, warm: "WeightFit | None" = None) -> "WeightFit":
         idx = np.arange(len(pf.points)) if train is None else np.asarray(train)
         # the force sites among the training points (a held-out point's site is held out too)
         cols = np.flatnonzero(np.isin(pf.sites, idx)) if not rigid_only else np.zeros(0, int)
@@ -382,6 +391,12 @@ class SurfaceForces:
 
         # the pose starts where the rigid stage left it (q = 0), its prior centred on the given pose
         x = np.zeros(s + (6 if pose is not None else 0))
+        if warm is not None:  # a warm start: the weights of the sites both fits use, and its pose
+            at = np.searchsorted(cols, warm.index)
+            ok = (at < s) & (cols[np.minimum(at, max(s - 1, 0))] == warm.index) if s else np.zeros(0, bool)
+            x[at[ok]] = warm.w[ok]
+            if pose is not None and warm.q is not None:
+                x[s:] = warm.q
         cur, d, A, nrm, Pm = phi(x)
         start, nu, iterations, accepted = cur, 0.0, 0, 0
         while iterations < o.iterations:
