@@ -282,26 +282,6 @@ def test_the_energy_weight_is_the_largest_within_one_paired_standard_error_of_th
     assert one_standard_error({1e-3: base}, counts) == 1e-3
 
 
-def test_the_energy_weight_is_the_interleaved_folds_best_among_those_the_blocks_admit():
-    """``interleaved_choice``: the spatial blocks admit the λ within one paired standard error of
-    their best (tool1-c's kind: a block over the dent that no λ predicts, 15.7 mm, and the
-    blocks' least at the smoothest λ); among those, the λ whose fits predict the interleaved
-    folds best — not the blocks' largest (``one_standard_error`` would take λ = 10) — and a λ
-    the blocks reject (λ = 10⁻⁴ here, worse by a steady 0.5 mm) is not taken however well it
-    interpolates."""
-    from navapp.registration.forces import interleaved_choice, one_standard_error
-
-    counts = np.array([88, 121, 103, 79, 109])
-    blocks = {1e-4: np.array([1.09, 16.2, 0.74, 2.84, 1.01]),
-              1e-3: np.array([0.587, 15.70, 0.243, 2.344, 0.508]), 1e-2: np.array([0.703, 15.70, 0.222, 2.349, 0.716]),
-              1.0: np.array([1.242, 15.66, 0.211, 1.660, 1.001]), 10.0: np.array([0.677, 15.61, 0.386, 0.836, 0.448])}
-    dealt = np.array([100, 100, 100, 100, 100])
-    interleaved = {1e-4: np.full(5, 0.40), 1e-3: np.full(5, 0.52) + [0, .02, -.02, .01, -.01],
-                   1e-2: np.full(5, 0.56), 1.0: np.full(5, 2.04), 10.0: np.full(5, 4.24)}
-    assert one_standard_error(blocks, counts) == 10.0
-    assert interleaved_choice(blocks, counts, interleaved, dealt) == 1e-3
-
-
 def test_surface_forces_on_a_free_floating_model_is_one_clear_error(small_model):
     from navapp.errors import InputError
     from navapp.registration.pipeline import register
@@ -319,7 +299,7 @@ def test_register_with_surface_forces_shows_the_chosen_answer(held_basis, phanto
     re-registration shows the basis's answer with a line that says so."""
     from navapp.fitwarning import WarningKind
     from navapp.mechanics.fem import Material
-    from navapp.registration.forces import Answer, interleaved_choice
+    from navapp.registration.forces import Answer, one_standard_error
     from navapp.registration.model import build_model
     from navapp.registration.pipeline import register
     from navapp.registration.prior import PosePrior
@@ -337,8 +317,7 @@ def test_register_with_surface_forces_shows_the_chosen_answer(held_basis, phanto
     reg = register(model, {"anterior": pts}, pose_prior=PosePrior(2.0, 2.0), surface_forces=True)
     fc = reg.forces
     assert fc is not None and fc.u is not None
-    assert fc.energy_weight == interleaved_choice(fc.forces_blocks_mm, fc.block_points, fc.forces_interleaved_mm,
-                                                  fc.interleaved_points)
+    assert fc.energy_weight == one_standard_error(fc.forces_blocks_mm, fc.block_points)
     scores = {Answer.NONE: fc.none_mm, Answer.BASIS: fc.basis_mm, Answer.FORCES: fc.forces_mm[fc.energy_weight]}
     assert scores[fc.answer] == min(v for v in scores.values() if v is not None)
     assert reg.deformed == (fc.answer is not Answer.NONE)

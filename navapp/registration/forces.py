@@ -27,9 +27,8 @@ the site weights whose Jacobian comes from the stored responses without a furthe
 
 The answer is chosen by held-out data (``choose_deformation``): the surface data cut into
 spatial blocks, each predicted by the fits to the others — no deformation, the supported
-basis's LIBR fit, the forces at the λ (mm² per Pa of mean strain-energy density) that,
-among those the blocks cannot tell from their best by one paired standard error, predicts
-points dealt at random to interleaved folds best (``interleaved_choice``) — as the held-out
+basis's LIBR fit, the forces at the λ (mm² per Pa of mean strain-energy density) the
+one-standard-error rule takes from their path (``one_standard_error``) — as the held-out
 points' distance to the surface each answer makes; the least wins, so the answer never
 predicts the held-out data worse than not deforming. The data are in the model frame
 (the rigid stage's pose applied).
@@ -91,13 +90,6 @@ def one_standard_error(block_mm: dict[float, np.ndarray], counts: np.ndarray) ->
     blocks, neighbouring λ held out within the blocks' noise of each other, and a smaller λ
     lets the forces grow where no datum checks them (on the study set and draw 3 the least's
     λ = 10⁻³ gave three answers 2–4 mm worse than any other λ; docs/decisions/local-loads.md, session 34)."""
-    return max(within_one_standard_error(block_mm, counts))
-
-
-def within_one_standard_error(block_mm: dict[float, np.ndarray], counts: np.ndarray) -> list[float]:
-    """The λ whose held-out RMS exceeds the least by no more than one standard error of that
-    excess, paired block by block (``one_standard_error``'s set: the λ the blocks cannot tell
-    from their best)."""
     p = np.asarray(counts, float) / np.sum(counts)
     mean = {k: float(p @ np.asarray(v)) for k, v in block_mm.items()}
     best = min(mean, key=lambda k: (mean[k], -k))
@@ -109,28 +101,7 @@ def within_one_standard_error(block_mm: dict[float, np.ndarray], counts: np.ndar
         se = float(np.sqrt(n / max(n - 1, 1) * np.sum(p ** 2 * (d - excess) ** 2)))
         if excess <= se:
             ok.append(k)
-    return ok
-
-
-def interleaved_choice(block_mm: dict[float, np.ndarray], counts: np.ndarray,
-                       interleaved_mm: dict[float, np.ndarray], interleaved_counts: np.ndarray) -> float:
-    """λ: among those the spatial blocks cannot tell from their best (``within_one_standard_error``),
-    the one whose fits predict the interleaved folds' points best (point-weighted mean RMS; a
-    tie to the larger λ).
-
-    Two questions, each asked of the folds that can answer it. A spatial block lies 12–19 mm
-    from the others' points, so it asks how far a fit may be trusted beyond its data, and a
-    tool's dent that fills a block is predicted by no λ (tool1-c: 15.7 mm at every λ), so the
-    blocks' own least leaned to the smoothest λ, whose fit leaves the dent (2.8 mm RMS against
-    0.2 at λ = 10⁻³; TRE 0.90 against 0.31 mm). An interleaved fold's points have data
-    around them, so it asks how well the fit makes the surface where the data are — where a
-    tool's dent is — but it cannot see a pose sliding with a deformation that fits every point
-    as well (tool0-e, a tracker offset: its least λ = 10⁻¹ with the pose 9.0 mm TRE against 3.1
-    at the blocks' λ = 10), which the blocks' extrapolation can (docs/decisions/local-loads.md,
-    "interleaved folds")."""
-    ok = within_one_standard_error(block_mm, counts)
-    p = np.asarray(interleaved_counts, float) / np.sum(interleaved_counts)
-    return min(ok, key=lambda k: (float(p @ np.asarray(interleaved_mm[k])), -k))
+    return max(ok)
 
 
 @dataclass(frozen=True)
@@ -379,7 +350,8 @@ class SurfaceForces:
 
     def fit_weights(self, pf: "PointForces", lam: float, train: np.ndarray | None = None,
                     options: "ForceOptions | None" = None, pose: PoseTerm | None = None,
-                    rigid_only: bool = False, held_q: np.ndarray | None = None) -> "WeightFit":
+                    rigid_only: bool = False, held_q: np.ndarray | None = None,
+                    warm: "WeightFit | None" = None) -> "WeightFit":
         """The forces on the points ``train`` (indices into ``pf``; default all) minimising Φ
         (module doc) with the correspondences recomputed on the deformed surface: Levenberg–
         Marquardt on the point weights w (forces F = Dᵀw at the points' undeformed
@@ -395,11 +367,11 @@ class SurfaceForces:
         no force (the undeformed organ's pose under the prior: no deformation's own fold fit)."""
         with limit_threads(1):  # small dense systems: on 2 shared cores threaded BLAS only waits
             return self._fit_weights(pf, lam, train, options or ForceOptions(energy_weight=lam), pose, rigid_only,
-                                     held_q)
+                                     held_q, warm)
 
     def _fit_weights(self, pf: "PointForces", lam: float, train, o: "ForceOptions",
                      pose: PoseTerm | None = None, rigid_only: bool = False,
-                     held_q: np.ndarray | None = None) -> "WeightFit":
+                     held_q: np.ndarray | None = None, warm: "WeightFit | None" = None) -> "WeightFit":
         idx = np.arange(len(pf.points)) if train is None else np.asarray(train)
         # the force sites among the training points (a held-out point's site is held out too)
         cols = np.flatnonzero(np.isin(pf.sites, idx)) if not rigid_only else np.zeros(0, int)
@@ -419,6 +391,12 @@ class SurfaceForces:
 
         # the pose starts where the rigid stage left it (q = 0), its prior centred on the given pose
         x = np.zeros(s + (6 if pose is not None else 0))
+        if warm is not None:  # a warm start: the weights of the sites both fits use, and its pose
+            at = np.searchsorted(cols, warm.index)
+            ok = (at < s) & (cols[np.minimum(at, max(s - 1, 0))] == warm.index) if s else np.zeros(0, bool)
+            x[at[ok]] = warm.w[ok]
+            if pose is not None and warm.q is not None:
+                x[s:] = warm.q
         cur, d, A, nrm, Pm = phi(x)
         start, nu, iterations, accepted = cur, 0.0, 0, 0
         while iterations < o.iterations:
@@ -546,7 +524,8 @@ class Answer(Enum):
 class ForceChoice:
     """``choose_deformation``: the answer, the held-out RMS (mm, point-weighted mean over the
     blocks) of no deformation, of the basis's fit (None where there was none) and of the
-    forces at each λ (and each block's); the λ ``interleaved_choice`` takes and the forces' answer there, u (M, 3) mm (model
+    forces at each λ (and each block's); the λ the one-standard-error
+    rule takes (``one_standard_error``) and the forces' answer there, u (M, 3) mm (model
     frame) and its fit (kept whichever answer is shown)."""
 
     answer: Answer
@@ -564,9 +543,6 @@ class ForceChoice:
     # the forces' rigid part (τ mm, θ rad) of eq. 8, fitted with them under the declared pose's
     # prior (``PoseTerm``); None: they deform from the rigid stage's pose
     pose: np.ndarray | None = None
-    # λ → each interleaved fold's held-out RMS (mm): the folds ``interleaved_choice`` picks λ on
-    forces_interleaved_mm: dict[float, np.ndarray] = field(default_factory=dict)
-    interleaved_points: np.ndarray | None = None  # the points of each interleaved fold
 
     @property
     def shown_mm(self) -> float:
@@ -606,8 +582,6 @@ class ForceChoice:
                 "heldout_forces_mm": {f"{k:g}": round(v, 3) for k, v in self.forces_mm.items()},
                 "heldout_forces_blocks_mm": {f"{k:g}": [round(float(x), 3) for x in v]
                                              for k, v in self.forces_blocks_mm.items()},
-                "heldout_forces_interleaved_mm": {f"{k:g}": [round(float(x), 3) for x in v]
-                                                  for k, v in self.forces_interleaved_mm.items()},
                 "heldout_free_mm": None if self.free_mm is None else round(self.free_mm, 3),
                 "pose_fitted": None if self.pose is None else
                 {"translation_mm": round(float(np.linalg.norm(self.pose[:3])), 3),
@@ -695,13 +669,7 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
             basis_mm = score(lambda b, h, t: basis_fold(b, h, t, model))
         if free is not None:
             free_mm = score(lambda b, h, t: basis_fold(b, h, t, free))
-    # the folds that choose λ: every point dealt at random to one of as many folds as blocks, so
-    # a held-out point has data around it (docs/decisions/local-loads.md, "interleaved folds")
-    dealt = np.random.default_rng(0).permutation(len(points)) % options.blocks
-    interleaved = [(np.flatnonzero(dealt == b), np.flatnonzero(dealt != b)) for b in range(options.blocks)
-                   if 0 < np.sum(dealt == b) < len(points)]
-    interleaved_counts = np.array([len(held) for held, _ in interleaved])
-    forces_blocks, forces_interleaved = {}, {}
+    forces_blocks = {}
     for lam in weights:
         o = replace(options, energy_weight=lam)
         # the pose, where it is fitted with the forces, from every block, as no deformation's is
@@ -713,18 +681,14 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
             return _posed_surface(forces, pf.Xs[:, fw.index] @ fw.w, fw.q, pose)
 
         forces_blocks[lam] = blocks(force_fold)
-        forces_interleaved[lam] = np.array([
-            float(np.sqrt(np.mean(forces.distances(points[held], force_fold(b, held, train))[0] ** 2)))
-            for b, (held, train) in enumerate(interleaved)])
     forces_mm = {k: float(np.average(v, weights=counts)) for k, v in forces_blocks.items()}
-    best = interleaved_choice(forces_blocks, counts, forces_interleaved, interleaved_counts)
+    best = one_standard_error(forces_blocks, counts)
     scores = {Answer.NONE: none_mm, Answer.FORCES: forces_mm[best]}
     if basis_mm is not None:
         scores[Answer.BASIS] = basis_mm
     answer = min(scores, key=lambda a: (scores[a], a is not Answer.NONE))  # a tie: no deformation
     choice = ForceChoice(answer, none_mm, basis_mm, forces_mm, forces_blocks_mm=forces_blocks, block_points=counts,
-                         free_mm=free_mm, forces_interleaved_mm=forces_interleaved,
-                         interleaved_points=interleaved_counts)
+                         free_mm=free_mm)
     # the force answer at its λ is kept whichever is shown: a study compares the three
     o = replace(options, energy_weight=best)
     wf = forces.fit_weights(pf, best, None, o, pose)
