@@ -350,8 +350,7 @@ class SurfaceForces:
 
     def fit_weights(self, pf: "PointForces", lam: float, train: np.ndarray | None = None,
                     options: "ForceOptions | None" = None, pose: PoseTerm | None = None,
-                    rigid_only: bool = False, held_q: np.ndarray | None = None,
-                    warm: "WeightFit | None" = None) -> "WeightFit":
+                    rigid_only: bool = False, held_q: np.ndarray | None = None) -> "WeightFit":
         """The forces on the points ``train`` (indices into ``pf``; default all) minimising Φ
         (module doc) with the correspondences recomputed on the deformed surface: Levenberg–
         Marquardt on the point weights w (forces F = Dᵀw at the points' undeformed
@@ -367,11 +366,11 @@ class SurfaceForces:
         no force (the undeformed organ's pose under the prior: no deformation's own fold fit)."""
         with limit_threads(1):  # small dense systems: on 2 shared cores threaded BLAS only waits
             return self._fit_weights(pf, lam, train, options or ForceOptions(energy_weight=lam), pose, rigid_only,
-                                     held_q, warm)
+                                     held_q)
 
     def _fit_weights(self, pf: "PointForces", lam: float, train, o: "ForceOptions",
                      pose: PoseTerm | None = None, rigid_only: bool = False,
-                     held_q: np.ndarray | None = None, warm: "WeightFit | None" = None) -> "WeightFit":
+                     held_q: np.ndarray | None = None) -> "WeightFit":
         idx = np.arange(len(pf.points)) if train is None else np.asarray(train)
         # the force sites among the training points (a held-out point's site is held out too)
         cols = np.flatnonzero(np.isin(pf.sites, idx)) if not rigid_only else np.zeros(0, int)
@@ -391,12 +390,6 @@ class SurfaceForces:
 
         # the pose starts where the rigid stage left it (q = 0), its prior centred on the given pose
         x = np.zeros(s + (6 if pose is not None else 0))
-        if warm is not None:  # a warm start: the weights of the sites both fits use, and its pose
-            at = np.searchsorted(cols, warm.index)
-            ok = (at < s) & (cols[np.minimum(at, max(s - 1, 0))] == warm.index) if s else np.zeros(0, bool)
-            x[at[ok]] = warm.w[ok]
-            if pose is not None and warm.q is not None:
-                x[s:] = warm.q
         cur, d, A, nrm, Pm = phi(x)
         start, nu, iterations, accepted = cur, 0.0, 0, 0
         while iterations < o.iterations:
