@@ -74,13 +74,18 @@ def test_a_dent_under_the_data_is_fitted_by_surface_forces(forces, held_basis, c
     """A 15 mm dent of 25 mm radius pressed into the anterior surface of the posterior-held
     organ (the organ's own linear response to a tool: ``simulation.truth``), seen by points on
     the anterior surface: the surface forces fit the points to under half a millimetre and the
-    nodes' displacement to within half its mean (no correction: all of it)."""
+    nodes' displacement to within 0.6 of its mean (no correction: all of it). Measured 0.36 mm and
+    0.32 of 0.60 mm; the tool drags the nodes along the surface, which no point-to-surface datum
+    sees (the scan's own nodes are 0.68 mm off). The bound was half (0.28 measured) while the
+    force sites' closest points were sought among interior nodes too, a fault that on this
+    12 mm mesh moved the answer little and on the study's 4 mm livers left the fits at 1–3 mm RMS
+    (``test_the_force_sites_lie_at_the_points_closest_surface_points``)."""
     from navapp.registration.forces import ForceOptions
 
     u_true, pts = _dent(held_basis, coarse_mesh, 25.0, 15.0)
     fit = forces.fit(pts, ForceOptions(energy_weight=0.1, sites=len(pts)))
     err = np.linalg.norm(fit.u - u_true, axis=1).mean()
-    assert fit.rms_mm < 0.5 and err < np.linalg.norm(u_true, axis=1).mean() / 2  # measured 0.36, 0.28 of 0.60
+    assert fit.rms_mm < 0.5 and err < 0.6 * np.linalg.norm(u_true, axis=1).mean()  # measured 0.36, 0.32 of 0.60
 
 
 @pytest.mark.parametrize("radius, depth, noise, lam", [(25.0, 15.0, 0.0, 0.1), (20.0, 20.0, 0.5, 1e-2)],
@@ -117,6 +122,23 @@ def test_the_force_fit_is_a_continuous_function_of_its_data(forces, held_basis, 
     for fit in (moved, reordered):
         assert np.abs(fit.u - base.u).max() < 1e-6
         assert abs(fit.rms_mm - base.rms_mm) < 1e-6 and abs(err(fit) - err(base)) < 1e-6
+
+
+def test_the_force_sites_lie_at_the_points_closest_surface_points(forces, held_basis, coarse_mesh):
+    """The correspondences the forces act at (``SurfaceForces.correspondences``, at the
+    undeformed surface: ``responses``' sites and directions) are the exact closest points on the
+    surface, for points pressed into the organ by a 40 mm dent as well as for points off it.
+    Their nearest vertices were once sought among all the mesh's nodes, interior ones included,
+    and a point inside the organ then matched a far vertex (on tool1-c 336 of 500 points, 39 mm
+    off against 3.9: the sites' forces spanned 54 of 150 dimensions)."""
+    import trimesh
+
+    _, pts = _dent(held_basis, coarse_mesh, 20.0, 40.0)
+    pts = np.vstack([pts, _scan(held_basis) + 3.0 * np.random.default_rng(4).normal(size=(len(_scan(held_basis)), 3))])
+    _, _, c = forces.correspondences(pts, np.zeros_like(held_basis.nodes))
+    surface = trimesh.Trimesh(held_basis.nodes, held_basis.surface_faces, process=False)
+    exact = trimesh.proximity.closest_point(surface, pts)[1]
+    assert np.abs(np.abs(c) - exact).max() < 1e-6
 
 
 def test_the_data_space_solve_is_the_minimiser_the_adjoint_gradient_finds(forces, held_basis):

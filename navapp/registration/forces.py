@@ -255,7 +255,8 @@ class SurfaceForces:
         incident face won a tie of equal distances (rounding decides it), and the fit's answer
         moved by up to 4 mm with the data moved by 10⁻⁹ mm (docs/decisions/local-loads.md)."""
         moved = self.nodes + u
-        face, bary, _ = closest_on_surface(points, moved, self.faces, self.table)
+        face, bary, _ = closest_on_surface(points, moved, self.faces, self.table,
+                                           nearest=self._nearest_surface(points, moved))
         tri = self.faces[face]
         nrm = surface_normals(points, moved, self.faces, face, bary)
         rows = np.repeat(np.arange(len(points)), 3)
@@ -325,15 +326,22 @@ class SurfaceForces:
         return sp.csr_matrix((vals.ravel(), (np.repeat(np.arange(n), 9), cols.ravel())),
                              shape=(n, 3 * len(self.all_surface)))
 
+    def _nearest_surface(self, points: np.ndarray, moved: np.ndarray) -> np.ndarray:
+        """The ``NEAR`` surface nodes nearest each of ``points`` (N, NEAR), among the surface nodes
+        only: an interior node has no face to test, and a candidate set of interior nodes put a
+        point's closest point on a far vertex (a point 4 mm off the surface matched 40 mm away;
+        docs/decisions/local-loads.md, "interior nodes")."""
+        near = cKDTree(moved[self.all_surface]).query(points, k=NEAR)[1].reshape(len(points), NEAR)
+        return self.all_surface[near]
+
     def distances(self, points: np.ndarray, us: np.ndarray):
         """Signed distances (N,) of ``points`` to the surface moved by ``us`` (3 S_all,) at the
         surface nodes (the true distances: ``correspondences``' normals), with their barycentric
         rows and normals (the Jacobian's left factor)."""
         moved = self.nodes.copy()
         moved[self.all_surface] += us.reshape(-1, 3)
-        # the nearest vertices among the surface nodes only (an interior node has no face to test)
-        near = cKDTree(moved[self.all_surface]).query(points, k=NEAR)[1].reshape(len(points), NEAR)
-        face, bary, y = closest_on_surface(points, moved, self.faces, self.table, nearest=self.all_surface[near])
+        face, bary, y = closest_on_surface(points, moved, self.faces, self.table,
+                                           nearest=self._nearest_surface(points, moved))
         tri = self.faces[face]
         nrm = surface_normals(points, moved, self.faces, face, bary)
         rows = np.repeat(np.arange(len(points)), 3)
