@@ -358,7 +358,9 @@ def test_a_label_maps_staircase_is_meshed_first_time():
     first attempt it makes meshes above the floor; the phantoms' smooth surfaces keep the
     whole chain (so their plans, cache keys and meshes are unchanged)."""
     from navapp.anatomy.ctcase import imported_liver
-    from navapp.anatomy.meshing import ATTEMPTS, FEATURE_SPACING_MIN, feature_spacing, plan_mesh
+    from dataclasses import replace
+
+    from navapp.anatomy.meshing import ATTEMPTS, FEATURE_SPACING_MIN, feature_spacing, netgen_always, plan_mesh
     from navapp.anatomy.phantom import make_phantom
 
     smooth = make_phantom(0).liver
@@ -369,7 +371,14 @@ def test_a_label_maps_staircase_is_meshed_first_time():
     plan = plan_mesh(surface, 4.0, choice="auto")
     assert plan.skipped and plan.skipped[0][0] == "gmsh 40°" and plan.attempts[0].method == "gmsh"
     assert plan.attempts[0].feature_angle > 40.0
+    # there the first Gmsh angle kept runs first with HXT and without Netgen's pass (a quarter of
+    # its CPU), then as before: the same angle with Netgen's pass should HXT's mesh fail the floor
+    first, then = plan.attempts[:2]
+    assert first.volume == "hxt" and then == replace(first, volume="delaunay")
+    with netgen_always():
+        assert plan_mesh(surface, 4.0, choice="auto").attempts == plan.attempts[1:]
     mesh, report = mesh_liver(surface, 4.0, plan=plan)
     assert [e["outcome"] for e in report["attempts"]] == ["ok"]
+    assert report["method"] == f"gmsh {first.feature_angle:g}° HXT"
     assert "gmsh 40° skipped (feature lines" in report["mesher"]["why"]
     _floor(mesh)
