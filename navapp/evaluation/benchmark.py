@@ -30,7 +30,7 @@ from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
 from ..errors import NavappError
 from ..geometry.tre import mean_tre
-from ..mechanics.basis import BasisSettings, basis_key, load_or_compute_basis
+from ..mechanics.basis import BasisSettings, basis_key, load_or_compute_basis, relax_as_before
 from ..mechanics.fem import Material
 from ..mechanics.sparse import backend
 from ..registration.libr import LMOptions
@@ -60,9 +60,10 @@ def scaled_liver(liver, volume_ml: float):
 @contextmanager
 def before_precompute():
     """Within it, the precompute runs as at session 40's start: every Gmsh mesh with
-    Netgen's pass, no HXT attempt first on a CT label map's staircase (``meshing.netgen_always``).
-    The bench's "before" (process-wide)."""
-    with netgen_always():
+    Netgen's pass, no HXT attempt first on a CT label map's staircase (``meshing.netgen_always``);
+    the relaxation's tiles one after another (``basis.relax_as_before``). The bench's "before"
+    (process-wide)."""
+    with netgen_always(), relax_as_before():
         yield
 
 
