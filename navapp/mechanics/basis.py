@@ -241,9 +241,9 @@ def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None, layers=No
 
 
 RELAX_WORKERS = 2
-"""Threads for the relaxation's tiles: two cores are what navapp is measured on, and the
-factorisations of two tiles side by side took the relaxation from X to Y s wall at 27k nodes
-(docs/decisions/speed.md, "Issue 49, session 40"); more would only queue on such a machine."""
+"""Threads for the relaxation's tiles: each tile's factorisation is its own and PARDISO
+releases the GIL, so two run side by side on navapp's two cores, for the same bits as one
+after another (docs/decisions/speed.md, "Issue 49, session 40"); more would only queue."""
 
 _relax_as_before = Before()
 
