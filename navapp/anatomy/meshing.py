@@ -320,6 +320,13 @@ def tetrahedralise(surface: trimesh.Trimesh, edge: float = EDGE_MM, seed: int = 
 
 
 def _mesh_with_log(surface, edge, seed, limit, attempts, plan: MeshPlan | None = None, on_work=None):
+    mesh, log, _ = _mesh_with_report(surface, edge, seed, limit, attempts, plan, on_work)
+    return mesh, log
+
+
+def _mesh_with_report(surface, edge, seed, limit, attempts, plan: MeshPlan | None = None, on_work=None):
+    """(mesh, log of the attempts, the mesh's ``quality_report``): the report the floor was
+    checked on is the one returned (0.4 CPU s at 26k nodes, once)."""
     if edge <= 0:
         raise NavappError("edge length must be positive")
     if not surface.is_watertight:
@@ -369,7 +376,7 @@ def _mesh_with_log(surface, edge, seed, limit, attempts, plan: MeshPlan | None =
             continue
         entry["outcome"] = "ok"
         log.append(entry)
-        return mesh, log
+        return mesh, log, q
     raise NavappError("could not mesh the liver: " + "; ".join(f"{e['method']}: {e['outcome']}" for e in log))
 
 
@@ -559,11 +566,10 @@ def mesh_liver(surface: trimesh.Trimesh, edge: float = EDGE_MM, limit: float | N
     plan = plan_mesh(surface, edge) if plan is None else plan
     bar = _MeshProgress(show) if show else None
     try:
-        mesh, log = _mesh_with_log(surface, edge, 0, limit, plan.attempts, plan, bar)
+        mesh, log, report = _mesh_with_report(surface, edge, 0, limit, plan.attempts, plan, bar)
     finally:
         if bar is not None:
             bar.close()
-    report = quality_report(mesh)
     report["edge_mm"] = edge
     report["method"] = log[-1]["method"]
     report["mesher"] = {"choice": plan.choice, "expected_nodes": plan.nodes, "why": why(log, plan)}
