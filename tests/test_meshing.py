@@ -382,3 +382,21 @@ def test_a_label_maps_staircase_is_meshed_first_time():
     assert report["method"] == f"gmsh {first.feature_angle:g}° HXT"
     assert "gmsh 40° skipped (feature lines" in report["mesher"]["why"]
     _floor(mesh)
+
+
+def test_the_largest_gmsh_angle_is_never_skipped_for_a_small_patch():
+    """A 1.7 l liver imported from a 0.8 × 0.8 × 2 mm CT grid keeps a patch of 0.46 mm² even
+    at 90°, under one 4 mm triangle, yet Gmsh meshes it there above the floor (HXT 5.2°,
+    Netgen's 7.1°), where fTetWild, which the plan fell to when 90° was skipped too, took
+    179 CPU s for 43,847 nodes (docs/decisions/speed.md, "Issue 49, session 40"). Only the
+    plan is made here: meshing it is measured, not tested."""
+    from navapp.anatomy.ctcase import imported_liver
+    from navapp.anatomy.meshing import plan_mesh
+    from navapp.anatomy.phantom import make_phantom
+    from navapp.evaluation.benchmark import scaled_liver
+
+    surface = imported_liver(scaled_liver(make_phantom(0).liver, 1700), (0.8, 0.8, 2.0))
+    plan = plan_mesh(surface, 4.0, choice="auto")
+    assert [s for s, _ in plan.skipped] == ["gmsh 40°", "gmsh 60°"] and "patch" in plan.skipped[1][1]
+    assert [(a.method, a.feature_angle, a.volume) for a in plan.attempts[:2]] == [("gmsh", 90.0, "hxt"),
+                                                                                 ("gmsh", 90.0, "delaunay")]

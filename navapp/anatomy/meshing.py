@@ -257,8 +257,8 @@ def plan_mesh(surface: trimesh.Trimesh, edge: float, attempts=ATTEMPTS, choice: 
     """The plan for ``surface`` at ``edge`` mm: ``attempts`` filtered by ``choice``
     (default ``$NAVAPP_MESHER``), without the Gmsh attempts whose failure the surface tells
     in advance (never all of the attempts): feature lines closer than ``FEATURE_SPACING_MIN``
-    edges; and, on such a staircase, a larger angle still leaving a patch smaller than one
-    mesh triangle (``smallest_patch``). Budgets from the expected node count.
+    edges; and, on such a staircase, a larger angle (but the largest) still leaving a patch
+    smaller than one mesh triangle (``smallest_patch``). Budgets from the expected node count.
 
     Where attempts were skipped, the first Gmsh attempt kept is tried first with HXT and no
     Netgen pass (``_hxt_first``): it met the floor on every CT-made liver measured."""
@@ -277,8 +277,12 @@ def plan_mesh(surface: trimesh.Trimesh, edge: float, attempts=ATTEMPTS, choice: 
         # a staircase: the creases it keeps at larger angles are fragments around patches
         # smaller than one triangle of the mesh, which Gmsh meshes into slivers
         triangle = np.sqrt(3) / 4 * edge ** 2
+        # never the last Gmsh angle: a 0.8 × 0.8 × 2 mm CT liver keeps a patch of 0.46 mm² at 90°,
+        # yet meshes there above the floor (HXT 5.2°, Netgen's 7.1°), where fTetWild took 179 CPU s
+        # for 43,847 nodes (docs/decisions/speed.md, "Issue 49, session 40")
+        last = max((a.feature_angle for a in chosen if a.method == "gmsh"), default=None)
         for a in chosen:
-            if a.method == "gmsh" and a not in why_not:
+            if a.method == "gmsh" and a not in why_not and a.feature_angle != last:
                 patch = smallest_patch(surface, a.feature_angle)
                 if patch < triangle * a.edge_scale ** 2:
                     why_not[a] = f"a patch of {patch:.2g} mm², under one mesh triangle"
