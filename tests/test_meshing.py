@@ -357,9 +357,9 @@ def test_a_label_maps_staircase_is_meshed_first_time():
     Gmsh's feature angle from the surface"). The plan skips those angles up front and the
     first attempt it makes meshes above the floor; the phantoms' smooth surfaces keep the
     whole chain (so their plans, cache keys and meshes are unchanged)."""
-    from navapp.anatomy.ctcase import imported_liver
     from dataclasses import replace
 
+    from navapp.anatomy.ctcase import imported_liver
     from navapp.anatomy.meshing import ATTEMPTS, FEATURE_SPACING_MIN, feature_spacing, netgen_always, plan_mesh
     from navapp.anatomy.phantom import make_phantom
 

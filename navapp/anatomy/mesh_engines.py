@@ -12,7 +12,6 @@ import numpy as np
 
 from ..errors import NavappError
 
-
 VOLUME_MESHERS = ("delaunay", "hxt")
 """Gmsh's volume stage: "delaunay" (3D Delaunay, then Gmsh's optimiser and Netgen's: the meshes
 navapp was measured with) or "hxt" (Gmsh's HXT Delaunay on one thread, then Gmsh's optimiser
