@@ -219,3 +219,21 @@ def test_snap_distinct_prefers_the_nearest_free_point():
     assert snap_distinct(pts, centres, near=2).tolist() == [0, 1, 2]  # third: beyond its 2 nearest
     with pytest.raises(ValueError):
         snap_distinct(pts, np.zeros((5, 3)))
+
+
+def test_relaxation_in_two_threads_is_the_sequential_one_to_the_bit(parts):
+    """The tiles' factorisations side by side in a pool of two threads (``workers=2``, what
+    ``compute_basis`` uses on two cores) give the sequential relaxation's modes bit for bit:
+    each tile's solve is its own, on one MKL thread in both; and the relaxation as before
+    session 40 (MKL's own threads, one tile after another) to rounding."""
+    from navapp.mechanics.basis import relax_as_before
+
+    p = parts
+    args = (p["K"], p["U"], p["R"], p["control"], p["surface"], p["tiles"], p["areas"])
+    done = []
+    one = relax_modes(*args, layers=2, workers=1)
+    two = relax_modes(*args, layers=2, workers=2, on_tile=done.append)
+    assert np.array_equal(one, two) and done == list(range(len(p["control"])))
+    with relax_as_before():
+        before = relax_modes(*args, layers=2, workers=2)
+    assert np.abs(before - two).max() <= 1e-12 * np.abs(two).max()

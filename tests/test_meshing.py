@@ -357,8 +357,10 @@ def test_a_label_maps_staircase_is_meshed_first_time():
     Gmsh's feature angle from the surface"). The plan skips those angles up front and the
     first attempt it makes meshes above the floor; the phantoms' smooth surfaces keep the
     whole chain (so their plans, cache keys and meshes are unchanged)."""
+    from dataclasses import replace
+
     from navapp.anatomy.ctcase import imported_liver
-    from navapp.anatomy.meshing import ATTEMPTS, FEATURE_SPACING_MIN, feature_spacing, plan_mesh
+    from navapp.anatomy.meshing import ATTEMPTS, FEATURE_SPACING_MIN, feature_spacing, netgen_always, plan_mesh
     from navapp.anatomy.phantom import make_phantom
 
     smooth = make_phantom(0).liver
@@ -369,7 +371,32 @@ def test_a_label_maps_staircase_is_meshed_first_time():
     plan = plan_mesh(surface, 4.0, choice="auto")
     assert plan.skipped and plan.skipped[0][0] == "gmsh 40°" and plan.attempts[0].method == "gmsh"
     assert plan.attempts[0].feature_angle > 40.0
+    # there the first Gmsh angle kept runs first with HXT and without Netgen's pass (a quarter of
+    # its CPU), then as before: the same angle with Netgen's pass should HXT's mesh fail the floor
+    first, then = plan.attempts[:2]
+    assert first.volume == "hxt" and then == replace(first, volume="delaunay")
+    with netgen_always():
+        assert plan_mesh(surface, 4.0, choice="auto").attempts == plan.attempts[1:]
     mesh, report = mesh_liver(surface, 4.0, plan=plan)
     assert [e["outcome"] for e in report["attempts"]] == ["ok"]
+    assert report["method"] == f"gmsh {first.feature_angle:g}° HXT"
     assert "gmsh 40° skipped (feature lines" in report["mesher"]["why"]
     _floor(mesh)
+
+
+def test_the_largest_gmsh_angle_is_never_skipped_for_a_small_patch():
+    """A 1.7 l liver imported from a 0.8 × 0.8 × 2 mm CT grid keeps a patch of 0.46 mm² even
+    at 90°, under one 4 mm triangle, yet Gmsh meshes it there above the floor (HXT 5.2°,
+    Netgen's 7.1°), where fTetWild, which the plan fell to when 90° was skipped too, took
+    179 CPU s for 43,847 nodes (docs/decisions/speed.md, "Issue 49, session 40"). Only the
+    plan is made here: meshing it is measured, not tested."""
+    from navapp.anatomy.ctcase import imported_liver
+    from navapp.anatomy.meshing import plan_mesh
+    from navapp.anatomy.phantom import make_phantom
+    from navapp.evaluation.benchmark import scaled_liver
+
+    surface = imported_liver(scaled_liver(make_phantom(0).liver, 1700), (0.8, 0.8, 2.0))
+    plan = plan_mesh(surface, 4.0, choice="auto")
+    assert [s for s, _ in plan.skipped] == ["gmsh 40°", "gmsh 60°"] and "patch" in plan.skipped[1][1]
+    assert [(a.method, a.feature_angle, a.volume) for a in plan.attempts[:2]] == [("gmsh", 90.0, "hxt"),
+                                                                                 ("gmsh", 90.0, "delaunay")]

@@ -213,7 +213,7 @@ def test_bench_live(capsys):
 
 
 def test_bench_precompute(capsys):
-    """``navapp bench precompute --edges 12 --ks 12``: one pair of rows, before session 38's
+    """``navapp bench precompute --edges 12 --ks 12``: one pair of rows, before session 40's
     precompute and after, each from a fresh process and a cold cache, with its stage times,
     peak memory and a warm reload faster than the cold build; then both side by side."""
     assert main(["--quiet", "bench", "precompute", "--edges", "12", "--ks", "12"]) == 0

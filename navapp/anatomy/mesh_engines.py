@@ -12,12 +12,21 @@ import numpy as np
 
 from ..errors import NavappError
 
+VOLUME_MESHERS = ("delaunay", "hxt")
+"""Gmsh's volume stage: "delaunay" (3D Delaunay, then Gmsh's optimiser and Netgen's: the meshes
+navapp was measured with) or "hxt" (Gmsh's HXT Delaunay on one thread, then Gmsh's optimiser
+alone: about a quarter of the CPU, a min dihedral of 12–14° instead of 18–22°; docs/decisions/speed.md,
+"Issue 49, session 40")."""
 
-def gmsh_mesh(v: np.ndarray, f: np.ndarray, edge: float, seed: int = 0, feature_angle: float = 40.0):
+
+def gmsh_mesh(v: np.ndarray, f: np.ndarray, edge: float, seed: int = 0, feature_angle: float = 40.0,
+              volume: str = "delaunay"):
     """Gmsh in this process: classify the triangles into smooth patches at
     ``feature_angle`` degrees and rebuild a parametrised geometry; remesh the surface with
-    Frontal-Delaunay at ``edge``; fill with 3D Delaunay; optimise (Gmsh's default plus
-    Netgen's). Returns raw (nodes (N, 3), tets (E, 4)); raises ``NavappError``."""
+    Frontal-Delaunay at ``edge``; fill the volume (``volume``, one of ``VOLUME_MESHERS``) and
+    optimise. Returns raw (nodes (N, 3), tets (E, 4)); raises ``NavappError``."""
+    if volume not in VOLUME_MESHERS:
+        raise NavappError(f"unknown Gmsh volume mesher {volume!r}")
     import gmsh
 
     initialised = gmsh.isInitialized()
@@ -42,9 +51,9 @@ def gmsh_mesh(v: np.ndarray, f: np.ndarray, edge: float, seed: int = 0, feature_
         gmsh.option.setNumber("Mesh.MeshSizeFromCurvature", 0)
         gmsh.option.setNumber("Mesh.MeshSizeExtendFromBoundary", 0)
         gmsh.option.setNumber("Mesh.Algorithm", 6)
-        gmsh.option.setNumber("Mesh.Algorithm3D", 1)
+        gmsh.option.setNumber("Mesh.Algorithm3D", 10 if volume == "hxt" else 1)
         gmsh.option.setNumber("Mesh.Optimize", 1)
-        gmsh.option.setNumber("Mesh.OptimizeNetgen", 1)
+        gmsh.option.setNumber("Mesh.OptimizeNetgen", 0 if volume == "hxt" else 1)
         gmsh.model.mesh.generate(3)
         tags, coords, _ = gmsh.model.mesh.getNodes()
         etypes, _, enodes = gmsh.model.mesh.getElements(3)

@@ -85,9 +85,10 @@ def main(src: str, dst: str, parent: int | None = None, watch_fd: int | None = N
     with np.load(src) as a:
         v, f, edge, seed = a["vertices"], a["faces"], float(a["edge"]), int(a["seed"])
         method, angle = str(a["method"]), float(a["feature_angle"])
+        volume = str(a["volume"]) if "volume" in a else "delaunay"
     try:
         if method == "gmsh":
-            nodes, tets = gmsh_mesh(v, f, edge, seed, angle)
+            nodes, tets = gmsh_mesh(v, f, edge, seed, angle, volume)
         elif method == "ftetwild":
             nodes, tets = ftetwild_mesh(v, f, edge)
         else:

@@ -18,7 +18,7 @@ import sys
 import tempfile
 import time
 from contextlib import AbstractContextManager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -90,13 +90,15 @@ def quality_report(mesh: TetMesh) -> dict:
 @dataclass(frozen=True)
 class MeshAttempt:
     """One way of meshing: ``method`` "gmsh" (remesh the surface on re-parametrised patches
-    split at ``feature_angle`` degrees, then Delaunay + Netgen optimisation) or "ftetwild"
-    (envelope-based: never needs a parametrisation); ``limit`` CPU seconds at most."""
+    split at ``feature_angle`` degrees, then fill the volume: ``volume`` "delaunay", 3D
+    Delaunay + Gmsh's and Netgen's optimisers, or "hxt", HXT + Gmsh's optimiser alone) or
+    "ftetwild" (envelope-based: never needs a parametrisation); ``limit`` CPU seconds at most."""
 
     method: str
     feature_angle: float = 40.0
     limit: float | None = None  # CPU s; None: scaled to the expected mesh (``work_budget``)
     edge_scale: float = 1.0  # the attempt meshes at edge × edge_scale
+    volume: str = "delaunay"  # Gmsh's volume stage (``mesh_engines.VOLUME_MESHERS``)
 
 
 ATTEMPTS = (
@@ -225,13 +227,13 @@ def smallest_patch(surface: trimesh.Trimesh, angle: float) -> float:
     return float(np.bincount(patch, surface.area_faces, count).min())
 
 
-_every_attempt = Before()
+_netgen_always = Before()
 
 
-def every_attempt_in_turn() -> AbstractContextManager[None]:
-    """Within it, ``plan_mesh`` keeps every Gmsh attempt whatever the surface, as before
-    the attempts were chosen from it: the benches' "before" (process-wide)."""
-    return _every_attempt.taken()
+def netgen_always() -> AbstractContextManager[None]:
+    """Within it, ``plan_mesh`` adds no HXT attempt (``_hxt_first``): every Gmsh mesh has
+    Netgen's pass, as before session 40. The benches' "before" (process-wide)."""
+    return _netgen_always.taken()
 
 
 @dataclass(frozen=True)
@@ -255,35 +257,53 @@ def plan_mesh(surface: trimesh.Trimesh, edge: float, attempts=ATTEMPTS, choice: 
     """The plan for ``surface`` at ``edge`` mm: ``attempts`` filtered by ``choice``
     (default ``$NAVAPP_MESHER``), without the Gmsh attempts whose failure the surface tells
     in advance (never all of the attempts): feature lines closer than ``FEATURE_SPACING_MIN``
-    edges; and, on such a staircase, a larger angle still leaving a patch smaller than one
-    mesh triangle (``smallest_patch``). Budgets from the expected node count."""
+    edges; and, on such a staircase, a larger angle (but the largest) still leaving a patch
+    smaller than one mesh triangle (``smallest_patch``). Budgets from the expected node count.
+
+    Where attempts were skipped, the first Gmsh attempt kept is tried first with HXT and no
+    Netgen pass (``_hxt_first``): it met the floor on every CT-made liver measured."""
     choice = mesher_choice() if choice is None else choice
     chosen = tuple(a for a in attempts if choice == "auto" or a.method == choice)
     if not chosen:
         raise NavappError(f"mesher {choice!r}: none of the attempts uses it")
     skipped: list[tuple[str, str]] = []
-    if not _every_attempt:
-        why_not: dict[MeshAttempt, str] = {}
+    why_not: dict[MeshAttempt, str] = {}
+    for a in chosen:
+        if a.method == "gmsh":
+            spacing = feature_spacing(surface, a.feature_angle, edge * a.edge_scale)
+            if spacing < FEATURE_SPACING_MIN:
+                why_not[a] = f"feature lines {spacing:.1f} edges apart"
+    if why_not:
+        # a staircase: the creases it keeps at larger angles are fragments around patches
+        # smaller than one triangle of the mesh, which Gmsh meshes into slivers
+        triangle = np.sqrt(3) / 4 * edge ** 2
+        # never the last Gmsh angle: a 0.8 × 0.8 × 2 mm CT liver keeps a patch of 0.46 mm² at 90°,
+        # yet meshes there above the floor (HXT 5.2°, Netgen's 7.1°), where fTetWild took 179 CPU s
+        # for 43,847 nodes (docs/decisions/speed.md, "Issue 49, session 40")
+        last = max((a.feature_angle for a in chosen if a.method == "gmsh"), default=None)
         for a in chosen:
-            if a.method == "gmsh":
-                spacing = feature_spacing(surface, a.feature_angle, edge * a.edge_scale)
-                if spacing < FEATURE_SPACING_MIN:
-                    why_not[a] = f"feature lines {spacing:.1f} edges apart"
-        if why_not:
-            # a staircase: the creases it keeps at larger angles are fragments around patches
-            # smaller than one triangle of the mesh, which Gmsh meshes into slivers
-            triangle = np.sqrt(3) / 4 * edge ** 2
-            for a in chosen:
-                if a.method == "gmsh" and a not in why_not:
-                    patch = smallest_patch(surface, a.feature_angle)
-                    if patch < triangle * a.edge_scale ** 2:
-                        why_not[a] = f"a patch of {patch:.2g} mm², under one mesh triangle"
-        kept = tuple(a for a in chosen if a not in why_not)
-        if kept:
-            skipped = [(_label(a), why_not[a]) for a in chosen if a in why_not]
-            chosen = kept
+            if a.method == "gmsh" and a not in why_not and a.feature_angle != last:
+                patch = smallest_patch(surface, a.feature_angle)
+                if patch < triangle * a.edge_scale ** 2:
+                    why_not[a] = f"a patch of {patch:.2g} mm², under one mesh triangle"
+    kept = tuple(a for a in chosen if a not in why_not)
+    if kept:
+        skipped = [(_label(a), why_not[a]) for a in chosen if a in why_not]
+        chosen = _hxt_first(kept) if skipped and not _netgen_always else kept
     nodes = expected_nodes(surface, edge)
     return MeshPlan(choice, chosen, nodes, tuple(work_budget(a, nodes) for a in chosen), tuple(skipped))
+
+
+def _hxt_first(attempts: tuple[MeshAttempt, ...]) -> tuple[MeshAttempt, ...]:
+    """``attempts`` with the first Gmsh attempt run first with HXT and without Netgen's pass
+    (``MeshAttempt.volume``), then as it was if that mesh fails the quality floor or Gmsh fails.
+    Only on a surface whose plan already skipped attempts (a CT label map's staircase): no
+    stored mesh was made on one, and there Netgen's pass was two thirds of the mesher's CPU
+    (docs/decisions/speed.md, "Issue 49, session 40")."""
+    for i, a in enumerate(attempts):
+        if a.method == "gmsh" and a.volume == "delaunay":
+            return (*attempts[:i], replace(a, volume="hxt"), *attempts[i:])
+    return attempts
 
 
 def tetrahedralise(surface: trimesh.Trimesh, edge: float = EDGE_MM, seed: int = 0, limit: float | None = None,
@@ -304,6 +324,13 @@ def tetrahedralise(surface: trimesh.Trimesh, edge: float = EDGE_MM, seed: int = 
 
 
 def _mesh_with_log(surface, edge, seed, limit, attempts, plan: MeshPlan | None = None, on_work=None):
+    mesh, log, _ = _mesh_with_report(surface, edge, seed, limit, attempts, plan, on_work)
+    return mesh, log
+
+
+def _mesh_with_report(surface, edge, seed, limit, attempts, plan: MeshPlan | None = None, on_work=None):
+    """(mesh, log of the attempts, the mesh's ``quality_report``): the report the floor was
+    checked on is the one returned (0.4 CPU s at 26k nodes, once)."""
     if edge <= 0:
         raise NavappError("edge length must be positive")
     if not surface.is_watertight:
@@ -353,7 +380,7 @@ def _mesh_with_log(surface, edge, seed, limit, attempts, plan: MeshPlan | None =
             continue
         entry["outcome"] = "ok"
         log.append(entry)
-        return mesh, log
+        return mesh, log, q
     raise NavappError("could not mesh the liver: " + "; ".join(f"{e['method']}: {e['outcome']}" for e in log))
 
 
@@ -372,7 +399,8 @@ def why(log: list[dict], plan: MeshPlan) -> str:
 
 def _label(attempt: MeshAttempt) -> str:
     scale = "" if attempt.edge_scale == 1.0 else f" at {attempt.edge_scale:g} × edge"
-    return (f"gmsh {attempt.feature_angle:g}°" if attempt.method == "gmsh" else attempt.method) + scale
+    hxt = " HXT" if attempt.volume == "hxt" else ""  # the Delaunay + Netgen attempts keep their labels (cache keys)
+    return (f"gmsh {attempt.feature_angle:g}°{hxt}" if attempt.method == "gmsh" else attempt.method) + scale
 
 
 def _closed_manifold(mesh: TetMesh):
@@ -452,7 +480,7 @@ def _attempt_in_folder(v, f, edge, seed, attempt: MeshAttempt, budget: float, de
     with tempfile.TemporaryDirectory(prefix=f"{TEMP_PREFIX}{os.getpid()}-") as tmp:
         src, dst, log = Path(tmp, "in.npz"), Path(tmp, "out.npz"), Path(tmp, "stderr.txt")
         np.savez(src, vertices=v, faces=f, edge=edge, seed=seed, method=attempt.method,
-                 feature_angle=attempt.feature_angle)
+                 feature_angle=attempt.feature_angle, volume=attempt.volume)
         # fTetWild writes a debug file (__tracked_surface.stl) into its working directory:
         # run it in the temporary one, with navapp importable from there
         package_root = str(Path(__file__).resolve().parents[2])
@@ -542,11 +570,10 @@ def mesh_liver(surface: trimesh.Trimesh, edge: float = EDGE_MM, limit: float | N
     plan = plan_mesh(surface, edge) if plan is None else plan
     bar = _MeshProgress(show) if show else None
     try:
-        mesh, log = _mesh_with_log(surface, edge, 0, limit, plan.attempts, plan, bar)
+        mesh, log, report = _mesh_with_report(surface, edge, 0, limit, plan.attempts, plan, bar)
     finally:
         if bar is not None:
             bar.close()
-    report = quality_report(mesh)
     report["edge_mm"] = edge
     report["method"] = log[-1]["method"]
     report["mesher"] = {"choice": plan.choice, "expected_nodes": plan.nodes, "why": why(log, plan)}

@@ -25,13 +25,13 @@ import trimesh
 
 from .. import cache
 from ..anatomy.caseio import read_case
-from ..anatomy.meshing import cached_tetmesh, every_attempt_in_turn
+from ..anatomy.meshing import cached_tetmesh, netgen_always
 from ..anatomy.phantom import make_phantom
 from ..defaults import EDGE_MM, K
 from ..errors import NavappError
 from ..geometry.tre import mean_tre
-from ..mechanics.basis import BasisSettings, basis_key, load_or_compute_basis
-from ..mechanics.fem import Material, coo_assembly
+from ..mechanics.basis import BasisSettings, basis_key, load_or_compute_basis, relax_as_before
+from ..mechanics.fem import Material
 from ..mechanics.sparse import backend
 from ..registration.libr import LMOptions
 from ..registration.objective import cold_search
@@ -59,10 +59,11 @@ def scaled_liver(liver, volume_ml: float):
 
 @contextmanager
 def before_precompute():
-    """Within it, the precompute runs as before session 38: every Gmsh attempt tried in
-    turn whatever the surface (``meshing.every_attempt_in_turn``), the stiffness through
-    SciPy's COO → CSR (``fem.coo_assembly``). The bench's "before" (process-wide)."""
-    with every_attempt_in_turn(), coo_assembly():
+    """Within it, the precompute runs as at session 40's start: every Gmsh mesh with
+    Netgen's pass, no HXT attempt first on a CT label map's staircase (``meshing.netgen_always``);
+    the relaxation's tiles one after another (``basis.relax_as_before``). The bench's "before"
+    (process-wide)."""
+    with netgen_always(), relax_as_before():
         yield
 
 
@@ -73,7 +74,7 @@ def precompute_one(edge: float, k: int, volume_ml: float | None = None, relax: s
     ``mesh_from``: a cached mesh file to start from (Gmsh does not give the same mesh twice,
     and exact and local bases are compared on one mesh); its row then has no mesh time.
     ``surface_file``: the liver surface (.npz, vertices and faces) in place of phantom 0.
-    ``before``: run as before session 38 (``before_precompute``)."""
+    ``before``: run as at session 40's start (``before_precompute``)."""
 
     settings = BasisSettings(k=k) if relax == "local" else BasisSettings(k=k, relax_layers=None)
     root = Path(tempfile.mkdtemp(prefix="navapp-bench-"))
@@ -151,7 +152,7 @@ def _drop_files(row: dict):
 
 
 def bench_precompute(edges, ks, volume_ml=None, relax="local", repeats=1, labelmap=False, phantom=0):
-    """Per (edge, k): ``repeats`` pairs of fresh-process runs, before session 38's changes
+    """Per (edge, k): ``repeats`` pairs of fresh-process runs, before session 40's changes
     (``before_precompute``) and after, alternated (before first in even pairs); one JSON
     line per run, then per (edge, k) the medians side by side (a table and a JSON line:
     whole-process wall and CPU, mesh + basis, each stage; the median of the per-pair ratios).

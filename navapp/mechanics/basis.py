@@ -25,7 +25,10 @@ Choices where the paper is open (each tested in tests/test_basis.py):
 3. Nodal strain and stress are volume-weighted averages of the (constant) element values.
 """
 
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import AbstractContextManager, nullcontext
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -35,9 +38,10 @@ from .. import cache, progress
 from ..anatomy.meshing import TetMesh
 from ..budget import check_basis
 from ..defaults import K
+from ..switches import Before
 from .controlpoints import geodesic_tiles, nodal_areas, place_control_points
 from .fem import Material, nodal_strain_operator, stiffness
-from .sparse import Factorisation, backend
+from .sparse import Factorisation, backend, one_mkl_thread
 from .supports import Conditions, conditions
 
 BASIS_VERSION = "basis-2"  # bump when the computation changes: it is part of the cache key
@@ -170,7 +174,8 @@ def grow(A, mask, layers):
     return mask
 
 
-def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None, layers=None, held=None, support=None):
+def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None, layers=None, held=None, support=None,
+                workers=1):
     """Saint-Venant relaxation of every point-load mode (choice 2 of the module doc).
 
     K (3M × 3M); U (3M × 3k) point-load modes; R (3k × 3k) their control reactions;
@@ -185,6 +190,9 @@ def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None, layers=No
     support, fixed at zero in every solve; a tile's load is spread over its other nodes.
     ``support`` (default ``held``): the nodes no load is spread on — a support on springs
     (its springs in K) takes none either, so that a stiff spring tends to held.
+    ``workers`` > 1: the tiles' solves (independent) in a pool of that many threads, each
+    factorisation on one MKL thread (``sparse.one_mkl_thread``); the same answer to the bit
+    as one worker, which runs them on one MKL thread too (``relax_workers``).
     """
     n = K.shape[0]
     M = n // 3
@@ -200,7 +208,8 @@ def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None, layers=No
     if support is not None:
         on_support[support] = True
     A = node_adjacency(K) if layers is not None else None
-    for c in range(len(control)):
+
+    def tile(c):
         tile_nodes = surface[(tiles == c) & ~is_held[surface]]  # free in this solve (springs move)
         loaded = (tiles == c) & ~on_support[surface]  # the tile's load goes on these
         w = areas[loaded] / areas[loaded].sum()
@@ -218,11 +227,41 @@ def relax_modes(K, U, R, control, surface, tiles, areas, on_tile=None, layers=No
         pos = np.searchsorted(free, 3 * surface[loaded])  # loaded nodes are free: their x DOF rows
         for a in range(3):
             rhs[pos + a] += np.outer(w, r[a])
-        with Factorisation(Kf[:, free]) as F:
-            out[np.ix_(free, cols)] += F.solve(rhs)
-        if on_tile:
-            on_tile(c)
+        with nullcontext() if _relax_as_before else one_mkl_thread(), Factorisation(Kf[:, free]) as F:
+            return free, cols, F.solve(rhs)
+
+    workers = 1 if _relax_as_before else workers
+    with ThreadPoolExecutor(workers) if workers > 1 else nullcontext() as pool:
+        solved = pool.map(tile, range(len(control))) if pool is not None else map(tile, range(len(control)))
+        for c, (free, cols, d) in enumerate(solved):  # in tile order, whatever the pool's
+            out[np.ix_(free, cols)] += d
+            if on_tile:
+                on_tile(c)
     return out
+
+
+RELAX_WORKERS = 2
+"""Threads for the relaxation's tiles: each tile's factorisation is its own and PARDISO
+releases the GIL, so two run side by side on navapp's two cores, for the same bits as one
+after another (docs/decisions/speed.md, "Issue 49, session 40"); more would only queue."""
+
+_relax_as_before = Before()
+
+
+def relax_as_before() -> AbstractContextManager[None]:
+    """Within it, the relaxation runs its tiles one after another on MKL's default threads,
+    as before session 40: the benches' "before" (process-wide)."""
+    return _relax_as_before.taken()
+
+
+def relax_workers() -> int:
+    """Threads for the relaxation's tiles: ``RELAX_WORKERS``, or fewer where this process may
+    use fewer cores."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        cores = os.cpu_count() or 1
+    return max(1, min(RELAX_WORKERS, cores))
 
 
 def energy_matrix(nodes, tets, Ju, material):
@@ -267,7 +306,7 @@ def compute_basis(mesh: TetMesh, settings: BasisSettings = BasisSettings(), mate
     if settings.relax:
         with progress.bar(settings.k, f"{label}: relax tiles", "tile") as pb:
             Ju = relax_modes(K, U, R, control, surface, tiles, areas, on_tile=lambda c: pb.update(1),
-                             layers=settings.relax_layers, held=held, support=support)
+                             layers=settings.relax_layers, held=held, support=support, workers=relax_workers())
     else:
         Ju = U
     timings["relax"] = time.perf_counter() - t

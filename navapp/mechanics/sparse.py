@@ -10,9 +10,11 @@ holds 52 M entries instead of 77 M, and the factorisation and solves take 4× an
 with the same answers to 10⁻¹³ (docs/decisions/local-loads.md).
 """
 
+import ctypes
 import glob
 import os
 import sys
+from contextlib import contextmanager
 
 import numpy as np
 import scipy.sparse as sp
@@ -75,6 +77,25 @@ def _pardiso_solver():
     s = pypardiso.PyPardisoSolver(mtype=2)  # real symmetric positive definite
     os.environ.setdefault("PYPARDISO_MKL_RT", s.libmkl._name)
     return s
+
+
+@contextmanager
+def one_mkl_thread():
+    """MKL (hence PARDISO) on one thread in the calling thread only, within it
+    (``mkl_set_num_threads_local``), for factorisations run side by side in a pool: two of MKL's
+    two-thread teams on two cores would only wait on each other, and one thread gives the same
+    bits each run (two gave results differing by 2–3e-15 between runs: docs/decisions/speed.md,
+    session 32). Nothing where PARDISO is not the back end."""
+    if backend() != "pardiso":
+        yield
+        return
+    # the C entry point (the lower-case symbol is the Fortran one, which takes a pointer)
+    set_local = _pardiso_solver().libmkl.MKL_Set_Num_Threads_Local
+    previous = set_local(ctypes.c_int(1))
+    try:
+        yield
+    finally:
+        set_local(ctypes.c_int(previous))  # 0: the process-wide setting again
 
 
 PARDISO_OUT_OF_MEMORY = (-2, -9)  # MKL PARDISO's codes: not enough memory; not enough for out-of-core
