@@ -381,14 +381,23 @@ def _folds(model, data, options, support, cancel, extend) -> tuple[Support, Supp
     # (docs/decisions/speed.md, "The folds on both cores")
     threads = 1 if _sequential_folds else task_threads()
     if threads > 1:
-        tasks = [(deformable, f) for f in folds] + [(rigid, f) for f in folds]
+        tasks = [(True, f) for f in folds] + [(False, f) for f in folds]
     else:  # as before: each fold's deformable fit, then its rigid one
-        tasks = [(job, f) for f in folds for job in (deformable, rigid)]
-    done = in_threads(lambda i: tasks[i][0](tasks[i][1]), len(tasks), threads)
-    answers = {(job, f.block): a for (job, f), a in zip(tasks, done, strict=True)}
+        tasks = [(job, f) for f in folds for job in (True, False)]
+    fitted: dict[int, tuple[float, float] | None] = {}  # block → deformable RMS (today's model, extended)
+    fixed: dict[int, float | None] = {}  # block → rigid RMS
+
+    def run(i: int) -> None:
+        job, f = tasks[i]
+        if job:
+            fitted[f.block] = deformable(f)
+        else:
+            fixed[f.block] = rigid(f)
+
+    in_threads(run, len(tasks), threads)
     out, out_ext = [], []
     for f in folds:
-        d, r = answers[(deformable, f.block)], answers[(rigid, f.block)]
+        d, r = fitted[f.block], fixed[f.block]
         if d is None or r is None:
             return None
         pts = np.vstack(list(f.held.values()))
