@@ -124,3 +124,33 @@ def test_in_threads_keeps_order_raises_and_leaves_limits_and_filters_as_found():
         threads.in_threads(failing, 8, threads=2)
     assert blas_threads() == before_blas
     assert threads.in_threads(lambda i: i, 5, threads=1) == list(range(5))
+
+
+def test_screened_candidates_on_two_threads_are_the_sequential_screening_to_the_bit(small_model, monkeypatch):
+    """The rigid stage's candidate poses, each screened by a few LM iterations, on two threads
+    (forced) and in one: the same Ω per candidate and the same registration, to the bit (fails if
+    a candidate's fit ran on another candidate's data). The data, a patch of one surface, leave
+    several basins."""
+    from navapp.registration import pipeline
+
+    rng = np.random.default_rng(31)
+    X = small_model.features["liver"].rest
+    patch = X[np.linalg.norm(X - X[0], axis=1) < 35.0]
+    data = {"anterior": patch + rng.normal(scale=0.5, size=patch.shape) + [3.0, -2.0, 1.0]}
+    plain = pipeline.in_threads
+    calls = []
+
+    def forced(threads):
+        def run(task, count, _threads=None):
+            calls.append(count)
+            return plain(task, count, threads)
+        return run
+
+    answers = []
+    for threads_used in (2, 1):
+        monkeypatch.setattr(pipeline, "in_threads", forced(threads_used))
+        small_model.cache.evaluation, small_model.cache.ends = None, ()
+        reg = pipeline.register(small_model, data, init=pipeline.RobustOptions(support=None))
+        answers.append(([s.omega for s in reg.starts], reg.libr.beta.tobytes(), reg.rigid.R.tobytes()))
+    assert calls and all(c >= 2 for c in calls)  # more than one candidate was screened
+    assert answers[0] == answers[1]

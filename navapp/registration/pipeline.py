@@ -32,6 +32,7 @@ from ..fitwarning import FitWarning, WarningKind, found, texts
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.tre import tre_stats
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
+from ..threads import in_threads
 from .coverage import note_coverage
 from .forces import (
     WARM_WITHOUT_FORCES,
@@ -872,14 +873,17 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
                               features=features, multi_start=False, robust=init.rigid_robust)
     else:
         candidates = [rigid]
-    screened = []  # (Ω after the screening iterations, candidate, its LibrResult)
+    # (Ω after the screening iterations, candidate, its LibrResult)
+    screened: list[tuple[float, RigidResult, LibrResult]] = []
     if len(candidates) > 1 and init.screen_iterations > 0 and data:
         # which basin: the LIBR objective after a few iterations, not the rigid RMS alone —
         # a pose that leaves the data a few mm off may be the one the deformation explains
         quick = replace(options, max_iterations=init.screen_iterations)
-        for cand in candidates:
-            res = register_libr(model, {n: cand.inverse(p) for n, p in data.items()}, None, quick, None, cancel)
-            screened.append((res.omega, cand, res))
+        # independent fits: on both cores, each the same as alone, in the candidates' order
+        # (docs/decisions/speed.md, "The folds on both cores")
+        quick_fits = in_threads(lambda i: register_libr(model, {n: candidates[i].inverse(p) for n, p in data.items()},
+                                                        None, quick, None, cancel), len(candidates))
+        screened.extend((res.omega, cand, res) for cand, res in zip(candidates, quick_fits, strict=True))
         screened.sort(key=lambda x: x[0])
         rigid = screened[0][1]
         for s in starts:
