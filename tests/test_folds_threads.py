@@ -5,6 +5,7 @@ bit, as the folds one after another and as each fold fitted apart; ``threads.in_
 
 import threading
 import warnings
+from contextlib import nullcontext
 from dataclasses import replace
 
 import numpy as np
@@ -154,3 +155,41 @@ def test_screened_candidates_on_two_threads_are_the_sequential_screening_to_the_
         answers.append(([s.omega for s in reg.starts], reg.libr.beta.tobytes(), reg.rigid.R.tobytes()))
     assert calls and all(c >= 2 for c in calls)  # more than one candidate was screened
     assert answers[0] == answers[1]
+
+
+def test_error_estimate_made_beside_the_folds_is_the_one_made_after_them(small_model, monkeypatch):
+    """From ICP's pose the answer's error estimate runs as one more of the folds' tasks (forced
+    onto two threads): the same OrganError, to the bit, as made after the folds on one thread, and
+    made once (fails if it read another state than the answer's, or were made again)."""
+    from navapp.registration import pipeline
+    from navapp.registration.rotation import rotation
+
+    rng = np.random.default_rng(37)
+    n = small_model.basis.Ju.shape[1]
+    alpha = rng.normal(size=n)
+    x = small_model.basis.nodes + (small_model.basis.Ju @ alpha).reshape(-1, 3) * 0.6
+    R, c = rotation(np.radians([4.0, -3.0, 2.0])), small_model.centroid
+    surface = x[small_model.basis.surface]
+    pts = surface[::3]
+    data = {"anterior": (pts - c) @ R.T + c + [4.0, -3.0, 2.0] + rng.normal(scale=0.3, size=pts.shape)}
+    made = []
+    plain = pipeline.organ_error
+
+    def recorded(reg, *a, **k):
+        made.append(getattr(threads._inside, "task", False))
+        return plain(reg, *a, **k)
+
+    monkeypatch.setattr(pipeline, "organ_error", recorded)
+    monkeypatch.setattr(support, "task_threads", lambda: 2)
+    out = []
+    for sequential in (False, True):
+        made.clear()
+        small_model.cache.evaluation, small_model.cache.ends = None, ()
+        with support.sequential_folds() if sequential else nullcontext():
+            reg = pipeline.register(small_model, data)
+        assert reg.deformed and not reg.rigid.kept and reg.organ is not None
+        assert made == [not sequential]  # once: beside the folds, or after them
+        blocks = [(b.rigid_mm, b.deformable_mm) for b in reg.support.blocks]
+        out.append((replace(reg.organ, seconds=0.0), reg.libr.beta.tobytes(), blocks))
+    assert out[0] == out[1]
+

@@ -536,7 +536,8 @@ def rigid_starts(model: RegistrationModel, data: dict, options: LMOptions | None
 
 def _cross_validate(model: RegistrationModel, local: dict, options: LMOptions, settings: SupportOptions, cancel,
                     rigid: RigidResult, result: LibrResult, support: Support | None = None,
-                    local_modes: bool = False, declared: bool = False, paired: bool = False) -> Support | None:
+                    local_modes: bool = False, declared: bool = False, paired: bool = False,
+                    beside: Callable[[], None] | None = None) -> Support | None:
     """The spatial cross-validation of a fresh deformable fit (``support``: already made, by
     the local-mode step's folds); from a kept pose (a known-good answer without deformation),
     or where the cross-validation fails from ICP's pose (whether to warn, ``Support.outweighs``),
@@ -549,7 +550,7 @@ def _cross_validate(model: RegistrationModel, local: dict, options: LMOptions, s
     paired standard error of the held-out gain, not the 30 % margin (``SupportOptions.surface_se``)."""
     if support is None and not local_modes:  # with local modes only the folds' own verdict, which no block saw
         support = check_support(model, local, options, replace(settings, surface_se=True) if paired else settings,
-                                cancel)
+                                cancel, beside=beside)
     if support is not None and not declared and (rigid.kept or not support.predicts or local_modes) and \
             not (cancel is not None and cancel.is_set()):
         support = weigh_correction(model, local, result.beta, support, options, settings)
@@ -970,6 +971,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
             sec["local_modes"] = time.perf_counter() - t
             clock.mark("local_modes")
     support = None
+    ahead: list[tuple[tuple, OrganError]] = []  # the error estimate made beside the folds, and what it read
     if deform and fresh and init.support is not None and result is not None and result.stop_reason != "cancelled":
         t = time.perf_counter()
         # a declared pose within the clinical goal confines the pose: the held-out gain is judged
@@ -980,8 +982,20 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         # the margin holds there ("The one-standard-error rule on a held basis", session 37)
         confined = declared and options.weights.pose_prior is not None and model.basis.settings.supports is None \
             and declared_spread(model, options.weights) <= CLINICAL_GOAL_MM
+        beside = None
+        if not declared and not rigid.kept:
+            # the answer's error estimate, made among the folds' tasks on the second core: from
+            # ICP's pose the deformable answer is shown whatever the folds say, and it is used
+            # below only if nothing it reads was replaced (docs/decisions/speed.md, "The folds on both cores")
+            made = (model, rigid, result, local, options.weights)
+
+            def beside() -> None:
+                reg = Registration(made[0], made[1], made[2], made[3], pose_prior=made[4].pose_prior)
+                ahead.append((made, organ_error(reg, weights=replace(made[4], pose_prior=None))))
+
         support = _cross_validate(model, local, options, init.support, cancel, rigid, result, folds_support,
-                                  local_modes=base_model is not None, declared=declared, paired=confined)
+                                  local_modes=base_model is not None, declared=declared, paired=confined,
+                                  beside=beside)
         sec["support"] = time.perf_counter() - t
         clock.mark("support")
     evidence: PoseEvidence | None = None
@@ -1096,7 +1110,11 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         # whether it is good enough to navigate by at all (docs/decisions/error-estimate.md, "An answer the data
         # do not determine"). Warm re-registrations skip it, as they skip the cross-validation
         # with the fit's own weights (its robust factors), as the viewer's predicted error is made
-        reg.organ = organ_error(reg, weights=replace(options.weights, pose_prior=None))
+        read = (reg.model, reg.rigid, reg.libr, reg.data_model_frame, options.weights)
+        if ahead and all(a is b for a, b in zip(ahead[0][0], read, strict=True)):
+            reg.organ = ahead[0][1]  # made beside the folds from the same answer (its seconds there)
+        else:
+            reg.organ = organ_error(reg, weights=replace(options.weights, pose_prior=None))
         sec["organ_error"] = reg.organ.seconds
         clock.mark("organ_error")
     # last, so that it steers nothing above (a note before the pose choice would skip it): too

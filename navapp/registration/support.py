@@ -298,38 +298,45 @@ def blocks_of(data: dict, count: int, seed: int = 0) -> dict:
 
 
 def check_support(model: RegistrationModel, data: dict, options: LMOptions,
-                  support: SupportOptions = SupportOptions(), cancel=None) -> Support | None:
+                  support: SupportOptions = SupportOptions(), cancel=None,
+                  beside: Callable[[], None] | None = None) -> Support | None:
     """Cross-validate the deformable answer against the rigid one (module doc). ``data``:
     feature → (N, 3) mm in the model frame (after the rigid pose); ``options`` the LM
-    settings of the real fit. None when there are too few data points to split."""
-    pair = check_support_pair(model, data, options, support, cancel)
+    settings of the real fit. None when there are too few data points to split. ``beside``:
+    the caller's own independent task, run among the folds' when they share the cores
+    (``check_support_pair``)."""
+    pair = check_support_pair(model, data, options, support, cancel, beside=beside)
     return None if pair is None else pair[0]
 
 
 def check_support_pair(model: RegistrationModel, data: dict, options: LMOptions,
                        support: SupportOptions = SupportOptions(), cancel=None,
                        extend: Callable[[dict, np.ndarray], RegistrationModel | None] | None = None,
-                       ) -> tuple[Support, Support] | None:
+                       beside: Callable[[], None] | None = None) -> tuple[Support, Support] | None:
     """``check_support`` for ``model`` and, in the same folds, for a model each fold extends
     from its own training data: ``extend(train, beta)`` (the training data, feature →
     (N, 3) mm, and the fit of ``model`` to them, (3k + 6,)) returns the extended model or None
     (the fold keeps ``model``'s prediction). So no held-out point has a say in what its fold's
     model can do (``local_modes``). Without ``extend`` both Supports are the same.
 
-    The folds' fits leave the model's kept fit ends (``objective.keep_end``) as they found them:
-    no later fit starts where a fold ended, and ten of them would push out the answer's own,
-    which the error estimate and the first warm start after a fresh registration evaluate at."""
+    The folds' fits leave the model's kept fit ends (``objective.keep_end``) as they found them
+    (they fit a copy of ``model`` with a copy of its cache): no later fit starts where a fold
+    ended, and ten of them would push out the answer's own, which the error estimate and the
+    first warm start after a fresh registration evaluate at.
+
+    ``beside``: a task of the caller's that does not depend on the folds (``pipeline``'s error
+    estimate of the answer, made ahead), run as one more of their tasks where they run on two
+    threads, so that it fills the cores with them; not run where they run on one (nor where there
+    are too few points to split), and then the caller makes what it would have made."""
     total = sum(len(p) for k, p in data.items() if k != "fiducials")
     if total < support.min_points:
         return None
-    kept = model.cache.ends
-    try:
-        return _folds(model, data, options, support, cancel, extend)
-    finally:
-        model.cache.ends = kept
+    # the folds' fits keep their ends and last evaluations in a cache of their own, begun as a copy
+    # of the model's: the caller's error estimate, run beside them, finds the answer's end there
+    return _folds(replace(model, cache=model.cache.copy()), data, options, support, cancel, extend, beside)
 
 
-def _folds(model, data, options, support, cancel, extend) -> tuple[Support, Support] | None:
+def _folds(model, data, options, support, cancel, extend, beside=None) -> tuple[Support, Support] | None:
     t0 = time.perf_counter()
     labels = blocks_of(data, support.blocks)
     fold = replace(options, max_iterations=min(options.max_iterations, support.iterations))
@@ -380,19 +387,23 @@ def _folds(model, data, options, support, cancel, extend) -> tuple[Support, Supp
     # rigid ones after; each the same computation as alone, gathered in fold order
     # (docs/decisions/speed.md, "The folds on both cores")
     threads = 1 if _sequential_folds else task_threads()
+    tasks: list[tuple[bool, _Fold] | None]  # (deformable?, fold), or None: the caller's ``beside``
     if threads > 1:
-        tasks = [(True, f) for f in folds] + [(False, f) for f in folds]
+        tasks = [*((True, f) for f in folds), *([None] if beside is not None else []), *((False, f) for f in folds)]
     else:  # as before: each fold's deformable fit, then its rigid one
         tasks = [(job, f) for f in folds for job in (True, False)]
     fitted: dict[int, tuple[float, float] | None] = {}  # block → deformable RMS (today's model, extended)
     fixed: dict[int, float | None] = {}  # block → rigid RMS
 
     def run(i: int) -> None:
-        job, f = tasks[i]
-        if job:
-            fitted[f.block] = deformable(f)
+        task = tasks[i]
+        if task is None:
+            assert beside is not None
+            beside()
+        elif task[0]:
+            fitted[task[1].block] = deformable(task[1])
         else:
-            fixed[f.block] = rigid(f)
+            fixed[task[1].block] = rigid(task[1])
 
     in_threads(run, len(tasks), threads)
     out, out_ext = [], []
