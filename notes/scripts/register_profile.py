@@ -25,7 +25,6 @@ from navapp.simulation.scene import demo_scene
 from navapp.simulation.scenedata import simulated_case_dir
 
 
-
 def main_thread_schedstat():
     """(CPU s, run-queue wait s) of this thread so far, or None off Linux."""
     try:
