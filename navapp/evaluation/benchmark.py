@@ -15,7 +15,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import replace
 from pathlib import Path
@@ -36,6 +36,7 @@ from ..mechanics.sparse import backend
 from ..registration.libr import LMOptions
 from ..registration.objective import cold_search
 from ..registration.pipeline import prepare, register
+from ..registration.support import sequential_folds
 from ..simulation.levels import data_level
 from ..simulation.scene import demo_scene
 from ..simulation.scenedata import simulated_case_dir
@@ -244,8 +245,12 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     copy of the model's cache: ``before_after`` holds the medians (CPU and wall) and the TREs
     of each. A third variant, ``cold_search``, is the new path with every surface search begun
     at the hierarchy's root (``objective.cold_search``: as before LM's searches started from
-    the last iteration's triangles, session 38), in the same rotation. ``truth_edge``: the
-    mesh the scene is simulated on, mm (default the scene's)."""
+    the last iteration's triangles, session 38), and a fourth, ``sequential_folds``, the new
+    path with the cross-validation's folds one after another in one thread
+    (``support.sequential_folds``: as before they shared the cores, session 40; "before" has
+    them so too), in the same rotation. Both threads' CPU counts (the process's), so CPU
+    over wall says how much ran at once. ``truth_edge``: the mesh the scene is simulated on,
+    mm (default the scene's)."""
 
     scene = demo_scene()
     # the simulated scene from navapp's cache (as ``bench live`` and the viewer take it):
@@ -257,10 +262,11 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     model, _ = prepare(case, edge, k)
     x0, x1 = case.need_truth().tre_points(model.basis.nodes)
     times, rigid_s, support_s, iters = [], [], [], []
-    variants = ("before", "cold_search", "after")
+    variants = ("before", "cold_search", "sequential_folds", "after")
     stages: dict[str, dict[str, dict[str, list]]] = {v: {} for v in variants}  # variant → stage → cpu, wall
     models = {v: model if v == "after" else replace(model, cache=model.cache.copy()) for v in variants}
-    switch: dict[str, Callable[[], AbstractContextManager]] = {"before": before_path, "cold_search": cold_search,
+    switch: dict[str, Callable[[], AbstractContextManager]] = {"before": _before_register, "cold_search": cold_search,
+                                                                "sequential_folds": sequential_folds,
                                                                 "after": nullcontext}
     paired: dict[str, dict[str, list]] = {v: {"cpu": [], "wall": [], "tre": []} for v in variants}
     for i in range(repeats):
@@ -321,6 +327,14 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     print(stage_table(out["stages"]), flush=True)
     print(json.dumps(out), flush=True)
     return out
+
+
+@contextmanager
+def _before_register() -> Iterator[None]:
+    """A fresh registration as before issue 49: LM's earlier search and Jacobian
+    (``before_path``) and the folds one after another (``sequential_folds``)."""
+    with before_path(), sequential_folds():
+        yield
 
 
 def stage_table(stages: dict) -> str:

@@ -32,6 +32,7 @@ from ..fitwarning import FitWarning, WarningKind, found, texts
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.tre import tre_stats
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
+from ..threads import in_threads
 from .coverage import note_coverage
 from .forces import (
     WARM_WITHOUT_FORCES,
@@ -535,7 +536,8 @@ def rigid_starts(model: RegistrationModel, data: dict, options: LMOptions | None
 
 def _cross_validate(model: RegistrationModel, local: dict, options: LMOptions, settings: SupportOptions, cancel,
                     rigid: RigidResult, result: LibrResult, support: Support | None = None,
-                    local_modes: bool = False, declared: bool = False, paired: bool = False) -> Support | None:
+                    local_modes: bool = False, declared: bool = False, paired: bool = False,
+                    beside: Callable[[], None] | None = None) -> Support | None:
     """The spatial cross-validation of a fresh deformable fit (``support``: already made, by
     the local-mode step's folds); from a kept pose (a known-good answer without deformation),
     or where the cross-validation fails from ICP's pose (whether to warn, ``Support.outweighs``),
@@ -548,7 +550,7 @@ def _cross_validate(model: RegistrationModel, local: dict, options: LMOptions, s
     paired standard error of the held-out gain, not the 30 % margin (``SupportOptions.surface_se``)."""
     if support is None and not local_modes:  # with local modes only the folds' own verdict, which no block saw
         support = check_support(model, local, options, replace(settings, surface_se=True) if paired else settings,
-                                cancel)
+                                cancel, beside=beside)
     if support is not None and not declared and (rigid.kept or not support.predicts or local_modes) and \
             not (cancel is not None and cancel.is_set()):
         support = weigh_correction(model, local, result.beta, support, options, settings)
@@ -915,14 +917,17 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
                               features=features, multi_start=False, robust=init.rigid_robust)
     else:
         candidates = [rigid]
-    screened = []  # (Ω after the screening iterations, candidate, its LibrResult)
+    # (Ω after the screening iterations, candidate, its LibrResult)
+    screened: list[tuple[float, RigidResult, LibrResult]] = []
     if len(candidates) > 1 and init.screen_iterations > 0 and data:
         # which basin: the LIBR objective after a few iterations, not the rigid RMS alone —
         # a pose that leaves the data a few mm off may be the one the deformation explains
         quick = replace(options, max_iterations=init.screen_iterations)
-        for cand in candidates:
-            res = register_libr(model, {n: cand.inverse(p) for n, p in data.items()}, None, quick, None, cancel)
-            screened.append((res.omega, cand, res))
+        # independent fits: on both cores, each the same as alone, in the candidates' order
+        # (docs/decisions/speed.md, "The folds on both cores")
+        quick_fits = in_threads(lambda i: register_libr(model, {n: candidates[i].inverse(p) for n, p in data.items()},
+                                                        None, quick, None, cancel), len(candidates))
+        screened.extend((res.omega, cand, res) for cand, res in zip(candidates, quick_fits, strict=True))
         screened.sort(key=lambda x: x[0])
         rigid = screened[0][1]
         for s in starts:
@@ -1009,6 +1014,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
             sec["local_modes"] = time.perf_counter() - t
             clock.mark("local_modes")
     support = None
+    ahead: list[tuple[tuple, OrganError]] = []  # the error estimate made beside the folds, and what it read
     if deform and fresh and init.support is not None and result is not None and result.stop_reason != "cancelled":
         t = time.perf_counter()
         # a declared pose within the clinical goal confines the pose: the held-out gain is judged
@@ -1019,8 +1025,20 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         # the margin holds there ("The one-standard-error rule on a held basis", session 37)
         confined = declared and options.weights.pose_prior is not None and model.basis.settings.supports is None \
             and declared_spread(model, options.weights) <= CLINICAL_GOAL_MM
+        beside = None
+        if not declared and not rigid.kept:
+            # the answer's error estimate, made among the folds' tasks on the second core: from
+            # ICP's pose the deformable answer is shown whatever the folds say, and it is used
+            # below only if nothing it reads was replaced (docs/decisions/speed.md, "The folds on both cores")
+            made = (model, rigid, result, local, options.weights)
+
+            def beside() -> None:
+                reg = Registration(made[0], made[1], made[2], made[3], pose_prior=made[4].pose_prior)
+                ahead.append((made, organ_error(reg, weights=replace(made[4], pose_prior=None))))
+
         support = _cross_validate(model, local, options, init.support, cancel, rigid, result, folds_support,
-                                  local_modes=base_model is not None, declared=declared, paired=confined)
+                                  local_modes=base_model is not None, declared=declared, paired=confined,
+                                  beside=beside)
         sec["support"] = time.perf_counter() - t
         clock.mark("support")
     evidence: PoseEvidence | None = None
@@ -1145,7 +1163,11 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         # whether it is good enough to navigate by at all (docs/decisions/error-estimate.md, "An answer the data
         # do not determine"). Warm re-registrations skip it, as they skip the cross-validation
         # with the fit's own weights (its robust factors), as the viewer's predicted error is made
-        reg.organ = organ_error(reg, weights=replace(options.weights, pose_prior=None))
+        read = (reg.model, reg.rigid, reg.libr, reg.data_model_frame, options.weights)
+        if ahead and all(a is b for a, b in zip(ahead[0][0], read, strict=True)):
+            reg.organ = ahead[0][1]  # made beside the folds from the same answer (its seconds there)
+        else:
+            reg.organ = organ_error(reg, weights=replace(options.weights, pose_prior=None))
         sec["organ_error"] = reg.organ.seconds
         clock.mark("organ_error")
     # last, so that it steers nothing above (a note before the pose choice would skip it): too

@@ -4,7 +4,8 @@
 choice, the deformable fits, the cross-validation, the error estimate, …); a stage's time is
 what passed since the previous mark, so the stages add up to the whole call. CPU is the
 process's (every thread), so on a machine other work shares, CPU says what the stage costs and
-wall what it took (``navapp bench register`` prints both).
+wall what it took (``navapp bench register`` prints both). Work run on the second thread among a
+stage's own (the error estimate beside the cross-validation's folds) counts in that stage.
 """
 
 import time

@@ -37,8 +37,10 @@ warned about (``outweighs``). The answer is the same either way; only the line c
 """
 
 import math
+import threading
 import time
 from collections.abc import Callable
+from contextlib import AbstractContextManager
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -47,10 +49,11 @@ from sklearn.cluster import KMeans
 
 from ..features import SALIENT
 from ..fitwarning import FitWarning, WarningKind
-from ..threads import limit_threads
+from ..switches import Before
+from ..threads import in_threads, limit_threads, task_threads
 from .libr import LMOptions, register_libr
 from .model import DATA_TO_MODEL, RegistrationModel
-from .objective import evaluate, points_of
+from .objective import Evaluation, evaluate, points_of
 from .quality import EXPECTED_NOISE_MM
 from .uncertainty import covariance_factor, information, point_jacobian, point_sigma
 
@@ -295,73 +298,122 @@ def blocks_of(data: dict, count: int, seed: int = 0) -> dict:
 
 
 def check_support(model: RegistrationModel, data: dict, options: LMOptions,
-                  support: SupportOptions = SupportOptions(), cancel=None) -> Support | None:
+                  support: SupportOptions = SupportOptions(), cancel=None,
+                  beside: Callable[[], None] | None = None) -> Support | None:
     """Cross-validate the deformable answer against the rigid one (module doc). ``data``:
     feature → (N, 3) mm in the model frame (after the rigid pose); ``options`` the LM
-    settings of the real fit. None when there are too few data points to split."""
-    pair = check_support_pair(model, data, options, support, cancel)
+    settings of the real fit. None when there are too few data points to split. ``beside``:
+    the caller's own independent task, run among the folds' when they share the cores
+    (``check_support_pair``)."""
+    pair = check_support_pair(model, data, options, support, cancel, beside=beside)
     return None if pair is None else pair[0]
 
 
 def check_support_pair(model: RegistrationModel, data: dict, options: LMOptions,
                        support: SupportOptions = SupportOptions(), cancel=None,
                        extend: Callable[[dict, np.ndarray], RegistrationModel | None] | None = None,
-                       ) -> tuple[Support, Support] | None:
+                       beside: Callable[[], None] | None = None) -> tuple[Support, Support] | None:
     """``check_support`` for ``model`` and, in the same folds, for a model each fold extends
     from its own training data: ``extend(train, beta)`` (the training data, feature →
     (N, 3) mm, and the fit of ``model`` to them, (3k + 6,)) returns the extended model or None
     (the fold keeps ``model``'s prediction). So no held-out point has a say in what its fold's
     model can do (``local_modes``). Without ``extend`` both Supports are the same.
 
-    The folds' fits leave the model's kept fit ends (``objective.keep_end``) as they found them:
-    no later fit starts where a fold ended, and ten of them would push out the answer's own,
-    which the error estimate and the first warm start after a fresh registration evaluate at."""
+    The folds' fits leave the model's kept fit ends (``objective.keep_end``) as they found them
+    (they fit a copy of ``model`` with a copy of its cache): no later fit starts where a fold
+    ended, and ten of them would push out the answer's own, which the error estimate and the
+    first warm start after a fresh registration evaluate at.
+
+    ``beside``: a task of the caller's that does not depend on the folds (``pipeline``'s error
+    estimate of the answer, made ahead), run as one more of their tasks where they run on two
+    threads, so that it fills the cores with them; not run where they run on one (nor where there
+    are too few points to split), and then the caller makes what it would have made."""
     total = sum(len(p) for k, p in data.items() if k != "fiducials")
     if total < support.min_points:
         return None
-    kept = model.cache.ends
-    try:
-        return _folds(model, data, options, support, cancel, extend)
-    finally:
-        model.cache.ends = kept
+    # the folds' fits keep their ends and last evaluations in a cache of their own, begun as a copy
+    # of the model's: the caller's error estimate, run beside them, finds the answer's end there
+    return _folds(replace(model, cache=model.cache.copy()), data, options, support, cancel, extend, beside)
 
 
-def _folds(model, data, options, support, cancel, extend) -> tuple[Support, Support] | None:
+def _folds(model, data, options, support, cancel, extend, beside=None) -> tuple[Support, Support] | None:
     t0 = time.perf_counter()
     labels = blocks_of(data, support.blocks)
     fold = replace(options, max_iterations=min(options.max_iterations, support.iterations))
     n = model.basis.Ju.shape[1]
     zero = np.zeros(n + 6)
-    out, out_ext = [], []
     # every fold's fits start at β = 0, on some of these points: one evaluation of all of them
     # there, and each fit starts from its training points' rows (``objective.points_of``: the
     # same bits as evaluating them apart, ten searches and Jacobians fewer)
     with limit_threads(1):
         start = evaluate(model, data, zero, options.weights, jacobian=True)
-    for b in range(support.blocks):
+    folds = [_Fold(b, {k: p[labels[k] != b] for k, p in data.items() if (labels[k] != b).any()},
+                   {k: p[labels[k] == b] for k, p in data.items() if (labels[k] == b).any()})
+             for b in range(support.blocks)]
+    folds = [f for f in folds if f.train and f.held]
+
+    def first(f: "_Fold"):
+        # the fold's rows of the shared start, made once for its two fits (whichever runs first)
+        with f.lock:
+            if f.first is None:
+                f.first = points_of(start, {k: labels[k] != f.block for k in f.train}, options.weights)
+            return f.first
+
+    def deformable(f: "_Fold") -> tuple[float, float] | None:
         if cancel is not None and cancel.is_set():
             return None  # cut short: folds stopped before they were fitted say nothing about the data
-        train = {k: p[labels[k] != b] for k, p in data.items() if (labels[k] != b).any()}
-        held = {k: p[labels[k] == b] for k, p in data.items() if (labels[k] == b).any()}
-        if not held or not train:
-            continue
-        first = points_of(start, {k: labels[k] != b for k in train}, options.weights)
-        fit = register_libr(model, train, None, fold, None, cancel, first=first)
-        # the rigid answer fitted to the same training data (τ, θ alone; a kept pose stays); its
-        # LM steps read only the pose columns of the shared start's Jacobian
-        pose = zero if not options.pose else register_libr(model, train, None, replace(fold, deform=False), None,
-                                                           cancel, first=first).beta
-        rigid = pooled_rms(evaluate(model, held, pose, options.weights, jacobian=False).features, held)
-        deformed = pooled_rms(evaluate(model, held, fit.beta, options.weights, jacobian=False).features, held)
-        pts = np.vstack(list(held.values()))
-        out.append(Block(pts.mean(0), len(pts), rigid, deformed))
+        fit = register_libr(model, f.train, None, fold, None, cancel, first=first(f))
+        deformed = pooled_rms(evaluate(model, f.held, fit.beta, options.weights, jacobian=False).features, f.held)
         if cancel is not None and cancel.is_set():
             return None
-        other = None if extend is None else extend(train, fit.beta)
+        other = None if extend is None else extend(f.train, fit.beta)
+        extended = deformed
         if other is not None:
-            fit2 = register_libr(other, train, None, fold, None, cancel)
-            deformed = pooled_rms(evaluate(other, held, fit2.beta, options.weights, jacobian=False).features, held)
-        out_ext.append(Block(pts.mean(0), len(pts), rigid, deformed))
+            fit2 = register_libr(other, f.train, None, fold, None, cancel)
+            extended = pooled_rms(evaluate(other, f.held, fit2.beta, options.weights, jacobian=False).features,
+                                  f.held)
+        return deformed, extended
+
+    def rigid(f: "_Fold") -> float | None:
+        if cancel is not None and cancel.is_set():
+            return None
+        # the rigid answer fitted to the same training data (τ, θ alone; a kept pose stays); its
+        # LM steps read only the pose columns of the shared start's Jacobian
+        pose = zero if not options.pose else register_libr(model, f.train, None, replace(fold, deform=False), None,
+                                                           cancel, first=first(f)).beta
+        return pooled_rms(evaluate(model, f.held, pose, options.weights, jacobian=False).features, f.held)
+
+    # the folds' fits are independent: on two cores the deformable ones first (the longest), the
+    # rigid ones after; each the same computation as alone, gathered in fold order
+    # (docs/decisions/speed.md, "The folds on both cores")
+    threads = 1 if _sequential_folds else task_threads()
+    tasks: list[tuple[bool, _Fold] | None]  # (deformable?, fold), or None: the caller's ``beside``
+    if threads > 1:
+        tasks = [*((True, f) for f in folds), *([None] if beside is not None else []), *((False, f) for f in folds)]
+    else:  # as before: each fold's deformable fit, then its rigid one
+        tasks = [(job, f) for f in folds for job in (True, False)]
+    fitted: dict[int, tuple[float, float] | None] = {}  # block → deformable RMS (today's model, extended)
+    fixed: dict[int, float | None] = {}  # block → rigid RMS
+
+    def run(i: int) -> None:
+        task = tasks[i]
+        if task is None:
+            assert beside is not None
+            beside()
+        elif task[0]:
+            fitted[task[1].block] = deformable(task[1])
+        else:
+            fixed[task[1].block] = rigid(task[1])
+
+    in_threads(run, len(tasks), threads)
+    out, out_ext = [], []
+    for f in folds:
+        d, r = fitted[f.block], fixed[f.block]
+        if d is None or r is None:
+            return None
+        pts = np.vstack(list(f.held.values()))
+        out.append(Block(pts.mean(0), len(pts), r, d[0]))
+        out_ext.append(Block(pts.mean(0), len(pts), r, d[1]))
     if not out or (cancel is not None and cancel.is_set()):
         return None  # cut short: folds stopped before they were fitted say nothing about the data
     inside = any(DATA_TO_MODEL[k] not in ("liver", "fiducials", *SALIENT) for k in data)
@@ -374,6 +426,28 @@ def _folds(model, data, options, support, cancel, extend) -> tuple[Support, Supp
     noise = min((EXPECTED_NOISE_MM.get(k, 1.0) for k in data if k != "fiducials"), default=1.0)
     floor = noise / math.sqrt(max(total, 1))
     return _summary(out, margin, sec, paired, floor), _summary(out_ext, margin, sec, paired, floor)
+
+
+@dataclass
+class _Fold:
+    """One fold of the cross-validation: its block, training and held-out points (feature →
+    (N, 3) mm), and its rows of the shared start (``points_of``), made by its first fit."""
+
+    block: int
+    train: dict
+    held: dict
+    first: Evaluation | None = None
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+_sequential_folds = Before()
+
+
+def sequential_folds() -> AbstractContextManager[None]:
+    """Within it, the cross-validation's folds run one after another in this thread, each
+    fold's deformable fit then its rigid one, as before they shared the cores (the benches'
+    "before", and the test that the concurrent folds give the same bits); process-wide."""
+    return _sequential_folds.taken()
 
 
 def paired_gain(blocks: list[Block]) -> tuple[float, float]:
