@@ -56,3 +56,73 @@ def _entered(held, limits, limiter):
             yield
     finally:
         held.pop()
+
+
+# --- compiled kernels split among threads (the live update's second core) ---------------------
+
+_split = threading.local()  # this thread's kernel threads (``split_kernels``)
+SPLIT_MIN = 64  # a kernel over fewer points (or triangles) stays on the calling thread
+_layer: list = []  # [True] once Numba's TBB layer is up, [False] where it cannot be loaded
+
+
+def kernel_threads() -> int:
+    """How many threads the compiled per-point kernels may split one call among in this thread:
+    1 (each kernel on the calling thread) unless inside ``split_kernels``."""
+    return getattr(_split, "n", 1)
+
+
+def _tbb() -> bool:
+    """Numba's parallel kernels run on its TBB layer or not at all. TBB's threads take work
+    as they come free, so a call never waits for a thread the machine did not run (OpenMP's
+    barrier waited 13–55 ms for one on this 2-core machine under load, against 1.7 ms on one
+    thread; docs/decisions/speed.md, "The live update on two cores"); it is also safe under
+    fork and from several threads. Where TBB cannot be loaded the kernels stay serial."""
+    if not _layer:
+        try:
+            import numba
+            from numba.np.ufunc import parallel
+
+            if not parallel._is_initialized:
+                numba.config.THREADING_LAYER = "tbb"
+            parallel._launch_threads()
+            _layer.append(numba.threading_layer() == "tbb")
+        except (ImportError, ValueError):
+            _layer.append(False)
+    return _layer[0]
+
+
+@contextmanager
+def split_kernels(threads: int | None = 2):
+    """Within it, the compiled per-point kernels of registration (closest points, the Jacobian's
+    columns, the held fast path's sums) may split a call's points among ``threads`` threads of
+    Numba's TBB pool (None: the machine's cores), in this thread only. Each point is computed
+    as on one thread, so the answers are the same bits. Where TBB cannot be loaded, or at one
+    thread, nothing is split."""
+    held = kernel_threads()
+    n = 1
+    if threads is None or threads > 1:
+        if _tbb():
+            import numba
+
+            n = numba.config.NUMBA_NUM_THREADS if threads is None else min(threads, numba.config.NUMBA_NUM_THREADS)
+    if n <= 1:
+        _split.n = 1
+        try:
+            yield
+        finally:
+            _split.n = held
+        return
+    import numba
+
+    threads_before, chunk_before = numba.get_num_threads(), numba.get_parallel_chunksize()
+    numba.set_num_threads(n)
+    # one loop iteration (a chunk of points, ``parallel_chunk``) a task, taken by whichever
+    # thread is free: Numba's default cuts the loop into one piece a thread up front
+    numba.set_parallel_chunksize(1)
+    _split.n = n
+    try:
+        yield
+    finally:
+        _split.n = held
+        numba.set_num_threads(threads_before)
+        numba.set_parallel_chunksize(chunk_before)

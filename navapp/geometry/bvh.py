@@ -18,6 +18,8 @@ Measured against the alternatives: docs/decisions/speed.md, "Closest points at t
 
 import numpy as np
 
+from ..compiled import CHUNK, prange, split_jit
+from ..threads import SPLIT_MIN, kernel_threads
 from .closest_compiled import _jit, pair
 
 LEAF = 4  # triangles per leaf at most
@@ -72,6 +74,24 @@ def build(vertices, faces, leaf):
 
 
 @_jit
+def _leaf_box(vertices, faces, order, first, count, node, box):
+    """box[node]: the lowest and highest corner around a leaf's triangles."""
+    l0 = l1 = l2 = np.inf
+    h0 = h1 = h2 = -np.inf
+    for j in range(first[node], first[node] + count[node]):
+        f = order[j]
+        for v in range(3):
+            x = vertices[faces[f, v], 0]
+            y = vertices[faces[f, v], 1]
+            z = vertices[faces[f, v], 2]
+            l0, h0 = min(l0, x), max(h0, x)
+            l1, h1 = min(l1, y), max(h1, y)
+            l2, h2 = min(l2, z), max(h2, z)
+    box[node, 0, 0], box[node, 0, 1], box[node, 0, 2] = l0, l1, l2
+    box[node, 1, 0], box[node, 1, 1], box[node, 1, 2] = h0, h1, h2
+
+
+@_jit
 def refit(vertices, faces, order, left, first, count):
     """Boxes (nodes, 2, 3): each node's lowest and highest corner around its triangles at
     ``vertices``."""
@@ -80,19 +100,7 @@ def refit(vertices, faces, order, left, first, count):
     for node in range(n - 1, -1, -1):
         c = left[node]
         if c < 0:
-            l0 = l1 = l2 = np.inf
-            h0 = h1 = h2 = -np.inf
-            for j in range(first[node], first[node] + count[node]):
-                f = order[j]
-                for v in range(3):
-                    x = vertices[faces[f, v], 0]
-                    y = vertices[faces[f, v], 1]
-                    z = vertices[faces[f, v], 2]
-                    l0, h0 = min(l0, x), max(h0, x)
-                    l1, h1 = min(l1, y), max(h1, y)
-                    l2, h2 = min(l2, z), max(h2, z)
-            box[node, 0, 0], box[node, 0, 1], box[node, 0, 2] = l0, l1, l2
-            box[node, 1, 0], box[node, 1, 1], box[node, 1, 2] = h0, h1, h2
+            _leaf_box(vertices, faces, order, first, count, node, box)
         else:
             for k in range(3):
                 box[node, 0, k] = min(box[c, 0, k], box[c + 1, 0, k])
@@ -113,6 +121,50 @@ def _box_d2(p0, p1, p2, box, node):
 
 
 @_jit
+def _nearest(points, i, vertices, faces, order, left, first, count, box, start, stack, gap, face, bary):
+    """Point i's closest triangle (``closest``), into face[i] and bary[i]; ``stack`` and
+    ``gap`` (128,): scratch for the descent."""
+    p0, p1, p2 = points[i, 0], points[i, 1], points[i, 2]
+    best = np.inf
+    bf = -1
+    b1 = 0.0
+    b2 = 0.0
+    if start[i] >= 0:
+        d, w1, w2 = pair(p0, p1, p2, vertices, faces, start[i])
+        if d < best:
+            best, bf, b1, b2 = d, start[i], w1, w2
+    stack[0] = 0
+    gap[0] = 0.0  # each stacked node's box distance, computed when it was pushed
+    top = 1
+    while top > 0:
+        top -= 1
+        node = stack[top]
+        # skipped only beyond a rounding margin of the best: a tie is never lost
+        if gap[top] > best * (1.0 + 1e-9) + 1e-12:
+            continue
+        c = left[node]
+        if c < 0:
+            for j in range(first[node], first[node] + count[node]):
+                f = order[j]
+                d, w1, w2 = pair(p0, p1, p2, vertices, faces, f)
+                if d < best or (d == best and f < bf):
+                    best, bf, b1, b2 = d, f, w1, w2
+        else:
+            g0 = _box_d2(p0, p1, p2, box, c)
+            g1 = _box_d2(p0, p1, p2, box, c + 1)
+            # the nearer child on top, searched first
+            if g0 <= g1:
+                stack[top], gap[top], stack[top + 1], gap[top + 1] = c + 1, g1, c, g0
+            else:
+                stack[top], gap[top], stack[top + 1], gap[top + 1] = c, g0, c + 1, g1
+            top += 2
+    face[i] = bf
+    bary[i, 0] = 1.0 - b1 - b2
+    bary[i, 1] = b1
+    bary[i, 2] = b2
+
+
+@_jit
 def closest(points, vertices, faces, order, left, first, count, box, start):
     """face (N,) and barycentric weights (N, 3) of each point's closest point on the
     surface; ``start`` (N,) a triangle per point to begin from (−1: none), e.g. the previous
@@ -122,47 +174,46 @@ def closest(points, vertices, faces, order, left, first, count, box, start):
     face = np.full(N, -1, np.int64)
     bary = np.zeros((N, 3))
     stack = np.empty(128, np.int64)
-    gap = np.empty(128)  # each stacked node's box distance, computed when it was pushed
+    gap = np.empty(128)
     for i in range(N):
-        p0, p1, p2 = points[i, 0], points[i, 1], points[i, 2]
-        best = np.inf
-        bf = -1
-        b1 = 0.0
-        b2 = 0.0
-        if start[i] >= 0:
-            d, w1, w2 = pair(p0, p1, p2, vertices, faces, start[i])
-            if d < best:
-                best, bf, b1, b2 = d, start[i], w1, w2
-        stack[0] = 0
-        gap[0] = 0.0
-        top = 1
-        while top > 0:
-            top -= 1
-            node = stack[top]
-            # skipped only beyond a rounding margin of the best: a tie is never lost
-            if gap[top] > best * (1.0 + 1e-9) + 1e-12:
-                continue
-            c = left[node]
-            if c < 0:
-                for j in range(first[node], first[node] + count[node]):
-                    f = order[j]
-                    d, w1, w2 = pair(p0, p1, p2, vertices, faces, f)
-                    if d < best or (d == best and f < bf):
-                        best, bf, b1, b2 = d, f, w1, w2
-            else:
-                g0 = _box_d2(p0, p1, p2, box, c)
-                g1 = _box_d2(p0, p1, p2, box, c + 1)
-                # the nearer child on top, searched first
-                if g0 <= g1:
-                    stack[top], gap[top], stack[top + 1], gap[top + 1] = c + 1, g1, c, g0
-                else:
-                    stack[top], gap[top], stack[top + 1], gap[top + 1] = c, g0, c + 1, g1
-                top += 2
-        face[i] = bf
-        bary[i, 0] = 1.0 - b1 - b2
-        bary[i, 1] = b1
-        bary[i, 2] = b2
+        _nearest(points, i, vertices, faces, order, left, first, count, box, start, stack, gap, face, bary)
     return face, bary
+
+
+def _closest_split(points, vertices, faces, order, left, first, count, box, start):
+    """``closest`` with the points split among Numba's threads (``threads.split_kernels``), in
+    chunks of ``CHUNK``: each point searched as there, the same bits."""
+    N = points.shape[0]
+    face = np.full(N, -1, np.int64)
+    bary = np.zeros((N, 3))
+    for c in prange((N + CHUNK - 1) // CHUNK):
+        stack = np.empty(128, np.int64)
+        gap = np.empty(128)
+        for i in range(c * CHUNK, min(N, (c + 1) * CHUNK)):
+            _nearest(points, i, vertices, faces, order, left, first, count, box, start, stack, gap, face, bary)
+    return face, bary
+
+
+def _refit_split(vertices, faces, order, left, first, count):
+    """``refit`` with the leaves' boxes split among Numba's threads, then each parent from its
+    children on this thread: the same boxes (minima and maxima round nothing)."""
+    n = left.shape[0]
+    box = np.empty((n, 2, 3))
+    for c in prange((n + 4 * CHUNK - 1) // (4 * CHUNK)):
+        for node in range(c * 4 * CHUNK, min(n, (c + 1) * 4 * CHUNK)):
+            if left[node] < 0:
+                _leaf_box(vertices, faces, order, first, count, node, box)
+    for node in range(n - 1, -1, -1):
+        c = left[node]
+        if c >= 0:
+            for k in range(3):
+                box[node, 0, k] = min(box[c, 0, k], box[c + 1, 0, k])
+                box[node, 1, k] = max(box[c, 1, k], box[c + 1, 1, k])
+    return box
+
+
+closest_split = split_jit(_closest_split)
+refit_split = split_jit(_refit_split)
 
 
 class SurfaceHierarchy:
@@ -185,8 +236,9 @@ class SurfaceHierarchy:
 
     def refit(self, vertices) -> np.ndarray:
         """The nodes' boxes (nodes, 2, 3) at ``vertices`` (V, 3) mm."""
-        return refit(np.ascontiguousarray(vertices, dtype=float), self.faces, self.order, self.left, self.first,
-                     self.count)
+        kernel = refit_split if len(self.faces) >= SPLIT_MIN and kernel_threads() > 1 else refit
+        return kernel(np.ascontiguousarray(vertices, dtype=float), self.faces, self.order, self.left, self.first,
+                      self.count)
 
     def closest(self, points, vertices, boxes, start=None):
         """face (N,) and barycentric weights (N, 3) of the closest surface points of ``points``
@@ -194,5 +246,6 @@ class SurfaceHierarchy:
         optional triangles to begin from (speed only). Face −1 where no distance is finite."""
         points = np.ascontiguousarray(points, dtype=float)
         start = np.full(len(points), -1, np.int64) if start is None else np.ascontiguousarray(start, dtype=np.int64)
-        return closest(points, np.ascontiguousarray(vertices, dtype=float), self.faces, self.order, self.left,
-                       self.first, self.count, boxes, start)
+        kernel = closest_split if len(points) >= SPLIT_MIN and kernel_threads() > 1 else closest
+        return kernel(points, np.ascontiguousarray(vertices, dtype=float), self.faces, self.order, self.left,
+                      self.first, self.count, boxes, start)

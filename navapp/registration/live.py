@@ -7,12 +7,12 @@ every frame" runs it. Calls ``pipeline.register`` unchanged.
 """
 
 import time
-from contextlib import nullcontext
+from contextlib import ExitStack
 from dataclasses import replace
 
 import numpy as np
 
-from ..threads import limit_threads
+from ..threads import limit_threads, split_kernels
 from .libr import LMOptions
 from .pipeline import Registration, register
 
@@ -51,7 +51,11 @@ class LiveRegistration:
         self.history: list = []  # (seconds, iterations) per update
 
     def _limits(self):
-        return limit_threads(self.threads) if self.threads else nullcontext()
+        stack = ExitStack()
+        if self.threads:
+            stack.enter_context(limit_threads(self.threads))
+        stack.enter_context(split_kernels(self.threads))
+        return stack
 
     def register(self, frame: dict | None = None):
         """Cold registration (multi-start rigid + LIBR) of base ∪ frame."""

@@ -26,6 +26,7 @@ from ..geometry.closest import (
     vertex_tree,
 )
 from ..switches import Before
+from ..threads import SPLIT_MIN, kernel_threads
 from .model import W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform, displacement
 from .prior import PosePrior
 from .rotation import rotation, rotation_derivatives
@@ -227,7 +228,8 @@ def _carried(SBJ, alpha):
     if not alpha.any():
         return np.zeros((len(SBJ), 3))
     out = np.empty((len(SBJ), 3))
-    _jacobian_kernel[0][3](SBJ, np.ascontiguousarray(alpha, dtype=float), out)  # made it: it is loaded
+    kernel = _jacobian_kernel[0]  # made it: it is loaded
+    (kernel[6] if _split(len(SBJ)) else kernel[3])(SBJ, np.ascontiguousarray(alpha, dtype=float), out)
     return out
 
 
@@ -620,7 +622,8 @@ def _at(model: RegistrationModel, beta) -> tuple | None:
     return None
 
 
-# the compiled (α columns, pose columns, S·X), or None (``jacobian_compiled``), imported on first use
+# the compiled (α columns, pose columns, S·X, U·α, and the first, second and fourth split among
+# threads), or None (``jacobian_compiled``), imported on first use
 _jacobian_kernel: list = []
 _numpy_jacobian = Before()  # ``numpy_jacobian``
 
@@ -629,10 +632,26 @@ def _alpha_kernel():
     if _numpy_jacobian:
         return None
     if not _jacobian_kernel:
-        from .jacobian_compiled import alpha_columns, apply, carried, pose_columns
+        from .jacobian_compiled import (
+            alpha_columns,
+            alpha_columns_split,
+            apply,
+            carried,
+            carried_split,
+            pose_columns,
+            pose_columns_split,
+        )
 
-        _jacobian_kernel.append(None if alpha_columns is None else (alpha_columns, pose_columns, apply, carried))
+        _jacobian_kernel.append(None if alpha_columns is None else (alpha_columns, pose_columns, apply, carried,
+                                                                    alpha_columns_split, pose_columns_split,
+                                                                    carried_split))
     return _jacobian_kernel[0]
+
+
+def _split(points: int) -> bool:
+    """Whether a compiled kernel over ``points`` points takes its split build: inside
+    ``threads.split_kernels`` and enough points to share (``threads.SPLIT_MIN``)."""
+    return points >= SPLIT_MIN and kernel_threads() > 1
 
 
 _cold_search = Before()  # ``cold_search``
@@ -695,15 +714,16 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation, alpha_columns: bool =
         if kernel is not None:
             assert Js is not None
             Jsf, swf = Js[block], sw[block]
+            alpha_kernel, pose_kernel = (kernel[4], kernel[5]) if _split(S.shape[0]) else (kernel[0], kernel[1])
             U = None
             if alpha_columns:
                 # S·B·J_u kept in single precision for the held fast path; J from it in double
                 U = np.empty((S.shape[0], 3, n), np.float32)
-                kernel[0](S.indptr, S.indices, S.data, feat.BJ, np.ascontiguousarray(qR), rows, U, Jf, swf, Jsf)
+                alpha_kernel(S.indptr, S.indices, S.data, feat.BJ, np.ascontiguousarray(qR), rows, U, Jf, swf, Jsf)
             else:
                 Jsf[:, :n] = Jf[:, :n] * swf[:, None]
             S_rest = np.empty((S.shape[0], 3))
-            kernel[1](S.indptr, S.indices, S.data, feat.rest, local, np.ascontiguousarray(q), dR, rows, S_rest, Jf,
+            pose_kernel(S.indptr, S.indices, S.data, feat.rest, local, np.ascontiguousarray(q), dR, rows, S_rest, Jf,
                       swf, Jsf)
             if not c.carries_basis:
                 ev.correspondence[name] = Correspondence(c.S, c.direction, U, S_rest, c.face)

@@ -1,0 +1,176 @@
+"""The compiled kernels split among threads (``threads.split_kernels``: the live update's
+second core) give the one-thread kernels' answers to the bit, and only in the thread that
+asked for them."""
+
+import threading
+
+import numpy as np
+import pytest
+
+from navapp.threads import SPLIT_MIN, kernel_threads, split_kernels
+
+numba = pytest.importorskip("numba")
+
+
+@pytest.fixture(scope="module")
+def two_threads():
+    """Inside ``split_kernels(2)``, or a skip where Numba's TBB layer cannot be loaded."""
+    from navapp.threads import _tbb
+
+    if not _tbb():
+        pytest.skip("Numba's TBB threading layer is not available: the kernels stay on one thread")
+    return lambda: split_kernels(2)
+
+
+def _surface(rng):
+    import trimesh
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=40.0)  # 1,280 triangles
+    v = np.ascontiguousarray(ball.vertices + rng.normal(0.0, 1.5, ball.vertices.shape))
+    return v, np.ascontiguousarray(ball.faces, dtype=np.int64)
+
+
+def test_split_closest_points_and_boxes_are_the_one_thread_ones(two_threads):
+    from navapp.geometry import bvh
+
+    rng = np.random.default_rng(41)
+    v, f = _surface(rng)
+    h = bvh.SurfaceHierarchy(v, f)
+    moved = v + rng.normal(0.0, 0.8, v.shape)  # the tree is refitted to deformed vertices
+    points = moved[rng.choice(len(moved), 500)] * rng.uniform(0.8, 1.2, (500, 1))  # inside and outside
+    boxes = bvh.refit(moved, h.faces, h.order, h.left, h.first, h.count)
+    face, bary = bvh.closest(points, moved, h.faces, h.order, h.left, h.first, h.count, boxes,
+                             np.full(len(points), -1, np.int64))
+    start = rng.integers(0, len(f), len(points))
+    with two_threads():
+        assert kernel_threads() == 2
+        split_boxes = bvh.refit_split(moved, h.faces, h.order, h.left, h.first, h.count)
+        got = [bvh.closest_split(points, moved, h.faces, h.order, h.left, h.first, h.count, boxes, s)
+               for s in (np.full(len(points), -1, np.int64), start)]
+        # the hierarchy takes the split build from SPLIT_MIN points (and triangles) on
+        assert np.array_equal(h.refit(moved), boxes)
+        via = h.closest(points, moved, boxes)
+    assert np.array_equal(split_boxes, boxes)
+    for fc, br in (*got, via):
+        assert np.array_equal(fc, face) and np.array_equal(br, bary)
+    assert (face >= 0).all() and len(np.unique(face)) > 100  # a real search, not a degenerate one
+
+
+def _csr(rng, N, V, width=3):
+    indptr = np.arange(0, width * N + 1, width, dtype=np.int32)
+    indices = rng.integers(0, V, width * N).astype(np.int32)
+    return indptr, indices, rng.random(width * N)
+
+
+@pytest.mark.parametrize("per_point", [1, 3])  # a surface's one row a point, a centerline's three
+def test_split_jacobian_columns_and_carried_sums_are_the_one_thread_ones(two_threads, per_point):
+    from navapp.registration import jacobian_compiled as jc
+
+    rng = np.random.default_rng(43 + per_point)
+    V, N, n = 300, 251, 27  # 251 points: the last chunk a part one
+    indptr, indices, weights = _csr(rng, N, V)
+    BJ = rng.normal(size=(V, 3, n)) * 7.3
+    rest, local = rng.normal(size=(V, 3)) * 50, rng.normal(size=(V, 3)) * 50
+    rows = np.repeat(np.arange(N), per_point)
+    q = rng.normal(size=(len(rows), 3))
+    qR = rng.normal(size=(len(rows), 3))
+    dR = rng.normal(size=(3, 3, 3))
+    sw = rng.random(len(rows))
+    alpha = rng.normal(size=n)
+
+    def run(alpha_columns, pose_columns, carried, order):
+        U = np.empty((N, 3, n), np.float32)
+        J, Js = np.full((len(rows), n + 6), np.nan), np.full((len(rows), n + 6), np.nan)
+        S_rest = np.empty((N, 3))
+        alpha_columns(indptr, indices, weights, BJ, qR[order], rows[order], U, J, sw[order], Js)
+        pose_columns(indptr, indices, weights, rest, local, q[order], dR, rows[order], S_rest, J, sw[order], Js)
+        out = np.empty((N, 3))
+        carried(U, alpha, out)
+        return U, J, Js, S_rest, out
+
+    for order in (np.arange(len(rows)), rng.permutation(len(rows))):  # rows out of point order too
+        one = run(jc.alpha_columns, jc.pose_columns, jc.carried, order)
+        with two_threads():
+            split = run(jc.alpha_columns_split, jc.pose_columns_split, jc.carried_split, order)
+        for a, b in zip(one, split, strict=True):
+            assert np.array_equal(a, b)
+        assert np.isfinite(one[1]).all()  # every entry of J written
+
+
+def test_a_live_update_on_two_threads_is_the_one_thread_fit(small_model, two_threads, monkeypatch):
+    """``LiveRegistration(threads=2)`` splits the kernels (each feature here has ≥ SPLIT_MIN
+    points) and fits every frame to the same bits as on one thread."""
+    from navapp.geometry import bvh
+    from navapp.registration import jacobian_compiled as jc
+    from navapp.registration.live import LiveRegistration
+    from navapp.registration.model import RegistrationModel
+
+    calls = {"closest": 0, "alpha": 0}
+    plain_closest, plain_alpha = bvh.closest_split, jc.alpha_columns_split
+
+    def closest_split(*a):
+        calls["closest"] += 1
+        return plain_closest(*a)
+
+    def alpha_split(*a):
+        calls["alpha"] += 1
+        return plain_alpha(*a)
+
+    monkeypatch.setattr(bvh, "closest_split", closest_split)
+    import navapp.registration.objective as objective
+
+    monkeypatch.setattr(objective, "_jacobian_kernel", [])
+    monkeypatch.setattr(jc, "alpha_columns_split", alpha_split)
+    rng = np.random.default_rng(47)
+    liver = small_model.features["liver"].rest
+    base = {"anterior": liver[rng.choice(len(liver), 150, replace=False)] + rng.normal(0.0, 1.0, (150, 3))}
+    frames = [{"posterior": liver[rng.choice(len(liver), 80, replace=False)] + rng.normal(0.0, 2.0, (80, 3))
+               + [1.0, -0.5, 0.3]} for _ in range(4)]
+    fits = {}
+    for threads in (1, 2):
+        model = RegistrationModel(small_model.basis, small_model.features, small_model.centroid)
+        live = LiveRegistration(model, base, threads=threads)
+        live.register()
+        before = dict(calls)
+        fits[threads] = [live.update(f).libr for f in frames]
+        assert (calls != before) == (threads == 2)  # split only on two threads
+    for a, b in zip(fits[1], fits[2], strict=True):
+        assert np.array_equal(a.beta, b.beta) and a.omega == b.omega and a.features == b.features
+    assert calls["closest"] >= 4 and calls["alpha"] >= 4
+
+
+def test_split_kernels_hold_in_their_own_thread_and_give_back(two_threads):
+    threads_before, chunk_before = numba.get_num_threads(), numba.get_parallel_chunksize()
+    seen = {}
+
+    def other():
+        seen["other"] = (kernel_threads(), numba.get_num_threads(), numba.get_parallel_chunksize())
+
+    with two_threads():
+        seen["inside"] = (kernel_threads(), numba.get_num_threads(), numba.get_parallel_chunksize())
+        with split_kernels(1):  # one thread inside two: nothing split
+            seen["nested"] = kernel_threads()
+        seen["after_nested"] = kernel_threads()
+        t = threading.Thread(target=other)
+        t.start()
+        t.join()
+    assert seen["inside"] == (2, 2, 1) and seen["nested"] == 1 and seen["after_nested"] == 2
+    assert seen["other"] == (1, threads_before, chunk_before)
+    assert (kernel_threads(), numba.get_num_threads(), numba.get_parallel_chunksize()) == \
+        (1, threads_before, chunk_before)
+    assert SPLIT_MIN > 1
+
+
+def test_fewer_points_than_split_min_stay_on_one_thread(two_threads, monkeypatch):
+    from navapp.geometry import bvh
+
+    rng = np.random.default_rng(53)
+    v, f = _surface(rng)
+    h = bvh.SurfaceHierarchy(v, f)
+    boxes = h.refit(v)
+    used = []
+    monkeypatch.setattr(bvh, "closest_split", lambda *a: used.append(len(a[0])) or bvh.closest(*a))
+    with two_threads():
+        h.closest(v[:SPLIT_MIN - 1], v, boxes)
+        h.closest(v[:SPLIT_MIN], v, boxes)
+    assert used == [SPLIT_MIN]
