@@ -11,6 +11,7 @@ a thread pool of its own: under the two-worker test suite a second OpenBLAS, loa
 the first limit, kept its two threads inside it); once the imports settle, no scan.
 """
 
+import queue
 import sys
 import threading
 from contextlib import contextmanager
@@ -126,3 +127,47 @@ def split_kernels(threads: int | None = 2):
         _split.n = held
         numba.set_num_threads(threads_before)
         numba.set_parallel_chunksize(chunk_before)
+
+
+class _Helper:
+    """One daemon thread that runs the second half of a split NumPy call (``both``)."""
+
+    def __init__(self):
+        self.jobs: queue.SimpleQueue = queue.SimpleQueue()
+        threading.Thread(target=self._run, daemon=True, name="navapp-split").start()
+
+    def _run(self):
+        while True:
+            claim, task, done = self.jobs.get()
+            if claim.acquire(blocking=False):  # not taken back by the caller
+                try:
+                    task()
+                finally:
+                    done.set()
+
+
+_helper: list = []
+_helper_lock = threading.Lock()
+
+
+def both(first, second) -> None:
+    """Run ``first()`` on this thread and ``second()`` beside it on a helper thread, inside
+    ``split_kernels`` with two threads or more (else both here, in turn); returns when both
+    are done. ``second`` is taken back and run here if the helper has not begun it by the time
+    ``first`` ends, so a helper the machine does not run costs nothing but the hand-over.
+    For NumPy calls that release the GIL (BLAS), each on its own rows of the answer."""
+    if kernel_threads() < 2:
+        first()
+        second()
+        return
+    if not _helper:
+        with _helper_lock:
+            if not _helper:
+                _helper.append(_Helper())
+    claim, done = threading.Lock(), threading.Event()
+    _helper[0].jobs.put((claim, second, done))
+    first()
+    if claim.acquire(blocking=False):
+        second()
+    else:
+        done.wait()

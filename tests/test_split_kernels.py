@@ -174,3 +174,52 @@ def test_fewer_points_than_split_min_stay_on_one_thread(two_threads, monkeypatch
         h.closest(v[:SPLIT_MIN - 1], v, boxes)
         h.closest(v[:SPLIT_MIN], v, boxes)
     assert used == [SPLIT_MIN]
+
+
+def test_eq8s_product_cut_between_two_threads_is_the_whole_products_bits(two_threads, monkeypatch):
+    """``model._product`` cuts B·J_u's rows at a multiple of 64 and multiplies each half by BLAS
+    on its own thread: the whole product's bits (BLAS sums each row alone, in fixed groups of
+    rows), at sizes on both sides of the cut's group; the second half is run even when the
+    helper never starts it (taken back by the caller)."""
+    import navapp.threads as threads
+    from navapp.registration.model import SPLIT_ROWS, _product
+
+    rng = np.random.default_rng(59)
+    with threads.limit_threads(1):  # as in LM (``libr``): one BLAS thread in each half
+        for rows in (SPLIT_ROWS, SPLIT_ROWS + 1, 6006, 18642 + 3):
+            single = rng.normal(size=(rows, 135)).astype(np.float32)
+            alpha = rng.normal(size=135).astype(np.float32)
+            whole = single @ alpha
+            with two_threads():
+                assert np.array_equal(_product(single, alpha), whole), rows
+        halves = []
+        idle = type("Idle", (), {"jobs": type("Queue", (), {"put": halves.append})()})()
+        monkeypatch.setattr(threads, "_helper", [idle])
+        with two_threads():
+            assert np.array_equal(_product(single, alpha), whole)  # the helper never ran: the caller did both
+        assert len(halves) == 1
+
+
+def test_second_core_takes_the_faster_way_and_turns_with_the_load():
+    """``live.SecondCore``: each way timed, then the faster one, the other tried every tenth
+    update, so that a loaded machine (two threads slower) turns it to one thread and back."""
+    from navapp.registration.live import SecondCore
+
+    choice = SecondCore(keep=5, probe_every=10)
+
+    def run(n, split_s, one_s):
+        picks = []
+        for _ in range(n):
+            split = choice.pick()
+            picks.append(split)
+            choice.record(split, split_s if split else one_s)
+        return picks
+
+    first = run(10, 0.008, 0.011)
+    assert first.count(True) == 5 and first.count(False) == 5  # both timed first
+    quiet = run(40, 0.008, 0.011)
+    assert quiet.count(False) == 4 and all(quiet[i] for i in range(40) if (11 + i) % 10)  # probes only
+    loaded = run(40, 0.045, 0.033)  # the second core taken by other work
+    assert loaded[-30:].count(True) == 3  # turned to one thread, two tried every tenth update
+    back = run(80, 0.008, 0.011)  # the load gone: back to two within a few probes
+    assert back[-20:].count(False) == 2
