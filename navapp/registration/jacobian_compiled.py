@@ -11,6 +11,8 @@ columns −q, θ's −qᵀ(∂R/∂θ_j)(S·local), and S·x0 for the held fast 
 in CSR order, as SciPy). None where Numba is missing: ``objective`` then uses NumPy.
 """
 
+from collections.abc import Callable
+
 import numpy as np
 
 from ..compiled import CHUNK, prange, split_jit
@@ -210,7 +212,7 @@ def _carried_split(U, alpha, out):
 
 
 alpha_columns = njit(cache=True, nogil=True)(_alpha_columns) if njit is not None else None
-_alpha_columns_one = alpha_columns if njit is not None else _alpha_columns
+_alpha_columns_one: Callable = alpha_columns if alpha_columns is not None else _alpha_columns
 alpha_columns_split = split_jit(_alpha_columns_split)
 apply = njit(cache=True, nogil=True)(_apply) if njit is not None else None
 pose_columns = njit(cache=True, nogil=True)(_pose_columns) if njit is not None else None
