@@ -1,4 +1,6 @@
-"""BLAS / OpenMP thread limits that cost microseconds, not milliseconds.
+"""Threads: BLAS / OpenMP limits that cost microseconds, not milliseconds (``limit_threads``),
+and the compiled kernels split among threads for the live update (``split_kernels``,
+``both``).
 
 ``threadpoolctl.threadpool_limits`` scans every loaded shared library each time it is
 entered (6.5 ms a call on this project's 2-core machine under load, measured side by side
@@ -9,6 +11,10 @@ made once and kept does the scan once.
 It is made again when modules were imported since (a new extension module may have brought
 a thread pool of its own: under the two-worker test suite a second OpenBLAS, loaded after
 the first limit, kept its two threads inside it); once the imports settle, no scan.
+
+A split kernel computes each point as on one thread, so its answers are the same bits; it
+pays only where the machine runs the second thread at once (``registration.live.SecondCore``
+chooses per update).
 """
 
 import queue
@@ -73,11 +79,12 @@ def kernel_threads() -> int:
 
 
 def _tbb() -> bool:
-    """Numba's parallel kernels run on its TBB layer or not at all. TBB's threads take work
-    as they come free, so a call never waits for a thread the machine did not run (OpenMP's
-    barrier waited 13–55 ms for one on this 2-core machine under load, against 1.7 ms on one
-    thread; docs/decisions/speed.md, "The live update on two cores"); it is also safe under
-    fork and from several threads. Where TBB cannot be loaded the kernels stay serial."""
+    """Numba's parallel kernels run on its TBB layer or not at all. TBB's threads take chunks
+    as they come free, so a thread the machine does not run holds back only the chunk it took;
+    OpenMP's barrier waits for every thread (a live update's search and α columns took 13–59 ms
+    on this 2-core machine under load, against 1.7–1.9 ms on one thread; docs/decisions/speed.md,
+    "The live update on two cores"). TBB is also safe under fork and from several threads.
+    Where it cannot be loaded the kernels stay serial."""
     if not _layer:
         try:
             import numba
@@ -85,7 +92,11 @@ def _tbb() -> bool:
 
             if not parallel._is_initialized:
                 numba.config.THREADING_LAYER = "tbb"
-            parallel._launch_threads()
+            try:
+                parallel._launch_threads()
+            except ValueError:  # no TBB: Numba's own choice for anything else that asks
+                numba.config.THREADING_LAYER = "default"
+                raise
             _layer.append(numba.threading_layer() == "tbb")
         except (ImportError, ValueError):
             _layer.append(False)
@@ -117,8 +128,8 @@ def split_kernels(threads: int | None = 2):
 
     threads_before, chunk_before = numba.get_num_threads(), numba.get_parallel_chunksize()
     numba.set_num_threads(n)
-    # one loop iteration (a chunk of points, ``parallel_chunk``) a task, taken by whichever
-    # thread is free: Numba's default cuts the loop into one piece a thread up front
+    # one loop iteration (``compiled.CHUNK`` points) a task, taken by whichever thread is
+    # free: Numba's default cuts the loop into one piece a thread up front
     numba.set_parallel_chunksize(1)
     _split.n = n
     try:
