@@ -98,7 +98,7 @@ def test_split_jacobian_columns_and_carried_sums_are_the_one_thread_ones(two_thr
 
 
 def test_a_live_update_on_two_threads_is_the_one_thread_fit(small_model, two_threads, monkeypatch):
-    """``LiveRegistration(threads=2)`` splits the kernels (each feature here has ≥ SPLIT_MIN
+    """``LiveRegistration(threads=2, adapt=False)`` splits the kernels (each feature here has ≥ SPLIT_MIN
     points) and fits every frame to the same bits as on one thread."""
     from navapp.geometry import bvh
     from navapp.registration import jacobian_compiled as jc
@@ -129,7 +129,7 @@ def test_a_live_update_on_two_threads_is_the_one_thread_fit(small_model, two_thr
     fits = {}
     for threads in (1, 2):
         model = RegistrationModel(small_model.basis, small_model.features, small_model.centroid)
-        live = LiveRegistration(model, base, threads=threads)
+        live = LiveRegistration(model, base, threads=threads, adapt=False)  # split every update on two
         live.register()
         before = dict(calls)
         fits[threads] = [live.update(f).libr for f in frames]
@@ -205,7 +205,8 @@ def test_second_core_takes_the_faster_way_and_turns_with_the_load():
     update, so that a loaded machine (two threads slower) turns it to one thread and back."""
     from navapp.registration.live import SecondCore
 
-    choice = SecondCore(keep=5, probe_every=10)
+    load = [False]
+    choice = SecondCore(keep=5, probe_every=10, busy=lambda: load[0])
 
     def run(n, split_s, one_s):
         picks = []
@@ -223,3 +224,5 @@ def test_second_core_takes_the_faster_way_and_turns_with_the_load():
     assert loaded[-30:].count(True) == 3  # turned to one thread, two tried every tenth update
     back = run(80, 0.008, 0.011)  # the load gone: back to two within a few probes
     assert back[-20:].count(False) == 2
+    load[0] = True  # the load average fills the cores: nothing split, nothing tried
+    assert not any(run(30, 0.008, 0.011))

@@ -6,6 +6,7 @@ state (rigid pose and β kept, ICP skipped, LM from β) on every new frame.
 every frame" runs it. Calls ``pipeline.register`` unchanged.
 """
 
+import os
 import statistics
 import time
 from collections import deque
@@ -30,20 +31,31 @@ def merge(*datasets) -> dict:
     return out
 
 
+def machine_busy() -> bool:
+    """Whether the machine's runnable threads (the 1-minute load average) fill its cores: a
+    second thread would wait its turn, so an update is not split (``SecondCore``)."""
+    try:
+        return os.getloadavg()[0] >= (os.cpu_count() or 1)
+    except OSError:  # no load average on this system: let the timings decide
+        return False
+
+
 class SecondCore:
     """Whether the next update splits its compiled kernels among threads (``split_kernels``)
     or runs on one: whichever has been faster per LM iteration lately, on this machine now.
     Both give the same bits, so the choice is speed alone. The second core pays only where the
     machine runs the helper thread at once: on this project's 2-core machine under other work
-    it made an update 1.3× slower (docs/decisions/speed.md, "The live update on two cores").
+    (load 10–16) splitting every update made it 1.5× slower, trying it now and then cost ~10 %
+    CPU (docs/decisions/speed.md, "The live update on two cores").
 
     The two ways alternate until each has ``keep`` timings; then the faster by the median of
     its last ``keep`` runs, with the other tried every ``probe_every``-th update, so a change in
-    the machine's load turns the choice within a few probes."""
+    the machine's load turns the choice within a few probes. While ``busy()`` (default: the
+    load average fills the cores) nothing is split or tried."""
 
-    def __init__(self, keep: int = 5, probe_every: int = 10):
+    def __init__(self, keep: int = 5, probe_every: int = 10, busy=machine_busy):
         self.times: dict[bool, deque] = {True: deque(maxlen=keep), False: deque(maxlen=keep)}
-        self.keep, self.probe_every = keep, probe_every
+        self.keep, self.probe_every, self.busy = keep, probe_every, busy
         self.updates = 0
 
     def faster(self) -> bool:
@@ -52,6 +64,8 @@ class SecondCore:
 
     def pick(self) -> bool:
         """True: split the next update."""
+        if self.busy():
+            return False
         self.updates += 1
         short = [way for way in (True, False) if len(self.times[way]) < self.keep]
         if short:
@@ -110,7 +124,7 @@ class LiveRegistration:
         # one cold registration: split only where the choice has found that faster
         choice = self.second_core
         split = self.threads != 1 and (choice is None or (min(map(len, choice.times.values())) == choice.keep
-                                                         and choice.faster()))
+                                                         and choice.faster() and not choice.busy()))
         with self._limits(split):
             t = time.perf_counter()
             self.last = register(self.model, merge(self.base, frame), options=self.options)
