@@ -74,24 +74,6 @@ def build(vertices, faces, leaf):
 
 
 @_jit
-def _leaf_box(vertices, faces, order, first, count, node, box):
-    """box[node]: the lowest and highest corner around a leaf's triangles."""
-    l0 = l1 = l2 = np.inf
-    h0 = h1 = h2 = -np.inf
-    for j in range(first[node], first[node] + count[node]):
-        f = order[j]
-        for v in range(3):
-            x = vertices[faces[f, v], 0]
-            y = vertices[faces[f, v], 1]
-            z = vertices[faces[f, v], 2]
-            l0, h0 = min(l0, x), max(h0, x)
-            l1, h1 = min(l1, y), max(h1, y)
-            l2, h2 = min(l2, z), max(h2, z)
-    box[node, 0, 0], box[node, 0, 1], box[node, 0, 2] = l0, l1, l2
-    box[node, 1, 0], box[node, 1, 1], box[node, 1, 2] = h0, h1, h2
-
-
-@_jit
 def refit(vertices, faces, order, left, first, count):
     """Boxes (nodes, 2, 3): each node's lowest and highest corner around its triangles at
     ``vertices``."""
@@ -100,7 +82,19 @@ def refit(vertices, faces, order, left, first, count):
     for node in range(n - 1, -1, -1):
         c = left[node]
         if c < 0:
-            _leaf_box(vertices, faces, order, first, count, node, box)
+            l0 = l1 = l2 = np.inf
+            h0 = h1 = h2 = -np.inf
+            for j in range(first[node], first[node] + count[node]):
+                f = order[j]
+                for v in range(3):
+                    x = vertices[faces[f, v], 0]
+                    y = vertices[faces[f, v], 1]
+                    z = vertices[faces[f, v], 2]
+                    l0, h0 = min(l0, x), max(h0, x)
+                    l1, h1 = min(l1, y), max(h1, y)
+                    l2, h2 = min(l2, z), max(h2, z)
+            box[node, 0, 0], box[node, 0, 1], box[node, 0, 2] = l0, l1, l2
+            box[node, 1, 0], box[node, 1, 1], box[node, 1, 2] = h0, h1, h2
         else:
             for k in range(3):
                 box[node, 0, k] = min(box[c, 0, k], box[c + 1, 0, k])
@@ -194,26 +188,7 @@ def _closest_split(points, vertices, faces, order, left, first, count, box, star
     return face, bary
 
 
-def _refit_split(vertices, faces, order, left, first, count):
-    """``refit`` with the leaves' boxes split among Numba's threads, then each parent from its
-    children on this thread: the same boxes (minima and maxima round nothing)."""
-    n = left.shape[0]
-    box = np.empty((n, 2, 3))
-    for c in prange((n + 4 * CHUNK - 1) // (4 * CHUNK)):
-        for node in range(c * 4 * CHUNK, min(n, (c + 1) * 4 * CHUNK)):
-            if left[node] < 0:
-                _leaf_box(vertices, faces, order, first, count, node, box)
-    for node in range(n - 1, -1, -1):
-        c = left[node]
-        if c >= 0:
-            for k in range(3):
-                box[node, 0, k] = min(box[c, 0, k], box[c + 1, 0, k])
-                box[node, 1, k] = max(box[c, 1, k], box[c + 1, 1, k])
-    return box
-
-
 closest_split = split_jit(_closest_split)
-refit_split = split_jit(_refit_split)
 
 
 class SurfaceHierarchy:
@@ -236,9 +211,8 @@ class SurfaceHierarchy:
 
     def refit(self, vertices) -> np.ndarray:
         """The nodes' boxes (nodes, 2, 3) at ``vertices`` (V, 3) mm."""
-        kernel = refit_split if len(self.faces) >= SPLIT_MIN and kernel_threads() > 1 else refit
-        return kernel(np.ascontiguousarray(vertices, dtype=float), self.faces, self.order, self.left, self.first,
-                      self.count)
+        return refit(np.ascontiguousarray(vertices, dtype=float), self.faces, self.order, self.left, self.first,
+                     self.count)
 
     def closest(self, points, vertices, boxes, start=None):
         """face (N,) and barycentric weights (N, 3) of the closest surface points of ``points``

@@ -141,36 +141,6 @@ def _pose_columns(indptr, indices, weights, rest, local, q, dR, rows, S_rest, J,
             Js[r, c] = J[r, c] * sw[r]
 
 
-def _pose_columns_split(indptr, indices, weights, rest, local, q, dR, rows, S_rest, J, sw, Js):
-    """``_pose_columns`` with the points, then the rows, split among Numba's threads: each
-    point's sums and each row as there, the same bits."""
-    N, n = S_rest.shape[0], J.shape[1] - 6
-    xl = np.zeros((N, 3))
-    for c in prange((N + CHUNK - 1) // CHUNK):
-        for i in range(c * CHUNK, min(N, (c + 1) * CHUNK)):
-            for a in range(3):
-                S_rest[i, a] = 0.0
-            for jj in range(indptr[i], indptr[i + 1]):
-                v, w = indices[jj], weights[jj]
-                for a in range(3):
-                    S_rest[i, a] += w * rest[v, a]
-                    xl[i, a] += w * local[v, a]
-    R = rows.shape[0]
-    for c in prange((R + CHUNK - 1) // CHUNK):
-        for r in range(c * CHUNK, min(R, (c + 1) * CHUNK)):
-            i = rows[r]
-            for a in range(3):
-                J[r, n + a] = -q[r, a]
-            for j in range(3):
-                acc = 0.0
-                for a in range(3):
-                    for b in range(3):
-                        acc += q[r, a] * dR[j, a, b] * xl[i, b]
-                J[r, n + 3 + j] = -acc
-            for col in range(n, n + 6):
-                Js[r, col] = J[r, col] * sw[r]
-
-
 def _apply(indptr, indices, weights, X, out):
     """out (N, c) = S·X for S in CSR form and a dense X (V, c), summed in CSR order from zero
     as SciPy's product sums it (the same bits), without its dispatch (~40 µs a call, ~11
@@ -199,25 +169,11 @@ def _carried(U, alpha, out):
             out[i, a] = acc
 
 
-def _carried_split(U, alpha, out):
-    """``_carried`` with the points split among Numba's threads: each point's sum as there."""
-    N = U.shape[0]
-    for c in prange((N + CHUNK - 1) // CHUNK):
-        for i in range(c * CHUNK, min(N, (c + 1) * CHUNK)):
-            for a in range(3):
-                acc = 0.0
-                for k in range(U.shape[2]):
-                    acc += U[i, a, k] * alpha[k]
-                out[i, a] = acc
-
-
 alpha_columns = njit(cache=True, nogil=True)(_alpha_columns) if njit is not None else None
 _alpha_columns_one: Callable = alpha_columns if alpha_columns is not None else _alpha_columns
 alpha_columns_split = split_jit(_alpha_columns_split)
 apply = njit(cache=True, nogil=True)(_apply) if njit is not None else None
 pose_columns = njit(cache=True, nogil=True)(_pose_columns) if njit is not None else None
-pose_columns_split = split_jit(_pose_columns_split)
 # reassociation lets the sum over the modes be vectorised; a fixed sum order per build, so the
 # same bits every call
 carried = njit(cache=True, nogil=True, fastmath={"reassoc", "contract"})(_carried) if njit is not None else None
-carried_split = split_jit(_carried_split, fastmath={"reassoc", "contract"})

@@ -228,8 +228,7 @@ def _carried(SBJ, alpha):
     if not alpha.any():
         return np.zeros((len(SBJ), 3))
     out = np.empty((len(SBJ), 3))
-    kernel = _jacobian_kernel[0]  # made it: it is loaded
-    (kernel[6] if _split(len(SBJ)) else kernel[3])(SBJ, np.ascontiguousarray(alpha, dtype=float), out)
+    _jacobian_kernel[0][3](SBJ, np.ascontiguousarray(alpha, dtype=float), out)  # made it: it is loaded
     return out
 
 
@@ -622,8 +621,8 @@ def _at(model: RegistrationModel, beta) -> tuple | None:
     return None
 
 
-# the compiled (α columns, pose columns, S·X, U·α, and the first, second and fourth split among
-# threads), or None (``jacobian_compiled``), imported on first use
+# the compiled (α columns, pose columns, S·X, U·α, the α columns split among threads), or None
+# (``jacobian_compiled``), imported on first use
 _jacobian_kernel: list = []
 _numpy_jacobian = Before()  # ``numpy_jacobian``
 
@@ -632,19 +631,10 @@ def _alpha_kernel():
     if _numpy_jacobian:
         return None
     if not _jacobian_kernel:
-        from .jacobian_compiled import (
-            alpha_columns,
-            alpha_columns_split,
-            apply,
-            carried,
-            carried_split,
-            pose_columns,
-            pose_columns_split,
-        )
+        from .jacobian_compiled import alpha_columns, alpha_columns_split, apply, carried, pose_columns
 
         _jacobian_kernel.append(None if alpha_columns is None else (alpha_columns, pose_columns, apply, carried,
-                                                                    alpha_columns_split, pose_columns_split,
-                                                                    carried_split))
+                                                                    alpha_columns_split))
     return _jacobian_kernel[0]
 
 
@@ -714,7 +704,7 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation, alpha_columns: bool =
         if kernel is not None:
             assert Js is not None
             Jsf, swf = Js[block], sw[block]
-            alpha_kernel, pose_kernel = (kernel[4], kernel[5]) if _split(S.shape[0]) else (kernel[0], kernel[1])
+            alpha_kernel = kernel[4] if _split(S.shape[0]) else kernel[0]
             U = None
             if alpha_columns:
                 # S·B·J_u kept in single precision for the held fast path; J from it in double
@@ -723,7 +713,7 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation, alpha_columns: bool =
             else:
                 Jsf[:, :n] = Jf[:, :n] * swf[:, None]
             S_rest = np.empty((S.shape[0], 3))
-            pose_kernel(S.indptr, S.indices, S.data, feat.rest, local, np.ascontiguousarray(q), dR, rows, S_rest, Jf,
+            kernel[1](S.indptr, S.indices, S.data, feat.rest, local, np.ascontiguousarray(q), dR, rows, S_rest, Jf,
                       swf, Jsf)
             if not c.carries_basis:
                 ev.correspondence[name] = Correspondence(c.S, c.direction, U, S_rest, c.face)
