@@ -105,9 +105,10 @@ def _tbb() -> bool:
 
 @contextmanager
 def split_kernels(threads: int | None = 2):
-    """Within it, the compiled per-point kernels of registration (closest points, the Jacobian's
-    columns, the held fast path's sums) may split a call's points among ``threads`` threads of
-    Numba's TBB pool (None: the machine's cores), in this thread only. Each point is computed
+    """Within it, the compiled per-point kernels of registration that are worth it (the
+    surfaces' closest points, the Jacobian's α columns; ≥ ``SPLIT_MIN`` points) split a call's
+    points among ``threads`` threads of Numba's TBB pool (None: the machine's cores), and eq. 8's
+    product its rows between two (``both``), in this thread only. Each point (row) is computed
     as on one thread, so the answers are the same bits. Where TBB cannot be loaded, or at one
     thread, nothing is split."""
     held = kernel_threads()
