@@ -150,10 +150,12 @@ class _Helper:
 
     def _run(self):
         while True:
-            claim, task, done = self.jobs.get()
+            claim, task, done, failed = self.jobs.get()
             if claim.acquire(blocking=False):  # not taken back by the caller
                 try:
                     task()
+                except BaseException as e:  # raised again in the caller (``both``)
+                    failed.append(e)
                 finally:
                     done.set()
 
@@ -176,10 +178,17 @@ def both(first, second) -> None:
         with _helper_lock:
             if not _helper:
                 _helper.append(_Helper())
-    claim, done = threading.Lock(), threading.Event()
-    _helper[0].jobs.put((claim, second, done))
-    first()
-    if claim.acquire(blocking=False):
+    claim, done, failed = threading.Lock(), threading.Event(), []
+    _helper[0].jobs.put((claim, second, done, failed))
+    try:
+        first()
+    finally:  # the helper never writes into the answer after this returns
+        if claim.acquire(blocking=False):
+            taken_back = True
+        else:
+            taken_back = False
+            done.wait()
+    if taken_back:
         second()
-    else:
-        done.wait()
+    elif failed:
+        raise failed[0]

@@ -180,6 +180,9 @@ def test_eq8s_product_cut_between_two_threads_is_the_whole_products_bits(two_thr
             whole = single @ alpha
             with two_threads():
                 assert np.array_equal(_product(single, alpha), whole), rows
+        with two_threads():  # the helper's failure is the caller's
+            with pytest.raises(ValueError):
+                threads.both(lambda: None, lambda: np.matmul(single, alpha[:7]))
         halves = []
         idle = type("Idle", (), {"jobs": type("Queue", (), {"put": halves.append})()})()
         monkeypatch.setattr(threads, "_helper", [idle])
