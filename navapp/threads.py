@@ -178,7 +178,8 @@ def both(first, second) -> None:
         with _helper_lock:
             if not _helper:
                 _helper.append(_Helper())
-    claim, done, failed = threading.Lock(), threading.Event(), []
+    claim, done = threading.Lock(), threading.Event()
+    failed: list[BaseException] = []
     _helper[0].jobs.put((claim, second, done, failed))
     try:
         first()
