@@ -44,8 +44,10 @@ def test_split_closest_points_are_the_one_thread_ones(two_threads):
     start = rng.integers(0, len(f), len(points))
     with two_threads():
         assert kernel_threads() == 2
-        got = [bvh.closest_split(points, moved, h.faces, h.order, h.left, h.first, h.count, boxes, s)
-               for s in (np.full(len(points), -1, np.int64), start)]
+        got = []
+        for s in (np.full(len(points), -1, np.int64), start):
+            got.append((np.full(len(points), -7), np.full((len(points), 3), np.nan)))  # every entry written
+            bvh.closest_split(points, moved, h.faces, h.order, h.left, h.first, h.count, boxes, s, *got[-1])
         via = h.closest(points, moved, boxes)  # the hierarchy takes the split build from SPLIT_MIN points on
     for fc, br in (*got, via):
         assert np.array_equal(fc, face) and np.array_equal(br, bary)
@@ -157,7 +159,8 @@ def test_fewer_points_than_split_min_stay_on_one_thread(two_threads, monkeypatch
     h = bvh.SurfaceHierarchy(v, f)
     boxes = h.refit(v)
     used = []
-    monkeypatch.setattr(bvh, "closest_split", lambda *a: used.append(len(a[0])) or bvh.closest(*a))
+    plain = bvh.closest_split
+    monkeypatch.setattr(bvh, "closest_split", lambda *a: used.append(len(a[0])) or plain(*a))
     with two_threads():
         h.closest(v[:SPLIT_MIN - 1], v, boxes)
         h.closest(v[:SPLIT_MIN], v, boxes)

@@ -174,18 +174,17 @@ def closest(points, vertices, faces, order, left, first, count, box, start):
     return face, bary
 
 
-def _closest_split(points, vertices, faces, order, left, first, count, box, start):
+def _closest_split(points, vertices, faces, order, left, first, count, box, start, face, bary):
     """``closest`` with the points split among Numba's threads (``threads.split_kernels``), in
-    chunks of ``CHUNK``: each point searched as there, the same bits."""
+    chunks of ``CHUNK``: each point searched as there, the same bits. ``face`` (N,) and ``bary``
+    (N, 3) are filled (made by the caller: NumPy's constructors inside a parallel function
+    become parallel loops of their own, each a hand-over to the threads)."""
     N = points.shape[0]
-    face = np.full(N, -1, np.int64)
-    bary = np.zeros((N, 3))
     for c in prange((N + CHUNK - 1) // CHUNK):
         stack = np.empty(128, np.int64)
         gap = np.empty(128)
         for i in range(c * CHUNK, min(N, (c + 1) * CHUNK)):
             _nearest(points, i, vertices, faces, order, left, first, count, box, start, stack, gap, face, bary)
-    return face, bary
 
 
 closest_split = split_jit(_closest_split)
@@ -220,6 +219,10 @@ class SurfaceHierarchy:
         optional triangles to begin from (speed only). Face −1 where no distance is finite."""
         points = np.ascontiguousarray(points, dtype=float)
         start = np.full(len(points), -1, np.int64) if start is None else np.ascontiguousarray(start, dtype=np.int64)
-        kernel = closest_split if len(points) >= SPLIT_MIN and kernel_threads() > 1 else closest
-        return kernel(points, np.ascontiguousarray(vertices, dtype=float), self.faces, self.order, self.left,
-                      self.first, self.count, boxes, start)
+        vertices = np.ascontiguousarray(vertices, dtype=float)
+        if len(points) >= SPLIT_MIN and kernel_threads() > 1:
+            face, bary = np.empty(len(points), np.int64), np.empty((len(points), 3))
+            closest_split(points, vertices, self.faces, self.order, self.left, self.first, self.count, boxes, start,
+                          face, bary)
+            return face, bary
+        return closest(points, vertices, self.faces, self.order, self.left, self.first, self.count, boxes, start)
