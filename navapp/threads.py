@@ -1,5 +1,6 @@
-"""BLAS / OpenMP thread limits that cost microseconds, not milliseconds; independent tasks
-on the machine's cores.
+"""Threads: BLAS / OpenMP limits that cost microseconds, not milliseconds (``limit_threads``),
+independent tasks on the machine's cores (``in_threads``), and the compiled kernels split among
+threads for the live update (``split_kernels``, ``both``).
 
 ``threadpoolctl.threadpool_limits`` scans every loaded shared library each time it is
 entered (6.5 ms a call on this project's 2-core machine under load, measured side by side
@@ -10,10 +11,15 @@ made once and kept does the scan once.
 It is made again when modules were imported since (a new extension module may have brought
 a thread pool of its own: under the two-worker test suite a second OpenBLAS, loaded after
 the first limit, kept its two threads inside it); once the imports settle, no scan.
+
+A split kernel computes each point as on one thread, so its answers are the same bits; it
+pays only where the machine runs the second thread at once (``registration.live.SecondCore``
+chooses per update).
 """
 
 import multiprocessing
 import os
+import queue
 import sys
 import threading
 import warnings
@@ -136,3 +142,133 @@ def in_threads(task: Callable[[int], T], count: int, threads: int | None = None)
     if failed:
         raise failed[0]
     return out
+
+
+# --- compiled kernels split among threads (the live update's second core) ---------------------
+
+_split = threading.local()  # this thread's kernel threads (``split_kernels``)
+SPLIT_MIN = 64  # a kernel over fewer points (or triangles) stays on the calling thread
+_layer: list = []  # [True] once Numba's TBB layer is up, [False] where it cannot be loaded
+
+
+def kernel_threads() -> int:
+    """How many threads the compiled per-point kernels may split one call among in this thread:
+    1 (each kernel on the calling thread) unless inside ``split_kernels``."""
+    return getattr(_split, "n", 1)
+
+
+def _tbb() -> bool:
+    """Numba's parallel kernels run on its TBB layer or not at all. TBB's threads take chunks
+    as they come free, so a thread the machine does not run holds back only the chunk it took;
+    OpenMP's barrier waits for every thread (a live update's search and α columns took 13–59 ms
+    on this 2-core machine under load, against 1.7–1.9 ms on one thread; docs/decisions/speed.md,
+    "The live update on two cores"). TBB is also safe under fork and from several threads.
+    Where it cannot be loaded the kernels stay serial."""
+    if not _layer:
+        try:
+            import numba
+            from numba.np.ufunc import parallel
+
+            if not parallel._is_initialized:
+                numba.config.THREADING_LAYER = "tbb"
+            try:
+                parallel._launch_threads()
+            except ValueError:  # no TBB: Numba's own choice for anything else that asks
+                numba.config.THREADING_LAYER = "default"
+                raise
+            _layer.append(numba.threading_layer() == "tbb")
+        except (ImportError, ValueError):
+            _layer.append(False)
+    return _layer[0]
+
+
+@contextmanager
+def split_kernels(threads: int | None = 2):
+    """Within it, the compiled per-point kernels of registration that are worth it (the
+    surfaces' closest points, the Jacobian's α columns; ≥ ``SPLIT_MIN`` points) split a call's
+    points among ``threads`` threads of Numba's TBB pool (None: the machine's cores), and eq. 8's
+    product its rows between two (``both``), in this thread only. Each point (row) is computed
+    as on one thread, so the answers are the same bits. Where TBB cannot be loaded, or at one
+    thread, nothing is split."""
+    held = kernel_threads()
+    n = 1
+    if threads is None or threads > 1:
+        if _tbb():
+            import numba
+
+            n = numba.config.NUMBA_NUM_THREADS if threads is None else min(threads, numba.config.NUMBA_NUM_THREADS)
+    if n <= 1:
+        _split.n = 1
+        try:
+            yield
+        finally:
+            _split.n = held
+        return
+    import numba
+
+    threads_before, chunk_before = numba.get_num_threads(), numba.get_parallel_chunksize()
+    numba.set_num_threads(n)
+    # one loop iteration (``compiled.CHUNK`` points) a task, taken by whichever thread is
+    # free: Numba's default cuts the loop into one piece a thread up front
+    numba.set_parallel_chunksize(1)
+    _split.n = n
+    try:
+        yield
+    finally:
+        _split.n = held
+        numba.set_num_threads(threads_before)
+        numba.set_parallel_chunksize(chunk_before)
+
+
+class _Helper:
+    """One daemon thread that runs the second half of a split NumPy call (``both``)."""
+
+    def __init__(self):
+        self.jobs: queue.SimpleQueue = queue.SimpleQueue()
+        threading.Thread(target=self._run, daemon=True, name="navapp-split").start()
+
+    def _run(self):
+        while True:
+            claim, task, done, failed = self.jobs.get()
+            if claim.acquire(blocking=False):  # not taken back by the caller
+                try:
+                    task()
+                except BaseException as e:  # raised again in the caller (``both``)
+                    failed.append(e)
+                finally:
+                    done.set()
+
+
+_helper: list = []
+_helper_lock = threading.Lock()
+
+
+def both(first, second) -> None:
+    """Run ``first()`` on this thread and ``second()`` beside it on a helper thread, inside
+    ``split_kernels`` with two threads or more (else both here, in turn); returns when both
+    are done. ``second`` is taken back and run here if the helper has not begun it by the time
+    ``first`` ends, so a helper the machine does not run costs nothing but the hand-over.
+    For NumPy calls that release the GIL (BLAS), each on its own rows of the answer."""
+    if kernel_threads() < 2:
+        first()
+        second()
+        return
+    if not _helper:
+        with _helper_lock:
+            if not _helper:
+                _helper.append(_Helper())
+    claim, done = threading.Lock(), threading.Event()
+    failed: list[BaseException] = []
+    _helper[0].jobs.put((claim, second, done, failed))
+    try:
+        first()
+    finally:  # the helper never writes into the answer after this returns
+        if claim.acquire(blocking=False):
+            taken_back = True
+        else:
+            taken_back = False
+            done.wait()
+    if taken_back:
+        second()
+    elif failed:
+        raise failed[0]

@@ -212,6 +212,11 @@ def test_bench_live(capsys):
     kept = out["before_after_kept_points"]  # the same frames with a feature the frame adds to searched whole
     assert kept["variants"] == ["default_search_whole", "default"] and kept["before_over_after_median"] > 0
     assert kept["tre_after_last_frame_mm"][0] == kept["tre_after_last_frame_mm"][1]
+    for key, after in (("before_after_second_core", "default"), ("before_after_always_split", "default_always_split")):
+        pair = out[key]  # one thread against the kernels split between two: the same fits
+        assert pair["variants"] == ["default_one_thread", after] and pair["before_over_after_median"] > 0
+        assert pair["tre_after_last_frame_mm"][0] == pair["tre_after_last_frame_mm"][1]
+    assert out["default_one_thread"]["split_share"] == 0.0 and 0 <= out["default"]["split_share"] <= 1
 
 
 def test_bench_precompute(capsys):

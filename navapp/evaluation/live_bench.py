@@ -4,13 +4,16 @@ On the demo liver (phantom 0, 4 mm, k = 45) with the stylus data + 3 iUS planes 
 probe glides through further plane poses; each frame's contours are designated by the
 scene's declared automatic segmentation (``simulation.scenedata.segment_frame``, as the
 viewer does) and the model is re-registered warm-started (``registration.live.LiveRegistration``).
-Three variants run on the same frames, interleaved frame by frame in one run (machines of
+The variants run on the same frames, interleaved frame by frame in one run (machines of
 this kind differ 2–3× in speed, and load moves absolute times: compare within a run):
 
-- ``default``: what the viewer does — one LM iteration per frame, BLAS/OpenMP/MKL limited
-  to one thread (the next frame continues from there, so the fit converges across frames);
+- ``default``: what the viewer does — one LM iteration per frame (the next frame continues
+  from there, so the fit converges across frames), BLAS/OpenMP/MKL limited to one thread, the
+  compiled kernels split between two threads where that has been faster lately
+  (``LiveRegistration``'s ``SecondCore``; ``split_share``: the updates that were split);
 - ``converged_one_thread``: LM to convergence on every frame, one thread;
-- ``converged_as_installed``: the same with the thread pools as installed;
+- ``converged_as_installed``: the same with the thread pools as installed and the kernels
+  split among all cores;
 - ``default_before``: ``default`` as before issue 49's hierarchy and compiled Jacobian
   (``before_path``: the surfaces searched by the k-d tree's candidate triangles, the
   Jacobian's α columns by SciPy and NumPy): before and after side by side, on
@@ -21,7 +24,10 @@ this kind differ 2–3× in speed, and load moves absolute times: compare within
 - ``default_search_whole``: ``default`` with a contour feature the new frame adds to searched
   whole again (``objective.search_whole``), as before the kept planes' points of it, searched at
   the same β by the last update's final evaluation, kept their rows (session 39):
-  ``before_after_kept_points``, the same figures.
+  ``before_after_kept_points``, the same figures;
+- ``default_one_thread``: ``default`` on one thread (as before session 40's second core), and
+  ``default_always_split``: ``default`` with every update split between two threads, whether
+  or not that is faster: ``before_after_second_core`` and ``before_after_always_split``.
 
 Each variant has its own copy of the model's cache: variants that reach the same β
 (before and after give the same bits) would otherwise reuse each other's evaluations.
@@ -53,16 +59,21 @@ from ..simulation.levels import data_level
 from ..simulation.scene import demo_scene
 from ..simulation.scenedata import auto_segmentation, load_scene_data, segment_frame
 
-VARIANTS: dict[str, dict] = {"default": {"threads": 1, "iterations_per_frame": 1},
+DEFAULT = {"threads": 2, "iterations_per_frame": 1}  # the viewer's (``LiveRegistration``'s defaults)
+VARIANTS: dict[str, dict] = {"default": DEFAULT,
             "converged_one_thread": {"threads": 1, "iterations_per_frame": None},
             "converged_as_installed": {"threads": None, "iterations_per_frame": None},
-            "default_before": {"threads": 1, "iterations_per_frame": 1},
-            "default_cold_search": {"threads": 1, "iterations_per_frame": 1},
-            "default_search_whole": {"threads": 1, "iterations_per_frame": 1}}
-# a "before" variant → its "after", the switch it runs under and its pair's key in the output
-BEFORE = {"default_before": ("default", "before_path", "before_after"),
-          "default_cold_search": ("default", "cold_search", "before_after_warm_search"),
-          "default_search_whole": ("default", "search_whole", "before_after_kept_points")}
+            "default_before": DEFAULT, "default_cold_search": DEFAULT, "default_search_whole": DEFAULT,
+            "default_one_thread": {**DEFAULT, "threads": 1},
+            "default_always_split": {**DEFAULT, "adapt": False}}
+# the switch a "before" variant runs under
+SWITCH = {"default_before": "before_path", "default_cold_search": "cold_search", "default_search_whole": "search_whole"}
+# (before, after, the pair's key in the output)
+PAIRS = [("default_before", "default", "before_after"),
+         ("default_cold_search", "default", "before_after_warm_search"),
+         ("default_search_whole", "default", "before_after_kept_points"),
+         ("default_one_thread", "default", "before_after_second_core"),
+         ("default_one_thread", "default_always_split", "before_after_always_split")]
 FRAME_MS = 1000.0 / 30  # one frame at 30 Hz
 
 
@@ -76,10 +87,10 @@ def before_path():
 
 
 def _switch(variant):
-    """The path a variant runs on (``BEFORE``)."""
-    if variant not in BEFORE:
+    """The path a variant runs on (``SWITCH``)."""
+    if variant not in SWITCH:
         return nullcontext()
-    return {"before_path": before_path, "cold_search": cold_search, "search_whole": search_whole}[BEFORE[variant][1]]()
+    return {"before_path": before_path, "cold_search": cold_search, "search_whole": search_whole}[SWITCH[variant]]()
 
 
 def _poses(sd, first_plane, count, per_transit):
@@ -133,7 +144,7 @@ def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8, truth_edge
                 t = time.perf_counter()
                 reg = live[name].update(feats)
                 wall = 1000 * (time.perf_counter() - t)
-            rows[name].append({"ms": wall, "iterations": reg.libr.iterations,
+            rows[name].append({"ms": wall, "iterations": reg.libr.iterations, "split": live[name].split[-1],
                                "stages_ms": {s: 1000 * v for s, v in reg.libr.timings.items()},
                                "outside_lm_ms": wall - 1000 * reg.seconds.get("deformable", wall / 1000)})
     x0, x1 = sd.case.need_truth().tre_points(model.basis.nodes)  # the demo scene is simulated: its truth is known
@@ -156,12 +167,13 @@ def bench_live(frames=40, planes=3, k=K, edge=EDGE_MM, per_transit=8, truth_edge
                      "within_one_frame_at_30hz": round(float(np.mean(np.array(ms) <= FRAME_MS)), 2),
                      "iterations_median": statistics.median(its), "per_iteration_ms": pi,
                      "outside_lm_ms_median": round(statistics.median(r["outside_lm_ms"] for r in rs), 1),
+                     "split_share": round(float(np.mean([r["split"] for r in rs])), 2),
                      "tre_after_last_frame_mm": round(mean_tre(_last(live[name]).transform(x0, B=B), x1),
                                                       2)}
     a, b = rows["converged_one_thread"], rows["converged_as_installed"]
     ratios = [x["ms"] / y["ms"] for x, y in zip(a, b, strict=True)]
     out["one_thread_over_installed"] = {"median_of_ratios": round(statistics.median(ratios), 3)}
-    for before, (after, _, key) in BEFORE.items():
+    for before, after, key in PAIRS:
         pairs = [x["ms"] / y["ms"] for x, y in zip(rows[before], rows[after], strict=True)]
         stages = {s: [out[before]["per_iteration_ms"][s], out[after]["per_iteration_ms"][s]]
                   for s in out[after]["per_iteration_ms"] if s != "closest_points_share"}

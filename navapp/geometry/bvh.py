@@ -18,6 +18,8 @@ Measured against the alternatives: docs/decisions/speed.md, "Closest points at t
 
 import numpy as np
 
+from ..compiled import CHUNK, prange, split_jit
+from ..threads import SPLIT_MIN, kernel_threads
 from .closest_compiled import _jit, pair
 
 LEAF = 4  # triangles per leaf at most
@@ -113,6 +115,50 @@ def _box_d2(p0, p1, p2, box, node):
 
 
 @_jit
+def _nearest(points, i, vertices, faces, order, left, first, count, box, start, stack, gap, face, bary):
+    """Point i's closest triangle (``closest``), into face[i] and bary[i]; ``stack`` and
+    ``gap`` (128,): scratch for the descent."""
+    p0, p1, p2 = points[i, 0], points[i, 1], points[i, 2]
+    best = np.inf
+    bf = -1
+    b1 = 0.0
+    b2 = 0.0
+    if start[i] >= 0:
+        d, w1, w2 = pair(p0, p1, p2, vertices, faces, start[i])
+        if d < best:
+            best, bf, b1, b2 = d, start[i], w1, w2
+    stack[0] = 0
+    gap[0] = 0.0  # each stacked node's box distance, computed when it was pushed
+    top = 1
+    while top > 0:
+        top -= 1
+        node = stack[top]
+        # skipped only beyond a rounding margin of the best: a tie is never lost
+        if gap[top] > best * (1.0 + 1e-9) + 1e-12:
+            continue
+        c = left[node]
+        if c < 0:
+            for j in range(first[node], first[node] + count[node]):
+                f = order[j]
+                d, w1, w2 = pair(p0, p1, p2, vertices, faces, f)
+                if d < best or (d == best and f < bf):
+                    best, bf, b1, b2 = d, f, w1, w2
+        else:
+            g0 = _box_d2(p0, p1, p2, box, c)
+            g1 = _box_d2(p0, p1, p2, box, c + 1)
+            # the nearer child on top, searched first
+            if g0 <= g1:
+                stack[top], gap[top], stack[top + 1], gap[top + 1] = c + 1, g1, c, g0
+            else:
+                stack[top], gap[top], stack[top + 1], gap[top + 1] = c, g0, c + 1, g1
+            top += 2
+    face[i] = bf
+    bary[i, 0] = 1.0 - b1 - b2
+    bary[i, 1] = b1
+    bary[i, 2] = b2
+
+
+@_jit
 def closest(points, vertices, faces, order, left, first, count, box, start):
     """face (N,) and barycentric weights (N, 3) of each point's closest point on the
     surface; ``start`` (N,) a triangle per point to begin from (−1: none), e.g. the previous
@@ -122,47 +168,26 @@ def closest(points, vertices, faces, order, left, first, count, box, start):
     face = np.full(N, -1, np.int64)
     bary = np.zeros((N, 3))
     stack = np.empty(128, np.int64)
-    gap = np.empty(128)  # each stacked node's box distance, computed when it was pushed
+    gap = np.empty(128)
     for i in range(N):
-        p0, p1, p2 = points[i, 0], points[i, 1], points[i, 2]
-        best = np.inf
-        bf = -1
-        b1 = 0.0
-        b2 = 0.0
-        if start[i] >= 0:
-            d, w1, w2 = pair(p0, p1, p2, vertices, faces, start[i])
-            if d < best:
-                best, bf, b1, b2 = d, start[i], w1, w2
-        stack[0] = 0
-        gap[0] = 0.0
-        top = 1
-        while top > 0:
-            top -= 1
-            node = stack[top]
-            # skipped only beyond a rounding margin of the best: a tie is never lost
-            if gap[top] > best * (1.0 + 1e-9) + 1e-12:
-                continue
-            c = left[node]
-            if c < 0:
-                for j in range(first[node], first[node] + count[node]):
-                    f = order[j]
-                    d, w1, w2 = pair(p0, p1, p2, vertices, faces, f)
-                    if d < best or (d == best and f < bf):
-                        best, bf, b1, b2 = d, f, w1, w2
-            else:
-                g0 = _box_d2(p0, p1, p2, box, c)
-                g1 = _box_d2(p0, p1, p2, box, c + 1)
-                # the nearer child on top, searched first
-                if g0 <= g1:
-                    stack[top], gap[top], stack[top + 1], gap[top + 1] = c + 1, g1, c, g0
-                else:
-                    stack[top], gap[top], stack[top + 1], gap[top + 1] = c, g0, c + 1, g1
-                top += 2
-        face[i] = bf
-        bary[i, 0] = 1.0 - b1 - b2
-        bary[i, 1] = b1
-        bary[i, 2] = b2
+        _nearest(points, i, vertices, faces, order, left, first, count, box, start, stack, gap, face, bary)
     return face, bary
+
+
+def _closest_split(points, vertices, faces, order, left, first, count, box, start, face, bary):
+    """``closest`` with the points split among Numba's threads (``threads.split_kernels``), in
+    chunks of ``CHUNK``: each point searched as there, the same bits. ``face`` (N,) and ``bary``
+    (N, 3) are filled (made by the caller: NumPy's constructors inside a parallel function
+    become parallel loops of their own, each a hand-over to the threads)."""
+    N = points.shape[0]
+    for c in prange((N + CHUNK - 1) // CHUNK):
+        stack = np.empty(128, np.int64)
+        gap = np.empty(128)
+        for i in range(c * CHUNK, min(N, (c + 1) * CHUNK)):
+            _nearest(points, i, vertices, faces, order, left, first, count, box, start, stack, gap, face, bary)
+
+
+closest_split = split_jit(_closest_split)
 
 
 class SurfaceHierarchy:
@@ -194,5 +219,10 @@ class SurfaceHierarchy:
         optional triangles to begin from (speed only). Face −1 where no distance is finite."""
         points = np.ascontiguousarray(points, dtype=float)
         start = np.full(len(points), -1, np.int64) if start is None else np.ascontiguousarray(start, dtype=np.int64)
-        return closest(points, np.ascontiguousarray(vertices, dtype=float), self.faces, self.order, self.left,
-                       self.first, self.count, boxes, start)
+        vertices = np.ascontiguousarray(vertices, dtype=float)
+        if len(points) >= SPLIT_MIN and kernel_threads() > 1:
+            face, bary = np.empty(len(points), np.int64), np.empty((len(points), 3))
+            closest_split(points, vertices, self.faces, self.order, self.left, self.first, self.count, boxes, start,
+                          face, bary)
+            return face, bary
+        return closest(points, vertices, self.faces, self.order, self.left, self.first, self.count, boxes, start)

@@ -11,7 +11,11 @@ columns −q, θ's −qᵀ(∂R/∂θ_j)(S·local), and S·x0 for the held fast 
 in CSR order, as SciPy). None where Numba is missing: ``objective`` then uses NumPy.
 """
 
+from collections.abc import Callable
+
 import numpy as np
+
+from ..compiled import CHUNK, prange, split_jit
 
 try:
     from numba import njit
@@ -53,6 +57,33 @@ def _alpha_columns(indptr, indices, weights, BJ, qR, rows, U, J, sw, Js):
         for r in range(R):
             _point_sum(indptr, indices, weights, BJ, rows[r], acc)
             _row(acc, qR, sw, r, J, Js)
+
+
+def _alpha_columns_split(indptr, indices, weights, BJ, qR, rows, U, J, sw, Js):
+    """``_alpha_columns`` with the points split among Numba's threads (``threads.split_kernels``),
+    in chunks of ``CHUNK``: each point's S·B·J_u and its rows made as there, so the same bits.
+    Rows out of point order: ``_alpha_columns`` itself, on this thread."""
+    N, n = U.shape[0], U.shape[2]
+    R = rows.shape[0]
+    start = np.empty(N + 1, np.int64)  # point i's rows are start[i]:start[i + 1]
+    r = 0
+    for i in range(N):
+        start[i] = r
+        while r < R and rows[r] == i:
+            r += 1
+    start[N] = r
+    if r < R:  # not in point order
+        _alpha_columns_one(indptr, indices, weights, BJ, qR, rows, U, J, sw, Js)
+        return
+    for c in prange((N + CHUNK - 1) // CHUNK):
+        acc = np.empty((3, n))
+        for i in range(c * CHUNK, min(N, (c + 1) * CHUNK)):
+            _point_sum(indptr, indices, weights, BJ, i, acc)
+            for a in range(3):
+                for k in range(n):
+                    U[i, a, k] = acc[a, k]
+            for rr in range(start[i], start[i + 1]):
+                _row(acc, qR, sw, rr, J, Js)
 
 
 def _point_sum_py(indptr, indices, weights, BJ, i, acc):
@@ -139,6 +170,8 @@ def _carried(U, alpha, out):
 
 
 alpha_columns = njit(cache=True, nogil=True)(_alpha_columns) if njit is not None else None
+_alpha_columns_one: Callable = alpha_columns if alpha_columns is not None else _alpha_columns
+alpha_columns_split = split_jit(_alpha_columns_split)
 apply = njit(cache=True, nogil=True)(_apply) if njit is not None else None
 pose_columns = njit(cache=True, nogil=True)(_pose_columns) if njit is not None else None
 # reassociation lets the sum over the modes be vectorised; a fixed sum order per build, so the

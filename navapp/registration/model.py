@@ -28,6 +28,7 @@ from ..geometry.closest import NEAR, NEAR_DECIMATED, incidence
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.transforms import apply_rigid
 from ..mechanics.basis import Basis
+from ..threads import both, kernel_threads
 from .rotation import rotation
 
 if TYPE_CHECKING:
@@ -147,10 +148,30 @@ class RegistrationModel:
         if kernel is None:
             return deform(feat.rest, displacement(feat.BJ, alpha, feat.single_basis()), beta, self.centroid)
         # the same product as ``displacement``'s, eq. 8 then in one compiled pass (``deform_compiled``)
-        u = feat.single_basis() @ alpha.astype(np.float32)
+        u = _product(feat.single_basis(), alpha.astype(np.float32))
         local, x = np.empty_like(feat.rest), np.empty_like(feat.rest)
         kernel(feat.rest, u, self.centroid, rotation(beta[n + 3:n + 6]), np.ascontiguousarray(beta[n:n + 3]), local, x)
         return local, x
+
+
+SPLIT_ROWS = 4096  # B·J_u rows from which the single-precision product is split among two threads
+_BLOCK = 64  # rows: where the product is cut (``_product``)
+
+
+def _product(single: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """single (3V, 3k) @ α (3k,) in single precision: inside ``threads.split_kernels`` with two
+    threads, the rows cut in two at a multiple of 64 and each half multiplied by BLAS on its own
+    thread (``threads.both``). BLAS makes each row's sum alone, by a kernel that takes rows in
+    fixed groups, so a cut at a multiple of the group gives the whole product's bits (checked
+    by ``tests/test_split_kernels.py``); a product across 2 BLAS threads does not (it sums
+    otherwise: docs/decisions/speed.md, "The live update on two cores")."""
+    rows = single.shape[0]
+    if rows < SPLIT_ROWS or kernel_threads() < 2:
+        return single @ alpha
+    cut = (rows // 2) // _BLOCK * _BLOCK
+    u = np.empty(rows, np.float32)
+    both(lambda: np.matmul(single[:cut], alpha, out=u[:cut]), lambda: np.matmul(single[cut:], alpha, out=u[cut:]))
+    return u
 
 
 _place_kernels: list = []  # ``deform_compiled.place`` or None, imported on first use (Numba takes ~1 s to load)

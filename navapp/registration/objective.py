@@ -26,6 +26,7 @@ from ..geometry.closest import (
     vertex_tree,
 )
 from ..switches import Before
+from ..threads import SPLIT_MIN, kernel_threads
 from .model import W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform, displacement
 from .prior import PosePrior
 from .rotation import rotation, rotation_derivatives
@@ -620,7 +621,8 @@ def _at(model: RegistrationModel, beta) -> tuple | None:
     return None
 
 
-# the compiled (α columns, pose columns, S·X), or None (``jacobian_compiled``), imported on first use
+# the compiled (α columns, pose columns, S·X, U·α, the α columns split among threads), or None
+# (``jacobian_compiled``), imported on first use
 _jacobian_kernel: list = []
 _numpy_jacobian = Before()  # ``numpy_jacobian``
 
@@ -629,10 +631,17 @@ def _alpha_kernel():
     if _numpy_jacobian:
         return None
     if not _jacobian_kernel:
-        from .jacobian_compiled import alpha_columns, apply, carried, pose_columns
+        from .jacobian_compiled import alpha_columns, alpha_columns_split, apply, carried, pose_columns
 
-        _jacobian_kernel.append(None if alpha_columns is None else (alpha_columns, pose_columns, apply, carried))
+        _jacobian_kernel.append(None if alpha_columns is None else (alpha_columns, pose_columns, apply, carried,
+                                                                    alpha_columns_split))
     return _jacobian_kernel[0]
+
+
+def _split(points: int) -> bool:
+    """Whether a compiled kernel over ``points`` points takes its split build: inside
+    ``threads.split_kernels`` and enough points to share (``threads.SPLIT_MIN``)."""
+    return points >= SPLIT_MIN and kernel_threads() > 1
 
 
 _cold_search = Before()  # ``cold_search``
@@ -695,11 +704,12 @@ def add_jacobian(model: RegistrationModel, ev: Evaluation, alpha_columns: bool =
         if kernel is not None:
             assert Js is not None
             Jsf, swf = Js[block], sw[block]
+            alpha_kernel = kernel[4] if _split(S.shape[0]) else kernel[0]
             U = None
             if alpha_columns:
                 # S·B·J_u kept in single precision for the held fast path; J from it in double
                 U = np.empty((S.shape[0], 3, n), np.float32)
-                kernel[0](S.indptr, S.indices, S.data, feat.BJ, np.ascontiguousarray(qR), rows, U, Jf, swf, Jsf)
+                alpha_kernel(S.indptr, S.indices, S.data, feat.BJ, np.ascontiguousarray(qR), rows, U, Jf, swf, Jsf)
             else:
                 Jsf[:, :n] = Jf[:, :n] * swf[:, None]
             S_rest = np.empty((S.shape[0], 3))

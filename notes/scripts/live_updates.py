@@ -1,5 +1,6 @@
-"""CPU and wall time per live update of the viewer's default path (one LM iteration per frame,
-one thread) on the demo liver with the stylus and 3 planes kept, the frames of ``navapp bench
+"""CPU and wall time per live update of the viewer's default path (``LiveRegistration``'s
+defaults: one LM iteration per frame; since session 40 the kernels split between two threads
+where that has been faster lately) on the demo liver with the stylus and 3 planes kept, the frames of ``navapp bench
 live`` — one variant only, so that two versions of navapp can be run as separate processes
 and alternated (issue 49's before/after):
 
@@ -11,6 +12,7 @@ the per-iteration stages of the last update, β's pose part and the mean TRE aft
 
 import argparse
 import json
+import os
 import statistics
 import time
 from dataclasses import replace
@@ -34,7 +36,7 @@ sd = load_scene_data(demo_scene(), edge=EDGE_MM)
 base = data_level(sd.case_dir, "S+planes", planes=range(3), case=sd.case)
 model, _ = prepare(sd.case, EDGE_MM, K)
 cold = register(model, base)
-live = LiveRegistration(replace(model, cache=model.cache.copy()), base, threads=1, iterations_per_frame=1)
+live = LiveRegistration(replace(model, cache=model.cache.copy()), base, iterations_per_frame=1)
 live.last = cold
 frames = [f for f in (segment_frame(sd, 5000 + i, p) for i, p in enumerate(_poses(sd, 3, args.frames, 8))) if f]
 live.update(frames[0])  # the first update loads the compiled code
@@ -54,4 +56,6 @@ print(json.dumps({"updates": len(wall), "median_ms": round(statistics.median(wal
                   "cpu_p90_ms": round(float(np.percentile(cpu, 90)), 2),
                   "stages_mean_ms": {k: round(v / len(wall), 2) for k, v in stages.items()},
                   "pose_after_last": [round(float(x), 6) for x in reg.libr.beta[-6:]],
-                  "tre_after_last_mm": round(mean_tre(reg.transform(x0, B=B), x1), 4)}), flush=True)
+                  "tre_after_last_mm": round(mean_tre(reg.transform(x0, B=B), x1), 4),
+                  "split_share": round(float(np.mean(getattr(live, "split", [False])[1:])), 2),
+                  "load": [round(x, 2) for x in os.getloadavg()]}), flush=True)
