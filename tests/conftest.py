@@ -230,3 +230,14 @@ def run_to_end(app, kind):
     app.core.worker.join(BUSY_WAIT_S)
     assert not app.core.worker.busy
     return app.core.session.log[-1]
+
+
+def noisy_feature_data(model, rng):
+    """Noisy points of a surface, a vessel surface and a centerline off the undeformed model,
+    moved by a small pose (the LM-reuse and fold tests' data)."""
+    out = {}
+    for name, feat, count in (("anterior", "liver", 150), ("portal_contour", "portal", 60),
+                              ("portal_centerline", "portal_centerline", 20)):
+        X = model.features[feat].rest
+        out[name] = X[rng.choice(len(X), count, replace=False)] + rng.normal(size=(count, 3)) + [2.0, -1.0, 1.5]
+    return out

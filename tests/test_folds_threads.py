@@ -10,22 +10,13 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from conftest import noisy_feature_data
 from threadpoolctl import threadpool_info
 
 from navapp import threads
 from navapp.registration import support
 from navapp.registration.libr import LMOptions, register_libr
 from navapp.registration.objective import Weights, evaluate
-
-
-def _data(model, rng):
-    """Noisy points of a surface, a vessel surface and a centerline, moved by a small pose."""
-    out = {}
-    for name, feat, count in (("anterior", "liver", 150), ("portal_contour", "portal", 60),
-                              ("portal_centerline", "portal_centerline", 20)):
-        X = model.features[feat].rest
-        out[name] = X[rng.choice(len(X), count, replace=False)] + rng.normal(size=(count, 3)) + [2.0, -1.0, 1.5]
-    return out
 
 
 def _blocks(s):
@@ -38,7 +29,7 @@ def test_concurrent_folds_are_the_sequential_folds_and_each_fold_apart_to_the_bi
     is the same bits as the folds one after another and as each fold fitted apart from β = 0 on
     its own training points (fails if a fold's fit or prediction read another fold's points)."""
     rng = np.random.default_rng(23)
-    data = _data(small_model, rng)
+    data = noisy_feature_data(small_model, rng)
     settings = support.SupportOptions(iterations=6)
     options = LMOptions(weights=Weights(huber_mm={"anterior": 1.5}))
     n = small_model.basis.Ju.shape[1]

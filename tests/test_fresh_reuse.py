@@ -6,20 +6,11 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from conftest import noisy_feature_data
 
 from navapp.registration import libr, objective
 from navapp.registration.libr import LMOptions, register_libr
 from navapp.registration.objective import Weights, add_jacobian, evaluate
-
-
-def _data(model, rng):
-    """Noisy points of every feature kind off the undeformed model, moved by a small pose."""
-    out = {}
-    for name, feat, count in (("anterior", "liver", 150), ("portal_contour", "portal", 60),
-                              ("portal_centerline", "portal_centerline", 20)):
-        X = model.features[feat].rest
-        out[name] = X[rng.choice(len(X), count, replace=False)] + rng.normal(size=(count, 3)) + [2.0, -1.0, 1.5]
-    return out
 
 
 def test_positions_at_rest_do_not_read_the_basis(small_model):
@@ -47,7 +38,7 @@ def test_pose_only_jacobian_is_the_full_one_without_alpha(small_model, numpy_pat
 
     rng = np.random.default_rng(5)
     n = small_model.basis.Ju.shape[1]
-    data = _data(small_model, rng)
+    data = noisy_feature_data(small_model, rng)
     beta = np.concatenate([np.zeros(n), [1.0, -2.0, 0.5], [0.05, -0.03, 0.04]])
     with objective.numpy_jacobian() if numpy_path else nullcontext():
         full = add_jacobian(small_model, evaluate(small_model, data, beta, Weights(), jacobian=False))
@@ -68,7 +59,7 @@ def test_rigid_fit_from_rest_is_the_same_without_the_alpha_columns(small_model, 
     S·B·J_u, and ends at the same β, Ω and history, to the bit, as the fit that forms the whole
     Jacobian (fails if the α kernel runs or a step changes)."""
     rng = np.random.default_rng(11)
-    data = _data(small_model, rng)
+    data = noisy_feature_data(small_model, rng)
     rigid = LMOptions(deform=False, max_iterations=8)
     small_model.cache.evaluation, small_model.cache.ends = None, ()
     kernel = objective._alpha_kernel()
@@ -126,7 +117,7 @@ def test_bench_register_stage_table_lists_every_stage_and_the_sum():
 
 def _all_kinds(model, rng):
     """Noisy points of every feature kind, fiducials included (three rows a point)."""
-    data = _data(model, rng)
+    data = noisy_feature_data(model, rng)
     data["fiducials"] = model.features["fiducials"].rest + rng.normal(size=model.features["fiducials"].rest.shape)
     falx = model.features["falciform"].rest
     data["falciform"] = falx + rng.normal(size=falx.shape) * 3.0
@@ -178,7 +169,7 @@ def test_cross_validation_folds_start_from_one_evaluation(small_model, monkeypat
     from navapp.registration import support
 
     rng = np.random.default_rng(13)
-    data = _data(small_model, rng)
+    data = noisy_feature_data(small_model, rng)
     settings = support.SupportOptions(iterations=6)
     options = LMOptions(weights=Weights(huber_mm={"falciform": 1.0}))
     at_rest = [0]
@@ -213,7 +204,7 @@ def test_cross_validation_leaves_the_answers_kept_evaluation(small_model):
     from navapp.registration.objective import _at
 
     rng = np.random.default_rng(19)
-    data = _data(small_model, rng)
+    data = noisy_feature_data(small_model, rng)
     small_model.cache.evaluation, small_model.cache.ends = None, ()
     answer = register_libr(small_model, data, None, LMOptions(max_iterations=6))
     before = small_model.cache.ends
@@ -230,7 +221,7 @@ def test_pose_choice_searches_the_given_pose_once(small_model, monkeypatch):
     from navapp.registration.rigid import RigidResult
 
     rng = np.random.default_rng(29)
-    data = _data(small_model, rng)
+    data = noisy_feature_data(small_model, rng)
     given = RigidResult(np.eye(3), np.zeros(3), 0, 0.0, kept=True)
     at_given = [0]
     plain = pose._surface_points
