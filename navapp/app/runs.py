@@ -8,9 +8,11 @@ into ``Run`` under the shared lock; every view reads the run through ``Core.run`
 
 from __future__ import annotations
 
+import sys
 import tempfile
 import threading
 import time
+import traceback
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -401,6 +403,8 @@ class Runs:
 
     def on_error(self, exc: BaseException):
         msg = str(exc) if isinstance(exc, NavappError) else f"{exc.__class__.__name__}: {exc}"
+        if not isinstance(exc, NavappError):  # a bug: the surgeon reads one line, the server's log the traceback
+            traceback.print_exception(exc, file=sys.stderr)
         core = self.core
         with core.lock:
             core.run = None
