@@ -95,14 +95,14 @@ def test_wrong_supports_report_reproduces_the_committed_report(tmp_path):
     (kept when the report is rewritten in place)."""
     committed = (ROOT / "results/wrong_supports.md").read_text()
     out = tmp_path / "wrong_supports.md"
-    _run(ROOT / "scripts/wrong_supports.py", "report", "notes/wrong_supports_s39_after.jsonl",
-         "--before", "notes/wrong_supports_s39_before.jsonl", "--out", out)
+    _run(ROOT / "scripts/wrong_supports.py", "report", "notes/wrong_supports_s40_after.jsonl",
+         "--before", "notes/wrong_supports_s39_after.jsonl", "--out", out)
     made = out.read_text()
     assert committed.startswith(made) and committed[len(made):].startswith("\n### What it shows")
-    assert "| right | S + all | 2.334 | 2 → 0 | 25 → 31 |" in made
+    assert "| right | S + all | 2.334 | 0 → 0 | 31 → 31 |" in made and "changed on 9 of the 216" in made
     shutil.copy(ROOT / "results/wrong_supports.md", out)
-    _run(ROOT / "scripts/wrong_supports.py", "report", "notes/wrong_supports_s39_after.jsonl",
-         "--before", "notes/wrong_supports_s39_before.jsonl", "--out", out)
+    _run(ROOT / "scripts/wrong_supports.py", "report", "notes/wrong_supports_s40_after.jsonl",
+         "--before", "notes/wrong_supports_s39_after.jsonl", "--out", out)
     assert out.read_text() == committed
 
 
