@@ -19,12 +19,11 @@ chooses per update).
 
 import multiprocessing
 import os
-import queue
 import sys
 import threading
 import warnings
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 from contextlib import contextmanager
 from typing import TypeVar
 
@@ -75,6 +74,16 @@ T = TypeVar("T")
 _pool: ThreadPoolExecutor | None = None
 _pool_lock = threading.Lock()
 _inside = threading.local()  # ``task``: this thread is running ``in_threads`` tasks
+
+
+def _kept_pool() -> ThreadPoolExecutor:
+    """The one helper thread kept between calls, for ``in_threads``' tasks and ``both``'s second
+    half: a caller whose work it has not begun takes that work back."""
+    global _pool
+    with _pool_lock:
+        if _pool is None:
+            _pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="navapp-helper")
+        return _pool
 
 
 def task_threads() -> int:
@@ -129,11 +138,7 @@ def in_threads(task: Callable[[int], T], count: int, threads: int | None = None)
         finally:
             _inside.task = False
 
-    global _pool
-    with _pool_lock:
-        if _pool is None:
-            _pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="navapp-task")
-        pool = _pool
+    pool = _kept_pool()
     with warnings.catch_warnings(), limit_threads(1):
         helper = pool.submit(drain) if threads > 1 else None
         drain()
@@ -220,29 +225,6 @@ def split_kernels(threads: int | None = 2):
         numba.set_parallel_chunksize(chunk_before)
 
 
-class _Helper:
-    """One daemon thread that runs the second half of a split NumPy call (``both``)."""
-
-    def __init__(self):
-        self.jobs: queue.SimpleQueue = queue.SimpleQueue()
-        threading.Thread(target=self._run, daemon=True, name="navapp-split").start()
-
-    def _run(self):
-        while True:
-            claim, task, done, failed = self.jobs.get()
-            if claim.acquire(blocking=False):  # not taken back by the caller
-                try:
-                    task()
-                except BaseException as e:  # raised again in the caller (``both``)
-                    failed.append(e)
-                finally:
-                    done.set()
-
-
-_helper: list = []
-_helper_lock = threading.Lock()
-
-
 def both(first, second) -> None:
     """Run ``first()`` on this thread and ``second()`` beside it on a helper thread, inside
     ``split_kernels`` with two threads or more (else both here, in turn); returns when both
@@ -253,22 +235,14 @@ def both(first, second) -> None:
         first()
         second()
         return
-    if not _helper:
-        with _helper_lock:
-            if not _helper:
-                _helper.append(_Helper())
-    claim, done = threading.Lock(), threading.Event()
-    failed: list[BaseException] = []
-    _helper[0].jobs.put((claim, second, done, failed))
+    future = _kept_pool().submit(second)
     try:
         first()
     finally:  # the helper never writes into the answer after this returns
-        if claim.acquire(blocking=False):
-            taken_back = True
-        else:
-            taken_back = False
-            done.wait()
+        taken_back = future.cancel()
+        if not taken_back:
+            wait([future])
     if taken_back:
         second()
-    elif failed:
-        raise failed[0]
+    elif (failed := future.exception()) is not None:
+        raise failed

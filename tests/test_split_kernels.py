@@ -172,6 +172,8 @@ def test_eq8s_product_cut_between_two_threads_is_the_whole_products_bits(two_thr
     on its own thread: the whole product's bits (BLAS sums each row alone, in fixed groups of
     rows), at sizes on both sides of the cut's group; the second half is run even when the
     helper never starts it (taken back by the caller)."""
+    from concurrent.futures import Future
+
     import navapp.threads as threads
     from navapp.registration.model import SPLIT_ROWS, _product
 
@@ -187,8 +189,12 @@ def test_eq8s_product_cut_between_two_threads_is_the_whole_products_bits(two_thr
             with pytest.raises(ValueError):
                 threads.both(lambda: None, lambda: np.matmul(single, alpha[:7]))
         halves = []
-        idle = type("Idle", (), {"jobs": type("Queue", (), {"put": halves.append})()})()
-        monkeypatch.setattr(threads, "_helper", [idle])
+
+        def never_begun(task):  # a helper busy elsewhere: the job waits, and the caller takes it back
+            halves.append(task)
+            return Future()
+
+        monkeypatch.setattr(threads, "_pool", type("Idle", (), {"submit": staticmethod(never_begun)})())
         with two_threads():
             assert np.array_equal(_product(single, alpha), whole)  # the helper never ran: the caller did both
         assert len(halves) == 1
