@@ -74,6 +74,7 @@ from .rigid import (
     basin_representatives,
     beta_pose,
     multi_start_icp,
+    pose_params,
     rigid_icp,
     start_poses,
 )
@@ -586,10 +587,8 @@ def _declared_rigid(model: RegistrationModel, data: dict, prior: PosePrior, opti
     c = model.centroid
 
     def beta_of(pose: RigidResult) -> np.ndarray:
-        # R (x − x̄0) + τ + x̄0 = R x + t  ⇒  τ = t − x̄0 + R x̄0; θ: R = R_x R_y R_z (intrinsic XYZ)
         b = np.zeros(n + 6)
-        b[n:n + 3] = pose.t - c + pose.R @ c
-        b[n + 3:] = Rotation.from_matrix(pose.R).as_euler("XYZ")
+        b[n:] = pose_params(pose, c)
         return b
 
     def fit(beta0, current, rounds=SCALE_ROUNDS):
@@ -627,11 +626,16 @@ def _declared_rigid(model: RegistrationModel, data: dict, prior: PosePrior, opti
                 for st in starts:
                     st.chosen = st is rep
     beta = best.beta
-    tau, theta = beta[n:n + 3], beta[n + 3:]
     # the pose moved from the given one (model → data frame)
     pose = replace(beta_pose(beta, c), iterations=best.iterations)
     pose = replace(pose, rms_mm=rms_on_model(model, data, pose))
-    return pose, replace(current, centre=tuple(np.concatenate([-pose.R.T @ tau, -theta]).tolist())), starts
+    return pose, _given_from(current, pose, beta[n:]), starts
+
+
+def _given_from(prior: PosePrior, moved: RigidResult, params: np.ndarray) -> PosePrior:
+    """``prior`` re-centred on where the given pose lies from ``moved`` (the pose moved from the
+    given one, model → data frame; ``params``: its τ, θ (6,), ``rigid.pose_params``)."""
+    return replace(prior, centre=tuple(np.concatenate([-moved.R.T @ params[:3], -params[3:]]).tolist()))
 
 
 def _noise_floor(data: dict) -> float:
@@ -709,10 +713,7 @@ def _rigid_at_settled_scale(model: RegistrationModel, data: dict, options: LMOpt
     rigid = replace(after(rigid, step), iterations=moved.iterations, kept=rigid.kept)
     rigid = replace(rigid, rms_mm=rms_on_model(model, data, rigid))
     local = {name: rigid.inverse(p) for name, p in data.items()}
-    c = model.centroid
-    tau = moved.t - c + moved.R @ c  # τ, θ of the moved pose about the given one (``_declared_rigid``)
-    theta = Rotation.from_matrix(moved.R).as_euler("XYZ")
-    centred = replace(settled, centre=tuple(np.concatenate([-moved.R.T @ tau, -theta]).tolist()))
+    centred = _given_from(settled, moved, pose_params(moved, model.centroid))
     back = RigidResult(step.R.T, -step.R.T @ step.t, 0, 0.0)
     return moved, rigid, local, centred, replace(result, beta=_rebased(model, result.beta, back))
 

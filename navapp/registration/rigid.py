@@ -21,6 +21,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial import cKDTree
+from scipy.spatial.transform import Rotation
 
 from ..features import RIGID, SALIENT
 from ..geometry.transforms import apply_inverse, apply_rigid, kabsch, rotvec_matrix
@@ -65,6 +66,14 @@ def beta_pose(beta, centroid) -> RigidResult:
     R = rotation(beta[n + 3:])
     c = np.asarray(centroid, float)
     return RigidResult(R, c + beta[n:n + 3] - R @ c, 0, 0.0, kept=True)
+
+
+def pose_params(pose: RigidResult, centroid) -> np.ndarray:
+    """τ, θ (6,) (mm, rad) of ``pose`` as eq. 8's rigid part about ``centroid`` x̄0 (3,) mm:
+    ``beta_pose``'s inverse. R (x − x̄0) + τ + x̄0 = R x + t gives τ = t − x̄0 + R x̄0; θ is R's
+    intrinsic XYZ angles (R = R_x R_y R_z, ``rotation``)."""
+    c = np.asarray(centroid, float)
+    return np.concatenate([pose.t - c + pose.R @ c, Rotation.from_matrix(pose.R).as_euler("XYZ")])
 
 
 ICP_POINTS = 400  # per feature: an evenly strided subset is plenty for 6 parameters
