@@ -294,3 +294,20 @@ def test_session_json_is_read_or_refused_in_one_line(scene_data, saved_session, 
         return
     s.data(sd, planes)  # what the viewer does next with what it read
     shutil.rmtree(folder.parent, ignore_errors=True)
+
+
+def test_a_contour_vertex_outside_the_image_is_refused_in_one_line(scene_data, saved_session, tmp_path):
+    """A drawn vertex is a pixel of the image (the 2D view accepts no click outside it): one far
+    outside, written into session.json, is refused in one line, not rasterised into millions of
+    points (CI's property test once spent minutes and 8 GB on a vertex moved to 10⁶)."""
+    import shutil
+
+    folder = tmp_path / "s"
+    shutil.copytree(saved_session, folder)
+    doc = json.loads((folder / "session.json").read_text())
+    assert doc["contours"]
+    doc["contours"][0]["vertices"][0] = [10 ** 6, 2]
+    (folder / "session.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError) as err:
+        open_session(folder, scene_data)
+    assert "\n" not in str(err.value) and "outside the" in str(err.value)

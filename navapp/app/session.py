@@ -323,7 +323,7 @@ def open_session(folder: Path, sd: SceneData) -> tuple[Session, dict]:
             raise InputError("this session folder belongs to another scene (pass a different --session)", folder)
         s = Session(folder, key, _count(d["stylus_count"], "stylus_count"),
                     [_count(i, "planes_added") for i in _list(d["planes_added"], "planes_added")],
-                    [_contour(c) for c in _list(d["contours"], "contours")],
+                    [_contour(c, sd.probe) for c in _list(d["contours"], "contours")],
                     [_plane(f, "free_planes") for f in _list(d["free_planes"], "free_planes")],
                     [RunEntry.from_json(e) for e in _list(d["log"], "log")],
                     _record(d.get("result")),
@@ -408,7 +408,7 @@ def _plane(v, what: str, png: bool = False) -> dict:
     return out
 
 
-def _contour(v) -> Contour:
+def _contour(v, probe) -> Contour:
     if not isinstance(v, dict):
         raise ValueError(f"contours: {v!r} is not an object")
     c = Contour.from_json(v)
@@ -416,6 +416,10 @@ def _contour(v) -> Contour:
     if c.feature not in DRAWABLE.values() or not all(len(p) == 2 for p in c.vertices) \
             or not isinstance(v["closed"], bool):
         raise ValueError(f"contours: {v!r} is not a drawn contour")
+    # a vertex is a pixel of the image, as the 2D view accepts a click (``drawing``): one far
+    # outside it would be rasterised into millions of points
+    if not all(0 <= col < probe.width_px and 0 <= row < probe.height_px for col, row in c.vertices):
+        raise ValueError(f"contours: a vertex of {v!r} lies outside the {probe.width_px} × {probe.height_px} image")
     return c
 
 
