@@ -24,7 +24,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import free_port
-from test_app_browser import ARGS, BUDGET_S, CHROMIUM, VIEW, Deadline, playwright, us_frame, wait_text, wait_until
+from test_app_browser import (ARGS, BUDGET_S, CHROMIUM, LOGS, VIEW, Deadline, playwright, server_log, us_frame, wait_text,
+                              wait_until)
 
 EDGE, K = 6.0, 20  # as the other browser tests: a short cold start on 2 cores
 
@@ -70,6 +71,7 @@ def test_a_live_session_from_the_replay_server(tmp_path):
     slicer.start()
     port = free_port()
     log = tmp_path / "server.log"
+    LOGS.append(log)  # a failed wait quotes this server's log, not the last other test's
     proc = subprocess.Popen([sys.executable, "-m", "navapp.cli", "--quiet", "serve", "--port", str(port),
                              "--session", str(tmp_path / "session"), "--edge", str(EDGE), "--k", str(K),
                              "--igtl", f"127.0.0.1:{replay.port}", "--slicer", f"127.0.0.1:{slicer.server_address[1]}"],
@@ -113,10 +115,14 @@ def test_a_live_session_from_the_replay_server(tmp_path):
             # re-register on every frame, then switch off: converged, kept, sent to Slicer
             marks["follow_on"] = time.time()
             toggle(page, "Re-register on every frame", True, deadline)
-            m = wait_text(page, r"(\d+) frames re-registered, (\d+) ms median", deadline)
-            while int(m.group(1)) < 10:
+            # "Stopped: …" ends the wait at once (the follower switched off on an error): the
+            # server's log below holds its traceback
+            following = r"(\d+) frames re-registered, (\d+) ms median|Stopped: ([^\n]*)"
+            m = wait_text(page, following, deadline)
+            while m.group(3) is None and int(m.group(1)) < 10:
                 page.wait_for_timeout(500)
-                m = wait_text(page, r"(\d+) frames re-registered, (\d+) ms median", deadline)
+                m = wait_text(page, following, deadline)
+            assert m.group(3) is None, f"the live re-registration stopped: {m.group(3)}\n{server_log(60)}"
             page.mouse.move(700, 600)  # no tooltip over the panel in the picture
             page.wait_for_timeout(300)
             page.screenshot(path=shots / "app_live.png")

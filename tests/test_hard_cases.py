@@ -67,6 +67,35 @@ def test_a_stylus_line_with_one_contour_point_on_each_vessel(small_model):
     assert WarningKind.UNDETERMINED_POSE in {w.kind for w in reg.warnings}
 
 
+def test_a_stroke_of_stylus_points_keeps_every_start_on_the_organ(small_model):
+    """The live follower's first update raised the same IndexError in CI again (session 41):
+    a stroke of stylus points leaves the point-to-plane steps of the multi-start ICP free to
+    slide along the few vertex normals its points match. Iterated, starts stood 10⁶ mm off
+    (5.8e6 on this stroke before the change), and the screening's searches read past their
+    arrays. A step that carries the data's centre further out, beyond the organ's sphere,
+    is undone and the start stops."""
+    from navapp.registration.objective import robust_weights
+    from navapp.registration.rigid import multi_start_icp, start_poses
+
+    X = small_model.features["liver"].rest
+    reach = np.linalg.norm(X - small_model.centroid, axis=1).max()
+    rng = np.random.default_rng(0)
+    top = X[X[:, 1] > np.percentile(X[:, 1], 70)]  # the anterior side, where a stylus strokes
+    a, d = top[rng.integers(len(top))], rng.normal(size=3)
+    d[1] = 0.0
+    n = int(rng.integers(6, 20))
+    line = a + np.outer(np.linspace(0.0, rng.uniform(10, 60), n), d / np.linalg.norm(d))
+    from scipy.spatial import cKDTree
+
+    line = X[cKDTree(X).query(line)[1]] + rng.normal(0.0, 0.3, (n, 3))
+    data = {"anterior": line}
+    starts = multi_start_icp(small_model, data, start_poses(small_model, data), robust_weights(1.0))
+    for s in starts:
+        centre = s.fitted.inverse(line).mean(0)
+        assert np.linalg.norm(centre - small_model.centroid) <= reach, s.label
+    check(register(small_model, data))
+
+
 def test_coplanar(small_model):
     g = np.stack(np.meshgrid(np.linspace(-50, 50, 8), np.linspace(-30, 30, 8)), -1).reshape(-1, 2)
     check(register(small_model, {"anterior": np.column_stack([g[:, 0], np.full(len(g), 45.0), g[:, 1]])}))

@@ -205,6 +205,12 @@ def _screen_geometry(model: RegistrationModel, name: str):
     return hit
 
 
+def organ_radius(model: RegistrationModel) -> float:
+    """The radius (mm) of the sphere about the model's centroid that holds the liver's surface:
+    surface data placed with their centre outside it are not on the organ."""
+    return float(np.linalg.norm(model.features["liver"].rest - model.centroid, axis=1).max())
+
+
 def start_poses(model: RegistrationModel, data: dict, angle_deg=15.0, principal_axes=True) -> list[Start]:
     """The tracker pose, ±``angle_deg`` about each coordinate axis through the data
     centroid (the expected error of a tracker-to-image set-up), and a principal-axes
@@ -223,8 +229,7 @@ def start_poses(model: RegistrationModel, data: dict, angle_deg=15.0, principal_
         # the hard case "far"): their nearest model vertices say nothing, so take those of
         # the data moved onto the model's centroid instead. Aligned study data centre
         # within 40 mm of it (radius 130–137 mm), so 40 mm offsets never get here
-        radius = np.linalg.norm(model.features["liver"].rest - model.centroid, axis=1).max()
-        shift = model.centroid - c if np.linalg.norm(c - model.centroid) > radius else np.zeros(3)
+        shift = model.centroid - c if np.linalg.norm(c - model.centroid) > organ_radius(model) else np.zeros(3)
         near = []
         for name, Y in data.items():
             if name == "fiducials":
@@ -296,6 +301,7 @@ def multi_start_icp(model: RegistrationModel, data: dict, starts: list[Start], w
     radius = max(float(np.linalg.norm(np.vstack(list(use.values())) - np.vstack(list(use.values())).mean(0),
                                       axis=1).max()), 1.0)
     probe = np.vstack(list(use.values()))
+    centre, reach = probe.mean(0), organ_radius(model)
     active = np.ones(S, bool)
     merged = np.arange(S)  # a start that joined another's path follows that start's basin
     iters = np.zeros(S, int)
@@ -347,10 +353,19 @@ def multi_start_icp(model: RegistrationModel, data: dict, starts: list[Start], w
         # data in the model frame move as y_m ↦ Rd y_m + v, i.e. the pose (model → data)
         # becomes x ↦ R Rdᵀ (x − v) + t
         R_new = np.einsum("sij,skj->sik", Ra, rotvec_matrix(w))
-        t[on] = ta - np.einsum("sij,sj->si", R_new, v)
-        R[on] = R_new
-        iters[on] += 1
-        active[on] = move >= tol_mm
+        t_new = ta - np.einsum("sij,sj->si", R_new, v)
+        # a step that carries the data's centre further out, beyond the organ's sphere, has left
+        # the organ: undone, and the start stops there. Point-to-plane steps on a stroke of
+        # stylus points slide along the few vertex normals the points match; iterated, a
+        # start stood 10⁶ mm off and the searches after it read past their arrays
+        # (docs/decisions/live.md, "A start that leaves the organ")
+        out_before = np.linalg.norm(np.einsum("sk,skj->sj", centre - ta, Ra) - model.centroid, axis=1)
+        out_after = np.linalg.norm(np.einsum("sk,skj->sj", centre - t_new, R_new) - model.centroid, axis=1)
+        left = (out_after > reach) & (out_after > out_before)
+        R[on] = np.where(left[:, None, None], Ra, R_new)
+        t[on] = np.where(left[:, None], ta, t_new)
+        iters[on] += ~left
+        active[on] = (move >= tol_mm) & ~left
         # starts whose paths have met go on as one: the later one is dropped
         placed = np.einsum("snk,skj->snj", probe[None] - t[:, None], R)
         for i in np.flatnonzero(active):
