@@ -32,6 +32,7 @@ from navapp.evaluation.table2 import scenarios
 from navapp.geometry.interpolation import interpolation_matrix
 from navapp.geometry.tre import mean_tre
 from navapp.registration.pipeline import _settings as settings
+from navapp.fitwarning import FitWarning
 from navapp.registration.pipeline import prepare, register
 from navapp.registration.support import weigh_correction
 from navapp.simulation.levels import study_data
@@ -40,9 +41,9 @@ COLUMNS = ("case", "level", "planes", "tre_mm", "tre_rigid_mm", "answer", "worse
            "support_rigid_mm", "support_deformable_mm", "support_margin", "seconds")
 
 
-def kind(line: str) -> str:
-    """A warning line's kind: its text before the first colon or dash (the rest is numbers)."""
-    return line.split(":")[0].split(" — ")[0].strip()
+def kind(warning: FitWarning) -> str:
+    """A warning's kind: the check that found it (``WarningKind``)."""
+    return warning.kind.value
 
 
 def load(case_dir: Path):

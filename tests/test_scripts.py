@@ -44,6 +44,26 @@ def test_every_maintained_tool_starts_and_says_its_usage_without_writing_anythin
     assert not list(tmp_path.iterdir())
 
 
+def test_the_warning_rate_tool_reads_a_registrations_warnings_as_they_are(small_model):
+    """scripts/warning_rate.py counts each answer's warnings by kind. Its ``kind`` still split
+    a line of text after warnings became ``FitWarning`` (issue 51), so every run stopped with an
+    AttributeError at the first warned answer (session 41)."""
+    import importlib.util
+    import warnings
+
+    from navapp.registration.pipeline import register
+
+    spec = importlib.util.spec_from_file_location("warning_rate", ROOT / "scripts/warning_rate.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    patch = small_model.features["liver"].rest[:40] + 0.5  # a patch: its pose is in doubt
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        reg = register(small_model, {"anterior": patch})
+    assert reg.warnings
+    assert {tool.kind(w) for w in reg.warnings} == {w.kind.value for w in reg.warnings}
+
+
 def test_every_maintained_tool_is_named_by_the_docs():
     """A tool in scripts/ is one the docs tell a reader to run (README, docs/, the reports in
     results/); a one-off probe or migration goes to notes/scripts/ with its output in notes/."""
