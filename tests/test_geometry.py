@@ -92,6 +92,24 @@ def test_a_point_too_far_to_measure_is_one_line_not_a_read_past_the_arrays():
     assert nearest_vertices(vertex_tree(v), pts[1:]).shape == (1, 2)
 
 
+def test_a_point_whose_candidates_are_all_too_far_is_one_line_not_another_points_triangle():
+    """Nearest vertices found, but every candidate triangle's squared distance overflows (a
+    point 1e160 mm off): the compiled test gives face -1 and the NumPy pick after it took
+    another point's last candidate, or, with no candidate at all, raised CI's IndexError
+    (session 41). Said in one line; a finite point beside it is still answered."""
+    from navapp.geometry.closest import closest_on_surface, incidence
+
+    ball = trimesh.creation.icosphere(subdivisions=2)
+    v, f = np.asarray(ball.vertices, float), np.asarray(ball.faces)
+    table = incidence(len(v), f)
+    far = np.array([[1e160, 1e160, 0.0]])
+    nearest = np.array([[0, 1]])  # the k-d tree's answer is not asked: the search was warm-started
+    with pytest.raises(ValueError, match="1 of 1 points lie too far from the surface"):
+        closest_on_surface(far, v, f, table, nearest=nearest)
+    face, _, _ = closest_on_surface(np.array([[2.0, 0.0, 0.0]]), v, f, table, nearest=np.array([[0, 1]]))
+    assert face[0] >= 0
+
+
 def test_compiled_closest_on_surface_equals_numpy_to_the_bit():
     """The compiled candidate test (``closest_compiled``) and the NumPy one give the same
     faces and the same barycentric bits: on a noisy sphere with some triangles made

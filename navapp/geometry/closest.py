@@ -263,6 +263,14 @@ def _closest_on_surface_numpy(points, vertices, faces, table, vi):
     w, dist2 = triangle_weights(points[r], vertices[faces[distinct]], (np.cumsum(seen) - 1)[f])
     d = np.full(cand.shape, np.inf)
     d[r, c] = dist2
+    # a point with no finite distance to any candidate (squared distances overflow far off, or
+    # not finite) has no closest point: said, where the pick below took another point's last
+    # candidate or, with none at all, raised an IndexError (docs/decisions/live.md, "A start that
+    # leaves the organ")
+    lost = ~np.isfinite(d.min(axis=1)) if len(points) else np.zeros(0, bool)
+    if lost.any():
+        raise ValueError(f"closest points: {int(lost.sum())} of {len(points)} points lie too far from the surface "
+                         f"to measure (up to {np.abs(points[lost]).max():.3g} mm from the origin, or not finite)")
     flat = np.full(cand.shape, -1)
     flat[r, c] = np.arange(len(r))
     sel = flat[np.arange(len(points)), np.argmin(d, axis=1)]
