@@ -32,7 +32,7 @@ from ..fitwarning import FitWarning, WarningKind, found, texts
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.tre import tre_stats
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
-from ..threads import in_threads
+from ..threads import in_threads, task_threads
 from .coverage import note_coverage
 from .forces import (
     WARM_WITHOUT_FORCES,
@@ -53,12 +53,14 @@ from .pose import (
     PoseChoice,
     PoseFits,
     PoseSource,
+    Trimmed,
     choose_pose,
     compared,
     pose_determinacy,
     prefer_given,
     rms_on_model,
     shift_mm,
+    trimmed_from_given,
     turn_deg,
     with_turn,
 )
@@ -886,7 +888,6 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
     sec = {}
     clock = StageClock()
     t = time.perf_counter()
-    candidates: list[RigidResult] = []
     centred: PosePrior | None = None  # the declared prior as the rigid stage left it (its pose, its scale)
     moved: RigidResult | None = None  # the declared rigid stage's pose relative to the given one
     if declared:
@@ -904,23 +905,14 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         options = replace(options, weights=replace(options.weights, pose_prior=centred))
     elif rigid is not None or not init.multi_start:
         starts = []
-    elif starts is None:
-        starts = _multi_start(model, data, options, init)
-    else:
-        starts = [replace(s) for s in starts]  # this registration marks its own (omega, chosen)
-    clock.mark("declared_rigid" if declared else "multi_start")
-    if rigid is None:
-        if init.multi_start:
-            candidates = [s.fitted for s in basin_representatives(starts)[:init.max_candidates]]
-            rigid = candidates[0]
-        else:
-            rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,
-                              features=features, multi_start=False, robust=init.rigid_robust)
-    else:
-        candidates = [rigid]
-    # (Ω after the screening iterations, candidate, its LibrResult)
-    screened: list[tuple[float, RigidResult, LibrResult]] = []
-    if len(candidates) > 1 and init.screen_iterations > 0 and data:
+    choosing = not warm and not declared and init.keep_given_pose and "fiducials" not in data and not notes
+    trimmed: Trimmed | None = None
+    screened: list[tuple[float, RigidResult, LibrResult]] = []  # (Ω after the screening iterations, candidate, fit)
+
+    def screen(candidates: list[RigidResult], starts: list[Start]) -> RigidResult:
+        """The candidate poses' screening (into ``screened``): the pose chosen."""
+        if not (len(candidates) > 1 and init.screen_iterations > 0 and data):
+            return candidates[0]
         # which basin: the LIBR objective after a few iterations, not the rigid RMS alone —
         # a pose that leaves the data a few mm off may be the one the deformation explains
         quick = replace(options, max_iterations=init.screen_iterations)
@@ -930,10 +922,42 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
                                                         None, quick, None, cancel), len(candidates))
         screened.extend((res.omega, cand, res) for cand, res in zip(candidates, quick_fits, strict=True))
         screened.sort(key=lambda x: x[0])
-        rigid = screened[0][1]
         for s in starts:
             s.omega = next((o for o, c, _ in screened if c is s.result), None)
-    clock.mark("screening")
+        return screened[0][1]
+
+    def searched(starts: list[Start]) -> tuple[list[Start], RigidResult]:
+        """The multi-start ICP's starts, and the best of its basins' poses after the screening."""
+        return starts, screen([s.fitted for s in basin_representatives(starts)[:init.max_candidates]], starts)
+
+    def own(given_starts: list[Start] | None) -> list[Start]:
+        """The multi-start ICP, or a copy of the caller's (this registration marks its own omega, chosen)."""
+        return _multi_start(model, data, options, init) if given_starts is None else [replace(s) for s in given_starts]
+
+    ahead = rigid is None and init.multi_start and choosing and task_threads() > 1
+    if ahead:
+        # the pose choice's trimmed fit from the given pose reads the data alone, not the search's
+        # answer: on two cores it is made beside the multi-start search and the screening, each the
+        # same computation as in turn (docs/decisions/speed.md, "The fresh registration's
+        # independent parts side by side")
+        given_starts = starts
+        both: list = in_threads(lambda i: searched(own(given_starts)) if i == 0 else
+                                trimmed_from_given(model, data, _given()), 2)
+        (starts, rigid), trimmed = both
+        clock.mark("rigid_search")
+    else:
+        if not declared and rigid is None and init.multi_start:
+            starts = own(starts)
+        clock.mark("declared_rigid" if declared else "multi_start")
+        assert starts is not None
+        if rigid is None:
+            if init.multi_start:
+                starts, rigid = searched(starts)
+            else:
+                rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,
+                                  features=features, multi_start=False, robust=init.rigid_robust)
+        clock.mark("screening")
+    assert starts is not None and rigid is not None
     if not declared:  # the declared rigid stage marked its own choice and finished its pose
         for s in starts:
             s.chosen = s.result is rigid
@@ -953,7 +977,8 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
     clock.mark("icp")
     choice = None
     if not warm and not declared and init.keep_given_pose and "fiducials" not in data and not notes:
-        choice = choose_pose(model, data, _given(), rigid)
+        choice = choose_pose(model, data, _given(), rigid, trimmed=trimmed) if ahead else \
+            choose_pose(model, data, _given(), rigid)
         if choice.kept:
             trimmed = choice.local
             rigid = trimmed if choice.source is PoseSource.LOCAL and trimmed is not None else \
