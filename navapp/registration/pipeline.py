@@ -934,8 +934,8 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         """The multi-start ICP, or a copy of the caller's (this registration marks its own omega, chosen)."""
         return _multi_start(model, data, options, init) if given_starts is None else [replace(s) for s in given_starts]
 
-    ahead = rigid is None and init.multi_start and choosing and task_threads() > 1
-    if ahead:
+    pose_ahead = rigid is None and init.multi_start and choosing and task_threads() > 1
+    if pose_ahead:
         # the pose choice's trimmed fit from the given pose reads the data alone, not the search's
         # answer: on two cores it is made beside the multi-start search and the screening, each the
         # same computation as in turn (docs/decisions/speed.md, "The fresh registration's
@@ -977,7 +977,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
     clock.mark("icp")
     choice = None
     if not warm and not declared and init.keep_given_pose and "fiducials" not in data and not notes:
-        choice = choose_pose(model, data, _given(), rigid, trimmed=trimmed) if ahead else \
+        choice = choose_pose(model, data, _given(), rigid, trimmed=trimmed) if pose_ahead else \
             choose_pose(model, data, _given(), rigid)
         if choice.kept:
             trimmed = choice.local
@@ -1007,10 +1007,38 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
             b0 = register_libr(model, local, b0, stiff, None, cancel).beta
         return register_libr(model, local, b0, options, callback, cancel)
 
+    # the error estimate made beside the folds, and what it read (model, rigid, fit, data, weights)
+    ahead: list[tuple[tuple, OrganError]] = []
+
+    def organ_beside(made: tuple) -> None:
+        reg = Registration(made[0], made[1], made[2], made[3], pose_prior=made[4].pose_prior)
+        ahead.append((made, organ_error(reg, weights=replace(made[4], pose_prior=None))))
+
+    early: Support | None = None  # the cross-validation made beside the deformable fit, of ``early_local``
+    early_local: dict | None = None
     if deform:
         t = time.perf_counter()
+        if fresh and init.support is not None and not declared and init.local_modes is None and \
+                task_threads() > 1 and not (cancel is not None and cancel.is_set()):
+            # the folds read the data and the pose, not the fit of all the data: on two cores they
+            # begin on the helper while this thread fits, and the error estimate from ICP's pose
+            # follows the fit among them. Where the fit is then replaced (a poor fit refitted from
+            # another basin) they are made again below (docs/decisions/speed.md, "The fresh
+            # registration's independent parts side by side")
+            fitted: list[LibrResult] = []
+            beside = None
+            if not rigid.kept:
+                at, data_at, weights_at = rigid, local, options.weights
 
-        result = fit(local, options, callback)
+                def beside() -> None:
+                    organ_beside((model, at, fitted[0], data_at, weights_at))
+
+            early = check_support(model, local, options, init.support, cancel, beside=beside,
+                                  lead=lambda: fitted.append(fit(local, options, callback)))
+            early_local, result = local, fitted[0]
+            clock.mark("deformable+support")
+        else:
+            result = fit(local, options, callback)
         if declared and result.stop_reason != "cancelled":
             result, options = _settle_scale(model, local, result, options, cancel)
         quality = assess_fit(result.features)
@@ -1040,7 +1068,6 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
             sec["local_modes"] = time.perf_counter() - t
             clock.mark("local_modes")
     support = None
-    ahead: list[tuple[tuple, OrganError]] = []  # the error estimate made beside the folds, and what it read
     if deform and fresh and init.support is not None and result is not None and result.stop_reason != "cancelled":
         t = time.perf_counter()
         # a declared pose within the clinical goal confines the pose: the held-out gain is judged
@@ -1052,16 +1079,17 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         confined = declared and options.weights.pose_prior is not None and model.basis.settings.supports is None \
             and declared_spread(model, options.weights) <= CLINICAL_GOAL_MM
         beside = None
-        if not declared and not rigid.kept:
+        if not declared and not rigid.kept and not ahead:
             # the answer's error estimate, made among the folds' tasks on the second core: from
             # ICP's pose the deformable answer is shown whatever the folds say, and it is used
             # below only if nothing it reads was replaced (docs/decisions/speed.md, "The folds on both cores")
             made = (model, rigid, result, local, options.weights)
 
             def beside() -> None:
-                reg = Registration(made[0], made[1], made[2], made[3], pose_prior=made[4].pose_prior)
-                ahead.append((made, organ_error(reg, weights=replace(made[4], pose_prior=None))))
+                organ_beside(made)
 
+        if early_local is not None and early_local is local:  # made beside the fit, of these data
+            folds_support = early
         support = _cross_validate(model, local, options, init.support, cancel, rigid, result, folds_support,
                                   local_modes=base_model is not None, declared=declared, paired=confined,
                                   beside=beside)

@@ -299,20 +299,22 @@ def blocks_of(data: dict, count: int, seed: int = 0) -> dict:
 
 def check_support(model: RegistrationModel, data: dict, options: LMOptions,
                   support: SupportOptions = SupportOptions(), cancel=None,
-                  beside: Callable[[], None] | None = None) -> Support | None:
+                  beside: Callable[[], None] | None = None,
+                  lead: Callable[[], None] | None = None) -> Support | None:
     """Cross-validate the deformable answer against the rigid one (module doc). ``data``:
     feature → (N, 3) mm in the model frame (after the rigid pose); ``options`` the LM
-    settings of the real fit. None when there are too few data points to split. ``beside``:
-    the caller's own independent task, run among the folds' when they share the cores
+    settings of the real fit. None when there are too few data points to split. ``beside``,
+    ``lead``: the caller's own tasks, run among the folds' when they share the cores
     (``check_support_pair``)."""
-    pair = check_support_pair(model, data, options, support, cancel, beside=beside)
+    pair = check_support_pair(model, data, options, support, cancel, beside=beside, lead=lead)
     return None if pair is None else pair[0]
 
 
 def check_support_pair(model: RegistrationModel, data: dict, options: LMOptions,
                        support: SupportOptions = SupportOptions(), cancel=None,
                        extend: Callable[[dict, np.ndarray], RegistrationModel | None] | None = None,
-                       beside: Callable[[], None] | None = None) -> tuple[Support, Support] | None:
+                       beside: Callable[[], None] | None = None,
+                       lead: Callable[[], None] | None = None) -> tuple[Support, Support] | None:
     """``check_support`` for ``model`` and, in the same folds, for a model each fold extends
     from its own training data: ``extend(train, beta)`` (the training data, feature →
     (N, 3) mm, and the fit of ``model`` to them, (3k + 6,)) returns the extended model or None
@@ -327,16 +329,45 @@ def check_support_pair(model: RegistrationModel, data: dict, options: LMOptions,
     ``beside``: a task of the caller's that does not depend on the folds (``pipeline``'s error
     estimate of the answer, made ahead), run as one more of their tasks where they run on two
     threads, so that it fills the cores with them; not run where they run on one (nor where there
-    are too few points to split), and then the caller makes what it would have made."""
+    are too few points to split), and then the caller makes what it would have made.
+
+    ``lead``: the caller's work that the folds do not read, run first on the calling thread while
+    the helper begins with the folds (``threads.in_threads``; ``pipeline``'s deformable fit of all
+    the data, whose answer the folds never see): ``beside`` then waits for it, and is not run if
+    it failed. Run first on one thread, and run alone where there are too few points to split."""
     total = sum(len(p) for k, p in data.items() if k != "fiducials")
     if total < support.min_points:
+        if lead is not None:
+            lead()
         return None
     # the folds' fits keep their ends and last evaluations in a cache of their own, begun as a copy
-    # of the model's: the caller's error estimate, run beside them, finds the answer's end there
-    return _folds(replace(model, cache=model.cache.copy()), data, options, support, cancel, extend, beside)
+    # of the model's: no fold starts where another fit ended, and the caller's fits (``lead``,
+    # ``beside``) keep theirs in the model's own
+    return _folds(replace(model, cache=model.cache.copy()), data, options, support, cancel, extend, beside, lead)
 
 
-def _folds(model, data, options, support, cancel, extend, beside=None) -> tuple[Support, Support] | None:
+def _after(lead: Callable[[], None], beside: Callable[[], None]) -> tuple[Callable[[], None], Callable[[], None]]:
+    """``lead`` and ``beside`` such that ``beside`` runs after ``lead`` has ended, and not at all
+    when it failed: in ``in_threads`` the lead is this thread's first work, so a task that waits
+    for it waits for work under way (never for a task not yet taken)."""
+    done, ok = threading.Event(), []
+
+    def first() -> None:
+        try:
+            lead()
+            ok.append(True)
+        finally:
+            done.set()
+
+    def then() -> None:
+        done.wait()
+        if ok:
+            beside()
+
+    return first, then
+
+
+def _folds(model, data, options, support, cancel, extend, beside=None, lead=None) -> tuple[Support, Support] | None:
     t0 = time.perf_counter()
     labels = blocks_of(data, support.blocks)
     fold = replace(options, max_iterations=min(options.max_iterations, support.iterations))
@@ -387,6 +418,8 @@ def _folds(model, data, options, support, cancel, extend, beside=None) -> tuple[
     # rigid ones after; each the same computation as alone, gathered in fold order
     # (docs/decisions/speed.md, "The folds on both cores")
     threads = 1 if _sequential_folds else task_threads()
+    if lead is not None and beside is not None:
+        lead, beside = _after(lead, beside)
     tasks: list[tuple[bool, _Fold] | None]  # (deformable?, fold), or None: the caller's ``beside``
     if threads > 1:
         tasks = [*((True, f) for f in folds), *([None] if beside is not None else []), *((False, f) for f in folds)]
@@ -405,7 +438,7 @@ def _folds(model, data, options, support, cancel, extend, beside=None) -> tuple[
         else:
             fixed[task[1].block] = rigid(task[1])
 
-    in_threads(run, len(tasks), threads)
+    in_threads(run, len(tasks), threads, lead=lead)
     out, out_ext = [], []
     for f in folds:
         d, r = fitted[f.block], fixed[f.block]
