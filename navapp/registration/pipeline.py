@@ -17,6 +17,7 @@ import warnings
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -906,8 +907,9 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
     elif rigid is not None or not init.multi_start:
         starts = []
     choosing = not warm and not declared and init.keep_given_pose and "fiducials" not in data and not notes
-    trimmed: Trimmed | None = None
+    trimmed_fit: Trimmed | None = None  # the pose choice's trimmed fit, made beside the search
     screened: list[tuple[float, RigidResult, LibrResult]] = []  # (Ω after the screening iterations, candidate, fit)
+    settled: LMOptions = options  # (closures do not see ``options``' type narrowed)
 
     def screen(candidates: list[RigidResult], starts: list[Start]) -> RigidResult:
         """The candidate poses' screening (into ``screened``): the pose chosen."""
@@ -915,7 +917,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
             return candidates[0]
         # which basin: the LIBR objective after a few iterations, not the rigid RMS alone —
         # a pose that leaves the data a few mm off may be the one the deformation explains
-        quick = replace(options, max_iterations=init.screen_iterations)
+        quick = replace(settled, max_iterations=init.screen_iterations)
         # independent fits: on both cores, each the same as alone, in the candidates' order
         # (docs/decisions/speed.md, "The folds on both cores")
         quick_fits = in_threads(lambda i: register_libr(model, {n: candidates[i].inverse(p) for n, p in data.items()},
@@ -932,7 +934,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
 
     def own(given_starts: list[Start] | None) -> list[Start]:
         """The multi-start ICP, or a copy of the caller's (this registration marks its own omega, chosen)."""
-        return _multi_start(model, data, options, init) if given_starts is None else [replace(s) for s in given_starts]
+        return _multi_start(model, data, settled, init) if given_starts is None else [replace(s) for s in given_starts]
 
     pose_ahead = rigid is None and init.multi_start and choosing and task_threads() > 1
     if pose_ahead:
@@ -943,7 +945,8 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         given_starts = starts
         both: list = in_threads(lambda i: searched(own(given_starts)) if i == 0 else
                                 trimmed_from_given(model, data, _given()), 2)
-        (starts, rigid), trimmed = both
+        starts, rigid = cast(tuple[list[Start], RigidResult], both[0])
+        trimmed_fit = cast(Trimmed | None, both[1])
         clock.mark("rigid_search")
     else:
         if not declared and rigid is None and init.multi_start:
@@ -977,7 +980,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
     clock.mark("icp")
     choice = None
     if not warm and not declared and init.keep_given_pose and "fiducials" not in data and not notes:
-        choice = choose_pose(model, data, _given(), rigid, trimmed=trimmed) if pose_ahead else \
+        choice = choose_pose(model, data, _given(), rigid, trimmed=trimmed_fit) if pose_ahead else \
             choose_pose(model, data, _given(), rigid)
         if choice.kept:
             trimmed = choice.local
@@ -1026,14 +1029,15 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
             # another basin) they are made again below (docs/decisions/speed.md, "The fresh
             # registration's independent parts side by side")
             fitted: list[LibrResult] = []
-            beside = None
+            after_fit: Callable[[], None] | None = None
             if not rigid.kept:
                 at, data_at, weights_at = rigid, local, options.weights
 
-                def beside() -> None:
+                def estimate() -> None:
                     organ_beside((model, at, fitted[0], data_at, weights_at))
 
-            early = check_support(model, local, options, init.support, cancel, beside=beside,
+                after_fit = estimate
+            early = check_support(model, local, options, init.support, cancel, beside=after_fit,
                                   lead=lambda: fitted.append(fit(local, options, callback)))
             early_local, result = local, fitted[0]
             clock.mark("deformable+support")
