@@ -369,22 +369,32 @@ def _after(lead: Callable[[], None], beside: Callable[[], None]) -> tuple[Callab
 
 def _folds(model, data, options, support, cancel, extend, beside=None, lead=None) -> tuple[Support, Support] | None:
     t0 = time.perf_counter()
-    labels = blocks_of(data, support.blocks)
     fold = replace(options, max_iterations=min(options.max_iterations, support.iterations))
     n = model.basis.Ju.shape[1]
     zero = np.zeros(n + 6)
-    # every fold's fits start at β = 0, on some of these points: one evaluation of all of them
-    # there, and each fit starts from its training points' rows (``objective.points_of``: the
-    # same bits as evaluating them apart, ten searches and Jacobians fewer)
-    with limit_threads(1):
-        start = evaluate(model, data, zero, options.weights, jacobian=True)
-    folds = [_Fold(b, {k: p[labels[k] != b] for k, p in data.items() if (labels[k] != b).any()},
-                   {k: p[labels[k] == b] for k, p in data.items() if (labels[k] == b).any()})
-             for b in range(support.blocks)]
-    folds = [f for f in folds if f.train and f.held]
+    made: list[tuple[dict, Evaluation, dict[int, _Fold]]] = []  # (labels, the shared start, block → fold)
+    making = threading.Lock()
+
+    def prepared() -> tuple[dict, Evaluation, dict[int, "_Fold"]]:
+        """The blocks, the shared start and the folds, made by the first task (on the helper while
+        this thread runs a ``lead``); a task of the other thread waits for them."""
+        with making:
+            if not made:
+                labels = blocks_of(data, support.blocks)
+                # every fold's fits start at β = 0, on some of these points: one evaluation of all of
+                # them there, and each fit starts from its training points' rows (``objective.points_of``:
+                # the same bits as evaluating them apart, ten searches and Jacobians fewer)
+                with limit_threads(1):
+                    start = evaluate(model, data, zero, options.weights, jacobian=True)
+                folds = [_Fold(b, {k: p[labels[k] != b] for k, p in data.items() if (labels[k] != b).any()},
+                               {k: p[labels[k] == b] for k, p in data.items() if (labels[k] == b).any()})
+                         for b in range(support.blocks)]
+                made.append((labels, start, {f.block: f for f in folds if f.train and f.held}))
+            return made[0]
 
     def first(f: "_Fold"):
         # the fold's rows of the shared start, made once for its two fits (whichever runs first)
+        labels, start, _ = prepared()
         with f.lock:
             if f.first is None:
                 f.first = points_of(start, {k: labels[k] != f.block for k in f.train}, options.weights)
@@ -420,11 +430,14 @@ def _folds(model, data, options, support, cancel, extend, beside=None, lead=None
     threads = 1 if _sequential_folds else task_threads()
     if lead is not None and beside is not None:
         lead, beside = _after(lead, beside)
-    tasks: list[tuple[bool, _Fold] | None]  # (deformable?, fold), or None: the caller's ``beside``
+    # (deformable?, block), or None: the caller's ``beside``; a block whose fold has no training or
+    # no held-out points (``prepared``) is skipped
+    tasks: list[tuple[bool, int] | None]
+    blocks = range(support.blocks)
     if threads > 1:
-        tasks = [*((True, f) for f in folds), *([None] if beside is not None else []), *((False, f) for f in folds)]
+        tasks = [*((True, b) for b in blocks), *([None] if beside is not None else []), *((False, b) for b in blocks)]
     else:  # as before: each fold's deformable fit, then its rigid one
-        tasks = [(job, f) for f in folds for job in (True, False)]
+        tasks = [(job, b) for b in blocks for job in (True, False)]
     fitted: dict[int, tuple[float, float] | None] = {}  # block → deformable RMS (today's model, extended)
     fixed: dict[int, float | None] = {}  # block → rigid RMS
 
@@ -433,12 +446,17 @@ def _folds(model, data, options, support, cancel, extend, beside=None, lead=None
         if task is None:
             assert beside is not None
             beside()
-        elif task[0]:
-            fitted[task[1].block] = deformable(task[1])
+            return
+        f = prepared()[2].get(task[1])
+        if f is None:
+            return
+        if task[0]:
+            fitted[f.block] = deformable(f)
         else:
-            fixed[task[1].block] = rigid(task[1])
+            fixed[f.block] = rigid(f)
 
     in_threads(run, len(tasks), threads, lead=lead)
+    folds = list(prepared()[2].values())
     out, out_ext = [], []
     for f in folds:
         d, r = fitted[f.block], fixed[f.block]
