@@ -151,7 +151,7 @@ def test_screened_candidates_on_two_threads_are_the_sequential_screening_to_the_
     # (the screening then runs in turn inside its task)
     for threads_used, pose_ahead in ((2, 1), (1, 1), (2, 2)):
         monkeypatch.setattr(pipeline, "in_threads", forced(threads_used))
-        monkeypatch.setattr(pipeline, "task_threads", lambda n=pose_ahead: n)
+        monkeypatch.setattr(support, "task_threads", lambda n=pose_ahead: n)
         small_model.cache.evaluation, small_model.cache.ends = None, ()
         reg = pipeline.register(small_model, data, init=pipeline.RobustOptions(support=None))
         answers.append(([s.omega for s in reg.starts], reg.libr.beta.tobytes(), reg.rigid.R.tobytes(),
@@ -224,7 +224,6 @@ def test_fit_beside_the_folds_is_the_registration_in_turn(small_model, monkeypat
     monkeypatch.setattr(pipeline, "trimmed_from_given", recorded_trim)
     out = []
     for cores in (2, 1):
-        monkeypatch.setattr(pipeline, "task_threads", lambda n=cores: n)
         monkeypatch.setattr(support, "task_threads", lambda n=cores: n)
         leads.clear()
         trimmed_in_task.clear()

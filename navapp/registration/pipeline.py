@@ -33,7 +33,7 @@ from ..fitwarning import FitWarning, WarningKind, found, texts
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.tre import tre_stats
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
-from ..threads import in_threads, task_threads
+from ..threads import in_threads
 from .coverage import note_coverage
 from .forces import (
     WARM_WITHOUT_FORCES,
@@ -90,6 +90,7 @@ from .support import (
     SupportOptions,
     check_support,
     check_support_pair,
+    fresh_threads,
     paired_gain,
     pooled_rms,
     weigh_correction,
@@ -936,7 +937,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         """The multi-start ICP, or a copy of the caller's (this registration marks its own omega, chosen)."""
         return _multi_start(model, data, settled, init) if given_starts is None else [replace(s) for s in given_starts]
 
-    pose_ahead = rigid is None and init.multi_start and choosing and task_threads() > 1
+    pose_ahead = rigid is None and init.multi_start and choosing and fresh_threads() > 1
     if pose_ahead:
         # the pose choice's trimmed fit from the given pose reads the data alone, not the search's
         # answer: on two cores it is made beside the multi-start search and the screening, each the
@@ -1022,7 +1023,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
     if deform:
         t = time.perf_counter()
         if fresh and init.support is not None and not declared and init.local_modes is None and \
-                task_threads() > 1 and not (cancel is not None and cancel.is_set()):
+                fresh_threads() > 1 and not (cancel is not None and cancel.is_set()):
             # the folds read the data and the pose, not the fit of all the data: on two cores they
             # begin on the helper while this thread fits, and the error estimate from ICP's pose
             # follows the fit among them. Where the fit is then replaced (a poor fit refitted from

@@ -427,7 +427,7 @@ def _folds(model, data, options, support, cancel, extend, beside=None, lead=None
     # the folds' fits are independent: on two cores the deformable ones first (the longest), the
     # rigid ones after; each the same computation as alone, gathered in fold order
     # (docs/decisions/speed.md, "The folds on both cores")
-    threads = 1 if _sequential_folds else task_threads()
+    threads = fresh_threads()
     if lead is not None and beside is not None:
         lead, beside = _after(lead, beside)
     # (deformable?, block), or None: the caller's ``beside``; a block whose fold has no training or
@@ -496,9 +496,18 @@ _sequential_folds = Before()
 
 def sequential_folds() -> AbstractContextManager[None]:
     """Within it, the cross-validation's folds run one after another in this thread, each
-    fold's deformable fit then its rigid one, as before they shared the cores (the benches'
-    "before", and the test that the concurrent folds give the same bits); process-wide."""
+    fold's deformable fit then its rigid one, as before they shared the cores, and so does the
+    rest of a fresh registration that would share them (``fresh_threads``: the pose choice's
+    trimmed fit after the multi-start search, the deformable fit before the folds): the benches'
+    "before", and the tests that the concurrent parts give the same bits; process-wide."""
     return _sequential_folds.taken()
+
+
+def fresh_threads() -> int:
+    """The threads a fresh registration's independent parts run on (the folds, and in
+    ``pipeline`` the trimmed fit beside the multi-start search and the deformable fit beside the
+    folds): ``threads.task_threads()``, or one within ``sequential_folds``."""
+    return 1 if _sequential_folds else task_threads()
 
 
 def paired_gain(blocks: list[Block]) -> tuple[float, float]:
