@@ -275,32 +275,3 @@ def test_error_estimate_made_beside_the_folds_is_the_one_made_after_them(small_m
         out.append((replace(reg.organ, seconds=0.0), reg.libr.beta.tobytes(), blocks))
     assert out[0] == out[1]
 
-
-
-def test_fresh_registration_holds_blas_at_one_thread_between_its_fits(small_model, monkeypatch):
-    """The multi-start search and the pose choice (outside LM, the folds and the error estimate,
-    which held BLAS at one thread already) run with BLAS at one thread, and the limits are as
-    found after (fails without ``register``'s own limit where BLAS has more than one thread)."""
-    from navapp.registration import pipeline
-
-    def blas_threads():
-        return sorted({lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"})
-
-    before, seen = blas_threads(), []
-    search, choose = pipeline._multi_start, pipeline.choose_pose
-
-    def recorded_search(*a, **k):
-        seen.append(blas_threads())
-        return search(*a, **k)
-
-    def recorded_choice(*a, **k):
-        seen.append(blas_threads())
-        return choose(*a, **k)
-
-    monkeypatch.setattr(pipeline, "_multi_start", recorded_search)
-    monkeypatch.setattr(pipeline, "choose_pose", recorded_choice)
-    X = small_model.features["liver"].rest
-    data = {"anterior": X[::4] + [2.0, -1.0, 1.0]}
-    pipeline.register(small_model, data, init=pipeline.RobustOptions(support=None))
-    assert len(seen) == 2 and all(s == [1] for s in seen)
-    assert blas_threads() == before
