@@ -15,7 +15,6 @@ import math
 import time
 import warnings
 from collections.abc import Callable, Iterable
-from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import cast
@@ -34,7 +33,7 @@ from ..fitwarning import FitWarning, WarningKind, found, texts
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.tre import tre_stats
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
-from ..threads import in_threads, limit_threads
+from ..threads import in_threads
 from .coverage import note_coverage
 from .forces import (
     WARM_WITHOUT_FORCES,
@@ -827,14 +826,8 @@ def register(model: RegistrationModel, data: dict, deform=True, options: LMOptio
     InputError
         for data that are not (N, 3), not finite, or of an unknown feature.
     """
-    # BLAS and OpenMP at one thread throughout a registration on the free-floating basis: its heavy
-    # parts (LM, the folds, the error estimate) hold them there already, and every other BLAS call
-    # is small; a pool woken between them spins on a core the second thread's work needs (−4 %
-    # CPU on phantom0-L under load; docs/decisions/speed.md, "The fresh registration's
-    # independent parts side by side"). The declared supports' checks keep the library's own.
-    with limit_threads(1) if model.basis.settings.supports is None and not surface_forces else nullcontext():
-        reg = _register(model, data, deform, options, callback, cancel, beta0, rigid, init, starts, pose_prior,
-                        given, surface_forces, undeclared)
+    reg = _register(model, data, deform, options, callback, cancel, beta0, rigid, init, starts, pose_prior, given,
+                    surface_forces, undeclared)
     if reg.held is not None and reg.held.contradicted and not (cancel is not None and cancel.is_set()):
         # the data contradict the declared supports: the free-floating model's registration,
         # every check its own, with the line that says why it is the one shown (docs/decisions/local-loads.md,
