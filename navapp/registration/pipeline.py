@@ -33,7 +33,7 @@ from ..fitwarning import FitWarning, WarningKind, found, texts
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.tre import tre_stats
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
-from ..threads import in_threads
+from ..threads import in_threads, limit_threads
 from .coverage import note_coverage
 from .forces import (
     WARM_WITHOUT_FORCES,
@@ -374,7 +374,8 @@ def deform_points(basis: Basis, centroid, beta, points, B=None) -> np.ndarray:
     """
     n = basis.Ju.shape[1]
     B = interpolation_matrix(basis.nodes, basis.tets, points) if B is None else B
-    u = (basis.Ju @ beta[:n]).reshape(-1, 3)
+    with limit_threads(1):  # see ``uncertainty.node_positions``
+        u = (basis.Ju @ beta[:n]).reshape(-1, 3)
     return deform(np.asarray(points, float), B @ u, beta, centroid)[1]
 
 
