@@ -1021,6 +1021,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
 
     early: Support | None = None  # the cross-validation made beside the deformable fit, of ``early_local``
     early_local: dict | None = None
+    beside_s = 0.0  # seconds of that lap beyond the fit's own (counted as the support's)
     if deform:
         t = time.perf_counter()
         if fresh and init.support is not None and not declared and init.local_modes is None and \
@@ -1039,9 +1040,18 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
                     organ_beside((model, at, fitted[0], data_at, weights_at))
 
                 after_fit = estimate
-            early = check_support(model, local, options, init.support, cancel, beside=after_fit,
-                                  lead=lambda: fitted.append(fit(local, options, callback)))
+            lead_s: list[float] = []
+
+            def lead() -> None:
+                t0 = time.perf_counter()
+                fitted.append(fit(local, options, callback))
+                lead_s.append(time.perf_counter() - t0)
+
+            t_batch = time.perf_counter()
+            early = check_support(model, local, options, init.support, cancel, beside=after_fit, lead=lead)
             early_local, result = local, fitted[0]
+            # ``seconds``: the fit's own wall time is the deformable stage's, the rest of the lap the support's
+            beside_s = time.perf_counter() - t_batch - lead_s[0]
             clock.mark("deformable+support")
         else:
             result = fit(local, options, callback)
@@ -1061,7 +1071,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
                     for s in starts:
                         s.chosen = s.result is cand
                     rigid, local, result, quality = cand, other_local, other, other_quality
-        sec["deformable"] = time.perf_counter() - t
+        sec["deformable"] = time.perf_counter() - t - beside_s
         clock.mark("deformable")
         if fresh and init.local_modes is not None and result.stop_reason != "cancelled":
             t = time.perf_counter()
@@ -1099,7 +1109,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         support = _cross_validate(model, local, options, init.support, cancel, rigid, result, folds_support,
                                   local_modes=base_model is not None, declared=declared, paired=confined,
                                   beside=beside)
-        sec["support"] = time.perf_counter() - t
+        sec["support"] = time.perf_counter() - t + beside_s
         clock.mark("support")
     evidence: PoseEvidence | None = None
     if declared and support is not None and not support.supported and result is not None and \
