@@ -1104,11 +1104,13 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
             def beside() -> None:
                 organ_beside(made)
 
-        if early_local is not None and early_local is local:  # made beside the fit, of these data
-            folds_support = early
-        support = _cross_validate(model, local, options, init.support, cancel, rigid, result, folds_support,
-                                  local_modes=base_model is not None, declared=declared, paired=confined,
-                                  beside=beside)
+        beside_these = early_local is not None and early_local is local  # the folds made beside the fit, of these data
+        if beside_these and early is None:
+            support = None  # too few points to split, or cut short by a cancel: as made here, nothing
+        else:
+            support = _cross_validate(model, local, options, init.support, cancel, rigid, result,
+                                      early if beside_these else folds_support, local_modes=base_model is not None,
+                                      declared=declared, paired=confined, beside=beside)
         sec["support"] = time.perf_counter() - t + beside_s
         clock.mark("support")
     evidence: PoseEvidence | None = None
