@@ -249,8 +249,8 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     path with the cross-validation's folds one after another in one thread, and the rest of
     the fresh registration in turn with them (``support.sequential_folds``: as before they shared
     the cores, sessions 40–41; "before" has them so too), in the same rotation. Both threads'
-    CPU counts (the process's), so CPU over wall says how much ran at once. ``truth_edge``: the mesh the scene is simulated on,
-    mm (default the scene's)."""
+    CPU counts (the process's), so CPU over wall says how much ran at once. ``truth_edge``: the
+    mesh the scene is simulated on, mm (default the scene's)."""
 
     scene = demo_scene()
     # the simulated scene from navapp's cache (as ``bench live`` and the viewer take it):
