@@ -99,9 +99,13 @@ def task_threads() -> int:
     return max(1, min(2, cores))
 
 
-def in_threads(task: Callable[[int], T], count: int, threads: int | None = None) -> list[T]:
+def in_threads(task: Callable[[int], T], count: int, threads: int | None = None,
+               lead: Callable[[], None] | None = None) -> list[T]:
     """``[task(0), …, task(count − 1)]``, the tasks taken in index order by ``threads`` threads
-    (default ``task_threads()``): this one and a helper kept between calls.
+    (default ``task_threads()``): this one and a helper kept between calls. ``lead``: the
+    caller's own work, independent of the tasks, run on this thread before it takes any (the
+    helper begins with them meanwhile; on one thread, before the first): a task that needs
+    what ``lead`` makes waits for it (``support.check_support_pair``'s ``beside``).
 
     For tasks whose heavy parts release the GIL (Numba's ``nogil`` kernels, BLAS, LAPACK) and
     that share no state a task writes to but through whole replacements (``ModelCache``): each
@@ -114,6 +118,8 @@ def in_threads(task: Callable[[int], T], count: int, threads: int | None = None)
     threads = task_threads() if threads is None else threads
     if threads <= 1 or count <= 1 or getattr(_inside, "task", False):
         with limit_threads(1):
+            if lead is not None:
+                lead()
             return [task(i) for i in range(count)]
     out: list = [None] * count
     lock = threading.Lock()
@@ -141,6 +147,12 @@ def in_threads(task: Callable[[int], T], count: int, threads: int | None = None)
     pool = _kept_pool()
     with warnings.catch_warnings(), limit_threads(1):
         helper = pool.submit(drain) if threads > 1 else None
+        if lead is not None:
+            try:
+                lead()
+            except BaseException as e:  # no task is taken after it; raised below
+                with lock:
+                    failed.insert(0, e)
         drain()
         if helper is not None and not helper.cancel():  # cancelled: it never started (the helper was busy)
             helper.result()

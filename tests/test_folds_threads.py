@@ -23,6 +23,14 @@ def _blocks(s):
     return [(b.centre.tobytes(), b.points, b.rigid_mm, b.deformable_mm) for b in s.blocks]
 
 
+def _choice(c):
+    """A pose choice's fields, its trimmed fit's pose as bytes (``PoseChoice`` holds arrays)."""
+    if c is None:
+        return None
+    local = None if c.local is None else (c.local.R.tobytes(), c.local.t.tobytes(), c.local.rms_mm, c.local.kept)
+    return c.source, c.moved_mm, c.on_model, local, c.turn_deg, c.fits
+
+
 def test_concurrent_folds_are_the_sequential_folds_and_each_fold_apart_to_the_bit(small_model, monkeypatch):
     """On two threads (forced: this machine may have one core) the folds' fits run on both and
     every block's rigid and deformable held-out RMS, with and without a fold's extended model,
@@ -139,13 +147,96 @@ def test_screened_candidates_on_two_threads_are_the_sequential_screening_to_the_
         return run
 
     answers = []
-    for threads_used in (2, 1):
+    # the screening alone on two threads, then in one; then beside the pose choice's trimmed fit
+    # (the screening then runs in turn inside its task)
+    for threads_used, pose_ahead in ((2, 1), (1, 1), (2, 2)):
         monkeypatch.setattr(pipeline, "in_threads", forced(threads_used))
+        monkeypatch.setattr(support, "task_threads", lambda n=pose_ahead: n)
         small_model.cache.evaluation, small_model.cache.ends = None, ()
         reg = pipeline.register(small_model, data, init=pipeline.RobustOptions(support=None))
-        answers.append(([s.omega for s in reg.starts], reg.libr.beta.tobytes(), reg.rigid.R.tobytes()))
+        answers.append(([s.omega for s in reg.starts], reg.libr.beta.tobytes(), reg.rigid.R.tobytes(),
+                        _choice(reg.pose_choice)))
     assert calls and all(c >= 2 for c in calls)  # more than one candidate was screened
-    assert answers[0] == answers[1]
+    assert answers[0] == answers[1] == answers[2]
+
+
+def test_in_threads_lead_runs_on_the_calling_thread_while_the_helper_takes_the_tasks():
+    """``lead`` runs on the calling thread, the tasks begin on the helper meanwhile (the first
+    task is taken before the lead ends), results in index order; on one thread the lead comes
+    first; a failing lead is raised and no task is taken after it."""
+    caller = threading.get_ident()
+    lead_on, started, order = [], threading.Event(), []
+
+    def lead():
+        lead_on.append(threading.get_ident())
+        assert started.wait(30)  # the helper took a task while the lead runs
+        order.append("lead")
+
+    def task(i):
+        started.set()
+        order.append(i)
+        return i * i
+
+    assert threads.in_threads(task, 6, threads=2, lead=lead) == [i * i for i in range(6)]
+    assert lead_on == [caller] and order[0] == 0
+    order.clear()
+    assert threads.in_threads(lambda i: order.append(i) or i, 3, threads=1, lead=lambda: order.append("lead")) \
+        == [0, 1, 2]
+    assert order == ["lead", 0, 1, 2]
+
+    def failing():
+        raise ValueError("the fit")
+
+    taken = []
+    with pytest.raises(ValueError, match="the fit"):
+        threads.in_threads(lambda i: taken.append(i), 50, threads=2, lead=failing)
+    assert len(taken) < 50
+
+
+def test_fit_beside_the_folds_is_the_registration_in_turn(small_model, monkeypatch):
+    """On two threads (forced) the deformable fit of all the data runs on this thread while the
+    folds begin on the helper, the error estimate after it among the folds, and the trimmed fit
+    from the given pose beside the multi-start search: the same answer, blocks, error estimate,
+    pose choice and lines, to the bit, as everything in turn on one thread (fails if a fold, the
+    estimate or the pose choice read another state than in turn, e.g. the folds the fit's data
+    after a refit)."""
+    from navapp.registration import pipeline, pose
+    from navapp.registration.rotation import rotation
+
+    rng = np.random.default_rng(41)
+    n = small_model.basis.Ju.shape[1]
+    x = small_model.basis.nodes + (small_model.basis.Ju @ rng.normal(size=n)).reshape(-1, 3) * 0.6
+    R, c = rotation(np.radians([4.0, -3.0, 2.0])), small_model.centroid
+    pts = x[small_model.basis.surface][::3]
+    data = {"anterior": (pts - c) @ R.T + c + [4.0, -3.0, 2.0] + rng.normal(scale=0.3, size=pts.shape)}
+    leads, trimmed_in_task = [], []
+    check, trim = support.check_support, pose.trimmed_from_given
+
+    def recorded_check(*a, **k):
+        leads.append(k.get("lead") is not None)
+        return check(*a, **k)
+
+    def recorded_trim(*a, **k):
+        trimmed_in_task.append(getattr(threads._inside, "task", False))
+        return trim(*a, **k)
+
+    monkeypatch.setattr(pipeline, "check_support", recorded_check)
+    monkeypatch.setattr(pipeline, "trimmed_from_given", recorded_trim)
+    out = []
+    for cores in (2, 1):
+        monkeypatch.setattr(support, "task_threads", lambda n=cores: n)
+        leads.clear()
+        trimmed_in_task.clear()
+        small_model.cache.evaluation, small_model.cache.ends = None, ()
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            reg = pipeline.register(small_model, data)
+        assert reg.deformed and reg.support is not None and reg.organ is not None
+        assert leads == [cores == 2] and trimmed_in_task == ([True] if cores == 2 else [])
+        out.append((reg.libr.beta.tobytes(), reg.rigid.R.tobytes(), reg.rigid.t.tobytes(), _blocks(reg.support),
+                    replace(reg.organ, seconds=0.0), _choice(reg.pose_choice), [str(w.message) for w in said],
+                    [w.text for w in reg.warnings]))
+    assert out[0] == out[1]
 
 
 def test_error_estimate_made_beside_the_folds_is_the_one_made_after_them(small_model, monkeypatch):

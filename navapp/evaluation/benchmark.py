@@ -246,11 +246,11 @@ def bench_register(repeats=5, planes=3, k=K, edge=EDGE_MM, truth_edge=None):
     of each. A third variant, ``cold_search``, is the new path with every surface search begun
     at the hierarchy's root (``objective.cold_search``: as before LM's searches started from
     the last iteration's triangles, session 38), and a fourth, ``sequential_folds``, the new
-    path with the cross-validation's folds one after another in one thread
-    (``support.sequential_folds``: as before they shared the cores, session 40; "before" has
-    them so too), in the same rotation. Both threads' CPU counts (the process's), so CPU
-    over wall says how much ran at once. ``truth_edge``: the mesh the scene is simulated on,
-    mm (default the scene's)."""
+    path with the cross-validation's folds one after another in one thread, and the rest of
+    the fresh registration in turn with them (``support.sequential_folds``: as before they shared
+    the cores, sessions 40–41; "before" has them so too), in the same rotation. Both threads'
+    CPU counts (the process's), so CPU over wall says how much ran at once. ``truth_edge``: the
+    mesh the scene is simulated on, mm (default the scene's)."""
 
     scene = demo_scene()
     # the simulated scene from navapp's cache (as ``bench live`` and the viewer take it):

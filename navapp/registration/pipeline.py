@@ -17,6 +17,7 @@ import warnings
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import cast
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -32,7 +33,7 @@ from ..fitwarning import FitWarning, WarningKind, found, texts
 from ..geometry.interpolation import interpolation_matrix
 from ..geometry.tre import tre_stats
 from ..mechanics.basis import Basis, BasisSettings, load_or_compute_basis
-from ..threads import in_threads
+from ..threads import in_threads, limit_threads
 from .coverage import note_coverage
 from .forces import (
     WARM_WITHOUT_FORCES,
@@ -53,12 +54,14 @@ from .pose import (
     PoseChoice,
     PoseFits,
     PoseSource,
+    Trimmed,
     choose_pose,
     compared,
     pose_determinacy,
     prefer_given,
     rms_on_model,
     shift_mm,
+    trimmed_from_given,
     turn_deg,
     with_turn,
 )
@@ -87,6 +90,7 @@ from .support import (
     SupportOptions,
     check_support,
     check_support_pair,
+    fresh_threads,
     paired_gain,
     pooled_rms,
     weigh_correction,
@@ -370,7 +374,8 @@ def deform_points(basis: Basis, centroid, beta, points, B=None) -> np.ndarray:
     """
     n = basis.Ju.shape[1]
     B = interpolation_matrix(basis.nodes, basis.tets, points) if B is None else B
-    u = (basis.Ju @ beta[:n]).reshape(-1, 3)
+    with limit_threads(1):  # see ``uncertainty.node_positions``
+        u = (basis.Ju @ beta[:n]).reshape(-1, 3)
     return deform(np.asarray(points, float), B @ u, beta, centroid)[1]
 
 
@@ -886,7 +891,6 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
     sec = {}
     clock = StageClock()
     t = time.perf_counter()
-    candidates: list[RigidResult] = []
     centred: PosePrior | None = None  # the declared prior as the rigid stage left it (its pose, its scale)
     moved: RigidResult | None = None  # the declared rigid stage's pose relative to the given one
     if declared:
@@ -904,36 +908,61 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         options = replace(options, weights=replace(options.weights, pose_prior=centred))
     elif rigid is not None or not init.multi_start:
         starts = []
-    elif starts is None:
-        starts = _multi_start(model, data, options, init)
-    else:
-        starts = [replace(s) for s in starts]  # this registration marks its own (omega, chosen)
-    clock.mark("declared_rigid" if declared else "multi_start")
-    if rigid is None:
-        if init.multi_start:
-            candidates = [s.fitted for s in basin_representatives(starts)[:init.max_candidates]]
-            rigid = candidates[0]
-        else:
-            rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,
-                              features=features, multi_start=False, robust=init.rigid_robust)
-    else:
-        candidates = [rigid]
-    # (Ω after the screening iterations, candidate, its LibrResult)
-    screened: list[tuple[float, RigidResult, LibrResult]] = []
-    if len(candidates) > 1 and init.screen_iterations > 0 and data:
+    choosing = not warm and not declared and init.keep_given_pose and "fiducials" not in data and not notes
+    trimmed_fit: Trimmed | None = None  # the pose choice's trimmed fit, made beside the search
+    screened: list[tuple[float, RigidResult, LibrResult]] = []  # (Ω after the screening iterations, candidate, fit)
+    settled: LMOptions = options  # (closures do not see ``options``' type narrowed)
+
+    def screen(candidates: list[RigidResult], starts: list[Start]) -> RigidResult:
+        """The candidate poses' screening (into ``screened``): the pose chosen."""
+        if not (len(candidates) > 1 and init.screen_iterations > 0 and data):
+            return candidates[0]
         # which basin: the LIBR objective after a few iterations, not the rigid RMS alone —
         # a pose that leaves the data a few mm off may be the one the deformation explains
-        quick = replace(options, max_iterations=init.screen_iterations)
+        quick = replace(settled, max_iterations=init.screen_iterations)
         # independent fits: on both cores, each the same as alone, in the candidates' order
         # (docs/decisions/speed.md, "The folds on both cores")
         quick_fits = in_threads(lambda i: register_libr(model, {n: candidates[i].inverse(p) for n, p in data.items()},
                                                         None, quick, None, cancel), len(candidates))
         screened.extend((res.omega, cand, res) for cand, res in zip(candidates, quick_fits, strict=True))
         screened.sort(key=lambda x: x[0])
-        rigid = screened[0][1]
         for s in starts:
             s.omega = next((o for o, c, _ in screened if c is s.result), None)
-    clock.mark("screening")
+        return screened[0][1]
+
+    def searched(starts: list[Start]) -> tuple[list[Start], RigidResult]:
+        """The multi-start ICP's starts, and the best of its basins' poses after the screening."""
+        return starts, screen([s.fitted for s in basin_representatives(starts)[:init.max_candidates]], starts)
+
+    def own(given_starts: list[Start] | None) -> list[Start]:
+        """The multi-start ICP, or a copy of the caller's (this registration marks its own omega, chosen)."""
+        return _multi_start(model, data, settled, init) if given_starts is None else [replace(s) for s in given_starts]
+
+    pose_ahead = rigid is None and init.multi_start and choosing and fresh_threads() > 1
+    if pose_ahead:
+        # the pose choice's trimmed fit from the given pose reads the data alone, not the search's
+        # answer: on two cores it is made beside the multi-start search and the screening, each the
+        # same computation as in turn (docs/decisions/speed.md, "The fresh registration's
+        # independent parts side by side")
+        given_starts = starts
+        both: list = in_threads(lambda i: searched(own(given_starts)) if i == 0 else
+                                trimmed_from_given(model, data, _given()), 2)
+        starts, rigid = cast(tuple[list[Start], RigidResult], both[0])
+        trimmed_fit = cast(Trimmed | None, both[1])
+        clock.mark("rigid_search")
+    else:
+        if not declared and rigid is None and init.multi_start:
+            starts = own(starts)
+        clock.mark("declared_rigid" if declared else "multi_start")
+        assert starts is not None
+        if rigid is None:
+            if init.multi_start:
+                starts, rigid = searched(starts)
+            else:
+                rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,
+                                  features=features, multi_start=False, robust=init.rigid_robust)
+        clock.mark("screening")
+    assert starts is not None and rigid is not None
     if not declared:  # the declared rigid stage marked its own choice and finished its pose
         for s in starts:
             s.chosen = s.result is rigid
@@ -953,7 +982,8 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
     clock.mark("icp")
     choice = None
     if not warm and not declared and init.keep_given_pose and "fiducials" not in data and not notes:
-        choice = choose_pose(model, data, _given(), rigid)
+        choice = choose_pose(model, data, _given(), rigid, trimmed=trimmed_fit) if pose_ahead else \
+            choose_pose(model, data, _given(), rigid)
         if choice.kept:
             trimmed = choice.local
             rigid = trimmed if choice.source is PoseSource.LOCAL and trimmed is not None else \
@@ -982,10 +1012,49 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
             b0 = register_libr(model, local, b0, stiff, None, cancel).beta
         return register_libr(model, local, b0, options, callback, cancel)
 
+    # the error estimate made beside the folds, and what it read (model, rigid, fit, data, weights)
+    ahead: list[tuple[tuple, OrganError]] = []
+
+    def organ_beside(made: tuple) -> None:
+        reg = Registration(made[0], made[1], made[2], made[3], pose_prior=made[4].pose_prior)
+        ahead.append((made, organ_error(reg, weights=replace(made[4], pose_prior=None))))
+
+    early: Support | None = None  # the cross-validation made beside the deformable fit, of ``early_local``
+    early_local: dict | None = None
+    beside_s = 0.0  # seconds of that lap beyond the fit's own (counted as the support's)
     if deform:
         t = time.perf_counter()
+        if fresh and init.support is not None and not declared and init.local_modes is None and \
+                fresh_threads() > 1 and not (cancel is not None and cancel.is_set()):
+            # the folds read the data and the pose, not the fit of all the data: on two cores they
+            # begin on the helper while this thread fits, and the error estimate from ICP's pose
+            # follows the fit among them. Where the fit is then replaced (a poor fit refitted from
+            # another basin) they are made again below (docs/decisions/speed.md, "The fresh
+            # registration's independent parts side by side")
+            fitted: list[LibrResult] = []
+            after_fit: Callable[[], None] | None = None
+            if not rigid.kept:
+                at, data_at, weights_at = rigid, local, options.weights
 
-        result = fit(local, options, callback)
+                def estimate() -> None:
+                    organ_beside((model, at, fitted[0], data_at, weights_at))
+
+                after_fit = estimate
+            lead_s: list[float] = []
+
+            def lead() -> None:
+                t0 = time.perf_counter()
+                fitted.append(fit(local, options, callback))
+                lead_s.append(time.perf_counter() - t0)
+
+            t_batch = time.perf_counter()
+            early = check_support(model, local, options, init.support, cancel, beside=after_fit, lead=lead)
+            early_local, result = local, fitted[0]
+            # ``seconds``: the fit's own wall time is the deformable stage's, the rest of the lap the support's
+            beside_s = time.perf_counter() - t_batch - lead_s[0]
+            clock.mark("deformable+support")
+        else:
+            result = fit(local, options, callback)
         if declared and result.stop_reason != "cancelled":
             result, options = _settle_scale(model, local, result, options, cancel)
         quality = assess_fit(result.features)
@@ -1002,7 +1071,7 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
                     for s in starts:
                         s.chosen = s.result is cand
                     rigid, local, result, quality = cand, other_local, other, other_quality
-        sec["deformable"] = time.perf_counter() - t
+        sec["deformable"] = time.perf_counter() - t - beside_s
         clock.mark("deformable")
         if fresh and init.local_modes is not None and result.stop_reason != "cancelled":
             t = time.perf_counter()
@@ -1015,7 +1084,6 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
             sec["local_modes"] = time.perf_counter() - t
             clock.mark("local_modes")
     support = None
-    ahead: list[tuple[tuple, OrganError]] = []  # the error estimate made beside the folds, and what it read
     if deform and fresh and init.support is not None and result is not None and result.stop_reason != "cancelled":
         t = time.perf_counter()
         # a declared pose within the clinical goal confines the pose: the held-out gain is judged
@@ -1027,20 +1095,23 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         confined = declared and options.weights.pose_prior is not None and model.basis.settings.supports is None \
             and declared_spread(model, options.weights) <= CLINICAL_GOAL_MM
         beside = None
-        if not declared and not rigid.kept:
+        if not declared and not rigid.kept and not ahead:
             # the answer's error estimate, made among the folds' tasks on the second core: from
             # ICP's pose the deformable answer is shown whatever the folds say, and it is used
             # below only if nothing it reads was replaced (docs/decisions/speed.md, "The folds on both cores")
             made = (model, rigid, result, local, options.weights)
 
             def beside() -> None:
-                reg = Registration(made[0], made[1], made[2], made[3], pose_prior=made[4].pose_prior)
-                ahead.append((made, organ_error(reg, weights=replace(made[4], pose_prior=None))))
+                organ_beside(made)
 
-        support = _cross_validate(model, local, options, init.support, cancel, rigid, result, folds_support,
-                                  local_modes=base_model is not None, declared=declared, paired=confined,
-                                  beside=beside)
-        sec["support"] = time.perf_counter() - t
+        beside_these = early_local is not None and early_local is local  # the folds made beside the fit, of these data
+        if beside_these and early is None:
+            support = None  # too few points to split, or cut short by a cancel: as made here, nothing
+        else:
+            support = _cross_validate(model, local, options, init.support, cancel, rigid, result,
+                                      early if beside_these else folds_support, local_modes=base_model is not None,
+                                      declared=declared, paired=confined, beside=beside)
+        sec["support"] = time.perf_counter() - t + beside_s
         clock.mark("support")
     evidence: PoseEvidence | None = None
     if declared and support is not None and not support.supported and result is not None and \

@@ -36,6 +36,7 @@ cylinder slides along its axis, a plane slides in itself. ``pose_determinacy`` r
 those motions and one line when there are any.
 """
 
+import math
 from dataclasses import dataclass, field, replace
 from enum import Enum
 
@@ -295,22 +296,41 @@ def rms_on_model(model: RegistrationModel, data: dict, pose: RigidResult) -> flo
     return float(np.sqrt(np.mean(d ** 2))) if len(d) else 0.0
 
 
+Trimmed = tuple[RigidResult, float, np.ndarray]  # ``trimmed_from_given``: pose, RMS moved (mm), distances (mm)
+_NOT_MADE: "Trimmed | None" = (RigidResult(np.eye(3), np.zeros(3), 0, 0.0), math.nan, np.zeros(0))
+
+
+def trimmed_from_given(model: RegistrationModel, data: dict, given: RigidResult,
+                       rule: PoseRule = POSE_RULE) -> Trimmed | None:
+    """``choose_pose``'s part that reads only the data and the given pose: the trimmed fit from
+    ``given`` (``trimmed_pose``), how far it moved the data (RMS, mm) and the surface data's
+    distances (N,) mm to the model at its pose; None with fewer than six surface points. It does
+    not depend on the multi-start search, so ``register`` makes it beside that search on the
+    second core (docs/decisions/speed.md, "The fresh registration's independent parts side by side")."""
+    at_given = _surface_points(model, data, given)
+    if len(at_given[0]) < 6:
+        return None
+    # a rigid offset smaller than the margin is kept too (and LIBR cannot take it out): a
+    # clause that also refused poses whose trimmed fit halved the median distance caught a
+    # 2 mm shift but kept no tool case's pose either (docs/decisions/local-loads.md, "Local loads")
+    local, moved = trimmed_pose(model, data, given, rule.keep, at_start=at_given)
+    return local, moved, _distances(model, data, local)
+
+
 def choose_pose(model: RegistrationModel, data: dict, given: RigidResult, fitted: RigidResult | None = None,
-                rule: PoseRule = POSE_RULE) -> PoseChoice:
+                rule: PoseRule = POSE_RULE, trimmed: Trimmed | None = _NOT_MADE) -> PoseChoice:
     """The given pose when the best-fitting part of the surface data already lies on the
     undeformed model there (the trimmed fit, ``trimmed_pose``, moves them less than
     ``rule.moved_mm`` and leaves a fraction ``rule.aligned`` on the model); else the
     trimmed fit's own pose when it stayed near (``rule.local_mm``) and most data are on the
     model there, clearly more than at ``fitted`` (ICP's); else ``fitted`` (module doc).
-    The pose returned as ``local`` is marked ``kept``."""
-    at_given = _surface_points(model, data, given)
-    if len(at_given[0]) < 6:
+    The pose returned as ``local`` is marked ``kept``. ``trimmed``: ``trimmed_from_given``'s
+    answer for these data and ``given``, when the caller made it ahead (beside the multi-start
+    search, which it does not depend on)."""
+    made = trimmed_from_given(model, data, given, rule) if trimmed is _NOT_MADE else trimmed
+    if made is None:
         return PoseChoice(PoseSource.FITTED, None)
-    # a rigid offset smaller than the margin is kept too (and LIBR cannot take it out): a
-    # clause that also refused poses whose trimmed fit halved the median distance caught a
-    # 2 mm shift but kept no tool case's pose either (docs/decisions/local-loads.md, "Local loads")
-    local, moved = trimmed_pose(model, data, given, rule.keep, at_start=at_given)
-    d = _distances(model, data, local)
+    local, moved, d = made
     on = {PoseSource.LOCAL: float(np.mean(d < rule.on_mm))}
     if moved < rule.moved_mm and on[PoseSource.LOCAL] >= rule.aligned:
         return PoseChoice(PoseSource.GIVEN, moved, on)

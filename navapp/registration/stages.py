@@ -5,7 +5,11 @@ choice, the deformable fits, the cross-validation, the error estimate, …); a s
 what passed since the previous mark, so the stages add up to the whole call. CPU is the
 process's (every thread), so on a machine other work shares, CPU says what the stage costs and
 wall what it took (``navapp bench register`` prints both). Work run on the second thread among a
-stage's own (the error estimate beside the cross-validation's folds) counts in that stage.
+stage's own (the error estimate beside the cross-validation's folds) counts in that stage. Where
+two stages run side by side on two cores they are one lap: ``rigid_search`` (the multi-start ICP
+and the screening beside the pose choice's trimmed fit; ``pose_choice`` then holds the rest of
+the choice) and ``deformable+support`` (the deformable fit beside the cross-validation's folds
+and the error estimate; ``deformable`` and ``support`` then hold what follows each).
 """
 
 import time

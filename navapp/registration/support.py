@@ -299,20 +299,22 @@ def blocks_of(data: dict, count: int, seed: int = 0) -> dict:
 
 def check_support(model: RegistrationModel, data: dict, options: LMOptions,
                   support: SupportOptions = SupportOptions(), cancel=None,
-                  beside: Callable[[], None] | None = None) -> Support | None:
+                  beside: Callable[[], None] | None = None,
+                  lead: Callable[[], None] | None = None) -> Support | None:
     """Cross-validate the deformable answer against the rigid one (module doc). ``data``:
     feature → (N, 3) mm in the model frame (after the rigid pose); ``options`` the LM
-    settings of the real fit. None when there are too few data points to split. ``beside``:
-    the caller's own independent task, run among the folds' when they share the cores
+    settings of the real fit. None when there are too few data points to split. ``beside``,
+    ``lead``: the caller's own tasks, run among the folds' when they share the cores
     (``check_support_pair``)."""
-    pair = check_support_pair(model, data, options, support, cancel, beside=beside)
+    pair = check_support_pair(model, data, options, support, cancel, beside=beside, lead=lead)
     return None if pair is None else pair[0]
 
 
 def check_support_pair(model: RegistrationModel, data: dict, options: LMOptions,
                        support: SupportOptions = SupportOptions(), cancel=None,
                        extend: Callable[[dict, np.ndarray], RegistrationModel | None] | None = None,
-                       beside: Callable[[], None] | None = None) -> tuple[Support, Support] | None:
+                       beside: Callable[[], None] | None = None,
+                       lead: Callable[[], None] | None = None) -> tuple[Support, Support] | None:
     """``check_support`` for ``model`` and, in the same folds, for a model each fold extends
     from its own training data: ``extend(train, beta)`` (the training data, feature →
     (N, 3) mm, and the fit of ``model`` to them, (3k + 6,)) returns the extended model or None
@@ -327,33 +329,72 @@ def check_support_pair(model: RegistrationModel, data: dict, options: LMOptions,
     ``beside``: a task of the caller's that does not depend on the folds (``pipeline``'s error
     estimate of the answer, made ahead), run as one more of their tasks where they run on two
     threads, so that it fills the cores with them; not run where they run on one (nor where there
-    are too few points to split), and then the caller makes what it would have made."""
+    are too few points to split), and then the caller makes what it would have made.
+
+    ``lead``: the caller's work that the folds do not read, run first on the calling thread while
+    the helper begins with the folds (``threads.in_threads``; ``pipeline``'s deformable fit of all
+    the data, whose answer the folds never see): ``beside`` then waits for it, and is not run if
+    it failed. Run first on one thread, and run alone where there are too few points to split."""
     total = sum(len(p) for k, p in data.items() if k != "fiducials")
     if total < support.min_points:
+        if lead is not None:
+            lead()
         return None
     # the folds' fits keep their ends and last evaluations in a cache of their own, begun as a copy
-    # of the model's: the caller's error estimate, run beside them, finds the answer's end there
-    return _folds(replace(model, cache=model.cache.copy()), data, options, support, cancel, extend, beside)
+    # of the model's: no fold starts where another fit ended, and the caller's fits (``lead``,
+    # ``beside``) keep theirs in the model's own
+    return _folds(replace(model, cache=model.cache.copy()), data, options, support, cancel, extend, beside, lead)
 
 
-def _folds(model, data, options, support, cancel, extend, beside=None) -> tuple[Support, Support] | None:
+def _after(lead: Callable[[], None], beside: Callable[[], None]) -> tuple[Callable[[], None], Callable[[], None]]:
+    """``lead`` and ``beside`` such that ``beside`` runs after ``lead`` has ended, and not at all
+    when it failed: in ``in_threads`` the lead is this thread's first work, so a task that waits
+    for it waits for work under way (never for a task not yet taken)."""
+    done, ok = threading.Event(), []
+
+    def first() -> None:
+        try:
+            lead()
+            ok.append(True)
+        finally:
+            done.set()
+
+    def then() -> None:
+        done.wait()
+        if ok:
+            beside()
+
+    return first, then
+
+
+def _folds(model, data, options, support, cancel, extend, beside=None, lead=None) -> tuple[Support, Support] | None:
     t0 = time.perf_counter()
-    labels = blocks_of(data, support.blocks)
     fold = replace(options, max_iterations=min(options.max_iterations, support.iterations))
     n = model.basis.Ju.shape[1]
     zero = np.zeros(n + 6)
-    # every fold's fits start at β = 0, on some of these points: one evaluation of all of them
-    # there, and each fit starts from its training points' rows (``objective.points_of``: the
-    # same bits as evaluating them apart, ten searches and Jacobians fewer)
-    with limit_threads(1):
-        start = evaluate(model, data, zero, options.weights, jacobian=True)
-    folds = [_Fold(b, {k: p[labels[k] != b] for k, p in data.items() if (labels[k] != b).any()},
-                   {k: p[labels[k] == b] for k, p in data.items() if (labels[k] == b).any()})
-             for b in range(support.blocks)]
-    folds = [f for f in folds if f.train and f.held]
+    made: list[tuple[dict, Evaluation, dict[int, _Fold]]] = []  # (labels, the shared start, block → fold)
+    making = threading.Lock()
+
+    def prepared() -> tuple[dict, Evaluation, dict[int, "_Fold"]]:
+        """The blocks, the shared start and the folds, made by the first task (on the helper while
+        this thread runs a ``lead``); a task of the other thread waits for them."""
+        with making:
+            if not made:
+                labels = blocks_of(data, support.blocks)
+                # every fold's fits start at β = 0, on some of these points: one evaluation of all of
+                # them there, and each fit starts from its training points' rows (``objective.points_of``:
+                # the same bits as evaluating them apart, ten searches and Jacobians fewer)
+                with limit_threads(1):
+                    start = evaluate(model, data, zero, options.weights, jacobian=True)
+                folds = [_Fold(b, {k: p[labels[k] != b] for k, p in data.items() if (labels[k] != b).any()},
+                               {k: p[labels[k] == b] for k, p in data.items() if (labels[k] == b).any()})
+                         for b in range(support.blocks)]
+                made.append((labels, start, {f.block: f for f in folds if f.train and f.held}))
+            return made[0]
 
     def first(f: "_Fold"):
         # the fold's rows of the shared start, made once for its two fits (whichever runs first)
+        labels, start, _ = prepared()
         with f.lock:
             if f.first is None:
                 f.first = points_of(start, {k: labels[k] != f.block for k in f.train}, options.weights)
@@ -386,12 +427,17 @@ def _folds(model, data, options, support, cancel, extend, beside=None) -> tuple[
     # the folds' fits are independent: on two cores the deformable ones first (the longest), the
     # rigid ones after; each the same computation as alone, gathered in fold order
     # (docs/decisions/speed.md, "The folds on both cores")
-    threads = 1 if _sequential_folds else task_threads()
-    tasks: list[tuple[bool, _Fold] | None]  # (deformable?, fold), or None: the caller's ``beside``
+    threads = fresh_threads()
+    if lead is not None and beside is not None:
+        lead, beside = _after(lead, beside)
+    # (deformable?, block), or None: the caller's ``beside``; a block whose fold has no training or
+    # no held-out points (``prepared``) is skipped
+    tasks: list[tuple[bool, int] | None]
+    blocks = range(support.blocks)
     if threads > 1:
-        tasks = [*((True, f) for f in folds), *([None] if beside is not None else []), *((False, f) for f in folds)]
+        tasks = [*((True, b) for b in blocks), *([None] if beside is not None else []), *((False, b) for b in blocks)]
     else:  # as before: each fold's deformable fit, then its rigid one
-        tasks = [(job, f) for f in folds for job in (True, False)]
+        tasks = [(job, b) for b in blocks for job in (True, False)]
     fitted: dict[int, tuple[float, float] | None] = {}  # block → deformable RMS (today's model, extended)
     fixed: dict[int, float | None] = {}  # block → rigid RMS
 
@@ -400,12 +446,17 @@ def _folds(model, data, options, support, cancel, extend, beside=None) -> tuple[
         if task is None:
             assert beside is not None
             beside()
-        elif task[0]:
-            fitted[task[1].block] = deformable(task[1])
+            return
+        f = prepared()[2].get(task[1])
+        if f is None:
+            return
+        if task[0]:
+            fitted[f.block] = deformable(f)
         else:
-            fixed[task[1].block] = rigid(task[1])
+            fixed[f.block] = rigid(f)
 
-    in_threads(run, len(tasks), threads)
+    in_threads(run, len(tasks), threads, lead=lead)
+    folds = list(prepared()[2].values())
     out, out_ext = [], []
     for f in folds:
         d, r = fitted[f.block], fixed[f.block]
@@ -445,9 +496,18 @@ _sequential_folds = Before()
 
 def sequential_folds() -> AbstractContextManager[None]:
     """Within it, the cross-validation's folds run one after another in this thread, each
-    fold's deformable fit then its rigid one, as before they shared the cores (the benches'
-    "before", and the test that the concurrent folds give the same bits); process-wide."""
+    fold's deformable fit then its rigid one, as before they shared the cores, and so does the
+    rest of a fresh registration that would share them (``fresh_threads``: the pose choice's
+    trimmed fit after the multi-start search, the deformable fit before the folds): the benches'
+    "before", and the tests that the concurrent parts give the same bits; process-wide."""
     return _sequential_folds.taken()
+
+
+def fresh_threads() -> int:
+    """The threads a fresh registration's independent parts run on (the folds, and in
+    ``pipeline`` the trimmed fit beside the multi-start search and the deformable fit beside the
+    folds): ``threads.task_threads()``, or one within ``sequential_folds``."""
+    return 1 if _sequential_folds else task_threads()
 
 
 def paired_gain(blocks: list[Block]) -> tuple[float, float]:

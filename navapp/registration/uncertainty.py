@@ -278,10 +278,19 @@ def point_sigma(G, cov=None, factor=None) -> np.ndarray:
 
 
 def node_positions(model: RegistrationModel, beta) -> np.ndarray:
-    """x(β) of eq. 8 at every mesh node (M, 3), model frame."""
+    """x(β) of eq. 8 at every mesh node (M, 3), model frame.
+
+    J_u α on one BLAS thread: the product (3M × 3k, 60 MB at 18.5k nodes) is large enough for
+    OpenBLAS to wake its second thread, which then spins for ~0.1 s after it (the library's
+    thread timeout) on the core that the next registration's second thread needs: a fresh
+    registration right after transforming points (a study's TRE, the viewer's display) ran its
+    first stage with a core short (docs/decisions/speed.md, "The fresh registration's
+    independent parts side by side"). ``pipeline.deform_points`` does the same."""
     beta = np.asarray(beta, float)
     n = len(beta) - 6
-    local = model.basis.nodes - model.centroid + (model.basis.Ju @ beta[:n]).reshape(-1, 3)
+    with limit_threads(1):
+        u = (model.basis.Ju @ beta[:n]).reshape(-1, 3)
+    local = model.basis.nodes - model.centroid + u
     return apply_rigid(rotation(beta[n + 3:]), beta[n:n + 3], local) + model.centroid
 
 
