@@ -609,7 +609,7 @@ def _posed_surface(forces: SurfaceForces, us: np.ndarray, q: np.ndarray | None, 
 
 
 def forces_pose_evidence(forces: SurfaceForces, pf: "PointForces", fit: "WeightFit", pose: PoseTerm,
-                  nodes: np.ndarray) -> PoseEvidence:
+                         nodes: np.ndarray) -> PoseEvidence:
     """Is the forces' fitted pose (``fit.q``, ``fit_weights`` with ``pose``) told apart from the
     given pose (q = ``pose.centre``)? The declared rigid stage's criterion
     (``uncertainty.PoseEvidence``; docs/decisions/registration.md, "A declared rigid move judged
@@ -741,8 +741,8 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
                          free_mm=free_mm)
     # the force answer at its λ is kept whichever is shown: a study compares the three
     o = replace(options, energy_weight=best)
-    kept = pose is not None and evidence[best].kept_given
-    wf = forces.fit_weights(pf, best, None, o, pose, held_q=pose.centre if kept and pose is not None else None)
+    held = pose.centre if pose is not None and evidence[best].kept_given else None
+    wf = forces.fit_weights(pf, best, None, o, pose, held_q=held)
     u = forces.field(pf, wf)
     choice.pose, choice.pose_evidence = wf.q, evidence.get(best)
     f_free = pf.D[wf.index].T @ wf.w
