@@ -38,7 +38,10 @@ of eq. 8, fitted with the weights under the prior's term (``PoseTerm``), as the 
 carries its τ, θ: with the supports held, a tracker offset is no deformation the organ can make
 cheaply, so the energy and the supports tell it from the dent. In the held-out choice the pose
 is the fit to every block (as no deformation's is the rigid stage's); only the forces are
-refitted per fold.
+refitted per fold. That pose is kept only where its posterior tells it from the given pose
+(``forces_pose_evidence``: the declared rigid stage's criterion, ``uncertainty.PoseEvidence``);
+otherwise the forces are fitted at the given pose — a pose the prior lets slide takes up what
+forces held stiff by λ leave of a dent, and moves the whole organ for it.
 """
 
 import time
@@ -62,6 +65,7 @@ from .prior import PosePrior
 from .rigid import beta_pose
 from .rotation import rotation, rotation_derivatives
 from .support import SupportOptions, blocks_of, supports_not_borne_out
+from .uncertainty import PoseEvidence, organ_nodes, point_sigma
 
 MAX_SITES = 150
 """Force sites at most (``SurfaceForces.responses``): one solve each, and with SuperLU a solve of
@@ -536,6 +540,9 @@ class ForceChoice:
     # the forces' rigid part (τ mm, θ rad) of eq. 8, fitted with them under the declared pose's
     # prior (``PoseTerm``); None: they deform from the rigid stage's pose
     pose: np.ndarray | None = None
+    # that pose against the given one by the posterior (``forces_pose_evidence``): not told apart, the
+    # forces are fitted at the given pose (``pose`` is then its centre)
+    pose_evidence: PoseEvidence | None = None
 
     @property
     def shown_mm(self) -> float:
@@ -579,6 +586,7 @@ class ForceChoice:
                 "pose_fitted": None if self.pose is None else
                 {"translation_mm": round(float(np.linalg.norm(self.pose[:3])), 3),
                  "rotation_deg": round(float(np.degrees(np.linalg.norm(self.pose[3:]))), 3)},
+                "pose_evidence": None if self.pose_evidence is None else self.pose_evidence.as_dict(),
                 "supports_contradicted": self.supports_contradicted,
                 "energy_weight": self.energy_weight, "seconds": round(self.seconds, 2), "solves": self.solves}
 
@@ -598,6 +606,46 @@ def _posed_surface(forces: SurfaceForces, us: np.ndarray, q: np.ndarray | None, 
         return us
     x = forces.nodes[forces.all_surface]
     return (beta_pose(q, pose.centroid).apply(x + us.reshape(-1, 3)) - x).ravel()
+
+
+def forces_pose_evidence(forces: SurfaceForces, pf: "PointForces", fit: "WeightFit", pose: PoseTerm,
+                         nodes: np.ndarray) -> PoseEvidence:
+    """Is the forces' fitted pose (``fit.q``, ``fit_weights`` with ``pose``) told apart from the
+    given pose (q = ``pose.centre``)? The declared rigid stage's criterion
+    (``uncertainty.PoseEvidence``; docs/decisions/registration.md, "A declared rigid move judged
+    at the scale of the misfit it leaves") read for the forces' fit: ``moved_mm`` the mean over
+    ``nodes`` (``organ_nodes``) of |T_q x − T_c x|; σ_pose = sqrt(tr(G Σ_q Gᵀ)) there, Σ_q the
+    posterior covariance of q with the forces held (as ``pose_covariance`` holds α),
+
+        Σ_q = (J_qᵀ J_q / (N s²) + Σ_P⁻¹)⁻¹,
+
+    J_q (N, 6) the distances' pose Jacobian at the fit's end (``PoseTerm.jacobian``), Σ_P the
+    declared prior's, s = σ_F (the fit's settled scale, ``PoseTerm.weight``: Φ's pose term is
+    LIBR's Ω_P read for one feature) and, for ``misfit_sigma_mm``, s = the RMS the forces leave
+    (floored at σ_F). Within the clinical goal a move within the larger σ is not told from the
+    misfit: a stiff fit (large λ) leaves part of a dent, and the pose, free within its prior,
+    takes it up by moving the whole organ (tooldraw3_1-c: 1.3 mm against σ 2.8 mm, TRE 1.52 mm
+    against 0.94 at the given pose; docs/decisions/local-loads.md, session 41)."""
+    assert fit.q is not None
+    q, P = fit.q, pf.points
+    Pm = pose.to_model(P, q)[0]
+    d, A, nrm = forces.distances(Pm, pf.Xs[:, fit.index] @ fit.w)
+    Jq = pose.jacobian(Pm, d, nrm, q)
+    x = forces.nodes[nodes] - pose.centroid
+    dR = rotation_derivatives(np.zeros(3))
+    G = np.concatenate([np.broadcast_to(np.eye(3), (len(x), 3, 3)),
+                        np.stack([x @ dR[j].T for j in range(3)], axis=2)], axis=2)  # ∂(T_q x)/∂q at q = 0
+    moved = np.linalg.norm(beta_pose(q, pose.centroid).apply(forces.nodes[nodes])
+                           - beta_pose(pose.centre, pose.centroid).apply(forces.nodes[nodes]), axis=1)
+    sf = float(np.sqrt(pose.weight))
+    rms = float(np.sqrt(np.mean(d ** 2))) if len(d) else 0.0
+
+    def sigma(s: float) -> float:
+        cov = np.linalg.inv(Jq.T @ Jq / (len(P) * s ** 2) + np.diag(1.0 / pose.sd ** 2))
+        return float(point_sigma(G, cov=cov).mean())
+
+    prior = float(point_sigma(G, cov=np.diag(pose.sd ** 2)).mean())
+    return PoseEvidence(float(moved.mean()), sigma(sf), prior, misfit_sigma_mm=sigma(max(sf, rms)))
 
 
 def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, local: dict,
@@ -623,8 +671,10 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
     (``ForceChoice.supports_warning``).
 
     ``pose``: the declared pose's prior (``PoseTerm``): the forces' rigid part is fitted with
-    them, in every fold and in the answer (``ForceChoice.pose``), as the basis's fits carry
-    their own τ, θ under the same prior."""
+    them to every block at each λ, as the basis's fits carry their own τ, θ under the same
+    prior, and kept where its posterior tells it from the given pose (``forces_pose_evidence``), else
+    held at the given pose; held so in every fold and in the answer (``ForceChoice.pose``,
+    ``ForceChoice.pose_evidence``)."""
     t0, s0 = time.perf_counter(), forces.solves
     names = [k for k in local if k in LIVER_SURFACE and len(local[k])]
     points = surface_points(local)
@@ -663,11 +713,18 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
         if free is not None:
             free_mm = score(lambda b, h, t: basis_fold(b, h, t, free))
     forces_blocks = {}
+    evidence: dict[float, PoseEvidence] = {}
+    organ = organ_nodes(model) if model is not None else np.arange(forces.M)
     for lam in weights:
         o = replace(options, energy_weight=lam)
         # the pose, where it is fitted with the forces, from every block, as no deformation's is
-        # (the rigid stage's); only the forces are refitted per fold
-        q = None if pose is None else forces.fit_weights(pf, lam, None, o, pose).q
+        # (the rigid stage's); only the forces are refitted per fold. A pose the posterior does
+        # not tell from the given one is the given one (``forces_pose_evidence``)
+        q = None
+        if pose is not None:
+            fitted = forces.fit_weights(pf, lam, None, o, pose)
+            evidence[lam] = forces_pose_evidence(forces, pf, fitted, pose, organ)
+            q = pose.centre if evidence[lam].kept_given else fitted.q
 
         def force_fold(b, held, train, lam=lam, o=o, q=q):
             fw = forces.fit_weights(pf, lam, train, o, pose, held_q=q)
@@ -684,9 +741,10 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
                          free_mm=free_mm)
     # the force answer at its λ is kept whichever is shown: a study compares the three
     o = replace(options, energy_weight=best)
-    wf = forces.fit_weights(pf, best, None, o, pose)
+    held = pose.centre if pose is not None and evidence[best].kept_given else None
+    wf = forces.fit_weights(pf, best, None, o, pose, held_q=held)
     u = forces.field(pf, wf)
-    choice.pose = wf.q
+    choice.pose, choice.pose_evidence = wf.q, evidence.get(best)
     f_free = pf.D[wf.index].T @ wf.w
     fit = ForceFit(u, f_free[forces._surface_rows].reshape(-1, 3), wf.rms_mm,
                    0.5 * float(f_free @ u.ravel()[forces.free]) / forces.volume, 0, 0.0, wf.iterations, wf.phi,
