@@ -29,10 +29,10 @@ from navapp import progress
 from navapp.anatomy.caseio import read_case
 from navapp.defaults import EDGE_MM, N_PLANES, K
 from navapp.evaluation.table2 import scenarios
+from navapp.fitwarning import FitWarning
 from navapp.geometry.interpolation import interpolation_matrix
 from navapp.geometry.tre import mean_tre
 from navapp.registration.pipeline import _settings as settings
-from navapp.fitwarning import FitWarning
 from navapp.registration.pipeline import prepare, register
 from navapp.registration.support import weigh_correction
 from navapp.simulation.levels import study_data

@@ -24,8 +24,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import free_port
-from test_app_browser import (ARGS, BUDGET_S, CHROMIUM, LOGS, VIEW, Deadline, playwright, server_log, us_frame, wait_text,
-                              wait_until)
+from test_app_browser import (
+    ARGS,
+    BUDGET_S,
+    CHROMIUM,
+    LOGS,
+    VIEW,
+    Deadline,
+    playwright,
+    server_log,
+    us_frame,
+    wait_text,
+    wait_until,
+)
 
 EDGE, K = 6.0, 20  # as the other browser tests: a short cold start on 2 cores
 
