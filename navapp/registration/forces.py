@@ -65,7 +65,7 @@ from .prior import PosePrior
 from .rigid import beta_pose
 from .rotation import rotation, rotation_derivatives
 from .support import SupportOptions, blocks_of, supports_not_borne_out
-from .uncertainty import PoseEvidence, organ_nodes, point_sigma
+from .uncertainty import PoseEvidence, organ_nodes, point_sigma, pose_columns
 
 MAX_SITES = 150
 """Force sites at most (``SurfaceForces.responses``): one solve each, and with SuperLU a solve of
@@ -631,10 +631,7 @@ def forces_pose_evidence(forces: SurfaceForces, pf: "PointForces", fit: "WeightF
     Pm = pose.to_model(P, q)[0]
     d, A, nrm = forces.distances(Pm, pf.Xs[:, fit.index] @ fit.w)
     Jq = pose.jacobian(Pm, d, nrm, q)
-    x = forces.nodes[nodes] - pose.centroid
-    dR = rotation_derivatives(np.zeros(3))
-    G = np.concatenate([np.broadcast_to(np.eye(3), (len(x), 3, 3)),
-                        np.stack([x @ dR[j].T for j in range(3)], axis=2)], axis=2)  # ∂(T_q x)/∂q at q = 0
+    G = pose_columns(forces.nodes[nodes] - pose.centroid, np.zeros(3))  # ∂(T_q x)/∂q at q = 0
     moved = np.linalg.norm(beta_pose(q, pose.centroid).apply(forces.nodes[nodes])
                            - beta_pose(pose.centre, pose.centroid).apply(forces.nodes[nodes]), axis=1)
     sf = float(np.sqrt(pose.weight))

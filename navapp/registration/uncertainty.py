@@ -239,14 +239,23 @@ def point_jacobian(model: RegistrationModel, beta, B=None, nodes=None) -> tuple[
         idx = slice(None) if nodes is None else np.asarray(nodes)
         modes, rest = basis.Ju.reshape(basis.M, 3, n)[idx], basis.nodes[idx]
     R = rotation(beta[n + 3:])
-    dR = rotation_derivatives(beta[n + 3:])
     local, x = deform(rest, (modes.reshape(-1, n) @ beta[:n]).reshape(-1, 3), beta, model.centroid)  # eq. 8
     G = np.empty((len(rest), 3, n + 6))
     G[:, :, :n] = np.einsum("ab,pbk->pak", R, modes)
-    G[:, :, n:n + 3] = np.eye(3)
-    for j in range(3):
-        G[:, :, n + 3 + j] = local @ dR[j].T
+    G[:, :, n:] = pose_columns(local, beta[n + 3:])
     return x, G
+
+
+def pose_columns(local, theta) -> np.ndarray:
+    """∂x/∂(τ, θ) (P, 3, 6) of eq. 8's rigid part x = R(θ) local + τ + c at points whose
+    positions about the centroid c (before the rotation) are ``local`` (P, 3) mm: mm per mm
+    and per radian."""
+    dR = rotation_derivatives(np.asarray(theta, float))
+    G = np.empty((len(local), 3, 6))
+    G[:, :, :3] = np.eye(3)
+    for j in range(3):
+        G[:, :, 3 + j] = local @ dR[j].T
+    return G
 
 
 def covariance_factor(info: Information, H=None) -> np.ndarray:
