@@ -200,6 +200,25 @@ def test_eq8s_product_cut_between_two_threads_is_the_whole_products_bits(two_thr
         assert len(halves) == 1
 
 
+def test_normal_equations_in_two_halves_are_the_same_bits_on_one_thread_or_two(two_threads):
+    """``libr.gram``: from ``GRAM_HALVES_MIN`` rows JᵀWJ is two halves' rank-k updates summed,
+    whether the halves run side by side (a live update given the second core) or in turn, so
+    the choice of ``live.SecondCore`` never changes a fit; it is JᵀJ to rounding and symmetric."""
+    import navapp.threads as threads
+    from navapp.registration.libr import GRAM_HALVES_MIN, gram
+
+    rng = np.random.default_rng(61)
+    with threads.limit_threads(1):
+        for rows in (GRAM_HALVES_MIN - 1, GRAM_HALVES_MIN, 2184, 4097):
+            Js = rng.normal(size=(rows, 141))
+            one = gram(Js)
+            with two_threads():
+                split = gram(Js)
+            assert np.array_equal(one, split), rows
+            assert np.array_equal(one, one.T), rows
+            np.testing.assert_allclose(one, Js.T @ Js, rtol=1e-12, atol=1e-10 * rows)
+
+
 def test_second_core_takes_the_faster_way_and_turns_with_the_load():
     """``live.SecondCore``: each way timed, then the faster one, the other tried every tenth
     update, so that a loaded machine (two threads slower) turns it to one thread and back."""

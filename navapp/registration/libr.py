@@ -30,7 +30,7 @@ import scipy.linalg as sla
 from scipy.linalg import lapack
 
 from ..defaults import LM_MAX_ITERATIONS
-from ..threads import limit_threads
+from ..threads import both, limit_threads
 from .model import RegistrationModel
 from .objective import Evaluation, Weights, add_jacobian, evaluate, keep_end
 
@@ -116,6 +116,36 @@ def _solve(A, g):
     return sla.lstsq(A, g, check_finite=False)[0]
 
 
+# Rows from which LM's JᵀWJ is summed as two halves of rows, one beside the other where a live
+# update splits its kernels (``threads.both``); below it the hand-over costs more than the half
+# saves (docs/decisions/speed.md, "JᵀWJ in two halves of rows").
+GRAM_HALVES_MIN = 1024
+
+
+def gram(Js: np.ndarray) -> np.ndarray:
+    """(√W J)ᵀ(√W J) of eq. 14's normal equations.
+
+    Parameters
+    ----------
+    Js : (m, p) float
+        √W J, rows the residuals, columns the free parameters of β.
+
+    Returns
+    -------
+    (p, p) float
+        Symmetric. From ``GRAM_HALVES_MIN`` rows, the sum of the two halves' products (each by
+        BLAS's rank-k update), whether or not they run side by side, so the bits do not depend on
+        the thread an update was given."""
+    m = len(Js)
+    if m < GRAM_HALVES_MIN:
+        return Js.T @ Js
+    cut = m // 2
+    top, bottom = np.empty((2, Js.shape[1], Js.shape[1]))
+    both(lambda: np.matmul(Js[:cut].T, Js[:cut], out=top), lambda: np.matmul(Js[cut:].T, Js[cut:], out=bottom))
+    top += bottom
+    return top
+
+
 def register_libr(model: RegistrationModel, data: dict, beta0=None, options: LMOptions | None = None,
                   callback=None, cancel: threading.Event | None = None, first: Evaluation | None = None) -> LibrResult:
     """Fit β to ``data`` (feature → (N, 3) mm, in the model's frame).
@@ -187,7 +217,7 @@ def _register(model, data, beta0, options, callback, cancel, first=None):
             Js = J * np.sqrt(ev.w)[:, None]
         else:  # made with J (``add_jacobian``): the same bits, without another pass over J
             Js = ev.Js if free.all() else ev.Js[:, free]
-        A = Js.T @ Js
+        A = gram(Js)
         g = -(J.T @ (ev.w * ev.f))
         if options.energy_curvature and options.deform:
             fE, wE = ev.f[-1], ev.w[-1]
