@@ -868,164 +868,269 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
               undeclared: RegistrationModel | None) -> Registration:
     """``register`` with the model as given (the answer held at declared supports is checked
     against the free-floating basis, ``Registration.held``, and not replaced here)."""
-    if beta0 is not None and len(beta0) != model.basis.Ju.shape[1] + 6:
-        # a warm start from a fit whose model carried local modes: its β has their weights too
-        raise InputError(f"beta0 has {len(beta0)} entries; this model's state has {model.basis.Ju.shape[1] + 6} "
-                         "(a registration with local modes: pass its own reg.model)")
-    if surface_forces and model.basis.settings.supports is None:
-        raise InputError("surface forces need declared supports: prepare the model with supports= "
-                         "(a free-floating organ has no unique displacement under a load)")
-    data = usable_data(model, data)
-    check_units(model, data)
-    notes = []
-    if rigid is None and (why := undetermined_pose(data)):
-        warnings.warn(why, CarriedWarning, stacklevel=2)
-        notes.append(FitWarning(WarningKind.FEW_POINTS, why))
-    warm = rigid is not None  # the pose is given: no choice of pose
-    fresh = beta0 is None  # a deformable fit from β = 0 (not a warm re-registration): cross-validated
-    options, init = _settings(options, init)
-    declared = pose_prior is not None and not warm and bool(data)
-    if pose_prior is not None and warm:  # about the warm start's pose (the caller's last registration)
-        options = replace(options, weights=replace(options.weights, pose_prior=pose_prior))
-    features = _rigid_features(init)
-    sec = {}
-    clock = StageClock()
-    t = time.perf_counter()
-    centred: PosePrior | None = None  # the declared prior as the rigid stage left it (its pose, its scale)
-    moved: RigidResult | None = None  # the declared rigid stage's pose relative to the given one
-    if declared:
-        assert pose_prior is not None
-        if given is None:
-            rigid, centred, starts = _declared_rigid(model, data, pose_prior, options, init, cancel)
-            moved = rigid
-        else:  # the same fit on the data moved into the given pose's frame, then composed with it
-            moved, centred, starts = _declared_rigid(model, {n: given.inverse(p) for n, p in data.items()},
-                                                     pose_prior, options, init, cancel)
-            rigid = after(given, moved)
-            for s in starts:
-                s.R0, s.t0 = given.R @ s.R0, given.R @ s.t0 + given.t
-                s.result = None if s.result is None else after(given, s.result)
-        options = replace(options, weights=replace(options.weights, pose_prior=centred))
-    elif rigid is not None or not init.multi_start:
-        starts = []
-    choosing = not warm and not declared and init.keep_given_pose and "fiducials" not in data and not notes
-    trimmed_fit: Trimmed | None = None  # the pose choice's trimmed fit, made beside the search
-    screened: list[tuple[float, RigidResult, LibrResult]] = []  # (Ω after the screening iterations, candidate, fit)
-    settled: LMOptions = options  # (closures do not see ``options``' type narrowed)
+    return _Registering(model, data, deform, options, callback, cancel, beta0, rigid, init, starts, pose_prior,
+                        given, surface_forces, undeclared).run()
 
-    def screen(candidates: list[RigidResult], starts: list[Start]) -> RigidResult:
+
+class _Registering:
+    """One registration of ``_register``, stage by stage. Each stage reads the state the ones
+    before it left and updates it; ``run`` calls them in order:
+
+    - ``rigid_stage``: the pose — the declared rigid fit, or the multi-start search, the
+      screening of its basins and the undeclared pose choice;
+    - ``deformable_stage``: LIBR from that pose (and, on two cores, the cross-validation's folds
+      beside it), a poor fit's other basins, the local modes;
+    - ``support_stage``: the cross-validation of the deformation (``Support``);
+    - ``declared_answer``: with a declared pose and no supported deformation, the rigid answer
+      (``PoseEvidence``);
+    - ``given_pose_again``: from ICP's pose, an answer in doubt asked whether the given pose
+      held fits as well;
+    - then the answer's checks: the surface forces or the declared supports against the free
+      basis, the organ's predicted error, the coverage line.
+    """
+
+    def __init__(self, model: RegistrationModel, data: dict, deform, options: LMOptions | None, callback, cancel,
+                 beta0, rigid: RigidResult | None, init: RobustOptions | None, starts: list[Start] | None,
+                 pose_prior: PosePrior | None, given: RigidResult | None, surface_forces: bool,
+                 undeclared: RegistrationModel | None):
+        if beta0 is not None and len(beta0) != model.basis.Ju.shape[1] + 6:
+            # a warm start from a fit whose model carried local modes: its β has their weights too
+            raise InputError(f"beta0 has {len(beta0)} entries; this model's state has "
+                             f"{model.basis.Ju.shape[1] + 6} (a registration with local modes: pass its own reg.model)")
+        if surface_forces and model.basis.settings.supports is None:
+            raise InputError("surface forces need declared supports: prepare the model with supports= "
+                             "(a free-floating organ has no unique displacement under a load)")
+        data = usable_data(model, data)
+        check_units(model, data)
+        self.model, self.data, self.deform, self.callback, self.cancel = model, data, deform, callback, cancel
+        self.beta0, self.given, self.surface_forces, self.undeclared = beta0, given, surface_forces, undeclared
+        self.notes: list[FitWarning] = []
+        if rigid is None and (why := undetermined_pose(data)):
+            warnings.warn(why, CarriedWarning, stacklevel=3)
+            self.notes.append(FitWarning(WarningKind.FEW_POINTS, why))
+        self.warm = rigid is not None  # the pose is given: no choice of pose
+        self.fresh = beta0 is None  # a deformable fit from β = 0 (not a warm re-registration): cross-validated
+        options, self.init = _settings(options, init)
+        self.declared = pose_prior is not None and not self.warm and bool(data)
+        if pose_prior is not None and self.warm:  # about the warm start's pose (the caller's last registration)
+            options = replace(options, weights=replace(options.weights, pose_prior=pose_prior))
+        self.options: LMOptions = options
+        self.pose_prior = pose_prior
+        self.rigid: RigidResult | None = rigid
+        self.starts: list[Start] | None = starts
+        self.sec: dict[str, float] = {}
+        self.clock = StageClock()
+        self.centred: PosePrior | None = None  # the declared prior as the rigid stage left it (its pose, its scale)
+        self.moved: RigidResult | None = None  # the declared rigid stage's pose relative to the given one
+        self.trimmed_fit: Trimmed | None = None  # the pose choice's trimmed fit, made beside the search
+        self.screened: list[tuple[float, RigidResult, LibrResult]] = []  # (Ω after screening, candidate, fit)
+        self.choice: PoseChoice | None = None
+        self.determinacy: Determinacy | None = None
+        self.local: dict = {}
+        self.result: LibrResult | None = None
+        self.quality: FitQuality | None = None
+        self.local_modes: LocalModes | None = None
+        self.base_model: RegistrationModel | None = None  # today's model, where local modes extended it
+        self.folds_support: Support | None = None  # the local-mode step's cross-validation of the answer's basis
+        # the error estimate made beside the folds, and what it read (model, rigid, fit, data, weights)
+        self.ahead: list[tuple[tuple, OrganError]] = []
+        self.early: Support | None = None  # the cross-validation made beside the deformable fit, of ``early_local``
+        self.early_local: dict | None = None
+        self.beside_s = 0.0  # seconds of that lap beyond the fit's own (counted as the support's)
+        self.support: Support | None = None
+        self.evidence: PoseEvidence | None = None
+
+    def run(self) -> Registration:
+        self.rigid_stage()
+        if self.deform:
+            self.deformable_stage()
+        self.support_stage()
+        self.declared_answer()
+        if self.choice is not None:
+            self.choice = with_turn(self.choice, self._rigid)  # ICP's pose is final here
+        self.given_pose_again()
+        cancel, result = self.cancel, self.result
+        if cancel is not None and cancel.is_set() and result is not None and result.stop_reason != "cancelled":
+            # asked to stop after LM had converged, during the cross-validation or the given-pose fit: the
+            # checks were cut short, so the answer is unfinished — cancelled, as one stopped mid-fit (the
+            # viewer had told the surgeon the previous result is kept, and then showed this one)
+            self.result = replace(result, stop_reason="cancelled")
+            self.support = None
+        reg = Registration(self.model, self._rigid, self.result, self.local, self.sec, self._starts, self.quality,
+                           self.choice, self.determinacy, self.support, self.notes, local_modes=self.local_modes,
+                           pose_prior=self.options.weights.pose_prior, pose_evidence=self.evidence)
+        self.answer_checks(reg)
+        self.organ(reg)
+        # last, so that it steers nothing above (a note before the pose choice would skip it): too
+        # little of the liver covered is said by every caller — the CLI and result.json as the viewer.
+        # Not where a declared pose's posterior already says how far the pose may be off (the rigid
+        # answer's ``PoseEvidence``, the deformable answer's ``OrganError.pose_mm``, each against the
+        # clinical goal): the coverage rule (10 % of the surface) stands for a pose the data must find
+        # alone, and said twice it also hid the organ's own line (docs/decisions/registration.md,
+        # "issue 46, session 35")
+        if not (self.declared and (reg.pose_evidence is not None or reg.organ is not None)):
+            note_coverage(reg)
+        self.clock.mark("coverage")
+        reg.stages = self.clock.times
+        return reg
+
+    @property
+    def _rigid(self) -> RigidResult:
+        assert self.rigid is not None  # set by ``rigid_stage``
+        return self.rigid
+
+    @property
+    def _starts(self) -> list[Start]:
+        assert self.starts is not None  # a list after ``rigid_stage``
+        return self.starts
+
+    def _cancelled(self) -> bool:
+        return self.cancel is not None and self.cancel.is_set()
+
+    # --- the pose ----------------------------------------------------------------------------
+
+    def rigid_stage(self) -> None:
+        """The pose the deformable fit starts from (``rigid``), with its starts, the undeclared
+        pose choice (``choice``) and how far the data determine the pose (``determinacy``)."""
+        model, data, options, init = self.model, self.data, self.options, self.init
+        given, declared = self.given, self.declared
+        features = _rigid_features(init)
+        t = time.perf_counter()
+        rigid, starts = self.rigid, self.starts
+        if declared:
+            assert self.pose_prior is not None
+            if given is None:
+                rigid, self.centred, starts = _declared_rigid(model, data, self.pose_prior, options, init, self.cancel)
+                self.moved = rigid
+            else:  # the same fit on the data moved into the given pose's frame, then composed with it
+                self.moved, self.centred, starts = _declared_rigid(
+                    model, {n: given.inverse(p) for n, p in data.items()}, self.pose_prior, options, init, self.cancel)
+                rigid = after(given, self.moved)
+                for s in starts:
+                    s.R0, s.t0 = given.R @ s.R0, given.R @ s.t0 + given.t
+                    s.result = None if s.result is None else after(given, s.result)
+            options = self.options = replace(options, weights=replace(options.weights, pose_prior=self.centred))
+        elif rigid is not None or not init.multi_start:
+            starts = []
+        choosing = not self.warm and not declared and init.keep_given_pose and "fiducials" not in data and \
+            not self.notes
+        pose_ahead = rigid is None and init.multi_start and choosing and fresh_threads() > 1
+        if pose_ahead:
+            # the pose choice's trimmed fit from the given pose reads the data alone, not the search's
+            # answer: on two cores it is made beside the multi-start search and the screening, each the
+            # same computation as in turn (docs/decisions/speed.md, "The fresh registration's
+            # independent parts side by side")
+            given_starts = starts
+            both: list = in_threads(lambda i: self._searched(self._own(given_starts)) if i == 0 else
+                                    trimmed_from_given(model, data, _given()), 2)
+            starts, rigid = cast(tuple[list[Start], RigidResult], both[0])
+            self.trimmed_fit = cast(Trimmed | None, both[1])
+            self.clock.mark("rigid_search")
+        else:
+            if not declared and rigid is None and init.multi_start:
+                starts = self._own(starts)
+            self.clock.mark("declared_rigid" if declared else "multi_start")
+            assert starts is not None
+            if rigid is None:
+                if init.multi_start:
+                    starts, rigid = self._searched(starts)
+                else:
+                    rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if self.deform else 1e-4,
+                                      features=features, multi_start=False, robust=init.rigid_robust)
+            self.clock.mark("screening")
+        assert starts is not None and rigid is not None
+        if not declared:  # the declared rigid stage marked its own choice and finished its pose
+            for s in starts:
+                s.chosen = s.result is rigid
+        if starts and not declared:
+            # the chosen basin's pose is finished by today's exact point-to-point ICP: on the
+            # phantom cases LIBR went on to a lower Ω and TRE from it than from the
+            # vertex-matched point-to-plane pose (e.g. 0.48 against 0.95 mm). Starting it from
+            # the basin's pose, not the tracker's, keeps the result independent of the offset. A basin
+            # that turns the organ further than a tracker errs is finished to convergence, as the
+            # rigid-only answer is: whether the pose alone makes such a turn good is asked of it
+            # (``PoseChoice.unconfirmed_turn``), and stopped at ``TOL_BEFORE_LIBR`` it can end short
+            # along a shallow valley (hard case "90 deg" at 12 mm: 81° with 43 % of the data within
+            # 1 mm of the model, 89° and 85 % converged; docs/decisions/registration.md, "The undeclared pose choice …")
+            loose = self.deform and turn_deg(rigid) <= POSE_RULE.tracker_turn_deg
+            rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if loose else 1e-4,
+                              start=rigid, features=features, robust=init.rigid_robust)
+        self.clock.mark("icp")
+        if choosing:
+            choice = choose_pose(model, data, _given(), rigid, trimmed=self.trimmed_fit) if pose_ahead else \
+                choose_pose(model, data, _given(), rigid)
+            if choice.kept:
+                trimmed = choice.local
+                rigid = trimmed if choice.source is PoseSource.LOCAL and trimmed is not None else \
+                    _given(rms_on_model(model, data, _given()))
+                for s in starts:
+                    s.chosen = False
+            self.choice = choice
+        if rigid.kept and options.weights.pose_prior is None:
+            self.options = replace(options, pose=False)
+        # with a declared pose the prior fixes what the data leave free: no sliding direction to report
+        self.clock.mark("pose_choice")
+        self.determinacy = None if declared else pose_determinacy(model, data, rigid)
+        self.clock.mark("determinacy")
+        self.sec["rigid"] = time.perf_counter() - t
+        self.rigid, self.starts = rigid, starts
+        self.local = {name: rigid.inverse(p) for name, p in data.items()}
+
+    def _screen(self, candidates: list[RigidResult], starts: list[Start]) -> RigidResult:
         """The candidate poses' screening (into ``screened``): the pose chosen."""
+        init, data = self.init, self.data
         if not (len(candidates) > 1 and init.screen_iterations > 0 and data):
             return candidates[0]
         # which basin: the LIBR objective after a few iterations, not the rigid RMS alone —
         # a pose that leaves the data a few mm off may be the one the deformation explains
-        quick = replace(settled, max_iterations=init.screen_iterations)
+        quick = replace(self.options, max_iterations=init.screen_iterations)
         # independent fits: on both cores, each the same as alone, in the candidates' order
         # (docs/decisions/speed.md, "The folds on both cores")
-        quick_fits = in_threads(lambda i: register_libr(model, {n: candidates[i].inverse(p) for n, p in data.items()},
-                                                        None, quick, None, cancel), len(candidates))
-        screened.extend((res.omega, cand, res) for cand, res in zip(candidates, quick_fits, strict=True))
-        screened.sort(key=lambda x: x[0])
+        quick_fits = in_threads(lambda i: register_libr(self.model, {n: candidates[i].inverse(p)
+                                                                     for n, p in data.items()},
+                                                        None, quick, None, self.cancel), len(candidates))
+        self.screened.extend((res.omega, cand, res) for cand, res in zip(candidates, quick_fits, strict=True))
+        self.screened.sort(key=lambda x: x[0])
         for s in starts:
-            s.omega = next((o for o, c, _ in screened if c is s.result), None)
-        return screened[0][1]
+            s.omega = next((o for o, c, _ in self.screened if c is s.result), None)
+        return self.screened[0][1]
 
-    def searched(starts: list[Start]) -> tuple[list[Start], RigidResult]:
+    def _searched(self, starts: list[Start]) -> tuple[list[Start], RigidResult]:
         """The multi-start ICP's starts, and the best of its basins' poses after the screening."""
-        return starts, screen([s.fitted for s in basin_representatives(starts)[:init.max_candidates]], starts)
+        return starts, self._screen([s.fitted for s in basin_representatives(starts)[:self.init.max_candidates]],
+                                    starts)
 
-    def own(given_starts: list[Start] | None) -> list[Start]:
+    def _own(self, given_starts: list[Start] | None) -> list[Start]:
         """The multi-start ICP, or a copy of the caller's (this registration marks its own omega, chosen)."""
-        return _multi_start(model, data, settled, init) if given_starts is None else [replace(s) for s in given_starts]
+        if given_starts is None:
+            return _multi_start(self.model, self.data, self.options, self.init)
+        return [replace(s) for s in given_starts]
 
-    pose_ahead = rigid is None and init.multi_start and choosing and fresh_threads() > 1
-    if pose_ahead:
-        # the pose choice's trimmed fit from the given pose reads the data alone, not the search's
-        # answer: on two cores it is made beside the multi-start search and the screening, each the
-        # same computation as in turn (docs/decisions/speed.md, "The fresh registration's
-        # independent parts side by side")
-        given_starts = starts
-        both: list = in_threads(lambda i: searched(own(given_starts)) if i == 0 else
-                                trimmed_from_given(model, data, _given()), 2)
-        starts, rigid = cast(tuple[list[Start], RigidResult], both[0])
-        trimmed_fit = cast(Trimmed | None, both[1])
-        clock.mark("rigid_search")
-    else:
-        if not declared and rigid is None and init.multi_start:
-            starts = own(starts)
-        clock.mark("declared_rigid" if declared else "multi_start")
-        assert starts is not None
-        if rigid is None:
-            if init.multi_start:
-                starts, rigid = searched(starts)
-            else:
-                rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if deform else 1e-4,
-                                  features=features, multi_start=False, robust=init.rigid_robust)
-        clock.mark("screening")
-    assert starts is not None and rigid is not None
-    if not declared:  # the declared rigid stage marked its own choice and finished its pose
-        for s in starts:
-            s.chosen = s.result is rigid
-    if starts and not declared:
-        # the chosen basin's pose is finished by today's exact point-to-point ICP: on the
-        # phantom cases LIBR went on to a lower Ω and TRE from it than from the
-        # vertex-matched point-to-plane pose (e.g. 0.48 against 0.95 mm). Starting it from
-        # the basin's pose, not the tracker's, keeps the result independent of the offset. A basin
-        # that turns the organ further than a tracker errs is finished to convergence, as the
-        # rigid-only answer is: whether the pose alone makes such a turn good is asked of it
-        # (``PoseChoice.unconfirmed_turn``), and stopped at ``TOL_BEFORE_LIBR`` it can end short
-        # along a shallow valley (hard case "90 deg" at 12 mm: 81° with 43 % of the data within
-        # 1 mm of the model, 89° and 85 % converged; docs/decisions/registration.md, "The undeclared pose choice …")
-        loose = deform and turn_deg(rigid) <= POSE_RULE.tracker_turn_deg
-        rigid = rigid_icp(model, data, options.weights, tol_mm=TOL_BEFORE_LIBR if loose else 1e-4,
-                          start=rigid, features=features, robust=init.rigid_robust)
-    clock.mark("icp")
-    choice = None
-    if not warm and not declared and init.keep_given_pose and "fiducials" not in data and not notes:
-        choice = choose_pose(model, data, _given(), rigid, trimmed=trimmed_fit) if pose_ahead else \
-            choose_pose(model, data, _given(), rigid)
-        if choice.kept:
-            trimmed = choice.local
-            rigid = trimmed if choice.source is PoseSource.LOCAL and trimmed is not None else \
-                _given(rms_on_model(model, data, _given()))
-            for s in starts:
-                s.chosen = False
-    if rigid.kept and options.weights.pose_prior is None:
-        options = replace(options, pose=False)
-    # with a declared pose the prior fixes what the data leave free: no sliding direction to report
-    clock.mark("pose_choice")
-    determinacy = None if declared else pose_determinacy(model, data, rigid)
-    clock.mark("determinacy")
-    sec["rigid"] = time.perf_counter() - t
-    local = {name: rigid.inverse(p) for name, p in data.items()}
-    result, quality = None, None
-    local_modes: LocalModes | None = None
-    base_model = None  # today's model, where local modes extended it
-    folds_support: Support | None = None  # the local-mode step's cross-validation of the answer's basis
+    # --- the deformation ---------------------------------------------------------------------
 
-    def fit(local, options, callback=None):
-        b0 = beta0
-        if init.stiff_first and b0 is None:
+    def _fit(self, local: dict, options: LMOptions, callback=None) -> LibrResult:
+        b0 = self.beta0
+        if self.init.stiff_first and b0 is None:
             # continuation is for leaving a wrong basin from the rigid pose; a warm start
             # (β0 given: the last state, e.g. after adding a plane) continues from there
-            stiff = replace(options, weights=replace(options.weights, energy=options.weights.energy * init.stiff_first))
-            b0 = register_libr(model, local, b0, stiff, None, cancel).beta
-        return register_libr(model, local, b0, options, callback, cancel)
+            stiff = replace(options, weights=replace(options.weights,
+                                                     energy=options.weights.energy * self.init.stiff_first))
+            b0 = register_libr(self.model, local, b0, stiff, None, self.cancel).beta
+        return register_libr(self.model, local, b0, options, callback, self.cancel)
 
-    # the error estimate made beside the folds, and what it read (model, rigid, fit, data, weights)
-    ahead: list[tuple[tuple, OrganError]] = []
-
-    def organ_beside(made: tuple) -> None:
+    def _organ_beside(self, made: tuple) -> None:
         reg = Registration(made[0], made[1], made[2], made[3], pose_prior=made[4].pose_prior)
-        ahead.append((made, organ_error(reg, weights=replace(made[4], pose_prior=None))))
+        self.ahead.append((made, organ_error(reg, weights=replace(made[4], pose_prior=None))))
 
-    early: Support | None = None  # the cross-validation made beside the deformable fit, of ``early_local``
-    early_local: dict | None = None
-    beside_s = 0.0  # seconds of that lap beyond the fit's own (counted as the support's)
-    if deform:
+    def deformable_stage(self) -> None:
+        """LIBR from the pose (``result``, ``quality``); on two cores the cross-validation's folds
+        begin beside it (``early``). A poor fit tries the other basins; local modes extend the
+        basis where they earn it."""
+        init, cancel, rigid = self.init, self.cancel, self._rigid
+        model, local, options = self.model, self.local, self.options
         t = time.perf_counter()
-        if fresh and init.support is not None and not declared and init.local_modes is None and \
-                fresh_threads() > 1 and not (cancel is not None and cancel.is_set()):
+        if self.fresh and init.support is not None and not self.declared and init.local_modes is None and \
+                fresh_threads() > 1 and not self._cancelled():
             # the folds read the data and the pose, not the fit of all the data: on two cores they
             # begin on the helper while this thread fits, and the error estimate from ICP's pose
             # follows the fit among them. Where the fit is then replaced (a poor fit refitted from
@@ -1037,55 +1142,64 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
                 at, data_at, weights_at = rigid, local, options.weights
 
                 def estimate() -> None:
-                    organ_beside((model, at, fitted[0], data_at, weights_at))
+                    self._organ_beside((model, at, fitted[0], data_at, weights_at))
 
                 after_fit = estimate
             lead_s: list[float] = []
 
             def lead() -> None:
                 t0 = time.perf_counter()
-                fitted.append(fit(local, options, callback))
+                fitted.append(self._fit(local, options, self.callback))
                 lead_s.append(time.perf_counter() - t0)
 
             t_batch = time.perf_counter()
-            early = check_support(model, local, options, init.support, cancel, beside=after_fit, lead=lead)
-            early_local, result = local, fitted[0]
+            self.early = check_support(model, local, options, init.support, cancel, beside=after_fit, lead=lead)
+            self.early_local, result = local, fitted[0]
             # ``seconds``: the fit's own wall time is the deformable stage's, the rest of the lap the support's
-            beside_s = time.perf_counter() - t_batch - lead_s[0]
-            clock.mark("deformable+support")
+            self.beside_s = time.perf_counter() - t_batch - lead_s[0]
+            self.clock.mark("deformable+support")
         else:
-            result = fit(local, options, callback)
-        if declared and result.stop_reason != "cancelled":
+            result = self._fit(local, options, self.callback)
+        if self.declared and result.stop_reason != "cancelled":
             result, options = _settle_scale(model, local, result, options, cancel)
+            self.options = options
         quality = assess_fit(result.features)
         stopped = result.stop_reason == "cancelled"
-        if not quality.ok and init.retry_poor_fit and len(screened) > 1 and not stopped:
+        if not quality.ok and init.retry_poor_fit and len(self.screened) > 1 and not stopped:
             # the fit stayed far off: the other basins get a full fit before anyone is told,
             # and one replaces it only if its fit is plausible (a lower Ω that is still
             # flagged is no reason to prefer it)
-            for _, cand, res in screened[1:]:
-                other_local = {n: cand.inverse(p) for n, p in data.items()}
+            for _, cand, res in self.screened[1:]:
+                other_local = {n: cand.inverse(p) for n, p in self.data.items()}
                 other = register_libr(model, other_local, res.beta, options, None, cancel)
                 other_quality = assess_fit(other.features)
                 if other_quality.ok and (quality.ok is False or other.omega < result.omega):
-                    for s in starts:
+                    assert self.starts is not None
+                    for s in self.starts:
                         s.chosen = s.result is cand
-                    rigid, local, result, quality = cand, other_local, other, other_quality
-        sec["deformable"] = time.perf_counter() - t - beside_s
-        clock.mark("deformable")
-        if fresh and init.local_modes is not None and result.stop_reason != "cancelled":
+                    self.rigid, self.local, result, quality = cand, other_local, other, other_quality
+        self.result, self.quality = result, quality
+        self.sec["deformable"] = time.perf_counter() - t - self.beside_s
+        self.clock.mark("deformable")
+        if self.fresh and init.local_modes is not None and result.stop_reason != "cancelled":
             t = time.perf_counter()
-            extended, local_modes, folds_support = choose_local_modes(
-                model, local, result.beta, options, init.support or SupportOptions(), init.local_modes, cancel)
+            extended, self.local_modes, self.folds_support = choose_local_modes(
+                model, self.local, result.beta, options, init.support or SupportOptions(), init.local_modes, cancel)
             if extended is not None:
-                base_model, model = model, extended  # ``fit`` and every check below use the extended model
-                result = fit(local, options)
-                quality = assess_fit(result.features)
-            sec["local_modes"] = time.perf_counter() - t
-            clock.mark("local_modes")
-    support = None
-    if deform and fresh and init.support is not None and result is not None and result.stop_reason != "cancelled":
+                self.base_model, self.model = model, extended  # ``_fit`` and every check below use the extended model
+                self.result = self._fit(self.local, options)
+                self.quality = assess_fit(self.result.features)
+            self.sec["local_modes"] = time.perf_counter() - t
+            self.clock.mark("local_modes")
+
+    def support_stage(self) -> None:
+        """The cross-validation of a fresh deformable answer (``support``)."""
+        init, result = self.init, self.result
+        if not (self.deform and self.fresh and init.support is not None and result is not None and
+                result.stop_reason != "cancelled"):
+            return
         t = time.perf_counter()
+        model, options, rigid, local, declared = self.model, self.options, self._rigid, self.local, self.declared
         # a declared pose within the clinical goal confines the pose: the held-out gain is judged
         # against its own standard error; declared wider, the rigid stage searches within that
         # width, and the margin that stands for a searched pose holds (docs/decisions/registration.md, "issue 46,
@@ -1095,28 +1209,37 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         confined = declared and options.weights.pose_prior is not None and model.basis.settings.supports is None \
             and declared_spread(model, options.weights) <= CLINICAL_GOAL_MM
         beside = None
-        if not declared and not rigid.kept and not ahead:
+        if not declared and not rigid.kept and not self.ahead:
             # the answer's error estimate, made among the folds' tasks on the second core: from
             # ICP's pose the deformable answer is shown whatever the folds say, and it is used
             # below only if nothing it reads was replaced (docs/decisions/speed.md, "The folds on both cores")
             made = (model, rigid, result, local, options.weights)
 
             def beside() -> None:
-                organ_beside(made)
+                self._organ_beside(made)
 
-        beside_these = early_local is not None and early_local is local  # the folds made beside the fit, of these data
-        if beside_these and early is None:
-            support = None  # too few points to split, or cut short by a cancel: as made here, nothing
+        beside_these = self.early_local is not None and self.early_local is local  # the folds made beside the fit
+        if beside_these and self.early is None:
+            self.support = None  # too few points to split, or cut short by a cancel: as made here, nothing
         else:
-            support = _cross_validate(model, local, options, init.support, cancel, rigid, result,
-                                      early if beside_these else folds_support, local_modes=base_model is not None,
-                                      declared=declared, paired=confined, beside=beside)
-        sec["support"] = time.perf_counter() - t + beside_s
-        clock.mark("support")
-    evidence: PoseEvidence | None = None
-    if declared and support is not None and not support.supported and result is not None and \
-            result.stop_reason != "cancelled" and centred is not None and options.weights.pose_prior is not None \
-            and moved is not None:
+            self.support = _cross_validate(model, local, options, init.support, self.cancel, rigid, result,
+                                           self.early if beside_these else self.folds_support,
+                                           local_modes=self.base_model is not None, declared=declared,
+                                           paired=confined, beside=beside)
+        self.sec["support"] = time.perf_counter() - t + self.beside_s
+        self.clock.mark("support")
+
+    # --- the answer with a declared pose; the given pose asked again --------------------------
+
+    def declared_answer(self) -> None:
+        """With a declared pose and no supported deformation: the rigid answer, the fitted pose or
+        the given one by whether the posterior tells them apart (``evidence``)."""
+        support, result, options = self.support, self.result, self.options
+        if not (self.declared and support is not None and not support.supported and result is not None and
+                result.stop_reason != "cancelled" and self.centred is not None and
+                options.weights.pose_prior is not None and self.moved is not None):
+            return
+        model, data = self.model, self.data
         # the rigid answer with a declared pose: the fitted pose or the given one, by whether the
         # posterior tells them apart; within the goal, at the scale of the misfit the rigid fit
         # leaves (``PoseEvidence``; docs/decisions/registration.md, "One criterion for the pose",
@@ -1126,133 +1249,137 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
         # (``_rigid_at_settled_scale``); within it, the given pose is the reference the move is
         # judged against at the misfit's scale, from the rigid stage's pose
         if declared_spread(model, options.weights) > CLINICAL_GOAL_MM:
-            refit = _rigid_at_settled_scale(model, data, options, cancel, moved, rigid, result)
+            refit = _rigid_at_settled_scale(model, data, options, self.cancel, self.moved, self._rigid, result)
             if refit is not None:
-                moved, rigid, local, centred, result = refit
-                options = replace(options, weights=replace(options.weights, pose_prior=centred))
-        evidence = pose_evidence(model, local, moved, centred, options.weights)
-        if evidence.kept_given:
+                self.moved, self.rigid, self.local, self.centred, result = refit
+                options = replace(options, weights=replace(options.weights, pose_prior=self.centred))
+        assert self.moved is not None and self.centred is not None
+        self.evidence = pose_evidence(model, self.local, self.moved, self.centred, options.weights)
+        if self.evidence.kept_given:
             # the deformable fit re-expressed about the given pose, so that its β and the data's
             # frame stay one pair (the error estimate and a warm start read them together)
-            result = replace(result, beta=_rebased(model, result.beta, moved))
-            at = given if given is not None else _given()
-            rigid = replace(at, rms_mm=rms_on_model(model, data, at), kept=True)
-            local = {n: rigid.inverse(p) for n, p in data.items()}
+            result = replace(result, beta=_rebased(model, result.beta, self.moved))
+            at = self.given if self.given is not None else _given()
+            self.rigid = replace(at, rms_mm=rms_on_model(model, data, at), kept=True)
+            self.local = {n: self.rigid.inverse(p) for n, p in data.items()}
             assert options.weights.pose_prior is not None
             options = replace(options, weights=replace(options.weights, pose_prior=replace(
                 options.weights.pose_prior, centre=(0.0,) * 6)))
-    if choice is not None:
-        choice = with_turn(choice, rigid)  # ICP's pose is final here
-    if fresh and result is not None and quality is not None and choice is not None and \
-            choice.source is PoseSource.FITTED and result.stop_reason != "cancelled" and \
-            (not quality.ok or (support is not None and not support.supported) or choice.unconfirmed_turn()):
-        # ICP's pose, and the answer from it is in doubt: does the given pose, held, fit as well?
+        self.result, self.options = result, options
+
+    def given_pose_again(self) -> None:
+        """From ICP's pose, an answer in doubt (a poor fit, an unsupported deformation, a turn no
+        tracker makes): does the given pose, held, fit as well? If so it replaces the answer."""
+        result, quality, choice, support = self.result, self.quality, self.choice, self.support
+        if not (self.fresh and result is not None and quality is not None and choice is not None and
+                choice.source is PoseSource.FITTED and result.stop_reason != "cancelled" and
+                (not quality.ok or (support is not None and not support.supported) or choice.unconfirmed_turn())):
+            return
         t = time.perf_counter()
-        held = replace(options, pose=False)
-        at_given = fit(data, held)
-        fits = PoseFits(pooled_rms(result.features), pooled_rms(at_given.features), shift_mm(rigid, data))
+        model, data, init = self.model, self.data, self.init
+        held = replace(self.options, pose=False)
+        at_given = self._fit(data, held)
+        fits = PoseFits(pooled_rms(result.features), pooled_rms(at_given.features), shift_mm(self._rigid, data))
         preferred = prefer_given(choice, fits)
         if preferred is None and at_given.stop_reason != "cancelled":
             # ICP's pose stays: the fit earned its move, and no line says its pose is in doubt (the
             # doubt that asked — a poor fit, the cross-validation — keeps its own line)
-            choice = compared(choice, fits)
+            self.choice = compared(choice, fits)
         elif preferred is not None and at_given.stop_reason != "cancelled":
-            choice, options = preferred, held
-            rigid = _given(rms_on_model(model, data, _given()))
-            local, result, quality = dict(data), at_given, assess_fit(at_given.features)
-            determinacy = pose_determinacy(model, data, rigid)
-            for s in starts:
+            self.choice, self.options = preferred, held
+            self.rigid = _given(rms_on_model(model, data, _given()))
+            self.local, self.result, self.quality = dict(data), at_given, assess_fit(at_given.features)
+            self.determinacy = pose_determinacy(model, data, self.rigid)
+            assert self.starts is not None
+            for s in self.starts:
                 s.chosen = False
             if init.support is not None:
                 refolded = None
-                if (base := base_model) is not None and (modes := init.local_modes) is not None and \
-                        local_modes is not None:
+                if (base := self.base_model) is not None and (modes := init.local_modes) is not None and \
+                        self.local_modes is not None:
                     # at the given pose the choice is made again, each fold with its own sources
-                    pair = check_support_pair(base, local, options, init.support, cancel,
+                    pair = check_support_pair(base, self.local, held, init.support, self.cancel,
                                               extend=lambda train, b: fold_model(base, train, b, modes))
                     if pair is not None:
-                        local_modes.heldout_base_mm, local_modes.heldout_extended_mm = (
+                        self.local_modes.heldout_base_mm, self.local_modes.heldout_extended_mm = (
                             pair[0].deformable_mm, pair[1].deformable_mm)
-                        local_modes.adopted = pair[1].deformable_mm < (1 - modes.min_gain) * pair[0].deformable_mm
-                        if not local_modes.adopted:  # the modes do not earn their place here: today's basis
-                            model, base_model = base, None
-                            result = fit(local, options)
-                            quality = assess_fit(result.features)
-                        refolded = pair[1] if local_modes.adopted else pair[0]
-                support = _cross_validate(model, local, options, init.support, cancel, rigid, result, refolded,
-                                          local_modes=base_model is not None)
-        sec["given_pose"] = time.perf_counter() - t
-        clock.mark("given_pose")
-    if cancel is not None and cancel.is_set() and result is not None and result.stop_reason != "cancelled":
-        # asked to stop after LM had converged, during the cross-validation or the given-pose fit: the
-        # checks were cut short, so the answer is unfinished — cancelled, as one stopped mid-fit (the
-        # viewer had told the surgeon the previous result is kept, and then showed this one)
-        result = replace(result, stop_reason="cancelled")
-        support = None
-    reg = Registration(model, rigid, result, local, sec, starts, quality, choice, determinacy, support, notes,
-                       local_modes=local_modes, pose_prior=options.weights.pose_prior, pose_evidence=evidence)
-    if surface_forces and deform and fresh and result is not None and result.stop_reason != "cancelled" and \
-            surface_points(local).shape[0] >= SupportOptions.min_points:
-        t = time.perf_counter()
-        sf = SurfaceForces(model.basis)
-        try:
-            prior = options.weights.pose_prior
-            reg.forces = choose_deformation(sf, model, local, result.beta, options, cancel=cancel,
-                                            free=undeclared if undeclared is not None else free_model(model),
-                                            pose=PoseTerm.of(prior, model.centroid) if declared and prior else None)
-        finally:
-            sf.close()
-        sec["forces"] = time.perf_counter() - t
-        clock.mark("forces")
-    elif surface_forces and deform and not fresh:
-        reg.warm_without_forces = True
-    elif model.basis.settings.supports is not None and deform and fresh and support is not None and \
-            init.support is not None and result is not None and result.stop_reason != "cancelled":
-        # declared supports are a hypothesis the data can contradict: the free-floating basis's
-        # fits to the same held-out blocks (docs/decisions/local-loads.md, "Declared supports tested by the data")
-        t = time.perf_counter()
-        unheld = undeclared if undeclared is not None else free_model(model)
-        # judged as the undeclared registration judges its own deformation (the one-standard-error
-        # rule where the declared pose confines it, else the margin): the held-out RMS is the same
-        paired = declared and options.weights.pose_prior is not None and \
-            declared_spread(unheld, options.weights) <= CLINICAL_GOAL_MM
-        free = check_support(unheld, local, options, replace(init.support, surface_se=True) if paired
-                             else init.support, cancel)
-        if free is not None and not (cancel is not None and cancel.is_set()):
-            # the held answer's gain over the free basis's fits, block by block (the same folds)
-            pairs = [Block(h.centre, h.points, f.deformable_mm, h.deformable_mm if reg.deformed else h.rigid_mm)
-                     for h, f in zip(support.blocks, free.blocks, strict=False) if np.allclose(h.centre, f.centre)]
-            gain, se = paired_gain(pairs) if pairs and len(pairs) == len(support.blocks) == len(free.blocks) \
-                else (math.nan, math.nan)
-            reg.held = HeldCheck(str(model.basis.settings.supports),
-                                 support.deformable_mm if reg.deformed else support.rigid_mm, free.deformable_mm,
-                                 held_deforms=reg.deformed, free_rigid_mm=free.rigid_mm, free_earns=free.predicts,
-                                 gain_mm=gain, gain_se_mm=se)
-        sec["supports_check"] = time.perf_counter() - t
-        clock.mark("supports_check")
-    if fresh and reg.deformed and result is not None and result.stop_reason != "cancelled":
+                        self.local_modes.adopted = pair[1].deformable_mm < (1 - modes.min_gain) * pair[0].deformable_mm
+                        if not self.local_modes.adopted:  # the modes do not earn their place here: today's basis
+                            self.model, self.base_model = base, None
+                            self.result = self._fit(self.local, held)
+                            self.quality = assess_fit(self.result.features)
+                        refolded = pair[1] if self.local_modes.adopted else pair[0]
+                self.support = _cross_validate(self.model, self.local, held, init.support, self.cancel, self.rigid,
+                                               self.result, refolded, local_modes=self.base_model is not None)
+        self.sec["given_pose"] = time.perf_counter() - t
+        self.clock.mark("given_pose")
+
+    # --- the answer's checks -----------------------------------------------------------------
+
+    def answer_checks(self, reg: Registration) -> None:
+        """With declared supports: the surface forces' choice (``reg.forces``), or the held answer
+        checked against the free-floating basis on the same held-out blocks (``reg.held``)."""
+        model, result, options, init, support = self.model, self.result, self.options, self.init, self.support
+        live = result is not None and result.stop_reason != "cancelled"
+        if self.surface_forces and self.deform and self.fresh and live and \
+                surface_points(self.local).shape[0] >= SupportOptions.min_points:
+            assert result is not None
+            t = time.perf_counter()
+            sf = SurfaceForces(model.basis)
+            try:
+                prior = options.weights.pose_prior
+                reg.forces = choose_deformation(sf, model, self.local, result.beta, options, cancel=self.cancel,
+                                                free=self.undeclared if self.undeclared is not None
+                                                else free_model(model),
+                                                pose=PoseTerm.of(prior, model.centroid) if self.declared and prior
+                                                else None)
+            finally:
+                sf.close()
+            self.sec["forces"] = time.perf_counter() - t
+            self.clock.mark("forces")
+        elif self.surface_forces and self.deform and not self.fresh:
+            reg.warm_without_forces = True
+        elif model.basis.settings.supports is not None and self.deform and self.fresh and support is not None and \
+                init.support is not None and live:
+            # declared supports are a hypothesis the data can contradict: the free-floating basis's
+            # fits to the same held-out blocks (docs/decisions/local-loads.md, "Declared supports tested by the data")
+            t = time.perf_counter()
+            unheld = self.undeclared if self.undeclared is not None else free_model(model)
+            # judged as the undeclared registration judges its own deformation (the one-standard-error
+            # rule where the declared pose confines it, else the margin): the held-out RMS is the same
+            paired = self.declared and options.weights.pose_prior is not None and \
+                declared_spread(unheld, options.weights) <= CLINICAL_GOAL_MM
+            free = check_support(unheld, self.local, options, replace(init.support, surface_se=True) if paired
+                                 else init.support, self.cancel)
+            if free is not None and not self._cancelled():
+                # the held answer's gain over the free basis's fits, block by block (the same folds)
+                pairs = [Block(h.centre, h.points, f.deformable_mm, h.deformable_mm if reg.deformed else h.rigid_mm)
+                         for h, f in zip(support.blocks, free.blocks, strict=False) if np.allclose(h.centre, f.centre)]
+                gain, se = paired_gain(pairs) if pairs and len(pairs) == len(support.blocks) == len(free.blocks) \
+                    else (math.nan, math.nan)
+                reg.held = HeldCheck(str(model.basis.settings.supports),
+                                     support.deformable_mm if reg.deformed else support.rigid_mm, free.deformable_mm,
+                                     held_deforms=reg.deformed, free_rigid_mm=free.rigid_mm, free_earns=free.predicts,
+                                     gain_mm=gain, gain_se_mm=se)
+            self.sec["supports_check"] = time.perf_counter() - t
+            self.clock.mark("supports_check")
+
+    def organ(self, reg: Registration) -> None:
+        """A fresh deformable answer's predicted error over the organ (``reg.organ``)."""
+        result = self.result
+        if not (self.fresh and reg.deformed and result is not None and result.stop_reason != "cancelled"):
+            return
         # every check above compares the answer with simpler ones on the data; this one asks
         # whether it is good enough to navigate by at all (docs/decisions/error-estimate.md, "An answer the data
         # do not determine"). Warm re-registrations skip it, as they skip the cross-validation
         # with the fit's own weights (its robust factors), as the viewer's predicted error is made
-        read = (reg.model, reg.rigid, reg.libr, reg.data_model_frame, options.weights)
-        if ahead and all(a is b for a, b in zip(ahead[0][0], read, strict=True)):
-            reg.organ = ahead[0][1]  # made beside the folds from the same answer (its seconds there)
+        read = (reg.model, reg.rigid, reg.libr, reg.data_model_frame, self.options.weights)
+        if self.ahead and all(a is b for a, b in zip(self.ahead[0][0], read, strict=True)):
+            reg.organ = self.ahead[0][1]  # made beside the folds from the same answer (its seconds there)
         else:
-            reg.organ = organ_error(reg, weights=replace(options.weights, pose_prior=None))
-        sec["organ_error"] = reg.organ.seconds
-        clock.mark("organ_error")
-    # last, so that it steers nothing above (a note before the pose choice would skip it): too
-    # little of the liver covered is said by every caller — the CLI and result.json as the viewer.
-    # Not where a declared pose's posterior already says how far the pose may be off (the rigid
-    # answer's ``PoseEvidence``, the deformable answer's ``OrganError.pose_mm``, each against the
-    # clinical goal): the coverage rule (10 % of the surface) stands for a pose the data must find
-    # alone, and said twice it also hid the organ's own line (docs/decisions/registration.md, "issue 46, session 35")
-    if not (declared and (reg.pose_evidence is not None or reg.organ is not None)):
-        note_coverage(reg)
-    clock.mark("coverage")
-    reg.stages = clock.times
-    return reg
+            reg.organ = organ_error(reg, weights=replace(self.options.weights, pose_prior=None))
+        self.sec["organ_error"] = reg.organ.seconds
+        self.clock.mark("organ_error")
 
 
 def write_outputs(case: Case, reg: Registration, out: Path, extra: dict,
