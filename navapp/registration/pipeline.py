@@ -1174,8 +1174,7 @@ class _Registering:
                 other = register_libr(model, other_local, res.beta, options, None, cancel)
                 other_quality = assess_fit(other.features)
                 if other_quality.ok and (quality.ok is False or other.omega < result.omega):
-                    assert self.starts is not None
-                    for s in self.starts:
+                    for s in self._starts:
                         s.chosen = s.result is cand
                     self.rigid, self.local, result, quality = cand, other_local, other, other_quality
         self.result, self.quality = result, quality
@@ -1290,8 +1289,7 @@ class _Registering:
             self.rigid = _given(rms_on_model(model, data, _given()))
             self.local, self.result, self.quality = dict(data), at_given, assess_fit(at_given.features)
             self.determinacy = pose_determinacy(model, data, self.rigid)
-            assert self.starts is not None
-            for s in self.starts:
+            for s in self._starts:
                 s.chosen = False
             if init.support is not None:
                 refolded = None
