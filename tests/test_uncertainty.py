@@ -385,3 +385,38 @@ def test_liver_rotation_calibrates_on_each_liver_and_judges_only_the_others():
         assert (got.registrations, got.coverage) == (want["registrations"], want["coverage"])
         assert got.registrations == 4  # two livers' S registrations: 2 each
         assert liver not in {s.liver for s in held}
+
+
+_SUM_IN_ORDER = """
+import numpy as np
+from navapp.registration.uncertainty import Information
+names = ["anterior", "portal_contours", "hepatic_contours", "falciform", "inferior_ridge", "stylus"]
+values = [1e16, 1.0, -1e16, 3.0, 0.5, 1e-3]  # float sums that depend on their order
+blocks = {n: np.full((2, 2), v) for n, v in zip(names, values)}
+info = Information(blocks, {n: 10 for n in names}, np.zeros((2, 2)), 1.0, np.zeros(2))
+extra = {"portal_centerline": (5, np.full((2, 2), 7.0))}
+print(info.matrix(extra).tobytes().hex())
+"""
+
+
+def test_the_information_matrix_is_summed_in_the_same_order_in_every_process():
+    """``Information.matrix`` sums the features' blocks in a fixed order (the blocks', then the
+    new features'): a set's order follows the process's string hashes, so the organ's predicted
+    error differed in its last bits between two runs of the same registration. Run under several
+    hash seeds, the matrix is the same bits each time, and the in-order sum."""
+    import os
+    import subprocess
+    import sys
+
+    outs = set()
+    for seed in ("0", "1", "2", "3", "11", "12"):
+        env = {**os.environ, "PYTHONHASHSEED": seed}
+        run = subprocess.run([sys.executable, "-c", _SUM_IN_ORDER], env=env, capture_output=True, text=True,
+                             check=True, timeout=300)
+        outs.add(run.stdout.strip())
+    assert len(outs) == 1
+    H = np.zeros((2, 2))
+    for v in [1e16, 1.0, -1e16, 3.0, 0.5, 1e-3]:
+        H += np.full((2, 2), v) * (10 / 10)
+    H += np.full((2, 2), 7.0) / 5
+    assert outs.pop() == H.tobytes().hex()

@@ -122,7 +122,9 @@ class Information:
         joined: every feature's rows are reweighted by N_F / (N_F + n_new)."""
         H = self.prior.copy()
         extra = extra or {}
-        for name in set(self.blocks) | set(extra):
+        # in a fixed order (the blocks', then the new features'): a set's order follows the process's
+        # string hashes, and H summed in it differed in the last bits from one run to the next
+        for name in dict.fromkeys([*self.blocks, *extra]):
             N = self.counts.get(name, 0)
             n_new, raw = extra.get(name, (0, None))
             if name in self.blocks:
