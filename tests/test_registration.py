@@ -436,3 +436,24 @@ def test_positions_compiled_are_eq8_of_the_single_precision_product(small_model)
         assert all(np.array_equal(a, b) for a, b in zip(small_model.positions(feat, rest),
                                                         deform(feat.rest, np.zeros_like(feat.rest), rest,
                                                                small_model.centroid), strict=True)), name
+
+
+def test_a_registrations_stages_are_timed_in_the_order_they_run(small_model):
+    """``Registration.stages`` (``pipeline._Registering``): the pose before the deformation, the
+    deformation before its cross-validation and the organ's error, the coverage check last; a warm
+    re-registration from the answer's state runs no cross-validation and no error estimate, and
+    its pose is the one it was given."""
+    from conftest import noisy_feature_data
+
+    data = noisy_feature_data(small_model, np.random.default_rng(42))
+    fresh = register(small_model, data)
+    names = list(fresh.stages)
+    assert names[-1] == "coverage"
+    pose_end = max(names.index(n) for n in ("icp", "pose_choice", "determinacy"))
+    deform_at = next(i for i, n in enumerate(names) if n.startswith("deformable"))
+    assert pose_end < deform_at < names.index("support")
+    if fresh.organ is not None:
+        assert names.index("organ_error") > names.index("support")
+    warm = register(small_model, data, beta0=fresh.libr.beta, rigid=fresh.rigid)
+    assert "support" not in warm.stages and "organ_error" not in warm.stages
+    np.testing.assert_array_equal(warm.rigid.R, fresh.rigid.R)
