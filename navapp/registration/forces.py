@@ -64,7 +64,7 @@ from .model import RegistrationModel, deform
 from .prior import PosePrior
 from .rigid import beta_pose
 from .rotation import rotation, rotation_derivatives
-from .support import SupportOptions, blocks_of, supports_not_borne_out
+from .support import Block, HeldCheck, Support, SupportOptions, blocks_of, paired_gain, supports_not_borne_out
 from .uncertainty import PoseEvidence, organ_nodes, point_sigma, pose_columns
 
 MAX_SITES = 150
@@ -543,6 +543,21 @@ class ForceChoice:
     # that pose against the given one by the posterior (``forces_pose_evidence``): not told apart, the
     # forces are fitted at the given pose (``pose`` is then its centre)
     pose_evidence: PoseEvidence | None = None
+    # each held-out block's RMS (mm) of no deformation, the basis's fits and the free-floating basis's
+    # fits (None where not fitted), and the blocks' centres (B, 3) mm: the paired comparisons of ``held_check``
+    none_blocks_mm: np.ndarray | None = None
+    basis_blocks_mm: np.ndarray | None = None
+    free_blocks_mm: np.ndarray | None = None
+    block_centres: np.ndarray | None = None
+
+    @property
+    def shown_blocks_mm(self) -> np.ndarray | None:
+        """Each held-out block's RMS (mm) of the answer shown."""
+        if self.answer is Answer.BASIS:
+            return self.basis_blocks_mm
+        if self.answer is Answer.FORCES:
+            return self.forces_blocks_mm.get(self.energy_weight) if self.energy_weight is not None else None
+        return self.none_blocks_mm
 
     @property
     def shown_mm(self) -> float:
@@ -566,6 +581,27 @@ class ForceChoice:
             return None
         assert self.free_mm is not None
         return supports_not_borne_out(self.free_mm, self.shown_mm, "the answer held at them is shown")
+
+    def held_check(self, supports: str, margin: float, paired: bool) -> HeldCheck | None:
+        """The answer held at the declared ``supports`` against the free-floating basis's fits on
+        the same folds, as a held basis's answer is judged (``support.HeldCheck``): the held
+        answer's gain over the free fits paired block by block, and whether the free fits earn a
+        deformation over no deformation by the undeclared registration's own rule (``margin``, or
+        the paired gain against its standard error where ``paired``; ``support.verdict_rule``).
+        No deformation at the rigid stage's pose is one surface in either model, so it is the
+        free fits' rigid answer too. None where the free basis was not fitted, or where it
+        contradicts the supports (``supports_warning`` says that, and the held answer stays)."""
+        shown = self.shown_blocks_mm
+        if self.free_mm is None or self.supports_contradicted or shown is None or self.free_blocks_mm is None \
+                or self.none_blocks_mm is None or self.block_points is None or self.block_centres is None:
+            return None
+        rows = list(zip(self.block_centres, self.block_points, self.free_blocks_mm, shown, self.none_blocks_mm,
+                        strict=True))
+        gain, se = paired_gain([Block(c, int(n), float(f), float(h)) for c, n, f, h, _ in rows])
+        free = [Block(c, int(n), float(r), float(f)) for c, n, f, _, r in rows]
+        earns = Support(self.none_mm, self.free_mm, free, margin, se_mm=paired_gain(free)[1], paired=paired).predicts
+        return HeldCheck(supports, self.shown_mm, self.free_mm, held_deforms=self.answer is not Answer.NONE,
+                         free_rigid_mm=self.none_mm, free_earns=earns, gain_mm=gain, gain_se_mm=se)
 
     @property
     def warning(self) -> str | None:
@@ -687,12 +723,13 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
         return np.array([float(np.sqrt(np.mean(forces.distances(points[held], us_of_fold(b, held, train))[0] ** 2)))
                          for b, (held, train) in enumerate(folds)])
 
-    def score(us_of_fold) -> float:
-        return float(np.average(blocks(us_of_fold), weights=counts))
+    def mean(per_block: np.ndarray) -> float:
+        return float(np.average(per_block, weights=counts))
 
     zero = np.zeros(3 * len(forces.all_surface))
-    none_mm = score(lambda b, h, t: zero)
-    basis_mm = free_mm = None
+    none_blocks = blocks(lambda b, h, t: zero)
+    none_mm = mean(none_blocks)
+    basis_mm = free_mm = basis_blocks = free_blocks = None
     if libr_options is not None:
         fold_opts = replace(libr_options, max_iterations=min(libr_options.max_iterations, SupportOptions.iterations))
         sizes = np.cumsum([0] + [len(local[k]) for k in names])
@@ -706,9 +743,11 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
             return _basis_surface(on, fitted.beta, forces.all_surface)
 
         if basis_beta is not None and model is not None:
-            basis_mm = score(lambda b, h, t: basis_fold(b, h, t, model))
+            basis_blocks = blocks(lambda b, h, t: basis_fold(b, h, t, model))
+            basis_mm = mean(basis_blocks)
         if free is not None:
-            free_mm = score(lambda b, h, t: basis_fold(b, h, t, free))
+            free_blocks = blocks(lambda b, h, t: basis_fold(b, h, t, free))
+            free_mm = mean(free_blocks)
     forces_blocks = {}
     evidence: dict[float, PoseEvidence] = {}
     organ = organ_nodes(model) if model is not None else np.arange(forces.M)
@@ -735,7 +774,9 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
         scores[Answer.BASIS] = basis_mm
     answer = min(scores, key=lambda a: (scores[a], a is not Answer.NONE))  # a tie: no deformation
     choice = ForceChoice(answer, none_mm, basis_mm, forces_mm, forces_blocks_mm=forces_blocks, block_points=counts,
-                         free_mm=free_mm)
+                         free_mm=free_mm, none_blocks_mm=none_blocks, basis_blocks_mm=basis_blocks,
+                         free_blocks_mm=free_blocks,
+                         block_centres=np.array([points[held].mean(0) for held, _ in folds]))
     # the force answer at its λ is kept whichever is shown: a study compares the three
     o = replace(options, energy_weight=best)
     held = pose.centre if pose is not None and evidence[best].kept_given else None

@@ -93,6 +93,7 @@ from .support import (
     fresh_threads,
     paired_gain,
     pooled_rms,
+    verdict_rule,
     weigh_correction,
 )
 from .uncertainty import (
@@ -1195,13 +1196,22 @@ def _register(model: RegistrationModel, data: dict, deform, options: LMOptions |
             surface_points(local).shape[0] >= SupportOptions.min_points:
         t = time.perf_counter()
         sf = SurfaceForces(model.basis)
+        unheld = undeclared if undeclared is not None else free_model(model)
         try:
             prior = options.weights.pose_prior
-            reg.forces = choose_deformation(sf, model, local, result.beta, options, cancel=cancel,
-                                            free=undeclared if undeclared is not None else free_model(model),
+            reg.forces = choose_deformation(sf, model, local, result.beta, options, cancel=cancel, free=unheld,
                                             pose=PoseTerm.of(prior, model.centroid) if declared and prior else None)
         finally:
             sf.close()
+        if init.support is not None and not (cancel is not None and cancel.is_set()):
+            # the answer held at the supports is judged against the free-floating basis's fits as a
+            # held basis's answer is (``HeldCheck``: the undeclared rule, the paired gain, and in
+            # ``register`` the change over the organ): without it an answer the supports alone made
+            # was worse than the undeclared one with no line (docs/decisions/local-loads.md,
+            # "Wrong supports with the surface forces")
+            confined = declared and prior is not None and declared_spread(unheld, options.weights) <= CLINICAL_GOAL_MM
+            margin, paired = verdict_rule(local, replace(init.support, surface_se=True) if confined else init.support)
+            reg.held = reg.forces.held_check(str(model.basis.settings.supports), margin, paired)
         sec["forces"] = time.perf_counter() - t
         clock.mark("forces")
     elif surface_forces and deform and not fresh:
