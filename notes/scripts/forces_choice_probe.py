@@ -9,7 +9,9 @@ stage's pose, the held basis's fit, the forces fitted to every block at each λ 
 the choice fitted or held it), the held-out RMS of each (blocks' point-weighted mean, and per
 block), the free-floating basis's held-out RMS, the λ the one-standard-error rule took, the
 forces' pose evidence, the answer shown and its warnings; and the undeclared registration's TRE
-on the same data (``libr-declared``)."""
+on the same data (``libr-declared``). ``forces_by_lambda``' "λ held" key: the answer's fit at the
+given pose (only the chosen λ's; a λ whose pose is not told apart is scored held, but its TRE here
+is the fitted pose's). Session 42's run, on the code before its changes: notes/forces_choice_nh_s42.jsonl."""
 
 import json
 import sys
@@ -75,7 +77,8 @@ def run_case(case_dir: Path, level: str) -> dict:
     row.update({"answer": fc.answer.value, "none": round(mean_tre(reg.rigid.apply(x0), x1), 3),
                 "basis": round(mean_tre(reg.transform(x0, beta=reg.libr.beta, B=B), x1), 3),
                 **fc.as_dict(), "block_points": [int(c) for c in fc.block_points],
-                "forces_by_lambda": {f"{k:g}{' held' if h else ''}": tre_of(u, q) for (k, h), (u, q, _) in full.items()},
+                "forces_by_lambda": {f"{k:g}{' held' if h else ''}": tre_of(u, q)
+                                     for (k, h), (u, q, _) in full.items()},
                 "rms_by_lambda": {f"{k:g}{' held' if h else ''}": round(r, 3) for (k, h), (_, _, r) in full.items()}})
     return row
 
