@@ -1,6 +1,6 @@
 """Declared supports that are wrong (issue 47): the study behind results/wrong_supports.md.
 
-    python scripts/wrong_supports.py run ROWS.jsonl CASE... [--edge MM] [--k K]
+    python scripts/wrong_supports.py run ROWS.jsonl CASE... [--edge MM] [--k K] [--forces]
     python scripts/wrong_supports.py report ROWS.jsonl [--before ROWS.jsonl] [--out MD]
 
 ``run``: per local-load case (a scene that held the organ at its supports) and level (S, S+all),
@@ -10,6 +10,11 @@ ones (ligaments → posterior, posterior → ligaments, bare_area → posterior)
 registration, appended to ROWS.jsonl (a case whose six rows are there already is not rerun):
 mean TRE over the truth targets and no correction's, answer, warnings, seconds, the answer's
 held-out RMS and the held supports' check against the free basis (``Registration.held``).
+With ``--forces`` the right and wrong statements are registered with surface forces as the
+local-load study's ``libr-forces`` is (``register(surface_forces=True)``, the free-floating model
+as the supports' check): each row says so (``forces``), which answer was shown (``answer``: none,
+basis or forces) and the choice's held-out figures (``surface_forces``); the undeclared row is the
+same registration as without. A rows file holds one kind: the other is refused.
 
 ``report``: the table of results/wrong_supports.md from those rows: per supports and level, the
 mean TRE, how many answers are more than 0.1 mm worse than the undeclared one with no line
@@ -45,9 +50,9 @@ def _done(rows_path: Path) -> dict:
     return counts
 
 
-def run(rows_path: Path, cases: list[Path], edge: float | None, k: int | None) -> int:
-    """Register every case of ``cases`` not yet in ``rows_path`` three ways at both levels;
-    the number of rows appended."""
+def run(rows_path: Path, cases: list[Path], edge: float | None, k: int | None, forces: bool = False) -> int:
+    """Register every case of ``cases`` not yet in ``rows_path`` three ways at both levels (the
+    declared statements with surface forces where ``forces``); the number of rows appended."""
     from navapp.anatomy.caseio import read_case
     from navapp.errors import NavappError
     from navapp.evaluation.loads import LOAD_LEVELS, declared_prior
@@ -63,6 +68,10 @@ def run(rows_path: Path, cases: list[Path], edge: float | None, k: int | None) -
             fail(f"{c}: not a case folder (no preop/liver.ply)")
         if not (c / "truth" / "report.json").is_file():
             fail(f"{c}: not a simulated case (no truth/report.json)")
+    kinds = {bool(r.get("forces", False)) for r in read_rows(rows_path, missing_ok=True)}
+    if kinds - {forces}:
+        fail(f"{rows_path}: its rows are registered {'with' if not forces else 'without'} surface forces; "
+             f"{'add' if not forces else 'drop'} --forces or write to another file")
     done = _done(rows_path)
     sizes = {key: v for key, v in (("edge", edge), ("k", k)) if v is not None}
     n = 0
@@ -89,7 +98,9 @@ def run(rows_path: Path, cases: list[Path], edge: float | None, k: int | None) -
                         t = time.perf_counter()
                         with warnings.catch_warnings():
                             warnings.simplefilter("ignore")
-                            reg = register(model, data, pose_prior=prior)
+                            with_forces = forces and how != "none"
+                            reg = register(model, data, pose_prior=prior, surface_forces=with_forces,
+                                           undeclared=free if with_forces else None)
                         row = {"case": c.name, "level": level, "supports": how,
                                "held": model.basis.settings.supports, "scene": scene.supports,
                                "tre": round(mean_tre(reg.transform(x0, B=B), x1), 3),
@@ -101,6 +112,12 @@ def run(rows_path: Path, cases: list[Path], edge: float | None, k: int | None) -
                                        shown_heldout=round(s.deformable_mm if reg.deformed else s.rigid_mm, 4))
                         if reg.held is not None:
                             row["held_check"] = reg.held.as_dict()
+                        if forces:
+                            row["forces"] = True
+                            row["answer"] = reg.forces.answer.value if reg.forces is not None else \
+                                ("basis" if reg.deformed else "none")
+                            if reg.forces is not None:
+                                row["surface_forces"] = reg.forces.as_dict()
                         fh.write(json.dumps(row) + "\n")
                         fh.flush()
                         n += 1
@@ -157,6 +174,7 @@ def report(rows_path: Path, before_path: Path | None, out: Path) -> str:
     if not rows or n == {0}:
         fail(f"{rows_path}: no case with all three rows at a level")
     cases = sorted({r["case"] for r in rows})
+    with_forces = any(r.get("forces") for r in rows)
     before = tally(read_rows(before_path)) if before_path else None
     made = f"python scripts/wrong_supports.py report {rows_path}" + (f" --before {before_path}" if before_path
                                                                       else "")
@@ -168,8 +186,12 @@ def report(rows_path: Path, before_path: Path | None, out: Path) -> str:
             "scene made it, registered at S and S + all on the free-floating basis (undeclared), on the basis held "
             "at the scene's own supports (right), and held at wrong ones (posterior for ligaments, ligaments for "
             "posterior, posterior for bare area). Mean TRE over the truth targets, mm; *silently worse*: more than "
-            f"{WORSE_MM:g} mm worse than the undeclared answer with no line; *warned*: answers with a line.", "",
-            "    python scripts/wrong_supports.py run ROWS.jsonl CASE…", f"    {made}", ""]
+            f"{WORSE_MM:g} mm worse than the undeclared answer with no line; *warned*: answers with a line."
+            + (" The right and wrong statements are registered with surface forces (the local-load study's "
+               "libr-forces: no deformation, the held basis's fit or the forces, whichever predicts held-out "
+               "surface data best)." if with_forces else ""), "",
+            "    python scripts/wrong_supports.py run ROWS.jsonl CASE…" + (" --forces" if with_forces else ""),
+            f"    {made}", ""]
     if before is None:
         head += ["| supports | level | mean TRE | silently worse | warned |", "|---|---|---|---|---|"]
     else:
@@ -215,6 +237,8 @@ def main(argv=None):
     r.add_argument("cases", type=Path, nargs="+", help="simulated local-load case folders (navapp/scenes/tool*)")
     r.add_argument("--edge", type=float, help="registration mesh element size, mm (default navapp's)")
     r.add_argument("--k", type=int, help="number of control points (default navapp's)")
+    r.add_argument("--forces", action="store_true",
+                   help="register the declared statements with surface forces (the study's libr-forces)")
     p = sub.add_parser("report", help="the table of results/wrong_supports.md from the rows")
     p.add_argument("rows", type=Path, help="a run's JSONL")
     p.add_argument("--before", type=Path, help="the same run on the code before a change, shown beside it")
@@ -222,7 +246,7 @@ def main(argv=None):
                    help="report written (default results/wrong_supports.md; its \"### What it shows\" is kept)")
     args = ap.parse_args(argv)
     if args.step == "run":
-        n = run(args.rows, args.cases, args.edge, args.k)
+        n = run(args.rows, args.cases, args.edge, args.k, args.forces)
         print(json.dumps({"rows_added": n, "rows": str(args.rows)}))
     else:
         report(args.rows, args.before, args.out)

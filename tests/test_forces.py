@@ -394,12 +394,14 @@ def test_declared_supports_the_data_contradict_are_warned(coarse_mesh, held_basi
 
     fc = reg.forces
     assert fc is not None and fc.free_mm is not None
-    said = [w for w in reg.warnings if "declared supports" in w.text]
+    said = [w for w in reg.warnings if "declared supports are not borne out" in w.text]
     if contradicted:
         assert err(reg) > err(undeclared)  # the premise: the wrong supports made the answer worse
-        assert fc.free_mm < fc.shown_mm and len(said) == 1
-    else:
-        assert err(reg) < err(undeclared) and fc.free_mm > fc.shown_mm and not said
+        assert fc.free_mm < fc.shown_mm and len(said) == 1 and reg.held is None
+    else:  # not contradicted; whether the answer rests on the supports is the held check's line
+        # (``test_a_force_answer_only_the_declared_supports_make_is_said``; here it does: 0.90 against
+        # 1.02 mm held out, within one paired standard error)
+        assert err(reg) < err(undeclared) and fc.free_mm > fc.shown_mm and not said and reg.held is not None
     assert fc.as_dict()["supports_contradicted"] is contradicted
     # the default free model is the same mesh's free basis from the cache
     assert np.allclose(free_model(held).basis.Ju, small_basis.Ju, rtol=0, atol=1e-12)
@@ -554,3 +556,73 @@ def test_a_pose_the_posterior_does_not_tell_from_the_given_one_is_the_given_one(
                                 weights=(1.0,), pose=term)
     assert choice.pose_evidence is not None and not choice.pose_evidence.kept_given
     assert error(_offset(held_basis.nodes + choice.u, choice.pose, centroid), truth) < 1.0
+
+
+def test_the_answer_at_the_given_pose_is_the_lower_phi_of_two_starts(forces, held_basis, coarse_mesh):
+    """A 40 mm dent of 20 mm radius seen in the given frame (declared to 1.5 mm / 1.5°), λ =
+    10⁻³: the forces' fit at the given pose from w = 0 ends at Φ 0.85 mm², where the same
+    objective started from the forces fitted with the pose reaches 0.66 (measured; on tool2-d at
+    S + all, 1.78 against 0.64, TRE 3.87 against 2.18 mm). The pose is not told from the given
+    one, so the answer is fitted there from both starts and the lower Φ is shown. The test is of
+    the fit, not of the truth: here, at λ = 10⁻³ on 0.3 mm noise, the lower Φ is the farther from
+    the true displacement (node error 1.61 against 1.09 mm); what it does to the TRE is measured
+    on the local-load cases (docs/decisions/local-loads.md, "the given pose from two starts")."""
+    from navapp.registration.forces import PoseTerm, choose_deformation
+    from navapp.registration.prior import PosePrior
+
+    _, pts = _dent(held_basis, coarse_mesh, 20.0, 40.0, noise=0.3)
+    term = PoseTerm.of(PosePrior(1.5, 1.5, feature_sd_mm=0.3), held_basis.nodes.mean(0))
+    choice = choose_deformation(forces, None, {"anterior": pts}, None, None, weights=(1e-3,), pose=term)
+    assert choice.pose_evidence is not None and choice.pose_evidence.kept_given
+    pf = forces.responses(pts)
+    from_zero = forces.fit_weights(pf, 1e-3, pose=term, held_q=term.centre)
+    warm = forces.fit_weights(pf, 1e-3, pose=term, held_q=term.centre, w0=forces.fit_weights(pf, 1e-3, pose=term).w)
+    assert warm.phi < 0.9 * from_zero.phi  # the fit from w = 0 stops short
+    assert choice.fit is not None and choice.fit.phi == pytest.approx(warm.phi, rel=1e-12)
+    assert choice.fit.phi0 == pytest.approx(from_zero.phi0, rel=1e-12)  # Φ at f = 0, whichever start won
+    assert np.allclose(choice.u, forces.field(pf, warm), rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("truth, declared, says", [
+    ("ligaments", "posterior", "without them the data earn none"),
+    ("bare_area", "posterior", "do not tell them from a free-floating organ"),
+    ("posterior", "ligaments", None)])
+def test_a_force_answer_only_the_declared_supports_make_is_said(coarse_mesh, small_basis, phantoms, truth, declared,
+                                                              says):
+    """The surface forces' answer held at declared supports is judged as the held basis's answer
+    is (``HeldCheck`` on the choice's own folds, ``ForceChoice.held_check``): the posterior
+    declared on an organ held at its ligaments under a tool (no gravity), the forces shown (node
+    error measured 1.06 mm, undeclared 2.00): the free-floating basis's fits earn no deformation
+    over no deformation on the same blocks (1.40 against 1.40 mm), so the deformation rests on the
+    declaration and a line says so. The posterior declared on one held at its bare area: the free
+    fits earn one (0.98 against 2.35 mm) but the forces' gain over them, 0.04 mm, is within its
+    paired standard error (0.51). Without the check neither had a line: on the local-load cases
+    such answers were up to 2.8 mm worse than the undeclared one, unwarned
+    (docs/decisions/local-loads.md, "Wrong supports with the surface forces"). The ligaments
+    declared on a posterior-held organ: the free basis predicts the blocks better, its own line,
+    and no second check."""
+    from navapp.mechanics.basis import BasisSettings, compute_basis
+    from navapp.registration.model import build_model
+    from navapp.registration.pipeline import register
+    from navapp.registration.prior import PosePrior
+
+    basis = compute_basis(coarse_mesh, BasisSettings(k=12, supports=declared))
+    fid = basis.nodes[:6]
+    held = build_model(basis, phantoms[0], fiducials=fid)
+    free = build_model(small_basis, phantoms[0], fiducials=fid)
+    _, pts = _supports_case(coarse_mesh, truth, 0.0)
+    reg = register(held, {"anterior": pts}, pose_prior=PosePrior(2.0, 2.0), surface_forces=True, undeclared=free)
+    said = [w for w in reg.warnings if "rests on the declared supports" in w.text]
+    fc, check = reg.forces, reg.held
+    assert fc is not None and reg.model is held
+    if says is None:
+        assert fc.supports_contradicted and check is None and not said
+        assert [w for w in reg.warnings if "not borne out" in w.text]
+        return
+    assert check is not None and reg.deformed and not check.contradicted and check.held == declared
+    assert check.held_mm == fc.shown_mm and check.free_mm == fc.free_mm and check.free_rigid_mm == fc.none_mm
+    assert check.rests_on_supports and len(said) == 1 and says in said[0].text
+    if says == "without them the data earn none":
+        assert not check.free_earns
+    else:
+        assert check.free_earns and check.undecided

@@ -168,25 +168,36 @@ planes = 4
 """
 
 
-def test_wrong_supports_runs_a_small_tool_case_and_reports_it(tmp_path, cache_root):
+@pytest.fixture(scope="module")
+def tiny_tool_case(tmp_path_factory, cache_root):
+    """TINY_TOOL_SCENE simulated: phantom 0 held at its ligaments, a tool pressed 15 mm, 10 mm truth mesh."""
+    from navapp.simulation.scene import load_scene
+    from navapp.simulation.simulate import simulate
+
+    root = tmp_path_factory.mktemp("tooltiny")
+    (root / "tooltiny.toml").write_text(TINY_TOOL_SCENE)
+    case = root / "cases" / "tooltiny"
+    simulate(load_scene(root / "tooltiny.toml"), case, cache_root)
+    return case
+
+
+def _wrong_supports_run(rows_file, case, cache_root, *more):
+    import os
+
+    env = {**os.environ, "NAVAPP_CACHE": str(cache_root)}
+    return subprocess.run([sys.executable, str(ROOT / "scripts/wrong_supports.py"), "run", str(rows_file), str(case),
+                           "--edge", "12", "--k", "12", *more], cwd=ROOT, env=env, capture_output=True, text=True)
+
+
+def test_wrong_supports_runs_a_small_tool_case_and_reports_it(tmp_path, tiny_tool_case, cache_root):
     """``run`` on one small local-load case (phantom 0 held at its ligaments, a tool pressed
     15 mm, 10 mm truth mesh; registered on a 12 mm mesh, k = 12): six rows, the undeclared,
     right (ligaments) and wrong (posterior) bases at S and S+all; run again, nothing is
     appended; ``report`` tables them."""
-    import os
-
-    from navapp.simulation.scene import load_scene
-    from navapp.simulation.simulate import simulate
-
-    (tmp_path / "tooltiny.toml").write_text(TINY_TOOL_SCENE)
-    case = tmp_path / "cases" / "tooltiny"
-    simulate(load_scene(tmp_path / "tooltiny.toml"), case, cache_root)
+    case = tiny_tool_case
     rows_file = tmp_path / "rows.jsonl"
-    env = {**os.environ, "NAVAPP_CACHE": str(cache_root)}
     for added in (6, 0):
-        out = subprocess.run([sys.executable, str(ROOT / "scripts/wrong_supports.py"), "run", str(rows_file),
-                              str(case), "--edge", "12", "--k", "12"], cwd=ROOT, env=env, capture_output=True,
-                             text=True)
+        out = _wrong_supports_run(rows_file, case, cache_root)
         assert out.returncode == 0, out.stderr[-3000:]
         assert json.loads(out.stdout)["rows_added"] == added
     rows = [json.loads(line) for line in rows_file.read_text().splitlines()]
@@ -204,3 +215,35 @@ def test_wrong_supports_runs_a_small_tool_case_and_reports_it(tmp_path, cache_ro
         warned = sum(1 for r in rows if r["supports"] == how and r["level"] == "S+all" and r["warnings"])
         assert f"| {name} | S + all | {means[how, 'S+all']:.3f} | " in text
         assert text.split(f"| {name} | S + all | ", 1)[1].split("\n", 1)[0].endswith(f" | {warned} |")
+
+
+def test_wrong_supports_runs_the_declared_statements_with_surface_forces(tmp_path, tiny_tool_case, cache_root):
+    """``run --forces`` registers the right and wrong statements as the loads study's
+    libr-forces does (``register(surface_forces=True)``): their rows say which of no
+    deformation, the held basis and the forces was shown, with the choice's held-out figures;
+    the undeclared rows are the same registration as without ``--forces``. A rows file of one
+    kind refuses the other in one line; ``report`` says the statements had the forces."""
+    plain, forced = tmp_path / "plain.jsonl", tmp_path / "forces.jsonl"
+    for rows_file, more in ((plain, ()), (forced, ("--forces",))):
+        out = _wrong_supports_run(rows_file, tiny_tool_case, cache_root, *more)
+        assert out.returncode == 0, out.stderr[-3000:]
+        assert json.loads(out.stdout)["rows_added"] == 6
+    for rows_file, more in ((plain, ("--forces",)), (forced, ())):
+        out = _wrong_supports_run(rows_file, tiny_tool_case, cache_root, *more)
+        assert out.returncode != 0 and "surface forces" in out.stderr and out.stderr.count("\n") == 1, out.stderr
+    rows = [json.loads(line) for line in forced.read_text().splitlines()]
+    before = {(r["level"], r["supports"]): r for r in map(json.loads, plain.read_text().splitlines())}
+    assert all(r["forces"] is True for r in rows)
+    for r in rows:
+        if r["supports"] == "none":
+            assert "surface_forces" not in r and r["tre"] == before[r["level"], "none"]["tre"]
+        else:
+            sf = r["surface_forces"]
+            assert r["answer"] == sf["answer"] in ("none", "basis", "forces")
+            assert set(sf["heldout_forces_mm"]) and sf["heldout_free_mm"] is not None
+    md = tmp_path / "wrong_supports.md"
+    _run(ROOT / "scripts/wrong_supports.py", "report", forced, "--out", md)
+    text = md.read_text()
+    assert "registered with surface forces" in text and "CASE… --forces" in text
+    _run(ROOT / "scripts/wrong_supports.py", "report", plain, "--out", md)
+    assert "surface forces" not in md.read_text()

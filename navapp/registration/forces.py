@@ -64,7 +64,7 @@ from .model import RegistrationModel, deform
 from .prior import PosePrior
 from .rigid import beta_pose
 from .rotation import rotation, rotation_derivatives
-from .support import SupportOptions, blocks_of, supports_not_borne_out
+from .support import Block, HeldCheck, Support, SupportOptions, blocks_of, paired_gain, supports_not_borne_out
 from .uncertainty import PoseEvidence, organ_nodes, point_sigma, pose_columns
 
 MAX_SITES = 150
@@ -354,7 +354,8 @@ class SurfaceForces:
 
     def fit_weights(self, pf: "PointForces", lam: float, train: np.ndarray | None = None,
                     options: "ForceOptions | None" = None, pose: PoseTerm | None = None,
-                    rigid_only: bool = False, held_q: np.ndarray | None = None) -> "WeightFit":
+                    rigid_only: bool = False, held_q: np.ndarray | None = None,
+                    w0: np.ndarray | None = None) -> "WeightFit":
         """The forces on the points ``train`` (indices into ``pf``; default all) minimising Φ
         (module doc) with the correspondences recomputed on the deformed surface: Levenberg–
         Marquardt on the point weights w (forces F = Dᵀw at the points' undeformed
@@ -367,14 +368,16 @@ class SurfaceForces:
         ``pose``: the rigid part q of eq. 8 is fitted with the weights under the declared
         prior's term (``PoseTerm``); the points are then in the rigid stage's frame and the
         answer's pose is that frame's followed by q (``WeightFit.q``); ``rigid_only``: q alone,
-        no force (the undeformed organ's pose under the prior: no deformation's own fold fit)."""
+        no force (the undeformed organ's pose under the prior: no deformation's own fold fit);
+        ``w0``: the weights (one per site of ``train``) the fit starts from (default w = 0;
+        ``WeightFit.phi0`` is then Φ there)."""
         with limit_threads(1):  # small dense systems: on 2 shared cores threaded BLAS only waits
             return self._fit_weights(pf, lam, train, options or ForceOptions(energy_weight=lam), pose, rigid_only,
-                                     held_q)
+                                     held_q, w0)
 
     def _fit_weights(self, pf: "PointForces", lam: float, train, o: "ForceOptions",
                      pose: PoseTerm | None = None, rigid_only: bool = False,
-                     held_q: np.ndarray | None = None) -> "WeightFit":
+                     held_q: np.ndarray | None = None, w0: np.ndarray | None = None) -> "WeightFit":
         idx = np.arange(len(pf.points)) if train is None else np.asarray(train)
         # the force sites among the training points (a held-out point's site is held out too)
         cols = np.flatnonzero(np.isin(pf.sites, idx)) if not rigid_only else np.zeros(0, int)
@@ -394,6 +397,8 @@ class SurfaceForces:
 
         # the pose starts where the rigid stage left it (q = 0), its prior centred on the given pose
         x = np.zeros(s + (6 if pose is not None else 0))
+        if w0 is not None:  # the weights' own start (one per site among ``cols``), else w = 0
+            x[:s] = w0
         cur, d, A, nrm, Pm = phi(x)
         start, nu, iterations, accepted = cur, 0.0, 0, 0
         while iterations < o.iterations:
@@ -543,6 +548,21 @@ class ForceChoice:
     # that pose against the given one by the posterior (``forces_pose_evidence``): not told apart, the
     # forces are fitted at the given pose (``pose`` is then its centre)
     pose_evidence: PoseEvidence | None = None
+    # each held-out block's RMS (mm) of no deformation, the basis's fits and the free-floating basis's
+    # fits (None where not fitted), and the blocks' centres (B, 3) mm: the paired comparisons of ``held_check``
+    none_blocks_mm: np.ndarray | None = None
+    basis_blocks_mm: np.ndarray | None = None
+    free_blocks_mm: np.ndarray | None = None
+    block_centres: np.ndarray | None = None
+
+    @property
+    def shown_blocks_mm(self) -> np.ndarray | None:
+        """Each held-out block's RMS (mm) of the answer shown."""
+        if self.answer is Answer.BASIS:
+            return self.basis_blocks_mm
+        if self.answer is Answer.FORCES:
+            return self.forces_blocks_mm.get(self.energy_weight) if self.energy_weight is not None else None
+        return self.none_blocks_mm
 
     @property
     def shown_mm(self) -> float:
@@ -566,6 +586,27 @@ class ForceChoice:
             return None
         assert self.free_mm is not None
         return supports_not_borne_out(self.free_mm, self.shown_mm, "the answer held at them is shown")
+
+    def held_check(self, supports: str, margin: float, paired: bool) -> HeldCheck | None:
+        """The answer held at the declared ``supports`` against the free-floating basis's fits on
+        the same folds, as a held basis's answer is judged (``support.HeldCheck``): the held
+        answer's gain over the free fits paired block by block, and whether the free fits earn a
+        deformation over no deformation by the undeclared registration's own rule (``margin``, or
+        the paired gain against its standard error where ``paired``; ``support.verdict_rule``).
+        No deformation at the rigid stage's pose is one surface in either model, so it is the
+        free fits' rigid answer too. None where the free basis was not fitted, or where it
+        contradicts the supports (``supports_warning`` says that, and the held answer stays)."""
+        shown = self.shown_blocks_mm
+        if self.free_mm is None or self.supports_contradicted or shown is None or self.free_blocks_mm is None \
+                or self.none_blocks_mm is None or self.block_points is None or self.block_centres is None:
+            return None
+        rows = list(zip(self.block_centres, self.block_points, self.free_blocks_mm, shown, self.none_blocks_mm,
+                        strict=True))
+        gain, se = paired_gain([Block(c, int(n), float(f), float(h)) for c, n, f, h, _ in rows])
+        free = [Block(c, int(n), float(r), float(f)) for c, n, f, _, r in rows]
+        earns = Support(self.none_mm, self.free_mm, free, margin, se_mm=paired_gain(free)[1], paired=paired).predicts
+        return HeldCheck(supports, self.shown_mm, self.free_mm, held_deforms=self.answer is not Answer.NONE,
+                         free_rigid_mm=self.none_mm, free_earns=earns, gain_mm=gain, gain_se_mm=se)
 
     @property
     def warning(self) -> str | None:
@@ -671,7 +712,9 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
     them to every block at each λ, as the basis's fits carry their own τ, θ under the same
     prior, and kept where its posterior tells it from the given pose (``forces_pose_evidence``), else
     held at the given pose; held so in every fold and in the answer (``ForceChoice.pose``,
-    ``ForceChoice.pose_evidence``)."""
+    ``ForceChoice.pose_evidence``). The answer held at the given pose is fitted from w = 0 and
+    from the forces fitted with the pose at that λ, the lower Φ kept: the same objective from two
+    starts, since from w = 0 the fit can stop on a deep dent far above the Φ those forces reach."""
     t0, s0 = time.perf_counter(), forces.solves
     names = [k for k in local if k in LIVER_SURFACE and len(local[k])]
     points = surface_points(local)
@@ -687,12 +730,13 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
         return np.array([float(np.sqrt(np.mean(forces.distances(points[held], us_of_fold(b, held, train))[0] ** 2)))
                          for b, (held, train) in enumerate(folds)])
 
-    def score(us_of_fold) -> float:
-        return float(np.average(blocks(us_of_fold), weights=counts))
+    def mean(per_block: np.ndarray) -> float:
+        return float(np.average(per_block, weights=counts))
 
     zero = np.zeros(3 * len(forces.all_surface))
-    none_mm = score(lambda b, h, t: zero)
-    basis_mm = free_mm = None
+    none_blocks = blocks(lambda b, h, t: zero)
+    none_mm = mean(none_blocks)
+    basis_mm = free_mm = basis_blocks = free_blocks = None
     if libr_options is not None:
         fold_opts = replace(libr_options, max_iterations=min(libr_options.max_iterations, SupportOptions.iterations))
         sizes = np.cumsum([0] + [len(local[k]) for k in names])
@@ -706,11 +750,14 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
             return _basis_surface(on, fitted.beta, forces.all_surface)
 
         if basis_beta is not None and model is not None:
-            basis_mm = score(lambda b, h, t: basis_fold(b, h, t, model))
+            basis_blocks = blocks(lambda b, h, t: basis_fold(b, h, t, model))
+            basis_mm = mean(basis_blocks)
         if free is not None:
-            free_mm = score(lambda b, h, t: basis_fold(b, h, t, free))
+            free_blocks = blocks(lambda b, h, t: basis_fold(b, h, t, free))
+            free_mm = mean(free_blocks)
     forces_blocks = {}
     evidence: dict[float, PoseEvidence] = {}
+    joint: dict[float, WeightFit] = {}  # each λ's forces fitted with their pose to every block
     organ = organ_nodes(model) if model is not None else np.arange(forces.M)
     for lam in weights:
         o = replace(options, energy_weight=lam)
@@ -719,7 +766,7 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
         # not tell from the given one is the given one (``forces_pose_evidence``)
         q = None
         if pose is not None:
-            fitted = forces.fit_weights(pf, lam, None, o, pose)
+            fitted = joint[lam] = forces.fit_weights(pf, lam, None, o, pose)
             evidence[lam] = forces_pose_evidence(forces, pf, fitted, pose, organ)
             q = pose.centre if evidence[lam].kept_given else fitted.q
 
@@ -735,17 +782,28 @@ def choose_deformation(forces: SurfaceForces, model: RegistrationModel | None, l
         scores[Answer.BASIS] = basis_mm
     answer = min(scores, key=lambda a: (scores[a], a is not Answer.NONE))  # a tie: no deformation
     choice = ForceChoice(answer, none_mm, basis_mm, forces_mm, forces_blocks_mm=forces_blocks, block_points=counts,
-                         free_mm=free_mm)
+                         free_mm=free_mm, none_blocks_mm=none_blocks, basis_blocks_mm=basis_blocks,
+                         free_blocks_mm=free_blocks,
+                         block_centres=np.array([points[held].mean(0) for held, _ in folds]))
     # the force answer at its λ is kept whichever is shown: a study compares the three
     o = replace(options, energy_weight=best)
     held = pose.centre if pose is not None and evidence[best].kept_given else None
-    wf = forces.fit_weights(pf, best, None, o, pose, held_q=held)
+    wf = from_zero = forces.fit_weights(pf, best, None, o, pose, held_q=held)
+    if held is not None:
+        # at the given pose the fit from w = 0 can end far above the Φ the same λ's forces reach:
+        # on tool2-d at S + all (a 45 mm neo-Hookean dent) no damped step lowered Φ after two, at
+        # 1.78 mm² (TRE 3.87 mm), where the forces fitted with the pose (0.06 mm from the given one,
+        # not told apart) stood at 0.64. Those forces are a second start of the same objective, and
+        # the lower Φ is the fit (docs/decisions/local-loads.md, "the given pose from two starts")
+        warm = forces.fit_weights(pf, best, None, o, pose, held_q=held, w0=joint[best].w)
+        if warm.phi < wf.phi:
+            wf = warm
     u = forces.field(pf, wf)
     choice.pose, choice.pose_evidence = wf.q, evidence.get(best)
     f_free = pf.D[wf.index].T @ wf.w
     fit = ForceFit(u, f_free[forces._surface_rows].reshape(-1, 3), wf.rms_mm,
                    0.5 * float(f_free @ u.ravel()[forces.free]) / forces.volume, 0, 0.0, wf.iterations, wf.phi,
-                   wf.phi0)
+                   from_zero.phi0)
     choice.energy_weight, choice.u, choice.fit = best, u, fit
     choice.seconds, choice.solves = time.perf_counter() - t0, forces.solves - s0
     return choice

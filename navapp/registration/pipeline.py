@@ -93,6 +93,7 @@ from .support import (
     fresh_threads,
     paired_gain,
     pooled_rms,
+    verdict_rule,
     weigh_correction,
 )
 from .uncertainty import (
@@ -1324,15 +1325,25 @@ class _Registering:
             assert result is not None
             t = time.perf_counter()
             sf = SurfaceForces(model.basis)
+            unheld = self.undeclared if self.undeclared is not None else free_model(model)
             try:
                 prior = options.weights.pose_prior
                 reg.forces = choose_deformation(sf, model, self.local, result.beta, options, cancel=self.cancel,
-                                                free=self.undeclared if self.undeclared is not None
-                                                else free_model(model),
-                                                pose=PoseTerm.of(prior, model.centroid) if self.declared and prior
-                                                else None)
+                                                free=unheld, pose=PoseTerm.of(prior, model.centroid)
+                                                if self.declared and prior else None)
             finally:
                 sf.close()
+            if init.support is not None and not self._cancelled():
+                # the answer held at the supports is judged against the free-floating basis's fits as a
+                # held basis's answer is (``HeldCheck``: the undeclared rule, the paired gain, and in
+                # ``register`` the change over the organ): without it an answer the supports alone made
+                # was worse than the undeclared one with no line (docs/decisions/local-loads.md,
+                # "Wrong supports with the surface forces")
+                confined = self.declared and prior is not None and \
+                    declared_spread(unheld, options.weights) <= CLINICAL_GOAL_MM
+                margin, paired = verdict_rule(self.local, replace(init.support, surface_se=True) if confined
+                                              else init.support)
+                reg.held = reg.forces.held_check(str(model.basis.settings.supports), margin, paired)
             self.sec["forces"] = time.perf_counter() - t
             self.clock.mark("forces")
         elif self.surface_forces and self.deform and not self.fresh:

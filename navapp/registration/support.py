@@ -467,9 +467,8 @@ def _folds(model, data, options, support, cancel, extend, beside=None, lead=None
         out_ext.append(Block(pts.mean(0), len(pts), r, d[1]))
     if not out or (cancel is not None and cancel.is_set()):
         return None  # cut short: folds stopped before they were fitted say nothing about the data
-    inside = any(DATA_TO_MODEL[k] not in ("liver", "fiducials", *SALIENT) for k in data)
-    margin, sec = support.margin_interior if inside else support.margin, time.perf_counter() - t0
-    paired = support.surface_se and not inside
+    margin, paired = verdict_rule(data, support)
+    sec = time.perf_counter() - t0
     # what a held-out RMS can resolve: the standard error of a mean over the held-out points at the
     # features' stated noise (the least of them), so that noise-free data on the undeformed model
     # (every block 10⁻⁹ mm either way) do not decide by rounding
@@ -533,6 +532,15 @@ def paired_gain(blocks: list[Block]) -> tuple[float, float]:
     gain = float(p @ g)
     n = len(blocks)
     return gain, float(np.sqrt(n / max(n - 1, 1) * np.sum(p ** 2 * (g - gain) ** 2)))
+
+
+def verdict_rule(data: dict, support: SupportOptions) -> tuple[float, bool]:
+    """How the cross-validation's verdict is reached on ``data`` (feature → points): the relative
+    ``margin`` (``margin_interior`` where data lie inside the organ, which rule out a wrong
+    interior behind a good surface fit), and whether the paired gain against its standard error
+    decides in its place (``SupportOptions.surface_se``, surface data alone)."""
+    inside = any(DATA_TO_MODEL[k] not in ("liver", "fiducials", *SALIENT) for k in data)
+    return (support.margin_interior if inside else support.margin), support.surface_se and not inside
 
 
 def _summary(blocks: list[Block], margin: float, seconds: float, paired: bool = False, floor: float = 0.0) -> Support:
