@@ -1339,10 +1339,7 @@ class _Registering:
                 # ``register`` the change over the organ): without it an answer the supports alone made
                 # was worse than the undeclared one with no line (docs/decisions/local-loads.md,
                 # "Wrong supports with the surface forces")
-                confined = self.declared and prior is not None and \
-                    declared_spread(unheld, options.weights) <= CLINICAL_GOAL_MM
-                margin, paired = verdict_rule(self.local, replace(init.support, surface_se=True) if confined
-                                              else init.support)
+                margin, paired = verdict_rule(self.local, self._free_rule(unheld))
                 reg.held = reg.forces.held_check(str(model.basis.settings.supports), margin, paired)
             self.sec["forces"] = time.perf_counter() - t
             self.clock.mark("forces")
@@ -1354,12 +1351,7 @@ class _Registering:
             # fits to the same held-out blocks (docs/decisions/local-loads.md, "Declared supports tested by the data")
             t = time.perf_counter()
             unheld = self.undeclared if self.undeclared is not None else free_model(model)
-            # judged as the undeclared registration judges its own deformation (the one-standard-error
-            # rule where the declared pose confines it, else the margin): the held-out RMS is the same
-            paired = self.declared and options.weights.pose_prior is not None and \
-                declared_spread(unheld, options.weights) <= CLINICAL_GOAL_MM
-            free = check_support(unheld, self.local, options, replace(init.support, surface_se=True) if paired
-                                 else init.support, self.cancel)
+            free = check_support(unheld, self.local, options, self._free_rule(unheld), self.cancel)
             if free is not None and not self._cancelled():
                 # the held answer's gain over the free basis's fits, block by block (the same folds)
                 pairs = [Block(h.centre, h.points, f.deformable_mm, h.deformable_mm if reg.deformed else h.rigid_mm)
@@ -1372,6 +1364,16 @@ class _Registering:
                                      gain_mm=gain, gain_se_mm=se)
             self.sec["supports_check"] = time.perf_counter() - t
             self.clock.mark("supports_check")
+
+    def _free_rule(self, unheld: RegistrationModel) -> SupportOptions:
+        """The cross-validation settings the free-floating basis's fits are judged by, as the
+        undeclared registration judges its own deformation: the one-standard-error rule where the
+        declared pose confines it within the clinical goal, else the margin (the held-out RMS is the
+        same either way)."""
+        assert self.init.support is not None
+        confined = self.declared and self.options.weights.pose_prior is not None and \
+            declared_spread(unheld, self.options.weights) <= CLINICAL_GOAL_MM
+        return replace(self.init.support, surface_se=True) if confined else self.init.support
 
     def organ(self, reg: Registration) -> None:
         """A fresh deformable answer's predicted error over the organ (``reg.organ``)."""
