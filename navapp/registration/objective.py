@@ -15,7 +15,6 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-import scipy.sparse as sp
 
 from ..geometry.closest import (
     closest_on_polyline,
@@ -27,6 +26,7 @@ from ..geometry.closest import (
 )
 from ..switches import Before
 from ..threads import SPLIT_MIN, kernel_threads
+from .barycentric import Barycentric
 from .model import W_ENERGY_SI, WEIGHTS_SI, RegistrationModel, deform, displacement
 from .prior import PosePrior
 from .rotation import rotation, rotation_derivatives
@@ -198,22 +198,11 @@ def _tree(feat, X):
     return vertex_tree(X)
 
 
-def _rows_matrix(weights, columns, n_columns):
-    """Sparse S (N × n_columns) with row i = Σ_j weights[i, j] e_{columns[i, j]}, built
-    straight in CSR form (every row has the same count, so no COO sort is needed)."""
-    N, m = weights.shape
-    # int32 indices where they fit, as SciPy would store them: handed int64, it scans them to
-    # see whether they fit (half the build's time; ~11 builds a live update)
-    idx = np.int32 if max(n_columns, N * m) < np.iinfo(np.int32).max else np.int64
-    return sp.csr_matrix((weights.ravel(), columns.ravel().astype(idx), np.arange(0, N * m + 1, m, dtype=idx)),
-                         shape=(N, n_columns))
-
-
 def _apply(S, X):
     """S @ X for a dense X (V, 3): compiled where Numba is (the same bits as SciPy's product)."""
     kernel = _alpha_kernel()
     if kernel is None:
-        return np.asarray(S @ X)
+        return S @ X
     out = np.empty((S.shape[0], X.shape[1]))
     kernel[2](S.indptr, S.indices, S.data, np.ascontiguousarray(X, dtype=float), out)
     return out
@@ -239,7 +228,7 @@ class Correspondence:
 
     Attributes
     ----------
-    S : scipy.sparse.csr_matrix, (N, V)
+    S : Barycentric, (N, V)
         row i: the barycentric weights of point i's closest point on the model feature's
         V points (a triangle's three, a segment's two, or the fiducial itself).
     direction : (N, 3) array or None
@@ -259,7 +248,7 @@ class Correspondence:
         the same points starts from it (``evaluate(warm=)``; speed only, the answer is exact).
     """
 
-    S: sp.csr_matrix
+    S: Barycentric
     direction: np.ndarray | None
     SBJ: np.ndarray | None = None
     S_rest: np.ndarray | None = None
@@ -302,16 +291,16 @@ def correspond(feat, X, Y, tree=None, nearest=None, start=None) -> Correspondenc
                                                tree=tree, nearest=nearest)
         # the normal at the closest point: the face's inside a triangle, p/|p| on an edge or
         # vertex (``surface_normals``), which makes f the true point–surface distance
-        S = _rows_matrix(bary, feat.cells[face], len(X))
+        S = Barycentric.of(bary, feat.cells[face], len(X))
         return Correspondence(S, surface_normals(Y, X, feat.cells, face, bary), face=face if hierarchy else None)
     if kind == "centerline":
         seg, t, _ = closest_on_polyline(Y, X, feat.cells, feat.table, tree=tree, nearest=nearest)
         ends = feat.cells[seg]
-        S = _rows_matrix(np.column_stack([1 - t, t]), ends, len(X))
+        S = Barycentric.of(np.column_stack([1 - t, t]), ends, len(X))
         tan = X[ends[:, 1]] - X[ends[:, 0]]
         tan /= np.maximum(np.linalg.norm(tan, axis=1, keepdims=True), 1e-300)
         return Correspondence(S, tan)
-    return Correspondence(sp.identity(N, format="csr"), None)
+    return Correspondence(Barycentric.identity(N), None)
 
 
 def _kept_points(seen: tuple, Y: np.ndarray) -> int:
@@ -337,20 +326,18 @@ def _joined(seen: tuple, kept: int, c: "Correspondence | None", made: tuple | No
     _, c0, (r0, q0, rows0, dist0) = seen
     per_point = 1 if len(r0) == len(dist0) else 3  # surfaces: one row a point; centerlines: three
     head = kept * per_point
-    S0 = c0.S
-    width = int(S0.indptr[1] - S0.indptr[0]) if S0.shape[0] else 0
-    data, cols = S0.data[:kept * width], S0.indices[:kept * width]
+    data, cols = c0.S.weights[:kept], c0.S.columns[:kept]
     direction, face = c0.direction[:kept], None if c0.face is None else c0.face[:kept]
     r, q, rows, dist = r0[:head], q0[:head], rows0[:head], dist0[:kept]
     if c is not None and made is not None:
         r1, q1, rows1 = made
-        data, cols = np.concatenate([data, c.S.data]), np.concatenate([cols, c.S.indices])
+        data, cols = np.concatenate([data, c.S.weights]), np.concatenate([cols, c.S.columns])
         direction = np.concatenate([direction, c.direction])
         face = None if face is None or c.face is None else np.concatenate([face, c.face])
         dist = np.concatenate([dist, point_distances(r1, rows1, len(r1) // per_point)])
         r, q, rows = np.concatenate([r0[:head], r1]), np.concatenate([q0[:head], q1]), \
             np.concatenate([rows0[:head], rows1 + kept])
-    S = _rows_matrix(data.reshape(-1, width), cols.reshape(-1, width), n_columns)
+    S = Barycentric.of(data, cols, n_columns)
     return Correspondence(S, direction, face=face), (r, q, rows, dist)
 
 
