@@ -167,7 +167,10 @@ class Support:
             return (f"deformation not determined by the data: the correction it makes (mean "
                     f"{self.correction_mm:.2f} mm over the organ) is under {self.z:g} × its own uncertainty "
                     f"(σ {self.sigma_mm:.2f} mm) — {shown}; add data where the organ moved")
-        by = f", not better by one standard error ({self.se_mm:.2f} mm)" if self.paired else ""
+        # the criterion it failed, said: "1.11 against 1.44 mm" alone reads as support
+        by = (f", not better by one standard error ({self.se_mm:.2f} mm)" if self.paired else
+              f", {100 * (1 - self.deformable_mm / self.rigid_mm):.0f} % better, under the {100 * self.margin:.0f} % "
+              "asked of a deformation" if self.deformable_mm < self.rigid_mm else "")
         return (f"deformation not supported by the data: fitted to part of the data it predicts the rest "
                 f"{self.deformable_mm:.2f} mm RMS against {self.rigid_mm:.2f} mm without deformation{by} — "
                 f"{shown}; add data where the organ moved")
