@@ -626,3 +626,24 @@ def test_a_force_answer_only_the_declared_supports_make_is_said(coarse_mesh, sma
         assert not check.free_earns
     else:
         assert check.free_earns and check.undecided
+
+
+def test_the_pose_fit_starts_where_it_is_told(forces, held_basis, coarse_mesh):
+    """``fit_weights(q0=)``: the joint fit of the forces and the rigid part starts at q0, so Φ at
+    the start (``WeightFit.phi0``, w = 0) is the misfit of the undeformed organ posed at q0 plus
+    the prior's term there, and no iteration leaves q at q0 (the probe of session 43: a start at
+    another pose, the undeclared answer's or the truth's, reaches the same Φ on the study's
+    offset cases; docs/decisions/local-loads.md, "the objective prefers the wrong pose")."""
+    from navapp.registration.forces import ForceOptions, PoseTerm
+    from navapp.registration.prior import PosePrior
+
+    _, pts = _dent(held_basis, coarse_mesh, 25.0, 15.0, noise=0.3)
+    term = PoseTerm.of(PosePrior(5.0, 5.0, feature_sd_mm=0.3), held_basis.nodes.mean(0))
+    pf = forces.responses(pts)
+    q0 = np.array([1.5, -2.0, 1.0, 0.02, -0.01, 0.015])
+    still = forces.fit_weights(pf, 1.0, options=ForceOptions(energy_weight=1.0, iterations=0), pose=term, q0=q0)
+    assert np.array_equal(still.q, q0)
+    d = forces.distances(term.to_model(pts, q0)[0], np.zeros(3 * len(forces.all_surface)))[0]
+    assert still.phi0 == pytest.approx(float(d @ d) / len(d) + term.value(q0), rel=1e-12)
+    moved = forces.fit_weights(pf, 1.0, pose=term, q0=q0)
+    assert moved.phi < still.phi0 and not np.array_equal(moved.q, q0)

@@ -355,7 +355,7 @@ class SurfaceForces:
     def fit_weights(self, pf: "PointForces", lam: float, train: np.ndarray | None = None,
                     options: "ForceOptions | None" = None, pose: PoseTerm | None = None,
                     rigid_only: bool = False, held_q: np.ndarray | None = None,
-                    w0: np.ndarray | None = None) -> "WeightFit":
+                    w0: np.ndarray | None = None, q0: np.ndarray | None = None) -> "WeightFit":
         """The forces on the points ``train`` (indices into ``pf``; default all) minimising Φ
         (module doc) with the correspondences recomputed on the deformed surface: Levenberg–
         Marquardt on the point weights w (forces F = Dᵀw at the points' undeformed
@@ -370,14 +370,18 @@ class SurfaceForces:
         answer's pose is that frame's followed by q (``WeightFit.q``); ``rigid_only``: q alone,
         no force (the undeformed organ's pose under the prior: no deformation's own fold fit);
         ``w0``: the weights (one per site of ``train``) the fit starts from (default w = 0;
-        ``WeightFit.phi0`` is then Φ there)."""
+        ``WeightFit.phi0`` is then Φ there); ``q0``: the rigid part's start with ``pose`` (default
+        q = 0, the rigid stage's pose): a probe of whether another pose's start reaches a lower Φ
+        (notes/scripts/forces_pose_diagnosis.py; docs/decisions/local-loads.md, "the objective
+        prefers the wrong pose")."""
         with limit_threads(1):  # small dense systems: on 2 shared cores threaded BLAS only waits
             return self._fit_weights(pf, lam, train, options or ForceOptions(energy_weight=lam), pose, rigid_only,
-                                     held_q, w0)
+                                     held_q, w0, q0)
 
     def _fit_weights(self, pf: "PointForces", lam: float, train, o: "ForceOptions",
                      pose: PoseTerm | None = None, rigid_only: bool = False,
-                     held_q: np.ndarray | None = None, w0: np.ndarray | None = None) -> "WeightFit":
+                     held_q: np.ndarray | None = None, w0: np.ndarray | None = None,
+                     q0: np.ndarray | None = None) -> "WeightFit":
         idx = np.arange(len(pf.points)) if train is None else np.asarray(train)
         # the force sites among the training points (a held-out point's site is held out too)
         cols = np.flatnonzero(np.isin(pf.sites, idx)) if not rigid_only else np.zeros(0, int)
@@ -399,6 +403,8 @@ class SurfaceForces:
         x = np.zeros(s + (6 if pose is not None else 0))
         if w0 is not None:  # the weights' own start (one per site among ``cols``), else w = 0
             x[:s] = w0
+        if q0 is not None and pose is not None:  # the pose's own start, else the rigid stage's (q = 0)
+            x[s:] = q0
         cur, d, A, nrm, Pm = phi(x)
         start, nu, iterations, accepted = cur, 0.0, 0, 0
         while iterations < o.iterations:
