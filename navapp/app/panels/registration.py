@@ -270,6 +270,9 @@ class RegistrationPanel:
 
     def _worst(self):
         worst = list(self.core.worst or [])
+        # a point removed keeps its place, marked, its button disabled (``Drawing.remove``): the list
+        # closed up under the mouse, and a double click on "Remove 1" removed the point after it too
+        gone = [self.app.drawing.gone(w) for w in worst]
         if self.core.result is None:
             self.worst_md.content = ""
         elif self.core.worst is None:
@@ -278,13 +281,15 @@ class RegistrationPanel:
         elif not worst:
             self.worst_md.content = "**Worst data points**: none beyond its noise — every point lies on the model."
         else:
-            lines = [f"{i + 1}. {w.text()}" for i, w in enumerate(worst)]
+            lines = [f"{i + 1}. " + (f"~~{w.text()}~~ — removed" if out else w.text())
+                     for i, (w, out) in enumerate(zip(worst, gone, strict=True))]
             self.worst_md.content = ("**Worst data points** (distance to the registered model; remove a wrong one, "
                                      "then register again):  \n" + "  \n".join(lines))
         for i, b in enumerate(self.btn_worst):
             b.visible = i < len(worst)
             if i < len(worst):
-                b.label = f"Remove {i + 1} ({worst[i].residual_mm:.1f} mm)"
+                b.disabled = gone[i]
+                b.label = f"{i + 1} removed" if gone[i] else f"Remove {i + 1} ({worst[i].residual_mm:.1f} mm)"
 
     def refresh(self, what: Change):
         core, live = self.core, self.app.live

@@ -68,10 +68,11 @@ class View2D:
                 cols, rows = contour_pixels(c)
                 centroid = [float(cols.mean()), float(rows.mean())]
             # the last fit's worst points drawn on this contour: a ring and the residual at the vertex
-            n = len(c.vertices)
-            flags = [{"v": w.vertex, "text": f"{w.residual_mm:.1f} mm" + (" (not used)" if w.rejected else ""),
+            # found by its pixel: the index the list was made with named the next vertex once an
+            # earlier vertex of the contour had been removed (the ring moved onto a good click)
+            flags = [{"v": v, "text": f"{w.residual_mm:.1f} mm" + (" (not used)" if w.rejected else ""),
                       "colour": WORST_POINT} for w in worst
-                     if w.origin.contour is c and w.vertex is not None and w.vertex < n]
+                     if w.origin.contour is c and w.vertex is not None and (v := w.origin.vertex()) is not None]
             out["contours"].append({"feature": c.feature, "colour": DRAWN_COLOURS.get(c.feature, "#fff"),
                                     "vertices": [list(v) for v in c.vertices], "closed": c.closed,
                                     "centroid": centroid, "flags": flags})
