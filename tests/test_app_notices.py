@@ -208,3 +208,50 @@ def test_a_clean_run_takes_down_the_red_box_of_a_warned_one():
     assert [b.title for b in shown if b.red] == [CHECK_THE_FIT]
     tell(core, clean, [], [], [])
     assert not [b for b in shown if b.red], [(b.title, b.body) for b in shown]
+
+
+def test_the_stylus_distances_go_with_the_stylus():
+    """Walking the demo in Chromium: when the sweep ended the stylus was no longer drawn, but
+    "tumour1: 87.2 mm from the stylus tip" stayed in the Stylus panel (a tab opened since
+    showed no distance at all)."""
+    from navapp.app.panels.stylus import StylusPanel
+
+    panel = StylusPanel.__new__(StylusPanel)
+    panel.btn, panel.dist = types.SimpleNamespace(label=""), types.SimpleNamespace(content="")
+    panel.app = types.SimpleNamespace(shown=types.SimpleNamespace(
+        target_distance_lines=lambda tip: ["**tumour1**: 87.2 mm from the stylus tip"]))
+    panel.show_tip(np.zeros(3))
+    assert "87.2 mm from the stylus tip" in panel.dist.content and panel.btn.label == "Stop digitising"
+    panel.show_tip(None)  # the sweep is over: the tool is gone, and its distances with it
+    assert panel.dist.content == "" and panel.btn.label == "Digitise the anterior surface"
+
+
+def test_a_tab_open_during_start_up_loses_its_progress_bar_when_ready(cache_root, tmp_path):
+    """A tab open while the server started (a reload across a restart) kept the progress bar,
+    full, under "Ready." for good: the status was sent before start-up counted as over."""
+    import threading
+    import time
+
+    from conftest import free_port, stop_app
+    from test_app_server import SCENE
+
+    from navapp.app.server import App
+    from navapp.app.state import Change
+    from navapp.simulation.scene import parse_scene
+
+    app = App(parse_scene(SCENE), port=free_port(), session_dir=tmp_path / "session", edge=12.0, k=12,
+              cache_root=cache_root)
+    view = ClientView.__new__(ClientView)
+    view.core, view.lock = app.core, threading.RLock()
+    view.status = types.SimpleNamespace(content="")
+    view.bar = types.SimpleNamespace(visible=True, animated=True, value=0.0)
+    view.refresh = lambda what: ClientView._refresh(view, what) if what is Change.STATUS else None
+    app.core.views[-1] = view  # connected before start-up
+    try:
+        assert app.start().wait(600) and app.core.failed is None
+        end = time.monotonic() + 10.0
+        while view.bar.visible and time.monotonic() < end:
+            time.sleep(0.05)
+        assert view.status.content.startswith("**Ready.") and not view.bar.visible, (view.status, view.bar)
+    finally:
+        stop_app(app)
