@@ -255,3 +255,15 @@ def test_a_tab_open_during_start_up_loses_its_progress_bar_when_ready(cache_root
         assert view.status.content.startswith("**Ready.") and not view.bar.visible, (view.status, view.bar)
     finally:
         stop_app(app)
+
+
+def test_the_data_points_are_counted_in_words():
+    """The Ultrasound panel read "Data points: anterior 853, falciform 30, portal_centerline 1,
+    portal_contour 67, ridge_left 12, ridge_right 98": the program's keys, not words."""
+    from navapp.app.palette import data_counts
+
+    data = {k: np.zeros((n, 3)) for k, n in (("ridge_left", 12), ("portal_centerline", 1), ("anterior", 1853),
+                                             ("falciform", 30), ("posterior", 0))}
+    said = data_counts(data)
+    assert said == ("anterior surface 1,853, falciform ligament 30, left inferior ridge 12, portal-vein centres 1"), said
+    assert "_" not in said and data_counts({}) == "none yet"

@@ -589,3 +589,11 @@ def test_a_removed_worst_point_keeps_its_place_and_a_vertex_is_found_by_its_pixe
         with core.lock:
             core.session.contours.remove(contour)
         core.changed(Change.DATA)
+
+
+def test_the_2d_legend_reads_as_a_sentence(app):
+    """The 2D view's legend read "drawn PV contour, drawn HV contour, drawn Posterior surface"."""
+    cs = app.core.new_client_state()
+    app.imaging.show(cs, 0)
+    names = [e["name"] for e in app.view2d_state.view_state(cs.token)["legend"] if e["name"].startswith("drawn")]
+    assert names == ["drawn PV contour", "drawn HV contour", "drawn posterior surface"], names

@@ -79,7 +79,7 @@ class View2D:
         if drawing is not None:
             out["drawing"] = {"feature": drawing.feature, "vertices": [list(v) for v in drawing.vertices]}
         out["legend"] = [{"name": o["name"], "colour": o["colour"]} for o in out["overlays"]] + \
-            [{"name": f"drawn {n}", "colour": DRAWN_COLOURS[f]} for n, f in DRAWABLE.items()]
+            [{"name": f"drawn {_lower(n)}", "colour": DRAWN_COLOURS[f]} for n, f in DRAWABLE.items()]
         out["targets"] = [line.replace("**", "") for line in self.shown.target_plane_lines(index, short=True)]
         return out
 
@@ -188,3 +188,9 @@ class View2D:
                                    section_pixels(probe, T, t.surface.vertices, t.surface.faces)))
         self._overlay_cache[index] = (plane, geom, out)
         return out
+
+
+def _lower(words: str) -> str:
+    """A tool's name inside a legend line: "drawn Posterior surface" read as a title; an
+    abbreviation (PV, HV) keeps its capitals."""
+    return words if words[:2].isupper() else words[:1].lower() + words[1:]
