@@ -265,5 +265,5 @@ def test_the_data_points_are_counted_in_words():
     data = {k: np.zeros((n, 3)) for k, n in (("ridge_left", 12), ("portal_centerline", 1), ("anterior", 1853),
                                              ("falciform", 30), ("posterior", 0))}
     said = data_counts(data)
-    assert said == ("anterior surface 1,853, falciform ligament 30, left inferior ridge 12, portal-vein centres 1"), said
+    assert said == "anterior surface 1,853, falciform ligament 30, left inferior ridge 12, portal-vein centres 1", said
     assert "_" not in said and data_counts({}) == "none yet"
