@@ -267,3 +267,27 @@ def test_the_data_points_are_counted_in_words():
     said = data_counts(data)
     assert said == "anterior surface 1,853, falciform ligament 30, left inferior ridge 12, portal-vein centres 1", said
     assert "_" not in said and data_counts({}) == "none yet"
+
+
+def test_the_pinned_pose_warning_fits_its_box():
+    """Live re-registration on 102 stylus points (Chromium, ``navapp replay``): the pose
+    warning pinned over the 3D view held both doubts whole, 420 characters; viser cuts the box
+    at 200 px, centred, and the surgeon read its middle, the title "Registered pose not to be
+    believed" scrolled out of it. The banner above the panels keeps the whole text."""
+    whole = ("the data cover 4 % of the liver surface (within 10 mm), less than the 10 % a pose needs: the pose may "
+             "be grossly wrong — do not rely on it; digitise more of the surface; the pose is not determined by the "
+             "data: a rotation about left–right axis (tilted, [-0.85, 0.4, 0.35]) leaves every surface distance "
+             "unchanged (the data cover too little or too regular a surface) — add data elsewhere")
+    pinned = []
+    view = ClientView.__new__(ClientView)
+    view.core = types.SimpleNamespace(result=types.SimpleNamespace(run="live (every frame)", pose_warning=whole))
+    view.pose_alert = types.SimpleNamespace(content="", visible=False)
+    view._pinned = {}
+    view.client = types.SimpleNamespace(add_notification=lambda title, body, **kw: pinned.append((title, body)) or
+                                        types.SimpleNamespace(title=title, body=body))
+    view._pose_alert()
+    (title, body), = pinned
+    assert title.startswith("⚠ Registered pose not to be believed")
+    assert len(title) + len(body) <= 280 and body.startswith("the data cover 4 % of the liver surface"), body
+    assert "at the top of the panel" in body
+    assert whole in view.pose_alert.content and view.pose_alert.visible  # the banner: every word
