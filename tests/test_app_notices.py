@@ -33,7 +33,7 @@ def test_a_deformable_run_answered_with_its_pose_says_so_in_a_short_box(small_mo
 
     # the panel: the last run and the result on show name the pose alone
     result = RegisteredState(entry.run, reg.rigid, None)
-    core = types.SimpleNamespace(session=types.SimpleNamespace(log=[entry]), result=result)
+    core = types.SimpleNamespace(session=types.SimpleNamespace(log=[entry]), result=result, shown_runs={})
     panel = types.SimpleNamespace(core=core, md=types.SimpleNamespace(content=""), _stated_supports=lambda: None)
     RegistrationPanel._summary(panel)
     assert panel.md.content.count(POSE_ONLY) == 2 and whole in panel.md.content, panel.md.content
@@ -71,7 +71,7 @@ def test_the_last_run_and_the_result_on_show_read_the_same_mean_error():
     entry = RunEntry(RunKind.ALL.label, 100, 1.0, 3, "converged", 0, False, [], None)
     entry.error_mean_mm, entry.error_max_mm = round(float(err.mean()), 3), round(float(err.max()), 3)
     result = RegisteredState(entry.run, rigid, np.zeros(3), err)
-    core = types.SimpleNamespace(session=types.SimpleNamespace(log=[entry]), result=result)
+    core = types.SimpleNamespace(session=types.SimpleNamespace(log=[entry]), result=result, shown_runs={})
     panel = types.SimpleNamespace(core=core, md=types.SimpleNamespace(content=""), _stated_supports=lambda: None)
     RegistrationPanel._summary(panel)
     assert "mean error 3.92 mm, max" in panel.md.content and "(mean error 3.92 mm)" in panel.md.content, \
@@ -291,3 +291,26 @@ def test_the_pinned_pose_warning_fits_its_box():
     assert len(title) + len(body) <= 280 and body.startswith("the data cover 4 % of the liver surface"), body
     assert "at the top of the panel" in body
     assert whole in view.pose_alert.content and view.pose_alert.visible  # the banner: every word
+
+
+def test_a_warned_result_put_back_on_show_says_its_warning():
+    """Walking the demo: a deformable run warned "the declared supports are not borne out by
+    the data", a rigid run came after it, and the deformable result was put back on show (On
+    show): the panel said "Last: rigid …" and "On show: deformable, all data …" with no word of
+    that result's warning, a bare ⚠ in its row of the run table."""
+    from navapp.registration.rigid import RigidResult
+
+    rigid = RigidResult(np.eye(3), np.zeros(3), 0, 0.0)
+    warned = RunEntry(RunKind.ALL.label, 100, 1.0, 2, "converged", 0, False, [],
+                      "the declared supports are not borne out by the data: check where the organ is held")
+    clean = RunEntry(RunKind.RIGID.label, 100, 0.8, 0, "rigid", 0, False, [], None)
+    states = [RegisteredState(warned.run, rigid, np.zeros(3)), RegisteredState(clean.run, rigid, None)]
+    core = types.SimpleNamespace(session=types.SimpleNamespace(log=[warned, clean]), result=states[1],
+                                 shown_runs={0: (states[0], None, []), 1: (states[1], None, [])})
+    panel = types.SimpleNamespace(core=core, md=types.SimpleNamespace(content=""), _stated_supports=lambda: None)
+    RegistrationPanel._summary(panel)
+    assert "⚠" not in panel.md.content, panel.md.content  # the clean rigid result on show
+    core.result = states[0]  # the warned one put back on show
+    RegistrationPanel._summary(panel)
+    on_show = panel.md.content.split("On show:", 1)[1]
+    assert "⚠ the declared supports are not borne out by the data" in on_show, panel.md.content

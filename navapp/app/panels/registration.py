@@ -378,6 +378,11 @@ class RegistrationPanel:
                 # supports are stated, and this answer is not held at them (the data did not bear them
                 # out, or it was fitted before they were stated): said beside the statement
                 head += "; model free-floating"
+            # an earlier run put back on show (On show) brings its own warning: only the last run's was
+            # said, and a warned result chosen after a clean run read as clean (a bare ⚠ in its row)
+            row = next((r for r, kept in core.shown_runs.items() if kept[0] is res), None)
+            if row is not None and row != len(log) - 1 and row < len(log) and log[row].warning:
+                head += f"  \n⚠ {log[row].warning}"
             if res.predicted_mm is not None:
                 head += (f"  \nPredicted error (no truth used): mean {res.predicted_mm.mean():.1f} mm over the "
                          f"liver surface")
