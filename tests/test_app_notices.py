@@ -314,3 +314,22 @@ def test_a_warned_result_put_back_on_show_says_its_warning():
     RegistrationPanel._summary(panel)
     on_show = panel.md.content.split("On show:", 1)[1]
     assert "⚠ the declared supports are not borne out by the data" in on_show, panel.md.content
+
+
+def test_no_worst_point_on_a_pose_not_to_be_believed_is_no_reassurance():
+    """In Chromium at 1366 × 768, one plane's wall alone registered rigidly 33.5 mm off under the red
+    banner "Registered pose not to be believed", and the panel below said "Worst data points: none
+    beyond its noise — every point lies on the model"."""
+    from navapp.registration.rigid import RigidResult
+
+    rigid = RigidResult(np.eye(3), np.zeros(3), 0, 0.0)
+    result = RegisteredState("rigid", rigid, None, pose_warning="the data cover 0 % of the liver surface")
+    panel = types.SimpleNamespace(core=types.SimpleNamespace(result=result, worst=[]),
+                                  app=types.SimpleNamespace(drawing=types.SimpleNamespace(gone=lambda w: False)),
+                                  worst_md=types.SimpleNamespace(content=""), btn_worst=[])
+    RegistrationPanel._worst(panel)
+    assert "every point lies on the model" not in panel.worst_md.content
+    assert "not to be believed" in panel.worst_md.content, panel.worst_md.content
+    result.pose_warning = None  # a believable pose: the reassurance holds
+    RegistrationPanel._worst(panel)
+    assert "every point lies on the model" in panel.worst_md.content

@@ -278,6 +278,11 @@ class RegistrationPanel:
         elif self.core.worst is None:
             self.worst_md.content = ("**Worst data points**: not known for this result, restored after a restart: "
                                      "the data have changed since it was fitted. Register again to list them.")
+        elif not worst and self.core.result.pose_warning:
+            # the points fit a pose nobody should believe (one plane's wall, 33 mm off): "every point
+            # lies on the model" read as reassurance beside the red banner
+            self.worst_md.content = ("**Worst data points**: none beyond its noise — the points fit the model, but "
+                                     "in a pose not to be believed (the red banner): add data elsewhere, not fewer.")
         elif not worst:
             self.worst_md.content = "**Worst data points**: none beyond its noise — every point lies on the model."
         else:
