@@ -33,7 +33,7 @@ def test_a_deformable_run_answered_with_its_pose_says_so_in_a_short_box(small_mo
 
     # the panel: the last run and the result on show name the pose alone
     result = RegisteredState(entry.run, reg.rigid, None)
-    core = types.SimpleNamespace(session=types.SimpleNamespace(log=[entry]), result=result)
+    core = types.SimpleNamespace(session=types.SimpleNamespace(log=[entry]), result=result, shown_runs={})
     panel = types.SimpleNamespace(core=core, md=types.SimpleNamespace(content=""), _stated_supports=lambda: None)
     RegistrationPanel._summary(panel)
     assert panel.md.content.count(POSE_ONLY) == 2 and whole in panel.md.content, panel.md.content
@@ -71,7 +71,7 @@ def test_the_last_run_and_the_result_on_show_read_the_same_mean_error():
     entry = RunEntry(RunKind.ALL.label, 100, 1.0, 3, "converged", 0, False, [], None)
     entry.error_mean_mm, entry.error_max_mm = round(float(err.mean()), 3), round(float(err.max()), 3)
     result = RegisteredState(entry.run, rigid, np.zeros(3), err)
-    core = types.SimpleNamespace(session=types.SimpleNamespace(log=[entry]), result=result)
+    core = types.SimpleNamespace(session=types.SimpleNamespace(log=[entry]), result=result, shown_runs={})
     panel = types.SimpleNamespace(core=core, md=types.SimpleNamespace(content=""), _stated_supports=lambda: None)
     RegistrationPanel._summary(panel)
     assert "mean error 3.92 mm, max" in panel.md.content and "(mean error 3.92 mm)" in panel.md.content, \
@@ -208,3 +208,128 @@ def test_a_clean_run_takes_down_the_red_box_of_a_warned_one():
     assert [b.title for b in shown if b.red] == [CHECK_THE_FIT]
     tell(core, clean, [], [], [])
     assert not [b for b in shown if b.red], [(b.title, b.body) for b in shown]
+
+
+def test_the_stylus_distances_go_with_the_stylus():
+    """Walking the demo in Chromium: when the sweep ended the stylus was no longer drawn, but
+    "tumour1: 87.2 mm from the stylus tip" stayed in the Stylus panel (a tab opened since
+    showed no distance at all)."""
+    from navapp.app.panels.stylus import StylusPanel
+
+    panel = StylusPanel.__new__(StylusPanel)
+    panel.btn, panel.dist = types.SimpleNamespace(label=""), types.SimpleNamespace(content="")
+    panel.app = types.SimpleNamespace(shown=types.SimpleNamespace(
+        target_distance_lines=lambda tip: ["**tumour1**: 87.2 mm from the stylus tip"]))
+    panel.show_tip(np.zeros(3))
+    assert "87.2 mm from the stylus tip" in panel.dist.content and panel.btn.label == "Stop digitising"
+    panel.show_tip(None)  # the sweep is over: the tool is gone, and its distances with it
+    assert panel.dist.content == "" and panel.btn.label == "Digitise the anterior surface"
+
+
+def test_a_tab_open_during_start_up_loses_its_progress_bar_when_ready(cache_root, tmp_path):
+    """A tab open while the server started (a reload across a restart) kept the progress bar,
+    full, under "Ready." for good: the status was sent before start-up counted as over."""
+    import threading
+    import time
+
+    from conftest import free_port, stop_app
+    from test_app_server import SCENE
+
+    from navapp.app.server import App
+    from navapp.app.state import Change
+    from navapp.simulation.scene import parse_scene
+
+    app = App(parse_scene(SCENE), port=free_port(), session_dir=tmp_path / "session", edge=12.0, k=12,
+              cache_root=cache_root)
+    view = ClientView.__new__(ClientView)
+    view.core, view.lock = app.core, threading.RLock()
+    view.status = types.SimpleNamespace(content="")
+    view.bar = types.SimpleNamespace(visible=True, animated=True, value=0.0)
+    view.refresh = lambda what: ClientView._refresh(view, what) if what is Change.STATUS else None
+    app.core.views[-1] = view  # connected before start-up
+    try:
+        assert app.start().wait(600) and app.core.failed is None
+        end = time.monotonic() + 10.0
+        while view.bar.visible and time.monotonic() < end:
+            time.sleep(0.05)
+        assert view.status.content.startswith("**Ready.") and not view.bar.visible, (view.status, view.bar)
+    finally:
+        stop_app(app)
+
+
+def test_the_data_points_are_counted_in_words():
+    """The Ultrasound panel read "Data points: anterior 853, falciform 30, portal_centerline 1,
+    portal_contour 67, ridge_left 12, ridge_right 98": the program's keys, not words."""
+    from navapp.app.palette import data_counts
+
+    data = {k: np.zeros((n, 3)) for k, n in (("ridge_left", 12), ("portal_centerline", 1), ("anterior", 1853),
+                                             ("falciform", 30), ("posterior", 0))}
+    said = data_counts(data)
+    assert said == "anterior surface 1,853, falciform ligament 30, left inferior ridge 12, portal-vein centres 1", said
+    assert "_" not in said and data_counts({}) == "none yet"
+
+
+def test_the_pinned_pose_warning_fits_its_box():
+    """Live re-registration on 102 stylus points (Chromium, ``navapp replay``): the pose
+    warning pinned over the 3D view held both doubts whole, 420 characters; viser cuts the box
+    at 200 px, centred, and the surgeon read its middle, the title "Registered pose not to be
+    believed" scrolled out of it. The banner above the panels keeps the whole text."""
+    whole = ("the data cover 4 % of the liver surface (within 10 mm), less than the 10 % a pose needs: the pose may "
+             "be grossly wrong — do not rely on it; digitise more of the surface; the pose is not determined by the "
+             "data: a rotation about left–right axis (tilted, [-0.85, 0.4, 0.35]) leaves every surface distance "
+             "unchanged (the data cover too little or too regular a surface) — add data elsewhere")
+    pinned = []
+    view = ClientView.__new__(ClientView)
+    view.core = types.SimpleNamespace(result=types.SimpleNamespace(run="live (every frame)", pose_warning=whole))
+    view.pose_alert = types.SimpleNamespace(content="", visible=False)
+    view._pinned = {}
+    view.client = types.SimpleNamespace(add_notification=lambda title, body, **kw: pinned.append((title, body)) or
+                                        types.SimpleNamespace(title=title, body=body))
+    view._pose_alert()
+    (title, body), = pinned
+    assert title.startswith("⚠ Registered pose not to be believed")
+    assert len(title) + len(body) <= 280 and body.startswith("the data cover 4 % of the liver surface"), body
+    assert "at the top of the panel" in body
+    assert whole in view.pose_alert.content and view.pose_alert.visible  # the banner: every word
+
+
+def test_a_warned_result_put_back_on_show_says_its_warning():
+    """Walking the demo: a deformable run warned "the declared supports are not borne out by
+    the data", a rigid run came after it, and the deformable result was put back on show (On
+    show): the panel said "Last: rigid …" and "On show: deformable, all data …" with no word of
+    that result's warning, a bare ⚠ in its row of the run table."""
+    from navapp.registration.rigid import RigidResult
+
+    rigid = RigidResult(np.eye(3), np.zeros(3), 0, 0.0)
+    warned = RunEntry(RunKind.ALL.label, 100, 1.0, 2, "converged", 0, False, [],
+                      "the declared supports are not borne out by the data: check where the organ is held")
+    clean = RunEntry(RunKind.RIGID.label, 100, 0.8, 0, "rigid", 0, False, [], None)
+    states = [RegisteredState(warned.run, rigid, np.zeros(3)), RegisteredState(clean.run, rigid, None)]
+    core = types.SimpleNamespace(session=types.SimpleNamespace(log=[warned, clean]), result=states[1],
+                                 shown_runs={0: (states[0], None, []), 1: (states[1], None, [])})
+    panel = types.SimpleNamespace(core=core, md=types.SimpleNamespace(content=""), _stated_supports=lambda: None)
+    RegistrationPanel._summary(panel)
+    assert "⚠" not in panel.md.content, panel.md.content  # the clean rigid result on show
+    core.result = states[0]  # the warned one put back on show
+    RegistrationPanel._summary(panel)
+    on_show = panel.md.content.split("On show:", 1)[1]
+    assert "⚠ the declared supports are not borne out by the data" in on_show, panel.md.content
+
+
+def test_no_worst_point_on_a_pose_not_to_be_believed_is_no_reassurance():
+    """In Chromium at 1366 × 768, one plane's wall alone registered rigidly 33.5 mm off under the red
+    banner "Registered pose not to be believed", and the panel below said "Worst data points: none
+    beyond its noise — every point lies on the model"."""
+    from navapp.registration.rigid import RigidResult
+
+    rigid = RigidResult(np.eye(3), np.zeros(3), 0, 0.0)
+    result = RegisteredState("rigid", rigid, None, pose_warning="the data cover 0 % of the liver surface")
+    panel = types.SimpleNamespace(core=types.SimpleNamespace(result=result, worst=[]),
+                                  app=types.SimpleNamespace(drawing=types.SimpleNamespace(gone=lambda w: False)),
+                                  worst_md=types.SimpleNamespace(content=""), btn_worst=[])
+    RegistrationPanel._worst(panel)
+    assert "every point lies on the model" not in panel.worst_md.content
+    assert "not to be believed" in panel.worst_md.content, panel.worst_md.content
+    result.pose_warning = None  # a believable pose: the reassurance holds
+    RegistrationPanel._worst(panel)
+    assert "every point lies on the model" in panel.worst_md.content

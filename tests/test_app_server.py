@@ -12,7 +12,7 @@ import pytest
 from conftest import BUSY_WAIT_S, start_app, stop_app
 
 from navapp.app.panels.registration import BUTTONS
-from navapp.app.state import CARRIED, Run, RunKind
+from navapp.app.state import CARRIED, Change, Run, RunKind
 from navapp.fitwarning import WarningKind
 from navapp.registration.uncertainty import OrganError
 
@@ -511,3 +511,89 @@ def test_a_restarted_server_restores_the_session_and_the_registered_model(app, c
     finally:
         again.server.stop()
         again.view2d.stop()
+
+
+def test_a_first_run_names_the_tumour_distances_preoperative_until_its_first_state(app):
+    """Walking the demo in Chromium: while the first registration ran (a rigid run's whole
+    length, before it streamed a state) the Ultrasound panel and the 2D view said "tumour1
+    (registered): 8.0 mm from this image", the preoperative distance, named registered."""
+    wait_idle(app)
+    core = app.core
+    if core.result is None:  # this test alone
+        app.stylus.collect_now()
+        assert app.runs.start(RunKind.RIGID) is None
+        wait_idle(app)
+    with core.lock:
+        kept = core.result
+        core.result, core.run = None, Run(RunKind.RIGID, 100, time.monotonic())
+    try:
+        lines = app.shown.target_plane_lines(0)
+        assert lines and all("(preoperative)" in line for line in lines), lines
+        with core.lock:
+            core.run.state, core.run.model = (kept.rigid, kept.beta), kept.model  # its first state came
+        assert all("(registered)" in line for line in app.shown.target_plane_lines(0))
+    finally:
+        with core.lock:
+            core.result, core.run = kept, None
+
+
+def test_a_removed_worst_point_keeps_its_place_and_a_vertex_is_found_by_its_pixel(app):
+    """Walking the demo in Chromium, a double click on "Remove 1 (3.2 mm)" removed two points:
+    the list closed up after the first removal and the second click took the point listed
+    after it. And a drawn vertex was removed by the index it had when the list was made: once
+    an earlier vertex of its contour was removed, "Remove 2" took the vertex after it, a good
+    click, and the 2D view's red ring moved onto that one."""
+    from navapp.app.contours import Origin, OriginKind
+    from navapp.app.state import WorstPoint
+
+    wait_idle(app)
+    core, drawing = app.core, app.drawing
+    cs = core.new_client_state()
+    app.imaging.show(cs, 1)
+    clicks = [(40 + 15 * i, 120) for i in range(6)]
+    for c, r in clicks:
+        assert drawing.click(cs, c, r, "Posterior surface") is None
+    assert drawing.command(cs, "Finish line") is None
+    contour = core.session.contours[-1]
+    assert contour.vertices == clicks
+    if "anterior" not in core.data():  # this test alone
+        app.stylus.collect_now()
+    stylus = tuple(float(x) for x in core.data()["anterior"][0])
+    listed = [WorstPoint("posterior", 20.0 - v, False, Origin(OriginKind.CONTOUR, contour, clicks[v], 1),
+                         (0.0, 0.0, 0.0), f"drawn vertex {v + 1}", v) for v in (1, 3)]
+    listed.append(WorstPoint("anterior", 9.0, False, Origin(OriginKind.STYLUS), stylus, "stylus sweep"))
+    kept = core.worst
+    core.worst = listed
+    try:
+        said = [drawing.remove(cs, core.worst[0]) for _ in range(2)]  # a double click on "Remove 1"
+        assert said[0].startswith("Removed the drawn vertex") and "already" in said[1], said
+        assert contour.vertices == [clicks[i] for i in (0, 2, 3, 4, 5)]
+        assert core.worst == listed  # not renumbered: "Remove 2" is still vertex 4
+        assert drawing.remove(cs, core.worst[1]).startswith("Removed the drawn vertex")
+        assert contour.vertices == [clicks[i] for i in (0, 2, 4, 5)]  # vertex 4 went, not vertex 5
+        for _ in range(2):
+            drawing.remove(cs, core.worst[2])
+        assert core.session.excluded.count([*stylus, "anterior"]) == 1
+        assert [drawing.gone(w) for w in core.worst] == [True, True, True]
+        for _ in range(3):
+            assert drawing.command(cs, "Undo") is None
+        assert contour.vertices == clicks and core.session.excluded.count([*stylus, "anterior"]) == 0
+        assert [drawing.gone(w) for w in core.worst] == [False, False, False]
+        # the 2D view rings a listed vertex where it is now: with vertex 2 removed, vertex 4 is at index 2
+        assert drawing.remove(cs, core.worst[0]).startswith("Removed the drawn vertex")
+        drawn = next(c for c in app.view2d_state.view_state(cs.token)["contours"]
+                     if [tuple(v) for v in c["vertices"]] == contour.vertices)
+        assert [f["v"] for f in drawn["flags"]] == [2], drawn["flags"]
+    finally:
+        core.worst = kept
+        with core.lock:
+            core.session.contours.remove(contour)
+        core.changed(Change.DATA)
+
+
+def test_the_2d_legend_reads_as_a_sentence(app):
+    """The 2D view's legend read "drawn PV contour, drawn HV contour, drawn Posterior surface"."""
+    cs = app.core.new_client_state()
+    app.imaging.show(cs, 0)
+    names = [e["name"] for e in app.view2d_state.view_state(cs.token)["legend"] if e["name"].startswith("drawn")]
+    assert names == ["drawn PV contour", "drawn HV contour", "drawn posterior surface"], names

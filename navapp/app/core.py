@@ -442,6 +442,9 @@ class Core:
         finally:
             progress.remove_listener(listener)
             self.ready.set()
+            # the tabs' status again, now that start-up is over: "Ready." was shown before ``ready``
+            # was set, and a tab open during start-up kept its progress bar, full, under it
+            self.each_view(lambda v: v.refresh(Change.STATUS))
 
     def _fail(self, message: str):
         self.failed = message

@@ -279,17 +279,33 @@ class Drawing:
             core.record(cs, *done)
         return msg
 
+    def gone(self, wp: WorstPoint) -> bool:
+        """Whether a listed worst point is out of the data now (removed from the list, its
+        contour cleared or undone): the list keeps it in its place, marked, until the next fit."""
+        session = self.core.need_session()
+        with self.core.lock:
+            c = wp.origin.contour
+            if c is not None and wp.vertex is not None:
+                return c not in session.contours or wp.origin.vertex() is None
+            return [*wp.point, wp.feature] in session.excluded
+
     def remove(self, cs: ClientState, wp: WorstPoint) -> str:
         """Remove one of the worst points (``Core.worst``) from the data, as this tab's undoable
         action: a drawn contour's point as the vertex it came from, any other point itself.
-        Returns what happened, in words."""
+        Returns what happened, in words.
+
+        The list is not renumbered: a point removed stays in its place, marked, so a second
+        click on its button (a double click, or two tabs at once) finds it removed rather than
+        taking the point listed after it. A drawn vertex is found by its pixel: an index taken
+        when the list was made named the next vertex once an earlier one of its contour was
+        removed."""
         core = self.core
         session = core.need_session()
         with core.lock:
-            c, v = wp.origin.contour, wp.vertex
-            if c is not None and v is not None:
-                if c not in session.contours or v >= len(c.vertices):
-                    return "That vertex is gone already."
+            if self.gone(wp):
+                return "That point is out of the data already."
+            c, v = wp.origin.contour, wp.origin.vertex()
+            if c is not None and v is not None and wp.vertex is not None:
                 vertex = c.vertices.pop(v)
                 was_closed = c.closed
                 c.closed = c.closed and len(c.vertices) >= 3
@@ -305,7 +321,6 @@ class Drawing:
                 session.excluded.append(entry)
                 cs.undo.append(PointExcluded(session, entry))
                 msg = "Removed the point."
-            core.worst = [w for w in core.worst or [] if w is not wp]
             cs.touch()
         core.changed(Change.DATA)
         core.record(cs, Act.REMOVE, f"{wp.feature} at {np.round(wp.point, 1).tolist()} mm: {msg}")

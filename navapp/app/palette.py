@@ -77,3 +77,13 @@ def feature_words(name: str) -> str:
     """A data feature as a sentence says it ("portal-vein contours")."""
     f = BY_NAME.get(name)
     return f.words if f is not None else name
+
+
+def data_counts(data: dict) -> str:
+    """The data's points per feature in words, in the features' table order ("anterior surface
+    853, falciform ligament 30"): the Ultrasound panel listed the keys ("ridge_left 12,
+    portal_centerline 1"); "none yet" without data."""
+    order = {f.name: i for i, f in enumerate(TABLE)}
+    parts = [f"{feature_words(k).removeprefix('the ')} {len(v):,}"
+             for k, v in sorted(data.items(), key=lambda kv: (order.get(kv[0], len(order)), kv[0])) if len(v)]
+    return ", ".join(parts) or "none yet"

@@ -491,7 +491,7 @@ def fit_notice(warnings: list[FitWarning], pose_only: bool, left_out: tuple[int,
     """The red box's words after a run that warned: each warning's head, what is shown, and
     where the whole text is. The box is a few lines high over the 3D view (viser clips it at
     200 px, centred): the whole warnings, each a sentence or two, showed only their middles."""
-    heads = [_clip(w.head, NOTICE_HEAD) for w in warnings]
+    heads = [clip_words(w.head, NOTICE_HEAD) for w in warnings]
     text = "⚠ " + "; ".join(heads) + "."
     if pose_only:
         text += " Shown: the pose alone, without deformation."
@@ -500,8 +500,9 @@ def fit_notice(warnings: list[FitWarning], pose_only: bool, left_out: tuple[int,
     return text + " The whole text is in the Registration panel."
 
 
-def _clip(text: str, n: int) -> str:
-    return text if len(text) <= n else text[:n].rsplit(" ", 1)[0].rstrip(" ,;(") + "…"
+def clip_words(text: str, n: int) -> str:
+    """``text`` cut to at most ``n`` characters at a word, with "…" where it was cut."""
+    return text if len(text) <= n else text[:n].rsplit(" ", 1)[0].rstrip(" ,;:(") + "…"
 
 
 def _points(left_out: tuple[int, int]) -> str:

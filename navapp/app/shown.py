@@ -171,29 +171,38 @@ class Shown:
         return g
 
     # ------------------------------------------------------------------ target readouts
-    def _which(self) -> str:
-        return "registered" if (self.core.result is not None or self.core.run is not None) else "preoperative"
-
     def target_plane_lines(self, index: int, short: bool = False) -> list[str]:
         """One line per target: its distance from this plane's image (0: the image cuts it)
         and, for a result on show, its predicted error (and the result's warning for it;
         ``short``: its first clause, ``TargetBand.text``)."""
         core = self.core
-        targets = self.geometry().targets
+        g = self.geometry()
+        targets = g.targets
         if not targets or index not in core.planes or core.sd is None:
             return []
+        # named by the state the distances are of: a first run had them "registered" while they were
+        # still the preoperative ones (until its first state came; a rigid run's whole length)
+        which = "registered" if g.rigid is not None else "preoperative"
         p = core.sd.probe
         plane = ImagePlane.from_pose(core.planes[index].probe_to_tracker, p.width_px * p.spacing_mm,
                                      p.height_px * p.spacing_mm)
         bands = {b.name: b for b in core.result.target_bands} if core.result is not None else {}
+        # the result on show is the state drawn (no run streaming one of its own) and nobody should believe its pose
+        doubted = (core.result is not None and bool(core.result.pose_warning)
+                   and g.rigid is core.result.rigid and g.beta is core.result.beta)
         out = []
         for t, d in zip(targets, plane_distances(plane, targets), strict=True):
             # kept while a run streams: it is the band of the result still on show (Cancel keeps
             # it), and lines that lost it moved the Registration panel's Cancel from under the mouse
             band = bands.get(t.name)
-            out.append(f"**{t.name}** ({self._which()}): " +
+            said = band.text(short) if band is not None else ""
+            if not said and doubted:
+                # a rigid answer has no band: one plane's wall 33.5 mm off read "tumour1 (registered):
+                # in this image", nothing beside it, under the red banner
+                said = "⚠ pose not to be believed"
+            out.append(f"**{t.name}** ({which}): " +
                        ("in this image" if d <= IN_IMAGE_MM else f"{d:.1f} mm from this image") +
-                       (f"; {band.text(short)}" if band is not None else ""))
+                       (f"; {said}" if said else ""))
         return out
 
     def target_distance_lines(self, tip) -> list[str]:

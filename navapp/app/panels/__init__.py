@@ -15,6 +15,7 @@ from viser import NotificationHandle
 from ..access import OBSERVING, Role
 from ..core import ON_CONNECT
 from ..framing import DOCK_2D_PX, Screen, dock_width
+from ..runs import clip_words
 from ..state import Change, ClientState
 from .accuracy import AccuracyPanel
 from .guide import GuidePanel
@@ -26,6 +27,7 @@ from .tracking import TrackingPanel
 from .ultrasound import UltrasoundPanel
 
 OBSERVER_NOTE = "this view shows everything live and changes nothing."
+PIN_CHARS = 90  # of the pose warning in the box pinned over the 3D view (title and all fit its 200 px)
 DISTANCE_TEXT_S = 0.2  # tumour-distance text refreshed at most this often while a tracked tip moves
 
 
@@ -155,8 +157,12 @@ class ClientView:
         if self.pose_alert.content != html:
             self.pose_alert.content = html
         self.pose_alert.visible = True
+        # the pinned box is cut at 200 px, centred: the whole text (two doubts, live re-registration)
+        # showed its middle, the title scrolled out of it; the banner above the panels keeps it whole
+        said = clip_words(res.pose_warning, PIN_CHARS)
         self._pin("pose", (f"⚠ Registered pose not to be believed ({res.run})",
-                           f"{res.pose_warning}. Re-register and live re-registration will not continue from it."))
+                           f"{said}{' ' if said.endswith('…') else '. '}Re-register and live re-registration will "
+                           "not continue from it. The whole text is at the top of the panel."))
 
     def _pin(self, key: str, text: tuple[str, str] | None):
         """A red notification over the 3D view while ``text`` (title, body) holds; removed

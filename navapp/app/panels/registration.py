@@ -270,21 +270,31 @@ class RegistrationPanel:
 
     def _worst(self):
         worst = list(self.core.worst or [])
+        # a point removed keeps its place, marked, its button disabled (``Drawing.remove``): the list
+        # closed up under the mouse, and a double click on "Remove 1" removed the point after it too
+        gone = [self.app.drawing.gone(w) for w in worst]
         if self.core.result is None:
             self.worst_md.content = ""
         elif self.core.worst is None:
             self.worst_md.content = ("**Worst data points**: not known for this result, restored after a restart: "
                                      "the data have changed since it was fitted. Register again to list them.")
+        elif not worst and self.core.result.pose_warning:
+            # the points fit a pose nobody should believe (one plane's wall, 33 mm off): "every point
+            # lies on the model" read as reassurance beside the red banner
+            self.worst_md.content = ("**Worst data points**: none beyond its noise — the points fit the model, but "
+                                     "in a pose not to be believed (the red banner): add data elsewhere, not fewer.")
         elif not worst:
             self.worst_md.content = "**Worst data points**: none beyond its noise — every point lies on the model."
         else:
-            lines = [f"{i + 1}. {w.text()}" for i, w in enumerate(worst)]
+            lines = [f"{i + 1}. " + (f"~~{w.text()}~~ — removed" if out else w.text())
+                     for i, (w, out) in enumerate(zip(worst, gone, strict=True))]
             self.worst_md.content = ("**Worst data points** (distance to the registered model; remove a wrong one, "
                                      "then register again):  \n" + "  \n".join(lines))
         for i, b in enumerate(self.btn_worst):
             b.visible = i < len(worst)
             if i < len(worst):
-                b.label = f"Remove {i + 1} ({worst[i].residual_mm:.1f} mm)"
+                b.disabled = gone[i]
+                b.label = f"{i + 1} removed" if gone[i] else f"Remove {i + 1} ({worst[i].residual_mm:.1f} mm)"
 
     def refresh(self, what: Change):
         core, live = self.core, self.app.live
@@ -373,6 +383,11 @@ class RegistrationPanel:
                 # supports are stated, and this answer is not held at them (the data did not bear them
                 # out, or it was fitted before they were stated): said beside the statement
                 head += "; model free-floating"
+            # an earlier run put back on show (On show) brings its own warning: only the last run's was
+            # said, and a warned result chosen after a clean run read as clean (a bare ⚠ in its row)
+            row = next((r for r, kept in core.shown_runs.items() if kept[0] is res), None)
+            if row is not None and row != len(log) - 1 and row < len(log) and log[row].warning:
+                head += f"  \n⚠ {log[row].warning}"
             if res.predicted_mm is not None:
                 head += (f"  \nPredicted error (no truth used): mean {res.predicted_mm.mean():.1f} mm over the "
                          f"liver surface")

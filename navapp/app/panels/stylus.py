@@ -30,6 +30,9 @@ class StylusPanel:
     def show_tip(self, pos):
         if pos is None:
             self.btn.label = "Digitise the anterior surface"
+            # the tool is no longer drawn: its last distances stayed beside it ("87.2 mm from the
+            # stylus tip" after the sweep, while a tab opened since showed none)
+            self.dist.content = ""
             return
         self.btn.label = "Stop digitising"
         lines = self.app.shown.target_distance_lines(pos)

@@ -10,7 +10,7 @@ import viser.transforms as vtf
 from ...geometry.transforms import homogeneous
 from ..drawing import Command
 from ..framing import DOCK_2D_PX
-from ..palette import DRAWABLE
+from ..palette import DRAWABLE, data_counts
 from ..state import Change
 from .layers import wxyz
 
@@ -118,7 +118,7 @@ class UltrasoundPanel:
                 added = [imaging.label(i) for i in session.planes_added]
                 drawn = [c for c in session.contours if c.vertices]
                 data = session.data(sd, planes)
-            counts = ", ".join(f"{k} {len(v)}" for k, v in sorted(data.items())) or "none yet"
+            counts = data_counts(data)
             self.info.content = (f"Planes added as data: {', '.join(added) if added else 'none'}.  \n"
                                  f"Contours drawn: {len(drawn)} ({sum(c.closed for c in drawn)} closed).  \n"
                                  f"Data points: {counts}")

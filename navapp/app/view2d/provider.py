@@ -68,17 +68,18 @@ class View2D:
                 cols, rows = contour_pixels(c)
                 centroid = [float(cols.mean()), float(rows.mean())]
             # the last fit's worst points drawn on this contour: a ring and the residual at the vertex
-            n = len(c.vertices)
-            flags = [{"v": w.vertex, "text": f"{w.residual_mm:.1f} mm" + (" (not used)" if w.rejected else ""),
+            # found by its pixel: the index the list was made with named the next vertex once an
+            # earlier vertex of the contour had been removed (the ring moved onto a good click)
+            flags = [{"v": v, "text": f"{w.residual_mm:.1f} mm" + (" (not used)" if w.rejected else ""),
                       "colour": WORST_POINT} for w in worst
-                     if w.origin.contour is c and w.vertex is not None and w.vertex < n]
+                     if w.origin.contour is c and w.vertex is not None and (v := w.origin.vertex()) is not None]
             out["contours"].append({"feature": c.feature, "colour": DRAWN_COLOURS.get(c.feature, "#fff"),
                                     "vertices": [list(v) for v in c.vertices], "closed": c.closed,
                                     "centroid": centroid, "flags": flags})
         if drawing is not None:
             out["drawing"] = {"feature": drawing.feature, "vertices": [list(v) for v in drawing.vertices]}
         out["legend"] = [{"name": o["name"], "colour": o["colour"]} for o in out["overlays"]] + \
-            [{"name": f"drawn {n}", "colour": DRAWN_COLOURS[f]} for n, f in DRAWABLE.items()]
+            [{"name": f"drawn {_lower(n)}", "colour": DRAWN_COLOURS[f]} for n, f in DRAWABLE.items()]
         out["targets"] = [line.replace("**", "") for line in self.shown.target_plane_lines(index, short=True)]
         return out
 
@@ -187,3 +188,9 @@ class View2D:
                                    section_pixels(probe, T, t.surface.vertices, t.surface.faces)))
         self._overlay_cache[index] = (plane, geom, out)
         return out
+
+
+def _lower(words: str) -> str:
+    """A tool's name inside a legend line: "drawn Posterior surface" read as a title; an
+    abbreviation (PV, HV) keeps its capitals."""
+    return words if words[:2].isupper() else words[:1].lower() + words[1:]
