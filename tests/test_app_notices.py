@@ -333,3 +333,25 @@ def test_no_worst_point_on_a_pose_not_to_be_believed_is_no_reassurance():
     result.pose_warning = None  # a believable pose: the reassurance holds
     RegistrationPanel._worst(panel)
     assert "every point lies on the model" in panel.worst_md.content
+
+
+def test_the_worst_points_of_a_rigid_answer_are_said_to_be_mostly_its_deformation():
+    """Walking the demo: after a rigid fit, Worst data points listed 7 mm stylus-sweep points
+    with "remove a wrong one" — the deformation a rigid fit cannot follow, good data a surgeon
+    would be invited to remove. A deformable answer's list keeps the plain invitation."""
+    from navapp.app.state import WorstPoint
+    from navapp.registration.rigid import RigidResult
+
+    rigid = RigidResult(np.eye(3), np.zeros(3), 0, 0.0)
+    point = WorstPoint("anterior", 7.1, False, None, (0.0, 0.0, 0.0), "anterior surface, stylus sweep", None)
+    result = RegisteredState("rigid", rigid, None)
+    panel = types.SimpleNamespace(core=types.SimpleNamespace(result=result, worst=[point]),
+                                  app=types.SimpleNamespace(drawing=types.SimpleNamespace(gone=lambda w: False)),
+                                  worst_md=types.SimpleNamespace(content=""),
+                                  btn_worst=[types.SimpleNamespace(visible=False, disabled=False, label="")])
+    RegistrationPanel._worst(panel)
+    assert "register deformably before removing any" in panel.worst_md.content, panel.worst_md.content
+    assert "remove a wrong one" not in panel.worst_md.content
+    result.beta = np.zeros(3)  # a deformable answer: a point still this far off may be a wrong one
+    RegistrationPanel._worst(panel)
+    assert "remove a wrong one" in panel.worst_md.content and "deformably" not in panel.worst_md.content

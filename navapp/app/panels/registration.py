@@ -288,8 +288,15 @@ class RegistrationPanel:
         else:
             lines = [f"{i + 1}. " + (f"~~{w.text()}~~ — removed" if out else w.text())
                      for i, (w, out) in enumerate(zip(worst, gone, strict=True))]
-            self.worst_md.content = ("**Worst data points** (distance to the registered model; remove a wrong one, "
-                                     "then register again):  \n" + "  \n".join(lines))
+            # a rigid answer does not follow the organ's deformation: its worst points are mostly that
+            # deformation (7 mm stylus points on the demo), and "remove a wrong one" invited removing good data
+            head = ("**Worst data points** (distance to the rigid answer, which does not follow the organ's "
+                    "deformation: most of these distances are that deformation — register deformably before "
+                    "removing any, and remove only a point you know is wrong):  \n"
+                    if self.core.result.beta is None else
+                    "**Worst data points** (distance to the registered model; remove a wrong one, "
+                    "then register again):  \n")
+            self.worst_md.content = head + "  \n".join(lines)
         for i, b in enumerate(self.btn_worst):
             b.visible = i < len(worst)
             if i < len(worst):
